@@ -1,0 +1,25 @@
+# Quickstart: `make demo` then `make test`. Both bootstrap .venv from nothing.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	JAX_PLATFORMS=cpu $(PY) -m cpgjax.demo
+
+test: $(STAMP)
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q
+
+bench: $(STAMP)
+	JAX_PLATFORMS=cpu $(PY) benchmarks/rollout.py --quick
+
+clean:
+	rm -rf $(VENV) .pytest_cache

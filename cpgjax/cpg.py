@@ -1,0 +1,196 @@
+"""The CPG controller of the paper as one pure, jit-able 1 kHz step.
+
+Oscillators (paper eqs. 1-3, Tegotae eq. 6), foot trajectories (eqs. 4-5), inverse kinematics and joint PD
+(τ_ref, K_p = 70, K_d = 1.3), and Virtual Model Control (τ_vmc, decisions.md §7): τ_cmd = τ_ref + τ_vmc, clipped
+to the Go1 motor limits. The same ``controller_step`` runs in MJX, in C MuJoCo and on the robot.
+
+Equation numbers follow the paper's displayed equations in order:
+  (1) ṙ_i = α(μ² − r_i²) r_i                               amplitude
+  (2) θ̇_i = ω_i + Σ_j r_j w_ij sin(θ_j − θ_i − φ_ij)        phase, open loop
+  (3) ω_i = ω_swing if sin θ_i > 0 else ω_stance; Φ (trot)
+  (4) x_i,foot = x_i,offset − d_step r_i cos θ_i
+  (5) z_i,foot = −h + g_c sin θ_i (swing) | −h + g_p sin θ_i (stance)
+  (6) θ̇_i = (2) − σ_N N_i cos θ_i                          Tegotae force feedback
+
+The four controllers of the paper's ablation differ only by data (``Gates``): one compiled batch can mix them.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cpgjax import kinematics
+from cpgjax.params import NUM_PARAMS
+
+# Trot phase lags φ_ij (eq. 3), leg order FR, FL, RR, RL.
+TROT_PHASE_LAG_RAD = np.pi * np.array([[0, 1, 1, 0], [-1, 0, 0, -1], [-1, 0, 0, -1], [0, 1, 1, 0]], dtype=np.float64)
+TORQUE_LIMIT_NM = np.tile(np.array([23.7, 23.7, 35.55]), 4)  # hip, thigh, calf x 4 legs
+
+CONTROLLERS = ("open_loop", "vmc", "tegotae", "vmc_tegotae")
+
+
+class CPGConfig(NamedTuple):
+    """Fixed control constants (paper appendix table "Control parameters"). Static: changing one recompiles."""
+
+    alpha: float = 50.0  # amplitude convergence rate α
+    coupling_weight: float = 1.0  # w_ij
+    step_length_m: float = 0.05  # d_step
+    body_height_m: float = 0.30  # h
+    foot_y_m: float = 0.08  # lateral foot position in the leg frame (the hip offset l1)
+    kp_nm_rad: float = 70.0  # joint PD K_p
+    kd_nm_s_rad: float = 1.3  # joint PD K_d
+    k_att_roll_n: float = 150.0  # VMC roll gain k_att,r
+    k_att_pitch_n: float = 160.0  # VMC pitch gain k_att,p
+    k_dir_n_rad: float = 300.0  # VMC heading gain k_dir
+    dt_s: float = 0.001  # control period (1 kHz)
+    # decisions.md §1 (switch): "paper" integrates α(μ² − r²)r (r → μ); "sqrt" integrates α(μ − r²)r (r → √μ),
+    # the form of the lab's public code.
+    amplitude_form: str = "paper"
+
+
+class Gates(NamedTuple):
+    """Per-instance controller variant as data: 1.0 enables a module, 0.0 disables it. Shape () each."""
+
+    vmc: jax.Array
+    tegotae: jax.Array
+
+
+def controller_gates(name: str) -> Gates:
+    """Gates of one of CONTROLLERS: 'open_loop', 'vmc', 'tegotae', 'vmc_tegotae'."""
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; allowed: {CONTROLLERS}")
+    return Gates(vmc=np.float32("vmc" in name), tegotae=np.float32("tegotae" in name))
+
+
+class CPGState(NamedTuple):
+    """Controller state carried from tick to tick."""
+
+    amplitude: jax.Array  # r_i, (4,)
+    phase_rad: jax.Array  # θ_i in [0, 2π), (4,)
+    heading_ref_rad: jax.Array  # ψ_des, heading at the start of the run, ()
+
+
+class Observation(NamedTuple):
+    """Exactly what the Go1 reports each tick (LowState), in SI units; motor order FR, FL, RR, RL × (hip, thigh, calf)."""
+
+    joint_pos_rad: jax.Array  # (12,)
+    joint_vel_rad_s: jax.Array  # (12,)
+    imu_quat_wxyz: jax.Array  # (4,) trunk orientation relative to gravity (IMU frame = trunk frame)
+    gyro_rad_s: jax.Array  # (3,) trunk angular velocity in the trunk frame
+    foot_force_n: jax.Array  # (4,) foot normal forces [N]
+
+
+class Diagnostics(NamedTuple):
+    """Per-tick internals, for logging, plots and tests."""
+
+    foot_target_m: jax.Array  # (4, 3) leg-frame foot targets
+    joint_target_rad: jax.Array  # (12,)
+    tau_ref_nm: jax.Array  # (12,) joint PD torque
+    tau_vmc_nm: jax.Array  # (12,) VMC torque (zero when the gate is off)
+    stance: jax.Array  # (4,) 1.0 for legs in stance (sin θ ≤ 0)
+    rpy_rad: jax.Array  # (3,) roll, pitch (nose-down positive), yaw
+    saturated: jax.Array  # (12,) 1.0 where the commanded torque was clipped to the motor limit
+
+
+def quat_to_rpy(quat_wxyz: jax.Array) -> jax.Array:
+    """Roll, pitch, yaw (ZYX) [rad] from a unit quaternion. Pitch is positive nose-down (ROS, decisions.md §4)."""
+    w, x, y, z = quat_wxyz[0], quat_wxyz[1], quat_wxyz[2], quat_wxyz[3]
+    roll = jnp.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = jnp.arcsin(jnp.clip(2.0 * (w * y - z * x), -1.0, 1.0))
+    yaw = jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return jnp.stack([roll, pitch, yaw])
+
+
+def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_gate, config: CPGConfig):
+    """(ṙ, θ̇) of the four coupled oscillators, eqs. (1)-(3) and the Tegotae term of eq. (6).
+
+    Args:
+      amplitude, phase_rad: r_i, θ_i, (4,) each.
+      params: the 8 physical parameters (see ``cpgjax.params``).
+      foot_force_n: N_i, (4,).
+      tegotae_gate: 1.0 adds −σ_N N_i cos θ_i (eq. 6), 0.0 gives the open-loop phase of eq. (2).
+    """
+    mu, sigma_n = params[4], params[7]
+    omega_swing, omega_stance = params[2], params[3]
+    target = mu * mu if config.amplitude_form == "paper" else mu
+    d_amplitude = config.alpha * (target - amplitude * amplitude) * amplitude  # eq. (1)
+    omega = jnp.where(jnp.sin(phase_rad) > 0.0, omega_swing, omega_stance)  # eq. (3)
+    phase_diff = phase_rad[None, :] - phase_rad[:, None] - TROT_PHASE_LAG_RAD  # [i, j] = θ_j − θ_i − φ_ij
+    coupling = jnp.sum(amplitude[None, :] * config.coupling_weight * jnp.sin(phase_diff), axis=1)  # eq. (2)
+    feedback = -tegotae_gate * sigma_n * foot_force_n * jnp.cos(phase_rad)  # eq. (6)
+    return d_amplitude, omega + coupling + feedback
+
+
+def foot_targets(amplitude, phase_rad, params, config: CPGConfig) -> jax.Array:
+    """Leg-frame foot targets (4, 3) [m] from the oscillator states, eqs. (4)-(5)."""
+    g_c, g_p = params[0], params[1]
+    x_offset = jnp.where(kinematics.FRONT_SIGN > 0, params[5], params[6])
+    sin_phase = jnp.sin(phase_rad)
+    x = x_offset - config.step_length_m * amplitude * jnp.cos(phase_rad)  # eq. (4)
+    z = -config.body_height_m + jnp.where(sin_phase > 0.0, g_c, g_p) * sin_phase  # eq. (5)
+    y = kinematics.SIDE_SIGN * config.foot_y_m
+    return jnp.stack([x, jnp.broadcast_to(y, x.shape), z], axis=-1)
+
+
+def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConfig) -> jax.Array:
+    """Attitude (roll, pitch) and direction (yaw) virtual-model torques (12,), decisions.md §7.
+
+    On stance legs, F_z,i = k_att,r y_i sin(roll) − k_att,p x_i sin(pitch) and F_y,i = k_dir x_i wrap(ψ − ψ_des),
+    with x_i = ±1 front/hind and y_i = ±1 left/right; τ_vmc,i = J_iᵀ [0, F_y,i, F_z,i]. F is the force the leg
+    applies to its foot (F_z > 0 lifts the foot), so a raised corner is lowered and a yaw error is turned back.
+    """
+    roll, pitch, yaw = rpy_rad[0], rpy_rad[1], rpy_rad[2]
+    heading_error = jnp.arctan2(jnp.sin(yaw - heading_ref_rad), jnp.cos(yaw - heading_ref_rad))
+    force_z = (config.k_att_roll_n * kinematics.SIDE_SIGN * jnp.sin(roll)
+               - config.k_att_pitch_n * kinematics.FRONT_SIGN * jnp.sin(pitch))
+    force_y = config.k_dir_n_rad * kinematics.FRONT_SIGN * heading_error
+    force = stance[:, None] * jnp.stack([jnp.zeros(4), force_y, force_z], axis=-1)  # (4, 3)
+    jac = kinematics.legs_jacobian(joint_pos_rad.reshape(4, 3), kinematics.SIDE_SIGN)  # (4, 3, 3)
+    return jnp.einsum("lij,li->lj", jac, force).reshape(12)
+
+
+def init_state(params, obs: Observation, initial_amplitude: float = 0.1) -> CPGState:
+    """Controller state at the start of a run: small amplitude, trot phases θ = φ_0j, heading reference = heading now."""
+    del params  # the start state does not depend on the parameters; kept for a uniform signature
+    phase = jnp.mod(jnp.asarray(TROT_PHASE_LAG_RAD[0], jnp.float32), 2.0 * jnp.pi)
+    return CPGState(
+        amplitude=jnp.full((4,), initial_amplitude, jnp.float32),
+        phase_rad=phase,
+        heading_ref_rad=quat_to_rpy(obs.imu_quat_wxyz)[2].astype(jnp.float32),
+    )
+
+
+def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates: Gates,
+                    obs: Observation) -> tuple[CPGState, jax.Array, Diagnostics]:
+    """One 1 kHz control tick: (state, 8 parameters, observation) → (new state, 12 joint torques [N·m], diagnostics).
+
+    The oscillators are advanced by one forward-Euler step of dt, then mapped to foot targets (eqs. 4-5), joint
+    targets (inverse kinematics) and torques τ_cmd = clip(τ_ref + gate_vmc · τ_vmc) with
+    τ_ref = K_p (q_des − q) − K_d q̇.
+    """
+    if params.shape[-1] != NUM_PARAMS:
+        raise ValueError(f"params must have {NUM_PARAMS} entries, got shape {params.shape}")
+    d_amp, d_phase = oscillator_derivatives(state.amplitude, state.phase_rad, params, obs.foot_force_n,
+                                            gates.tegotae, config)
+    amplitude = state.amplitude + config.dt_s * d_amp
+    phase = jnp.mod(state.phase_rad + config.dt_s * d_phase, 2.0 * jnp.pi)
+
+    targets = foot_targets(amplitude, phase, params, config)
+    q_des = kinematics.legs_ik(targets, kinematics.SIDE_SIGN).reshape(12)
+    tau_ref = config.kp_nm_rad * (q_des - obs.joint_pos_rad) - config.kd_nm_s_rad * obs.joint_vel_rad_s
+
+    rpy = quat_to_rpy(obs.imu_quat_wxyz)
+    stance = (jnp.sin(phase) <= 0.0).astype(tau_ref.dtype)
+    tau_vmc = gates.vmc * vmc_torques(obs.joint_pos_rad, rpy, state.heading_ref_rad, stance, config)
+
+    tau_cmd = tau_ref + tau_vmc
+    limit = jnp.asarray(TORQUE_LIMIT_NM, tau_cmd.dtype)
+    torque = jnp.clip(tau_cmd, -limit, limit)
+    diagnostics = Diagnostics(
+        foot_target_m=targets, joint_target_rad=q_des, tau_ref_nm=tau_ref, tau_vmc_nm=tau_vmc, stance=stance,
+        rpy_rad=rpy, saturated=(jnp.abs(tau_cmd) > limit).astype(tau_cmd.dtype))
+    return CPGState(amplitude, phase, state.heading_ref_rad), torque, diagnostics

@@ -1,0 +1,176 @@
+"""cpgjax's Go1 model: loading, names resolved to indices, scenarios (friction, slope, payload) as per-instance models,
+and the standing pose. Shared by every physics backend (MJX, C MuJoCo) so they simulate the same robot.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+from importlib import resources
+from typing import NamedTuple
+
+import jax
+import mujoco
+import numpy as np
+
+from cpgjax import kinematics
+
+log = logging.getLogger(__name__)
+
+MODEL_FILE = "go1.xml"
+JOINT_NAMES = tuple(f"{leg}_{part}_joint" for leg in kinematics.LEG_NAMES for part in ("hip", "thigh", "calf"))
+FOOT_SENSOR_NAMES = tuple(f"{leg}_foot_force" for leg in kinematics.LEG_NAMES)
+GRAVITY_MPS2 = 9.81
+MAX_ABS_SLOPE_DEG = 45.0
+# decisions.md §6: the payload is a rigid box of 0.3 x 0.2 x 0.1 m at the trunk's centre of mass.
+PAYLOAD_BOX_M = (0.3, 0.2, 0.1)
+# Standing pose: feet under the hips at the controller's nominal height h = 0.30 m (foot centre), x at the middle
+# of the x-offset range; the foot sphere radius puts the trunk origin at 0.32 m.
+STAND_FOOT_X_M = -0.035
+STAND_FOOT_Z_M = -0.30
+FOOT_RADIUS_M = 0.02
+
+
+@functools.cache
+def load_model() -> mujoco.MjModel:
+    """The nominal Go1 MjModel (no payload, flat floor, friction 0.6). Cached: copy before editing."""
+    with resources.as_file(resources.files("cpgjax.assets") / MODEL_FILE) as path:
+        return mujoco.MjModel.from_xml_path(str(path))
+
+
+@dataclasses.dataclass(frozen=True)
+class Go1Indices:
+    """Model indices resolved by name (never hard-coded)."""
+
+    trunk_body: int
+    payload_body: int
+    floor_geom: int
+    root_qpos: int  # first of 7 free-joint qpos entries (position, quaternion wxyz)
+    root_dof: int  # first of 6 free-joint dofs (linear velocity in world frame, angular velocity in trunk frame)
+    joint_qpos: np.ndarray  # (12,) qpos address of each leg joint, motor order
+    joint_dof: np.ndarray  # (12,) dof address of each leg joint
+    actuator: np.ndarray  # (12,) actuator id driving each leg joint
+    foot_force_sensor: np.ndarray  # (4,) sensordata address of each foot's contact force (normal component first)
+
+
+@functools.cache
+def indices() -> Go1Indices:
+    """Indices of the named bodies, joints, actuators and sensors (identical in every scenario variant)."""
+    m = load_model()
+
+    def obj_id(kind, name):
+        i = mujoco.mj_name2id(m, kind, name)
+        if i < 0:
+            raise KeyError(f"the Go1 model has no {kind.name} named {name!r}")
+        return i
+
+    joints = [obj_id(mujoco.mjtObj.mjOBJ_JOINT, n) for n in JOINT_NAMES]
+    actuator_of_joint = {int(m.actuator_trnid[a, 0]): a for a in range(m.nu)}
+    root = obj_id(mujoco.mjtObj.mjOBJ_JOINT, "root")
+    sensors = [obj_id(mujoco.mjtObj.mjOBJ_SENSOR, n) for n in FOOT_SENSOR_NAMES]
+    return Go1Indices(
+        trunk_body=obj_id(mujoco.mjtObj.mjOBJ_BODY, "trunk"),
+        payload_body=obj_id(mujoco.mjtObj.mjOBJ_BODY, "payload"),
+        floor_geom=obj_id(mujoco.mjtObj.mjOBJ_GEOM, "floor"),
+        root_qpos=int(m.jnt_qposadr[root]),
+        root_dof=int(m.jnt_dofadr[root]),
+        joint_qpos=np.array([m.jnt_qposadr[j] for j in joints]),
+        joint_dof=np.array([m.jnt_dofadr[j] for j in joints]),
+        actuator=np.array([actuator_of_joint[j] for j in joints]),
+        foot_force_sensor=np.array([m.sensor_adr[s] for s in sensors]),
+    )
+
+
+class Scenario(NamedTuple):
+    """A batch of scenarios, one entry per instance, each a float64 array of shape (batch,)."""
+
+    friction: np.ndarray  # floor friction coefficient (the paper: 0.3 slippery, 0.6 normal, 0.9 coarse)
+    slope_deg: np.ndarray  # terrain slope, uphill along +x (gravity rotated about y, decisions.md §4)
+    payload_kg: np.ndarray  # mass added on the trunk (decisions.md §6)
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.friction.shape[0])
+
+
+def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0) -> Scenario:
+    """Broadcast scalars or sequences to a batch of scenarios and validate them.
+
+    Raises:
+      ValueError: a non-finite value, friction ≤ 0, |slope| ≥ 45°, or a negative payload; the message names the
+        field, the value, the instance and the allowed range.
+    """
+    arrays = np.broadcast_arrays(*(np.atleast_1d(np.asarray(v, np.float64)) for v in (friction, slope_deg, payload_kg)))
+    scenario = Scenario(*(np.array(a) for a in arrays))
+    if scenario.friction.ndim != 1:
+        raise ValueError(f"scenario fields must be scalars or 1-D sequences, got shape {scenario.friction.shape}")
+    checks = (
+        ("friction", scenario.friction, lambda v: v > 0.0, "(0, inf)"),
+        ("slope_deg", scenario.slope_deg, lambda v: np.abs(v) < MAX_ABS_SLOPE_DEG,
+         f"(-{MAX_ABS_SLOPE_DEG}, {MAX_ABS_SLOPE_DEG})"),
+        ("payload_kg", scenario.payload_kg, lambda v: v >= 0.0, "[0, inf)"),
+    )
+    for name, values, ok, allowed in checks:
+        bad = ~np.isfinite(values) | ~ok(np.where(np.isfinite(values), values, 0.0))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"scenario {name} = {values[i]!r} (instance {i}) is outside the allowed range {allowed}")
+    return scenario
+
+
+def gravity_vector(slope_deg) -> np.ndarray:
+    """Gravity (..., 3) [m/s²] in the floor frame for a slope climbed along +x: g·(−sin s, 0, −cos s)."""
+    s = np.deg2rad(np.asarray(slope_deg, np.float64))
+    return GRAVITY_MPS2 * np.stack([-np.sin(s), np.zeros_like(s), -np.cos(s)], axis=-1)
+
+
+def payload_inertia(payload_kg: float) -> np.ndarray:
+    """Principal inertia (3,) [kg·m²] of the payload box (decisions.md §6)."""
+    a, b, c = PAYLOAD_BOX_M
+    return payload_kg / 12.0 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+
+
+@functools.lru_cache(maxsize=64)
+def model_with_payload(payload_kg: float) -> mujoco.MjModel:
+    """A copy of the nominal model carrying ``payload_kg``, with every derived mass quantity recomputed
+    (``mj_setConst``: subtree masses, inverse weights, actuator_acc0, ...). Cached per payload value."""
+    m = load_model().__copy__()
+    ids = indices()
+    m.body_mass[ids.payload_body] = payload_kg
+    m.body_inertia[ids.payload_body] = payload_inertia(payload_kg)
+    mujoco.mj_setConst(m, mujoco.MjData(m))
+    return m
+
+
+def scenario_model(scenario: Scenario, i: int) -> mujoco.MjModel:
+    """The C-MuJoCo model of instance i: payload, floor friction and gravity applied (a fresh copy)."""
+    m = model_with_payload(float(scenario.payload_kg[i])).__copy__()
+    m.geom_friction[indices().floor_geom, 0] = scenario.friction[i]
+    m.opt.gravity[:] = gravity_vector(scenario.slope_deg[i])
+    return m
+
+
+def mass_dependent_fields() -> tuple[str, ...]:
+    """Names of the model's float arrays that a payload changes (found by comparison, not by a hand-kept list)."""
+    light, heavy = model_with_payload(0.0), model_with_payload(15.0)
+    names = []
+    for name in dir(light):
+        a = getattr(light, name, None)
+        if isinstance(a, np.ndarray) and a.dtype.kind == "f" and not np.array_equal(a, getattr(heavy, name)):
+            names.append(name)
+    return tuple(names)
+
+
+def standing_qpos(model: mujoco.MjModel | None = None) -> np.ndarray:
+    """qpos of the robot standing on flat ground at the origin, heading +x, feet under the hips."""
+    m = load_model() if model is None else model
+    ids = indices()
+    feet = np.stack([np.full(4, STAND_FOOT_X_M), np.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M,
+                     np.full(4, STAND_FOOT_Z_M)], axis=-1)
+    with jax.ensure_compile_time_eval():  # a constant, also when called while tracing
+        q_legs = np.asarray(kinematics.legs_ik(feet, kinematics.SIDE_SIGN), np.float64).reshape(12)
+    qpos = np.array(m.qpos0, np.float64)
+    qpos[ids.root_qpos:ids.root_qpos + 7] = [0.0, 0.0, -STAND_FOOT_Z_M + FOOT_RADIUS_M, 1.0, 0.0, 0.0, 0.0]
+    qpos[ids.joint_qpos] = q_legs
+    return qpos

@@ -1,0 +1,281 @@
+"""The Go1 in MuJoCo MJX: batched scenarios, the robot's sensor model, and the paper's trial.
+
+A trial (paper Sec. "Implementation Details") continues from the current simulator state: 1.5 s of transition during
+which the parameters are interpolated linearly from the previous set to the new one, then 3 s of steady state
+(T = 3000 ticks at Δt = 1 ms) whose record gives J, CoT and the context (``cpgjax.objective``). Trials run back to
+back like the treadmill; after a fall the robot is reset to standing (decisions.md §8).
+
+Everything is vmapped over instances — parameters, scenario (as per-instance model leaves), simulator and controller
+state — and compiled once per batch shape. An instance whose state becomes non-finite is reset and its trial flagged
+``failed``; ``jnp.where`` keeps the other instances bit-identical.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from cpgjax import cpg, go1_model, params as param_space
+from cpgjax.objective import TrialRecord
+
+log = logging.getLogger(__name__)
+
+
+class TrialConfig(NamedTuple):
+    """Trial timing and fall detection. Static: changing one recompiles."""
+
+    transition_steps: int = 1500  # 1.5 s at 1 kHz
+    steady_steps: int = 3000  # T
+    fall_height_m: float = 0.12  # trunk origin below this height above the floor = fall
+    fall_tilt_rad: float = 0.8  # |roll| or |pitch| relative to the floor beyond this = fall
+
+
+class SimState(NamedTuple):
+    """Per-instance simulator and controller state between trials (leading batch axis on every leaf)."""
+
+    data: mjx.Data
+    cpg: cpg.CPGState
+    params: jax.Array  # (8,) the parameters applied at the end of the last trial (start of the next transition)
+
+
+class Tick(NamedTuple):
+    """Per-tick quantities recorded during the steady phase."""
+
+    velocity_xy_mps: jax.Array  # (2,) heading frame
+    power_w: jax.Array  # ⟨|τ|, |q̇|⟩
+    load_n: jax.Array  # mean foot normal force
+    roll_rad: jax.Array
+    pitch_rad: jax.Array
+    saturated: jax.Array  # number of clipped joint torques
+    fell: jax.Array
+    failed: jax.Array
+
+
+# ----------------------------------------------------------------------------------------------- sensor model
+
+def _gravity_frame_quat(gravity: jax.Array) -> jax.Array:
+    """Quaternion rotating floor-frame vectors into the gravity-aligned frame (shortest arc taking −ĝ to +z)."""
+    up = -gravity / jnp.linalg.norm(gravity)
+    q = jnp.stack([1.0 + up[2], up[1], -up[0], jnp.zeros_like(up[0])])  # (1 + u·z, u × z)
+    return q / jnp.linalg.norm(q)
+
+
+def _quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
+    aw, ax, ay, az = a[0], a[1], a[2], a[3]
+    bw, bx, by, bz = b[0], b[1], b[2], b[3]
+    return jnp.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                      aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+
+
+def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: jax.Array) -> cpg.Observation:
+    """The controller's observation computed as the Go1's sensors would report it.
+
+    IMU orientation relative to gravity (so a slope reads as pitch, decisions.md §4), gyro in the trunk frame, joint
+    encoders, and each foot's contact normal force [N]. Works on MJX and C-MuJoCo arrays alike (one definition for
+    every backend).
+    """
+    ids = go1_model.indices()
+    r = ids.root_qpos
+    quat_floor = qpos[r + 3:r + 7]
+    return cpg.Observation(
+        joint_pos_rad=qpos[ids.joint_qpos],
+        joint_vel_rad_s=qvel[ids.joint_dof],
+        imu_quat_wxyz=_quat_mul(_gravity_frame_quat(gravity), quat_floor),
+        gyro_rad_s=qvel[ids.root_dof + 3:ids.root_dof + 6],
+        foot_force_n=sensordata[ids.foot_force_sensor],
+    )
+
+
+def heading_velocity(qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+    """Trunk linear velocity (v_x, v_y) [m/s] in the heading (yaw-only) frame on the floor (decisions.md §9)."""
+    ids = go1_model.indices()
+    yaw = cpg.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])[2]
+    vx, vy = qvel[ids.root_dof], qvel[ids.root_dof + 1]
+    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    return jnp.stack([c * vx + s * vy, -s * vx + c * vy])
+
+
+# ----------------------------------------------------------------------------------------------- scenarios
+
+class BatchModel(NamedTuple):
+    """An MJX model whose scenario-dependent leaves carry a leading batch axis, and the matching vmap in_axes."""
+
+    model: mjx.Model
+    in_axes: mjx.Model
+    scenario: go1_model.Scenario
+
+
+def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
+    """Per-instance MJX model data for a whole batch of scenarios, in one call.
+
+    Floor friction → ``geom_friction[floor, 0]`` (the floor has priority, decisions.md §5); slope → ``opt.gravity``;
+    payload → every mass-dependent field, recomputed by ``mj_setConst`` once per distinct payload value.
+    """
+    ids = go1_model.indices()
+    base = go1_model.load_model()
+    mx = mjx.put_model(base)
+    batch = scenario.batch_size
+    fields = [f for f in go1_model.mass_dependent_fields() if hasattr(mx, f)]
+    per_payload = {p: go1_model.model_with_payload(p) for p in sorted(set(scenario.payload_kg.tolist()))}
+    updates = {f: jnp.asarray(np.stack([getattr(per_payload[p], f) for p in scenario.payload_kg.tolist()]),
+                              dtype=getattr(mx, f).dtype) for f in fields}
+    friction = np.broadcast_to(np.asarray(base.geom_friction), (batch,) + base.geom_friction.shape).copy()
+    friction[:, ids.floor_geom, 0] = scenario.friction
+    updates["geom_friction"] = jnp.asarray(friction, getattr(mx, "geom_friction").dtype)
+    updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
+    in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})
+    return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario)
+
+
+# ----------------------------------------------------------------------------------------------- one instance
+
+def _standing_data(model: mjx.Model) -> mjx.Data:
+    data = mjx.make_data(model).replace(qpos=jnp.asarray(go1_model.standing_qpos(), jnp.float32))
+    return mjx.forward(model, data)
+
+
+def _observe_data(model: mjx.Model, data: mjx.Data) -> cpg.Observation:
+    return observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
+
+
+def _reset(model: mjx.Model, params: jax.Array) -> SimState:
+    data = _standing_data(model)
+    return SimState(data=data, cpg=cpg.init_state(params, _observe_data(model, data)), params=params)
+
+
+def _where(cond, a, b):
+    return jax.tree.map(lambda x, y: jnp.where(cond, x, y), a, b)
+
+
+def _tick(cpg_config: cpg.CPGConfig, trial_config: TrialConfig, model: mjx.Model, gates: cpg.Gates,
+          reset: SimState, data: mjx.Data, cpg_state: cpg.CPGState, params_now: jax.Array):
+    """Sensors → controller → one physics step; a non-finite result is replaced by the standing reset."""
+    ids = go1_model.indices()
+    obs = _observe_data(model, data)
+    cpg_state, torque, diag = cpg.controller_step(cpg_config, cpg_state, params_now, gates, obs)
+    ctrl = jnp.zeros(model.nu, torque.dtype).at[ids.actuator].set(torque)
+    stepped = mjx.step(model, data.replace(ctrl=ctrl))
+    failed = ~(jnp.all(jnp.isfinite(stepped.qpos)) & jnp.all(jnp.isfinite(stepped.qvel)))
+    data = _where(failed, reset.data, stepped)
+    cpg_state = _where(failed, reset.cpg, cpg_state)
+
+    floor_rpy = cpg.quat_to_rpy(data.qpos[ids.root_qpos + 3:ids.root_qpos + 7])
+    fell = ((data.qpos[ids.root_qpos + 2] < trial_config.fall_height_m)
+            | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
+            | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))
+    finite = jnp.where(failed, 0.0, 1.0)
+    tick = Tick(
+        velocity_xy_mps=finite * heading_velocity(data.qpos, data.qvel),
+        power_w=finite * jnp.sum(jnp.abs(torque) * jnp.abs(obs.joint_vel_rad_s)),
+        load_n=finite * jnp.mean(obs.foot_force_n),
+        roll_rad=finite * diag.rpy_rad[0],
+        pitch_rad=finite * diag.rpy_rad[1],
+        saturated=jnp.sum(diag.saturated),
+        fell=fell.astype(jnp.float32),
+        failed=failed.astype(jnp.float32),
+    )
+    return data, cpg_state, tick
+
+
+def _summarize(ticks: Tick, total_mass_kg: jax.Array, dt_s: float) -> TrialRecord:
+    steps = ticks.power_w.shape[0]
+    return TrialRecord(
+        velocity_xy_mps=ticks.velocity_xy_mps,
+        energy_j=jnp.sum(ticks.power_w) * dt_s,
+        distance_m=jnp.sum(ticks.velocity_xy_mps[:, 0]) * dt_s,
+        total_mass_kg=total_mass_kg,
+        c_load_n=jnp.mean(ticks.load_n),
+        c_slope_rad=jnp.mean(ticks.pitch_rad),
+        roll_mean_rad=jnp.mean(ticks.roll_rad),
+        roll_std_rad=jnp.std(ticks.roll_rad),
+        pitch_std_rad=jnp.std(ticks.pitch_rad),
+        saturation_fraction=jnp.sum(ticks.saturated) / (12.0 * steps),
+        fell=jnp.max(ticks.fell),
+        failed=jnp.max(ticks.failed),
+    )
+
+
+def _trial(cpg_config: cpg.CPGConfig, trial_config: TrialConfig, model: mjx.Model, state: SimState,
+           new_params: jax.Array, gates: cpg.Gates) -> tuple[SimState, TrialRecord]:
+    """One trial of one instance: transition (linear interpolation) then steady phase; reset after a fall."""
+    reset = _reset(model, new_params)
+    tick = functools.partial(_tick, cpg_config, trial_config, model, gates, reset)
+    n_transition = trial_config.transition_steps
+
+    def transition_body(carry, k):
+        data, cpg_state, fell, failed = carry
+        blend = (k + 1.0) / n_transition
+        data, cpg_state, t = tick(data, cpg_state, state.params + blend * (new_params - state.params))
+        return (data, cpg_state, jnp.maximum(fell, t.fell), jnp.maximum(failed, t.failed)), None
+
+    def steady_body(carry, _):
+        data, cpg_state = carry
+        data, cpg_state, t = tick(data, cpg_state, new_params)
+        return (data, cpg_state), t
+
+    zero = jnp.float32(0.0)
+    (data, cpg_state, fell_tr, failed_tr), _ = jax.lax.scan(
+        transition_body, (state.data, state.cpg, zero, zero), jnp.arange(n_transition, dtype=jnp.float32))
+    (data, cpg_state), ticks = jax.lax.scan(steady_body, (data, cpg_state), None, length=trial_config.steady_steps)
+
+    total_mass = model.body_subtreemass[go1_model.indices().trunk_body]
+    record = _summarize(ticks, total_mass, cpg_config.dt_s)
+    record = record._replace(fell=jnp.maximum(record.fell, fell_tr), failed=jnp.maximum(record.failed, failed_tr))
+    end = SimState(data=data, cpg=cpg_state, params=new_params)
+    return _where(record.fell > 0, reset, end), record
+
+
+# ----------------------------------------------------------------------------------------------- batch interface
+
+class MJXBackend:
+    """A batch of simulated Go1s in MJX behind the trial interface shared by every backend.
+
+    >>> sim = MJXBackend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))
+    >>> state = sim.reset(params)                         # params (3, 8), physical units
+    >>> state, record = sim.trial(state, new_params, gates)   # gates: cpg.Gates of (3,) arrays
+    """
+
+    name = "mjx"
+
+    def __init__(self, scenario: go1_model.Scenario, cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
+                 trial_config: TrialConfig = TrialConfig()):
+        self.scenario = scenario
+        self.cpg_config = cpg_config
+        self.trial_config = trial_config
+        self.batch = make_batch_model(scenario)
+        axes = self.batch.in_axes
+        self._reset = jax.jit(jax.vmap(_reset, in_axes=(axes, 0)))
+        self._trial = jax.jit(jax.vmap(functools.partial(_trial, cpg_config, trial_config),
+                                       in_axes=(axes, 0, 0, 0)), donate_argnums=(1,))
+
+    @property
+    def batch_size(self) -> int:
+        return self.scenario.batch_size
+
+    def _check_params(self, params) -> jax.Array:
+        arr = param_space.validate(params)
+        if arr.shape != (self.batch_size, param_space.NUM_PARAMS):
+            raise ValueError(f"params: expected shape ({self.batch_size}, {param_space.NUM_PARAMS}), got {arr.shape}")
+        return jnp.asarray(arr, jnp.float32)
+
+    def reset(self, params) -> SimState:
+        """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
+        return self._reset(self.batch.model, self._check_params(params))
+
+    def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, TrialRecord]:
+        """One trial for every instance (the input state is consumed). Returns the next state and the records."""
+        gates = cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (self.batch_size,)) for g in gates))
+        return self._trial(self.batch.model, state, self._check_params(new_params), gates)
+
+
+def batch_gates(controllers) -> cpg.Gates:
+    """Gates (each (B,)) for a sequence of controller names (see ``cpg.CONTROLLERS``)."""
+    gates = [cpg.controller_gates(c) for c in controllers]
+    return cpg.Gates(vmc=np.array([g.vmc for g in gates]), tegotae=np.array([g.tegotae for g in gates]))

@@ -1,0 +1,76 @@
+"""The paper's trial figures as pure functions of a stored trial record: objective J (eq. 9), cost of transport
+(eq. 10) and context (eq. 11). Pure and target-parametrized, so J can be recomputed for a new target velocity from
+stored records (the paper's data reuse) by any caller, e.g. the optimizer, without touching the simulator.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from cpgjax.go1_model import GRAVITY_MPS2
+
+VELOCITY_WEIGHT = 1.0  # w1
+COT_WEIGHT = 0.5  # w2
+MAX_VELOCITY_REWARD = 0.85  # l_r
+VELOCITY_KERNEL_WIDTH = 0.05  # [m²/s²], the 0.05 in eq. (9)
+STEADY_DT_S = 0.001  # Δt
+# decisions.md §10, degenerate trials: CoT divides by at least MIN_DISTANCE_M of forward progress (so standing
+# still or walking backwards gives a large CoT), and J is bounded below by MIN_OBJECTIVE; a fall or a non-finite
+# state gives exactly MIN_OBJECTIVE. Typical J of a walking gait is 1.5 … 2.3; the floor sits well below.
+MIN_DISTANCE_M = 0.05
+MIN_OBJECTIVE = -1.0
+
+
+class TrialRecord(NamedTuple):
+    """What one trial's 3 s steady phase leaves behind: enough to recompute J for any target velocity.
+
+    Leading batch axes are allowed on every field (one record per instance, per trial, ...).
+    """
+
+    velocity_xy_mps: jax.Array  # (T, 2) trunk velocity (v_x, v_y) in the heading frame, every step
+    energy_j: jax.Array  # Σ_i ⟨|τ_i|, |q̇_i|⟩ Δt, the numerator of eq. (10)
+    distance_m: jax.Array  # forward distance Σ v_x Δt along the heading
+    total_mass_kg: jax.Array  # robot + payload
+    c_load_n: jax.Array  # eq. (11), mean foot normal force [N]
+    c_slope_rad: jax.Array  # eq. (11), mean IMU pitch (nose-down positive)
+    roll_mean_rad: jax.Array
+    roll_std_rad: jax.Array
+    pitch_std_rad: jax.Array
+    saturation_fraction: jax.Array  # share of (tick, joint) torque commands clipped to the motor limit
+    fell: jax.Array  # 1.0 if the trunk fell during the trial (height or tilt threshold)
+    failed: jax.Array  # 1.0 if the simulation became non-finite (the instance was reset)
+
+
+def cost_of_transport(record: TrialRecord) -> jax.Array:
+    """CoT = Σ⟨|τ|, |q̇|⟩Δt / (m g d), eq. (10), with d ≥ MIN_DISTANCE_M (decisions.md §10)."""
+    distance = jnp.maximum(record.distance_m, MIN_DISTANCE_M)
+    return record.energy_j / (record.total_mass_kg * GRAVITY_MPS2 * distance)
+
+
+def velocity_reward(record: TrialRecord, target_velocity_mps) -> jax.Array:
+    """w1 Δt Σ_i min(exp(−‖v_i − v*‖²/0.05), l_r) with v* = [v_x*, 0], the first term of eq. (9)."""
+    target = jnp.stack([jnp.asarray(target_velocity_mps, jnp.float32), jnp.float32(0.0)])
+    sq_error = jnp.sum((record.velocity_xy_mps - target) ** 2, axis=-1)
+    per_step = jnp.minimum(jnp.exp(-sq_error / VELOCITY_KERNEL_WIDTH), MAX_VELOCITY_REWARD)
+    return VELOCITY_WEIGHT * STEADY_DT_S * jnp.sum(per_step, axis=-1)
+
+
+def objective(record: TrialRecord, target_velocity_mps) -> jax.Array:
+    """J of eq. (9) for target velocity v_x*, always finite and ≥ MIN_OBJECTIVE; MIN_OBJECTIVE after a fall or a
+    non-finite simulation (decisions.md §10)."""
+    j = velocity_reward(record, target_velocity_mps) - COT_WEIGHT * cost_of_transport(record)
+    degenerate = (record.fell > 0) | (record.failed > 0) | ~jnp.isfinite(j)
+    return jnp.where(degenerate, MIN_OBJECTIVE, jnp.maximum(j, MIN_OBJECTIVE))
+
+
+def mean_velocity(record: TrialRecord) -> jax.Array:
+    """Mean (v_x, v_y) over the steady phase [m/s]."""
+    return jnp.mean(record.velocity_xy_mps, axis=-2)
+
+
+def context(record: TrialRecord) -> jax.Array:
+    """The context c = [c_load [N], c_slope [rad]] of eq. (11)."""
+    return jnp.stack([record.c_load_n, record.c_slope_rad], axis=-1)
