@@ -52,6 +52,7 @@ class Go1Indices:
     joint_dof: np.ndarray  # (12,) dof address of each leg joint
     actuator: np.ndarray  # (12,) actuator id driving each leg joint
     foot_force_sensor: np.ndarray  # (4,) sensordata address of each foot's contact force (normal component first)
+    foot_geom: np.ndarray  # (4,) foot sphere geoms
 
 
 @functools.cache
@@ -79,6 +80,7 @@ def indices() -> Go1Indices:
         joint_dof=np.array([m.jnt_dofadr[j] for j in joints]),
         actuator=np.array([actuator_of_joint[j] for j in joints]),
         foot_force_sensor=np.array([m.sensor_adr[s] for s in sensors]),
+        foot_geom=np.array([obj_id(mujoco.mjtObj.mjOBJ_GEOM, f"{leg}_foot") for leg in kinematics.LEG_NAMES]),
     )
 
 
@@ -115,7 +117,7 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0) -> Scenario:
         bad = ~np.isfinite(values) | ~ok(np.where(np.isfinite(values), values, 0.0))
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"scenario {name} = {values[i]!r} (instance {i}) is outside the allowed range {allowed}")
+            raise ValueError(f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range {allowed}")
     return scenario
 
 

@@ -232,6 +232,39 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: TrialConfig, model: mjx.Mode
     return _where(record.fell > 0, reset, end), record
 
 
+class StepLog(NamedTuple):
+    """Per-tick log of a rollout with constant parameters (figures, recordings, backend comparisons)."""
+
+    qpos: jax.Array  # (T, nq) floor frame
+    qvel: jax.Array  # (T, nv)
+    torque_nm: jax.Array  # (T, 12) applied joint torques
+    foot_force_n: jax.Array  # (T, 4)
+    foot_pos_m: jax.Array  # (T, 4, 3) foot centres, floor frame
+    amplitude: jax.Array  # (T, 4) r_i
+    phase_rad: jax.Array  # (T, 4) θ_i
+    foot_target_m: jax.Array  # (T, 4, 3) leg-frame targets
+    rpy_rad: jax.Array  # (T, 3) IMU roll, pitch, yaw
+
+
+def rollout_log(cpg_config: cpg.CPGConfig, model: mjx.Model, state: SimState, params: jax.Array, gates: cpg.Gates,
+                num_steps: int) -> tuple[SimState, StepLog]:
+    """``num_steps`` ticks of one instance with constant parameters, logging every tick. Not vmapped: wrap it."""
+    ids = go1_model.indices()
+
+    def body(carry, _):
+        data, cpg_state = carry
+        obs = _observe_data(model, data)
+        cpg_state, torque, diag = cpg.controller_step(cpg_config, cpg_state, params, gates, obs)
+        data = mjx.step(model, data.replace(ctrl=jnp.zeros(model.nu, torque.dtype).at[ids.actuator].set(torque)))
+        row = StepLog(qpos=data.qpos, qvel=data.qvel, torque_nm=torque, foot_force_n=obs.foot_force_n,
+                      foot_pos_m=data.geom_xpos[ids.foot_geom], amplitude=cpg_state.amplitude,
+                      phase_rad=cpg_state.phase_rad, foot_target_m=diag.foot_target_m, rpy_rad=diag.rpy_rad)
+        return (data, cpg_state), row
+
+    (data, cpg_state), log_rows = jax.lax.scan(body, (state.data, state.cpg), None, length=num_steps)
+    return SimState(data=data, cpg=cpg_state, params=params), log_rows
+
+
 # ----------------------------------------------------------------------------------------------- batch interface
 
 class MJXBackend:
@@ -254,6 +287,7 @@ class MJXBackend:
         self._reset = jax.jit(jax.vmap(_reset, in_axes=(axes, 0)))
         self._trial = jax.jit(jax.vmap(functools.partial(_trial, cpg_config, trial_config),
                                        in_axes=(axes, 0, 0, 0)), donate_argnums=(1,))
+        self._rollout = None  # compiled on first use
 
     @property
     def batch_size(self) -> int:
@@ -269,10 +303,19 @@ class MJXBackend:
         """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
         return self._reset(self.batch.model, self._check_params(params))
 
+    def _check_gates(self, gates: cpg.Gates) -> cpg.Gates:
+        return cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (self.batch_size,)) for g in gates))
+
     def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, TrialRecord]:
         """One trial for every instance (the input state is consumed). Returns the next state and the records."""
-        gates = cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (self.batch_size,)) for g in gates))
-        return self._trial(self.batch.model, state, self._check_params(new_params), gates)
+        return self._trial(self.batch.model, state, self._check_params(new_params), self._check_gates(gates))
+
+    def rollout(self, state: SimState, params, gates: cpg.Gates, num_steps: int) -> tuple[SimState, StepLog]:
+        """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
+        if self._rollout is None:
+            fn = functools.partial(rollout_log, self.cpg_config)
+            self._rollout = jax.jit(jax.vmap(fn, in_axes=(self.batch.in_axes, 0, 0, 0, None)), static_argnums=(4,))
+        return self._rollout(self.batch.model, state, self._check_params(params), self._check_gates(gates), num_steps)
 
 
 def batch_gates(controllers) -> cpg.Gates:

@@ -61,7 +61,7 @@ def validate(params, *, what: str = "params") -> np.ndarray:
         row, col = np.argwhere(bad)[0]
         where = f" (instance {row})" if flat.shape[0] > 1 else ""
         raise ValueError(
-            f"{what}: {PARAM_NAMES[col]} = {flat[row, col]!r}{where} is outside the allowed range "
+            f"{what}: {PARAM_NAMES[col]} = {float(flat[row, col])!r}{where} is outside the allowed range "
             f"[{PARAM_LOWER[col]}, {PARAM_UPPER[col]}]"
         )
     return arr
