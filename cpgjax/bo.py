@@ -1,0 +1,580 @@
+r"""The sequential contextual-BO optimizer of Algorithm 1, as pure functions over a state.
+
+:func:`make_optimizer` returns a :class:`ContextualBO`, a NamedTuple of pure functions in the
+style of optax's ``init``/``update`` pairs::
+
+    opt = make_optimizer(paper_config(), objective_fn, record_template)
+    state = opt.init(target_velocity=jnp.array([0.5, 0.0]))
+    x = opt.propose(state, context, key)              # physical units, shape (8,)
+    state, accepted = opt.observe(state, x, context, record)
+    state = opt.set_target(state, jnp.array([0.8, 0.0]))   # data reuse
+
+Every function is jit-compiled and ``jax.vmap``-able over a batch of states (independent
+data, contexts, keys, β schedules, active inputs and targets). Structure (dimensions,
+capacity, step counts, the UCB form) is the static :class:`OptimizerConfig`.
+
+Algorithm 1, step by step:
+
+* the surrogate is refitted in :meth:`observe` (and :meth:`set_target`), warm-started from the
+  previous fit (:func:`cpgjax.gp.fit`);
+* :meth:`propose` returns a uniform random point while fewer than ``num_random_proposals``
+  (2) observations are stored, else :math:`\arg\max_x a(x; \beta, c)` of eq. (8) with the
+  context held at the given value (:mod:`cpgjax.acquisition`);
+* :math:`\beta = \beta_{init} \gamma^{\max(n - n_{decay}, 0)}` (eq. (12)), or
+  :math:`\beta_{init,c} \gamma^{\max(n - n_{decay,c}, 0)}` (eq. (13)) once any stored trial lies
+  outside the current context's thresholds (decisions.md §12), where :math:`n` counts the
+  stored trials inside them (eq. (14)): :math:`|c_k - c^i_k| \le t_k r_k` for every context
+  component :math:`k`, :math:`r_k` the normalization range width (decisions.md §11);
+* inference mode fixes :math:`\beta = 10^{-6}` and skips the random phase (paper Sec. IV-C);
+* data reuse (paper Sec. III-A-2): with an ``objective_fn(record, target_velocity)``, each
+  observation stores its trial record, and :meth:`set_target` recomputes every stored
+  objective for the new target velocity (vmapped over the record buffer).
+
+Inactive parameters (``active_dims`` False, e.g. :math:`\sigma_N` without Tegotae) are excluded
+from the kernel and are set to the box midpoint in every proposal.
+
+Bad calls raise ``ValueError`` in the Python wrappers, before anything is compiled: wrong
+shapes always; non-finite values, parameters outside the box and a full buffer whenever the
+values are concrete (not traced). Under ``jit``/``vmap`` the same checks run on device: a bad
+observation is not stored and ``observe`` returns ``accepted = False``.
+"""
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cpgjax import gp
+from cpgjax.acquisition import (
+    INACTIVE_VALUE,
+    UCB_FORMS,
+    AcquisitionConfig,
+    maximize_acquisition,
+    ucb_multiplier,
+    upper_confidence_bound,
+)
+
+PAPER_PARAMETER_LOWER = (0.06, 0.005, 16.0, 10.0, 0.9, -0.06, -0.06, 0.05)
+PAPER_PARAMETER_UPPER = (0.10, 0.015, 23.0, 15.0, 1.7, -0.01, -0.01, 0.30)
+"""Table I box for x = [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]."""
+
+PAPER_CONTEXT_LOWER = (15.0, -0.4)
+PAPER_CONTEXT_UPPER = (75.0, 0.1)
+"""Ranges of c = [c_load (N), c_slope (rad)] (decisions.md §11)."""
+
+PAPER_CONTEXT_THRESHOLDS = (0.2, 0.1)
+"""t_load, t_slope of eq. (14), as fractions of the range widths."""
+
+BOX_TOLERANCE = 1e-5
+"""Relative slack (of the box width) when checking that observed parameters are in the box."""
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimizerConfig:
+    """Static structure of an optimizer (changing it recompiles).
+
+    Attributes:
+      parameter_lower, parameter_upper: the box, physical units, one entry per parameter.
+      context_lower, context_upper: fixed normalization ranges of the context (empty: none).
+      context_thresholds: t_k of eq. (14) per context component, fraction of the range width.
+      capacity: maximum number of stored observations.
+      num_random_proposals: proposals drawn uniformly at random before the GP is used.
+      ucb_form: "paper" (mu + beta*sigma, eq. (8)) or "botorch" (mu + sqrt(beta)*sigma).
+      inference_beta: beta in inference mode.
+      fit: settings of the hyperparameter fit.
+      acquisition: settings of the acquisition maximizer.
+    """
+
+    parameter_lower: tuple[float, ...]
+    parameter_upper: tuple[float, ...]
+    context_lower: tuple[float, ...] = ()
+    context_upper: tuple[float, ...] = ()
+    context_thresholds: tuple[float, ...] = ()
+    capacity: int = 160
+    num_random_proposals: int = 2
+    ucb_form: str = "paper"
+    inference_beta: float = 1e-6
+    fit: gp.FitConfig = gp.FitConfig()
+    acquisition: AcquisitionConfig = AcquisitionConfig()
+
+    def __post_init__(self):
+        _check_box("parameter", self.parameter_lower, self.parameter_upper)
+        if len(self.parameter_lower) == 0:
+            raise ValueError("at least one parameter is needed")
+        _check_box("context", self.context_lower, self.context_upper)
+        if len(self.context_thresholds) != len(self.context_lower):
+            raise ValueError(
+                f"context_thresholds has {len(self.context_thresholds)} entries, expected one"
+                f" per context component ({len(self.context_lower)})"
+            )
+        if any(not t >= 0.0 for t in self.context_thresholds):
+            raise ValueError(f"context_thresholds must be >= 0, got {self.context_thresholds}")
+        if self.capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {self.capacity}")
+        if self.num_random_proposals < 0:
+            raise ValueError(f"num_random_proposals must be >= 0, got {self.num_random_proposals}")
+        if self.ucb_form not in UCB_FORMS:
+            raise ValueError(f"ucb_form must be one of {UCB_FORMS}, got {self.ucb_form!r}")
+        if self.acquisition.num_restarts > self.acquisition.num_candidates:
+            raise ValueError("acquisition.num_restarts must not exceed num_candidates")
+
+    @property
+    def num_parameters(self) -> int:
+        return len(self.parameter_lower)
+
+    @property
+    def num_contexts(self) -> int:
+        return len(self.context_lower)
+
+
+def _check_box(name, lower, upper):
+    if len(lower) != len(upper):
+        raise ValueError(f"{name} bounds differ in length: {len(lower)} vs {len(upper)}")
+    for i, (lo, hi) in enumerate(zip(lower, upper)):
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(f"{name} bounds [{i}] must be finite with lower < upper, got"
+                             f" [{lo}, {hi}]")
+
+
+def paper_config(**overrides) -> OptimizerConfig:
+    """The paper's setting: Table I box, decisions.md §11 context ranges, eq. (14) thresholds."""
+    settings = dict(
+        parameter_lower=PAPER_PARAMETER_LOWER,
+        parameter_upper=PAPER_PARAMETER_UPPER,
+        context_lower=PAPER_CONTEXT_LOWER,
+        context_upper=PAPER_CONTEXT_UPPER,
+        context_thresholds=PAPER_CONTEXT_THRESHOLDS,
+    )
+    settings.update(overrides)
+    return OptimizerConfig(**settings)
+
+
+class BetaSchedule(NamedTuple):
+    """Per-instance exploration schedule of eqs. (12)-(13) (Table III values by default).
+
+    Attributes (float32 scalars):
+      beta_init: beta_init of eq. (12).
+      gamma: decay rate.
+      n_decay: trials before the decay starts.
+      beta_init_changed: beta_init,c of eq. (13), used after a context change.
+      n_decay_changed: n_decay,c of eq. (13).
+    """
+
+    beta_init: jax.Array
+    gamma: jax.Array
+    n_decay: jax.Array
+    beta_init_changed: jax.Array
+    n_decay_changed: jax.Array
+
+
+def paper_schedule(beta_init=5.0, gamma=0.7, n_decay=10, beta_init_changed=1.5,
+                   n_decay_changed=3) -> BetaSchedule:
+    """A :class:`BetaSchedule` of float32 scalars; defaults are the paper's Table III."""
+    return BetaSchedule(*(jnp.asarray(v, jnp.float32) for v in
+                          (beta_init, gamma, n_decay, beta_init_changed, n_decay_changed)))
+
+
+class OptimizerState(NamedTuple):
+    """Per-instance state; every leaf is an array (batch it by stacking).
+
+    Attributes:
+      parameters: (capacity, P) observed parameters, physical units.
+      contexts: (capacity, C) contexts of the observations, physical units.
+      objectives: (capacity,) objective values (recomputed by ``set_target``).
+      stored: (capacity,) bool, rows holding an observation (a prefix).
+      records: trial records with a leading capacity axis (``()`` without data reuse).
+      num_stored: () int32.
+      target_velocity: the objective's target (shape of the ``init`` argument; (0,) without
+        data reuse).
+      active_dims: (P,) bool, parameters seen by the kernel and the proposals.
+      schedule: the :class:`BetaSchedule`.
+      inference_mode: () bool; beta = ``inference_beta`` and no random phase.
+      gp_params: the last fitted GP hyperparameters (warm start of the next fit).
+    """
+
+    parameters: jax.Array
+    contexts: jax.Array
+    objectives: jax.Array
+    stored: jax.Array
+    records: Any
+    num_stored: jax.Array
+    target_velocity: jax.Array
+    active_dims: jax.Array
+    schedule: BetaSchedule
+    inference_mode: jax.Array
+    gp_params: gp.GPParams
+
+
+class BetaInfo(NamedTuple):
+    """Result of :meth:`ContextualBO.beta`: beta, n of eq. (14), and whether the context
+    changed (some stored trial outside the thresholds)."""
+
+    beta: jax.Array
+    num_in_context: jax.Array
+    context_changed: jax.Array
+
+
+class ContextualBO(NamedTuple):
+    """The optimizer's pure functions (see the module docstring). Signatures:
+
+    * ``init(active_dims=None, schedule=None, target_velocity=None) -> OptimizerState``
+    * ``propose(state, context, key) -> x`` (P,), physical units
+    * ``observe(state, x, context, observation) -> (state, accepted)``; ``observation`` is a
+      scalar objective, or a trial record when built with ``objective_fn``
+    * ``set_target(state, target_velocity) -> state`` (data reuse)
+    * ``set_inference_mode(state, enabled) -> state``
+    * ``beta(state, context) -> BetaInfo``
+    * ``best_observed(state) -> (x, context, objective)``
+    * ``posterior_mean_argmax(state, context, key) -> (x, posterior mean)``
+    """
+
+    init: Callable[..., OptimizerState]
+    propose: Callable[..., jax.Array]
+    observe: Callable[..., tuple[OptimizerState, jax.Array]]
+    set_target: Callable[..., OptimizerState]
+    set_inference_mode: Callable[..., OptimizerState]
+    beta: Callable[..., BetaInfo]
+    best_observed: Callable[..., tuple[jax.Array, jax.Array, jax.Array]]
+    posterior_mean_argmax: Callable[..., tuple[jax.Array, jax.Array]]
+
+
+def _is_concrete(*values) -> bool:
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(values))
+
+
+def _check_shape(name: str, value, shape: tuple) -> None:
+    if np.shape(value) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {np.shape(value)}")
+
+
+def _check_finite(name: str, value) -> None:
+    array = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be finite, got {array}")
+
+
+def make_optimizer(
+    config: OptimizerConfig,
+    objective_fn: Callable[[Any, jax.Array], jax.Array] | None = None,
+    record_template: Any = None,
+) -> ContextualBO:
+    """Build the optimizer of Algorithm 1.
+
+    Args:
+      config: static structure.
+      objective_fn: ``objective_fn(record, target_velocity) -> J`` (a jax-traceable scalar
+        function). With it, ``observe`` takes trial records and ``set_target`` reuses them.
+      record_template: a pytree of arrays or ``jax.ShapeDtypeStruct`` with the shapes and
+        dtypes of one trial record; required with ``objective_fn``.
+
+    Returns:
+      A :class:`ContextualBO`.
+    """
+    if (objective_fn is None) != (record_template is None):
+        raise ValueError("objective_fn and record_template must be given together")
+    reuses_data = objective_fn is not None
+    num_params, num_contexts = config.num_parameters, config.num_contexts
+    lower = jnp.asarray(config.parameter_lower, jnp.float32)
+    width = jnp.asarray(config.parameter_upper, jnp.float32) - lower
+    context_lower = jnp.asarray(config.context_lower, jnp.float32)
+    context_width = jnp.asarray(config.context_upper, jnp.float32) - context_lower
+    context_tolerance = jnp.asarray(config.context_thresholds, jnp.float32) * context_width
+    if reuses_data:
+        template_leaves, template_tree = jax.tree.flatten(record_template)
+        template_specs = [(tuple(leaf.shape), jnp.dtype(leaf.dtype)) for leaf in template_leaves]
+
+    # ---- pure, jit-compiled cores -------------------------------------------------------
+
+    def dataset(state: OptimizerState) -> gp.Dataset:
+        inputs = jnp.concatenate(
+            [(state.parameters - lower) / width, (state.contexts - context_lower) / context_width],
+            axis=-1,
+        )
+        valid = state.stored & jnp.isfinite(state.objectives)
+        return gp.Dataset(inputs, state.objectives, valid)
+
+    def kernel_active(state):
+        return jnp.concatenate([state.active_dims, jnp.ones((num_contexts,), bool)])
+
+    def refit(state: OptimizerState) -> OptimizerState:
+        params = gp.fit(dataset(state), kernel_active(state), state.gp_params, num_contexts,
+                        config.fit)
+        return state._replace(gp_params=params)
+
+    def beta(state, context):
+        within = jnp.all(jnp.abs(state.contexts - context) <= context_tolerance, axis=-1)
+        num_in_context = jnp.sum(state.stored & within)
+        changed = jnp.any(state.stored & ~within)
+        s = state.schedule
+        normal = s.beta_init * s.gamma ** jnp.maximum(num_in_context - s.n_decay, 0.0)
+        adapted = s.beta_init_changed * s.gamma ** jnp.maximum(
+            num_in_context - s.n_decay_changed, 0.0)
+        value = jnp.where(changed, adapted, normal)
+        value = jnp.where(state.inference_mode, config.inference_beta, value)
+        return BetaInfo(value, num_in_context, changed)
+
+    def to_physical(unit_point):
+        return lower + unit_point * width
+
+    def maximize_ucb(state, context, key, multiplier):
+        post = gp.posterior(state.gp_params, dataset(state), kernel_active(state), num_contexts)
+        unit_context = (context - context_lower) / context_width
+
+        def acquisition(unit_points):
+            contexts = jnp.broadcast_to(unit_context, (unit_points.shape[0], num_contexts))
+            queries = jnp.concatenate([unit_points, contexts], axis=-1)
+            return upper_confidence_bound(post, queries, multiplier, num_contexts)
+
+        return maximize_acquisition(acquisition, key, state.active_dims, config.acquisition)
+
+    def propose(state, context, key):
+        random_key, acquisition_key = jax.random.split(key)
+        use_random = (state.num_stored < config.num_random_proposals) & ~state.inference_mode
+
+        def random_point():
+            uniform = jax.random.uniform(random_key, (num_params,), jnp.float32)
+            return jnp.where(state.active_dims, uniform, INACTIVE_VALUE)
+
+        def ucb_point():
+            multiplier = ucb_multiplier(beta(state, context).beta, config.ucb_form)
+            return maximize_ucb(state, context, acquisition_key, multiplier)[0]
+
+        return to_physical(jax.lax.cond(use_random, random_point, ucb_point))
+
+    def observe(state, x, context, observation):
+        if reuses_data:
+            objective = jnp.asarray(objective_fn(observation, state.target_velocity), jnp.float32)
+        else:
+            objective = jnp.asarray(observation, jnp.float32)
+        slack = BOX_TOLERANCE * width
+        in_box = jnp.where(state.active_dims, (x >= lower - slack) & (x <= lower + width + slack),
+                           True)
+        accepted = (
+            jnp.isfinite(objective)
+            & jnp.all(jnp.isfinite(x))
+            & jnp.all(jnp.isfinite(context))
+            & jnp.all(in_box)
+            & (state.num_stored < config.capacity)
+        )
+        row = jnp.minimum(state.num_stored, config.capacity - 1)
+        written = state._replace(
+            parameters=state.parameters.at[row].set(x),
+            contexts=state.contexts.at[row].set(context),
+            objectives=state.objectives.at[row].set(objective),
+            stored=state.stored.at[row].set(True),
+            records=(jax.tree.map(lambda buf, r: buf.at[row].set(r), state.records, observation)
+                     if reuses_data else state.records),
+            num_stored=state.num_stored + 1,
+        )
+        new_state = jax.lax.cond(accepted, lambda: refit(written), lambda: state)
+        return new_state, accepted
+
+    def set_target(state, target_velocity):
+        recomputed = jax.vmap(objective_fn, in_axes=(0, None))(state.records, target_velocity)
+        objectives = jnp.where(state.stored, jnp.asarray(recomputed, jnp.float32), 0.0)
+        return refit(state._replace(objectives=objectives, target_velocity=target_velocity))
+
+    def best_observed(state):
+        valid = state.stored & jnp.isfinite(state.objectives)
+        scores = jnp.where(valid, state.objectives, -jnp.inf)
+        best = jnp.argmax(scores)
+        return state.parameters[best], state.contexts[best], scores[best]
+
+    def posterior_mean_argmax(state, context, key):
+        unit_point, value = maximize_ucb(state, context, key, jnp.zeros((), jnp.float32))
+        return to_physical(unit_point), value
+
+    jit_propose, jit_observe = jax.jit(propose), jax.jit(observe)
+    jit_set_target, jit_beta = jax.jit(set_target), jax.jit(beta)
+    jit_best_observed = jax.jit(best_observed)
+    jit_posterior_mean_argmax = jax.jit(posterior_mean_argmax)
+
+    # ---- Python-level validation wrappers (the public functions) ------------------------
+
+    def check_state(state):
+        if not isinstance(state, OptimizerState):
+            raise TypeError(f"expected an OptimizerState, got {type(state).__name__}")
+        _check_shape("state.parameters", state.parameters, (config.capacity, num_params))
+        _check_shape("state.contexts", state.contexts, (config.capacity, num_contexts))
+
+    def check_context(context):
+        _check_shape("context", context, (num_contexts,))
+        if _is_concrete(context):
+            _check_finite("context", context)
+
+    def init_fn(active_dims=None, schedule=None, target_velocity=None) -> OptimizerState:
+        """A fresh state. ``active_dims``: (P,) bool, default all True; ``schedule``: default
+        :func:`paper_schedule`; ``target_velocity``: required with data reuse."""
+        if active_dims is None:
+            active_dims = jnp.ones((num_params,), bool)
+        _check_shape("active_dims", active_dims, (num_params,))
+        if _is_concrete(active_dims) and not np.any(np.asarray(active_dims)):
+            raise ValueError("active_dims must enable at least one parameter")
+        if reuses_data:
+            if target_velocity is None:
+                raise ValueError("target_velocity is required with objective_fn (data reuse)")
+            target = jnp.asarray(target_velocity, jnp.float32)
+            records = jax.tree.map(
+                lambda leaf: jnp.zeros((config.capacity, *leaf.shape), leaf.dtype),
+                record_template)
+        else:
+            if target_velocity is not None:
+                raise ValueError("target_velocity needs an objective_fn (data reuse)")
+            target, records = jnp.zeros((0,), jnp.float32), ()
+        return OptimizerState(
+            parameters=jnp.zeros((config.capacity, num_params), jnp.float32),
+            contexts=jnp.zeros((config.capacity, num_contexts), jnp.float32),
+            objectives=jnp.zeros((config.capacity,), jnp.float32),
+            stored=jnp.zeros((config.capacity,), bool),
+            records=records,
+            num_stored=jnp.zeros((), jnp.int32),
+            target_velocity=target,
+            active_dims=jnp.asarray(active_dims, bool),
+            schedule=paper_schedule() if schedule is None else schedule,
+            inference_mode=jnp.zeros((), bool),
+            gp_params=gp.default_params(num_params + num_contexts),
+        )
+
+    def propose_fn(state, context, key):
+        check_state(state)
+        check_context(context)
+        return jit_propose(state, jnp.asarray(context, jnp.float32), key)
+
+    def observe_fn(state, x, context, observation):
+        check_state(state)
+        check_context(context)
+        _check_shape("x", x, (num_params,))
+        concrete = _is_concrete(state, x, context, observation)
+        if concrete:
+            _check_finite("x", x)
+            x_np, active = np.asarray(x, np.float64), np.asarray(state.active_dims)
+            lo, hi = np.asarray(config.parameter_lower), np.asarray(config.parameter_upper)
+            slack = BOX_TOLERANCE * (hi - lo)
+            outside = active & ((x_np < lo - slack) | (x_np > hi + slack))
+            if np.any(outside):
+                i = int(np.flatnonzero(outside)[0])
+                raise ValueError(f"x[{i}] = {x_np[i]} is outside its range [{lo[i]}, {hi[i]}]")
+            if int(state.num_stored) >= config.capacity:
+                raise ValueError(f"capacity exceeded: all {config.capacity} rows are stored")
+        if reuses_data:
+            leaves, tree = jax.tree.flatten(observation)
+            if tree != template_tree:
+                raise ValueError(f"trial record structure {tree} differs from the template"
+                                 f" {template_tree}")
+            for i, (leaf, (shape, dtype)) in enumerate(zip(leaves, template_specs)):
+                _check_shape(f"trial record leaf {i}", leaf, shape)
+        else:
+            _check_shape("objective value (this optimizer has no objective_fn)", observation, ())
+            if concrete:
+                _check_finite("objective value", observation)
+        new_state, accepted = jit_observe(state, jnp.asarray(x, jnp.float32),
+                                          jnp.asarray(context, jnp.float32), observation)
+        if _is_concrete(accepted) and not bool(accepted):
+            raise ValueError("observation rejected: objective_fn returned a non-finite"
+                             " objective for this trial record; the state is unchanged")
+        return new_state, accepted
+
+    def set_target_fn(state, target_velocity):
+        if not reuses_data:
+            raise ValueError("set_target needs an optimizer built with objective_fn")
+        check_state(state)
+        _check_shape("target_velocity", target_velocity, state.target_velocity.shape)
+        if _is_concrete(target_velocity):
+            _check_finite("target_velocity", target_velocity)
+        return jit_set_target(state, jnp.asarray(target_velocity, jnp.float32))
+
+    def set_inference_mode_fn(state, enabled):
+        """Inference mode (paper Sec. IV-C): beta = ``inference_beta``, no random phase."""
+        check_state(state)
+        return state._replace(inference_mode=jnp.asarray(enabled, bool))
+
+    def beta_fn(state, context):
+        check_state(state)
+        check_context(context)
+        return jit_beta(state, jnp.asarray(context, jnp.float32))
+
+    def best_observed_fn(state):
+        """Best stored observation (x, context, J); J = -inf when nothing is stored."""
+        check_state(state)
+        if _is_concrete(state) and int(state.num_stored) == 0:
+            raise ValueError("best_observed: no observation stored yet")
+        return jit_best_observed(state)
+
+    def posterior_mean_argmax_fn(state, context, key):
+        """Maximizer of the posterior mean mu(x; c) at the given context, and mu there."""
+        check_state(state)
+        check_context(context)
+        return jit_posterior_mean_argmax(state, jnp.asarray(context, jnp.float32), key)
+
+    return ContextualBO(init_fn, propose_fn, observe_fn, set_target_fn, set_inference_mode_fn,
+                        beta_fn, best_observed_fn, posterior_mean_argmax_fn)
+
+
+class MaximizeResult(NamedTuple):
+    """Result of :func:`maximize`: the best point and value, and the whole history."""
+
+    best_x: np.ndarray
+    best_value: float
+    xs: np.ndarray
+    values: np.ndarray
+
+
+def maximize(
+    fn: Callable[[np.ndarray], float],
+    bounds,
+    num_trials: int,
+    seed: int = 0,
+    *,
+    num_random_proposals: int = 2,
+    ucb_form: str = "paper",
+    schedule: BetaSchedule | None = None,
+    fit: gp.FitConfig = gp.FitConfig(),
+    acquisition: AcquisitionConfig = AcquisitionConfig(),
+    initial_xs=None,
+) -> MaximizeResult:
+    """Maximize a black-box ``fn`` over a box with GP-UCB (Algorithm 1, no context).
+
+    Args:
+      fn: maps a (d,) NumPy array to a finite float.
+      bounds: (2, d) array-like, lower then upper bounds.
+      num_trials: evaluations of ``fn`` (including the random ones).
+      seed: seed of the PRNG keys.
+      num_random_proposals: initial uniform random proposals (ignored for the points given
+        in ``initial_xs``, which are evaluated first).
+      ucb_form, schedule, fit, acquisition: as in :class:`OptimizerConfig` / ``init``.
+      initial_xs: optional (k, d) points to evaluate first (e.g. a shared initial design).
+
+    Returns:
+      A :class:`MaximizeResult`.
+    """
+    bounds = np.asarray(bounds, np.float64)
+    if bounds.ndim != 2 or bounds.shape[0] != 2:
+        raise ValueError(f"bounds must have shape (2, d), got {bounds.shape}")
+    if num_trials < 1:
+        raise ValueError(f"num_trials must be >= 1, got {num_trials}")
+    config = OptimizerConfig(
+        parameter_lower=tuple(bounds[0]), parameter_upper=tuple(bounds[1]),
+        capacity=num_trials, num_random_proposals=num_random_proposals, ucb_form=ucb_form,
+        fit=fit, acquisition=acquisition,
+    )
+    optimizer = make_optimizer(config)
+    state = optimizer.init(schedule=schedule)
+    initial = np.zeros((0, bounds.shape[1])) if initial_xs is None else np.asarray(initial_xs)
+    no_context = jnp.zeros((0,), jnp.float32)
+    key = jax.random.PRNGKey(seed)
+    xs, values = [], []
+    for trial in range(num_trials):
+        key, subkey = jax.random.split(key)
+        x = initial[trial] if trial < len(initial) else np.asarray(
+            optimizer.propose(state, no_context, subkey))
+        value = float(fn(np.asarray(x, np.float64)))
+        state, _ = optimizer.observe(state, jnp.asarray(x, jnp.float32), no_context,
+                                     jnp.float32(value))
+        xs.append(np.asarray(x, np.float64))
+        values.append(value)
+    values_np = np.asarray(values)
+    best = int(np.argmax(values_np))
+    return MaximizeResult(xs[best], float(values_np[best]), np.stack(xs), values_np)
