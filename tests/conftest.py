@@ -1,0 +1,36 @@
+"""Session-wide compiled simulators, shared by the tests so each batch shape compiles once."""
+
+import numpy as np
+import pytest
+
+from cpgjax import cpg, go1_model, mjx_go1, params as param_space
+
+# Short trials keep the suite fast; the trial logic is identical to the paper's 1.5 s + 3 s.
+SHORT_TRIAL = mjx_go1.TrialConfig(transition_steps=400, steady_steps=1200)
+# One batch covering the scenario checks: nominal, heavy, uphill, slippery, coarse, nominal.
+SCENARIOS = dict(friction=[0.6, 0.6, 0.6, 0.1, 0.9, 0.6], slope_deg=[0, 0, 6, 0, 0, 0],
+                 payload_kg=[0, 15, 0, 0, 0, 0])
+
+
+@pytest.fixture(scope="session")
+def short_sim():
+    return mjx_go1.MJXBackend(go1_model.make_scenarios(**SCENARIOS), trial_config=SHORT_TRIAL)
+
+
+@pytest.fixture(scope="session")
+def mid_params():
+    return np.tile(param_space.midpoint(), (len(SCENARIOS["friction"]), 1))
+
+
+@pytest.fixture(scope="session")
+def vmc_tegotae_gates():
+    return mjx_go1.batch_gates(["vmc_tegotae"] * len(SCENARIOS["friction"]))
+
+
+@pytest.fixture(scope="session")
+def two_trials(short_sim, mid_params, vmc_tegotae_gates):
+    """Records of the second of two back-to-back short trials for the session batch (first trial = warm-up)."""
+    state = short_sim.reset(mid_params)
+    state, _ = short_sim.trial(state, mid_params, vmc_tegotae_gates)
+    state, record = short_sim.trial(state, mid_params, vmc_tegotae_gates)
+    return state, record

@@ -1,0 +1,170 @@
+"""The MJX Go1: C-MuJoCo agreement, scenario physics, trial records, objective and failure isolation."""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from cpgjax import cpg, go1_model, mjx_go1, objective, params as param_space
+from tests.conftest import SCENARIOS, SHORT_TRIAL
+
+
+def test_model_names_and_mass():
+    m = go1_model.load_model()
+    ids = go1_model.indices()
+    assert m.opt.timestep == pytest.approx(0.001)
+    assert [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n))
+            for n in go1_model.JOINT_NAMES] == list(go1_model.JOINT_NAMES)
+    assert m.body_subtreemass[ids.trunk_body] == pytest.approx(12.74, abs=0.01)  # go1-model.md: ≈ 12.7 kg
+    np.testing.assert_allclose(m.actuator_ctrlrange[ids.actuator, 1], cpg.TORQUE_LIMIT_NM)
+    heavy = go1_model.model_with_payload(15.0)
+    assert heavy.body_subtreemass[ids.trunk_body] == pytest.approx(12.74 + 15.0, abs=0.01)
+
+
+def test_c_mujoco_agrees_with_mjx_over_a_short_closed_loop_rollout(short_sim):
+    """MJX (float32, JAX) and C MuJoCo (float64) driven by the same jitted controller for 300 ticks (0.3 s)."""
+    steps = 300
+    p = np.tile(param_space.midpoint(), (short_sim.batch_size, 1))
+    gates = mjx_go1.batch_gates(["vmc_tegotae"] * short_sim.batch_size)
+    _, log = short_sim.rollout(short_sim.reset(p), p, gates, steps)
+
+    m = go1_model.scenario_model(short_sim.scenario, 0)
+    d = mujoco.MjData(m)
+    d.qpos[:] = go1_model.standing_qpos()
+    mujoco.mj_forward(m, d)
+    ids = go1_model.indices()
+    observe = jax.jit(mjx_go1.observe)
+    step = jax.jit(cpg.controller_step, static_argnums=0)
+    obs = observe(d.qpos, d.qvel, d.sensordata, m.opt.gravity)
+    params = jnp.asarray(p[0], jnp.float32)
+    gate = cpg.controller_gates("vmc_tegotae")
+    state = cpg.init_state(params, obs)
+    qpos = []
+    for _ in range(steps):
+        obs = observe(d.qpos, d.qvel, d.sensordata, m.opt.gravity)
+        state, tau, _ = step(cpg.CPGConfig(), state, params, gate, obs)
+        d.ctrl[ids.actuator] = np.asarray(tau)
+        mujoco.mj_step(m, d)
+        qpos.append(d.qpos.copy())
+    qpos = np.array(qpos)
+    mjx_qpos = np.asarray(log.qpos[0])
+    # Tolerance: 2 mm trunk position and 0.02 rad joint angles after 0.3 s of contact-rich walking; the difference
+    # comes from float32 vs float64 and the solvers' iteration counts (see docs/simulation.md).
+    np.testing.assert_allclose(mjx_qpos[:, :3], qpos[:, :3], atol=2e-3)
+    np.testing.assert_allclose(mjx_qpos[:, ids.joint_qpos], qpos[:, ids.joint_qpos], atol=2e-2)
+
+
+def test_walks_forward_without_falling(two_trials):
+    _, record = two_trials
+    walking = [0, 1, 2, 4, 5]  # all but the 0.1-friction floor, on which mid-range parameters may slip and fall
+    assert np.all(np.asarray(record.fell)[walking] == 0) and np.all(np.asarray(record.failed) == 0)
+    v = np.asarray(objective.mean_velocity(record))
+    unloaded = [0, 2, 4, 5]
+    assert np.all((0.3 < v[unloaded, 0]) & (v[unloaded, 0] < 0.8)) and np.all(np.abs(v[unloaded, 1]) < 0.1)
+    assert v[1, 0] > 0.05  # 15 kg payload: slower with parameters not adapted to it (paper, load table), but forward
+
+
+def test_scenarios_have_their_physical_effect(two_trials):
+    _, record = two_trials
+    load = np.asarray(record.c_load_n)
+    slope = np.asarray(record.c_slope_rad)
+    nominal, heavy, uphill = 0, 1, 2
+    # c_load ≈ m g / 4 per foot: 12.74 kg → 31 N, +15 kg → 68 N.
+    assert load[nominal] == pytest.approx(12.74 * 9.81 / 4, rel=0.1)
+    assert load[heavy] == pytest.approx(27.74 * 9.81 / 4, rel=0.1)
+    # Uphill along +x reads as nose-up, i.e. negative pitch, ≈ −6° = −0.105 rad.
+    assert slope[uphill] < slope[nominal] - 0.07
+    np.testing.assert_allclose(np.asarray(record.total_mass_kg)[[nominal, heavy]], [12.74, 27.74], atol=0.01)
+
+
+def test_low_friction_floor_makes_the_feet_slip(short_sim):
+    p = np.tile(param_space.midpoint(), (short_sim.batch_size, 1))
+    gates = mjx_go1.batch_gates(["vmc_tegotae"] * short_sim.batch_size)
+    _, log = short_sim.rollout(short_sim.reset(p), p, gates, 1500)
+    feet = np.asarray(log.foot_pos_m)[:, 500:]  # (B, T, 4, 3) after start-up
+    force = np.asarray(log.foot_force_n)[:, 500:]
+    speed = np.linalg.norm(np.diff(feet[..., :2], axis=1), axis=-1) / 1e-3  # horizontal foot speed
+    loaded = force[:, 1:] > 20.0
+    slip = np.array([speed[b][loaded[b]].mean() for b in range(short_sim.batch_size)])
+    slippery, coarse = 3, 4
+    assert slip[slippery] > 2.0 * slip[coarse]
+
+
+def _reference_objective(record, target):
+    """Eqs. (9)-(10) written out in NumPy from the record's raw per-step velocities and energy."""
+    v = np.asarray(record.velocity_xy_mps, np.float64)
+    reward = 1e-3 * np.minimum(np.exp(-((v[:, 0] - target) ** 2 + v[:, 1] ** 2) / 0.05), 0.85).sum()
+    cot = float(record.energy_j) / (float(record.total_mass_kg) * 9.81 * max(float(record.distance_m), 0.05))
+    return reward - 0.5 * cot
+
+
+def test_objective_recomputed_for_a_new_target_from_a_stored_record(two_trials, tmp_path):
+    _, record = two_trials
+    one = jax.tree.map(lambda x: np.asarray(x)[0], record)
+    np.savez(tmp_path / "record.npz", **one._asdict())
+    loaded = objective.TrialRecord(**dict(np.load(tmp_path / "record.npz")))
+    for target in (0.3, 0.5, 0.8):
+        assert float(objective.objective(loaded, target)) == pytest.approx(_reference_objective(one, target),
+                                                                             rel=1e-4, abs=1e-4)
+    assert float(objective.objective(loaded, 0.5)) == float(objective.objective(one, 0.5))
+
+
+def test_degenerate_trials_get_a_finite_floor():
+    steps = 100
+    base = objective.TrialRecord(
+        velocity_xy_mps=np.tile([0.5, 0.0], (steps, 1)), energy_j=np.float32(2.0), distance_m=np.float32(0.05),
+        total_mass_kg=np.float32(12.74), c_load_n=np.float32(31.0), c_slope_rad=np.float32(0.0),
+        roll_mean_rad=np.float32(0), roll_std_rad=np.float32(0), pitch_std_rad=np.float32(0),
+        saturation_fraction=np.float32(0), fell=np.float32(0), failed=np.float32(0))
+    backwards = base._replace(velocity_xy_mps=np.tile([-0.5, 0.0], (steps, 1)), distance_m=np.float32(-0.05))
+    nan = base._replace(energy_j=np.float32(np.nan))
+    fell = base._replace(fell=np.float32(1.0))
+    j_fwd, j_back, j_nan, j_fell = (float(objective.objective(r, 0.5)) for r in (base, backwards, nan, fell))
+    assert j_back < j_fwd
+    assert j_back >= objective.MIN_OBJECTIVE
+    assert j_nan == j_fell == objective.MIN_OBJECTIVE
+
+
+def test_bad_scenarios_are_rejected():
+    with pytest.raises(ValueError, match=r"payload_kg = -1.0 \(instance 1\).*\[0, inf\)"):
+        go1_model.make_scenarios(payload_kg=[0.0, -1.0])
+    with pytest.raises(ValueError, match="friction = 0.0"):
+        go1_model.make_scenarios(friction=0.0)
+    with pytest.raises(ValueError, match="slope_deg = 45.0"):
+        go1_model.make_scenarios(slope_deg=45.0)
+    with pytest.raises(ValueError, match="slope_deg = nan"):
+        go1_model.make_scenarios(slope_deg=np.nan)
+
+
+def test_bad_parameters_are_rejected_before_simulation(short_sim, mid_params):
+    bad = mid_params.copy()
+    bad[2, 4] = 2.5
+    with pytest.raises(ValueError, match=r"mu = 2.5 \(instance 2\)"):
+        short_sim.reset(bad)
+    with pytest.raises(ValueError, match="expected shape"):
+        short_sim.reset(mid_params[:2])
+
+
+def test_one_exploding_instance_leaves_the_others_unchanged(short_sim, mid_params, vmc_tegotae_gates):
+    start = short_sim.reset(mid_params)
+    start, _ = short_sim.trial(start, mid_params, vmc_tegotae_gates)
+    clean_state = jax.tree.map(jnp.copy, start)
+    broken_state = start._replace(data=start.data.replace(qvel=start.data.qvel.at[2].set(jnp.inf)))
+    _, clean = short_sim.trial(clean_state, mid_params, vmc_tegotae_gates)
+    end, broken = short_sim.trial(broken_state, mid_params, vmc_tegotae_gates)
+    assert float(broken.failed[2]) == 1.0
+    assert float(objective.objective(jax.tree.map(lambda x: x[2], broken), 0.5)) == objective.MIN_OBJECTIVE
+    assert np.all(np.isfinite(np.asarray(end.data.qpos)))
+    others = np.arange(short_sim.batch_size) != 2
+    for a, b in zip(jax.tree.leaves(clean), jax.tree.leaves(broken)):
+        np.testing.assert_array_equal(np.asarray(a)[others], np.asarray(b)[others])
+
+
+def test_a_fall_is_detected_and_the_robot_stands_up_again(short_sim, mid_params, vmc_tegotae_gates):
+    start = short_sim.reset(mid_params)
+    upside_down = start.data.qpos.at[0, 3:7].set(jnp.array([0.0, 1.0, 0.0, 0.0]))  # instance 0 on its back
+    end, record = short_sim.trial(start._replace(data=start.data.replace(qpos=upside_down)), mid_params,
+                                  vmc_tegotae_gates)
+    assert float(record.fell[0]) == 1.0 and float(record.fell[5]) == 0.0
+    np.testing.assert_allclose(np.asarray(end.data.qpos[0]), go1_model.standing_qpos(), atol=1e-6)
