@@ -137,18 +137,25 @@ def _finish(record: np.ndarray) -> bytes:
     return record.tobytes()
 
 
-def _parse(data: bytes, dtype: np.dtype) -> np.ndarray:
-    if len(data) != dtype.itemsize:
-        raise ProtocolError(f"datagram of {len(data)} bytes, expected {dtype.itemsize}")
+def packet_error(data: bytes, length: int) -> str | None:
+    """Why a datagram is not a valid packet of ``length`` bytes (size, head, level flag, CRC), or None."""
+    if len(data) != length:
+        return f"size: datagram of {len(data)} bytes, expected {length}"
     if data[0] != HEAD[0] or data[1] != HEAD[1]:
-        raise ProtocolError(f"wrong head {data[:2].hex()}, expected feef")
+        return f"head: {bytes(data[:2]).hex()}, expected feef"
     if data[2] != LEVEL_LOW:
-        raise ProtocolError(f"level flag 0x{data[2]:02x}, expected 0x{LEVEL_LOW:02x}")
-    record = np.frombuffer(data, dtype)[0]
-    crc = packet_crc(data)
-    if int(record["crc"]) != crc:
-        raise ProtocolError(f"CRC mismatch: packet 0x{int(record['crc']):08x}, computed 0x{crc:08x}")
-    return record
+        return f"level: flag 0x{data[2]:02x}, expected 0x{LEVEL_LOW:02x}"
+    stored, crc = int.from_bytes(data[-4:], "little"), packet_crc(data)
+    if stored != crc:
+        return f"crc: packet 0x{stored:08x}, computed 0x{crc:08x}"
+    return None
+
+
+def _parse(data: bytes, dtype: np.dtype) -> np.ndarray:
+    error = packet_error(data, dtype.itemsize)
+    if error is not None:
+        raise ProtocolError(error)
+    return np.frombuffer(data, dtype)[0]
 
 
 _GAIN_FIELDS = ("tau_nm", "kp_nm_rad", "kd_nm_s_rad")

@@ -116,7 +116,7 @@ def test_low_state_round_trip_and_encodings():
 
 
 @pytest.mark.parametrize("damage, match", [
-    (lambda p: p[:-4] + bytes(4), "CRC"),
+    (lambda p: p[:-4] + bytes(4), "crc"),
     (lambda p: b"\x00\x00" + p[2:], "head"),
     (lambda p: p[:2] + b"\xee" + p[3:], "level"),
     (lambda p: p[:-1], "bytes"),
@@ -127,7 +127,7 @@ def test_invalid_state_datagrams_are_rejected(damage, match):
 
 
 def test_fault_injection_helpers_break_exactly_one_thing():
-    with pytest.raises(proto.ProtocolError, match="CRC"):
+    with pytest.raises(proto.ProtocolError, match="crc"):
         proto.decode_low_state(proto.encode_low_state(_state(), corrupt_crc=True))
     with pytest.raises(proto.ProtocolError, match="head"):
         proto.decode_low_state(proto.encode_low_state(_state(), head=(0, 0)))

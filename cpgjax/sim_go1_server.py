@@ -1,0 +1,363 @@
+"""A loopback simulated Go1: a separate process that speaks the robot's low-level UDP protocol on 127.0.0.1.
+
+It receives LowCmd datagrams and answers LowState datagrams in the SDK's exact wire format
+(``cpgjax.go1_protocol``: 614/807 bytes, fixed-point fields, CRC), so the real ``unitree_legged_sdk`` and
+``cpgjax.hardware_io`` both accept it. Each tick it applies the Go1 motor law to the latest command, steps C MuJoCo
+with cpgjax's own Go1 model (1 ms), and reports the sensors with the same definitions as the MJX simulator
+(``mjx_go1.observe``), encoded in the robot's raw units. Foot forces are reported as raw int16 counts with a per-foot
+offset and a scale (:data:`FOOT_FORCE_OFFSET_COUNTS`, :data:`FOOT_FORCE_N_PER_COUNT`) so that the deployment's
+calibration path is exercised (decisions.md §3).
+
+Pacing: ``realtime`` steps at 1 kHz on absolute wall-clock deadlines once the first command has arrived (the
+physics is frozen until then, like a robot waiting for low-level control) and streams one state per tick;
+``lockstep`` steps once per received command and answers at once (deterministic tests on a loaded machine).
+
+Fault injection for tests goes through a second UDP socket (the control port, JSON requests), see
+:class:`SimGo1Client`. Run ``python -m cpgjax.sim_go1_server --help``. Only 127.0.0.1 is ever bound.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import select
+import socket
+import subprocess
+import sys
+import time
+import numpy as np
+
+from cpgjax import go1_protocol as proto
+
+LOOPBACK = "127.0.0.1"
+TICK_S = 0.001
+# The simulated foot sensor: raw = offset + N / scale (the real Go1's values are unknown and drift; the deployment
+# calibrates them, decisions.md §3).
+FOOT_FORCE_OFFSET_COUNTS = np.array([14, -6, 22, 9])
+FOOT_FORCE_N_PER_COUNT = 0.5
+MOTOR_LIMIT_NM = np.tile(np.array([23.7, 23.7, 35.55]), 4)
+BRAKE_KD_NM_S_RAD = 20.0  # mode 0x00 (damping): Unitree's Gazebo motor model brakes with Kd = 20
+MOTOR_TEMPERATURE_C = 38
+FAULT_KINDS = ("drop", "late_ms", "corrupt_crc", "wrong_head", "freeze_tick", "silence", "push_roll_nm",
+               "buttons", "power", "temperature_c", "nan_q")
+
+
+def motor_torque(cmd: proto.MotorCommand, q_rad: np.ndarray, dq_rad_s: np.ndarray) -> np.ndarray:
+    """The Go1 motor law (go1-sdk.md §1.8): in servo mode τ = tau + Kp (q* − q) + Kd (dq* − dq), with the position
+    term off when q* = PosStopF and the velocity term off when dq* = VelStopF; in damping mode τ = −Kd_brake dq.
+    Clipped to the motor limits (12,)."""
+    kp = np.where(np.abs(cmd.q_rad - proto.POS_STOP_F) < 1e3, 0.0, cmd.kp_nm_rad)
+    kd = np.where(np.abs(cmd.dq_rad_s - proto.VEL_STOP_F) < 1.0, 0.0, cmd.kd_nm_s_rad)
+    q_err = np.where(kp > 0.0, cmd.q_rad - q_rad, 0.0)
+    dq_err = np.where(kd > 0.0, cmd.dq_rad_s - dq_rad_s, 0.0)
+    servo = cmd.tau_nm + kp * q_err + kd * dq_err
+    tau = np.where(cmd.mode == proto.MODE_SERVO, servo, -BRAKE_KD_NM_S_RAD * dq_rad_s)
+    return np.clip(tau, -MOTOR_LIMIT_NM, MOTOR_LIMIT_NM)
+
+
+class Go1Physics:
+    """One C-MuJoCo Go1 (the scenario model of ``go1_model``), stepped 1 ms at a time with motor torques.
+
+    The single place where the simulated Go1 touches the physics: ``step`` and ``observation`` are what a shared
+    C-MuJoCo backend would replace.
+    """
+
+    def __init__(self, friction: float = 0.6, slope_deg: float = 0.0, payload_kg: float = 0.0):
+        import jax
+        import mujoco
+
+        from cpgjax import go1_model, mjx_go1
+
+        self._mujoco = mujoco
+        self.model = go1_model.scenario_model(go1_model.make_scenarios(friction, slope_deg, payload_kg), 0)
+        self.data = mujoco.MjData(self.model)
+        self.ids = go1_model.indices()
+        self._standing = go1_model.standing_qpos(self.model)
+        gravity = np.asarray(self.model.opt.gravity, np.float32)
+        # The MJX sensor model, compiled once for host arrays: one definition of what the robot senses.
+        self._observe = jax.jit(lambda qpos, qvel, sens: mjx_go1.observe(qpos, qvel, sens, gravity))
+        self.reset()
+
+    def reset(self) -> None:
+        """Standing at the origin, at rest."""
+        self._mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = self._standing
+        self._mujoco.mj_forward(self.model, self.data)
+
+    def step(self, torque_nm: np.ndarray, push_roll_nm: float = 0.0) -> None:
+        """Apply joint torques (12,) [and an external roll torque on the trunk] for one 1 ms physics step."""
+        self.data.ctrl[self.ids.actuator] = torque_nm
+        self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
+        self._mujoco.mj_step(self.model, self.data)
+
+    def joint_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """Joint angles and velocities (12,) each, motor order: what the motor drivers measure."""
+        return self.data.qpos[self.ids.joint_qpos].copy(), self.data.qvel[self.ids.joint_dof].copy()
+
+    def observation(self):
+        """The controller-facing sensors (``cpg.Observation`` of NumPy arrays, SI units)."""
+        obs = self._observe(np.asarray(self.data.qpos, np.float32), np.asarray(self.data.qvel, np.float32),
+                            np.asarray(self.data.sensordata, np.float32))
+        return type(obs)(*(np.asarray(x, np.float64) for x in obs))
+
+    def trunk_height_m(self) -> float:
+        return float(self.data.qpos[self.ids.root_qpos + 2])
+
+
+def _quat_to_rpy(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q
+    return np.array([np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                     np.arcsin(np.clip(2 * (w * y - z * x), -1, 1)),
+                     np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))])
+
+
+def robot_state(obs, torque_nm: np.ndarray, tick_ms: int, *, buttons: tuple[str, ...] = ()) -> proto.RobotState:
+    """Encode an observation as the Go1 reports it: IMU, joints, tauEst = applied torque, raw foot counts."""
+    quat = obs.imu_quat_wxyz
+    w, x, y, z = quat
+    gravity_body = 9.81 * np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+    counts = FOOT_FORCE_OFFSET_COUNTS + np.round(obs.foot_force_n / FOOT_FORCE_N_PER_COUNT)
+    return proto.RobotState(
+        tick_ms=tick_ms, quaternion_wxyz=quat, gyro_rad_s=obs.gyro_rad_s,
+        accel_mps2=gravity_body,  # specific force of a robot at rest (linear acceleration not modelled)
+        rpy_rad=_quat_to_rpy(quat), motor_mode=np.full(12, proto.MODE_SERVO, np.uint8), q_rad=obs.joint_pos_rad,
+        dq_rad_s=obs.joint_vel_rad_s, tau_est_nm=torque_nm,
+        motor_temperature_c=np.full(12, MOTOR_TEMPERATURE_C), foot_force_raw=np.clip(counts, -32768, 32767),
+        wireless_remote=proto.remote_with_buttons(*buttons))
+
+
+def apply_sensor_faults(state: proto.RobotState, faults: dict) -> proto.RobotState:
+    """The state as reported under the active sensor faults (buttons, power, temperature, NaN joint angle)."""
+    if "buttons" in faults:
+        state = state._replace(wireless_remote=proto.remote_with_buttons(*faults["buttons"]))
+    if "power" in faults:  # Σ|tauEst·dq| = 12 · 20 N·m · 5 rad/s = 1200 W
+        state = state._replace(tau_est_nm=np.full(12, 20.0), dq_rad_s=np.full(12, 5.0))
+    if "temperature_c" in faults:
+        state = state._replace(motor_temperature_c=np.full(12, int(faults["temperature_c"])))
+    if "nan_q" in faults:
+        state = state._replace(q_rad=np.where(np.arange(12) == 0, np.nan, state.q_rad))
+    return state
+
+
+class SimGo1Server:
+    """The simulated Go1's event loop (run it in its own process: ``python -m cpgjax.sim_go1_server``)."""
+
+    def __init__(self, port: int = 0, control_port: int = 0, pacing: str = "realtime", **scenario):
+        if pacing not in ("realtime", "lockstep"):
+            raise ValueError(f"pacing must be 'realtime' or 'lockstep', got {pacing!r}")
+        self.pacing = pacing
+        self.physics = Go1Physics(**scenario)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind((LOOPBACK, port))
+        self.sock.setblocking(False)
+        self.ctrl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.ctrl.bind((LOOPBACK, control_port))
+        self.ctrl.setblocking(False)
+        self.faults: list[dict] = []  # {"kind", "value", "start", "stop"} in server ticks
+        self._reset_counters()
+        self.running = True
+
+    def _reset_counters(self) -> None:
+        self.tick = 0
+        self.client = None
+        self.command = None
+        self.torque = np.zeros(12)
+        self.stats = {"commands": 0, "bad_packets": 0, "states_sent": 0, "max_abs_tau_cmd_nm": 0.0,
+                      "min_kp_cmd": float("inf"), "max_kp_cmd": 0.0, "max_kd_cmd": 0.0, "damping_commands": 0}
+        self._last_state = robot_state(self.physics.observation(), self.torque, self.tick)
+
+    @property
+    def ports(self) -> tuple[int, int]:
+        return self.sock.getsockname()[1], self.ctrl.getsockname()[1]
+
+    def active_faults(self) -> dict:
+        return {f["kind"]: f["value"] for f in self.faults if f["start"] <= self.tick < f["stop"]}
+
+    # --------------------------------------------------------------------------------------------- control port
+
+    def _handle_control(self) -> None:
+        while True:
+            try:
+                data, addr = self.ctrl.recvfrom(65536)
+            except BlockingIOError:
+                return
+            request = json.loads(data)
+            op = request.get("op")
+            reply = {"ok": True}
+            if op == "reset":
+                self.physics.reset()
+                self._reset_counters()
+                self.faults = []
+            elif op == "fault":
+                kind = request["kind"]
+                if kind not in FAULT_KINDS:
+                    reply = {"ok": False, "error": f"unknown fault {kind!r}; allowed {FAULT_KINDS}"}
+                else:
+                    start = self.tick + int(request.get("after_ticks", 0))
+                    self.faults.append({"kind": kind, "value": request.get("value", True), "start": start,
+                                        "stop": start + int(request.get("ticks", 10**9))})
+            elif op == "stats":
+                reply.update(self.stats, tick=self.tick, trunk_height_m=self.physics.trunk_height_m(),
+                             trunk_xy_m=[float(v) for v in self.physics.data.qpos[:2]])
+            elif op == "quit":
+                self.running = False
+            else:
+                reply = {"ok": False, "error": f"unknown op {op!r}"}
+            self.ctrl.sendto(json.dumps(reply).encode(), addr)
+
+    # --------------------------------------------------------------------------------------------- robot port
+
+    def _receive_commands(self) -> int:
+        """Drain the robot socket; keep the newest valid command. Returns the number of valid commands."""
+        n = 0
+        while True:
+            try:
+                data, addr = self.sock.recvfrom(2048)
+            except BlockingIOError:
+                return n
+            try:
+                cmd = proto.decode_low_cmd(data)
+            except proto.ProtocolError:
+                self.stats["bad_packets"] += 1
+                continue
+            self.command, self.client, n = cmd, addr, n + 1
+            s = self.stats
+            s["commands"] += 1
+            s["max_abs_tau_cmd_nm"] = max(s["max_abs_tau_cmd_nm"], float(np.max(np.abs(cmd.tau_nm))))
+            s["min_kp_cmd"] = min(s["min_kp_cmd"], float(np.min(cmd.kp_nm_rad)))
+            s["max_kp_cmd"] = max(s["max_kp_cmd"], float(np.max(cmd.kp_nm_rad)))
+            s["max_kd_cmd"] = max(s["max_kd_cmd"], float(np.max(cmd.kd_nm_s_rad)))
+            if np.all(cmd.kp_nm_rad == 0) and np.all(cmd.tau_nm == 0) and np.all(cmd.kd_nm_s_rad > 0):
+                s["damping_commands"] += 1
+
+    def _tick_once(self) -> None:
+        """Motor law, one physics step, and (fault permitting) one LowState to the client."""
+        faults = self.active_faults()
+        if "freeze_tick" not in faults:
+            self.torque = motor_torque(self.command, *self.physics.joint_state())
+            self.physics.step(self.torque, float(faults.get("push_roll_nm", 0.0)))
+            self.tick += 1
+            self._last_state = robot_state(self.physics.observation(), self.torque, self.tick)
+        else:
+            self.tick += 1  # the server's clock runs on, the reported state (and its tick) does not
+        if "silence" in faults or "drop" in faults or self.client is None:
+            return
+        if "late_ms" in faults:
+            time.sleep(float(faults["late_ms"]) / 1000.0)
+        state = apply_sensor_faults(self._last_state, faults)
+        packet = proto.encode_low_state(state, corrupt_crc="corrupt_crc" in faults,
+                                        head=(0x00, 0x00) if "wrong_head" in faults else proto.HEAD)
+        self.sock.sendto(packet, self.client)
+        self.stats["states_sent"] += 1
+
+    def serve_forever(self) -> None:
+        next_deadline = None
+        while self.running:
+            timeout = None if next_deadline is None else max(0.0, next_deadline - time.perf_counter())
+            readable, _, _ = select.select([self.sock, self.ctrl], [], [], timeout)
+            if self.ctrl in readable:
+                self._handle_control()
+            new_commands = self._receive_commands() if self.sock in readable else 0
+            if self.command is None:
+                next_deadline = None
+                continue
+            if self.pacing == "lockstep":
+                for _ in range(new_commands):
+                    self._tick_once()
+                continue
+            now = time.perf_counter()
+            if next_deadline is None:
+                next_deadline = now
+            if now >= next_deadline:
+                self._tick_once()
+                # Absolute deadlines; after a long stall the clock jumps ahead instead of bursting catch-up steps.
+                next_deadline = max(next_deadline + TICK_S, time.perf_counter() - TICK_S)
+        self.sock.close()
+        self.ctrl.close()
+
+
+class SimGo1Client:
+    """Start the simulated Go1 in a child process and talk to its control port.
+
+    >>> with SimGo1Client(pacing="lockstep") as sim:
+    ...     transport = hardware_io.UdpTransport(("127.0.0.1", sim.port))
+    ...     sim.inject("corrupt_crc", ticks=5)
+    """
+
+    def __init__(self, pacing: str = "realtime", friction: float = 0.6, slope_deg: float = 0.0,
+                 payload_kg: float = 0.0, startup_timeout_s: float = 60.0):
+        cmd = [sys.executable, "-m", "cpgjax.sim_go1_server", "--pacing", pacing, "--friction", str(friction),
+               "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg)]
+        env = dict(os.environ, JAX_PLATFORMS="cpu")
+        self.process = subprocess.Popen(cmd, stdout=subprocess.PIPE, env=env, text=True)
+        line, give_up = "", time.monotonic() + startup_timeout_s
+        while not line.startswith("READY"):  # skip whatever the imports print
+            ready, _, _ = select.select([self.process.stdout], [], [], max(0.0, give_up - time.monotonic()))
+            line = self.process.stdout.readline() if ready else ""
+            if not ready or (not line and self.process.poll() is not None):
+                self.process.kill()
+                raise RuntimeError("the simulated Go1 did not start")
+        _, port, control_port = line.split()
+        self.port, self.control_port = int(port), int(control_port)
+        self._ctrl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._ctrl.settimeout(5.0)
+
+    @property
+    def address(self) -> tuple[str, int]:
+        return LOOPBACK, self.port
+
+    def request(self, op: str, **fields) -> dict:
+        self._ctrl.sendto(json.dumps({"op": op, **fields}).encode(), (LOOPBACK, self.control_port))
+        reply = json.loads(self._ctrl.recv(65536))
+        if not reply.get("ok"):
+            raise RuntimeError(f"simulated Go1 refused {op}: {reply.get('error')}")
+        return reply
+
+    def inject(self, kind: str, value=True, *, after_ticks: int = 0, ticks: int = 10**9) -> None:
+        """Activate a fault (see FAULT_KINDS) for ``ticks`` server ticks, starting ``after_ticks`` from now."""
+        self.request("fault", kind=kind, value=value, after_ticks=after_ticks, ticks=ticks)
+
+    def reset(self) -> None:
+        """Robot standing again, frozen until the next command; faults cleared; counters zeroed."""
+        self.request("reset")
+
+    def stats(self) -> dict:
+        return self.request("stats")
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            try:
+                self.request("quit")
+                self.process.wait(timeout=5.0)
+            except (OSError, RuntimeError, subprocess.TimeoutExpired, json.JSONDecodeError):
+                self.process.kill()
+                self.process.wait()
+        self._ctrl.close()
+        self.process.stdout.close()
+
+    def __enter__(self) -> SimGo1Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--port", type=int, default=0, help="robot UDP port on 127.0.0.1 (0: ephemeral)")
+    parser.add_argument("--control-port", type=int, default=0, help="control UDP port on 127.0.0.1 (0: ephemeral)")
+    parser.add_argument("--pacing", choices=("realtime", "lockstep"), default="realtime")
+    parser.add_argument("--friction", type=float, default=0.6)
+    parser.add_argument("--slope-deg", type=float, default=0.0)
+    parser.add_argument("--payload-kg", type=float, default=0.0)
+    args = parser.parse_args(argv)
+    server = SimGo1Server(args.port, args.control_port, args.pacing, friction=args.friction,
+                          slope_deg=args.slope_deg, payload_kg=args.payload_kg)
+    server.physics.observation()  # compile the sensor model before announcing readiness
+    print("READY", *server.ports, flush=True)
+    server.serve_forever()
+
+
+if __name__ == "__main__":
+    main()

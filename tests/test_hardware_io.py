@@ -1,0 +1,255 @@
+"""The 1 kHz deployment loop through the loopback simulated Go1 (127.0.0.1, ephemeral ports only).
+
+One simulated Go1 process in lockstep pacing (one physics step per command, so the physics does not depend on this
+loaded machine's timing) serves every test; each test resets it and injects its fault from the control port. No
+test asserts real-time figures: those are in benchmarks/hardware_loop.py.
+"""
+
+import signal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cpgjax import cpg, deploy, params
+from cpgjax import go1_protocol as proto
+from cpgjax import hardware_io as hio
+from cpgjax import sim_go1_server as sim
+
+GATES = cpg.controller_gates("vmc_tegotae")
+# Short soft start; a watchdog long enough for a loaded CI machine (the stale-state test shortens it).
+LOOP = hio.LoopConfig(hold_s=0.1, ramp_s=0.2, end_damping_s=0.05, realtime_priority=None)
+SAFETY = hio.SafetyConfig(watchdog_ticks=100)
+RUN_STARTS_AT = 300  # server ticks: connect 1 + hold 100 + ramp 200
+
+
+@pytest.fixture(scope="module")
+def controller():
+    return hio.CompiledController()
+
+
+@pytest.fixture(scope="module")
+def robot():
+    with sim.SimGo1Client(pacing="lockstep") as server:
+        yield server
+
+
+def _run(robot, controller, run_ticks=600, fault=None, safety=SAFETY, schedule=None, transport=None):
+    robot.reset()
+    if fault is not None:
+        kind, value, ticks = fault
+        robot.inject(kind, value, after_ticks=RUN_STARTS_AT + 100, ticks=ticks)
+    transport = transport or hio.UdpTransport(robot.address)
+    try:
+        result = hio.run_loop(transport, controller, schedule or hio.FixedParams(params.midpoint(), run_ticks),
+                              deploy.sim_calibration(), GATES, LOOP, safety)
+    finally:
+        transport.close()
+    return result, transport, robot.stats()
+
+
+def _assert_damped_after_trip(result, stats, reason):
+    assert result.trip is not None and reason in result.trip, result.events
+    assert result.events[-1][1] == "damp"
+    assert stats["damping_commands"] > 0  # the robot received damping after the trip
+    assert stats["bad_packets"] == 0 and stats["min_kp_cmd"] >= 0.0 and stats["max_abs_tau_cmd_nm"] <= 35.55
+
+
+def _stale_run_ticks(result) -> int:
+    return int(np.sum(~result.log.fresh & (result.log.phase == hio.RUN)))
+
+
+# ------------------------------------------------------------------------------------- tolerated faults
+
+@pytest.mark.parametrize("kind, value", [("drop", True), ("late_ms", 3.0), ("corrupt_crc", True),
+                                         ("wrong_head", True)])
+def test_short_packet_faults_are_ridden_out(robot, controller, kind, value):
+    result, transport, stats = _run(robot, controller, fault=(kind, value, 5))
+    assert result.trip is None, result.events
+    if kind in ("corrupt_crc", "wrong_head"):
+        assert transport.rejected["crc" if kind == "corrupt_crc" else "head"] >= 5
+    if kind in ("drop", "corrupt_crc", "wrong_head"):
+        assert _stale_run_ticks(result) >= 5  # the loop noticed and reused the last state
+
+
+# ------------------------------------------------------------------------------------- trips → damping
+
+def test_stale_tick_trips_the_watchdog(robot, controller):
+    result, _, stats = _run(robot, controller, run_ticks=5000, fault=("freeze_tick", True, 10**6),
+                            safety=SAFETY._replace(watchdog_ticks=20))
+    _assert_damped_after_trip(result, stats, "stale state")
+
+
+def test_persistent_corrupt_crc_trips_the_watchdog(robot, controller):
+    result, transport, stats = _run(robot, controller, run_ticks=5000, fault=("corrupt_crc", True, 10**6),
+                                    safety=SAFETY._replace(watchdog_ticks=20))
+    _assert_damped_after_trip(result, stats, "stale state")
+    assert transport.rejected["crc"] >= 20
+
+
+def test_tilt_beyond_the_threshold_damps(robot, controller):
+    result, _, stats = _run(robot, controller, run_ticks=5000, fault=("push_roll_nm", 60.0, 10**6))
+    _assert_damped_after_trip(result, stats, "tilt")
+
+
+def test_remote_stop_buttons_damp(robot, controller):
+    result, _, stats = _run(robot, controller, run_ticks=5000, fault=("buttons", ["L2", "B"], 10**6))
+    _assert_damped_after_trip(result, stats, "remote stop")
+
+
+def test_one_stop_button_alone_does_not_stop(robot, controller):
+    result, _, _ = _run(robot, controller, fault=("buttons", ["B"], 10**6))
+    assert result.trip is None
+
+
+def test_nan_command_is_never_sent(robot, controller):
+    result, _, stats = _run(robot, controller, run_ticks=5000, fault=("nan_q", True, 10**6))
+    _assert_damped_after_trip(result, stats, "non-finite command")
+
+
+def test_power_protection_trips(robot, controller):
+    result, _, stats = _run(robot, controller, run_ticks=5000, fault=("power", True, 10**6))
+    _assert_damped_after_trip(result, stats, "power protection")
+
+
+def test_motor_temperature_limit_damps(robot, controller):
+    result, _, stats = _run(robot, controller, run_ticks=5000, fault=("temperature_c", 80, 10**6))
+    _assert_damped_after_trip(result, stats, "motor temperature")
+
+
+class _CtrlCAt(hio.FixedParams):
+    def record(self, run_tick, out):
+        if run_tick == 100:
+            signal.raise_signal(signal.SIGINT)
+
+
+def test_ctrl_c_shuts_down_to_damping(robot, controller):
+    result, _, stats = _run(robot, controller, schedule=_CtrlCAt(params.midpoint()))
+    _assert_damped_after_trip(result, stats, "Ctrl-C")
+
+
+def test_no_robot_gives_up_after_the_connect_timeout(controller):
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(("127.0.0.1", 0))  # a port where nobody answers
+        transport = hio.UdpTransport(silent.getsockname())
+        result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(),
+                              GATES, LOOP._replace(connect_timeout_s=0.05), SAFETY)
+        transport.close()
+    assert result.trip.startswith("no robot state")
+
+
+# ------------------------------------------------------------------------------------- guards and units
+
+def test_guard_clamps_before_encoding_and_refuses_nan():
+    safety = hio.SafetyConfig()
+    cmd = hio.pd_command(np.full(12, 5.0), kp=500.0, kd=-1.0)._replace(tau_nm=np.full(12, 200.0))
+    guarded, reason = hio.guard_command(cmd, safety)
+    assert reason is None
+    np.testing.assert_array_equal(guarded.tau_nm, hio.TORQUE_LIMIT_NM)
+    np.testing.assert_array_equal(guarded.kp_nm_rad, safety.kp_max_nm_rad)
+    np.testing.assert_array_equal(guarded.kd_nm_s_rad, 0.0)
+    np.testing.assert_array_equal(guarded.q_rad, np.minimum(5.0, hio.JOINT_UPPER_RAD))
+    proto.encode_low_cmd(guarded)  # encodable: nothing would wrap
+    torque_mode, _ = hio.guard_command(hio.torque_command(np.zeros(12)), safety)
+    assert np.all(torque_mode.q_rad == proto.POS_STOP_F)  # the stop marker survives (position term stays off)
+    _, reason = hio.guard_command(hio.torque_command(np.full(12, np.nan)), safety)
+    assert reason == "non-finite command (tau)"
+
+
+def test_power_protection_counts_like_the_sdk():
+    safety = hio.SafetyConfig(power_level=1)
+    hot = proto.RobotState(0, np.array([1.0, 0, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3),
+                           np.full(12, 10, np.uint8), np.zeros(12), np.full(12, 1.0), np.full(12, 10.0),
+                           np.zeros(12), np.zeros(4), bytes(40))  # 120 W > 100 W
+    cold = hot._replace(dq_rad_s=np.zeros(12))
+    counter, reasons = 0, []
+    for state in [hot] * 5 + [cold] + [hot] * 2:
+        counter, reason = hio.power_protect(counter, state, safety)
+        reasons.append(reason)
+    assert reasons[:7] == [None] * 7 and reasons[7] is not None  # 5 up, 1 down, 2 up → 6
+
+
+def test_foot_force_calibration_recovers_the_simulated_sensor(tmp_path):
+    rng = np.random.default_rng(0)
+    weight_n = 12.74 * 9.81
+    true = deploy.sim_calibration()
+    air = true.offset_counts + rng.integers(0, 3, (200, 4))
+    standing = true.offset_counts + np.round(weight_n / 4 / true.newton_per_count) + rng.integers(-2, 3, (500, 4))
+    cal = hio.calibrate_foot_force(air, standing, 12.74)
+    np.testing.assert_allclose(cal.offset_counts, true.offset_counts)
+    np.testing.assert_allclose(cal.newton_per_count, true.newton_per_count, rtol=0.02)
+    cal.save(tmp_path / "cal.json")
+    np.testing.assert_array_equal(hio.FootForceCalibration.load(tmp_path / "cal.json").offset_counts,
+                                  cal.offset_counts)
+
+
+# ------------------------------------------------------------------------------------- parity and walking
+
+def _rollout_torques(obs_sequence: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Torques of the MJX rollout's controller path (``cpg.controller_step`` vmapped over instances and scanned
+    over ticks, as in ``mjx_go1``) for a given observation sequence (T, OBS_SIZE)."""
+    def rollout(obs_seq, p_inst, gates):
+        state0 = cpg.init_state(p_inst, hio.unpack_observation(obs_seq[0]))
+
+        def body(state, x):
+            state, torque, _ = cpg.controller_step(cpg.CPGConfig(), state, p_inst, gates, hio.unpack_observation(x))
+            return state, torque
+        return jax.lax.scan(body, state0, obs_seq)[1]
+
+    batched = jax.jit(jax.vmap(rollout))(jnp.asarray(obs_sequence)[None], jnp.asarray(p, jnp.float32)[None],
+                                         cpg.Gates(jnp.array([GATES.vmc]), jnp.array([GATES.tegotae])))
+    return np.asarray(batched[0])
+
+
+def test_loop_torques_equal_the_rollout_for_the_same_observations(robot, controller):
+    result, _, _ = _run(robot, controller, run_ticks=800)
+    run = result.log.phase == hio.RUN
+    obs, loop_torque = result.log.obs[run], result.log.controller_torque_nm[run]
+    assert obs.shape[0] == 800
+    expected = _rollout_torques(obs, params.midpoint())
+    np.testing.assert_allclose(loop_torque, expected, rtol=1e-4, atol=1e-3)
+    sent = result.log.torque_nm[run]  # after the guard; the wire then truncates to 1/256 N·m
+    np.testing.assert_allclose(sent, np.clip(expected, -hio.TORQUE_LIMIT_NM, hio.TORQUE_LIMIT_NM), atol=1e-3)
+
+
+def test_the_simulated_go1_walks_forward_under_the_deployed_controller(robot, controller):
+    result, _, stats = _run(robot, controller, run_ticks=2500)
+    assert result.trip is None
+    assert stats["trunk_xy_m"][0] > 0.5 and abs(stats["trunk_xy_m"][1]) < 0.3  # ≈ 0.5 m/s for 2.5 s
+    assert stats["trunk_height_m"] > 0.2  # still standing when the run ended (then damping for 50 ms)
+
+
+def test_the_official_sdk_drives_the_simulated_go1(robot, controller):
+    pytest.importorskip("unitree_legged_sdk.robot_interface")
+    transport = hio.SdkTransport("127.0.0.1", robot.port, deploy._free_port(), power_level=9)
+    result, _, stats = _run(robot, controller, run_ticks=1000, transport=transport)
+    assert result.trip is None, result.events
+    assert stats["trunk_xy_m"][0] > 0.2 and stats["bad_packets"] == 0
+
+
+def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
+    """Random search stands in for the contextual BO (cpgjax.bo) until that lands."""
+    robot.reset()
+    transport = hio.UdpTransport(robot.address)
+    spec = deploy.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), "vmc_tegotae")
+    try:
+        result, rows = deploy.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
+                                                  params.midpoint(), 3, deploy.TrialTiming(300, 600), LOOP, SAFETY)
+    finally:
+        transport.close()
+    assert result.trip is None, result.events
+    assert [r["trial"] for r in rows] == [0, 1, 2]
+    assert all(np.isfinite(r["objective"]) and 15.0 < r["c_load_n"] < 50.0 for r in rows)
+    assert rows[0]["v_x_mps"] > 0.2  # the midpoint gait walks forward (leg odometry)
+    import pyarrow.parquet as pq
+
+    assert pq.read_table(tmp_path / "trials.parquet").num_rows == 3
+    assert (tmp_path / "trials.rrd").stat().st_size > 0
+    best = deploy.load_params(tmp_path / "best_params.json")
+    best_row = rows[int(np.argmax([r["objective"] for r in rows]))]
+    np.testing.assert_allclose(best, [best_row[name] for name in params.PARAM_NAMES])
+    replay, _, _ = _run(robot, controller, run_ticks=300, schedule=hio.FixedParams(best, 300))
+    assert replay.trip is None
