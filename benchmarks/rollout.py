@@ -1,0 +1,126 @@
+"""Environment steps per second of the batched closed-loop trial (CPG controller + MJX) against bare ``mjx.step``
+with a constant control and against single-threaded C MuJoCo, measured in the same run.
+
+    python benchmarks/rollout.py            # full: batch 1, 4, 16, 64, 256
+    python benchmarks/rollout.py --quick    # under 2 minutes on a 2-core CPU
+
+The last line of the output is a JSON object of the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from cpgjax import go1_model, mjx_go1, params as param_space
+
+
+def _timed(fn, *args, repeats: int):
+    """(compile+first-run seconds, best run seconds) of a jitted function."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return first, best
+
+
+def closed_loop(batch: int, steps: int, repeats: int) -> dict:
+    """The paper's trial (transition + steady phase, sensors, controller, bookkeeping) for ``batch`` instances."""
+    transition = steps // 4
+    config = mjx_go1.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
+    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)), trial_config=config)
+    p = np.tile(param_space.midpoint(), (batch, 1))
+    gates = mjx_go1.batch_gates(["vmc_tegotae"] * batch)
+    state = sim.reset(p)
+    jax.block_until_ready(sim.trial(state, p, gates))  # compile (the trial consumes its input state)
+    first = None
+    best = np.inf
+    for k in range(repeats + 1):
+        state = sim.reset(p)
+        jax.block_until_ready(state)
+        t0 = time.perf_counter()
+        jax.block_until_ready(sim.trial(state, p, gates))
+        elapsed = time.perf_counter() - t0
+        if k == 0:
+            first = elapsed
+        else:
+            best = min(best, elapsed)
+    return {"steps_per_s": batch * steps / best, "first_run_s": first}
+
+
+def bare_mjx(batch: int, steps: int, repeats: int) -> dict:
+    """``mjx.step`` in a scan with a constant control, vmapped, on the same batched model."""
+    batch_model = mjx_go1.make_batch_model(go1_model.make_scenarios(friction=np.full(batch, 0.6)))
+    qpos = jnp.asarray(go1_model.standing_qpos(), jnp.float32)
+
+    def run(model):
+        data = mjx.make_data(model).replace(qpos=qpos, ctrl=jnp.full(model.nu, 1.0))
+        return jax.lax.scan(lambda d, _: (mjx.step(model, d), None), data, None, length=steps)[0].qpos
+
+    fn = jax.jit(jax.vmap(run, in_axes=(batch_model.in_axes,)))
+    t0 = time.perf_counter()
+    compiled = fn.lower(batch_model.model).compile()
+    compile_s = time.perf_counter() - t0
+    _, best = _timed(compiled, batch_model.model, repeats=repeats)
+    return {"steps_per_s": batch * steps / best, "compile_s": compile_s}
+
+
+def c_mujoco(steps: int) -> float:
+    """Single-threaded C MuJoCo, one instance, constant control: env-steps/s."""
+    m = go1_model.load_model()
+    d = mujoco.MjData(m)
+    d.qpos[:] = go1_model.standing_qpos()
+    d.ctrl[:] = 1.0
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        mujoco.mj_step(m, d)
+    return steps / (time.perf_counter() - t0)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="batch 1, 16, 64 and short rollouts (< 2 min)")
+    parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=None)
+    parser.add_argument("--steps", type=int, default=None, help="env steps per instance per timed run")
+    args = parser.parse_args()
+    batches = args.batch_sizes or ([1, 16, 64] if args.quick else [1, 4, 16, 64, 256])
+    steps = args.steps or (400 if args.quick else 2000)
+    repeats = 1 if args.quick else 3
+
+    device = jax.devices()[0]
+    print(f"# device: {device.platform} {device.device_kind}; host: {platform.processor() or platform.machine()}; "
+          f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance")
+    print("| batch | closed loop [env-steps/s] | bare mjx.step [env-steps/s] | controller overhead | first trial call [s] "
+          "| bare compile [s] |")
+    print("|---|---|---|---|---|---|")
+    figures: dict = {"device": f"{device.platform}:{device.device_kind}", "steps_per_instance": steps}
+    for b in batches:
+        loop = closed_loop(b, steps, repeats)
+        bare = bare_mjx(b, steps, repeats)
+        overhead = bare["steps_per_s"] / loop["steps_per_s"] - 1.0
+        print(f"| {b} | {loop['steps_per_s']:,.0f} | {bare['steps_per_s']:,.0f} | {overhead:+.1%} "
+              f"| {loop['first_run_s']:.1f} | {bare['compile_s']:.1f} |", flush=True)
+        figures[f"closed_loop_env_steps_per_s_b{b}"] = round(loop["steps_per_s"])
+        figures[f"bare_mjx_env_steps_per_s_b{b}"] = round(bare["steps_per_s"])
+        figures[f"controller_overhead_ratio_b{b}"] = round(overhead, 4)
+        figures[f"bare_mjx_compile_s_b{b}"] = round(bare["compile_s"], 2)
+    c_rate = c_mujoco(5 * steps)
+    print(f"C MuJoCo, single thread, batch 1: {c_rate:,.0f} env-steps/s")
+    figures["c_mujoco_single_thread_env_steps_per_s"] = round(c_rate)
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
