@@ -11,8 +11,8 @@ per-trial log (``trials.parquet``, ``trials.rrd`` for rerun) and the best parame
 ``--params`` replays).
 
 The optimizer is anything with ``propose(context) -> params`` and ``observe(params, context, record, objective)``
-(:class:`OnlineOptimizer`): :class:`RandomSearch` (a baseline and the test stand-in) or the contextual BO of
-``cpgjax.bo`` (``--optimizer bo``, when that module is available).
+(:class:`OnlineOptimizer`): the contextual BO of ``cpgjax.bo`` (:class:`BayesianOptimizer`, the default) or
+:class:`RandomSearch` (a baseline, and the fast stand-in of the tests).
 """
 
 from __future__ import annotations
@@ -300,7 +300,7 @@ def _parse_args(argv):
     what.add_argument("--params", type=Path, help="replay these parameters (JSON from save_params / best_params)")
     what.add_argument("--optimize", action="store_true", help="online optimization (Algorithm 1)")
     p.add_argument("--trials", type=int, default=10, help="trials of online optimization")
-    p.add_argument("--optimizer", choices=("random", "bo"), default="random")
+    p.add_argument("--optimizer", choices=("bo", "random"), default="bo")
     p.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae")
     p.add_argument("--target-velocity", type=float, default=0.5, help="v_x* [m/s] of the objective")
     p.add_argument("--duration-s", type=float, default=10.0, help="run time when replaying parameters")

@@ -286,9 +286,11 @@ class SimGo1Client:
     """
 
     def __init__(self, pacing: str = "realtime", friction: float = 0.6, slope_deg: float = 0.0,
-                 payload_kg: float = 0.0, startup_timeout_s: float = 60.0):
+                 payload_kg: float = 0.0, realtime_priority: int | None = None, startup_timeout_s: float = 60.0):
         cmd = [sys.executable, "-m", "cpgjax.sim_go1_server", "--pacing", pacing, "--friction", str(friction),
                "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg)]
+        if realtime_priority is not None:
+            cmd += ["--realtime-priority", str(realtime_priority)]
         env = dict(os.environ, JAX_PLATFORMS="cpu")
         self.process = subprocess.Popen(cmd, stdout=subprocess.PIPE, env=env, text=True)
         line, give_up = "", time.monotonic() + startup_timeout_s
@@ -351,7 +353,15 @@ def main(argv=None) -> None:
     parser.add_argument("--friction", type=float, default=0.6)
     parser.add_argument("--slope-deg", type=float, default=0.0)
     parser.add_argument("--payload-kg", type=float, default=0.0)
+    parser.add_argument("--realtime-priority", type=int,
+                        help="SCHED_FIFO priority for the physics loop, when permitted (a robot is not starved "
+                             "by other processes; on a shared machine its simulation can be)")
     args = parser.parse_args(argv)
+    if args.realtime_priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime_priority))
+        except OSError as e:
+            print(f"real-time priority not permitted ({e})", file=sys.stderr)
     server = SimGo1Server(args.port, args.control_port, args.pacing, friction=args.friction,
                           slope_deg=args.slope_deg, payload_kg=args.payload_kg)
     server.physics.observation()  # compile the sensor model before announcing readiness
