@@ -170,8 +170,11 @@ def load_params(path) -> np.ndarray:
 
 def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     """The optimizer's process: observe each finished trial, answer the next proposal at once, then log."""
+    import os
+
     import jax
 
+    os.nice(10)  # the robot's loop (and, on one machine, the simulated robot) come first
     jax.config.update("jax_platforms", "cpu")
     from cpgjax import objective
 
@@ -351,8 +354,10 @@ def main(argv=None) -> int:
 
     server = None
     if args.robot == "sim":
+        # The simulated robot shares this machine's CPUs: real-time priority (below the loop's) keeps other
+        # processes, the optimizer included, from starving it.
         server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
-                                  payload_kg=args.payload_kg)
+                                  payload_kg=args.payload_kg, realtime_priority=None if args.no_realtime else 70)
         calibration = sim_calibration() if args.calibration is None else hio.FootForceCalibration.load(args.calibration)
         ip, port, local_port = server.address[0], server.port, 0
     else:
