@@ -132,7 +132,6 @@ class UdpTransport:
         self.sock.connect(robot_address)
         self.sock.setblocking(False)
         self.rejected = {"size": 0, "head": 0, "level": 0, "crc": 0}
-        self.received = 0
 
     def receive(self) -> proto.RobotState | None:
         packets = []
@@ -150,7 +149,6 @@ class UdpTransport:
                 newest = data
         if newest is None:
             return None
-        self.received += 1
         return proto.decode_low_state(newest)
 
     def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
