@@ -1,0 +1,43 @@
+"""Choosing the physics backend: MJX on accelerators, C MuJoCo (native) on CPU-only machines.
+
+Both backends run the same trial with the same jitted controller and sensor model and return the same
+``objective.TrialRecord`` (see docs/backends.md for speeds and the differences between the two physics engines).
+
+>>> sim = make_backend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))   # "auto"
+>>> sim.name                                                                  # "native" on a laptop
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+
+from cpgjax import cpg, go1_model, mjx_go1, native_go1
+
+BACKENDS = ("auto", "mjx", "native")
+
+
+def default_backend() -> str:
+    """"mjx" when JAX's default backend is an accelerator (GPU, TPU, ...), else "native"."""
+    return "native" if jax.default_backend() == "cpu" else "mjx"
+
+
+def resolve_backend(backend: str = "auto") -> str:
+    """The concrete backend name ("mjx" or "native") for a choice among ``BACKENDS``."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; allowed: {BACKENDS}")
+    return default_backend() if backend == "auto" else backend
+
+
+def make_backend(scenario: go1_model.Scenario, backend: str = "auto", cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
+                 trial_config: mjx_go1.TrialConfig = mjx_go1.TrialConfig()):
+    """A batch simulator (``MJXBackend`` or ``NativeBackend``) for ``scenario``; its ``.name`` says which one."""
+    cls = {"mjx": mjx_go1.MJXBackend, "native": native_go1.NativeBackend}[resolve_backend(backend)]
+    return cls(scenario, cpg_config=cpg_config, trial_config=trial_config)
+
+
+def add_backend_argument(parser: argparse.ArgumentParser) -> None:
+    """``--backend {auto,mjx,native}`` for command-line tools (default auto)."""
+    parser.add_argument("--backend", choices=BACKENDS, default="auto",
+                        help="physics backend: auto = MJX with an accelerator, C MuJoCo (native) on CPU only")

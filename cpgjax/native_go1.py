@@ -1,0 +1,463 @@
+"""The Go1 in C MuJoCo on the CPU: the MJX backend's trial (``cpgjax.mjx_go1``) with native physics.
+
+Physics: :class:`BatchPhysics` steps the whole batch one physics step per call through ``mujoco.rollout`` (a
+persistent C++ thread pool, one thread per core, one ``MjModel`` variant per instance from
+``go1_model.scenario_model``). Its host arrays are allocated once and reused; the solver is warm-started from the
+previous step's acceleration exactly as a persistent ``mj_step`` loop would be.
+
+Control: one jitted, vmapped call per control tick for the whole batch runs the shared sensor model
+(``mjx_go1.observe``) and controller (``cpg.controller_step``) and writes the tick's record into a device buffer
+that is donated from call to call (updated in place). At the end of a trial the buffer is summarized by
+``mjx_go1._summarize``, so a record means the same thing whichever backend produced it.
+
+Tick k is, as in ``mjx_go1._tick``: observe S_k → controller → torque_k → physics step → S_{k+1} → record k.
+Here the record's pre-step half (power, load, attitude, saturation) is computed with the control and its
+post-step half (velocity, fall, failure) at the next call, which sees S_{k+1}:
+
+    host:    [jit: finish record k−1 from S_k; observe S_k; control k] → [rollout: S_k → S_{k+1}] → [jit: ...]
+
+Non-finite states: C MuJoCo resets an instance itself (``mj_resetData``, time → 0) when it meets a NaN, Inf or
+huge value. The simulator clock therefore starts at ``CLOCK_START_S`` after every reset, a step that does not
+advance it by exactly one time step is a failure, and the instance is put back to the standing pose with its
+trial flagged ``failed``, like the MJX backend (see docs/backends.md for the differences that remain).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from mujoco import rollout as mj_rollout
+
+from cpgjax import cpg, go1_model, kinematics, mjx_go1, params as param_space
+from cpgjax.objective import TrialRecord
+
+# The simulator clock after a reset [s]. Any value > 0 works: MuJoCo's own reset sets the clock to 0, so a step
+# that does not advance it from here by one time step reveals that MuJoCo reset a diverged instance.
+CLOCK_START_S = 1.0
+_PHYSICS_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS.value  # time, qpos, qvel (the Go1 has no act, mocap, ...)
+_CTRL_SPEC = mujoco.mjtState.mjSTATE_CTRL.value
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (affinity-aware)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+class PhysicsLayout(NamedTuple):
+    """Where time, qpos and qvel sit in a ``mjSTATE_FULLPHYSICS`` vector (MuJoCo orders components by bit)."""
+
+    time: int
+    qpos: slice
+    qvel: slice
+    size: int
+
+
+def physics_layout(model: mujoco.MjModel) -> PhysicsLayout:
+    qpos_at = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_TIME.value)
+    qvel_at = qpos_at + model.nq
+    return PhysicsLayout(time=0, qpos=slice(qpos_at, qvel_at), qvel=slice(qvel_at, qvel_at + model.nv),
+                         size=mujoco.mj_stateSize(model, _PHYSICS_SPEC))
+
+
+class NativeState(NamedTuple):
+    """Per-instance simulator and controller state between trials (leading batch axis on every leaf)."""
+
+    physics: np.ndarray  # (B, nstate) float64 mjSTATE_FULLPHYSICS: clock [s], qpos, qvel (see PhysicsLayout)
+    warmstart: np.ndarray  # (B, nv) float64 qacc_warmstart for the next step (the last step's qacc)
+    sensordata: np.ndarray  # (B, nsensordata) float64, as left by the last step (computed at its start, as in MJX)
+    cpg: cpg.CPGState  # device arrays
+    params: jax.Array  # (B, 8) the parameters applied at the end of the last trial
+
+
+# ----------------------------------------------------------------------------------------------- physics
+
+class BatchPhysics:
+    """B C-MuJoCo Go1s (one scenario each) stepped together, one physics step per :meth:`step`.
+
+    The current state lives in reused host buffers: ``physics`` (B, nstate), ``sensordata`` (B, nsensordata) and
+    ``warmstart`` (B, nv). Shared by the native backend and the loopback simulated robot (one CPU physics path).
+    """
+
+    def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None):
+        self.scenario = scenario
+        self.models = [go1_model.scenario_model(scenario, i) for i in range(scenario.batch_size)]
+        m = self.models[0]
+        self.layout = physics_layout(m)
+        self.timestep_s = float(m.opt.timestep)
+        self.actuator = go1_model.indices().actuator
+        batch = scenario.batch_size
+        self.nthread = min(available_cores() if nthread is None else nthread, batch)
+        self._chunk = -(-batch // max(self.nthread, 1))  # one contiguous chunk per thread: least pool overhead
+        self._pool = mj_rollout.Rollout(nthread=self.nthread if self.nthread > 1 else 0)
+        self._data = [mujoco.MjData(m) for _ in range(max(self.nthread, 1))]
+
+        self.gravity_mps2 = np.stack([mi.opt.gravity for mi in self.models])  # (B, 3)
+        self.total_mass_kg = np.array([mi.body_subtreemass[go1_model.indices().trunk_body] for mi in self.models])
+        self.standing_physics = np.empty((batch, self.layout.size))
+        self.standing_sensordata = np.empty((batch, m.nsensordata))
+        for i, mi in enumerate(self.models):  # once per backend, not per tick
+            d = mujoco.MjData(mi)
+            d.qpos[:] = go1_model.standing_qpos(mi)
+            mujoco.mj_forward(mi, d)
+            d.time = CLOCK_START_S
+            mujoco.mj_getState(mi, d, self.standing_physics[i], _PHYSICS_SPEC)
+            self.standing_sensordata[i] = d.sensordata
+
+        self.physics = self.standing_physics.copy()
+        self.sensordata = self.standing_sensordata.copy()
+        self.warmstart = np.zeros((batch, m.nv))
+        self._next = np.empty_like(self.physics)
+        self._ctrl = np.zeros((batch, m.nu))
+
+    @property
+    def batch_size(self) -> int:
+        return self.scenario.batch_size
+
+    def set_state(self, physics: np.ndarray, warmstart: np.ndarray, sensordata: np.ndarray) -> None:
+        np.copyto(self.physics, physics)
+        np.copyto(self.warmstart, warmstart)
+        np.copyto(self.sensordata, sensordata)
+
+    def get_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Copies of (physics, warmstart, sensordata)."""
+        return self.physics.copy(), self.warmstart.copy(), self.sensordata.copy()
+
+    def reset(self, mask: np.ndarray | None = None) -> None:
+        """Put the instances selected by ``mask`` (B,) bool (all if None) back to standing at rest."""
+        if mask is None:
+            mask = np.ones(self.batch_size, bool)
+        self.physics[mask] = self.standing_physics[mask]
+        self.sensordata[mask] = self.standing_sensordata[mask]
+        self.warmstart[mask] = 0.0
+
+    def step(self, torque_nm) -> np.ndarray:
+        """One physics step of every instance with joint torques (B, 12) [N·m] in motor order.
+
+        Returns the (B,) bool mask of instances that diverged during the step; they are already reset to standing.
+        """
+        self._ctrl[:, self.actuator] = torque_nm
+        self._pool.rollout(self.models, self._data, self.physics, self._ctrl, control_spec=_CTRL_SPEC,
+                           skip_checks=True, nstep=1, initial_warmstart=self.warmstart, state=self._next,
+                           sensordata=self.sensordata, chunk_size=self._chunk)
+        before, after, lay = self.physics, self._next, self.layout
+        failed = np.abs(after[:, lay.time] - before[:, lay.time] - self.timestep_s) > 0.5 * self.timestep_s
+        failed |= ~np.isfinite(after).all(axis=1)
+        # Euler without implicit damping: qvel' = qvel + h·qacc, so the step's qacc (MuJoCo's next warm start) is
+        # recovered exactly from the two states; mujoco.rollout does not return it.
+        np.subtract(after[:, lay.qvel], before[:, lay.qvel], out=self.warmstart)
+        self.warmstart *= 1.0 / self.timestep_s
+        self.physics, self._next = after, before
+        if failed.any():
+            self.reset(failed)
+        return failed
+
+    def close(self) -> None:
+        self._pool.close()
+
+
+# ----------------------------------------------------------------------------------------------- per-tick logic
+
+class _Constants(NamedTuple):
+    """Per-trial inputs of the jitted tick, each with a leading batch axis."""
+
+    gravity_mps2: jax.Array  # (3,)
+    reset_cpg: cpg.CPGState  # controller state after a reset
+    prev_params: jax.Array  # (8,) start of the transition
+    new_params: jax.Array  # (8,)
+    gates: cpg.Gates
+
+
+class _Pending(NamedTuple):
+    """The pre-step half of ``mjx_go1.Tick``, computed with the control of the same tick."""
+
+    power_w: jax.Array
+    load_n: jax.Array
+    roll_rad: jax.Array
+    pitch_rad: jax.Array
+    saturated: jax.Array
+
+
+class _Carry(NamedTuple):
+    """Device state carried from tick to tick (donated: updated in place). Pytrees travel as flat vectors
+    (``_Packing``): a handful of buffers per call keeps the per-tick dispatch cheap."""
+
+    cpg: jax.Array  # (C,) the batch's controller state, flat
+    pending: jax.Array  # (P,) the batch's pre-step half of the last tick's row, flat
+    step: jax.Array  # () int32, control ticks issued so far in this run
+    rows: jax.Array  # (N, R) one flat row per tick
+
+
+class _Recorder(NamedTuple):
+    """What a run records: the pre-step half of a row (at control time) and the row (after the physics step)."""
+
+    pending: Callable  # (qpos, obs, torque, diag, cpg_state) -> pending
+    row: Callable  # (trial_config, pending, qpos, qvel, failed) -> row
+
+
+def _trial_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state) -> _Pending:
+    del qpos, cpg_state
+    return _Pending(power_w=jnp.sum(jnp.abs(torque) * jnp.abs(obs.joint_vel_rad_s)),
+                    load_n=jnp.mean(obs.foot_force_n), roll_rad=diag.rpy_rad[0], pitch_rad=diag.rpy_rad[1],
+                    saturated=jnp.sum(diag.saturated))
+
+
+def _trial_row(trial_config: mjx_go1.TrialConfig, pending: _Pending, qpos, qvel, failed) -> mjx_go1.Tick:
+    """``mjx_go1.Tick`` with the same definitions as ``mjx_go1._tick`` (qpos, qvel: after the step and reset)."""
+    ids = go1_model.indices()
+    floor_rpy = cpg.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])
+    fell = ((qpos[ids.root_qpos + 2] < trial_config.fall_height_m)
+            | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
+            | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))
+    finite = jnp.where(failed, 0.0, 1.0)
+    return mjx_go1.Tick(
+        velocity_xy_mps=finite * mjx_go1.heading_velocity(qpos, qvel),
+        power_w=finite * pending.power_w,
+        load_n=finite * pending.load_n,
+        roll_rad=finite * pending.roll_rad,
+        pitch_rad=finite * pending.pitch_rad,
+        saturated=pending.saturated,
+        fell=fell.astype(jnp.float32),
+        failed=failed.astype(jnp.float32),
+    )
+
+
+def _rotate(quat_wxyz, v):
+    """Rotate v (..., 3) by the unit quaternion (4,)."""
+    w, u = quat_wxyz[0], quat_wxyz[1:]
+    t = 2.0 * jnp.cross(u, v)
+    return v + w * t + jnp.cross(u, t)
+
+
+def foot_positions(qpos) -> jax.Array:
+    """Foot-sphere centres (4, 3) [m] in the floor frame from qpos (the model's leg geometry is ``kinematics``)."""
+    ids = go1_model.indices()
+    r = ids.root_qpos
+    legs = kinematics.legs_fk(qpos[ids.joint_qpos].reshape(4, 3), jnp.asarray(kinematics.SIDE_SIGN, qpos.dtype))
+    return qpos[r:r + 3] + _rotate(qpos[r + 3:r + 7], jnp.asarray(kinematics.HIP_POS_M, qpos.dtype) + legs)
+
+
+def _log_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state: cpg.CPGState):
+    # Feet before the step: MJX logs geom_xpos, which mjx.step computes at the start of the step.
+    return (torque, obs.foot_force_n, foot_positions(qpos), cpg_state.amplitude, cpg_state.phase_rad,
+            diag.foot_target_m, diag.rpy_rad)
+
+
+def _log_row(trial_config, pending, qpos, qvel, failed) -> mjx_go1.StepLog:
+    """``mjx_go1.StepLog`` row with ``mjx_go1.rollout_log``'s definitions (qpos, qvel after the step)."""
+    del trial_config, failed
+    torque, force, feet, amplitude, phase, target, rpy = pending
+    return mjx_go1.StepLog(qpos=qpos, qvel=qvel, torque_nm=torque, foot_force_n=force,
+                           foot_pos_m=feet, amplitude=amplitude, phase_rad=phase,
+                           foot_target_m=target, rpy_rad=rpy)
+
+
+TRIAL_RECORDER = _Recorder(pending=_trial_pending, row=_trial_row)
+LOG_RECORDER = _Recorder(pending=_log_pending, row=_log_row)
+
+
+def _control(cpg_config: cpg.CPGConfig, recorder: _Recorder, n_transition: int, k: jax.Array, consts: _Constants,
+             cpg_state: cpg.CPGState, qpos, qvel, sensordata):
+    """Sensors → controller for one instance at tick k, with the transition's linear parameter interpolation."""
+    blend = (k.astype(jnp.float32) + 1.0) / max(n_transition, 1)
+    params = jnp.where(k < n_transition, consts.prev_params + blend * (consts.new_params - consts.prev_params),
+                       consts.new_params)
+    obs = mjx_go1.observe(qpos, qvel, sensordata, consts.gravity_mps2)
+    cpg_state, torque, diag = cpg.controller_step(cpg_config, cpg_state, params, consts.gates, obs)
+    return cpg_state, torque, recorder.pending(qpos, obs, torque, diag, cpg_state)
+
+
+class _Packing(NamedTuple):
+    """How the pytrees crossing the jitted boundary are flattened (``ravel_pytree``'s unravel functions) and how
+    the host input row is laid out: [physics state | sensordata | failed]."""
+
+    consts: Callable
+    cpg: Callable
+    pending: Callable
+    row: Callable
+    layout: PhysicsLayout
+    nsensordata: int
+
+
+def _host_inputs(packing: _Packing, host_in: jax.Array):
+    """(qpos, qvel, sensordata, failed) of the batch from the packed float32 host input (B, W)."""
+    lay = packing.layout
+    sensordata = host_in[:, lay.size:lay.size + packing.nsensordata]
+    return host_in[:, lay.qpos], host_in[:, lay.qvel], sensordata, host_in[:, -1] > 0.5
+
+
+def _complete(trial_config, recorder: _Recorder, packing: _Packing, consts_flat, carry: _Carry, host_in) -> _Carry:
+    """Finish the last tick's row from the state after its step (already reset where it failed)."""
+    consts = packing.consts(consts_flat)
+    qpos, qvel, _, failed = _host_inputs(packing, host_in)
+    row = jax.vmap(functools.partial(recorder.row, trial_config))(packing.pending(carry.pending), qpos, qvel, failed)
+    cpg_state = _where_batch(failed, consts.reset_cpg, packing.cpg(carry.cpg))
+    return carry._replace(cpg=ravel_pytree(cpg_state)[0], rows=carry.rows.at[carry.step - 1].set(ravel_pytree(row)[0]))
+
+
+def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, consts_flat, carry: _Carry,
+             host_in) -> tuple[_Carry, jax.Array]:
+    """The whole host-side tick in one dispatch: finish row k−1, then observe and control tick k.
+
+    On the first tick of a run there is no row k−1; the row it writes at index −1 (the last) is overwritten by the
+    run's real last row.
+    """
+    carry = _complete(trial_config, recorder, packing, consts_flat, carry, host_in)
+    qpos, qvel, sensordata, _ = _host_inputs(packing, host_in)
+    control = functools.partial(_control, cpg_config, recorder, trial_config.transition_steps, carry.step)
+    cpg_state, torque, pending = jax.vmap(control)(packing.consts(consts_flat), packing.cpg(carry.cpg), qpos, qvel,
+                                                   sensordata)
+    return _Carry(cpg=ravel_pytree(cpg_state)[0], pending=ravel_pytree(pending)[0], step=carry.step + 1,
+                  rows=carry.rows), torque
+
+
+def _summarize(trial_config: mjx_go1.TrialConfig, dt_s: float, unravel_row: Callable, rows,
+               total_mass_kg) -> TrialRecord:
+    """Trial records (B, ...) from the flat rows (N, R): ``mjx_go1._summarize`` of the steady phase, with falls
+    and failures of the transition included."""
+    ticks = jax.vmap(unravel_row)(rows)  # Tick of (N, B, ...)
+    n_transition = trial_config.transition_steps
+    steady = jax.tree.map(lambda x: x[n_transition:], ticks)
+    record = jax.vmap(mjx_go1._summarize, in_axes=(1, 0, None))(steady, total_mass_kg, dt_s)
+    fell_tr = jnp.max(ticks.fell[:n_transition], axis=0, initial=0.0)
+    failed_tr = jnp.max(ticks.failed[:n_transition], axis=0, initial=0.0)
+    return record._replace(fell=jnp.maximum(record.fell, fell_tr), failed=jnp.maximum(record.failed, failed_tr))
+
+
+def _where_batch(mask, a, b):
+    return jax.tree.map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+
+
+# ----------------------------------------------------------------------------------------------- batch interface
+
+class NativeBackend:
+    """A batch of simulated Go1s in C MuJoCo behind the trial interface shared by every backend (CPU-fast).
+
+    >>> sim = NativeBackend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))
+    >>> state = sim.reset(params)                               # params (3, 8), physical units
+    >>> state, record = sim.trial(state, new_params, gates)     # the same TrialRecord as MJXBackend.trial
+    """
+
+    name = "native"
+
+    def __init__(self, scenario: go1_model.Scenario, cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
+                 trial_config: mjx_go1.TrialConfig = mjx_go1.TrialConfig(), *, nthread: int | None = None):
+        self.scenario = scenario
+        self.cpg_config = cpg_config
+        self.trial_config = trial_config
+        self.physics = BatchPhysics(scenario, nthread=nthread)
+        self._gravity = jnp.asarray(self.physics.gravity_mps2, jnp.float32)
+        self._total_mass = jnp.asarray(self.physics.total_mass_kg, jnp.float32)
+        lay = self.physics.layout
+        standing = jnp.asarray(self.physics.standing_physics, jnp.float32)
+        obs = jax.vmap(mjx_go1.observe)(standing[:, lay.qpos], standing[:, lay.qvel],
+                                        jnp.asarray(self.physics.standing_sensordata, jnp.float32), self._gravity)
+        self._reset_cpg = jax.vmap(cpg.init_state)(jnp.zeros((self.batch_size, param_space.NUM_PARAMS)), obs)
+        self._host_in = np.zeros((self.batch_size, lay.size + self.physics.sensordata.shape[1] + 1), np.float32)
+        self._compiled = {}
+
+    @property
+    def batch_size(self) -> int:
+        return self.scenario.batch_size
+
+    def _check_params(self, params) -> jax.Array:
+        arr = param_space.validate(params)
+        if arr.shape != (self.batch_size, param_space.NUM_PARAMS):
+            raise ValueError(f"params: expected shape ({self.batch_size}, {param_space.NUM_PARAMS}), got {arr.shape}")
+        return jnp.asarray(arr, jnp.float32)
+
+    def _check_gates(self, gates: cpg.Gates) -> cpg.Gates:
+        return cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (self.batch_size,)) for g in gates))
+
+    def reset(self, params) -> NativeState:
+        """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
+        params = self._check_params(params)
+        p = self.physics
+        return NativeState(physics=p.standing_physics.copy(), warmstart=np.zeros_like(p.warmstart),
+                           sensordata=p.standing_sensordata.copy(), cpg=self._reset_cpg, params=params)
+
+    def _constants(self, prev_params, new_params, gates) -> _Constants:
+        return _Constants(self._gravity, self._reset_cpg, jnp.asarray(prev_params, jnp.float32), new_params,
+                          self._check_gates(gates))
+
+    def _program(self, recorder: _Recorder, trial_config: mjx_go1.TrialConfig):
+        """(packing, advance, complete, summarize) compiled once per recorder and trial timing."""
+        key = (recorder, trial_config)
+        if key not in self._compiled:
+            p = self.physics
+            consts = self._constants(jnp.zeros((self.batch_size, param_space.NUM_PARAMS)),
+                                     jnp.zeros((self.batch_size, param_space.NUM_PARAMS)), cpg.Gates(0.0, 0.0))
+
+            p_layout = _Packing(None, None, None, None, p.layout, p.sensordata.shape[1])
+
+            def one_tick(consts):
+                qpos, qvel, _, failed = _host_inputs(p_layout, jnp.zeros(self._host_in.shape))
+                control = functools.partial(_control, self.cpg_config, recorder, 1, jnp.int32(0))
+                _, _, pending = jax.vmap(control)(consts, consts.reset_cpg, qpos, qvel, jnp.zeros(p.sensordata.shape))
+                row = jax.vmap(functools.partial(recorder.row, trial_config))(pending, qpos, qvel, failed)
+                return pending, row
+
+            pending, row = jax.eval_shape(one_tick, consts)
+            zeros = functools.partial(jax.tree.map, lambda s: jnp.zeros(s.shape, s.dtype))
+            packing = _Packing(consts=ravel_pytree(consts)[1], cpg=ravel_pytree(self._reset_cpg)[1],
+                               pending=ravel_pytree(zeros(pending))[1], row=ravel_pytree(zeros(row))[1],
+                               layout=p.layout, nsensordata=p.sensordata.shape[1])
+            advance = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing)
+            complete = functools.partial(_complete, trial_config, recorder, packing)
+            summarize = functools.partial(_summarize, trial_config, self.cpg_config.dt_s, packing.row)
+            self._compiled[key] = (packing, ravel_pytree(zeros(pending))[0].size, ravel_pytree(zeros(row))[0].size,
+                                   jax.jit(advance, donate_argnums=(1,)), jax.jit(complete, donate_argnums=(1,)),
+                                   jax.jit(summarize))
+        return self._compiled[key]
+
+    def _pack_host_inputs(self, failed: np.ndarray) -> np.ndarray:
+        p, buf = self.physics, self._host_in
+        buf[:, :p.layout.size] = p.physics
+        buf[:, p.layout.size:-1] = p.sensordata
+        buf[:, -1] = failed
+        return buf
+
+    def _run(self, state: NativeState, recorder: _Recorder, trial_config: mjx_go1.TrialConfig,
+             consts: _Constants) -> tuple[cpg.CPGState, jax.Array]:
+        """Run ``transition_steps + steady_steps`` ticks from ``state``; returns the controller state and the flat
+        rows (N, R). The physics state is left in ``self.physics``."""
+        packing, pending_size, row_size, advance, complete, _ = self._program(recorder, trial_config)
+        num_steps = trial_config.transition_steps + trial_config.steady_steps
+        p = self.physics
+        p.set_state(state.physics, state.warmstart, state.sensordata)
+        consts_flat = ravel_pytree(consts)[0]
+        carry = _Carry(cpg=ravel_pytree(state.cpg)[0], pending=jnp.zeros(pending_size), step=jnp.int32(0),
+                       rows=jnp.zeros((num_steps, row_size)))
+        failed = np.zeros(self.batch_size, bool)
+        for _ in range(num_steps):
+            carry, torque = advance(consts_flat, carry, self._pack_host_inputs(failed))
+            failed = p.step(np.asarray(torque))
+        carry = complete(consts_flat, carry, self._pack_host_inputs(failed))
+        return packing.cpg(carry.cpg), carry.rows
+
+    def trial(self, state: NativeState, new_params, gates: cpg.Gates) -> tuple[NativeState, TrialRecord]:
+        """One trial for every instance. Returns the next state and the records (same fields as MJXBackend's)."""
+        new_params = self._check_params(new_params)
+        consts = self._constants(state.params, new_params, gates)
+        cpg_state, rows = self._run(state, TRIAL_RECORDER, self.trial_config, consts)
+        record = self._program(TRIAL_RECORDER, self.trial_config)[-1](rows, self._total_mass)
+        fell = np.asarray(record.fell) > 0
+        self.physics.reset(fell)
+        cpg_state = _where_batch(jnp.asarray(fell), self._reset_cpg, cpg_state)
+        return NativeState(*self.physics.get_state(), cpg=cpg_state, params=new_params), record
+
+    def rollout(self, state: NativeState, params, gates: cpg.Gates,
+                num_steps: int) -> tuple[NativeState, mjx_go1.StepLog]:
+        """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
+        params = self._check_params(params)
+        config = mjx_go1.TrialConfig(transition_steps=0, steady_steps=num_steps)
+        packing = self._program(LOG_RECORDER, config)[0]
+        cpg_state, rows = self._run(state, LOG_RECORDER, config, self._constants(params, params, gates))
+        log = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), jax.vmap(packing.row)(rows))
+        return NativeState(*self.physics.get_state(), cpg=cpg_state, params=params), log
