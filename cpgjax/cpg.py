@@ -46,6 +46,10 @@ class CPGConfig(NamedTuple):
     k_att_roll_n: float = 150.0  # VMC roll gain k_att,r
     k_att_pitch_n: float = 160.0  # VMC pitch gain k_att,p
     k_dir_n_rad: float = 300.0  # VMC heading gain k_dir
+    # VMC acts on legs in stance: CPG stance phase (sin θ ≤ 0) *and* foot loaded beyond this normal force. A virtual
+    # force on a foot in the air only swings the leg (measured: lateral velocity std 0.11 m/s with the phase alone,
+    # vs 0.06 with VMC alone, mid-range parameters).
+    vmc_contact_force_n: float = 10.0
     dt_s: float = 0.001  # control period (1 kHz)
     # decisions.md §1 (switch): "paper" integrates α(μ² − r²)r (r → μ); "sqrt" integrates α(μ − r²)r (r → √μ),
     # the form of the lab's public code.
@@ -91,7 +95,7 @@ class Diagnostics(NamedTuple):
     joint_target_rad: jax.Array  # (12,)
     tau_ref_nm: jax.Array  # (12,) joint PD torque
     tau_vmc_nm: jax.Array  # (12,) VMC torque (zero when the gate is off)
-    stance: jax.Array  # (4,) 1.0 for legs in stance (sin θ ≤ 0)
+    stance: jax.Array  # (4,) 1.0 for legs in stance (sin θ ≤ 0 and foot loaded), where VMC acts
     rpy_rad: jax.Array  # (3,) roll, pitch (nose-down positive), yaw
     saturated: jax.Array  # (12,) 1.0 where the commanded torque was clipped to the motor limit
 
@@ -184,7 +188,7 @@ def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates
     tau_ref = config.kp_nm_rad * (q_des - obs.joint_pos_rad) - config.kd_nm_s_rad * obs.joint_vel_rad_s
 
     rpy = quat_to_rpy(obs.imu_quat_wxyz)
-    stance = (jnp.sin(phase) <= 0.0).astype(tau_ref.dtype)
+    stance = ((jnp.sin(phase) <= 0.0) & (obs.foot_force_n > config.vmc_contact_force_n)).astype(tau_ref.dtype)
     tau_vmc = gates.vmc * vmc_torques(obs.joint_pos_rad, rpy, state.heading_ref_rad, stance, config)
 
     tau_cmd = tau_ref + tau_vmc

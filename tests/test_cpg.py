@@ -177,8 +177,11 @@ def test_open_loop_has_no_vmc_torque_and_no_force_term():
 
 def test_vmc_acts_on_stance_legs_only_and_corrects_attitude():
     quat = _tilted_quat(0.2, 0.15, 0.3)
-    _, _, diag = _one_step(cpg.controller_gates("vmc"), np.zeros(4), quat)
+    force = np.array([60.0, 0.0, 60.0, 60.0])  # FL in stance phase but unloaded (foot in the air): no VMC
+    _, _, diag = _one_step(cpg.controller_gates("vmc"), force, quat)
     swing = np.asarray(diag.stance) == 0.0
+    in_stance_phase = np.sin([0.6, 3.9, 3.9, 0.6]) <= 0
+    np.testing.assert_array_equal(~swing, in_stance_phase & (force > 10.0))
     assert swing.any() and (~swing).any()
     tau = np.asarray(diag.tau_vmc_nm).reshape(4, 3)
     np.testing.assert_array_equal(tau[swing], 0.0)
