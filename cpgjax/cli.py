@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from cpgjax import cpg, walk
 
@@ -19,8 +20,13 @@ def _walk(args) -> None:
     print(timing)
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="cpgjax", description=__doc__)
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "deploy":  # its own parser: cpgjax deploy --help
+        from cpgjax import deploy
+        return deploy.main(argv[1:])
+    parser = argparse.ArgumentParser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1. "
+                                     "Subcommands: walk, deploy (see `cpgjax deploy --help`).")
     sub = parser.add_subparsers(dest="command", required=True)
     w = sub.add_parser("walk", help="walk with fixed parameters and print the trial figures")
     w.add_argument("--controllers", default=",".join(cpg.CONTROLLERS), help=f"comma list of {cpg.CONTROLLERS}")
@@ -32,7 +38,8 @@ def main(argv=None) -> None:
     w.set_defaults(func=_walk)
     args = parser.parse_args(argv)
     args.func(args)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
