@@ -40,6 +40,7 @@ observation is not stored and ``observe`` returns ``accepted = False``.
 """
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -48,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import gp
+from cpgjax import params as param_space
 from cpgjax.acquisition import (
     INACTIVE_VALUE,
     UCB_FORMS,
@@ -56,10 +58,6 @@ from cpgjax.acquisition import (
     ucb_multiplier,
     upper_confidence_bound,
 )
-
-PAPER_PARAMETER_LOWER = (0.06, 0.005, 16.0, 10.0, 0.9, -0.06, -0.06, 0.05)
-PAPER_PARAMETER_UPPER = (0.10, 0.015, 23.0, 15.0, 1.7, -0.01, -0.01, 0.30)
-"""Table I box for x = [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]."""
 
 PAPER_CONTEXT_LOWER = (15.0, -0.4)
 PAPER_CONTEXT_UPPER = (75.0, 0.1)
@@ -140,10 +138,12 @@ def _check_box(name, lower, upper):
 
 
 def paper_config(**overrides) -> OptimizerConfig:
-    """The paper's setting: Table I box, decisions.md §11 context ranges, eq. (14) thresholds."""
+    """The paper's setting: the Table I box of :mod:`cpgjax.params` (physical units, order
+    [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]), the context ranges of
+    decisions.md §11 and the thresholds of eq. (14)."""
     settings = dict(
-        parameter_lower=PAPER_PARAMETER_LOWER,
-        parameter_upper=PAPER_PARAMETER_UPPER,
+        parameter_lower=tuple(float(v) for v in param_space.PARAM_LOWER),
+        parameter_upper=tuple(float(v) for v in param_space.PARAM_UPPER),
         context_lower=PAPER_CONTEXT_LOWER,
         context_upper=PAPER_CONTEXT_UPPER,
         context_thresholds=PAPER_CONTEXT_THRESHOLDS,
@@ -513,6 +513,13 @@ def make_optimizer(
                         beta_fn, best_observed_fn, posterior_mean_argmax_fn)
 
 
+@functools.lru_cache(maxsize=16)
+def _black_box_optimizer(config: OptimizerConfig) -> ContextualBO:
+    """One compiled optimizer per configuration, so repeated :func:`maximize` calls (seeds)
+    do not recompile."""
+    return make_optimizer(config)
+
+
 class MaximizeResult(NamedTuple):
     """Result of :func:`maximize`: the best point and value, and the whole history."""
 
@@ -560,7 +567,7 @@ def maximize(
         capacity=num_trials, num_random_proposals=num_random_proposals, ucb_form=ucb_form,
         fit=fit, acquisition=acquisition,
     )
-    optimizer = make_optimizer(config)
+    optimizer = _black_box_optimizer(config)
     state = optimizer.init(schedule=schedule)
     initial = np.zeros((0, bounds.shape[1])) if initial_xs is None else np.asarray(initial_xs)
     no_context = jnp.zeros((0,), jnp.float32)

@@ -1,0 +1,337 @@
+"""GP regression (cpgjax.gp) and the acquisition maximizer against independent references.
+
+The reference is a dense float64 NumPy GP written from the textbook formulas (Rasmussen &
+Williams, Alg. 2.1) with the model of cpgjax.gp's docstring; cpgjax runs in float32.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cpgjax import acquisition, gp
+
+CONTEXT_DIMS = 2
+
+
+# ---- dense float64 NumPy reference ----------------------------------------------------------
+
+def ref_matern52(distance):
+    return (1 + np.sqrt(5) * distance + 5 / 3 * distance**2) * np.exp(-np.sqrt(5) * distance)
+
+
+def ref_kernel(a, b, lengthscales, outputscale, active, context_dims):
+    d = a.shape[1]
+    blocks = [range(d - context_dims), range(d - context_dims, d)]
+    k = outputscale * np.ones((len(a), len(b)))
+    for block in blocks:
+        cols = [c for c in block if active[c]]
+        diff = (a[:, None, cols] - b[None, :, cols]) / lengthscales[cols]
+        k = k * ref_matern52(np.sqrt(np.sum(diff**2, axis=-1)))
+    return k
+
+
+class RefGP:
+    """float64 GP with the same model: standardized y, constant mean, relative jitter."""
+
+    def __init__(self, params, inputs, targets, active, context_dims):
+        self.ls = np.exp(np.asarray(params.log_lengthscales, np.float64))
+        self.s2 = float(np.exp(params.log_outputscale))
+        self.noise = float(np.exp(params.log_noise))
+        self.mean = float(params.mean)
+        self.active, self.context_dims = np.asarray(active), context_dims
+        self.x = np.asarray(inputs, np.float64)
+        y = np.asarray(targets, np.float64)
+        self.y_mean = y.mean()
+        self.y_std = y.std(ddof=1) if len(y) > 1 and y.std(ddof=1) >= 1e-8 else 1.0
+        self.residual = (y - self.y_mean) / self.y_std - self.mean
+        n = len(y)
+        self.kernel = self.k(self.x, self.x) + (gp.JITTER_RATIO * self.s2 + self.noise) * np.eye(n)
+
+    def k(self, a, b):
+        return ref_kernel(a, b, self.ls, self.s2, self.active, self.context_dims)
+
+    def log_marginal_likelihood(self):
+        _, logdet = np.linalg.slogdet(self.kernel)
+        n = len(self.residual)
+        quad = self.residual @ np.linalg.solve(self.kernel, self.residual)
+        return -0.5 * quad - 0.5 * logdet - 0.5 * n * np.log(2 * np.pi)
+
+    def predict(self, queries):
+        queries = np.asarray(queries, np.float64)
+        cross = self.k(queries, self.x)
+        mean_z = self.mean + cross @ np.linalg.solve(self.kernel, self.residual)
+        var_z = self.s2 - np.einsum("ij,ji->i", cross, np.linalg.solve(self.kernel, cross.T))
+        return self.y_mean + self.y_std * mean_z, self.y_std**2 * var_z
+
+
+def ref_log_prior(params, active):
+    def gamma_logpdf(x, a, rate):
+        from math import lgamma
+
+        return a * np.log(rate) - lgamma(a) + (a - 1) * np.log(x) - rate * x
+
+    ls = np.exp(np.asarray(params.log_lengthscales, np.float64))
+    return (
+        sum(gamma_logpdf(v, 3.0, 6.0) for v, on in zip(ls, active) if on)
+        + gamma_logpdf(float(np.exp(params.log_outputscale)), 2.0, 0.15)
+        + gamma_logpdf(float(np.exp(params.log_noise)), 1.1, 0.05)
+    )
+
+
+# ---- fixtures: data and compiled functions shared by the module ---------------------------
+
+def random_params(rng, dims):
+    return gp.GPParams(
+        log_lengthscales=jnp.asarray(np.log(rng.uniform(0.2, 1.5, dims)), jnp.float32),
+        log_outputscale=jnp.asarray(np.log(rng.uniform(0.5, 3.0)), jnp.float32),
+        log_noise=jnp.asarray(np.log(rng.uniform(1e-3, 0.1)), jnp.float32),
+        mean=jnp.asarray(rng.uniform(-0.5, 0.5), jnp.float32),
+    )
+
+
+def smooth_targets(inputs):
+    return np.sin(6 * inputs[:, 0]) + inputs[:, 1] ** 2 - 2 * inputs[:, -1] + 0.5 * inputs[:, -2]
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    lml = jax.jit(gp.log_marginal_likelihood, static_argnums=3)
+    grad = jax.jit(jax.grad(gp.log_posterior), static_argnums=3)
+
+    @jax.jit
+    def predict(params, dataset, active, queries):
+        return gp.predict(gp.posterior(params, dataset, active, CONTEXT_DIMS), queries,
+                          CONTEXT_DIMS)
+
+    fit = jax.jit(gp.fit, static_argnums=(3, 4))
+    return dict(lml=lml, grad=grad, predict=predict, fit=fit)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    """30 points in 6-D (4 parameters, one inactive, + 2 contexts) and 20 queries."""
+    rng = np.random.default_rng(0)
+    inputs = rng.random((30, 6))
+    active = np.array([True, True, False, True, True, True])
+    return dict(
+        inputs=inputs, targets=3.0 + 2.0 * smooth_targets(inputs), active=active,
+        queries=rng.random((20, 6)), params=random_params(rng, 6),
+    )
+
+
+def dataset_of(inputs, targets, valid=None):
+    valid = np.ones(len(targets), bool) if valid is None else valid
+    return gp.Dataset(jnp.asarray(inputs, jnp.float32), jnp.asarray(targets, jnp.float32),
+                      jnp.asarray(valid))
+
+
+# ---- posterior and likelihood against the reference -------------------------------------
+
+def test_posterior_matches_dense_numpy_reference(compiled, problem):
+    p = problem
+    ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS)
+    mean, var = compiled["predict"](p["params"], dataset_of(p["inputs"], p["targets"]),
+                                    jnp.asarray(p["active"]), jnp.asarray(p["queries"], jnp.float32))
+    ref_mean, ref_var = ref.predict(p["queries"])
+    scale = ref.y_std
+    np.testing.assert_allclose(mean, ref_mean, atol=2e-4 * scale)
+    np.testing.assert_allclose(var, ref_var, atol=2e-4 * scale**2, rtol=1e-3)
+    # Not vacuous: the data shrink the variance well below the prior's at training inputs.
+    _, train_var = ref.predict(p["inputs"][:5])
+    assert np.all(train_var < 0.5 * ref.s2 * scale**2)
+
+
+def test_log_marginal_likelihood_and_gradient_match_reference(compiled, problem):
+    p = problem
+    active = jnp.asarray(p["active"])
+    data = dataset_of(p["inputs"], p["targets"])
+    ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS)
+    lml = compiled["lml"](p["params"], data, active, CONTEXT_DIMS)
+    np.testing.assert_allclose(lml, ref.log_marginal_likelihood(), rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(gp.log_prior(p["params"], active),
+                               ref_log_prior(p["params"], p["active"]), rtol=1e-5, atol=1e-4)
+
+    # Gradient (custom VJP) against central differences of the float64 reference.
+    def ref_objective(flat):
+        params = gp.GPParams(flat[:6], flat[6], flat[7], flat[8])
+        ref_gp = RefGP(params, p["inputs"], p["targets"], p["active"], CONTEXT_DIMS)
+        return ref_gp.log_marginal_likelihood() + ref_log_prior(params, p["active"])
+
+    flat = np.concatenate([np.asarray(leaf, np.float64).ravel() for leaf in p["params"]])
+    step = 1e-5
+    numeric = np.array([
+        (ref_objective(flat + step * e) - ref_objective(flat - step * e)) / (2 * step)
+        for e in np.eye(len(flat))
+    ])
+    grads = compiled["grad"](p["params"], data, active, CONTEXT_DIMS)
+    analytic = np.concatenate([np.ravel(leaf) for leaf in grads])
+    assert numeric[2] == pytest.approx(0.0, abs=1e-6)  # the inactive lengthscale is inert
+    np.testing.assert_allclose(analytic, numeric, rtol=2e-3, atol=2e-3)
+
+
+# ---- kernel properties --------------------------------------------------------------------
+
+def test_kernel_is_symmetric_positive_semidefinite_and_ignores_inactive_inputs(problem):
+    p = problem
+    x = jnp.asarray(p["inputs"], jnp.float32)
+    active = jnp.asarray(p["active"])
+    corr = np.asarray(gp.correlation(p["params"], x, x, active, CONTEXT_DIMS), np.float64)
+    np.testing.assert_allclose(corr, corr.T, atol=1e-7)
+    np.testing.assert_allclose(np.diag(corr), 1.0, atol=1e-7)
+    assert np.linalg.eigvalsh(corr).min() > -1e-5
+    ref = ref_kernel(p["inputs"], p["inputs"], np.exp(np.asarray(p["params"].log_lengthscales,
+                     np.float64)), 1.0, p["active"], CONTEXT_DIMS)
+    np.testing.assert_allclose(corr, ref, atol=1e-6)
+    shifted = x.at[:, 2].set(0.123)  # only the inactive column changes
+    np.testing.assert_array_equal(gp.correlation(p["params"], shifted, x, active, CONTEXT_DIMS),
+                                  gp.correlation(p["params"], x, x, active, CONTEXT_DIMS))
+
+
+def test_standardize_matches_numpy():
+    y = np.array([1.0, 4.0, 2.0, 8.0, 99.0])
+    valid = np.array([True, True, True, True, False])
+    z, mean, std = gp.standardize(jnp.asarray(y, jnp.float32), jnp.asarray(valid))
+    assert mean == pytest.approx(y[:4].mean())
+    assert std == pytest.approx(y[:4].std(ddof=1), rel=1e-6)
+    np.testing.assert_allclose(z[:4], (y[:4] - y[:4].mean()) / y[:4].std(ddof=1), rtol=1e-6)
+    assert z[4] == 0.0
+    _, _, constant_std = gp.standardize(jnp.full(5, 7.0), jnp.ones(5, bool))
+    _, _, single_std = gp.standardize(jnp.asarray([3.0, 0.0]), jnp.asarray([True, False]))
+    assert constant_std == 1.0 and single_std == 1.0
+
+
+# ---- exact masking -----------------------------------------------------------------------
+
+def test_padded_rows_have_no_influence(compiled, problem):
+    """Same data, unpadded vs scattered among 20 garbage rows (NaN, inf, huge): identical."""
+    p = problem
+    active = jnp.asarray(p["active"])
+    rng = np.random.default_rng(1)
+    capacity = 50
+    rows = np.sort(rng.choice(capacity, size=30, replace=False))
+    inputs = np.full((capacity, 6), np.nan)
+    targets = np.full(capacity, np.inf)
+    inputs[::3], targets[1::3] = 1e6, -1e30
+    valid = np.zeros(capacity, bool)
+    inputs[rows], targets[rows], valid[rows] = p["inputs"], p["targets"], True
+    plain, padded = dataset_of(p["inputs"], p["targets"]), dataset_of(inputs, targets, valid)
+
+    np.testing.assert_allclose(compiled["lml"](p["params"], padded, active, CONTEXT_DIMS),
+                               compiled["lml"](p["params"], plain, active, CONTEXT_DIMS),
+                               rtol=1e-6)
+    for g_pad, g_plain in zip(compiled["grad"](p["params"], padded, active, CONTEXT_DIMS),
+                              compiled["grad"](p["params"], plain, active, CONTEXT_DIMS)):
+        np.testing.assert_allclose(g_pad, g_plain, rtol=1e-4, atol=1e-4)
+    queries = jnp.asarray(p["queries"], jnp.float32)
+    for a, b in zip(compiled["predict"](p["params"], padded, active, queries),
+                    compiled["predict"](p["params"], plain, active, queries)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    start = gp.default_params(6)
+    fit_pad = compiled["fit"](padded, active, start, CONTEXT_DIMS, gp.FitConfig())
+    fit_plain = compiled["fit"](plain, active, start, CONTEXT_DIMS, gp.FitConfig())
+    for a, b in zip(fit_pad, fit_plain):
+        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-3)
+
+
+# ---- the fit -----------------------------------------------------------------------------
+
+def test_fit_reaches_a_stationary_point_and_finds_relevant_inputs(compiled):
+    """y depends on inputs 0 and 1 only; the fit's lengthscales must say so, and the reference
+    log posterior must be (nearly) flat at the fitted hyperparameters."""
+    rng = np.random.default_rng(2)
+    x = rng.random((40, 4))
+    y = np.sin(5 * x[:, 0]) + np.cos(4 * x[:, 1]) + 0.01 * rng.normal(size=40)
+    active = np.ones(4, bool)
+    data = dataset_of(x, y)
+    start = gp.default_params(4)
+    fitted = compiled["fit"](data, jnp.asarray(active), start, 0, gp.FitConfig())
+    ls = np.exp(np.asarray(fitted.log_lengthscales))
+    assert max(ls[0], ls[1]) < 0.5 * min(ls[2], ls[3])  # the Gamma(3, 6) prior caps ~2
+
+    def ref_objective(flat):
+        params = gp.GPParams(flat[:4], flat[4], flat[5], flat[6])
+        return RefGP(params, x, y, active, 0).log_marginal_likelihood() + ref_log_prior(
+            params, active)
+
+    def ref_gradient(params):
+        flat = np.concatenate([np.asarray(leaf, np.float64).ravel() for leaf in params])
+        return np.array([(ref_objective(flat + 1e-5 * e) - ref_objective(flat - 1e-5 * e)) / 2e-5
+                         for e in np.eye(len(flat))])
+
+    assert ref_objective(np.concatenate([np.ravel(v) for v in fitted])) > ref_objective(
+        np.concatenate([np.ravel(v) for v in start])) + 10.0
+    assert np.linalg.norm(ref_gradient(fitted)) < 0.05 * np.linalg.norm(ref_gradient(start))
+
+
+@pytest.mark.parametrize("targets_kind", ["random", "constant", "offset"])
+def test_float32_robust_with_duplicates_and_near_duplicates(compiled, targets_kind):
+    """160 points: 40 distinct inputs, each twice exactly and twice within 1e-6 (float32 ulp
+    scale): the fit and posterior are finite and match the float64 reference."""
+    rng = np.random.default_rng(3)
+    base = rng.random((40, 6))
+    x = np.concatenate([base, base, base + 1e-6 * rng.random((40, 6)), base - 1e-6])
+    if targets_kind == "random":
+        y = np.tile(smooth_targets(base), 4) + 0.05 * rng.normal(size=160)
+    elif targets_kind == "constant":
+        y = np.full(160, 2.5)
+    else:  # a large offset with small variation: standardization has to carry it
+        y = 1e4 + 1e-2 * np.tile(smooth_targets(base), 4)
+    active = jnp.ones(6, bool)
+    data = dataset_of(x, y)
+    fitted = compiled["fit"](data, active, gp.default_params(6), CONTEXT_DIMS, gp.FitConfig())
+    assert all(np.all(np.isfinite(leaf)) for leaf in fitted)
+    queries = np.concatenate([base[:10], rng.random((10, 6))])
+    mean, var = compiled["predict"](fitted, data, active, jnp.asarray(queries, jnp.float32))
+    assert np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var > 0)
+    ref = RefGP(fitted, np.asarray(x, np.float32), np.asarray(y, np.float32), np.ones(6, bool),
+                CONTEXT_DIMS)
+    ref_mean, ref_var = ref.predict(np.asarray(queries, np.float32))
+    np.testing.assert_allclose(mean, ref_mean, atol=2e-3 * ref.y_std + 1e-3 * abs(ref.y_mean))
+    np.testing.assert_allclose(var, ref_var, atol=2e-3 * ref.y_std**2)
+
+
+@pytest.mark.parametrize("log_lengthscale", [np.log(1e-2), np.log(1e2)])
+@pytest.mark.parametrize("log_outputscale", [np.log(1e-2), np.log(1e2)])
+def test_cholesky_finite_at_hyperparameter_extremes(compiled, log_lengthscale, log_outputscale):
+    rng = np.random.default_rng(4)
+    base = rng.random((50, 6))
+    x = np.concatenate([base, base, base + 1e-7, base[:10]])
+    data = dataset_of(x, rng.normal(size=len(x)))
+    params = gp.GPParams(jnp.full(6, log_lengthscale, jnp.float32),
+                         jnp.float32(log_outputscale), jnp.float32(np.log(1e-6)), jnp.float32(0))
+    active = jnp.ones(6, bool)
+    assert np.isfinite(compiled["lml"](params, data, active, CONTEXT_DIMS))
+    assert all(np.all(np.isfinite(g)) for g in compiled["grad"](params, data, active, CONTEXT_DIMS))
+    mean, var = compiled["predict"](params, data, active, jnp.asarray(base[:5], jnp.float32))
+    assert np.all(np.isfinite(mean)) and np.all(var > 0)
+
+
+# ---- acquisition maximizer -------------------------------------------------------------------
+
+def test_maximize_acquisition_finds_a_known_maximum_and_respects_the_box():
+    optimum = jnp.array([0.3, 0.8, 0.5, 0.05, 0.97])
+    active = jnp.array([True, True, False, True, True])
+
+    def bowl(points):  # maximum at `optimum` (clipped value 1 for the inactive input)
+        return -jnp.sum(jnp.where(active, (points - optimum) ** 2, 0.0), axis=-1)
+
+    best, value = jax.jit(
+        lambda key: acquisition.maximize_acquisition(bowl, key, active))(jax.random.PRNGKey(0))
+    np.testing.assert_allclose(best[active], optimum[active], atol=2e-3)
+    assert best[2] == acquisition.INACTIVE_VALUE
+    assert value > -1e-5
+
+    def outside(points):  # increasing in every input: the maximum is the corner of the box
+        return jnp.sum(points, axis=-1)
+
+    corner, _ = acquisition.maximize_acquisition(outside, jax.random.PRNGKey(1), active)
+    np.testing.assert_allclose(corner[active], 1.0)
+
+
+def test_ucb_forms():
+    beta = jnp.float32(4.0)
+    assert acquisition.ucb_multiplier(beta, "paper") == 4.0
+    assert acquisition.ucb_multiplier(beta, "botorch") == 2.0
+    with pytest.raises(ValueError, match="ucb_form"):
+        acquisition.ucb_multiplier(beta, "sqrt")
