@@ -1,0 +1,138 @@
+"""Native (C MuJoCo + ``mujoco.rollout``) against MJX on the CPU, in the same run: env-steps/s of the closed-loop
+trial (sensors, jitted controller, physics, trial bookkeeping) per batch size, and the wall time of the
+controller-ablation study's simulation with each backend.
+
+    python benchmarks/backend_speed.py                  # full: batch 1, 16, 64, 256 + ablation study
+    python benchmarks/backend_speed.py --quick          # under 2 minutes on a 2-core CPU
+    python benchmarks/backend_speed.py --sync-dispatch  # JAX CPU computations inline (no async dispatch)
+
+The ablation figure is the study's simulation only: 40 trials × 20 instances (4 controllers × 5 seeds) of the full
+1.5 s + 3 s trial, each trial with fixed parameters drawn at random per instance (no optimizer). ``--quick`` times
+2 native trials and extrapolates to 40 (reported as such), and skips the MJX ablation.
+
+The last line of the output is a JSON object of the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+import numpy as np
+
+from cpgjax import cpg, go1_model, mjx_go1, native_go1, params as param_space
+
+ABLATION_TRIALS = 40
+ABLATION_SEEDS = 5
+
+
+def machine() -> str:
+    """CPU model name (as lscpu reports it) and core count."""
+    name = "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as f:
+            name = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"{name}, {os.cpu_count()} CPUs"
+
+
+def _make(backend: str, scenario, trial_config):
+    cls = {"mjx": mjx_go1.MJXBackend, "native": native_go1.NativeBackend}[backend]
+    return cls(scenario, trial_config=trial_config)
+
+
+def trial_speed(backend: str, batch: int, steps: int, repeats: int) -> dict:
+    """Closed-loop trial env-steps/s (best of ``repeats`` after a warm-up call that compiles) for one backend."""
+    transition = steps // 4
+    config = mjx_go1.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
+    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6)), config)
+    p = np.tile(param_space.midpoint(), (batch, 1))
+    gates = mjx_go1.batch_gates(["vmc_tegotae"] * batch)
+    state = jax.block_until_ready(sim.reset(p))
+    t0 = time.perf_counter()
+    state, _ = jax.block_until_ready(sim.trial(state, p, gates))
+    first_call_s = time.perf_counter() - t0
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        state, _ = jax.block_until_ready(sim.trial(state, p, gates))
+        best = min(best, time.perf_counter() - t0)
+    return {"env_steps_per_s": batch * steps / best, "first_call_s": first_call_s}
+
+
+def ablation_wall_time(backend: str, trials: int) -> dict:
+    """Wall time [s] of ``trials`` full trials of the ablation batch (4 controllers × 5 seeds), construction and
+    compilation included, with random fixed parameters per trial and instance."""
+    controllers = [c for c in cpg.CONTROLLERS for _ in range(ABLATION_SEEDS)]
+    batch = len(controllers)
+    rng = np.random.default_rng(0)
+    t0 = time.perf_counter()
+    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6)), mjx_go1.TrialConfig())
+    gates = mjx_go1.batch_gates(controllers)
+    state = sim.reset(np.tile(param_space.midpoint(), (batch, 1)))
+    for _ in range(trials):
+        params = param_space.from_unit(rng.random((batch, param_space.NUM_PARAMS)))
+        state, record = sim.trial(state, params, gates)
+        jax.block_until_ready(record)
+    wall_s = time.perf_counter() - t0
+    return {"wall_s": wall_s, "env_steps_per_s": trials * batch * 4500 / wall_s}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="batch 16, short trials, extrapolated ablation (< 2 min)")
+    parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=None)
+    parser.add_argument("--steps", type=int, default=None, help="env steps per instance per timed trial")
+    parser.add_argument("--sync-dispatch", action="store_true",
+                        help="set jax_cpu_enable_async_dispatch=False (JAX CPU computations run inline)")
+    parser.add_argument("--no-ablation", action="store_true", help="skip the ablation-study wall time")
+    args = parser.parse_args()
+    if args.sync_dispatch:
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    batches = args.batch_sizes or ([16] if args.quick else [1, 16, 64, 256])
+    steps = args.steps or (400 if args.quick else 2000)
+    repeats = 1 if args.quick else 3
+    load_start = os.getloadavg()[0]
+
+    device = jax.devices()[0]
+    print(f"# {machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the rollout pool; "
+          f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
+          f"load average {load_start:.1f}")
+    print("| batch | native [env-steps/s] | MJX [env-steps/s] | native / MJX | native first call [s] "
+          "| MJX first call (compile) [s] |")
+    print("|---|---|---|---|---|---|")
+    figures: dict = {"benchmark": "backend_speed", "machine": machine(), "jax_device": device.platform,
+                     "steps_per_instance": steps, "async_dispatch": not args.sync_dispatch,
+                     "rollout_threads": native_go1.available_cores()}
+    for b in batches:
+        native = trial_speed("native", b, steps, repeats)
+        mjx = trial_speed("mjx", b, steps, repeats)
+        ratio = native["env_steps_per_s"] / mjx["env_steps_per_s"]
+        print(f"| {b} | {native['env_steps_per_s']:,.0f} | {mjx['env_steps_per_s']:,.0f} | {ratio:.2f}× "
+              f"| {native['first_call_s']:.1f} | {mjx['first_call_s']:.1f} |", flush=True)
+        figures[f"native_env_steps_per_s_b{b}"] = round(native["env_steps_per_s"])
+        figures[f"mjx_env_steps_per_s_b{b}"] = round(mjx["env_steps_per_s"])
+        figures[f"native_over_mjx_b{b}"] = round(ratio, 3)
+        figures[f"mjx_first_call_s_b{b}"] = round(mjx["first_call_s"], 2)
+
+    if not args.no_ablation:
+        trials = 2 if args.quick else ABLATION_TRIALS
+        for backend in ("native",) if args.quick else ("native", "mjx"):
+            result = ablation_wall_time(backend, trials)
+            wall_40 = result["wall_s"] * ABLATION_TRIALS / trials
+            note = f" (extrapolated from {trials} trials)" if trials != ABLATION_TRIALS else ""
+            print(f"ablation study simulation, {backend}: {wall_40:.1f} s for {ABLATION_TRIALS} trials × 20 "
+                  f"instances{note}; {result['env_steps_per_s']:,.0f} env-steps/s", flush=True)
+            figures[f"ablation_wall_s_{backend}"] = round(wall_40, 1)
+            figures[f"ablation_extrapolated_{backend}"] = trials != ABLATION_TRIALS
+    figures["load_avg_1min_start"] = round(load_start, 2)
+    figures["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
