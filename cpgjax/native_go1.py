@@ -370,6 +370,15 @@ class NativeBackend:
     def batch_size(self) -> int:
         return self.scenario.batch_size
 
+    def with_scenario(self, scenario: go1_model.Scenario) -> NativeBackend:
+        """This backend for another batch of scenarios; the compiled tick is reused when the batch size is the same
+        (scenario values reach it as data). This backend's thread pool is released."""
+        other = NativeBackend(scenario, self.cpg_config, self.trial_config, nthread=self.physics.nthread)
+        if scenario.batch_size == self.batch_size:
+            other._compiled = self._compiled
+        self.physics.close()
+        return other
+
     def _check_params(self, params) -> jax.Array:
         arr = param_space.validate(params)
         if arr.shape != (self.batch_size, param_space.NUM_PARAMS):

@@ -8,6 +8,7 @@ reasons are in docs/backends.md. The MJX side reuses the session simulator of ``
 import argparse
 
 import jax
+import mujoco
 import numpy as np
 import pytest
 
@@ -38,6 +39,33 @@ def _figures(record) -> dict[str, np.ndarray]:
             "cot": np.asarray(objective.cost_of_transport(record)),
             "c_load": np.asarray(record.c_load_n), "c_slope": np.asarray(record.c_slope_rad),
             "fell": np.asarray(record.fell)}
+
+
+def test_batched_rollout_steps_equal_a_persistent_mj_step_loop():
+    """BatchPhysics (one ``mujoco.rollout`` call per step, warm start rebuilt from the states) against a plain
+    ``mj_step`` loop on one persistent MjData, with the same PD torques: equal to float64 rounding."""
+    scenario = go1_model.make_scenarios(friction=[0.6, 0.3], slope_deg=[0.0, 5.0], payload_kg=[0.0, 7.5])
+    batch = native_go1.BatchPhysics(scenario)
+    ids = go1_model.indices()
+    lay = batch.layout
+    reference = [mujoco.MjData(batch.models[i]) for i in range(2)]
+    for i, d in enumerate(reference):
+        d.qpos[:] = go1_model.standing_qpos()
+        mujoco.mj_forward(batch.models[i], d)
+    q_stand = go1_model.standing_qpos()[ids.joint_qpos]
+    for k in range(300):
+        q, dq = batch.physics[:, lay.qpos][:, ids.joint_qpos], batch.physics[:, lay.qvel][:, ids.joint_dof]
+        torque = 70.0 * (q_stand + 0.2 * np.sin(0.02 * k) - q) - 1.3 * dq
+        assert not batch.step(torque).any()
+        for i, d in enumerate(reference):
+            d.ctrl[ids.actuator] = torque[i]
+            mujoco.mj_step(batch.models[i], d)
+    for i, d in enumerate(reference):
+        np.testing.assert_allclose(batch.physics[i, lay.qpos], d.qpos, atol=1e-9)
+        np.testing.assert_allclose(batch.physics[i, lay.qvel], d.qvel, atol=1e-7)
+        np.testing.assert_allclose(batch.warmstart[i], d.qacc_warmstart, atol=1e-4)
+        np.testing.assert_allclose(batch.sensordata[i], d.sensordata, atol=1e-6)
+    batch.close()
 
 
 def test_trajectories_agree_with_mjx_over_a_short_horizon(short_sim, native_sim, mid_params, vmc_tegotae_gates):
@@ -172,3 +200,16 @@ def test_backend_selection():
     parser = argparse.ArgumentParser()
     backends.add_backend_argument(parser)
     assert parser.parse_args([]).backend == "auto" and parser.parse_args(["--backend", "mjx"]).backend == "mjx"
+
+
+def test_a_new_scenario_reuses_the_compiled_tick():
+    config = mjx_go1.TrialConfig(transition_steps=20, steady_steps=50)
+    sim = native_go1.NativeBackend(go1_model.make_scenarios(friction=[0.6, 0.6]), trial_config=config)
+    params = np.tile(param_space.midpoint(), (2, 1))
+    gates = mjx_go1.batch_gates(["open_loop", "vmc"])
+    sim.trial(sim.reset(params), params, gates)
+    heavier = sim.with_scenario(go1_model.make_scenarios(friction=[0.3, 0.9], payload_kg=[0.0, 15.0]))
+    assert heavier._compiled is sim._compiled
+    _, record = heavier.trial(heavier.reset(params), params, gates)
+    np.testing.assert_allclose(np.asarray(record.total_mass_kg), [12.74, 27.74], atol=0.01)
+    assert heavier.physics.models[0].geom_friction[go1_model.indices().floor_geom, 0] == 0.3
