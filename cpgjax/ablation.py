@@ -174,7 +174,7 @@ def validate(spec: StudySpec) -> Conditions:
     target = cond.target_velocity_mps
     if not np.all(np.isfinite(target)) or np.any(target <= 0) or np.any(target > MAX_TARGET_VELOCITY_MPS):
         bad = target[~(np.isfinite(target) & (target > 0) & (target <= MAX_TARGET_VELOCITY_MPS))][0]
-        fail(f"target velocity {bad!r} m/s outside (0, {MAX_TARGET_VELOCITY_MPS}]")
+        fail(f"target velocity {float(bad)!r} m/s outside (0, {MAX_TARGET_VELOCITY_MPS}]")
     try:
         for t in range(spec.num_trials):
             go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t])
@@ -384,7 +384,6 @@ class Engine:
         new_target = self.placement.put(jnp.asarray(targets[:, trial], jnp.float32))
         reused = self._set_target(opt_state, new_target)
         fresh = self._init(self.placement.put(self.active), new_target)
-        fresh = fresh._replace(gp_params=opt_state.gp_params)  # the fit's warm start is not data
         fresh = _where_batch(self.placement.put(~self.reuse), fresh, reused)
         return _where_batch(self.placement.put(changed), fresh, opt_state)
 

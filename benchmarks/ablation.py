@@ -1,0 +1,83 @@
+"""Wall time and real-time factor of the controller-ablation study (the paper's Table: 4 controllers × 5 seeds × 40
+trials of 1.5 s + 3 s = 3,600 simulated robot-seconds), against the paper's real-time baseline (1×: Gazebo / the
+robot run in real time, ≈ 1 hour for this study).
+
+    python benchmarks/ablation.py                   # the full study (engine only: no figures or rollouts)
+    python benchmarks/ablation.py --quick           # 4 controllers × 1 seed × 4 trials (< 2 min on 2 CPU cores)
+    python benchmarks/ablation.py --sweep 1000      # ≥ 1,000 instances × 40 trials (GPU: --backend mjx)
+
+Target (issue 4): full study ≤ 5 minutes on 2 CPU cores, i.e. a real-time factor ≥ 12×. Reports env-steps/s, the
+real-time factor and where the time goes (simulation, optimizer = propose + observe incl. GP refits, host
+transfers, checkpoints). The last line of the output is a JSON object of the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from cpgjax import backends  # noqa: E402
+
+if hasattr(backends, "use_inline_cpu_dispatch"):
+    backends.use_inline_cpu_dispatch()
+
+import jax  # noqa: E402
+
+from cpgjax import ablation, cpg, study_io, studies  # noqa: E402
+
+PAPER_STUDY_ROBOT_S = 3600.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--sweep", type=int, default=0, help="instances (4 controllers × seeds) instead of 20")
+    parser.add_argument("--trials", type=int, default=None)
+    backends.add_backend_argument(parser)
+    args = parser.parse_args()
+    if args.sweep:
+        seeds = -(-args.sweep // len(cpg.CONTROLLERS))
+        spec = studies.ablation_spec(seeds=seeds, trials=args.trials or 40)
+        mode = "sweep"
+    elif args.quick:
+        spec = studies.ablation_spec(seeds=1, trials=args.trials or 4)
+        mode = "quick"
+    else:
+        spec = studies.ablation_spec(trials=args.trials)
+        mode = "full"
+    t0 = time.perf_counter()
+    engine = ablation.Engine(spec, backend=args.backend)
+    last = [None]
+
+    def progress(p):
+        last[0] = p
+        print(f"trial {p.trial}/{p.num_trials}: {p.env_steps_per_s:,.0f} env-steps/s, ETA {p.eta_s:.0f} s",
+              flush=True)
+
+    with tempfile.TemporaryDirectory() as out:
+        result = engine.run(out, progress=progress)
+    total_s = time.perf_counter() - t0
+    fig = study_io.run_figures(result)
+    env = study_io.environment()
+    summary = dict(
+        benchmark="ablation", mode=mode, machine=f"{env['cpu']}, {env['cpu_count']} CPUs",
+        device=env["devices"][0], backend=result.backend, instances=len(result.labels),
+        trials=int(result.trials.objective.shape[0]), robot_s=fig["robot_s"], study_wall_s=fig["wall_s"],
+        wall_with_setup_s=round(total_s, 2), env_steps_per_s=fig["env_steps_per_s"],
+        real_time_factor=fig["real_time_factor"], paper_baseline_real_time_factor=1.0,
+        simulation_s=fig["simulation_s"], optimizer_s=fig["optimizer_s"], transfer_s=fig["transfer_s"],
+        checkpoint_s=fig["checkpoint_s"],
+        full_study_estimate_s=round(fig["wall_s"] * PAPER_STUDY_ROBOT_S / fig["robot_s"], 1)
+        if mode == "quick" else None,
+        load_avg_1min_end=round(os.getloadavg()[0], 2), jax=jax.__version__)
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()

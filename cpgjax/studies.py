@@ -1,0 +1,348 @@
+"""The paper's simulation results as studies of the lockstep engine (``cpgjax.ablation``): one entry per result.
+
+======================  =======================================================================================
+``controller_ablation`` 4 controllers × 5 seeds × 40 trials at v* = 0.5 m/s: the controller table (mean of the
+                        last 5 trials, mean ± std over seeds) and the roll–pitch figure of the best parameters
+``load_adaptation``     payload 0 → 7.5 kg (trial 36) → 15 kg (trial 58): the load table, before/after adaptation
+``friction``            friction 0.3 / 0.6 / 0.9 learning curves (paper Fig. sim_overview a)
+``multi_velocity``      target 0.8 → 0.3 → 0.6 m/s with and without data reuse (Fig. sim_overview b)
+``slope_adaptation``    slope 0° → 10° → 12.5° with contextual BO, then inference mode (β = 1e-6) on 10°…17.5°
+                        (Fig. sim_overview c)
+======================  =======================================================================================
+
+Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures, ``trials.parquet``,
+``recording.rrd``, ``metadata.json`` and the engine's ``checkpoint.npz`` (``cpgjax.study_io``).
+"""
+
+from __future__ import annotations
+
+import pathlib
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from cpgjax import ablation, backends, cpg, go1_model, mjx_go1, objective, study_figures, study_io
+from cpgjax.ablation import Change, Schedule, StudySpec
+
+DEFAULT_SEEDS = 5
+QUICK_SEEDS = 2
+LAST_TRIALS = 5  # "averaging the outcomes of the last five trials"
+TRACKING_TOLERANCE_MPS = 0.05  # a target counts as tracked from the first trial with |v_x − v*| ≤ this, no fall
+
+PAPER_CONTROLLER_TABLE = {  # velocity, CoT, J: mean, std over 5 seeds (paper Table "controller comparison")
+    "open_loop": ((0.477, 0.045), (0.931, 0.138), (1.638, 0.516)),
+    "vmc": ((0.494, 0.028), (0.919, 0.149), (1.643, 0.139)),
+    "tegotae": ((0.500, 0.012), (0.583, 0.024), (2.153, 0.042)),
+    "vmc_tegotae": ((0.509, 0.023), (0.518, 0.050), (2.167, 0.072)),
+}
+PAPER_LOAD_TABLE = {  # load kg: (velocity, CoT, J) after adaptation, (same) with the flat-ground optimum
+    0.0: ((0.491, 0.510, 2.175), None),
+    7.5: ((0.524, 0.489, 2.213), (0.403, 0.564, 1.9735)),
+    15.0: ((0.528, 0.523, 2.189), (0.341, 0.905, 1.270)),
+}
+
+
+def _scaled(trial: int, paper_total: int, total: int) -> int:
+    """A schedule's change trial scaled from the paper's run length to ours."""
+    return int(round(trial * total / paper_total))
+
+
+def _seeds(seeds: int | None, quick: bool) -> tuple[int, ...]:
+    return tuple(range(seeds if seeds is not None else (QUICK_SEEDS if quick else DEFAULT_SEEDS)))
+
+
+# ----------------------------------------------------------------------------------------------- specs
+
+def ablation_spec(seeds=None, trials=None, quick=False) -> StudySpec:
+    return StudySpec("controller_ablation", num_trials=trials or (12 if quick else 40), controllers=cpg.CONTROLLERS,
+                     seeds=_seeds(seeds, quick), target_velocity_mps=(0.5,))
+
+
+def load_spec(seeds=None, trials=None, quick=False) -> StudySpec:
+    n = trials or (24 if quick else 80)
+    schedule = Schedule("0→7.5→15 kg", (Change(_scaled(36, 80, n), "payload_kg", 7.5),
+                                         Change(_scaled(58, 80, n), "payload_kg", 15.0)))
+    return StudySpec("load_adaptation", num_trials=n, seeds=_seeds(seeds, quick), schedules=(schedule,),
+                     group_by=("schedule",))
+
+
+def friction_spec(seeds=None, trials=None, quick=False) -> StudySpec:
+    return StudySpec("friction", num_trials=trials or (12 if quick else 40), seeds=_seeds(seeds, quick),
+                     friction=(0.3, 0.6, 0.9), group_by=("friction",))
+
+
+def multi_velocity_spec(seeds=None, trials=None, quick=False) -> StudySpec:
+    n = trials or (42 if quick else 140)
+    schedule = Schedule("0.8→0.3→0.6 m/s", (Change(_scaled(40, 140, n), "target_velocity_mps", 0.3),
+                                             Change(_scaled(90, 140, n), "target_velocity_mps", 0.6)))
+    return StudySpec("multi_velocity", num_trials=n, seeds=_seeds(seeds, quick), target_velocity_mps=(0.8,),
+                     schedules=(schedule,), data_reuse=(True, False), group_by=("data_reuse",))
+
+
+SLOPE_PHASES_DEG = (0.0, 10.0, 12.5)
+INFERENCE_SLOPES_DEG = (10.0, 12.5, 15.0, 17.5)
+
+
+def slope_spec(seeds=None, trials=None, quick=False) -> StudySpec:
+    n = trials or (32 if quick else 92)
+    learn = n - 4 * (1 if quick else 3)  # the last trials: inference mode, 1 or 3 per slope
+    per_slope = (n - learn) // len(INFERENCE_SLOPES_DEG)
+    changes = [Change(_scaled(40, 80, learn), "slope_deg", 10.0), Change(_scaled(60, 80, learn), "slope_deg", 12.5),
+               Change(learn, "inference", 1.0)]
+    changes += [Change(learn + k * per_slope, "slope_deg", s) for k, s in enumerate(INFERENCE_SLOPES_DEG)]
+    return StudySpec("slope_adaptation", num_trials=n, seeds=_seeds(seeds, quick),
+                     schedules=(Schedule("0→10→12.5° + inference 10…17.5°", tuple(changes)),), group_by=("schedule",))
+
+
+# ----------------------------------------------------------------------------------------------- analysis helpers
+
+def last_mean(values: np.ndarray, stop: int, k: int = LAST_TRIALS) -> np.ndarray:
+    """Mean over trials [stop − k, stop) of (N, B) values → (B,)."""
+    return np.asarray(values)[max(stop - k, 0):stop].mean(axis=0)
+
+
+def mean_std(values: np.ndarray) -> str:
+    return f"{np.mean(values):.3f} ± {np.std(values):.3f}"
+
+
+def phase_starts(values: np.ndarray) -> list[int]:
+    """Trials (of one instance's (N,) condition) at which the condition changes, with 0 first."""
+    return [0] + [t for t in range(1, len(values)) if values[t] != values[t - 1]]
+
+
+def evaluate(params: np.ndarray, controllers, scenario: go1_model.Scenario, trial_config, backend: str,
+             target_mps: float, settle_trials: int = 1):
+    """Fixed parameters (B, 8) on ``scenario``: ``settle_trials`` trials, then one measured trial.
+
+    Returns (velocity_x, CoT, J) arrays (B,)."""
+    sim = backends.make_backend(scenario, backend, trial_config=trial_config)
+    gates = mjx_go1.batch_gates(list(controllers))
+    state = sim.reset(params)
+    for _ in range(settle_trials + 1):
+        state, record = sim.trial(state, params, gates)
+    record = ablation.fetch(record)
+    j = jax.vmap(objective.objective, in_axes=(0, None))(record, np.float32(target_mps))
+    return (np.asarray(objective.mean_velocity(record))[:, 0], np.asarray(objective.cost_of_transport(record)),
+            np.asarray(j))
+
+
+def rollouts(params: np.ndarray, controllers, scenario, trial_config, backend: str, steps: int = 3000) -> list:
+    """Per-step logs (``mjx_go1.StepLog`` of NumPy (T, ...)) of fixed parameters after one settling trial."""
+    sim = backends.make_backend(scenario, backend, trial_config=trial_config)
+    gates = mjx_go1.batch_gates(list(controllers))
+    state, _ = sim.trial(sim.reset(params), params, gates)
+    _, log = sim.rollout(state, params, gates, steps)
+    log = ablation.fetch(log)
+    return [type(log)(*(field[b] for field in log)) for b in range(params.shape[0])]
+
+
+def best_params(result, mask: np.ndarray, stop: int | None = None) -> tuple[np.ndarray, int, float]:
+    """The best observed parameters among the instances in ``mask`` (and trials < stop): (x, instance, J)."""
+    j = np.where(mask[None, :], result.trials.objective[:stop], -np.inf)
+    t, b = np.unravel_index(np.argmax(j), j.shape)
+    return result.trials.params[t, b], int(b), float(j[t, b])
+
+
+# ----------------------------------------------------------------------------------------------- reports
+
+def _labels(result, key) -> np.ndarray:
+    return np.array([lab[key] for lab in result.labels])
+
+
+def report_ablation(result, out: pathlib.Path, backend: str):
+    tr, n = result.trials, result.trials.objective.shape[0]
+    controllers = _labels(result, "controller")
+    rows = ["| controller | velocity [m/s] ours | paper | CoT ours | paper | J ours | paper | falls (all trials) |",
+            "|---|---|---|---|---|---|---|---|"]
+    for c in cpg.CONTROLLERS:
+        m = controllers == c
+        if not m.any():
+            continue
+        v, cot, j = (last_mean(x[:, m], n) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
+        p = PAPER_CONTROLLER_TABLE[c]
+        rows.append(f"| {c} | {mean_std(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {mean_std(cot)} | "
+                    f"{p[1][0]:.3f} ± {p[1][1]:.3f} | {mean_std(j)} | {p[2][0]:.3f} ± {p[2][1]:.3f} | "
+                    f"{int(tr.fell[:, m].sum())}/{tr.fell[:, m].size} |")
+    text = (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then mean ± "
+            f"std over {len(result.spec.seeds)} seeds.\n\n" + "\n".join(rows) + "\n")
+    study_figures.learning_curves(out / "learning_curves.png", result, "controller")
+    picks = [c for c in ("open_loop", "vmc_tegotae") if (controllers == c).any()]
+    logs = {}
+    if picks:
+        best = [best_params(result, controllers == c) for c in picks]
+        params = np.stack([b[0] for b in best])
+        scenario = go1_model.make_scenarios(friction=[result.spec.friction[0]] * len(picks))
+        for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend)):
+            logs[f"best_{c}"] = lg
+        study_figures.attitude(out / "attitude.png", logs)
+        text += "\nRoll–pitch of the best parameters (3 s after a settling trial), std [rad]:\n\n"
+        text += "| controller | best J (instance) | roll std | pitch std |\n|---|---|---|---|\n"
+        for (c, lg), (_, b, jb) in zip(logs.items(), best):
+            text += f"| {c} | {jb:.3f} (#{b}) | {np.std(lg.rpy_rad[:, 0]):.4f} | {np.std(lg.rpy_rad[:, 1]):.4f} |\n"
+    return text, logs
+
+
+def report_load(result, out: pathlib.Path, backend: str):
+    tr, cond = result.trials, result.conditions
+    starts = phase_starts(cond.payload_kg[0]) + [tr.objective.shape[0]]
+    loads = [float(cond.payload_kg[0, s]) for s in starts[:-1]]
+    flat = np.stack([best_params(result, np.eye(len(result.labels), dtype=bool)[b], starts[1])[0]
+                     for b in range(len(result.labels))])
+    rows = ["| load [kg] | velocity ours (flat optimum) | paper | CoT ours (flat optimum) | paper | "
+            "J ours (flat optimum) | paper |", "|---|---|---|---|---|---|---|"]
+    for load, stop in zip(loads, starts[1:]):
+        after = [last_mean(x, stop) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective)]
+        before = None
+        if load > 0:
+            scenario = go1_model.make_scenarios(payload_kg=[load] * len(flat))
+            before = evaluate(flat, _labels(result, "controller"), scenario, result.spec.trial, backend, 0.5)
+        paper_after, paper_before = PAPER_LOAD_TABLE.get(load, (None, None))
+        cells = []
+        for k in range(3):
+            ours = f"{np.mean(after[k]):.3f}" + (f" ({np.mean(before[k]):.3f})" if before is not None else " (-)")
+            paper = "" if paper_after is None else f"{paper_after[k]:.3f}" + (
+                f" ({paper_before[k]:.3f})" if paper_before else " (-)")
+            cells += [ours, paper]
+        rows.append(f"| {load:g} | " + " | ".join(cells) + " |")
+    text = (f"Load adaptation, v* = 0.5 m/s, payload changes at trials {starts[1:-1]} of {starts[-1]}; after: mean of "
+            f"the last {LAST_TRIALS} trials of each phase over {len(result.spec.seeds)} seeds; in parentheses: the "
+            "best parameters found before the first payload change, re-run on the loaded robot.\n\n"
+            + "\n".join(rows) + "\n")
+    study_figures.learning_curves(out / "load_adaptation.png", result, "schedule", changes=starts[1:-1],
+                                  context_index=0)
+    return text, {}
+
+
+def report_friction(result, out: pathlib.Path, backend: str):
+    tr, n = result.trials, result.trials.objective.shape[0]
+    friction = _labels(result, "friction")
+    rows = ["| friction | velocity [m/s] | CoT | J | trials to a prospective solution (J ≥ 90 % of the run's best) |",
+            "|---|---|---|---|---|"]
+    for f in result.spec.friction:
+        m = friction == f
+        j = tr.objective[:, m]
+        first = [int(np.argmax(j[:, b] >= 0.9 * j[:, b].max())) + 1 for b in range(j.shape[1])]
+        rows.append(f"| {f} | " + " | ".join(mean_std(last_mean(x[:, m], n)) for x in
+                                            (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
+                    + f" | {mean_std(first)} |")
+    text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, mean ± std over "
+            f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
+            "(no table).\n\n" + "\n".join(rows) + "\n")
+    study_figures.learning_curves(out / "friction.png", result, "friction")
+    return text, {}
+
+
+def trials_to_track(velocity: np.ndarray, target: np.ndarray, fell: np.ndarray, start: int, stop: int) -> float:
+    """Trials from ``start`` until the first with |v − v*| ≤ tolerance and no fall (NaN if never before stop)."""
+    ok = (np.abs(velocity[start:stop] - target[start:stop]) <= TRACKING_TOLERANCE_MPS) & (fell[start:stop] == 0)
+    return float(np.argmax(ok) + 1) if ok.any() else np.nan
+
+
+def report_multi_velocity(result, out: pathlib.Path, backend: str):
+    tr, cond = result.trials, result.conditions
+    n = tr.objective.shape[0]
+    starts = phase_starts(cond.target_velocity_mps[0]) + [n]
+    reuse = _labels(result, "data_reuse")
+    rows = ["| target [m/s] (trials) | data reuse | trials to track (mean, never-tracked runs) | final velocity | "
+            "final CoT |", "|---|---|---|---|---|"]
+    for s, e in zip(starts[:-1], starts[1:]):
+        target = float(cond.target_velocity_mps[0, s])
+        for flag in result.spec.data_reuse:
+            bs = np.flatnonzero(reuse == flag)
+            counts = np.array([trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b],
+                                               s, e) for b in bs])
+            never = int(np.isnan(counts).sum())
+            mean = np.nanmean(counts) if never < len(counts) else np.nan
+            rows.append(f"| {target:g} ({s}–{e - 1}) | {'yes' if flag else 'no (restart)'} | {mean:.1f} ({never}) | "
+                        f"{mean_std(last_mean(tr.velocity_xy_mps[:, bs, 0], e))} | "
+                        f"{mean_std(last_mean(tr.cot[:, bs], e))} |")
+    text = (f"Multi-velocity tracking: a target counts as tracked from the first trial with |v_x − v*| ≤ "
+            f"{TRACKING_TOLERANCE_MPS} m/s and no fall; final = mean of the last {LAST_TRIALS} trials of the phase; "
+            f"{len(result.spec.seeds)} seeds. Paper: fewer trials after each change with data reuse (figure only).\n\n"
+            + "\n".join(rows) + "\n")
+    study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse", changes=starts[1:-1],
+                                  target=cond.target_velocity_mps[0])
+    return text, {}
+
+
+def report_slope(result, out: pathlib.Path, backend: str):
+    tr, cond = result.trials, result.conditions
+    n = tr.objective.shape[0]
+    learn = int(np.argmax(cond.inference[0])) if cond.inference[0].any() else n
+    starts = phase_starts(cond.slope_deg[0, :learn]) + [learn]
+    rows = ["| slope [deg] (trials) | velocity | CoT | J | c_slope [rad] | falls |", "|---|---|---|---|---|---|"]
+    for s, e in zip(starts[:-1], starts[1:]):
+        rows.append(f"| {cond.slope_deg[0, s]:g} ({s}–{e - 1}) | " + " | ".join(
+            mean_std(last_mean(x, e)) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective, tr.context[..., 1]))
+            + f" | {int(tr.fell[s:e].sum())} |")
+    text = (f"Slope adaptation, v* = 0.5 m/s, contextual BO; last {LAST_TRIALS} trials of each phase, "
+            f"{len(result.spec.seeds)} seeds.\n\n" + "\n".join(rows) + "\n")
+    if learn < n:
+        rows = ["| slope [deg] | velocity | J | falls / trials | paper |", "|---|---|---|---|---|"]
+        inf_starts = phase_starts(cond.slope_deg[0, learn:])
+        bounds = [learn + s for s in inf_starts] + [n]
+        for s, e in zip(bounds[:-1], bounds[1:]):
+            slope = float(cond.slope_deg[0, s])
+            paper = "walks" if slope <= 15.0 else "not reported as walking"
+            rows.append(f"| {slope:g} | {mean_std(tr.velocity_xy_mps[s:e, :, 0])} | {mean_std(tr.objective[s:e])} | "
+                        f"{int(tr.fell[s:e].sum())}/{tr.fell[s:e].size} | {paper} |")
+        text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{n - 1}:\n\n" + "\n".join(rows) + "\n")
+    study_figures.learning_curves(out / "slope_adaptation.png", result, "schedule", changes=starts[1:],
+                                  context_index=1)
+    return text, {}
+
+
+class Study(NamedTuple):
+    name: str
+    make_spec: Callable[..., StudySpec]
+    report: Callable[..., tuple[str, dict]]
+    description: str
+
+
+STUDIES = {s.name: s for s in (
+    Study("controller_ablation", ablation_spec, report_ablation, "4 controllers × seeds × 40 trials, v* = 0.5 m/s"),
+    Study("load_adaptation", load_spec, report_load, "payload 0 → 7.5 → 15 kg with contextual BO"),
+    Study("friction", friction_spec, report_friction, "friction 0.3 / 0.6 / 0.9 learning curves"),
+    Study("multi_velocity", multi_velocity_spec, report_multi_velocity, "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
+    Study("slope_adaptation", slope_spec, report_slope, "0° → 10° → 12.5°, then inference mode on 10°…17.5°"),
+)}
+
+
+def make_spec(name: str, *, seeds=None, trials=None, quick=False) -> StudySpec:
+    if name not in STUDIES:
+        raise ablation.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
+    if seeds is not None and seeds < 1:
+        raise ablation.StudyError(f"--seeds {seeds}: need at least 1")
+    if trials is not None and trials < 8:
+        raise ablation.StudyError(f"--trials {trials}: need at least 8 (2 random + some optimized trials)")
+    spec = STUDIES[name].make_spec(seeds=seeds, trials=trials, quick=quick)
+    ablation.validate(spec)
+    return spec
+
+
+def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None) -> str:
+    """Every file of a finished study; returns the table text."""
+    out.mkdir(parents=True, exist_ok=True)
+    report = STUDIES[name or result.spec.name].report
+    text, logs = report(result, out, backend)
+    figures = study_io.run_figures(result)
+    text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, figures)}\n"
+    (out / "table.md").write_text(text)
+    study_io.write_trials(result, out / "trials.parquet")
+    study_io.write_recording(result, out / "recording.rrd", logs)
+    study_io.write_metadata(result, out / "metadata.json")
+    return text
+
+
+def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=False, backend="auto",
+        progress=None) -> tuple[str, pathlib.Path]:
+    """Run (or resume) a study and write its outputs; returns (table text, output folder)."""
+    spec = make_spec(name, seeds=seeds, trials=trials, quick=quick)
+    out = pathlib.Path(out or pathlib.Path("results") / name)
+    if not resume and (out / study_io.CHECKPOINT).exists():
+        raise ablation.StudyError(f"{out} already holds a checkpoint: pass --resume to continue it, or another --out")
+    engine = ablation.Engine(spec, backend=backend)
+    result = engine.run(out, resume=resume, progress=progress)
+    return write_outputs(result, out, engine.backend_name, name), out

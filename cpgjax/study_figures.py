@@ -1,0 +1,95 @@
+"""The studies' figures (PNG, matplotlib Agg) in the paper's panel layout.
+
+* :func:`learning_curves` — Fig. "sim_overview": rows mean forward velocity, CoT, objective value and context per
+  trial; one line per group (mean over seeds) with a ±1 std band; condition changes marked by red arrows.
+* :func:`attitude` — Fig. "att_comp": roll–pitch trajectories of the best parameters of two controllers.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+CONTEXT_LABELS = ("$c_{load}$ [N]", "$c_{slope}$ [rad]")
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), target=None,
+                    context_index: int = 1) -> pathlib.Path:
+    """Velocity, CoT, J and one context component per trial, mean ± std over the instances of each group.
+
+    Args:
+      group_key: instance label whose values form the groups (lines).
+      changes: trials at which the conditions change (red arrows on the J row).
+      target: (N,) target velocity per trial, drawn on the velocity row (default: the first instance's).
+      context_index: 0 = c_load, 1 = c_slope.
+    """
+    plt = _plt()
+    tr = result.trials
+    n = tr.objective.shape[0]
+    trials = np.arange(1, n + 1)
+    rows = (("velocity $v_x$ [m/s]", tr.velocity_xy_mps[..., 0]), ("CoT", tr.cot), ("objective J", tr.objective),
+            (CONTEXT_LABELS[context_index], tr.context[..., context_index]))
+    labels = np.array([str(lab[group_key]) for lab in result.labels])
+    fig, axes = plt.subplots(len(rows), 1, figsize=(6.5, 8.0), sharex=True)
+    for ax, (name, values) in zip(axes, rows):
+        for group in dict.fromkeys(labels):
+            v = np.asarray(values)[:, labels == group]
+            mean, std = v.mean(axis=1), v.std(axis=1)
+            line, = ax.plot(trials, mean, label=f"{group_key} = {group}", lw=1.4)
+            ax.fill_between(trials, mean - std, mean + std, color=line.get_color(), alpha=0.2, lw=0)
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    tgt = result.conditions.target_velocity_mps[0] if target is None else target
+    axes[0].step(trials, tgt, where="mid", color="k", ls="--", lw=1, label="target $v_x^*$")
+    axes[1].set_ylim(0, min(3.0, float(np.nanpercentile(tr.cot, 95)) * 1.2 + 0.1))
+    axes[2].set_ylim(-1.1, 2.6)
+    for c in changes:
+        axes[2].annotate("", xy=(c + 1, -1.0), xytext=(c + 1, -0.3), arrowprops=dict(color="red", arrowstyle="->"))
+        for ax in axes:
+            ax.axvline(c + 0.5, color="red", lw=0.6, alpha=0.5)
+    axes[0].legend(fontsize=7, loc="lower right")
+    axes[-1].set_xlabel("trial")
+    fig.suptitle(f"{result.spec.name}: {len(result.labels)} runs, mean ± std", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def attitude(path: pathlib.Path, logs: dict) -> pathlib.Path:
+    """Roll–pitch trajectories [deg] of per-step logs ({label: StepLog of (T, ...)})."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(4.8, 4.2))
+    for label, lg in logs.items():
+        rpy = np.degrees(np.asarray(lg.rpy_rad))
+        ax.plot(rpy[:, 0], rpy[:, 1], lw=0.8, alpha=0.8,
+                label=f"{label} (std roll {rpy[:, 0].std():.2f}°, pitch {rpy[:, 1].std():.2f}°)")
+    ax.set_xlabel("roll [deg]")
+    ax.set_ylabel("pitch [deg]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    ax.set_title("roll–pitch, best parameters, 3 s", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def run_line(result, figures: dict) -> str:
+    """One line of run figures for table.md."""
+    return (f"{len(result.labels)} instances × {result.trials.objective.shape[0]} trials, backend {result.backend}, "
+            f"wall {figures['wall_s']:.0f} s, {figures['env_steps_per_s']:,.0f} env-steps/s, real-time factor "
+            f"{figures['real_time_factor']:.1f}× (simulation {figures['simulation_s']:.0f} s, optimizer "
+            f"{figures['optimizer_s']:.0f} s, transfers {figures['transfer_s']:.1f} s, checkpoints "
+            f"{figures['checkpoint_s']:.1f} s).")

@@ -1,0 +1,226 @@
+"""The lockstep engine: option validation, schedules, the batched run against a hand-written unbatched loop, data
+reuse, sharded against unsharded, and kill → resume against an uninterrupted run.
+
+Tiny instances throughout (short trials, small optimizer) and the native backend (C MuJoCo, compiles in seconds);
+the trial and optimizer logic is the same at the paper's sizes.
+"""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cpgjax import ablation, acquisition, bo, gp, mjx_go1, native_go1, objective, params as param_space, study_io
+from cpgjax.ablation import Change, Schedule, StudyError, StudySpec
+
+TRIAL = mjx_go1.TrialConfig(transition_steps=100, steady_steps=200)
+TRIALS = 5
+
+
+def small_optimizer(capacity=TRIALS):
+    return bo.paper_config(capacity=capacity, fit=gp.FitConfig(num_steps=8),
+                           acquisition=acquisition.AcquisitionConfig(num_candidates=32, num_restarts=2, num_steps=5))
+
+
+def tiny_spec(**overrides):
+    settings = dict(name="tiny", num_trials=TRIALS, controllers=("open_loop", "vmc_tegotae"), seeds=(0, 1),
+                    trial=TRIAL, optimizer=small_optimizer(),
+                    schedules=(Schedule("load", (Change(3, "payload_kg", 7.5),)),))
+    settings.update(overrides)
+    return StudySpec(**settings)
+
+
+# The kill/resume and sharding subprocesses build the same study from this source.
+SPEC_SOURCE = """
+from cpgjax import ablation, acquisition, bo, gp, mjx_go1
+spec = ablation.StudySpec(
+    name="tiny", num_trials=5, controllers=("open_loop", "vmc_tegotae"), seeds=(0, 1),
+    trial=mjx_go1.TrialConfig(transition_steps=100, steady_steps=200),
+    optimizer=bo.paper_config(capacity=5, fit=gp.FitConfig(num_steps=8), acquisition=acquisition.AcquisitionConfig(
+        num_candidates=32, num_restarts=2, num_steps=5)),
+    schedules=(ablation.Schedule("load", (ablation.Change(3, "payload_kg", 7.5),)),))
+"""
+
+
+@pytest.fixture(scope="module")
+def engine():
+    return ablation.Engine(tiny_spec(), backend="native")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(engine):
+    return engine.run()
+
+
+# ----------------------------------------------------------------------------------------------- validation
+
+@pytest.mark.parametrize("overrides, message", [
+    (dict(controllers=("open_loop", "cpg_plus")), "unknown controller 'cpg_plus'"),
+    (dict(seeds=(-1,)), "seed -1"),
+    (dict(num_trials=0), "num_trials = 0"),
+    (dict(friction=()), "grid axis friction is empty"),
+    (dict(seeds=(0, 0)), "duplicates"),
+    (dict(schedules=(Schedule("x", (Change(9, "payload_kg", 5.0),)),)), "change at trial 9 outside [0, 5)"),
+    (dict(schedules=(Schedule("x", (Change(1, "mass", 5.0),)),)), "unknown field 'mass'"),
+    (dict(schedules=(Schedule("x", (Change(2, "payload_kg", -3.0),)),)), "trial 2: scenario payload_kg = -3.0"),
+    (dict(slope_deg=(50.0,)), "slope_deg = 50.0"),
+    (dict(target_velocity_mps=(0.0,)), "target velocity 0.0"),
+    (dict(optimizer=small_optimizer(capacity=3)), "capacity 3 < num_trials 5"),
+    (dict(group_by=("colour",)), "group_by 'colour'"),
+])
+def test_bad_options_fail_before_compute_with_a_clear_message(overrides, message):
+    with pytest.raises(StudyError, match=None) as err:
+        ablation.Engine(tiny_spec(**overrides), backend="native")
+    assert message in str(err.value) and "'tiny'" in str(err.value)
+
+
+def test_grid_order_and_schedules():
+    spec = tiny_spec(friction=(0.3, 0.9), schedules=(
+        Schedule("a", (Change(2, "payload_kg", 7.5), Change(4, "payload_kg", 15.0), Change(3, "inference", 1))),
+        Schedule("b", (Change(1, "target_velocity_mps", 0.3),))))
+    labels = ablation.instances(spec)
+    assert len(labels) == 2 * 2 * 2 * 2
+    assert labels[0] == dict(controller="open_loop", seed=0, friction=0.3, slope_deg=0.0, payload_kg=0.0,
+                             target_velocity_mps=0.5, schedule="a", data_reuse=True)
+    assert labels[1]["schedule"] == "b" and labels[2]["friction"] == 0.9 and labels[4]["seed"] == 1
+    cond = ablation.conditions(spec)
+    np.testing.assert_array_equal(cond.payload_kg[0], [0, 0, 7.5, 7.5, 15])
+    np.testing.assert_array_equal(cond.inference[0], [0, 0, 0, 1, 1])
+    np.testing.assert_array_equal(cond.target_velocity_mps[1], [0.5, 0.3, 0.3, 0.3, 0.3])
+    np.testing.assert_array_equal(cond.friction[2], [0.9] * 5)
+
+
+def test_placement_pads_to_the_device_count():
+    devices = jax.devices()
+    placement = ablation.make_placement(3, devices)
+    assert placement.padded_size % len(devices) == 0 and placement.padded_size >= 3
+    x = np.arange(placement.padded_size * 2.0).reshape(-1, 2)
+    np.testing.assert_array_equal(ablation.fetch(placement.put(x)), x)
+
+
+# ----------------------------------------------------------------------------------------------- the run
+
+def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
+    """Instance 3 (vmc_tegotae, seed 1) of the batch vs Algorithm 1 written out for that instance alone: unbatched
+    propose / a batch-1 simulator / observe, the same keys fold_in(PRNGKey(seed), trial), the same schedule."""
+    b, seed = 3, 1
+    assert engine.labels[b]["controller"] == "vmc_tegotae" and engine.labels[b]["seed"] == seed
+    opt = bo.make_optimizer(small_optimizer())
+    state = opt.init(active_dims=jnp.ones(8, bool))
+    context = jnp.asarray(engine.initial_context()[0])
+    gates = mjx_go1.batch_gates(["vmc_tegotae"])
+    sim, sim_state, payload = None, None, None
+    for t in range(TRIALS):
+        x = np.asarray(opt.propose(state, context, jax.random.fold_in(jax.random.PRNGKey(seed), t)), np.float64)
+        x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)[None]
+        new_payload = 7.5 if t >= 3 else 0.0
+        if new_payload != payload:
+            from cpgjax import go1_model
+            sim = native_go1.NativeBackend(go1_model.make_scenarios(payload_kg=[new_payload]), trial_config=TRIAL)
+            payload = new_payload
+        if sim_state is None:
+            sim_state = sim.reset(x)
+        sim_state, record = sim.trial(sim_state, x, gates)
+        one = jax.tree.map(lambda a: a[0], record)
+        j = objective.objective(one, 0.5)
+        state, _ = opt.observe(state, jnp.asarray(x[0], jnp.float32), objective.context(one), j)
+        context = objective.context(one)
+        np.testing.assert_allclose(uninterrupted.trials.params[t, b], x[0], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(uninterrupted.trials.objective[t, b], float(j), rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(uninterrupted.trials.context[t, b], np.asarray(context), rtol=1e-4, atol=1e-5)
+    assert uninterrupted.trials.objective.shape == (TRIALS, 4)
+    # σ_N is masked out without Tegotae (decisions.md §13): the proposal holds the box midpoint.
+    sigma = uninterrupted.trials.params[:, 0, param_space.SIGMA_N_INDEX]
+    np.testing.assert_allclose(sigma, param_space.midpoint()[param_space.SIGMA_N_INDEX], rtol=1e-6)
+    assert np.all(np.isfinite(uninterrupted.trials.objective))
+    # the payload change shows in the measured mass and context
+    np.testing.assert_allclose(uninterrupted.trials.total_mass_kg[3:] - uninterrupted.trials.total_mass_kg[:1],
+                               7.5, atol=1e-3)
+
+
+def test_target_change_reuses_data_or_restarts():
+    spec = tiny_spec(controllers=("vmc_tegotae",), seeds=(0,), data_reuse=(True, False),
+                     schedules=(Schedule("v", (Change(3, "target_velocity_mps", 0.3),)),))
+    engine = ablation.Engine(spec, backend="native")
+    assert engine.uses_records
+    result = engine.run()
+    st = result.opt_state
+    reuse = [lab["data_reuse"] for lab in result.labels].index(True)
+    restart = 1 - reuse
+    # data reuse: every stored J recomputed for the new target from the stored records (paper Sec. III-A-2)
+    recomputed = jax.vmap(objective.objective, in_axes=(0, None))(
+        jax.tree.map(lambda a: a[reuse], st.records), jnp.float32(0.3))
+    np.testing.assert_allclose(st.objectives[reuse, :TRIALS], np.asarray(recomputed)[:TRIALS], rtol=1e-5)
+    assert int(st.num_stored[reuse]) == TRIALS and float(st.target_velocity[reuse]) == pytest.approx(0.3)
+    # without reuse the optimizer restarted at the change: only the trials since then are stored
+    assert int(st.num_stored[restart]) == TRIALS - 3
+    np.testing.assert_allclose(st.objectives[restart, :2], result.trials.objective[3:, restart], rtol=1e-5)
+    # the two instances share seed and history until the change
+    np.testing.assert_array_equal(result.trials.params[:3, 0], result.trials.params[:3, 1])
+
+
+def _run_subprocess(code: str, env_extra: dict | None = None, timeout=240):
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **(env_extra or {}))
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=timeout,
+                          cwd=pathlib.Path(__file__).resolve().parents[1])
+
+
+def test_sharded_over_two_devices_equals_one_device():
+    code = SPEC_SOURCE + """
+import dataclasses, jax, json, numpy as np
+spec = dataclasses.replace(spec, seeds=(0, 1, 2), controllers=("vmc_tegotae",), num_trials=4)  # 3: padded to 4
+assert len(jax.devices()) == 2
+two = ablation.Engine(spec, backend="native").run()
+one = ablation.Engine(spec, backend="native", devices=jax.devices()[:1]).run()
+assert len(two.devices) == 2 and len(one.devices) == 1
+print(json.dumps(dict(
+    params=float(np.abs(two.trials.params - one.trials.params).max()),
+    objective=float(np.abs(two.trials.objective - one.trials.objective).max()),
+    shape=list(two.trials.objective.shape))))
+"""
+    out = _run_subprocess(code, {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    diff = json.loads(out.stdout.strip().splitlines()[-1])
+    assert diff["shape"] == [4, 3]
+    assert diff["params"] <= 1e-5 and diff["objective"] <= 1e-4, diff
+
+
+def test_killed_study_resumes_to_the_uninterrupted_result(tmp_path, uninterrupted):
+    out = tmp_path / "study"
+    code = SPEC_SOURCE + f"""
+ablation.Engine(spec, backend="native").run({str(out)!r})
+"""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, cwd=pathlib.Path(__file__).resolve().parents[1])
+    ckpt = out / study_io.CHECKPOINT
+    deadline = time.time() + 240
+    done = 0
+    while time.time() < deadline and proc.poll() is None:
+        if ckpt.exists():
+            try:
+                with np.load(ckpt) as z:
+                    done = json.loads(bytes(z["meta"]).decode())["trial"]
+            except (OSError, ValueError, KeyError):
+                done = 0
+            if done >= 2:
+                break
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    assert 2 <= done < TRIALS, f"expected to kill mid-study, got {done} trials done (rc {proc.returncode})"
+    resumed = ablation.Engine(tiny_spec(), backend="native").run(out, resume=True)
+    for name in ablation.TrialLog._fields:
+        np.testing.assert_array_equal(getattr(resumed.trials, name), getattr(uninterrupted.trials, name), name)
+    for a, b in zip(jax.tree.leaves(resumed.opt_state), jax.tree.leaves(uninterrupted.opt_state)):
+        np.testing.assert_array_equal(a, b)
+    # resuming a different study from this folder is refused
+    with pytest.raises(StudyError, match="different study"):
+        ablation.Engine(tiny_spec(seeds=(0, 1, 2)), backend="native").run(out, resume=True)

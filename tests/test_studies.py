@@ -1,0 +1,120 @@
+"""The paper's studies: their specifications, their analyses against hand-computed references, and every output
+file of a tiny controller ablation (table, figures, parquet, rerun recording, metadata); the CLI's failure paths.
+"""
+
+import dataclasses
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from cpgjax import ablation, cli, cpg, mjx_go1, params as param_space, studies
+from tests.test_ablation import small_optimizer
+
+
+# ----------------------------------------------------------------------------------------------- specifications
+
+def test_specs_follow_the_paper():
+    spec = studies.make_spec("controller_ablation")
+    assert spec.controllers == cpg.CONTROLLERS and spec.seeds == tuple(range(5)) and spec.num_trials == 40
+    assert spec.target_velocity_mps == (0.5,) and spec.trial == mjx_go1.TrialConfig()  # 1.5 s + 3 s at 1 kHz
+    assert len(ablation.instances(spec)) * spec.num_trials * 4.5 == 3600.0  # robot-seconds
+    cond = ablation.conditions(studies.make_spec("load_adaptation"))
+    np.testing.assert_array_equal(studies.phase_starts(cond.payload_kg[0]), [0, 36, 58])  # paper: trials 36, 58
+    np.testing.assert_array_equal(cond.payload_kg[0, [0, 36, 58]], [0.0, 7.5, 15.0])
+    cond = ablation.conditions(studies.make_spec("multi_velocity"))
+    assert cond.target_velocity_mps.shape[1] == 140
+    np.testing.assert_array_equal(np.unique(cond.target_velocity_mps[0]), [0.3, 0.6, 0.8])
+    spec = studies.make_spec("slope_adaptation")
+    cond = ablation.conditions(spec)
+    learn = int(np.argmax(cond.inference[0]))
+    assert [cond.slope_deg[0, t] for t in studies.phase_starts(cond.slope_deg[0, :learn])] == [0.0, 10.0, 12.5]
+    assert sorted(set(cond.slope_deg[0, learn:])) == [10.0, 12.5, 15.0, 17.5] and cond.inference[0, learn:].all()
+    assert studies.make_spec("friction").friction == (0.3, 0.6, 0.9)
+    for name in studies.STUDIES:  # every quick variant is a valid, smaller study
+        quick = studies.make_spec(name, quick=True)
+        assert quick.num_trials < studies.make_spec(name).num_trials and len(quick.seeds) == 2
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(name="nope"), "unknown study 'nope'"),
+    (dict(name="friction", seeds=0), "--seeds 0"),
+    (dict(name="friction", trials=3), "--trials 3"),
+])
+def test_bad_study_options(kwargs, message):
+    with pytest.raises(ablation.StudyError, match=message):
+        studies.make_spec(**kwargs)
+
+
+def test_cli_rejects_bad_options_before_compute(capsys, tmp_path):
+    assert cli.main(["study", "friction", "--trials", "3", "--out", str(tmp_path)]) == 2
+    assert "--trials 3" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+# ----------------------------------------------------------------------------------------------- analyses
+
+def test_trials_to_track_counts_from_the_change():
+    v = np.array([0.1, 0.2, 0.79, 0.5, 0.35, 0.31, 0.3])
+    target = np.array([0.8, 0.8, 0.8, 0.3, 0.3, 0.3, 0.3])
+    fell = np.array([0, 0, 0, 0, 0, 1, 0])
+    assert studies.trials_to_track(v, target, fell, 0, 3) == 3.0
+    assert studies.trials_to_track(v, target, fell, 3, 7) == 2.0  # 0.35 is within 0.05 of 0.3
+    assert np.isnan(studies.trials_to_track(v, target, fell, 3, 4))
+    assert studies.trials_to_track(v, target, np.array([0, 0, 0, 0, 1, 1, 0]), 3, 7) == 4.0  # falls don't count
+
+
+def test_last_mean_and_phase_starts():
+    values = np.arange(20.0).reshape(10, 2)
+    np.testing.assert_allclose(studies.last_mean(values, 10), [14.0, 15.0])  # trials 5..9
+    np.testing.assert_allclose(studies.last_mean(values, 3), [2.0, 3.0])  # fewer than 5 available
+    assert studies.phase_starts(np.array([0, 0, 7.5, 7.5, 15])) == [0, 2, 4]
+
+
+# ----------------------------------------------------------------------------------------------- outputs
+
+@pytest.fixture(scope="module")
+def tiny_ablation(tmp_path_factory):
+    spec = dataclasses.replace(studies.ablation_spec(seeds=1, trials=4), optimizer=small_optimizer(4),
+                               trial=mjx_go1.TrialConfig(transition_steps=100, steady_steps=200))
+    out = tmp_path_factory.mktemp("controller_ablation")
+    engine = ablation.Engine(spec, backend="native")
+    result = engine.run(out)
+    text = studies.write_outputs(result, out, "native")
+    return result, out, text
+
+
+def test_ablation_outputs(tiny_ablation):
+    result, out, text = tiny_ablation
+    for c in cpg.CONTROLLERS:  # our row beside the paper's
+        row = next(line for line in text.splitlines() if line.startswith(f"| {c} |"))
+        paper = studies.PAPER_CONTROLLER_TABLE[c]
+        assert f"{paper[1][0]:.3f} ± {paper[1][1]:.3f}" in row
+        j = result.trials.objective[:, [lab["controller"] == c for lab in result.labels]]
+        assert f"{np.mean(j[-5:].mean(axis=0)):.3f} ± " in row  # mean of the last 5, then over seeds
+    assert (out / "table.md").read_text().startswith("# controller_ablation")
+    for png in ("learning_curves.png", "attitude.png"):
+        assert (out / png).read_bytes()[:4] == b"\x89PNG"
+    table = pq.read_table(out / "trials.parquet").to_pydict()
+    assert len(table["objective"]) == 4 * 4
+    for col in ("controller", "seed", "trial", "c_load_n", "c_slope_rad", "objective", "velocity_x_mps", "cot",
+                "fell", "payload_kg", *param_space.PARAM_NAMES):
+        assert col in table, col
+    b, t = 2, 3
+    row = table["instance"].index(b) + t
+    assert table["controller"][row] == result.labels[b]["controller"] and table["trial"][row] == t
+    assert table["objective"][row] == pytest.approx(float(result.trials.objective[t, b]))
+    assert table["mu"][row] == pytest.approx(float(result.trials.params[t, b, 4]))
+    recording = (out / "recording.rrd").read_bytes()
+    assert len(recording) > 10_000 and b"rollout/best_vmc_tegotae" in recording
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["instances"] == 4 and meta["env_steps"] == 4 * 4 * 300 and meta["real_time_factor"] > 0
+    assert {"jax", "mujoco", "devices"} <= set(meta["environment"])
+
+
+def test_cli_show_prints_the_table(tiny_ablation, capsys):
+    _, out, text = tiny_ablation
+    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    printed = capsys.readouterr().out
+    assert text.splitlines()[2] in printed and "real-time factor" in printed
