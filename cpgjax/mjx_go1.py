@@ -12,6 +12,7 @@ state — and compiled once per batch shape. An instance whose state becomes non
 
 from __future__ import annotations
 
+import copy
 import functools
 import logging
 from typing import NamedTuple
@@ -309,6 +310,17 @@ class MJXBackend:
     def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, TrialRecord]:
         """One trial for every instance (the input state is consumed). Returns the next state and the records."""
         return self._trial(self.batch.model, state, self._check_params(new_params), self._check_gates(gates))
+
+    def with_scenario(self, scenario: go1_model.Scenario) -> "MJXBackend":
+        """This backend for another batch of scenarios of the same size, sharing the compiled trial and rollout
+        (the scenario enters them as model data, so nothing recompiles). Simulator states carry over unchanged:
+        the lockstep engine (``cpgjax.ablation``) uses it when a payload, slope or friction schedule changes."""
+        if scenario.batch_size != self.batch_size:
+            raise ValueError(f"scenario batch {scenario.batch_size} != backend batch {self.batch_size}")
+        other = copy.copy(self)
+        other.scenario = scenario
+        other.batch = make_batch_model(scenario)
+        return other
 
     def rollout(self, state: SimState, params, gates: cpg.Gates, num_steps: int) -> tuple[SimState, StepLog]:
         """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
