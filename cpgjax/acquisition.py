@@ -62,9 +62,13 @@ def ucb_multiplier(beta: jax.Array, ucb_form: str) -> jax.Array:
 def upper_confidence_bound(
     post: gp.Posterior, query_inputs: jax.Array, multiplier: jax.Array, context_dims: int
 ) -> jax.Array:
-    """Eq. (8): ``mu + multiplier * sigma`` at (q, d) normalized inputs, shape (q,)."""
+    """Eq. (8), ``mu + multiplier * sigma``, at (q, d) normalized inputs, shape (q,).
+
+    In standardized outcome units (``(a - target_mean) / target_std``): the same argmax as in
+    the objective's units, and a gradient scale that does not depend on the objective's.
+    """
     mean, variance = gp.predict(post, query_inputs, context_dims)
-    return mean + multiplier * jnp.sqrt(variance)
+    return (mean - post.target_mean + multiplier * jnp.sqrt(variance)) / post.target_std
 
 
 def _rd_sequence(num_points: int, dims: int) -> np.ndarray:

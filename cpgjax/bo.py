@@ -137,6 +137,15 @@ def _check_box(name, lower, upper):
                              f" [{lo}, {hi}]")
 
 
+def _float32_inside(bounds, toward: float) -> np.ndarray:
+    """Bounds as float32 values that are inside the float64 box: a float32 rounding that
+    falls outside is moved one ulp toward ``toward`` (+inf for lower, -inf for upper)."""
+    exact = np.asarray(bounds, np.float64)
+    rounded = exact.astype(np.float32)
+    outside = rounded < exact if toward > 0 else rounded > exact
+    return np.where(outside, np.nextafter(rounded, np.float32(toward)), rounded)
+
+
 def paper_config(**overrides) -> OptimizerConfig:
     """The paper's setting: the Table I box of :mod:`cpgjax.params` (physical units, order
     [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]), the context ranges of
@@ -279,6 +288,9 @@ def make_optimizer(
     num_params, num_contexts = config.num_parameters, config.num_contexts
     lower = jnp.asarray(config.parameter_lower, jnp.float32)
     width = jnp.asarray(config.parameter_upper, jnp.float32) - lower
+    # Proposals are clipped to these, so float32 rounding never leaves the float64 box.
+    lower_inside = jnp.asarray(_float32_inside(config.parameter_lower, np.inf))
+    upper_inside = jnp.asarray(_float32_inside(config.parameter_upper, -np.inf))
     context_lower = jnp.asarray(config.context_lower, jnp.float32)
     context_width = jnp.asarray(config.context_upper, jnp.float32) - context_lower
     context_tolerance = jnp.asarray(config.context_thresholds, jnp.float32) * context_width
@@ -317,10 +329,12 @@ def make_optimizer(
         return BetaInfo(value, num_in_context, changed)
 
     def to_physical(unit_point):
-        return lower + unit_point * width
+        return jnp.clip(lower + unit_point * width, lower_inside, upper_inside)
 
-    def maximize_ucb(state, context, key, multiplier):
-        post = gp.posterior(state.gp_params, dataset(state), kernel_active(state), num_contexts)
+    def condition(state):
+        return gp.posterior(state.gp_params, dataset(state), kernel_active(state), num_contexts)
+
+    def maximize_ucb(post, state, context, key, multiplier):
         unit_context = (context - context_lower) / context_width
 
         def acquisition(unit_points):
@@ -340,7 +354,7 @@ def make_optimizer(
 
         def ucb_point():
             multiplier = ucb_multiplier(beta(state, context).beta, config.ucb_form)
-            return maximize_ucb(state, context, acquisition_key, multiplier)[0]
+            return maximize_ucb(condition(state), state, context, acquisition_key, multiplier)[0]
 
         return to_physical(jax.lax.cond(use_random, random_point, ucb_point))
 
@@ -384,8 +398,10 @@ def make_optimizer(
         return state.parameters[best], state.contexts[best], scores[best]
 
     def posterior_mean_argmax(state, context, key):
-        unit_point, value = maximize_ucb(state, context, key, jnp.zeros((), jnp.float32))
-        return to_physical(unit_point), value
+        post = condition(state)
+        unit_point, standardized = maximize_ucb(post, state, context, key,
+                                                jnp.zeros((), jnp.float32))
+        return to_physical(unit_point), post.target_mean + post.target_std * standardized
 
     jit_propose, jit_observe = jax.jit(propose), jax.jit(observe)
     jit_set_target, jit_beta = jax.jit(set_target), jax.jit(beta)

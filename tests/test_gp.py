@@ -245,7 +245,7 @@ def test_fit_reaches_a_stationary_point_and_finds_relevant_inputs(compiled):
     active = np.ones(4, bool)
     data = dataset_of(x, y)
     start = gp.default_params(4)
-    fitted = compiled["fit"](data, jnp.asarray(active), start, 0, gp.FitConfig())
+    fitted = compiled["fit"](data, jnp.asarray(active), start, 0, gp.FitConfig(200, 0.2))
     ls = np.exp(np.asarray(fitted.log_lengthscales))
     assert max(ls[0], ls[1]) < 0.5 * min(ls[2], ls[3])  # the Gamma(3, 6) prior caps ~2
 
