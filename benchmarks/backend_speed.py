@@ -89,6 +89,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="env steps per instance per timed trial")
     parser.add_argument("--sync-dispatch", action="store_true",
                         help="set jax_cpu_enable_async_dispatch=False (JAX CPU computations run inline)")
+    parser.add_argument("--backends", type=lambda s: s.split(","), default=["native", "mjx"],
+                        help="comma-separated subset of native,mjx (default both)")
     parser.add_argument("--no-ablation", action="store_true", help="skip the ablation-study wall time")
     args = parser.parse_args()
     if args.sync_dispatch:
@@ -108,20 +110,23 @@ def main() -> None:
     figures: dict = {"benchmark": "backend_speed", "machine": machine(), "jax_device": device.platform,
                      "steps_per_instance": steps, "async_dispatch": not args.sync_dispatch,
                      "rollout_threads": native_go1.available_cores()}
+    missing = {"env_steps_per_s": float("nan"), "first_call_s": float("nan")}
     for b in batches:
-        native = trial_speed("native", b, steps, repeats)
-        mjx = trial_speed("mjx", b, steps, repeats)
+        native, mjx = (trial_speed(name, b, steps, repeats) if name in args.backends else missing
+                       for name in ("native", "mjx"))
         ratio = native["env_steps_per_s"] / mjx["env_steps_per_s"]
         print(f"| {b} | {native['env_steps_per_s']:,.0f} | {mjx['env_steps_per_s']:,.0f} | {ratio:.2f}× "
               f"| {native['first_call_s']:.1f} | {mjx['first_call_s']:.1f} |", flush=True)
-        figures[f"native_env_steps_per_s_b{b}"] = round(native["env_steps_per_s"])
-        figures[f"mjx_env_steps_per_s_b{b}"] = round(mjx["env_steps_per_s"])
-        figures[f"native_over_mjx_b{b}"] = round(ratio, 3)
-        figures[f"mjx_first_call_s_b{b}"] = round(mjx["first_call_s"], 2)
+        for name, result in (("native", native), ("mjx", mjx)):
+            if name in args.backends:
+                figures[f"{name}_env_steps_per_s_b{b}"] = round(result["env_steps_per_s"])
+                figures[f"{name}_first_call_s_b{b}"] = round(result["first_call_s"], 2)
+        if len(args.backends) == 2:
+            figures[f"native_over_mjx_b{b}"] = round(ratio, 3)
 
     if not args.no_ablation:
         trials = 2 if args.quick else ABLATION_TRIALS
-        for backend in ("native",) if args.quick else ("native", "mjx"):
+        for backend in [b for b in (("native",) if args.quick else ("native", "mjx")) if b in args.backends]:
             result = ablation_wall_time(backend, trials)
             wall_40 = result["wall_s"] * ABLATION_TRIALS / trials
             note = f" (extrapolated from {trials} trials)" if trials != ABLATION_TRIALS else ""

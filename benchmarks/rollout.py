@@ -1,5 +1,6 @@
 """Environment steps per second of the batched closed-loop trial (CPG controller + MJX) against bare ``mjx.step``
-with a constant control and against single-threaded C MuJoCo, measured in the same run.
+with a constant control, against single-threaded C MuJoCo, and against the same trial on the native backend (C MuJoCo
+through ``mujoco.rollout``, ``benchmarks/backend_speed.py``), measured in the same run.
 
     python benchmarks/rollout.py            # full: batch 1, 4, 16, 64, 256
     python benchmarks/rollout.py --quick    # under 2 minutes on a 2-core CPU
@@ -20,6 +21,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from backend_speed import trial_speed  # benchmarks/ is the script's directory
 from cpgjax import go1_model, mjx_go1, params as param_space
 
 
@@ -99,15 +101,18 @@ def main() -> None:
     print(f"# device: {device.platform} {device.device_kind}; host: {platform.processor() or platform.machine()}; "
           f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance")
     print("| batch | closed loop [env-steps/s] | bare mjx.step [env-steps/s] | controller overhead | first call (compile) [s] "
-          "| bare compile [s] |")
-    print("|---|---|---|---|---|---|")
+          "| bare compile [s] | native closed loop (C MuJoCo) [env-steps/s] |")
+    print("|---|---|---|---|---|---|---|")
     figures: dict = {"device": f"{device.platform}:{device.device_kind}", "steps_per_instance": steps}
     for b in batches:
         loop = closed_loop(b, steps, repeats)
         bare = bare_mjx(b, steps, repeats)
+        native = trial_speed("native", b, steps, repeats)  # the same trial with the native backend
         overhead = bare["steps_per_s"] / loop["steps_per_s"] - 1.0
         print(f"| {b} | {loop['steps_per_s']:,.0f} | {bare['steps_per_s']:,.0f} | {overhead:+.1%} "
-              f"| {loop['first_call_s']:.1f} | {bare['compile_s']:.1f} |", flush=True)
+              f"| {loop['first_call_s']:.1f} | {bare['compile_s']:.1f} | {native['env_steps_per_s']:,.0f} |",
+              flush=True)
+        figures[f"native_closed_loop_env_steps_per_s_b{b}"] = round(native["env_steps_per_s"])
         figures[f"closed_loop_env_steps_per_s_b{b}"] = round(loop["steps_per_s"])
         figures[f"bare_mjx_env_steps_per_s_b{b}"] = round(bare["steps_per_s"])
         figures[f"controller_overhead_ratio_b{b}"] = round(overhead, 4)
