@@ -68,7 +68,8 @@ def main() -> None:
         trials=int(result.trials.objective.shape[0]), robot_s=fig["robot_s"], study_wall_s=fig["wall_s"],
         wall_with_setup_s=round(total_s, 2), env_steps_per_s=fig["env_steps_per_s"],
         real_time_factor=fig["real_time_factor"], paper_baseline_real_time_factor=1.0,
-        simulation_s=fig["simulation_s"], optimizer_s=fig["optimizer_s"], transfer_s=fig["transfer_s"],
+        simulation_s=fig["simulation_s"], optimizer_s=fig["optimizer_s"], propose_s=fig["propose_s"],
+        observe_s=fig["observe_s"], transfer_s=fig["transfer_s"],
         checkpoint_s=fig["checkpoint_s"],
         load_avg_1min_end=round(os.getloadavg()[0], 2), jax=jax.__version__)
     print(json.dumps(summary))

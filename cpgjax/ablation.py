@@ -15,9 +15,12 @@ The proposal of trial t uses the context measured in trial t − 1 (Algorithm 1:
 
 The optimizer's arrays (and, with the MJX backend, the simulator's) are sharded along the batch axis over every
 device (``jax.sharding``; several hosts through ``jax.distributed``, see :func:`initialize_distributed`). Keys are
-``fold_in(PRNGKey(seed), trial)``, so an instance's run does not depend on the batch it is in, on the devices, or on
-being interrupted: the state is checkpointed after every trial (``cpgjax.study_io``) and :meth:`Engine.run` with
-``resume=True`` continues from the last checkpoint to exactly the results of an uninterrupted run.
+``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on the batch it is in or on the
+devices; its numbers agree to float rounding only (XLA vectorizes differently for another batch size or shard), and
+a walking robot amplifies a rounding difference within a trial or two, so one seed in two different batches gives
+statistically equivalent, not identical, runs. The state is checkpointed after every trial (``cpgjax.study_io``) and
+:meth:`Engine.run` with ``resume=True`` continues from the last checkpoint to exactly (bit for bit) the results of
+an uninterrupted run.
 """
 
 from __future__ import annotations
@@ -255,9 +258,13 @@ class TrialLog(NamedTuple):
 
 
 class Timing(NamedTuple):
-    simulation_s: float
-    optimizer_s: float
-    transfer_s: float
+    """Wall seconds spent, summed over trials (and resumed segments)."""
+
+    simulation_s: float  # the backend's trials
+    optimizer_s: float  # propose_s + observe_s
+    propose_s: float  # β, keys, target changes, the UCB argmax (eq. 8)
+    observe_s: float  # storing the observation and refitting the GP
+    transfer_s: float  # device → host → device of the records
     checkpoint_s: float
 
 
@@ -401,7 +408,7 @@ class Engine:
         context = self.initial_context()
         logs: list[TrialLog] = []
         sim_state, start, wall_before = None, 0, 0.0
-        timing = dict(simulation_s=0.0, optimizer_s=0.0, transfer_s=0.0, checkpoint_s=0.0)
+        timing = {name: 0.0 for name in Timing._fields}
         if resume:
             ckpt = study_io.load_checkpoint(out_dir, spec)
             if ckpt is not None:
@@ -449,6 +456,8 @@ class Engine:
             context = np.asarray(new_context, np.float32)
             timing["simulation_s"] += t2 - t1
             timing["optimizer_s"] += (t1 - t0) + (t4 - t3)
+            timing["propose_s"] += t1 - t0
+            timing["observe_s"] += t4 - t3
             timing["transfer_s"] += t3 - t2
             wall = wall_before + time.perf_counter() - t_begin
             if out_dir is not None:

@@ -157,6 +157,7 @@ def run_figures(result) -> dict[str, float]:
     return dict(wall_s=round(result.wall_s, 2), env_steps=env_steps, robot_s=round(robot_s, 1),
                 env_steps_per_s=round(env_steps / wall, 1), real_time_factor=round(robot_s / wall, 2),
                 simulation_s=round(result.timing.simulation_s, 2), optimizer_s=round(result.timing.optimizer_s, 2),
+                propose_s=round(result.timing.propose_s, 2), observe_s=round(result.timing.observe_s, 2),
                 transfer_s=round(result.timing.transfer_s, 2), checkpoint_s=round(result.timing.checkpoint_s, 2))
 
 
