@@ -155,6 +155,46 @@ def _where(cond, a, b):
     return jax.tree.map(lambda x, y: jnp.where(cond, x, y), a, b)
 
 
+class PreStep(NamedTuple):
+    """The half of a tick's record known at control time (before the physics step)."""
+
+    power_w: jax.Array  # ⟨|τ|, |q̇|⟩
+    load_n: jax.Array  # mean foot normal force
+    roll_rad: jax.Array
+    pitch_rad: jax.Array
+    saturated: jax.Array  # number of clipped joint torques
+
+
+def pre_step(obs: cpg.Observation, torque: jax.Array, diag: cpg.Diagnostics) -> PreStep:
+    """Record quantities of the state the controller saw and the torque it applied (shared by every backend)."""
+    return PreStep(power_w=jnp.sum(jnp.abs(torque) * jnp.abs(obs.joint_vel_rad_s)),
+                   load_n=jnp.mean(obs.foot_force_n), roll_rad=diag.rpy_rad[0], pitch_rad=diag.rpy_rad[1],
+                   saturated=jnp.sum(diag.saturated))
+
+
+def tick_row(trial_config: TrialConfig, pre: PreStep, qpos: jax.Array, qvel: jax.Array, failed: jax.Array) -> Tick:
+    """A tick's record from its pre-step half and the state after the step (and after a reset, if ``failed``).
+
+    Fall: trunk origin below ``fall_height_m`` or floor-frame |roll| or |pitch| above ``fall_tilt_rad``. A failed
+    tick contributes nothing to the sums (velocity, power, load, attitude are zeroed)."""
+    ids = go1_model.indices()
+    floor_rpy = cpg.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])
+    fell = ((qpos[ids.root_qpos + 2] < trial_config.fall_height_m)
+            | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
+            | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))
+    finite = jnp.where(failed, 0.0, 1.0)
+    return Tick(
+        velocity_xy_mps=finite * heading_velocity(qpos, qvel),
+        power_w=finite * pre.power_w,
+        load_n=finite * pre.load_n,
+        roll_rad=finite * pre.roll_rad,
+        pitch_rad=finite * pre.pitch_rad,
+        saturated=pre.saturated,
+        fell=fell.astype(jnp.float32),
+        failed=failed.astype(jnp.float32),
+    )
+
+
 def _tick(cpg_config: cpg.CPGConfig, trial_config: TrialConfig, model: mjx.Model, gates: cpg.Gates,
           reset: SimState, data: mjx.Data, cpg_state: cpg.CPGState, params_now: jax.Array):
     """Sensors → controller → one physics step; a non-finite result is replaced by the standing reset."""
@@ -166,40 +206,27 @@ def _tick(cpg_config: cpg.CPGConfig, trial_config: TrialConfig, model: mjx.Model
     failed = ~(jnp.all(jnp.isfinite(stepped.qpos)) & jnp.all(jnp.isfinite(stepped.qvel)))
     data = _where(failed, reset.data, stepped)
     cpg_state = _where(failed, reset.cpg, cpg_state)
-
-    floor_rpy = cpg.quat_to_rpy(data.qpos[ids.root_qpos + 3:ids.root_qpos + 7])
-    fell = ((data.qpos[ids.root_qpos + 2] < trial_config.fall_height_m)
-            | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
-            | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))
-    finite = jnp.where(failed, 0.0, 1.0)
-    tick = Tick(
-        velocity_xy_mps=finite * heading_velocity(data.qpos, data.qvel),
-        power_w=finite * jnp.sum(jnp.abs(torque) * jnp.abs(obs.joint_vel_rad_s)),
-        load_n=finite * jnp.mean(obs.foot_force_n),
-        roll_rad=finite * diag.rpy_rad[0],
-        pitch_rad=finite * diag.rpy_rad[1],
-        saturated=jnp.sum(diag.saturated),
-        fell=fell.astype(jnp.float32),
-        failed=failed.astype(jnp.float32),
-    )
-    return data, cpg_state, tick
+    return data, cpg_state, tick_row(trial_config, pre_step(obs, torque, diag), data.qpos, data.qvel, failed)
 
 
-def _summarize(ticks: Tick, total_mass_kg: jax.Array, dt_s: float) -> TrialRecord:
-    steps = ticks.power_w.shape[0]
+def summarize(steady: Tick, total_mass_kg: jax.Array, dt_s: float, transition_fell: jax.Array,
+              transition_failed: jax.Array) -> TrialRecord:
+    """The trial record (eqs. 10-11 inputs, attitude statistics, flags) from the steady phase's ticks (T, ...);
+    a fall or failure during the transition counts for the trial too. Shared by every backend."""
+    steps = steady.power_w.shape[0]
     return TrialRecord(
-        velocity_xy_mps=ticks.velocity_xy_mps,
-        energy_j=jnp.sum(ticks.power_w) * dt_s,
-        distance_m=jnp.sum(ticks.velocity_xy_mps[:, 0]) * dt_s,
+        velocity_xy_mps=steady.velocity_xy_mps,
+        energy_j=jnp.sum(steady.power_w) * dt_s,
+        distance_m=jnp.sum(steady.velocity_xy_mps[:, 0]) * dt_s,
         total_mass_kg=total_mass_kg,
-        c_load_n=jnp.mean(ticks.load_n),
-        c_slope_rad=jnp.mean(ticks.pitch_rad),
-        roll_mean_rad=jnp.mean(ticks.roll_rad),
-        roll_std_rad=jnp.std(ticks.roll_rad),
-        pitch_std_rad=jnp.std(ticks.pitch_rad),
-        saturation_fraction=jnp.sum(ticks.saturated) / (12.0 * steps),
-        fell=jnp.max(ticks.fell),
-        failed=jnp.max(ticks.failed),
+        c_load_n=jnp.mean(steady.load_n),
+        c_slope_rad=jnp.mean(steady.pitch_rad),
+        roll_mean_rad=jnp.mean(steady.roll_rad),
+        roll_std_rad=jnp.std(steady.roll_rad),
+        pitch_std_rad=jnp.std(steady.pitch_rad),
+        saturation_fraction=jnp.sum(steady.saturated) / (12.0 * steps),
+        fell=jnp.maximum(jnp.max(steady.fell), transition_fell),
+        failed=jnp.maximum(jnp.max(steady.failed), transition_failed),
     )
 
 
@@ -227,8 +254,7 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: TrialConfig, model: mjx.Mode
     (data, cpg_state), ticks = jax.lax.scan(steady_body, (data, cpg_state), None, length=trial_config.steady_steps)
 
     total_mass = model.body_subtreemass[go1_model.indices().trunk_body]
-    record = _summarize(ticks, total_mass, cpg_config.dt_s)
-    record = record._replace(fell=jnp.maximum(record.fell, fell_tr), failed=jnp.maximum(record.failed, failed_tr))
+    record = summarize(ticks, total_mass, cpg_config.dt_s, fell_tr, failed_tr)
     end = SimState(data=data, cpg=cpg_state, params=new_params)
     return _where(record.fell > 0, reset, end), record
 
@@ -240,7 +266,8 @@ class StepLog(NamedTuple):
     qvel: jax.Array  # (T, nv)
     torque_nm: jax.Array  # (T, 12) applied joint torques
     foot_force_n: jax.Array  # (T, 4)
-    foot_pos_m: jax.Array  # (T, 4, 3) foot centres, floor frame
+    foot_pos_m: jax.Array  # (T, 4, 3) foot centres, floor frame, of the state at the start of the tick (the step's
+    #                        kinematics), while qpos/qvel are the state after it
     amplitude: jax.Array  # (T, 4) r_i
     phase_rad: jax.Array  # (T, 4) θ_i
     foot_target_m: jax.Array  # (T, 4, 3) leg-frame targets
@@ -268,6 +295,19 @@ def rollout_log(cpg_config: cpg.CPGConfig, model: mjx.Model, state: SimState, pa
 
 # ----------------------------------------------------------------------------------------------- batch interface
 
+def check_params(params, batch_size: int) -> jax.Array:
+    """Validated parameters (batch_size, 8) as float32 (``params.validate``: range and finiteness per parameter)."""
+    arr = param_space.validate(params)
+    if arr.shape != (batch_size, param_space.NUM_PARAMS):
+        raise ValueError(f"params: expected shape ({batch_size}, {param_space.NUM_PARAMS}), got {arr.shape}")
+    return jnp.asarray(arr, jnp.float32)
+
+
+def check_gates(gates: cpg.Gates, batch_size: int) -> cpg.Gates:
+    """Gates broadcast to (batch_size,) float32 each."""
+    return cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (batch_size,)) for g in gates))
+
+
 class MJXBackend:
     """A batch of simulated Go1s in MJX behind the trial interface shared by every backend.
 
@@ -294,22 +334,14 @@ class MJXBackend:
     def batch_size(self) -> int:
         return self.scenario.batch_size
 
-    def _check_params(self, params) -> jax.Array:
-        arr = param_space.validate(params)
-        if arr.shape != (self.batch_size, param_space.NUM_PARAMS):
-            raise ValueError(f"params: expected shape ({self.batch_size}, {param_space.NUM_PARAMS}), got {arr.shape}")
-        return jnp.asarray(arr, jnp.float32)
-
     def reset(self, params) -> SimState:
         """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
-        return self._reset(self.batch.model, self._check_params(params))
-
-    def _check_gates(self, gates: cpg.Gates) -> cpg.Gates:
-        return cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (self.batch_size,)) for g in gates))
+        return self._reset(self.batch.model, check_params(params, self.batch_size))
 
     def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, TrialRecord]:
         """One trial for every instance (the input state is consumed). Returns the next state and the records."""
-        return self._trial(self.batch.model, state, self._check_params(new_params), self._check_gates(gates))
+        return self._trial(self.batch.model, state, check_params(new_params, self.batch_size),
+                           check_gates(gates, self.batch_size))
 
     def with_scenario(self, scenario: go1_model.Scenario) -> "MJXBackend":
         """This backend for another batch of scenarios of the same size, sharing the compiled trial and rollout
@@ -327,7 +359,8 @@ class MJXBackend:
         if self._rollout is None:
             fn = functools.partial(rollout_log, self.cpg_config)
             self._rollout = jax.jit(jax.vmap(fn, in_axes=(self.batch.in_axes, 0, 0, 0, None)), static_argnums=(4,))
-        return self._rollout(self.batch.model, state, self._check_params(params), self._check_gates(gates), num_steps)
+        return self._rollout(self.batch.model, state, check_params(params, self.batch_size),
+                             check_gates(gates, self.batch_size), num_steps)
 
 
 def batch_gates(controllers) -> cpg.Gates:

@@ -8,7 +8,7 @@ previous step's acceleration exactly as a persistent ``mj_step`` loop would be.
 Control: one jitted, vmapped call per control tick for the whole batch runs the shared sensor model
 (``mjx_go1.observe``) and controller (``cpg.controller_step``) and writes the tick's record into a device buffer
 that is donated from call to call (updated in place). At the end of a trial the buffer is summarized by
-``mjx_go1._summarize``, so a record means the same thing whichever backend produced it.
+``mjx_go1.summarize``, so a record means the same thing whichever backend produced it.
 
 Tick k is, as in ``mjx_go1._tick``: observe S_k → controller → torque_k → physics step → S_{k+1} → record k.
 Here the record's pre-step half (power, load, attitude, saturation) is computed with the control and its
@@ -178,16 +178,6 @@ class _Constants(NamedTuple):
     gates: cpg.Gates
 
 
-class _Pending(NamedTuple):
-    """The pre-step half of ``mjx_go1.Tick``, computed with the control of the same tick."""
-
-    power_w: jax.Array
-    load_n: jax.Array
-    roll_rad: jax.Array
-    pitch_rad: jax.Array
-    saturated: jax.Array
-
-
 class _Carry(NamedTuple):
     """Device state carried from tick to tick (donated: updated in place). Pytrees travel as flat vectors
     (``_Packing``): a handful of buffers per call keeps the per-tick dispatch cheap."""
@@ -205,31 +195,9 @@ class _Recorder(NamedTuple):
     row: Callable  # (trial_config, pending, qpos, qvel, failed) -> row
 
 
-def _trial_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state) -> _Pending:
+def _trial_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state) -> mjx_go1.PreStep:
     del qpos, cpg_state
-    return _Pending(power_w=jnp.sum(jnp.abs(torque) * jnp.abs(obs.joint_vel_rad_s)),
-                    load_n=jnp.mean(obs.foot_force_n), roll_rad=diag.rpy_rad[0], pitch_rad=diag.rpy_rad[1],
-                    saturated=jnp.sum(diag.saturated))
-
-
-def _trial_row(trial_config: mjx_go1.TrialConfig, pending: _Pending, qpos, qvel, failed) -> mjx_go1.Tick:
-    """``mjx_go1.Tick`` with the same definitions as ``mjx_go1._tick`` (qpos, qvel: after the step and reset)."""
-    ids = go1_model.indices()
-    floor_rpy = cpg.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])
-    fell = ((qpos[ids.root_qpos + 2] < trial_config.fall_height_m)
-            | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
-            | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))
-    finite = jnp.where(failed, 0.0, 1.0)
-    return mjx_go1.Tick(
-        velocity_xy_mps=finite * mjx_go1.heading_velocity(qpos, qvel),
-        power_w=finite * pending.power_w,
-        load_n=finite * pending.load_n,
-        roll_rad=finite * pending.roll_rad,
-        pitch_rad=finite * pending.pitch_rad,
-        saturated=pending.saturated,
-        fell=fell.astype(jnp.float32),
-        failed=failed.astype(jnp.float32),
-    )
+    return mjx_go1.pre_step(obs, torque, diag)
 
 
 def _rotate(quat_wxyz, v):
@@ -262,7 +230,7 @@ def _log_row(trial_config, pending, qpos, qvel, failed) -> mjx_go1.StepLog:
                            foot_target_m=target, rpy_rad=rpy)
 
 
-TRIAL_RECORDER = _Recorder(pending=_trial_pending, row=_trial_row)
+TRIAL_RECORDER = _Recorder(pending=_trial_pending, row=mjx_go1.tick_row)
 LOG_RECORDER = _Recorder(pending=_log_pending, row=_log_row)
 
 
@@ -323,15 +291,14 @@ def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, c
 
 def _summarize(trial_config: mjx_go1.TrialConfig, dt_s: float, unravel_row: Callable, rows,
                total_mass_kg) -> TrialRecord:
-    """Trial records (B, ...) from the flat rows (N, R): ``mjx_go1._summarize`` of the steady phase, with falls
-    and failures of the transition included."""
+    """Trial records (B, ...) from the flat rows (N, R) with ``mjx_go1.summarize`` (steady phase, plus the
+    transition's falls and failures)."""
     ticks = jax.vmap(unravel_row)(rows)  # Tick of (N, B, ...)
     n_transition = trial_config.transition_steps
     steady = jax.tree.map(lambda x: x[n_transition:], ticks)
-    record = jax.vmap(mjx_go1._summarize, in_axes=(1, 0, None))(steady, total_mass_kg, dt_s)
     fell_tr = jnp.max(ticks.fell[:n_transition], axis=0, initial=0.0)
     failed_tr = jnp.max(ticks.failed[:n_transition], axis=0, initial=0.0)
-    return record._replace(fell=jnp.maximum(record.fell, fell_tr), failed=jnp.maximum(record.failed, failed_tr))
+    return jax.vmap(mjx_go1.summarize, in_axes=(1, 0, None, 0, 0))(steady, total_mass_kg, dt_s, fell_tr, failed_tr)
 
 
 def _where_batch(mask, a, b):
@@ -379,25 +346,16 @@ class NativeBackend:
         self.physics.close()
         return other
 
-    def _check_params(self, params) -> jax.Array:
-        arr = param_space.validate(params)
-        if arr.shape != (self.batch_size, param_space.NUM_PARAMS):
-            raise ValueError(f"params: expected shape ({self.batch_size}, {param_space.NUM_PARAMS}), got {arr.shape}")
-        return jnp.asarray(arr, jnp.float32)
-
-    def _check_gates(self, gates: cpg.Gates) -> cpg.Gates:
-        return cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (self.batch_size,)) for g in gates))
-
     def reset(self, params) -> NativeState:
         """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
-        params = self._check_params(params)
+        params = mjx_go1.check_params(params, self.batch_size)
         p = self.physics
         return NativeState(physics=p.standing_physics.copy(), warmstart=np.zeros_like(p.warmstart),
                            sensordata=p.standing_sensordata.copy(), cpg=self._reset_cpg, params=params)
 
     def _constants(self, prev_params, new_params, gates) -> _Constants:
         return _Constants(self._gravity, self._reset_cpg, jnp.asarray(prev_params, jnp.float32), new_params,
-                          self._check_gates(gates))
+                          mjx_go1.check_gates(gates, self.batch_size))
 
     def _program(self, recorder: _Recorder, trial_config: mjx_go1.TrialConfig):
         """(packing, advance, complete, summarize) compiled once per recorder and trial timing."""
@@ -456,7 +414,7 @@ class NativeBackend:
 
     def trial(self, state: NativeState, new_params, gates: cpg.Gates) -> tuple[NativeState, TrialRecord]:
         """One trial for every instance. Returns the next state and the records (same fields as MJXBackend's)."""
-        new_params = self._check_params(new_params)
+        new_params = mjx_go1.check_params(new_params, self.batch_size)
         consts = self._constants(state.params, new_params, gates)
         cpg_state, rows = self._run(state, TRIAL_RECORDER, self.trial_config, consts)
         record = self._program(TRIAL_RECORDER, self.trial_config)[-1](rows, self._total_mass)
@@ -468,7 +426,7 @@ class NativeBackend:
     def rollout(self, state: NativeState, params, gates: cpg.Gates,
                 num_steps: int) -> tuple[NativeState, mjx_go1.StepLog]:
         """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
-        params = self._check_params(params)
+        params = mjx_go1.check_params(params, self.batch_size)
         config = mjx_go1.TrialConfig(transition_steps=0, steady_steps=num_steps)
         packing = self._program(LOG_RECORDER, config)[0]
         cpg_state, rows = self._run(state, LOG_RECORDER, config, self._constants(params, params, gates))
