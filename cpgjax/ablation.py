@@ -436,6 +436,8 @@ class Engine:
             if sim_state is None:
                 sim_state = self._place_sim(sim.reset(x))
             sim_state, record = sim.trial(sim_state, x, self.gates)
+            if self.backend_name == "mjx":  # keep the input sharding of the compiled trial (no recompilation)
+                sim_state = jax.device_put(sim_state, self.placement.sharding)
             record = jax.block_until_ready(record)
             t2 = time.perf_counter()
             rec = fetch(record)

@@ -224,3 +224,19 @@ ablation.Engine(spec, backend="native").run({str(out)!r})
     # resuming a different study from this folder is refused
     with pytest.raises(StudyError, match="different study"):
         ablation.Engine(tiny_spec(seeds=(0, 1, 2)), backend="native").run(out, resume=True)
+
+
+def test_mjx_scenario_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_tegotae_gates):
+    """A payload / slope schedule with the MJX backend: ``with_scenario`` swaps the model data, not the program."""
+    from cpgjax import go1_model
+    state = short_sim.reset(mid_params)
+    state, before = short_sim.trial(state, mid_params, vmc_tegotae_gates)
+    compiled = short_sim._trial._cache_size()
+    batch = short_sim.batch_size
+    heavier = short_sim.with_scenario(go1_model.make_scenarios(payload_kg=np.full(batch, 7.5)))
+    state, after = heavier.trial(state, mid_params, vmc_tegotae_gates)
+    assert heavier._trial._cache_size() == compiled
+    np.testing.assert_allclose(np.asarray(after.total_mass_kg),
+                               go1_model.make_scenarios().payload_kg[0] + np.asarray(before.total_mass_kg)
+                               - short_sim.scenario.payload_kg + 7.5, rtol=1e-5)
+    assert short_sim.scenario.payload_kg.max() == 15.0  # the original backend is unchanged
