@@ -1,8 +1,9 @@
 """``make demo``: the paper's controller ablation — online optimization of the four CPG controllers — on the CPU.
 
-Runs the ``--quick`` variant (4 controllers × 2 seeds × 12 trials of 1.5 s + 3 s, ≈ 2–4 minutes on a busy 2-core
-machine; the full study, 5 seeds × 40 trials, took ≈ 7–10 minutes there: ``cpgjax study controller_ablation``) and
-prints its table beside the paper's. Outputs go to ``results/demo_controller_ablation/``.
+Runs the ``--quick`` variant (4 controllers × 2 seeds × 12 trials of 1.5 s + 3 s: 41 s on the shared 2-core
+development machine) because the full study (5 seeds × 40 trials, ``cpgjax study controller_ablation``) took 3.7 to
+7.7 minutes there depending on the other jobs' load (docs/REPRODUCTION.md). Prints its table beside the paper's;
+outputs go to ``results/demo_controller_ablation/``.
 """
 
 import pathlib

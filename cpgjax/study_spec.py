@@ -1,0 +1,161 @@
+"""A study's definition: the grid of instances, their condition schedules, and validation before any compute.
+
+A study (:class:`StudySpec`) is the product of its grid axes — controller × seed × friction × slope × payload ×
+target velocity × schedule × data reuse — and each instance's conditions per trial follow its :class:`Schedule`
+(:func:`conditions`). :func:`validate` rejects a bad option with a :class:`StudyError` naming it. The lockstep engine
+that runs a study is :mod:`cpgjax.ablation`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from cpgjax import bo, cpg, go1_model, mjx_go1, params as param_space
+
+CONDITION_FIELDS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
+SCHEDULE_FIELDS = CONDITION_FIELDS + ("inference",)
+MAX_TARGET_VELOCITY_MPS = 2.0
+
+
+class StudyError(ValueError):
+    """A study option that cannot run; raised before any compute."""
+
+
+class Change(NamedTuple):
+    """From ``trial`` on, ``field`` (one of :data:`SCHEDULE_FIELDS`) takes ``value`` (inference: 0 or 1)."""
+
+    trial: int
+    field: str
+    value: float
+
+
+class Schedule(NamedTuple):
+    """A named sequence of condition changes, one grid axis of a study."""
+
+    label: str
+    changes: tuple[Change, ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class StudySpec:
+    """A batch of online optimizations: the grid of instances, their schedules, and the static structure.
+
+    Attributes:
+      name: the study's name (output folder, metadata).
+      num_trials: trials per instance (each 1.5 s + 3 s at the paper's timing).
+      controllers, seeds, friction, slope_deg, payload_kg, target_velocity_mps, schedules, data_reuse: grid axes;
+        an instance is one element of their product, in this order.
+      group_by: instance labels whose combinations form the groups of the progress display and the summaries.
+      trial: trial timing (static).
+      optimizer: the optimizer's static structure; ``None`` = :func:`bo.paper_config` with capacity ``num_trials``.
+    """
+
+    name: str
+    num_trials: int = 40
+    controllers: tuple[str, ...] = ("vmc_tegotae",)
+    seeds: tuple[int, ...] = (0,)
+    friction: tuple[float, ...] = (0.6,)
+    slope_deg: tuple[float, ...] = (0.0,)
+    payload_kg: tuple[float, ...] = (0.0,)
+    target_velocity_mps: tuple[float, ...] = (0.5,)
+    schedules: tuple[Schedule, ...] = (Schedule("constant"),)
+    data_reuse: tuple[bool, ...] = (True,)
+    group_by: tuple[str, ...] = ("controller",)
+    trial: mjx_go1.TrialConfig = mjx_go1.TrialConfig()
+    optimizer: bo.OptimizerConfig | None = None
+
+    def optimizer_config(self) -> bo.OptimizerConfig:
+        return bo.paper_config(capacity=self.num_trials) if self.optimizer is None else self.optimizer
+
+
+LABELS = ("controller", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
+          "data_reuse")
+
+
+def instances(spec: StudySpec) -> list[dict[str, Any]]:
+    """The labels of every instance of the grid, in batch order."""
+    axes = (spec.controllers, spec.seeds, spec.friction, spec.slope_deg, spec.payload_kg, spec.target_velocity_mps,
+            [s.label for s in spec.schedules], spec.data_reuse)
+    return [dict(zip(LABELS, combo)) for combo in itertools.product(*axes)]
+
+
+class Conditions(NamedTuple):
+    """Per-instance, per-trial conditions, each (B, num_trials)."""
+
+    friction: np.ndarray
+    slope_deg: np.ndarray
+    payload_kg: np.ndarray
+    target_velocity_mps: np.ndarray
+    inference: np.ndarray  # bool
+
+
+def conditions(spec: StudySpec) -> Conditions:
+    """Apply every instance's schedule to its grid values (validated by :func:`validate`)."""
+    labels = instances(spec)
+    schedules = {s.label: s for s in spec.schedules}
+    n = spec.num_trials
+    out = {f: np.zeros((len(labels), n)) for f in SCHEDULE_FIELDS}
+    for b, lab in enumerate(labels):
+        for f in CONDITION_FIELDS:
+            out[f][b] = lab[f]
+        for change in sorted(schedules[lab["schedule"]].changes, key=lambda c: c.trial):
+            out[change.field][b, change.trial:] = change.value
+    out["inference"] = out["inference"] > 0.5
+    return Conditions(**out)
+
+
+def validate(spec: StudySpec) -> Conditions:
+    """Check a study before any compute; returns its conditions.
+
+    Raises:
+      StudyError: the message names the option, the bad value and what is allowed.
+    """
+    def fail(msg):
+        raise StudyError(f"study {spec.name!r}: {msg}")
+
+    if not isinstance(spec.num_trials, int) or spec.num_trials < 1:
+        fail(f"num_trials = {spec.num_trials!r}; need an integer >= 1")
+    for axis in ("controllers", "seeds", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedules",
+                 "data_reuse"):
+        values = getattr(spec, axis)
+        if len(values) == 0:
+            fail(f"grid axis {axis} is empty")
+        if len(set(values)) != len(values):
+            fail(f"grid axis {axis} has duplicates: {values}")
+    for c in spec.controllers:
+        if c not in cpg.CONTROLLERS:
+            fail(f"unknown controller {c!r}; allowed: {cpg.CONTROLLERS}")
+    for s in spec.seeds:
+        if not isinstance(s, (int, np.integer)) or s < 0:
+            fail(f"seed {s!r}: need a non-negative integer")
+    for g in spec.group_by:
+        if g not in LABELS:
+            fail(f"group_by {g!r}: allowed labels {LABELS}")
+    for schedule in spec.schedules:
+        for change in schedule.changes:
+            if change.field not in SCHEDULE_FIELDS:
+                fail(f"schedule {schedule.label!r}: unknown field {change.field!r}; allowed: {SCHEDULE_FIELDS}")
+            if not 0 <= change.trial < spec.num_trials:
+                fail(f"schedule {schedule.label!r}: change at trial {change.trial} outside [0, {spec.num_trials})")
+    config = spec.optimizer_config()
+    if config.capacity < spec.num_trials:
+        fail(f"optimizer capacity {config.capacity} < num_trials {spec.num_trials}")
+    if config.num_parameters != param_space.NUM_PARAMS or config.num_contexts != 2:
+        fail("the optimizer must search the 8 CPG parameters with the 2 contexts [c_load, c_slope]")
+    if spec.trial.steady_steps < 1 or spec.trial.transition_steps < 0:
+        fail(f"trial timing {spec.trial} needs steady_steps >= 1 and transition_steps >= 0")
+    cond = conditions(spec)
+    target = cond.target_velocity_mps
+    if not np.all(np.isfinite(target)) or np.any(target <= 0) or np.any(target > MAX_TARGET_VELOCITY_MPS):
+        bad = target[~(np.isfinite(target) & (target > 0) & (target <= MAX_TARGET_VELOCITY_MPS))][0]
+        fail(f"target velocity {float(bad)!r} m/s outside (0, {MAX_TARGET_VELOCITY_MPS}]")
+    try:
+        for t in range(spec.num_trials):
+            go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t])
+    except ValueError as err:
+        fail(f"trial {t}: {err}")
+    return cond
