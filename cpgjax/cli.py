@@ -110,7 +110,8 @@ def _show(args) -> int:
           repr(str(out / "trials.parquet")) + ")")
     recording = out / "recording.rrd"
     if recording.exists() and not args.no_viewer:
-        viewer = shutil.which("rerun")
+        beside = pathlib.Path(sys.executable).parent / "rerun"  # the venv's viewer, also when not activated
+        viewer = str(beside) if beside.exists() else shutil.which("rerun")
         if viewer is None:
             print(f"recording: {recording} (install the rerun viewer to open it: `rerun {recording}`)")
         else:
