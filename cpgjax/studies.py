@@ -145,6 +145,21 @@ def best_params(result, mask: np.ndarray, stop: int | None = None) -> tuple[np.n
     return result.trials.params[t, b], int(b), float(j[t, b])
 
 
+def representative_rollout(result, backend: str) -> dict:
+    """The per-step log of the run with the best final objective (mean of its last trials): its best parameters
+    of the final condition phase, rolled out in the conditions of the last trial."""
+    tr, cond = result.trials, result.conditions
+    n = tr.objective.shape[0]
+    b = int(np.argmax(last_mean(tr.objective, n)))
+    fields = (cond.friction[b], cond.slope_deg[b], cond.payload_kg[b], cond.target_velocity_mps[b])
+    start = max(max(phase_starts(f[:n])) for f in fields)
+    t = start + int(np.argmax(tr.objective[start:n, b]))
+    scenario = go1_model.make_scenarios(cond.friction[b, n - 1], cond.slope_deg[b, n - 1], cond.payload_kg[b, n - 1])
+    controller = result.labels[b]["controller"]
+    log = rollouts(tr.params[t, b][None], [controller], scenario, result.spec.trial, backend)[0]
+    return {f"best_{controller}_run{b}_trial{t}": log}
+
+
 # ----------------------------------------------------------------------------------------------- reports
 
 def _labels(result, key) -> np.ndarray:
@@ -212,7 +227,7 @@ def report_load(result, out: pathlib.Path, backend: str):
             + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "load_adaptation.png", result, "schedule", changes=starts[1:-1],
                                   context_index=0)
-    return text, {}
+    return text, representative_rollout(result, backend)
 
 
 def report_friction(result, out: pathlib.Path, backend: str):
@@ -231,7 +246,7 @@ def report_friction(result, out: pathlib.Path, backend: str):
             f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
             "(no table).\n\n" + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "friction.png", result, "friction")
-    return text, {}
+    return text, representative_rollout(result, backend)
 
 
 def trials_to_track(velocity: np.ndarray, target: np.ndarray, fell: np.ndarray, start: int, stop: int) -> float:
@@ -264,7 +279,7 @@ def report_multi_velocity(result, out: pathlib.Path, backend: str):
             + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse", changes=starts[1:-1],
                                   target=cond.target_velocity_mps[0])
-    return text, {}
+    return text, representative_rollout(result, backend)
 
 
 def report_slope(result, out: pathlib.Path, backend: str):
@@ -291,7 +306,7 @@ def report_slope(result, out: pathlib.Path, backend: str):
         text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{n - 1}:\n\n" + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "slope_adaptation.png", result, "schedule", changes=starts[1:],
                                   context_index=1)
-    return text, {}
+    return text, representative_rollout(result, backend)
 
 
 class Study(NamedTuple):

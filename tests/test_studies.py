@@ -118,3 +118,12 @@ def test_cli_show_prints_the_table(tiny_ablation, capsys):
     assert cli.main(["show", str(out), "--no-viewer"]) == 0
     printed = capsys.readouterr().out
     assert text.splitlines()[2] in printed and "real-time factor" in printed
+
+
+def test_representative_rollout_is_the_best_runs_best_parameters(tiny_ablation):
+    result, _, _ = tiny_ablation
+    (label, log), = studies.representative_rollout(result, "native").items()
+    b = int(np.argmax(studies.last_mean(result.trials.objective, result.trials.objective.shape[0])))
+    t = int(np.argmax(result.trials.objective[:, b]))
+    assert label == f"best_{result.labels[b]['controller']}_run{b}_trial{t}"
+    assert log.qpos.shape[0] == 3000 and log.phase_rad.shape == (3000, 4) and np.all(np.isfinite(log.qpos))
