@@ -155,6 +155,16 @@ def _where(cond, a, b):
     return jax.tree.map(lambda x, y: jnp.where(cond, x, y), a, b)
 
 
+# What the next tick reads of mjx.Data: the sensors (observation) and the inputs of mjx.step; every other field is
+# recomputed by mjx.step from these. Selecting only them per tick is much cheaper than selecting the whole Data.
+_TICK_STATE_FIELDS = ("time", "qpos", "qvel", "qacc_warmstart", "sensordata")
+
+
+def _reset_state_where(cond, reset: mjx.Data, data: mjx.Data) -> mjx.Data:
+    """``data`` with its tick state taken from ``reset`` where ``cond``; derived fields are left to the next step."""
+    return data.replace(**{f: jnp.where(cond, getattr(reset, f), getattr(data, f)) for f in _TICK_STATE_FIELDS})
+
+
 class PreStep(NamedTuple):
     """The half of a tick's record known at control time (before the physics step)."""
 
@@ -204,7 +214,7 @@ def _tick(cpg_config: cpg.CPGConfig, trial_config: TrialConfig, model: mjx.Model
     ctrl = jnp.zeros(model.nu, torque.dtype).at[ids.actuator].set(torque)
     stepped = mjx.step(model, data.replace(ctrl=ctrl))
     failed = ~(jnp.all(jnp.isfinite(stepped.qpos)) & jnp.all(jnp.isfinite(stepped.qvel)))
-    data = _where(failed, reset.data, stepped)
+    data = _reset_state_where(failed, reset.data, stepped)
     cpg_state = _where(failed, reset.cpg, cpg_state)
     return data, cpg_state, tick_row(trial_config, pre_step(obs, torque, diag), data.qpos, data.qvel, failed)
 
@@ -256,7 +266,7 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: TrialConfig, model: mjx.Mode
     total_mass = model.body_subtreemass[go1_model.indices().trunk_body]
     record = summarize(ticks, total_mass, cpg_config.dt_s, fell_tr, failed_tr)
     end = SimState(data=data, cpg=cpg_state, params=new_params)
-    return _where(record.fell > 0, reset, end), record
+    return _where((record.fell > 0) | (record.failed > 0), reset, end), record
 
 
 class StepLog(NamedTuple):
