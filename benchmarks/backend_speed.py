@@ -24,21 +24,10 @@ import time
 import jax
 import numpy as np
 
-from cpgjax import cpg, go1_model, mjx_go1, native_go1, params as param_space
+from cpgjax import cpg, go1_model, mjx_go1, native_go1, params as param_space, study_io
 
 ABLATION_TRIALS = 40
 ABLATION_SEEDS = 5
-
-
-def machine() -> str:
-    """CPU model name (as lscpu reports it) and core count."""
-    name = "unknown CPU"
-    try:
-        with open("/proc/cpuinfo") as f:
-            name = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return f"{name}, {os.cpu_count()} CPUs"
 
 
 def _make(backend: str, scenario, trial_config):
@@ -106,13 +95,13 @@ def main() -> None:
     load_start = os.getloadavg()[0]
 
     device = jax.devices()[0]
-    print(f"# {machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the rollout pool; "
+    print(f"# {study_io.machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the rollout pool; "
           f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
           f"load average {load_start:.1f}")
     print("| batch | native [env-steps/s] | MJX [env-steps/s] | native / MJX | native first call [s] "
           "| MJX first call (compile) [s] |")
     print("|---|---|---|---|---|---|")
-    figures: dict = {"benchmark": "backend_speed", "machine": machine(), "jax_device": device.platform,
+    figures: dict = {"benchmark": "backend_speed", "machine": study_io.machine(), "jax_device": device.platform,
                      "steps_per_instance": steps, "async_dispatch": not args.sync_dispatch,
                      "rollout_threads": native_go1.available_cores()}
     missing = {"env_steps_per_s": float("nan"), "first_call_s": float("nan")}

@@ -27,8 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import time
 import warnings
 
@@ -60,7 +58,7 @@ from gpytorch.likelihoods import GaussianLikelihood  # noqa: E402
 from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from gpytorch.priors import GammaPrior  # noqa: E402
 
-from cpgjax import bo  # noqa: E402
+from cpgjax import bo, study_io  # noqa: E402
 
 torch.set_num_threads(1)
 warnings.filterwarnings("ignore")  # BoTorch's input-scaling and numerical notices
@@ -244,21 +242,11 @@ def quartiles(values):
     return round(float(q50), 4), round(float(q25), 4), round(float(q75), 4)
 
 
-def machine():
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-        model = next(line.split(":", 1)[1].strip() for line in out.splitlines()
-                     if line.startswith("Model name"))
-    except (OSError, StopIteration):
-        model = platform.processor()
-    return f"{model}, {os.cpu_count()} CPUs"
-
-
 def main():
     quick = ARGS.quick
     repeats = 3 if quick else 10
     rng = np.random.default_rng(0)
-    figures = {"benchmark": "bo", "machine": machine(), "pinned_cpu": ARGS.cpu,
+    figures = {"benchmark": "bo", "machine": study_io.machine(), "pinned_cpu": ARGS.cpu,
                "quick": quick, "load_avg_1min_start": round(os.getloadavg()[0], 2)}
     t_start = time.time()
 

@@ -14,22 +14,11 @@ The last line of the output is one JSON object with the figures (units in the na
 import argparse
 import json
 import os
-import platform
 import time
 
-from cpgjax import cpg, deploy, params
+from cpgjax import cpg, deploy, params, study_io
 from cpgjax import hardware_io as hio
 from cpgjax import sim_go1_server as sim
-
-
-def _cpu_name() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def main() -> None:
@@ -68,7 +57,7 @@ def main() -> None:
     print(f"overruns         {timing['overruns']} in {timing['ticks']} ticks = "
           f"{timing['overruns_per_10k_ticks']:.2f} per 10k   (target ≤ 1)")
     figures = {
-        "benchmark": "hardware_loop", "machine": f"{_cpu_name()}, {os.cpu_count()} CPUs", "transport": args.transport,
+        "benchmark": "hardware_loop", "machine": study_io.machine(), "transport": args.transport,
         "scheduling": result.realtime, "walk_s": duration_s, "wall_s": round(wall_s, 1),
         "walked_m": round(walked_m, 2), "trip": result.trip, "load_avg_1min_start": round(load_start, 2),
         "load_avg_1min_end": round(os.getloadavg()[0], 2),

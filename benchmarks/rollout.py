@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import time
 
 import jax
@@ -22,7 +21,7 @@ import numpy as np
 from mujoco import mjx
 
 from backend_speed import trial_speed  # benchmarks/ is the script's directory
-from cpgjax import go1_model, mjx_go1, params as param_space
+from cpgjax import go1_model, mjx_go1, params as param_space, study_io
 
 
 def _timed(fn, *args, repeats: int):
@@ -98,12 +97,13 @@ def main() -> None:
     repeats = 1 if args.quick else 3
 
     device = jax.devices()[0]
-    print(f"# device: {device.platform} {device.device_kind}; host: {platform.processor() or platform.machine()}; "
+    print(f"# device: {device.platform} {device.device_kind}; host: {study_io.machine()}; "
           f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance")
     print("| batch | closed loop [env-steps/s] | bare mjx.step [env-steps/s] | controller overhead | first call (compile) [s] "
           "| bare compile [s] | native closed loop (C MuJoCo) [env-steps/s] |")
     print("|---|---|---|---|---|---|---|")
-    figures: dict = {"device": f"{device.platform}:{device.device_kind}", "steps_per_instance": steps}
+    figures: dict = {"device": f"{device.platform}:{device.device_kind}", "machine": study_io.machine(),
+                     "steps_per_instance": steps}
     for b in batches:
         loop = closed_loop(b, steps, repeats)
         bare = bare_mjx(b, steps, repeats)

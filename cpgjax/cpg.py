@@ -157,9 +157,8 @@ def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConf
     return jnp.einsum("lij,li->lj", jac, force).reshape(12)
 
 
-def init_state(params, obs: Observation, initial_amplitude: float = 0.1) -> CPGState:
+def init_state(obs: Observation, initial_amplitude: float = 0.1) -> CPGState:
     """Controller state at the start of a run: small amplitude, trot phases θ = φ_0j, heading reference = heading now."""
-    del params  # the start state does not depend on the parameters; kept for a uniform signature
     phase = jnp.mod(jnp.asarray(TROT_PHASE_LAG_RAD[0], jnp.float32), 2.0 * jnp.pi)
     return CPGState(
         amplitude=jnp.full((4,), initial_amplitude, jnp.float32),

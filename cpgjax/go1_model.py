@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import logging
 from importlib import resources
 from typing import NamedTuple
 
@@ -16,7 +15,6 @@ import numpy as np
 
 from cpgjax import kinematics
 
-log = logging.getLogger(__name__)
 
 MODEL_FILE = "go1.xml"
 JOINT_NAMES = tuple(f"{leg}_{part}_joint" for leg in kinematics.LEG_NAMES for part in ("hip", "thigh", "calf"))

@@ -264,7 +264,7 @@ def flat_step(config: cpg.CPGConfig, x: jax.Array) -> jax.Array:
 
 def flat_initial_state(x_obs: jax.Array) -> jax.Array:
     """``cpg.init_state`` for the observation x_obs (OBS_SIZE,), as the flat CPG-state slice (9,)."""
-    s = cpg.init_state(None, unpack_observation(x_obs))
+    s = cpg.init_state(unpack_observation(x_obs))
     return jnp.concatenate([s.amplitude, s.phase_rad, s.heading_ref_rad[None]])
 
 

@@ -14,19 +14,16 @@ from __future__ import annotations
 
 import copy
 import functools
-import logging
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from mujoco import mjx
 
 from cpgjax import cpg, go1_model, params as param_space
 from cpgjax.objective import TrialRecord
 
-log = logging.getLogger(__name__)
 
 
 class TrialConfig(NamedTuple):
@@ -148,7 +145,7 @@ def _observe_data(model: mjx.Model, data: mjx.Data) -> cpg.Observation:
 
 def _reset(model: mjx.Model, params: jax.Array) -> SimState:
     data = _standing_data(model)
-    return SimState(data=data, cpg=cpg.init_state(params, _observe_data(model, data)), params=params)
+    return SimState(data=data, cpg=cpg.init_state(_observe_data(model, data)), params=params)
 
 
 def _where(cond, a, b):

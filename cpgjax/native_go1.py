@@ -329,7 +329,7 @@ class NativeBackend:
         standing = jnp.asarray(self.physics.standing_physics, jnp.float32)
         obs = jax.vmap(mjx_go1.observe)(standing[:, lay.qpos], standing[:, lay.qvel],
                                         jnp.asarray(self.physics.standing_sensordata, jnp.float32), self._gravity)
-        self._reset_cpg = jax.vmap(cpg.init_state)(jnp.zeros((self.batch_size, param_space.NUM_PARAMS)), obs)
+        self._reset_cpg = jax.vmap(cpg.init_state)(obs)
         self._host_in = np.zeros((self.batch_size, lay.size + self.physics.sensordata.shape[1] + 1), np.float32)
         self._compiled = {}
 

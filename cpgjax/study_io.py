@@ -130,16 +130,25 @@ def write_trials(result, path) -> pathlib.Path:
 
 # ----------------------------------------------------------------------------------------------- metadata
 
+def cpu_model() -> str:
+    """The CPU's model name (what lscpu reports), or the platform's processor string where it cannot be read."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or "unknown CPU"
+
+
+def machine() -> str:
+    """'<CPU model>, <n> CPUs': how benchmarks and study metadata name the machine."""
+    return f"{cpu_model()}, {os.cpu_count()} CPUs"
+
+
 def environment() -> dict[str, Any]:
     import jax
     import mujoco
 
-    cpu = "unknown CPU"
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
+    cpu = cpu_model()
     return dict(python=sys.version.split()[0], jax=jax.__version__, mujoco=mujoco.__version__,
                 numpy=np.__version__, platform=platform.platform(), cpu=cpu, cpu_count=os.cpu_count(),
                 load_avg=os.getloadavg() if hasattr(os, "getloadavg") else None,

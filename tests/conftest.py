@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cpgjax import cpg, go1_model, mjx_go1, params as param_space
+from cpgjax import go1_model, mjx_go1, params as param_space
 
 # Short trials keep the suite fast; the trial logic is identical to the paper's 1.5 s + 3 s.
 SHORT_TRIAL = mjx_go1.TrialConfig(transition_steps=400, steady_steps=1200)

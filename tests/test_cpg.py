@@ -199,7 +199,7 @@ def test_vmc_acts_on_stance_legs_only_and_corrects_attitude():
 def test_torques_are_clipped_to_motor_limits():
     p = jnp.asarray(param_space.midpoint(), jnp.float32)
     obs = observation(q=np.tile([0.8, -0.5, -2.6], 4))  # far from the targets: PD asks for more than the motors have
-    _, tau, diag = cpg.controller_step(cpg.CPGConfig(), cpg.init_state(p, obs), p, cpg.controller_gates("vmc"), obs)
+    _, tau, diag = cpg.controller_step(cpg.CPGConfig(), cpg.init_state(obs), p, cpg.controller_gates("vmc"), obs)
     assert np.all(np.abs(np.asarray(tau)) <= cpg.TORQUE_LIMIT_NM + 1e-6)
     assert np.asarray(diag.saturated).sum() > 0
 

@@ -192,7 +192,7 @@ def _rollout_torques(obs_sequence: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Torques of the MJX rollout's controller path (``cpg.controller_step`` vmapped over instances and scanned
     over ticks, as in ``mjx_go1``) for a given observation sequence (T, OBS_SIZE)."""
     def rollout(obs_seq, p_inst, gates):
-        state0 = cpg.init_state(p_inst, hio.unpack_observation(obs_seq[0]))
+        state0 = cpg.init_state(hio.unpack_observation(obs_seq[0]))
 
         def body(state, x):
             state, torque, _ = cpg.controller_step(cpg.CPGConfig(), state, p_inst, gates, hio.unpack_observation(x))

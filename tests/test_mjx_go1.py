@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from cpgjax import cpg, go1_model, mjx_go1, objective, params as param_space
-from tests.conftest import SCENARIOS, SHORT_TRIAL
 
 
 def test_model_names_and_mass():
@@ -39,7 +38,7 @@ def test_c_mujoco_agrees_with_mjx_over_a_short_closed_loop_rollout(short_sim):
     obs = observe(d.qpos, d.qvel, d.sensordata, m.opt.gravity)
     params = jnp.asarray(p[0], jnp.float32)
     gate = cpg.controller_gates("vmc_tegotae")
-    state = cpg.init_state(params, obs)
+    state = cpg.init_state(obs)
     qpos = []
     for _ in range(steps):
         obs = observe(d.qpos, d.qvel, d.sensordata, m.opt.gravity)
