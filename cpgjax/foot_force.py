@@ -1,0 +1,46 @@
+"""The Go1's foot-force sensors in Newtons (decisions.md §3): a stored calibration N = (raw − offset) · scale."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from cpgjax import go1_model
+
+
+class FootForceCalibration(NamedTuple):
+    """N_i = (raw_i − offset_i) · scale_i: the Go1's foot sensor counts in Newtons (decisions.md §3)."""
+
+    offset_counts: np.ndarray  # (4,) raw value with the foot in the air
+    newton_per_count: np.ndarray  # (4,)
+
+    def to_newtons(self, raw_counts: np.ndarray) -> np.ndarray:
+        return (raw_counts - self.offset_counts) * self.newton_per_count
+
+    def save(self, path) -> None:
+        Path(path).write_text(json.dumps({"offset_counts": self.offset_counts.tolist(),
+                                          "newton_per_count": self.newton_per_count.tolist()}, indent=1))
+
+    @classmethod
+    def load(cls, path) -> FootForceCalibration:
+        d = json.loads(Path(path).read_text())
+        return cls(np.asarray(d["offset_counts"], np.float64), np.asarray(d["newton_per_count"], np.float64))
+
+
+def calibrate_foot_force(air_counts: np.ndarray, standing_counts: np.ndarray,
+                         total_mass_kg: float) -> FootForceCalibration:
+    """Calibration from raw samples: the offset is each foot's minimum in the air (swing phases or lifted robot,
+    ``air_counts`` (K, 4)); one common scale makes the four feet carry the robot's weight while standing still
+    (``standing_counts`` (M, 4)).
+
+    Raises:
+      ValueError: the standing signal is not above the offsets (no load seen).
+    """
+    offset = np.min(np.asarray(air_counts, np.float64), axis=0)
+    loaded = np.sum(np.mean(np.asarray(standing_counts, np.float64), axis=0) - offset)
+    if not loaded > 0:
+        raise ValueError(f"standing foot counts are not above the in-air offsets {offset}; cannot calibrate")
+    return FootForceCalibration(offset, np.full(4, total_mass_kg * go1_model.GRAVITY_MPS2 / loaded))

@@ -1,0 +1,112 @@
+"""The deployment's safety layer, as pure functions: trip conditions on robot states (tilt, stop buttons, motor
+temperature, the SDK's power-protection rule), the commands of each loop phase (torque, motor PD, damping), and the
+guard that clamps and checks every command *before* it is encoded (the SDK silently wraps out-of-range torque and
+gains, go1-sdk.md §1.3).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from cpgjax import cpg
+from cpgjax import go1_protocol as proto
+
+# Joint limits used by the SDK's Safety (go1_const.h), motor order; hip, thigh, calf [rad].
+JOINT_LOWER_RAD = np.tile(np.array([-1.047, -0.663, -2.721]), 4)
+JOINT_UPPER_RAD = np.tile(np.array([1.047, 2.966, -0.837]), 4)
+TORQUE_LIMIT_NM = np.asarray(cpg.TORQUE_LIMIT_NM, np.float64)
+
+
+class SafetyConfig(NamedTuple):
+    """Limits of the safety layer. Each trip latches damping and is logged with its reason."""
+
+    max_tilt_rad: float = 0.7  # |roll| or |pitch| (from the IMU quaternion) beyond this → damping
+    watchdog_ticks: int = 5  # this many consecutive ticks without a new robot tick → damping
+    stop_buttons: tuple[str, ...] = ("L2", "B")  # all pressed on the remote → damping (Unitree's damping combo)
+    max_motor_temperature_c: int = 70
+    # The SDK's PowerProtect rule (go1-sdk.md §1.10): Σ|tauEst·dq| over the 12 legs motors above 100 W × level
+    # counts up, below counts down; the trip fires at power_trip_count and latches.
+    power_level: int = 9
+    power_trip_count: int = 6
+    kp_max_nm_rad: float = 100.0
+    kd_max_nm_s_rad: float = 10.0
+
+
+def tilt_rad(quaternion_wxyz: np.ndarray) -> tuple[float, float]:
+    """(roll, pitch) [rad] of a unit quaternion (same convention as ``cpg.quat_to_rpy``)."""
+    w, x, y, z = (float(v) for v in quaternion_wxyz)
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
+    return roll, pitch
+
+
+def state_trip_reason(state: proto.RobotState, safety: SafetyConfig, stop_mask: int) -> str | None:
+    """The reason a fresh robot state must stop the robot (tilt, stop buttons, motor temperature), or None."""
+    roll, pitch = tilt_rad(state.quaternion_wxyz)
+    if not (abs(roll) <= safety.max_tilt_rad and abs(pitch) <= safety.max_tilt_rad):
+        return f"tilt: roll {roll:+.3f} rad, pitch {pitch:+.3f} rad beyond ±{safety.max_tilt_rad} rad"
+    if stop_mask and proto.remote_buttons(state.wireless_remote) & stop_mask == stop_mask:
+        return f"remote stop buttons {'+'.join(safety.stop_buttons)} pressed"
+    hottest = int(np.max(state.motor_temperature_c))
+    if hottest >= safety.max_motor_temperature_c:
+        motor = int(np.argmax(state.motor_temperature_c))
+        return f"motor temperature: motor {motor} at {hottest} °C ≥ {safety.max_motor_temperature_c} °C"
+    return None
+
+
+def power_protect(counter: int, state: proto.RobotState, safety: SafetyConfig) -> tuple[int, str | None]:
+    """One update of the SDK's power-protection counter; returns (counter, trip reason or None)."""
+    power_w = float(np.sum(np.abs(state.tau_est_nm * state.dq_rad_s)))
+    limit_w = 100.0 * min(max(safety.power_level, 1), 10)
+    counter = counter + 1 if power_w > limit_w else max(counter - 1, 0)
+    if counter >= safety.power_trip_count:
+        return counter, f"power protection: Σ|tauEst·dq| = {power_w:.0f} W > {limit_w:.0f} W (level {safety.power_level})"
+    return counter, None
+
+
+_SERVO = np.full(12, proto.MODE_SERVO, np.uint8)
+_POS_STOP = np.full(12, proto.POS_STOP_F)
+_VEL_STOP = np.full(12, proto.VEL_STOP_F)
+_ZERO = np.zeros(12)
+for _a in (_SERVO, _POS_STOP, _VEL_STOP, _ZERO):
+    _a.flags.writeable = False  # shared by every command
+
+
+def torque_command(torque_nm: np.ndarray) -> proto.MotorCommand:
+    """Pure torque: both motor PD terms stopped (PosStopF, VelStopF, zero gains)."""
+    return proto.MotorCommand(_SERVO, _POS_STOP, _VEL_STOP, torque_nm, _ZERO, _ZERO)
+
+
+def pd_command(q_rad: np.ndarray, kp: float, kd: float) -> proto.MotorCommand:
+    """Motor-side PD to joint positions (velocity target 0)."""
+    return proto.MotorCommand(_SERVO, q_rad, _ZERO, _ZERO, np.full(12, kp), np.full(12, kd))
+
+
+def damping_command(kd: float) -> proto.MotorCommand:
+    """Damping: τ = −kd · dq on every motor (no stiffness, no torque)."""
+    return proto.MotorCommand(_SERVO, _POS_STOP, _ZERO, _ZERO, _ZERO, np.full(12, kd))
+
+
+def guard_command(cmd: proto.MotorCommand, safety: SafetyConfig) -> tuple[proto.MotorCommand, str | None]:
+    """Check and clamp a command before it is encoded (the wire silently wraps out-of-range values).
+
+    A non-finite tau, gain, velocity or (active) position target gives a trip reason. Otherwise torques are clamped
+    to the motor limits, gains to [0, max], and position targets with Kp > 0 to the SDK's joint limits (a PosStopF
+    target is kept: clamping it would switch the position term on).
+    """
+    position_active = cmd.kp_nm_rad > 0.0
+    q_active = np.where(position_active, cmd.q_rad, 0.0)
+    fields = (cmd.tau_nm, cmd.kp_nm_rad, cmd.kd_nm_s_rad, q_active, cmd.dq_rad_s)
+    if not np.isfinite(np.concatenate(fields)).all():
+        bad = [n for n, f in zip(("tau", "kp", "kd", "q", "dq"), fields) if not np.isfinite(f).all()]
+        return cmd, f"non-finite command ({', '.join(bad)})"
+    q = cmd.q_rad
+    if position_active.any():
+        q = np.where(position_active, np.minimum(np.maximum(q, JOINT_LOWER_RAD), JOINT_UPPER_RAD), q)
+    return proto.MotorCommand(
+        cmd.mode, q, cmd.dq_rad_s, np.minimum(np.maximum(cmd.tau_nm, -TORQUE_LIMIT_NM), TORQUE_LIMIT_NM),
+        np.minimum(np.maximum(cmd.kp_nm_rad, 0.0), safety.kp_max_nm_rad),
+        np.minimum(np.maximum(cmd.kd_nm_s_rad, 0.0), safety.kd_max_nm_s_rad)), None

@@ -1,0 +1,140 @@
+"""Transports of the Go1's low-level packets: :class:`UdpTransport` (cpgjax's own implementation of the SDK's
+low-level UDP protocol, used for the loopback simulated Go1 and usable on the robot) and :class:`SdkTransport` (the
+official ``unitree_legged_sdk`` Python binding, optional extra ``go1``). Both move
+:class:`~cpgjax.go1_protocol.RobotState` in and :class:`~cpgjax.go1_protocol.MotorCommand` out (go1-sdk.md §1.5–1.7).
+
+The robot's real address appears only as the default of :data:`GO1_ROBOT_IP`; tests and examples use 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import socket
+from typing import Protocol
+
+import numpy as np
+
+from cpgjax import go1_protocol as proto
+
+GO1_ROBOT_IP = "192.168.123.10"  # the SDK's low-level target (UDP_SERVER_IP_BASIC); used only with --robot go1
+GO1_ROBOT_PORT = 8007  # UDP_SERVER_PORT
+GO1_LOCAL_PORT = 8090  # local port of the SDK's C++ examples
+
+
+class Transport(Protocol):
+    """Moves one robot's low-level packets. ``receive`` never blocks."""
+
+    power_tripped: bool  # the transport's own power protection (the SDK's Safety) has cut the motors
+
+    def receive(self) -> proto.RobotState | None:
+        """The newest valid state received since the last call, or None."""
+
+    def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
+        """Send one command (already clamped and checked)."""
+
+    def close(self) -> None: ...
+
+
+def _check_port_free(port: int) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("", port))
+        except OSError as e:
+            raise OSError(f"local UDP port {port} is in use ({e}); the SDK would fail silently") from e
+
+
+class UdpTransport:
+    """The Go1 low-level protocol over a UDP socket connected to the robot (or the simulated Go1).
+
+    Like the SDK, only datagrams from the robot's address count; unlike the SDK's ``Recv`` (which checks only the
+    last datagram waiting), every waiting datagram is examined and the newest *valid* one is kept. Rejected
+    datagrams are counted by reason in ``rejected``.
+    """
+
+    power_tripped = False
+
+    def __init__(self, robot_address: tuple[str, int], local_port: int = 0):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        host = "127.0.0.1" if robot_address[0].startswith("127.") else ""
+        self.sock.bind((host, local_port))
+        self.sock.connect(robot_address)
+        self.sock.setblocking(False)
+        self.rejected = {"size": 0, "head": 0, "level": 0, "crc": 0}
+
+    def receive(self) -> proto.RobotState | None:
+        packets = []
+        while True:
+            try:
+                packets.append(self.sock.recv(2048))
+            except (BlockingIOError, ConnectionRefusedError):
+                break
+        newest = None
+        for data in reversed(packets):
+            error = proto.packet_error(data, proto.LOW_STATE_LENGTH)
+            if error is not None:
+                self.rejected[error.split(":")[0]] += 1
+            elif newest is None:
+                newest = data
+        if newest is None:
+            return None
+        return proto.decode_low_state(newest)
+
+    def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
+        try:
+            self.sock.send(proto.encode_low_cmd(cmd))
+        except ConnectionRefusedError:  # nobody listening yet (ICMP port unreachable); the watchdog handles it
+            pass
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class SdkTransport:
+    """The robot through Unitree's ``unitree_legged_sdk`` 3.8 Python binding (``pip install --no-deps
+    unitree-legged-sdk``; see docs/hardware.md). Non-blocking mode only (the binding holds the GIL).
+
+    ``power_level`` (1…10) additionally runs the SDK's own ``Safety.PowerProtect`` on every command; its latched
+    trip sets ``power_tripped`` (the SDK then sends the motors to mode 0).
+    """
+
+    power_tripped = False
+
+    def __init__(self, robot_ip: str = GO1_ROBOT_IP, robot_port: int = GO1_ROBOT_PORT,
+                 local_port: int = GO1_LOCAL_PORT, power_level: int | None = None):
+        from unitree_legged_sdk import robot_interface as sdk  # optional extra "go1"
+
+        _check_port_free(local_port)
+        self._sdk = sdk
+        self.udp = sdk.UDP(proto.LEVEL_LOW, local_port, robot_ip, robot_port)
+        self.cmd = sdk.LowCmd()
+        self.state = sdk.LowState()
+        self.udp.InitCmdData(self.cmd)
+        self._motors = self.cmd.motorCmd  # a cached list of references into the C++ struct (go1-sdk.md §1.7)
+        self.safety = sdk.Safety(sdk.LeggedType.Go1) if power_level else None
+        self.power_level = power_level
+
+    def receive(self) -> proto.RobotState | None:
+        if self.udp.Recv() != 0:
+            return None
+        self.udp.GetRecv(self.state)
+        s, ms = self.state, self.state.motorState
+        imu = s.imu
+        return proto.RobotState(
+            tick_ms=s.tick, quaternion_wxyz=np.array(imu.quaternion), gyro_rad_s=np.array(imu.gyroscope),
+            accel_mps2=np.array(imu.accelerometer), rpy_rad=np.array(imu.rpy),
+            motor_mode=np.array([ms[i].mode for i in range(12)], np.uint8),
+            q_rad=np.array([ms[i].q for i in range(12)]), dq_rad_s=np.array([ms[i].dq for i in range(12)]),
+            tau_est_nm=np.array([ms[i].tauEst for i in range(12)]),
+            motor_temperature_c=np.array([ms[i].temperature for i in range(12)]),
+            foot_force_raw=np.array(s.footForce), wireless_remote=bytes(s.wirelessRemote))
+
+    def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
+        for i, m in enumerate(self._motors[:12]):
+            m.mode, m.q, m.dq = int(cmd.mode[i]), float(cmd.q_rad[i]), float(cmd.dq_rad_s[i])
+            m.tau, m.Kp, m.Kd = float(cmd.tau_nm[i]), float(cmd.kp_nm_rad[i]), float(cmd.kd_nm_s_rad[i])
+        if self.safety is not None and self.safety.PowerProtect(self.cmd, self.state, self.power_level) < 0:
+            self.power_tripped = True
+        self.udp.SetSend(self.cmd)
+        self.udp.Send()
+
+    def close(self) -> None:
+        del self.udp
