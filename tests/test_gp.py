@@ -97,7 +97,7 @@ def smooth_targets(inputs):
 @pytest.fixture(scope="module")
 def compiled():
     lml = jax.jit(gp.log_marginal_likelihood, static_argnums=3)
-    grad = jax.jit(jax.grad(gp.log_posterior), static_argnums=3)
+    grad = jax.jit(lambda *args: gp.log_posterior_and_gradient(*args)[1], static_argnums=3)
 
     @jax.jit
     def predict(params, dataset, active, queries):
@@ -152,7 +152,7 @@ def test_log_marginal_likelihood_and_gradient_match_reference(compiled, problem)
     np.testing.assert_allclose(gp.log_prior(p["params"], active),
                                ref_log_prior(p["params"], p["active"]), rtol=1e-5, atol=1e-4)
 
-    # Gradient (custom VJP) against central differences of the float64 reference.
+    # The fit's analytic gradient against central differences of the float64 reference.
     def ref_objective(flat):
         params = gp.GPParams(flat[:6], flat[6], flat[7], flat[8])
         ref_gp = RefGP(params, p["inputs"], p["targets"], p["active"], CONTEXT_DIMS)
@@ -168,6 +168,20 @@ def test_log_marginal_likelihood_and_gradient_match_reference(compiled, problem)
     analytic = np.concatenate([np.ravel(leaf) for leaf in grads])
     assert numeric[2] == pytest.approx(0.0, abs=1e-6)  # the inactive lengthscale is inert
     np.testing.assert_allclose(analytic, numeric, rtol=2e-3, atol=2e-3)
+
+
+@pytest.mark.parametrize("size", [5, 33, 100, 160])
+def test_cholesky_inverse_matches_numpy(size):
+    """The recursive block inverse of a Cholesky factor (used by the fit's gradient and by every
+    prediction) against NumPy's float64 inverse."""
+    rng = np.random.default_rng(size)
+    points = rng.random((size, 3))
+    kernel = np.exp(-np.sum((points[:, None] - points[None]) ** 2, -1) / 0.1) + 1e-2 * np.eye(size)
+    cholesky = np.linalg.cholesky(kernel)
+    inverse = np.asarray(jax.jit(gp._cholesky_inverse)(jnp.asarray(cholesky, jnp.float32)))
+    expected = np.linalg.inv(cholesky)
+    np.testing.assert_allclose(inverse, expected, atol=2e-5 * np.abs(expected).max())
+    assert np.all(np.triu(inverse, 1) == 0.0)
 
 
 # ---- kernel properties --------------------------------------------------------------------
@@ -204,7 +218,9 @@ def test_standardize_matches_numpy():
 # ---- exact masking -----------------------------------------------------------------------
 
 def test_padded_rows_have_no_influence(compiled, problem):
-    """Same data, unpadded vs scattered among 20 garbage rows (NaN, inf, huge): identical."""
+    """Same data, unpadded vs scattered among 20 garbage rows (NaN, inf, huge): identical up
+    to float32 rounding (a 50- and a 30-row factorization round differently: measured 3e-6
+    of the outcome scale; a leak of the padding would show at order 1)."""
     p = problem
     active = jnp.asarray(p["active"])
     rng = np.random.default_rng(1)
@@ -224,9 +240,11 @@ def test_padded_rows_have_no_influence(compiled, problem):
                               compiled["grad"](p["params"], plain, active, CONTEXT_DIMS)):
         np.testing.assert_allclose(g_pad, g_plain, rtol=1e-4, atol=1e-4)
     queries = jnp.asarray(p["queries"], jnp.float32)
-    for a, b in zip(compiled["predict"](p["params"], padded, active, queries),
-                    compiled["predict"](p["params"], plain, active, queries)):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    scale = np.std(p["targets"], ddof=1)
+    mean_pad, var_pad = compiled["predict"](p["params"], padded, active, queries)
+    mean_plain, var_plain = compiled["predict"](p["params"], plain, active, queries)
+    np.testing.assert_allclose(mean_pad, mean_plain, rtol=0, atol=3e-5 * scale)
+    np.testing.assert_allclose(var_pad, var_plain, rtol=0, atol=3e-5 * scale**2)
     start = gp.default_params(6)
     fit_pad = compiled["fit"](padded, active, start, CONTEXT_DIMS, gp.FitConfig())
     fit_plain = compiled["fit"](plain, active, start, CONTEXT_DIMS, gp.FitConfig())
