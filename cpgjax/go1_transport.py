@@ -68,15 +68,18 @@ class UdpTransport:
             except (BlockingIOError, ConnectionRefusedError):
                 break
         newest = None
-        for data in reversed(packets):
-            error = proto.packet_error(data, proto.LOW_STATE_LENGTH)
+        for data in reversed(packets):  # newest first; each datagram's checks (CRC included) run once
+            if newest is None:
+                try:
+                    newest = proto.decode_low_state(data)
+                    continue
+                except proto.ProtocolError as e:
+                    error = str(e)
+            else:
+                error = proto.packet_error(data, proto.LOW_STATE_LENGTH)
             if error is not None:
                 self.rejected[error.split(":")[0]] += 1
-            elif newest is None:
-                newest = data
-        if newest is None:
-            return None
-        return proto.decode_low_state(newest)
+        return newest
 
     def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
         try:
