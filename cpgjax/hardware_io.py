@@ -93,8 +93,11 @@ class TickLog(NamedTuple):
     """Per-tick records, chronological (the newest ``LoopConfig.log_ticks``)."""
 
     t_start_s: np.ndarray  # perf_counter at the start of the tick
+    late_s: np.ndarray  # start of the tick − its deadline (the wait before it overshot by this much)
     step_s: np.ndarray  # controller step latency (pack + compiled call + unpack)
-    work_s: np.ndarray  # whole tick before waiting
+    work_s: np.ndarray  # whole tick before waiting (wall clock)
+    work_cpu_s: np.ndarray  # the loop thread's CPU time during that work (excludes time it was not running)
+    overrun: np.ndarray  # the tick's work ended after the next deadline
     phase: np.ndarray  # CONNECT … DAMP
     fresh: np.ndarray  # a new robot state arrived this tick
     robot_tick_ms: np.ndarray
@@ -104,9 +107,10 @@ class TickLog(NamedTuple):
 
     @classmethod
     def allocate(cls, n: int) -> TickLog:
-        return cls(np.zeros(n), np.zeros(n, np.float32), np.zeros(n, np.float32), np.full(n, -1, np.int8),
-                   np.zeros(n, bool), np.zeros(n, np.uint32), np.zeros((n, OBS_SIZE), np.float32),
-                   np.zeros((n, 12), np.float32), np.zeros((n, 12), np.float32))
+        return cls(np.zeros(n), np.zeros(n, np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32),
+                   np.zeros(n, np.float32), np.zeros(n, bool), np.full(n, -1, np.int8), np.zeros(n, bool),
+                   np.zeros(n, np.uint32), np.zeros((n, OBS_SIZE), np.float32), np.zeros((n, 12), np.float32),
+                   np.zeros((n, 12), np.float32))
 
     def chronological(self, ticks: int) -> TickLog:
         n = self.phase.shape[0]
@@ -130,19 +134,36 @@ class LoopResult(NamedTuple):
         return timing_stats(self.log, self.overruns, self.ticks)
 
 
+OVERRUN_CAUSES = ("late_start", "not_running", "work_cpu")
+
+
+def overrun_causes(log: TickLog) -> np.ndarray:
+    """Index into :data:`OVERRUN_CAUSES` of the largest share of each overrun tick's time (late start + work): the
+    tick started late (the wait before it overshot: a late wake-up, or the previous tick's overrun), the thread was
+    not running during the work (wall − thread CPU time: preempted, or its virtual CPU descheduled by the
+    hypervisor, which the guest accounts as steal and not as thread time), or the work itself took the CPU time."""
+    late = np.maximum(log.late_s[log.overrun], 0.0)
+    cpu = log.work_cpu_s[log.overrun]
+    not_running = np.maximum(log.work_s[log.overrun] - cpu, 0.0)
+    return np.argmax(np.stack([late, not_running, cpu]), axis=0) if late.size else np.zeros(0, int)
+
+
 def timing_stats(log: TickLog, overruns: int, ticks: int) -> dict:
-    """Controller-step latency and loop-period statistics [µs] over the logged ticks after connection."""
+    """Controller-step latency and loop-period statistics [µs] over the logged ticks after connection, and the
+    overruns by cause (:func:`overrun_causes`, logged ticks only)."""
     active = log.phase > CONNECT
     step_us = log.step_s[active & (log.phase == RUN)] * 1e6
     period_us = np.diff(log.t_start_s[active]) * 1e6
     pct = lambda a, q: float(np.percentile(a, q)) if a.size else float("nan")  # noqa: E731
+    causes = np.bincount(overrun_causes(log), minlength=len(OVERRUN_CAUSES))
     return {
         "ticks": int(ticks), "overruns": int(overruns), "overruns_per_10k_ticks": 1e4 * overruns / max(ticks, 1),
+        **{f"overruns_{name}": int(n) for name, n in zip(OVERRUN_CAUSES, causes)},
         "step_median_us": pct(step_us, 50), "step_p99_us": pct(step_us, 99),
         "step_max_us": float(step_us.max()) if step_us.size else float("nan"),
         "period_median_us": pct(period_us, 50), "period_p1_us": pct(period_us, 1),
         "period_p99_us": pct(period_us, 99), "period_max_us": float(period_us.max()) if period_us.size else float("nan"),
-        "work_p99_us": pct(log.work_s[active] * 1e6, 99),
+        "work_median_us": pct(log.work_s[active] * 1e6, 50), "work_p99_us": pct(log.work_s[active] * 1e6, 99),
     }
 
 
@@ -240,7 +261,7 @@ def run_loop(transport: Transport, controller: CompiledController, schedule: Par
         with _StopRequest() as stop:
             deadline = time.perf_counter()
             while True:
-                t0 = time.perf_counter()
+                t0, cpu0 = time.perf_counter(), time.thread_time()
                 state = transport.receive()
                 fresh = state is not None and state.tick_ms != last_robot_tick
                 if fresh:
@@ -317,16 +338,19 @@ def run_loop(transport: Transport, controller: CompiledController, schedule: Par
 
                 i = k % n_log
                 tick_log.t_start_s[i] = t0
+                tick_log.late_s[i] = t0 - deadline
                 tick_log.step_s[i] = step_s
                 tick_log.phase[i] = DAMP if reason is not None else command_phase
                 tick_log.fresh[i] = fresh
                 tick_log.robot_tick_ms[i] = last_robot_tick or 0
                 tick_log.torque_nm[i] = cmd.tau_nm
                 tick_log.work_s[i] = time.perf_counter() - t0
+                tick_log.work_cpu_s[i] = time.thread_time() - cpu0
                 k += 1
 
                 deadline += period
                 now = time.perf_counter()
+                tick_log.overrun[i] = now > deadline
                 if now > deadline:
                     overruns += 1
                     if now > deadline + period:  # more than a period late: drop the missed deadlines

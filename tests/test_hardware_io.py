@@ -1,11 +1,15 @@
 """The 1 kHz deployment loop through the loopback simulated Go1 (127.0.0.1, ephemeral ports only).
 
-One simulated Go1 process in lockstep pacing (one physics step per command, so the physics does not depend on this
-loaded machine's timing) serves every test; each test resets it and injects its fault from the control port. No
-test asserts real-time figures: those are in benchmarks/hardware_loop.py.
+One simulated Go1 process in lockstep pacing (one physics step per command) serves every test, and the loop's
+transport waits for the answer to its last command before each tick (:class:`_LockstepTransport`), so the loop, its
+observations and the physics advance together however loaded this machine is; each test resets the simulated Go1 and
+injects its fault from the control port. No test asserts real-time figures: those are in
+benchmarks/hardware_loop.py.
 """
 
+import select
 import signal
+import time
 
 import jax
 import jax.numpy as jnp
@@ -35,12 +39,37 @@ def robot():
         yield server
 
 
+class _LockstepTransport(hio.UdpTransport):
+    """The UDP transport, but ``receive`` first waits (up to ``timeout_s``) for a datagram after each command.
+
+    Without the wait, a simulated Go1 starved of CPU by other processes answers late and in bursts: the loop then
+    runs on stale observations for tens of ticks while the physics still steps once per command, and the walk can
+    go unstable (power trips, watchdog trips) for reasons that are the test machine's, not the loop's. Faults that
+    withhold answers (drop, silence) cost one timeout per tick.
+    """
+
+    timeout_s = 0.1
+
+    def __init__(self, robot_address):
+        super().__init__(robot_address)
+        self._answer_due = False
+
+    def receive(self):
+        if self._answer_due:
+            select.select([self.sock], [], [], self.timeout_s)
+        return super().receive()
+
+    def send(self, cmd, state):
+        super().send(cmd, state)
+        self._answer_due = True
+
+
 def _run(robot, controller, run_ticks=600, fault=None, safety=SAFETY, schedule=None, transport=None):
     robot.reset()
     if fault is not None:
         kind, value, ticks = fault
         robot.inject(kind, value, after_ticks=RUN_STARTS_AT + 100, ticks=ticks)
-    transport = transport or hio.UdpTransport(robot.address)
+    transport = transport or _LockstepTransport(robot.address)
     try:
         result = hio.run_loop(transport, controller, schedule or hio.FixedParams(params.midpoint(), run_ticks),
                               deploy.sim_calibration(), GATES, LOOP, safety)
@@ -127,6 +156,42 @@ class _CtrlCAt(hio.FixedParams):
 def test_ctrl_c_shuts_down_to_damping(robot, controller):
     result, _, stats = _run(robot, controller, schedule=_CtrlCAt(params.midpoint()))
     _assert_damped_after_trip(result, stats, "Ctrl-C")
+
+
+class _StallAt(hio.FixedParams):
+    """Blocks the loop thread (sleeping, so not on the CPU) for ``stall_s`` at one run tick."""
+
+    def __init__(self, params, run_ticks, stall_tick, stall_s):
+        super().__init__(params, run_ticks)
+        self.stall_tick, self.stall_s = stall_tick, stall_s
+
+    def record(self, run_tick, out):
+        super().record(run_tick, out)
+        if run_tick == self.stall_tick:
+            time.sleep(self.stall_s)
+
+
+def test_a_stalled_tick_is_an_overrun_of_the_thread_not_running(robot, controller):
+    result, _, _ = _run(robot, controller, run_ticks=300, schedule=_StallAt(params.midpoint(), 300, 100, 0.03))
+    log = result.log
+    assert result.overruns == int(np.sum(log.overrun)) >= 1  # every tick is logged here
+    stalled = int(np.flatnonzero(log.phase == hio.RUN)[100])
+    assert log.overrun[stalled] and log.work_s[stalled] >= 0.03 and log.work_cpu_s[stalled] < 0.02
+    assert hio.OVERRUN_CAUSES[hio.overrun_causes(log)[list(np.flatnonzero(log.overrun)).index(stalled)]] == "not_running"
+    assert result.skipped_ticks >= 25  # the missed deadlines were dropped, not run in a burst ...
+    assert 0.0 <= log.late_s[stalled + 1] < LOOP.period_s  # ... so the next tick starts less than a period late
+    timing = result.timing()
+    assert sum(timing[f"overruns_{name}"] for name in hio.OVERRUN_CAUSES) == result.overruns
+
+
+def test_overrun_causes_name_the_largest_share_of_the_tick():
+    n = 4
+    log = hio.TickLog.allocate(n)._replace(
+        late_s=np.array([0.9e-3, 0.0, 0.1e-3, 0.0], np.float32),  # woke late
+        work_s=np.array([0.3e-3, 1.5e-3, 1.2e-3, 0.2e-3], np.float32),
+        work_cpu_s=np.array([0.3e-3, 0.2e-3, 1.1e-3, 0.2e-3], np.float32),  # 1.3 ms not running; 1.1 ms of CPU
+        overrun=np.array([True, True, True, False]))
+    assert [hio.OVERRUN_CAUSES[c] for c in hio.overrun_causes(log)] == ["late_start", "not_running", "work_cpu"]
 
 
 def test_no_robot_gives_up_after_the_connect_timeout(controller):
@@ -233,7 +298,7 @@ def test_the_official_sdk_drives_the_simulated_go1(robot, controller):
 def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     """Random search stands in for the contextual BO (cpgjax.bo) until that lands."""
     robot.reset()
-    transport = hio.UdpTransport(robot.address)
+    transport = _LockstepTransport(robot.address)
     spec = deploy.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), "vmc_tegotae")
     try:
         result, rows = deploy.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
