@@ -5,8 +5,16 @@ Go1 in real-time pacing (a separate process stepping C MuJoCo at 1 kHz) and repo
 (pack + compiled call + unpack: median, p99, max) and the loop period (median, p1, p99, max) and overruns over the
 run. Targets (issue 5): step p99 ≤ 200 µs; period p99 within ±100 µs of 1 ms; ≤ 1 overrun per 10,000 ticks.
 
-    python benchmarks/hardware_loop.py            # 60 s of walking
-    python benchmarks/hardware_loop.py --quick    # 10 s
+An overrun is a tick whose work ended after the next deadline (``hardware_io.run_loop``); each is attributed to the
+largest share of its time (``hardware_io.overrun_causes``): a late start, the loop thread not running during the
+work, or the work's own CPU time. Before the loop, a probe busy-waits on the loop's CPU at the loop's priority and
+counts the stalls during which its thread did not run (on a VM: the hypervisor descheduling the virtual CPU, which
+no code in the guest can prevent); a stall of a millisecond makes one overrun wherever it falls in the tick.
+
+``--cpu N`` pins the loop to CPU N and the simulated Go1 to the other CPUs (when affinity is permitted).
+
+    python benchmarks/hardware_loop.py            # 60 s of walking (20 s probe)
+    python benchmarks/hardware_loop.py --quick    # 10 s (5 s probe)
 
 The last line of the output is one JSON object with the figures (units in the names).
 """
@@ -16,29 +24,72 @@ import json
 import os
 import time
 
+import numpy as np
+
 from cpgjax import cpg, deploy, params, study_io
 from cpgjax import hardware_io as hio
 from cpgjax import sim_go1_server as sim
+
+
+def cpu_stalls_us(seconds: float, cpu: int | None, priority: int | None, min_gap_us: float = 200.0) -> np.ndarray:
+    """Stalls [µs] seen by a thread busy-waiting on ``cpu`` at SCHED_FIFO ``priority`` (when permitted): gaps of at
+    least ``min_gap_us`` between two wall-clock readings during which the thread's CPU time advanced by less than
+    half the gap (the thread was not running). Spins in 0.45 s bursts with 50 ms sleeps, below the kernel's
+    real-time throttling (95 % of each second)."""
+    old_affinity = os.sched_getaffinity(0)
+    old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        if cpu is not None:
+            os.sched_setaffinity(0, {cpu})
+        if priority is not None:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError:
+        pass  # measured at whatever scheduling was permitted
+    stalls, wall, thread = [], time.perf_counter, time.thread_time
+    end = wall() + seconds
+    try:
+        while wall() < end:
+            burst_end = min(end, wall() + 0.45)
+            last, last_cpu = wall(), thread()
+            while last < burst_end:
+                now, now_cpu = wall(), thread()
+                gap = now - last
+                if gap * 1e6 >= min_gap_us and now_cpu - last_cpu < 0.5 * gap:
+                    stalls.append(gap * 1e6)
+                last, last_cpu = now, now_cpu
+            time.sleep(0.05)
+    finally:
+        os.sched_setscheduler(0, old_policy, old_param)
+        os.sched_setaffinity(0, old_affinity)
+    return np.asarray(stalls)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="10 s instead of 60 s")
     parser.add_argument("--duration-s", type=float, help="walking time (default 60, --quick 10)")
+    parser.add_argument("--probe-s", type=float, help="CPU-stall probe before the loop (default 20, --quick 5; 0: off)")
     parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
-    parser.add_argument("--cpu", type=int, help="pin the loop to this CPU")
+    parser.add_argument("--cpu", type=int, help="pin the loop to this CPU and the simulated Go1 to the others")
+    parser.add_argument("--spin-us", type=float, default=hio.LoopConfig().spin_s * 1e6,
+                        help="spin this long before each deadline instead of sleeping")
     parser.add_argument("--transport", choices=("udp", "sdk"), default="udp")
     args = parser.parse_args()
     duration_s = args.duration_s or (10.0 if args.quick else 60.0)
+    probe_s = args.probe_s if args.probe_s is not None else (5.0 if args.quick else 20.0)
+    sim_cpus = None if args.cpu is None else (set(os.sched_getaffinity(0)) - {args.cpu}) or None
+    loop_priority = None if args.no_realtime else 80
 
     load_start = os.getloadavg()[0]
     # The simulated robot gets real-time priority too (just below the loop's): a real Go1 is not starved by this
     # machine's other processes, but its simulation on the same 2 CPUs would be.
-    with sim.SimGo1Client(pacing="realtime", realtime_priority=None if args.no_realtime else 70) as robot:
+    with sim.SimGo1Client(pacing="realtime", realtime_priority=None if args.no_realtime else 70,
+                          cpus=sim_cpus) as robot:
         controller = hio.CompiledController()
+        stalls = cpu_stalls_us(probe_s, args.cpu, loop_priority) if probe_s > 0 else np.zeros(0)
         transport = (hio.SdkTransport("127.0.0.1", robot.port, deploy._free_port()) if args.transport == "sdk"
                      else hio.UdpTransport(robot.address))
-        loop = hio.LoopConfig(realtime_priority=None if args.no_realtime else 80, cpu=args.cpu,
+        loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=args.cpu,
                               log_ticks=round((duration_s + 5.0) * 1000))
         t0 = time.perf_counter()
         result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), round(duration_s * 1000)),
@@ -48,19 +99,31 @@ def main() -> None:
         transport.close()
         walked_m = robot.stats()["trunk_xy_m"][0]
     timing = result.timing()
+    log = result.log
     print(f"events: {result.events}")
-    print(f"scheduling: {result.realtime}; load average at start {load_start:.2f}, at end {os.getloadavg()[0]:.2f}")
+    print(f"scheduling: {result.realtime}; simulated Go1 on CPUs {sorted(sim_cpus) if sim_cpus else 'any'}; "
+          f"spin {args.spin_us:.0f} µs; load average at start {load_start:.2f}, at end {os.getloadavg()[0]:.2f}")
+    print(f"CPU-stall probe  {probe_s:.0f} s on CPU {'any' if args.cpu is None else args.cpu}: {np.sum(stalls >= 500)} stalls ≥ 500 µs "
+          f"({np.sum(stalls >= 1000)} ≥ 1 ms), max {stalls.max() if stalls.size else 0:.0f} µs")
     print(f"controller step  median {timing['step_median_us']:.1f} µs  p99 {timing['step_p99_us']:.1f} µs  "
           f"max {timing['step_max_us']:.1f} µs   (target p99 ≤ 200 µs)")
     print(f"loop period      median {timing['period_median_us']:.1f} µs  p1 {timing['period_p1_us']:.1f} µs  "
           f"p99 {timing['period_p99_us']:.1f} µs  max {timing['period_max_us']:.1f} µs   (target p99 ≤ 1100 µs)")
+    print(f"tick work        median {timing['work_median_us']:.1f} µs  p99 {timing['work_p99_us']:.1f} µs")
     print(f"overruns         {timing['overruns']} in {timing['ticks']} ticks = "
-          f"{timing['overruns_per_10k_ticks']:.2f} per 10k   (target ≤ 1)")
+          f"{timing['overruns_per_10k_ticks']:.2f} per 10k   (target ≤ 1); by cause: "
+          + ", ".join(f"{name} {timing[f'overruns_{name}']}" for name in hio.OVERRUN_CAUSES))
+    for k in np.flatnonzero(log.overrun)[:20]:
+        print(f"  tick {k}: started {log.late_s[k] * 1e6:7.0f} µs late, work {log.work_s[k] * 1e6:6.0f} µs wall "
+              f"/ {log.work_cpu_s[k] * 1e6:5.0f} µs CPU ({hio.PHASE_NAMES[log.phase[k]]})")
     figures = {
         "benchmark": "hardware_loop", "machine": study_io.machine(), "transport": args.transport,
-        "scheduling": result.realtime, "walk_s": duration_s, "wall_s": round(wall_s, 1),
-        "walked_m": round(walked_m, 2), "trip": result.trip, "load_avg_1min_start": round(load_start, 2),
-        "load_avg_1min_end": round(os.getloadavg()[0], 2),
+        "scheduling": result.realtime, "sim_cpus": sorted(sim_cpus) if sim_cpus else None, "spin_us": args.spin_us,
+        "walk_s": duration_s, "wall_s": round(wall_s, 1), "walked_m": round(walked_m, 2), "trip": result.trip,
+        "load_avg_1min_start": round(load_start, 2), "load_avg_1min_end": round(os.getloadavg()[0], 2),
+        "probe_s": probe_s, "cpu_stalls_ge_500us": int(np.sum(stalls >= 500)),
+        "cpu_stalls_ge_1ms": int(np.sum(stalls >= 1000)),
+        "cpu_stall_max_us": round(float(stalls.max()), 1) if stalls.size else 0.0,
         **{k: round(v, 2) if isinstance(v, float) else v for k, v in timing.items()},
         "skipped_ticks": result.skipped_ticks,
     }

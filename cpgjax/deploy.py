@@ -21,6 +21,7 @@ import argparse
 import json
 import logging
 import multiprocessing
+import os
 import sys
 from pathlib import Path
 from typing import NamedTuple, Protocol
@@ -170,8 +171,6 @@ def load_params(path) -> np.ndarray:
 
 def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     """The optimizer's process: observe each finished trial, answer the next proposal at once, then log."""
-    import os
-
     import jax
 
     os.nice(10)  # the robot's loop (and, on one machine, the simulated robot) come first
@@ -321,7 +320,7 @@ def _parse_args(argv):
     p.add_argument("--friction", type=float, default=0.6, help="sim only")
     p.add_argument("--slope-deg", type=float, default=0.0, help="sim only")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
-    p.add_argument("--cpu", type=int, help="pin the loop to this CPU")
+    p.add_argument("--cpu", type=int, help="pin the loop to this CPU (sim: the simulated Go1 to the others)")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     if args.robot == "go1" and args.calibration is None:
@@ -356,8 +355,11 @@ def main(argv=None) -> int:
     if args.robot == "sim":
         # The simulated robot shares this machine's CPUs: real-time priority (below the loop's) keeps other
         # processes, the optimizer included, from starving it.
+        # With --cpu, the simulated robot runs on the other CPUs (it never preempts the loop there).
+        sim_cpus = None if args.cpu is None else (set(os.sched_getaffinity(0)) - {args.cpu}) or None
         server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
-                                  payload_kg=args.payload_kg, realtime_priority=None if args.no_realtime else 70)
+                                  payload_kg=args.payload_kg, realtime_priority=None if args.no_realtime else 70,
+                                  cpus=sim_cpus)
         calibration = sim_calibration() if args.calibration is None else hio.FootForceCalibration.load(args.calibration)
         ip, port, local_port = server.address[0], server.port, 0
     else:

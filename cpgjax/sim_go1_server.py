@@ -286,11 +286,14 @@ class SimGo1Client:
     """
 
     def __init__(self, pacing: str = "realtime", friction: float = 0.6, slope_deg: float = 0.0,
-                 payload_kg: float = 0.0, realtime_priority: int | None = None, startup_timeout_s: float = 60.0):
+                 payload_kg: float = 0.0, realtime_priority: int | None = None, cpus: set[int] | None = None,
+                 startup_timeout_s: float = 60.0):
         cmd = [sys.executable, "-m", "cpgjax.sim_go1_server", "--pacing", pacing, "--friction", str(friction),
                "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg)]
         if realtime_priority is not None:
             cmd += ["--realtime-priority", str(realtime_priority)]
+        if cpus:
+            cmd += ["--cpus", ",".join(str(c) for c in sorted(cpus))]
         env = dict(os.environ, JAX_PLATFORMS="cpu")
         self.process = subprocess.Popen(cmd, stdout=subprocess.PIPE, env=env, text=True)
         line, give_up = "", time.monotonic() + startup_timeout_s
@@ -356,7 +359,13 @@ def main(argv=None) -> None:
     parser.add_argument("--realtime-priority", type=int,
                         help="SCHED_FIFO priority for the physics loop, when permitted (a robot is not starved "
                              "by other processes; on a shared machine its simulation can be)")
+    parser.add_argument("--cpus", help="comma-separated CPUs to run on, when permitted (keep it off the loop's CPU)")
     args = parser.parse_args(argv)
+    if args.cpus:
+        try:
+            os.sched_setaffinity(0, {int(c) for c in args.cpus.split(",")})  # before JAX starts its threads
+        except OSError as e:
+            print(f"CPU affinity not permitted ({e})", file=sys.stderr)
     if args.realtime_priority is not None:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime_priority))
