@@ -11,7 +11,9 @@ style of optax's ``init``/``update`` pairs::
 
 Every function is jit-compiled and ``jax.vmap``-able over a batch of states (independent
 data, contexts, keys, β schedules, active inputs and targets). Structure (dimensions,
-capacity, step counts, the UCB form) is the static :class:`OptimizerConfig`.
+capacity, step counts, the UCB form) is the static :class:`OptimizerConfig`
+(:mod:`cpgjax.optimizer_config`). :func:`cpgjax.black_box.maximize` wraps the optimizer for
+black-box functions.
 
 Algorithm 1, step by step:
 
@@ -20,11 +22,8 @@ Algorithm 1, step by step:
 * :meth:`propose` returns a uniform random point while fewer than ``num_random_proposals``
   (2) observations are stored, else :math:`\arg\max_x a(x; \beta, c)` of eq. (8) with the
   context held at the given value (:mod:`cpgjax.acquisition`);
-* :math:`\beta = \beta_{init} \gamma^{\max(n - n_{decay}, 0)}` (eq. (12)), or
-  :math:`\beta_{init,c} \gamma^{\max(n - n_{decay,c}, 0)}` (eq. (13)) once any stored trial lies
-  outside the current context's thresholds (decisions.md §12), where :math:`n` counts the
-  stored trials inside them (eq. (14)): :math:`|c_k - c^i_k| \le t_k r_k` for every context
-  component :math:`k`, :math:`r_k` the normalization range width (decisions.md §11);
+* :math:`\beta` follows eqs. (12)-(14) with the paper's context-sharing count
+  (:mod:`cpgjax.exploration`), per instance;
 * inference mode fixes :math:`\beta = 10^{-6}` and skips the random phase (paper Sec. IV-C);
 * data reuse (paper Sec. III-A-2): with an ``objective_fn(record, target_velocity)``, each
   observation stores its trial record, and :meth:`set_target` recomputes every stored
@@ -39,8 +38,6 @@ values are concrete (not traced). Under ``jit``/``vmap`` the same checks run on 
 observation is not stored and ``observe`` returns ``accepted = False``.
 """
 
-import dataclasses
-import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -49,92 +46,25 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import gp
-from cpgjax import params as param_space
 from cpgjax.acquisition import (
     INACTIVE_VALUE,
-    UCB_FORMS,
-    AcquisitionConfig,
     maximize_acquisition,
     ucb_multiplier,
     upper_confidence_bound,
 )
+from cpgjax.exploration import BetaInfo, BetaSchedule, exploration_beta, paper_schedule
+from cpgjax.optimizer_config import OptimizerConfig, paper_config
 
-PAPER_CONTEXT_LOWER = (15.0, -0.4)
-PAPER_CONTEXT_UPPER = (75.0, 0.1)
-"""Ranges of c = [c_load (N), c_slope (rad)] (decisions.md §11)."""
-
-PAPER_CONTEXT_THRESHOLDS = (0.2, 0.1)
-"""t_load, t_slope of eq. (14), as fractions of the range widths."""
+__all__ = [
+    # This module: the optimizer of Algorithm 1.
+    "BOX_TOLERANCE", "ContextualBO", "OptimizerState", "make_optimizer",
+    # Its configuration and β schedule, re-exported so ``from cpgjax import bo`` is the one
+    # import a caller of the optimizer needs.
+    "BetaInfo", "BetaSchedule", "OptimizerConfig", "paper_config", "paper_schedule",
+]
 
 BOX_TOLERANCE = 1e-5
 """Relative slack (of the box width) when checking that observed parameters are in the box."""
-
-
-@dataclasses.dataclass(frozen=True)
-class OptimizerConfig:
-    """Static structure of an optimizer (changing it recompiles).
-
-    Attributes:
-      parameter_lower, parameter_upper: the box, physical units, one entry per parameter.
-      context_lower, context_upper: fixed normalization ranges of the context (empty: none).
-      context_thresholds: t_k of eq. (14) per context component, fraction of the range width.
-      capacity: maximum number of stored observations.
-      num_random_proposals: proposals drawn uniformly at random before the GP is used.
-      ucb_form: "paper" (mu + beta*sigma, eq. (8)) or "botorch" (mu + sqrt(beta)*sigma).
-      inference_beta: beta in inference mode.
-      fit: settings of the hyperparameter fit.
-      acquisition: settings of the acquisition maximizer.
-    """
-
-    parameter_lower: tuple[float, ...]
-    parameter_upper: tuple[float, ...]
-    context_lower: tuple[float, ...] = ()
-    context_upper: tuple[float, ...] = ()
-    context_thresholds: tuple[float, ...] = ()
-    capacity: int = 160
-    num_random_proposals: int = 2
-    ucb_form: str = "paper"
-    inference_beta: float = 1e-6
-    fit: gp.FitConfig = gp.FitConfig()
-    acquisition: AcquisitionConfig = AcquisitionConfig()
-
-    def __post_init__(self):
-        _check_box("parameter", self.parameter_lower, self.parameter_upper)
-        if len(self.parameter_lower) == 0:
-            raise ValueError("at least one parameter is needed")
-        _check_box("context", self.context_lower, self.context_upper)
-        if len(self.context_thresholds) != len(self.context_lower):
-            raise ValueError(
-                f"context_thresholds has {len(self.context_thresholds)} entries, expected one"
-                f" per context component ({len(self.context_lower)})"
-            )
-        if any(not t >= 0.0 for t in self.context_thresholds):
-            raise ValueError(f"context_thresholds must be >= 0, got {self.context_thresholds}")
-        if self.capacity < 1:
-            raise ValueError(f"capacity must be >= 1, got {self.capacity}")
-        if self.num_random_proposals < 0:
-            raise ValueError(f"num_random_proposals must be >= 0, got {self.num_random_proposals}")
-        if self.ucb_form not in UCB_FORMS:
-            raise ValueError(f"ucb_form must be one of {UCB_FORMS}, got {self.ucb_form!r}")
-        if self.acquisition.num_restarts > self.acquisition.num_candidates:
-            raise ValueError("acquisition.num_restarts must not exceed num_candidates")
-
-    @property
-    def num_parameters(self) -> int:
-        return len(self.parameter_lower)
-
-    @property
-    def num_contexts(self) -> int:
-        return len(self.context_lower)
-
-
-def _check_box(name, lower, upper):
-    if len(lower) != len(upper):
-        raise ValueError(f"{name} bounds differ in length: {len(lower)} vs {len(upper)}")
-    for i, (lo, hi) in enumerate(zip(lower, upper)):
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise ValueError(f"{name} bounds [{i}] must be finite with lower < upper, got"
-                             f" [{lo}, {hi}]")
 
 
 def _float32_inside(bounds, toward: float) -> np.ndarray:
@@ -144,46 +74,6 @@ def _float32_inside(bounds, toward: float) -> np.ndarray:
     rounded = exact.astype(np.float32)
     outside = rounded < exact if toward > 0 else rounded > exact
     return np.where(outside, np.nextafter(rounded, np.float32(toward)), rounded)
-
-
-def paper_config(**overrides) -> OptimizerConfig:
-    """The paper's setting: the Table I box of :mod:`cpgjax.params` (physical units, order
-    [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]), the context ranges of
-    decisions.md §11 and the thresholds of eq. (14)."""
-    settings = dict(
-        parameter_lower=tuple(float(v) for v in param_space.PARAM_LOWER),
-        parameter_upper=tuple(float(v) for v in param_space.PARAM_UPPER),
-        context_lower=PAPER_CONTEXT_LOWER,
-        context_upper=PAPER_CONTEXT_UPPER,
-        context_thresholds=PAPER_CONTEXT_THRESHOLDS,
-    )
-    settings.update(overrides)
-    return OptimizerConfig(**settings)
-
-
-class BetaSchedule(NamedTuple):
-    """Per-instance exploration schedule of eqs. (12)-(13) (Table III values by default).
-
-    Attributes (float32 scalars):
-      beta_init: beta_init of eq. (12).
-      gamma: decay rate.
-      n_decay: trials before the decay starts.
-      beta_init_changed: beta_init,c of eq. (13), used after a context change.
-      n_decay_changed: n_decay,c of eq. (13).
-    """
-
-    beta_init: jax.Array
-    gamma: jax.Array
-    n_decay: jax.Array
-    beta_init_changed: jax.Array
-    n_decay_changed: jax.Array
-
-
-def paper_schedule(beta_init=5.0, gamma=0.7, n_decay=10, beta_init_changed=1.5,
-                   n_decay_changed=3) -> BetaSchedule:
-    """A :class:`BetaSchedule` of float32 scalars; defaults are the paper's Table III."""
-    return BetaSchedule(*(jnp.asarray(v, jnp.float32) for v in
-                          (beta_init, gamma, n_decay, beta_init_changed, n_decay_changed)))
 
 
 class OptimizerState(NamedTuple):
@@ -215,15 +105,6 @@ class OptimizerState(NamedTuple):
     schedule: BetaSchedule
     inference_mode: jax.Array
     gp_params: gp.GPParams
-
-
-class BetaInfo(NamedTuple):
-    """Result of :meth:`ContextualBO.beta`: beta, n of eq. (14), and whether the context
-    changed (some stored trial outside the thresholds)."""
-
-    beta: jax.Array
-    num_in_context: jax.Array
-    context_changed: jax.Array
 
 
 class ContextualBO(NamedTuple):
@@ -317,16 +198,8 @@ def make_optimizer(
         return state._replace(gp_params=params)
 
     def beta(state, context):
-        within = jnp.all(jnp.abs(state.contexts - context) <= context_tolerance, axis=-1)
-        num_in_context = jnp.sum(state.stored & within)
-        changed = jnp.any(state.stored & ~within)
-        s = state.schedule
-        normal = s.beta_init * s.gamma ** jnp.maximum(num_in_context - s.n_decay, 0.0)
-        adapted = s.beta_init_changed * s.gamma ** jnp.maximum(
-            num_in_context - s.n_decay_changed, 0.0)
-        value = jnp.where(changed, adapted, normal)
-        value = jnp.where(state.inference_mode, config.inference_beta, value)
-        return BetaInfo(value, num_in_context, changed)
+        return exploration_beta(state.schedule, state.contexts, state.stored, context,
+                                context_tolerance, state.inference_mode, config.inference_beta)
 
     def to_physical(unit_point):
         return jnp.clip(lower + unit_point * width, lower_inside, upper_inside)
@@ -527,77 +400,3 @@ def make_optimizer(
 
     return ContextualBO(init_fn, propose_fn, observe_fn, set_target_fn, set_inference_mode_fn,
                         beta_fn, best_observed_fn, posterior_mean_argmax_fn)
-
-
-@functools.lru_cache(maxsize=16)
-def _black_box_optimizer(config: OptimizerConfig) -> ContextualBO:
-    """One compiled optimizer per configuration, so repeated :func:`maximize` calls (seeds)
-    do not recompile."""
-    return make_optimizer(config)
-
-
-class MaximizeResult(NamedTuple):
-    """Result of :func:`maximize`: the best point and value, and the whole history."""
-
-    best_x: np.ndarray
-    best_value: float
-    xs: np.ndarray
-    values: np.ndarray
-
-
-def maximize(
-    fn: Callable[[np.ndarray], float],
-    bounds,
-    num_trials: int,
-    seed: int = 0,
-    *,
-    num_random_proposals: int = 2,
-    ucb_form: str = "paper",
-    schedule: BetaSchedule | None = None,
-    fit: gp.FitConfig = gp.FitConfig(),
-    acquisition: AcquisitionConfig = AcquisitionConfig(),
-    initial_xs=None,
-) -> MaximizeResult:
-    """Maximize a black-box ``fn`` over a box with GP-UCB (Algorithm 1, no context).
-
-    Args:
-      fn: maps a (d,) NumPy array to a finite float.
-      bounds: (2, d) array-like, lower then upper bounds.
-      num_trials: evaluations of ``fn`` (including the random ones).
-      seed: seed of the PRNG keys.
-      num_random_proposals: initial uniform random proposals (ignored for the points given
-        in ``initial_xs``, which are evaluated first).
-      ucb_form, schedule, fit, acquisition: as in :class:`OptimizerConfig` / ``init``.
-      initial_xs: optional (k, d) points to evaluate first (e.g. a shared initial design).
-
-    Returns:
-      A :class:`MaximizeResult`.
-    """
-    bounds = np.asarray(bounds, np.float64)
-    if bounds.ndim != 2 or bounds.shape[0] != 2:
-        raise ValueError(f"bounds must have shape (2, d), got {bounds.shape}")
-    if num_trials < 1:
-        raise ValueError(f"num_trials must be >= 1, got {num_trials}")
-    config = OptimizerConfig(
-        parameter_lower=tuple(bounds[0]), parameter_upper=tuple(bounds[1]),
-        capacity=num_trials, num_random_proposals=num_random_proposals, ucb_form=ucb_form,
-        fit=fit, acquisition=acquisition,
-    )
-    optimizer = _black_box_optimizer(config)
-    state = optimizer.init(schedule=schedule)
-    initial = np.zeros((0, bounds.shape[1])) if initial_xs is None else np.asarray(initial_xs)
-    no_context = jnp.zeros((0,), jnp.float32)
-    key = jax.random.PRNGKey(seed)
-    xs, values = [], []
-    for trial in range(num_trials):
-        key, subkey = jax.random.split(key)
-        x = initial[trial] if trial < len(initial) else np.asarray(
-            optimizer.propose(state, no_context, subkey))
-        value = float(fn(np.asarray(x, np.float64)))
-        state, _ = optimizer.observe(state, jnp.asarray(x, jnp.float32), no_context,
-                                     jnp.float32(value))
-        xs.append(np.asarray(x, np.float64))
-        values.append(value)
-    values_np = np.asarray(values)
-    best = int(np.argmax(values_np))
-    return MaximizeResult(xs[best], float(values_np[best]), np.stack(xs), values_np)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax import bo, gp
+from cpgjax import black_box, bo, gp
 from cpgjax.acquisition import AcquisitionConfig
 
 SMALL = bo.paper_config(capacity=12, fit=gp.FitConfig(30, 0.2),
@@ -332,7 +332,7 @@ def test_maximize_finds_the_branin_minimum():
     (measured: 0.059, 0.0098, 0.0011)."""
     regrets = []
     for seed in range(3):
-        result = bo.maximize(lambda x: -branin(x), [[-5.0, 0.0], [10.0, 15.0]], num_trials=40,
+        result = black_box.maximize(lambda x: -branin(x), [[-5.0, 0.0], [10.0, 15.0]], num_trials=40,
                              seed=seed)
         assert result.xs.shape == (40, 2) and result.best_value == result.values.max()
         assert branin(result.best_x) == pytest.approx(-result.best_value)

@@ -1,0 +1,107 @@
+"""Static structure of the contextual-BO optimizer (:class:`OptimizerConfig`) and the paper's
+setting (:func:`paper_config`).
+
+A configuration fixes everything that shapes the compiled program: the parameter box and the
+context normalization ranges (physical units), the context-sharing thresholds of eq. (14), the
+dataset capacity, the length of the random phase, the UCB form (decisions.md §2) and the
+static settings of the GP fit and of the acquisition maximizer. Changing it recompiles; per-
+instance data (β schedules, active inputs, targets) live in the optimizer state instead
+(:mod:`cpgjax.bo`).
+"""
+
+import dataclasses
+
+import numpy as np
+
+from cpgjax import gp
+from cpgjax import params as param_space
+from cpgjax.acquisition import UCB_FORMS, AcquisitionConfig
+
+PAPER_CONTEXT_LOWER = (15.0, -0.4)
+PAPER_CONTEXT_UPPER = (75.0, 0.1)
+"""Ranges of c = [c_load (N), c_slope (rad)] (decisions.md §11)."""
+
+PAPER_CONTEXT_THRESHOLDS = (0.2, 0.1)
+"""t_load, t_slope of eq. (14), as fractions of the range widths."""
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimizerConfig:
+    """Static structure of an optimizer (changing it recompiles).
+
+    Attributes:
+      parameter_lower, parameter_upper: the box, physical units, one entry per parameter.
+      context_lower, context_upper: fixed normalization ranges of the context (empty: none).
+      context_thresholds: t_k of eq. (14) per context component, fraction of the range width.
+      capacity: maximum number of stored observations.
+      num_random_proposals: proposals drawn uniformly at random before the GP is used.
+      ucb_form: "paper" (mu + beta*sigma, eq. (8)) or "botorch" (mu + sqrt(beta)*sigma).
+      inference_beta: beta in inference mode.
+      fit: settings of the hyperparameter fit.
+      acquisition: settings of the acquisition maximizer.
+    """
+
+    parameter_lower: tuple[float, ...]
+    parameter_upper: tuple[float, ...]
+    context_lower: tuple[float, ...] = ()
+    context_upper: tuple[float, ...] = ()
+    context_thresholds: tuple[float, ...] = ()
+    capacity: int = 160
+    num_random_proposals: int = 2
+    ucb_form: str = "paper"
+    inference_beta: float = 1e-6
+    fit: gp.FitConfig = gp.FitConfig()
+    acquisition: AcquisitionConfig = AcquisitionConfig()
+
+    def __post_init__(self):
+        _check_box("parameter", self.parameter_lower, self.parameter_upper)
+        if len(self.parameter_lower) == 0:
+            raise ValueError("at least one parameter is needed")
+        _check_box("context", self.context_lower, self.context_upper)
+        if len(self.context_thresholds) != len(self.context_lower):
+            raise ValueError(
+                f"context_thresholds has {len(self.context_thresholds)} entries, expected one"
+                f" per context component ({len(self.context_lower)})"
+            )
+        if any(not t >= 0.0 for t in self.context_thresholds):
+            raise ValueError(f"context_thresholds must be >= 0, got {self.context_thresholds}")
+        if self.capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {self.capacity}")
+        if self.num_random_proposals < 0:
+            raise ValueError(f"num_random_proposals must be >= 0, got {self.num_random_proposals}")
+        if self.ucb_form not in UCB_FORMS:
+            raise ValueError(f"ucb_form must be one of {UCB_FORMS}, got {self.ucb_form!r}")
+        if self.acquisition.num_restarts > self.acquisition.num_candidates:
+            raise ValueError("acquisition.num_restarts must not exceed num_candidates")
+
+    @property
+    def num_parameters(self) -> int:
+        return len(self.parameter_lower)
+
+    @property
+    def num_contexts(self) -> int:
+        return len(self.context_lower)
+
+
+def _check_box(name, lower, upper):
+    if len(lower) != len(upper):
+        raise ValueError(f"{name} bounds differ in length: {len(lower)} vs {len(upper)}")
+    for i, (lo, hi) in enumerate(zip(lower, upper)):
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(f"{name} bounds [{i}] must be finite with lower < upper, got"
+                             f" [{lo}, {hi}]")
+
+
+def paper_config(**overrides) -> OptimizerConfig:
+    """The paper's setting: the Table I box of :mod:`cpgjax.params` (physical units, order
+    [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]), the context ranges of
+    decisions.md §11 and the thresholds of eq. (14)."""
+    settings = dict(
+        parameter_lower=tuple(float(v) for v in param_space.PARAM_LOWER),
+        parameter_upper=tuple(float(v) for v in param_space.PARAM_UPPER),
+        context_lower=PAPER_CONTEXT_LOWER,
+        context_upper=PAPER_CONTEXT_UPPER,
+        context_thresholds=PAPER_CONTEXT_THRESHOLDS,
+    )
+    settings.update(overrides)
+    return OptimizerConfig(**settings)
