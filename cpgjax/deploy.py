@@ -18,6 +18,7 @@ The optimizer is anything with ``propose(context) -> params`` and ``observe(para
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import multiprocessing
@@ -290,14 +291,81 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
     return result, rows
 
 
-def _parse_args(argv):
-    from cpgjax import cpg
+def add_robot_args(p: argparse.ArgumentParser) -> None:
+    """The options that choose and reach the robot (``cpgjax deploy`` and ``cpgjax deploy calibrate``)."""
     from cpgjax import hardware_io as hio
 
-    p = argparse.ArgumentParser(prog="cpgjax deploy", description="Run the CPG controller at 1 kHz on a Go1 or on "
-                                "the loopback simulated Go1; replay parameters or optimize them online.")
     p.add_argument("--robot", choices=("sim", "go1"), required=True,
                    help="sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
+    p.add_argument("--transport", choices=("udp", "sdk"), help="default: sdk for go1, udp for sim")
+    p.add_argument("--robot-ip", default=hio.GO1_ROBOT_IP, help="go1 only")
+    p.add_argument("--robot-port", type=int, default=hio.GO1_ROBOT_PORT, help="go1 only")
+    p.add_argument("--local-port", type=int, default=hio.GO1_LOCAL_PORT, help="go1 only")
+    p.add_argument("--power-level", type=int, default=9, help="power protection level 1…10 (100 W each)")
+    p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime",
+                   help="lockstep: one physics step per command, the loop waits for each answer (not real time)")
+    p.add_argument("--payload-kg", type=float, default=0.0, help="payload carried (counts in CoT; sim: simulated)")
+    p.add_argument("--friction", type=float, default=0.6, help="sim only")
+    p.add_argument("--slope-deg", type=float, default=0.0, help="sim only")
+    p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
+    p.add_argument("--cpu", type=int, help="pin the loop to this CPU (sim: the simulated Go1 to the others)")
+
+
+def loop_and_safety(args):
+    """(LoopConfig, SafetyConfig) of the command line's options."""
+    from cpgjax import hardware_io as hio
+
+    return (hio.LoopConfig(realtime_priority=None if args.no_realtime else 80, cpu=args.cpu),
+            hio.SafetyConfig(power_level=args.power_level))
+
+
+def robot_mass_kg(payload_kg: float) -> float:
+    """The Go1's mass in cpgjax's model plus the payload it carries [kg]."""
+    from cpgjax import go1_model
+
+    return float(go1_model.load_model().body_subtreemass[go1_model.indices().trunk_body]) + payload_kg
+
+
+@contextlib.contextmanager
+def connect(args):
+    """(transport, simulated Go1 client or None) for the robot of the command line; both closed on exit."""
+    from cpgjax import hardware_io as hio
+    from cpgjax import sim_go1_server as sim
+
+    server = None
+    if args.robot == "sim":
+        # The simulated robot shares this machine's CPUs: real-time priority (below the loop's) keeps other
+        # processes, the optimizer included, from starving it. With --cpu it runs on the other CPUs.
+        sim_cpus = None if args.cpu is None else (set(os.sched_getaffinity(0)) - {args.cpu}) or None
+        server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
+                                  payload_kg=args.payload_kg, realtime_priority=None if args.no_realtime else 70,
+                                  cpus=sim_cpus)
+        ip, port, local_port = server.address[0], server.port, 0
+    else:
+        ip, port, local_port = args.robot_ip, args.robot_port, args.local_port
+    try:
+        if (args.transport or ("sdk" if args.robot == "go1" else "udp")) == "sdk":
+            transport = hio.SdkTransport(ip, port, local_port or _free_port(), power_level=args.power_level)
+        elif args.robot == "sim" and args.sim_pacing == "lockstep":
+            transport = hio.LockstepTransport((ip, port))
+        else:
+            transport = hio.UdpTransport((ip, port), local_port)
+        try:
+            yield transport, server
+        finally:
+            transport.close()
+    finally:
+        if server is not None:
+            server.close()
+
+
+def _parse_args(argv):
+    from cpgjax import cpg
+
+    p = argparse.ArgumentParser(prog="cpgjax deploy", description="Run the CPG controller at 1 kHz on a Go1 or on "
+                                "the loopback simulated Go1; replay parameters or optimize them online. "
+                                "`cpgjax deploy calibrate --help`: the foot-force calibration.")
+    add_robot_args(p)
     what = p.add_mutually_exclusive_group()
     what.add_argument("--params", type=Path, help="replay these parameters (JSON from save_params / best_params)")
     what.add_argument("--optimize", action="store_true", help="online optimization (Algorithm 1)")
@@ -309,22 +377,12 @@ def _parse_args(argv):
     p.add_argument("--transition-s", type=float, default=1.5)
     p.add_argument("--steady-s", type=float, default=3.0)
     p.add_argument("--log-dir", type=Path, default=Path("runs/deploy"))
-    p.add_argument("--calibration", type=Path, help="foot-force calibration JSON (required with --robot go1)")
-    p.add_argument("--transport", choices=("udp", "sdk"), help="default: sdk for go1, udp for sim")
-    p.add_argument("--robot-ip", default=hio.GO1_ROBOT_IP, help="go1 only")
-    p.add_argument("--robot-port", type=int, default=hio.GO1_ROBOT_PORT, help="go1 only")
-    p.add_argument("--local-port", type=int, default=hio.GO1_LOCAL_PORT, help="go1 only")
-    p.add_argument("--power-level", type=int, default=9, help="power protection level 1…10 (100 W each)")
-    p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime")
-    p.add_argument("--payload-kg", type=float, default=0.0, help="payload carried (counts in CoT; sim: simulated)")
-    p.add_argument("--friction", type=float, default=0.6, help="sim only")
-    p.add_argument("--slope-deg", type=float, default=0.0, help="sim only")
-    p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
-    p.add_argument("--cpu", type=int, help="pin the loop to this CPU (sim: the simulated Go1 to the others)")
+    p.add_argument("--calibration", type=Path, help="foot-force calibration JSON from `cpgjax deploy calibrate` "
+                   "(required with --robot go1; sim: the simulated sensor's exact calibration by default)")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     if args.robot == "go1" and args.calibration is None:
-        p.error("--robot go1 needs --calibration FILE (foot-force offsets and scale, see docs/hardware.md)")
+        p.error("--robot go1 needs --calibration FILE (run `cpgjax deploy calibrate` first, see docs/hardware.md)")
     return args
 
 
@@ -338,60 +396,42 @@ def sim_calibration():
 
 
 def main(argv=None) -> int:
-    """``cpgjax deploy``. Returns 0 after a clean end, 2 after a safety trip."""
-    from cpgjax import cpg, go1_model
-    from cpgjax import hardware_io as hio
-    from cpgjax import sim_go1_server as sim
+    """``cpgjax deploy`` (and ``cpgjax deploy calibrate``). Returns 0 after a clean end, 2 after a safety trip."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["calibrate"]:
+        from cpgjax import calibrate
 
-    args = _parse_args(sys.argv[1:] if argv is None else argv)
+        return calibrate.main(argv[1:])
+    from cpgjax import cpg
+    from cpgjax import hardware_io as hio
+
+    args = _parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     gates = cpg.controller_gates(args.controller)
     params = load_params(args.params) if args.params else param_space.midpoint()
-    loop = hio.LoopConfig(realtime_priority=None if args.no_realtime else 80, cpu=args.cpu)
-    safety = hio.SafetyConfig(power_level=args.power_level)
+    loop, safety = loop_and_safety(args)
     args.log_dir.mkdir(parents=True, exist_ok=True)
-
-    server = None
-    if args.robot == "sim":
-        # The simulated robot shares this machine's CPUs: real-time priority (below the loop's) keeps other
-        # processes, the optimizer included, from starving it.
-        # With --cpu, the simulated robot runs on the other CPUs (it never preempts the loop there).
-        sim_cpus = None if args.cpu is None else (set(os.sched_getaffinity(0)) - {args.cpu}) or None
-        server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
-                                  payload_kg=args.payload_kg, realtime_priority=None if args.no_realtime else 70,
-                                  cpus=sim_cpus)
-        calibration = sim_calibration() if args.calibration is None else hio.FootForceCalibration.load(args.calibration)
-        ip, port, local_port = server.address[0], server.port, 0
+    if args.calibration is None:
+        calibration = sim_calibration()
     else:
         calibration = hio.FootForceCalibration.load(args.calibration)
-        ip, port, local_port = args.robot_ip, args.robot_port, args.local_port
     log.info("foot-force calibration: offsets %s counts, %s N/count", calibration.offset_counts,
              calibration.newton_per_count)
     calibration.save(args.log_dir / "calibration.json")
-    try:
+    with connect(args) as (transport, _):
         controller = hio.CompiledController()
-        use_sdk = (args.transport or ("sdk" if args.robot == "go1" else "udp")) == "sdk"
-        transport = (hio.SdkTransport(ip, port, local_port or _free_port(), power_level=args.power_level) if use_sdk
-                     else hio.UdpTransport((ip, port), local_port))
-        try:
-            if args.optimize:
-                mass = float(go1_model.load_model().body_subtreemass[go1_model.indices().trunk_body]) + args.payload_kg
-                spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity, bool(gates.tegotae), mass,
-                                     str(args.log_dir), args.controller)
-                timing = TrialTiming(round(args.transition_s * 1000), round(args.steady_s * 1000))
-                result, rows = online_optimization(transport, controller, calibration, gates, spec, params,
-                                                   args.trials, timing, loop, safety)
-                for row in rows:
-                    log.info("trial %d: J = %.3f, v_x = %.2f m/s, context = (%.1f N, %.3f rad)", row["trial"],
-                             row["objective"], row["v_x_mps"], row["c_load_n"], row["c_slope_rad"])
-            else:
-                result = hio.run_loop(transport, controller, hio.FixedParams(params, round(args.duration_s * 1000)),
-                                      calibration, gates, loop, safety)
-        finally:
-            transport.close()
-    finally:
-        if server is not None:
-            server.close()
+        if args.optimize:
+            spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity, bool(gates.tegotae),
+                                 robot_mass_kg(args.payload_kg), str(args.log_dir), args.controller)
+            timing = TrialTiming(round(args.transition_s * 1000), round(args.steady_s * 1000))
+            result, rows = online_optimization(transport, controller, calibration, gates, spec, params,
+                                               args.trials, timing, loop, safety)
+            for row in rows:
+                log.info("trial %d: J = %.3f, v_x = %.2f m/s, context = (%.1f N, %.3f rad)", row["trial"],
+                         row["objective"], row["v_x_mps"], row["c_load_n"], row["c_slope_rad"])
+        else:
+            result = hio.run_loop(transport, controller, hio.FixedParams(params, round(args.duration_s * 1000)),
+                                  calibration, gates, loop, safety)
     summary = {"trip": result.trip, "events": result.events, "realtime": result.realtime,
                "rejected_packets": result.rejected_packets, "timing": result.timing()}
     (args.log_dir / "run.json").write_text(json.dumps(summary, indent=1))

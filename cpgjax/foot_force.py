@@ -20,9 +20,10 @@ class FootForceCalibration(NamedTuple):
     def to_newtons(self, raw_counts: np.ndarray) -> np.ndarray:
         return (raw_counts - self.offset_counts) * self.newton_per_count
 
-    def save(self, path) -> None:
+    def save(self, path, **info) -> None:
+        """JSON {offset_counts, newton_per_count, ...info} (``info``: how it was measured; :meth:`load` ignores it)."""
         Path(path).write_text(json.dumps({"offset_counts": self.offset_counts.tolist(),
-                                          "newton_per_count": self.newton_per_count.tolist()}, indent=1))
+                                          "newton_per_count": self.newton_per_count.tolist(), **info}, indent=1))
 
     @classmethod
     def load(cls, path) -> FootForceCalibration:

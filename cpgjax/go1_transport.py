@@ -1,6 +1,7 @@
 """Transports of the Go1's low-level packets: :class:`UdpTransport` (cpgjax's own implementation of the SDK's
-low-level UDP protocol, used for the loopback simulated Go1 and usable on the robot) and :class:`SdkTransport` (the
-official ``unitree_legged_sdk`` Python binding, optional extra ``go1``). Both move
+low-level UDP protocol, used for the loopback simulated Go1 and usable on the robot; :class:`LockstepTransport`
+waits for a lockstep simulated Go1's answers) and :class:`SdkTransport` (the official ``unitree_legged_sdk`` Python
+binding, optional extra ``go1``). Both move
 :class:`~cpgjax.go1_protocol.RobotState` in and :class:`~cpgjax.go1_protocol.MotorCommand` out (go1-sdk.md §1.5–1.7).
 
 The robot's real address appears only as the default of :data:`GO1_ROBOT_IP`; tests and examples use 127.0.0.1.
@@ -8,6 +9,7 @@ The robot's real address appears only as the default of :data:`GO1_ROBOT_IP`; te
 
 from __future__ import annotations
 
+import select
 import socket
 from typing import Protocol
 
@@ -89,6 +91,31 @@ class UdpTransport:
 
     def close(self) -> None:
         self.sock.close()
+
+
+class LockstepTransport(UdpTransport):
+    """:class:`UdpTransport` for a simulated Go1 in lockstep pacing (one physics step per command): ``receive`` first
+    waits, up to ``timeout_s``, for a datagram after each command, so the loop, its observations and the physics
+    advance together however loaded the machine is. Not real time: never use it with a robot.
+
+    Without the wait, a simulated Go1 starved of CPU answers late and in bursts, the loop runs on stale observations
+    while the physics still steps once per command, and the walk can go unstable for reasons that are the machine's,
+    not the loop's. Faults that withhold answers (drop, silence) cost one timeout per tick.
+    """
+
+    def __init__(self, robot_address: tuple[str, int], local_port: int = 0, timeout_s: float = 0.1):
+        super().__init__(robot_address, local_port)
+        self.timeout_s = timeout_s
+        self._answer_due = False
+
+    def receive(self) -> proto.RobotState | None:
+        if self._answer_due:
+            select.select([self.sock], [], [], self.timeout_s)
+        return super().receive()
+
+    def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
+        super().send(cmd, state)
+        self._answer_due = True
 
 
 class SdkTransport:

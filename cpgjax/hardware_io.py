@@ -34,13 +34,13 @@ from cpgjax.go1_safety import (  # noqa: F401  (re-exported)
     JOINT_LOWER_RAD, JOINT_UPPER_RAD, TORQUE_LIMIT_NM, SafetyConfig, damping_command, guard_command, pd_command,
     power_protect, state_trip_reason, tilt_rad, torque_command)
 from cpgjax.go1_transport import (  # noqa: F401  (re-exported)
-    GO1_LOCAL_PORT, GO1_ROBOT_IP, GO1_ROBOT_PORT, SdkTransport, Transport, UdpTransport)
+    GO1_LOCAL_PORT, GO1_ROBOT_IP, GO1_ROBOT_PORT, LockstepTransport, SdkTransport, Transport, UdpTransport)
 
 log = logging.getLogger(__name__)
 
 # Loop phases (logged per tick).
-CONNECT, HOLD, RAMP, RUN, DAMP = range(5)
-PHASE_NAMES = ("connect", "hold", "ramp", "run", "damp")
+CONNECT, HOLD, RAMP, STAND, RUN, DAMP = range(6)
+PHASE_NAMES = ("connect", "hold", "ramp", "stand", "run", "damp")
 
 
 class ParamSchedule(Protocol):
@@ -56,12 +56,12 @@ class ParamSchedule(Protocol):
 
 
 class FixedParams:
-    """One parameter set for ``run_ticks`` ticks (None: until stopped)."""
+    """One parameter set for ``run_ticks`` ticks (None: until stopped; 0: the run phase is skipped)."""
 
     def __init__(self, params: np.ndarray, run_ticks: int | None = None):
         self._params = np.asarray(params, np.float32)
         self._run_ticks = run_ticks
-        self.finished = False
+        self.finished = run_ticks == 0
 
     def params(self, run_tick: int) -> np.ndarray:
         return self._params
@@ -79,6 +79,7 @@ class LoopConfig(NamedTuple):
     connect_timeout_s: float = 2.0  # no robot state by then → give up
     hold_s: float = 0.5  # hold the measured pose while Kp ramps from hold_kp_fraction to stand_kp
     ramp_s: float = 1.0  # then move linearly to the standing pose
+    stand_s: float = 0.0  # then hold the standing pose this long before the run phase
     stand_kp_nm_rad: float = 70.0
     stand_kd_nm_s_rad: float = 1.5
     hold_kp_fraction: float = 0.2
@@ -101,6 +102,7 @@ class TickLog(NamedTuple):
     phase: np.ndarray  # CONNECT … DAMP
     fresh: np.ndarray  # a new robot state arrived this tick
     robot_tick_ms: np.ndarray
+    foot_force_raw: np.ndarray  # (n, 4) the latest robot state's raw foot-sensor counts
     obs: np.ndarray  # (n, OBS_SIZE) observation given to the controller (run phase)
     torque_nm: np.ndarray  # (n, 12) torque sent (run phase, after clamping)
     controller_torque_nm: np.ndarray  # (n, 12) torque returned by the controller (before clamping)
@@ -109,8 +111,8 @@ class TickLog(NamedTuple):
     def allocate(cls, n: int) -> TickLog:
         return cls(np.zeros(n), np.zeros(n, np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32),
                    np.zeros(n, np.float32), np.zeros(n, bool), np.full(n, -1, np.int8), np.zeros(n, bool),
-                   np.zeros(n, np.uint32), np.zeros((n, OBS_SIZE), np.float32), np.zeros((n, 12), np.float32),
-                   np.zeros((n, 12), np.float32))
+                   np.zeros(n, np.uint32), np.zeros((n, 4), np.int16), np.zeros((n, OBS_SIZE), np.float32),
+                   np.zeros((n, 12), np.float32), np.zeros((n, 12), np.float32))
 
     def chronological(self, ticks: int) -> TickLog:
         n = self.phase.shape[0]
@@ -218,21 +220,23 @@ def _wait_until(deadline: float, spin_s: float) -> None:
         pass
 
 
-def run_loop(transport: Transport, controller: CompiledController, schedule: ParamSchedule,
-             calibration: FootForceCalibration, gates: cpg.Gates, loop: LoopConfig = LoopConfig(),
+def run_loop(transport: Transport, controller: CompiledController | None, schedule: ParamSchedule,
+             calibration: FootForceCalibration | None, gates: cpg.Gates, loop: LoopConfig = LoopConfig(),
              safety: SafetyConfig = SafetyConfig()) -> LoopResult:
-    """Connect, soft-start, run the CPG at 1 kHz until ``schedule.finished``, Ctrl-C or a safety trip; then damp
-    for ``loop.end_damping_s`` and return.
+    """Connect, soft-start (hold, ramp, ``loop.stand_s`` of standing), run the CPG at 1 kHz until
+    ``schedule.finished``, Ctrl-C or a safety trip; then damp for ``loop.end_damping_s`` and return.
 
     Each tick: take the newest valid state (non-blocking) → watchdog and state checks → the phase's command (hold /
-    ramp: motor PD; run: the compiled controller's torques; damp) → guard (finite, clamped) → power protection →
-    send → wait for the next absolute deadline.
+    ramp / stand: motor PD; run: the compiled controller's torques; damp) → guard (finite, clamped) → power
+    protection → send → wait for the next absolute deadline. A schedule finished from the start skips the run phase
+    (``controller`` and ``calibration`` are then unused and may be None; see :func:`stand`).
     """
     period = loop.period_s
     ids = go1_model.indices()
     stand_q = go1_model.standing_qpos()[ids.joint_qpos]
     stop_mask = sum(proto.REMOTE_BUTTON_BITS[b] for b in safety.stop_buttons)
     hold_ticks, ramp_ticks = max(1, round(loop.hold_s / period)), max(1, round(loop.ramp_s / period))
+    stand_ticks = round(loop.stand_s / period)
     end_ticks = max(1, round(loop.end_damping_s / period))
     damp = damping_command(loop.damping_kd_nm_s_rad)
     n_log = loop.log_ticks
@@ -252,6 +256,12 @@ def run_loop(transport: Transport, controller: CompiledController, schedule: Par
         events.append((k, PHASE_NAMES[new_phase], message))
         log.info("tick %d: %s (%s)", k, PHASE_NAMES[new_phase], message)
         phase, phase_tick = new_phase, k
+
+    def end_soft_start() -> None:
+        if schedule.finished:
+            enter(DAMP, "run complete")
+        else:
+            enter(RUN, "CPG running")
 
     realtime, restore = _enter_realtime(loop)
     gc.collect()
@@ -303,8 +313,14 @@ def run_loop(transport: Transport, controller: CompiledController, schedule: Par
                 elif phase == RAMP:
                     a = min(1.0, (k - phase_tick + 1) / ramp_ticks)
                     cmd = pd_command(hold_q + a * (stand_q - hold_q), loop.stand_kp_nm_rad, loop.stand_kd_nm_s_rad)
-                    if a >= 1.0:
-                        enter(RUN, "CPG running")
+                    if a >= 1.0 and stand_ticks:
+                        enter(STAND, "standing")
+                    elif a >= 1.0:
+                        end_soft_start()
+                elif phase == STAND:
+                    cmd = pd_command(stand_q, loop.stand_kp_nm_rad, loop.stand_kd_nm_s_rad)
+                    if k - phase_tick + 1 >= stand_ticks:
+                        end_soft_start()
                 elif phase == RUN:
                     ts = time.perf_counter()
                     pack_observation(last_state, calibration, x)
@@ -343,6 +359,8 @@ def run_loop(transport: Transport, controller: CompiledController, schedule: Par
                 tick_log.phase[i] = DAMP if reason is not None else command_phase
                 tick_log.fresh[i] = fresh
                 tick_log.robot_tick_ms[i] = last_robot_tick or 0
+                if last_state is not None:
+                    tick_log.foot_force_raw[i] = last_state.foot_force_raw
                 tick_log.torque_nm[i] = cmd.tau_nm
                 tick_log.work_s[i] = time.perf_counter() - t0
                 tick_log.work_cpu_s[i] = time.thread_time() - cpu0
@@ -366,3 +384,11 @@ def run_loop(transport: Transport, controller: CompiledController, schedule: Par
     return LoopResult(trip=trip, events=events, ticks=k, overruns=overruns, skipped_ticks=skipped,
                       rejected_packets=dict(getattr(transport, "rejected", {})), realtime=realtime,
                       log=tick_log.chronological(k))
+
+
+def stand(transport: Transport, stand_s: float, loop: LoopConfig = LoopConfig(),
+          safety: SafetyConfig = SafetyConfig()) -> LoopResult:
+    """The loop without the controller: connect, soft start, hold the standing pose for ``stand_s``, damp (with
+    every safety check of :func:`run_loop`). What the foot-force calibration measures the sensors with."""
+    return run_loop(transport, None, FixedParams(np.zeros(8), 0), None, cpg.Gates(0.0, 0.0),
+                    loop._replace(stand_s=stand_s), safety)

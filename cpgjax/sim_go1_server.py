@@ -10,10 +10,11 @@ calibration path is exercised (decisions.md §3).
 
 Pacing: ``realtime`` steps at 1 kHz on absolute wall-clock deadlines once the first command has arrived (the
 physics is frozen until then, like a robot waiting for low-level control) and streams one state per tick;
-``lockstep`` steps once per received command and answers at once (deterministic tests on a loaded machine).
+``lockstep`` steps once per received command and answers at once (deterministic tests on a loaded machine; drive it
+with ``go1_transport.LockstepTransport``).
 
-Fault injection for tests goes through a second UDP socket (the control port, JSON requests), see
-:class:`SimGo1Client`. Run ``python -m cpgjax.sim_go1_server --help``. Only 127.0.0.1 is ever bound.
+Fault injection for tests, resets and lifting the robot off the ground (foot-force calibration) go through a second
+UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``python -m cpgjax.sim_go1_server --help``. Only 127.0.0.1 is ever bound.
 """
 
 from __future__ import annotations
@@ -80,13 +81,25 @@ class Go1Physics:
         self.reset()
 
     def reset(self) -> None:
-        """Standing at the origin, at rest."""
+        """Standing at the origin, at rest (on the ground)."""
         self._mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = self._standing
         self._mujoco.mj_forward(self.model, self.data)
+        self.held_root_qpos = None
+
+    def lift(self, height_m: float) -> None:
+        """Hold the trunk ``height_m`` above its standing pose, like a robot hung from a crane for calibration: from
+        the next step on its root is kept there at rest, and the legs move freely in the air."""
+        root = self.ids.root_qpos
+        self.held_root_qpos = self.data.qpos[root:root + 7].copy()
+        self.held_root_qpos[2] += height_m
 
     def step(self, torque_nm: np.ndarray, push_roll_nm: float = 0.0) -> None:
         """Apply joint torques (12,) [and an external roll torque on the trunk] for one 1 ms physics step."""
+        if self.held_root_qpos is not None:
+            root, dof = self.ids.root_qpos, self.ids.root_dof
+            self.data.qpos[root:root + 7] = self.held_root_qpos
+            self.data.qvel[dof:dof + 6] = 0.0
         self.data.ctrl[self.ids.actuator] = torque_nm
         self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
         self._mujoco.mj_step(self.model, self.data)
@@ -189,6 +202,8 @@ class SimGo1Server:
                 self.physics.reset()
                 self._reset_counters()
                 self.faults = []
+            elif op == "lift":
+                self.physics.lift(float(request["height_m"]))
             elif op == "fault":
                 kind = request["kind"]
                 if kind not in FAULT_KINDS:
@@ -324,8 +339,12 @@ class SimGo1Client:
         self.request("fault", kind=kind, value=value, after_ticks=after_ticks, ticks=ticks)
 
     def reset(self) -> None:
-        """Robot standing again, frozen until the next command; faults cleared; counters zeroed."""
+        """Robot standing on the ground again, frozen until the next command; faults cleared; counters zeroed."""
         self.request("reset")
+
+    def lift(self, height_m: float = 0.3) -> None:
+        """Hang the robot ``height_m`` above where it stands (feet in the air) until the next reset."""
+        self.request("lift", height_m=height_m)
 
     def stats(self) -> dict:
         return self.request("stats")

@@ -1,13 +1,13 @@
 """The 1 kHz deployment loop through the loopback simulated Go1 (127.0.0.1, ephemeral ports only).
 
 One simulated Go1 process in lockstep pacing (one physics step per command) serves every test, and the loop's
-transport waits for the answer to its last command before each tick (:class:`_LockstepTransport`), so the loop, its
+transport waits for the answer to its last command before each tick (``LockstepTransport``), so the loop, its
 observations and the physics advance together however loaded this machine is; each test resets the simulated Go1 and
 injects its fault from the control port. No test asserts real-time figures: those are in
 benchmarks/hardware_loop.py.
 """
 
-import select
+import json
 import signal
 import time
 
@@ -39,37 +39,12 @@ def robot():
         yield server
 
 
-class _LockstepTransport(hio.UdpTransport):
-    """The UDP transport, but ``receive`` first waits (up to ``timeout_s``) for a datagram after each command.
-
-    Without the wait, a simulated Go1 starved of CPU by other processes answers late and in bursts: the loop then
-    runs on stale observations for tens of ticks while the physics still steps once per command, and the walk can
-    go unstable (power trips, watchdog trips) for reasons that are the test machine's, not the loop's. Faults that
-    withhold answers (drop, silence) cost one timeout per tick.
-    """
-
-    timeout_s = 0.1
-
-    def __init__(self, robot_address):
-        super().__init__(robot_address)
-        self._answer_due = False
-
-    def receive(self):
-        if self._answer_due:
-            select.select([self.sock], [], [], self.timeout_s)
-        return super().receive()
-
-    def send(self, cmd, state):
-        super().send(cmd, state)
-        self._answer_due = True
-
-
 def _run(robot, controller, run_ticks=600, fault=None, safety=SAFETY, schedule=None, transport=None):
     robot.reset()
     if fault is not None:
         kind, value, ticks = fault
         robot.inject(kind, value, after_ticks=RUN_STARTS_AT + 100, ticks=ticks)
-    transport = transport or _LockstepTransport(robot.address)
+    transport = transport or hio.LockstepTransport(robot.address)
     try:
         result = hio.run_loop(transport, controller, schedule or hio.FixedParams(params.midpoint(), run_ticks),
                               deploy.sim_calibration(), GATES, LOOP, safety)
@@ -298,7 +273,7 @@ def test_the_official_sdk_drives_the_simulated_go1(robot, controller):
 def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     """Random search stands in for the contextual BO (cpgjax.bo) until that lands."""
     robot.reset()
-    transport = _LockstepTransport(robot.address)
+    transport = hio.LockstepTransport(robot.address)
     spec = deploy.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), "vmc_tegotae")
     try:
         result, rows = deploy.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
@@ -318,3 +293,40 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     np.testing.assert_allclose(best, [best_row[name] for name in params.PARAM_NAMES])
     replay, _, _ = _run(robot, controller, run_ticks=300, schedule=hio.FixedParams(best, 300))
     assert replay.trip is None
+
+
+# ------------------------------------------------------------------------------------- foot-force calibration
+
+def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robot, tmp_path):
+    from cpgjax import calibrate
+
+    def lifted(hung_up):
+        if hung_up:
+            robot.reset()
+            robot.lift(0.3)
+        else:
+            robot.reset()
+
+    transport = hio.LockstepTransport(robot.address)
+    try:
+        m = calibrate.measure(transport, deploy.robot_mass_kg(0.0), lifted, air_s=0.3, stand_s=0.5, settle_s=0.3,
+                              loop=LOOP, safety=SAFETY)
+    finally:
+        transport.close()
+    true = deploy.sim_calibration()
+    assert len(m.air_counts) >= 250 and len(m.standing_counts) >= 450
+    np.testing.assert_array_equal(m.calibration.offset_counts, true.offset_counts)  # feet in the air: zero force
+    np.testing.assert_allclose(m.calibration.newton_per_count, true.newton_per_count, rtol=0.02)
+    assert np.all(np.mean(m.standing_counts, axis=0) > true.offset_counts + 40)  # every foot carried load
+
+
+def test_deploy_calibrate_command_writes_the_file_the_loop_loads(tmp_path):
+    out = tmp_path / "cal.json"
+    code = deploy.main(["calibrate", "--robot", "sim", "--sim-pacing", "lockstep", "--no-realtime", "--out", str(out),
+                        "--air-s", "0.3", "--stand-s", "0.5", "--settle-s", "0.3"])
+    assert code == 0
+    cal = hio.FootForceCalibration.load(out)
+    np.testing.assert_array_equal(cal.offset_counts, deploy.sim_calibration().offset_counts)
+    np.testing.assert_allclose(cal.newton_per_count, deploy.sim_calibration().newton_per_count, rtol=0.02)
+    info = json.loads(out.read_text())
+    assert info["robot"] == "sim" and info["air_samples"] >= 250 and info["standing_samples"] >= 450

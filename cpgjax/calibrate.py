@@ -1,0 +1,115 @@
+"""``cpgjax deploy calibrate``: measure the Go1's foot-force sensors and store their calibration (decisions.md §3).
+
+The Go1 reports each foot's force as a raw int16 with an offset and no unit. The calibration is measured in two
+stands of the 1 kHz loop (:func:`hardware_io.stand`: soft start, hold the standing pose, damp; every safety check
+on): first with the robot hung up so that its feet are in the air (each foot's minimum is its offset), then standing
+on the ground (one scale makes the four feet carry the robot's weight), fitted by
+:func:`foot_force.calibrate_foot_force` and saved as JSON with how it was measured; ``cpgjax deploy --calibration
+FILE`` loads it and the loop converts every reading to Newtons with it.
+
+On the robot an operator hangs it up and puts it down when asked; the simulated Go1 (``--robot sim``) is lifted
+and put down through its control port.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from cpgjax import hardware_io as hio
+
+log = logging.getLogger(__name__)
+
+
+class CalibrationError(RuntimeError):
+    """A measuring stand did not complete (safety trip) or saw no robot state."""
+
+
+class Measurement(NamedTuple):
+    calibration: hio.FootForceCalibration
+    air_counts: np.ndarray  # (K, 4) raw counts, feet in the air
+    standing_counts: np.ndarray  # (M, 4) raw counts, standing still
+
+
+def measure_counts(transport: hio.Transport, measure_s: float, settle_s: float, loop: hio.LoopConfig,
+                   safety: hio.SafetyConfig) -> np.ndarray:
+    """Raw foot counts (K, 4) of the robot states received while the loop holds the standing pose, after the first
+    ``settle_s`` of holding it.
+
+    Raises:
+      CalibrationError: the stand ended with a safety trip, or no state arrived in the measuring window.
+    """
+    result = hio.stand(transport, settle_s + measure_s, loop, safety)
+    if result.trip is not None:
+        raise CalibrationError(f"the measuring stand stopped: {result.trip}")
+    ticks = result.log
+    window = np.flatnonzero(ticks.phase == hio.STAND)[round(settle_s / loop.period_s):]
+    counts = ticks.foot_force_raw[window[ticks.fresh[window]]]
+    if counts.shape[0] == 0:
+        raise CalibrationError("no robot state arrived while measuring")
+    return counts.astype(np.int64)
+
+
+def measure(transport: hio.Transport, total_mass_kg: float, lifted: Callable[[bool], None], air_s: float = 2.0,
+            stand_s: float = 3.0, settle_s: float = 1.0, loop: hio.LoopConfig = hio.LoopConfig(),
+            safety: hio.SafetyConfig = hio.SafetyConfig()) -> Measurement:
+    """The two measuring stands and the fit. ``lifted(True)`` must leave the robot hung up with its feet in the air,
+    ``lifted(False)`` put it down on the ground (it stands up in the second stand)."""
+    lifted(True)
+    air = measure_counts(transport, air_s, settle_s, loop, safety)
+    lifted(False)
+    standing = measure_counts(transport, stand_s, settle_s, loop, safety)
+    return Measurement(hio.calibrate_foot_force(air, standing, total_mass_kg), air, standing)
+
+
+def _ask_operator(hung_up: bool) -> None:
+    input("Hang the robot up so that its four feet are in the air, then press Enter: " if hung_up else
+          "Put the robot down on the ground (lying or on its feet), then press Enter; it will stand up: ")
+
+
+def main(argv=None) -> int:
+    """``cpgjax deploy calibrate``. Returns 0 when the calibration is saved, 2 when a measuring stand failed."""
+    from cpgjax import deploy
+
+    p = argparse.ArgumentParser(prog="cpgjax deploy calibrate", description="Measure the Go1's foot-force sensors "
+                                "(feet in the air, then standing) and save their calibration to raw counts → N.")
+    deploy.add_robot_args(p)
+    p.add_argument("--out", type=Path, default=Path("go1_calibration.json"), help="calibration JSON to write")
+    p.add_argument("--air-s", type=float, default=2.0, help="measuring time with the feet in the air")
+    p.add_argument("--stand-s", type=float, default=3.0, help="measuring time standing still")
+    p.add_argument("--settle-s", type=float, default=1.0, help="time holding the pose before each measurement")
+    p.add_argument("--mass-kg", type=float, help="the robot's total mass (default: cpgjax's Go1 model + payload)")
+    p.add_argument("--lift-m", type=float, default=0.3, help="sim only: how high the simulated Go1 is hung up")
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    loop, safety = deploy.loop_and_safety(args)
+    mass_kg = args.mass_kg if args.mass_kg is not None else deploy.robot_mass_kg(args.payload_kg)
+    with deploy.connect(args) as (transport, server):
+        if server is None:
+            lifted = _ask_operator
+        else:
+            def lifted(hung_up: bool) -> None:
+                if hung_up:
+                    server.lift(args.lift_m)
+                else:
+                    server.reset()
+        try:
+            m = measure(transport, mass_kg, lifted, args.air_s, args.stand_s, args.settle_s, loop, safety)
+        except (CalibrationError, ValueError) as e:
+            print(f"cpgjax deploy calibrate: {e}", file=sys.stderr)
+            return 2
+    standing_n = m.calibration.to_newtons(np.mean(m.standing_counts, axis=0))
+    m.calibration.save(args.out, robot=args.robot, total_mass_kg=mass_kg, air_samples=len(m.air_counts),
+                       standing_samples=len(m.standing_counts),
+                       air_counts_max=np.max(m.air_counts, axis=0).tolist(),
+                       standing_counts_mean=np.mean(m.standing_counts, axis=0).round(2).tolist(),
+                       standing_n=standing_n.round(2).tolist())
+    print(f"offsets {m.calibration.offset_counts} counts, {m.calibration.newton_per_count[0]:.4f} N/count; "
+          f"standing: {standing_n.round(1)} N per foot (sum {standing_n.sum():.1f} N = {mass_kg:.2f} kg · g); "
+          f"saved {args.out}")
+    return 0
