@@ -321,7 +321,10 @@ def _factor(params, prepared, active, context_dims) -> _Factored:
                    + jnp.exp(params.log_noise) * eye)
     kernel = jnp.where(valid[:, None] & valid[None, :], valid_block, eye)
     residual = jnp.where(valid, prepared.standardized - params.mean, 0.0)
-    cholesky = jnp.linalg.cholesky(kernel)
+    # The kernel is symmetric by construction ((a - b)² = (b - a)² exactly), and the
+    # factorization reads one triangle: no symmetrizing pass (a 160 x 160 transpose and
+    # average cost a quarter of a fit step).
+    cholesky = jax.lax.linalg.cholesky(kernel, symmetrize_input=False)
     weights = jsp.linalg.cho_solve((cholesky, True), residual)
     return _Factored(corr_x, corr_c, derivative_x, derivative_c, residual, cholesky, weights)
 
