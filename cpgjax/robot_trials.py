@@ -1,0 +1,284 @@
+"""Online optimization on the robot (the paper's Algorithm 1) inside the 1 kHz loop, and parameter files.
+
+Trials run back to back in robot time (loop ticks): 1.5 s of transition, interpolating the parameters linearly from
+the previous set to the new one, then 3 s of steady state whose per-tick signals (leg odometry velocity, power
+⟨|τ|, |q̇|⟩, mean foot force, roll, pitch — all from the robot's own sensors) make the trial record; J, CoT and the
+context come from ``cpgjax.objective`` as in simulation. The optimizer runs in a separate process
+(:func:`_optimizer_worker`), so the 1 kHz loop never waits for it: after a trial the robot keeps walking with the
+current parameters until the next proposal arrives (the wait is logged per trial). The worker writes the per-trial
+log (``trials.parquet``, ``trials.rrd`` for rerun) and the best parameters (``best_params.json``, which
+``cpgjax deploy --params`` replays).
+
+The optimizer is anything with ``propose(context) -> params`` and ``observe(params, context, record, objective)``
+(:class:`OnlineOptimizer`): the contextual BO of ``cpgjax.bo`` (:class:`BayesianOptimizer`, the default) or
+:class:`RandomSearch` (a baseline, and the fast stand-in of the tests).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+from pathlib import Path
+from typing import NamedTuple, Protocol
+
+import numpy as np
+
+from cpgjax import params as param_space
+
+# Columns of the steady-phase buffer, taken from the controller's flat output each tick.
+_SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")
+
+
+class TrialTiming(NamedTuple):
+    transition_ticks: int = 1500  # 1.5 s at 1 kHz
+    steady_ticks: int = 3000  # 3 s
+
+
+class OnlineOptimizer(Protocol):
+    """What online optimization needs from an optimizer (runs in the worker process, never in the loop)."""
+
+    def propose(self, context: np.ndarray) -> np.ndarray:
+        """Next parameters (8,), physical units, for the context [c_load N, c_slope rad]."""
+
+    def observe(self, params: np.ndarray, context: np.ndarray, record, objective: float) -> None:
+        """One finished trial."""
+
+
+class RandomSearch:
+    """Uniform random proposals in the paper's box (σ_N at the midpoint when Tegotae is off)."""
+
+    def __init__(self, seed: int = 0, tegotae: bool = True):
+        self._rng = np.random.default_rng(seed)
+        self._tegotae = tegotae
+
+    def propose(self, context: np.ndarray) -> np.ndarray:
+        x = param_space.from_unit(self._rng.uniform(size=param_space.NUM_PARAMS))
+        if not self._tegotae:
+            x[param_space.SIGMA_N_INDEX] = param_space.midpoint()[param_space.SIGMA_N_INDEX]
+        return x
+
+    def observe(self, params, context, record, objective) -> None:
+        pass
+
+
+class BayesianOptimizer:
+    """Adapter from ``cpgjax.bo``'s pure functions (``init`` / ``propose`` / ``observe``, scalar objectives) to
+    :class:`OnlineOptimizer`. σ_N is an inactive input when Tegotae is off (decisions.md §13)."""
+
+    def __init__(self, seed: int, tegotae: bool):
+        import jax
+        import jax.numpy as jnp
+
+        from cpgjax import bo
+
+        active = np.ones(param_space.NUM_PARAMS, bool)
+        active[param_space.SIGMA_N_INDEX] = tegotae
+        self._jax, self._jnp = jax, jnp
+        self._key = jax.random.PRNGKey(seed)
+        self._opt = bo.make_optimizer(bo.paper_config())
+        self._state = self._opt.init(active_dims=jnp.asarray(active))
+
+    def propose(self, context: np.ndarray) -> np.ndarray:
+        self._key, key = self._jax.random.split(self._key)
+        return np.asarray(self._opt.propose(self._state, self._jnp.asarray(context, self._jnp.float32), key),
+                          np.float64)
+
+    def observe(self, params, context, record, objective) -> None:
+        jnp = self._jnp
+        self._state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
+                                           jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32))
+
+
+class OptimizerSpec(NamedTuple):
+    """Everything the worker process needs (picklable)."""
+
+    kind: str  # "random" or "bo"
+    seed: int
+    target_velocity_mps: float
+    tegotae: bool
+    total_mass_kg: float
+    log_dir: str
+    controller: str
+    dt_s: float = 0.001
+
+
+def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = 0.001):
+    """``objective.TrialRecord`` from the steady phase's per-tick robot signals (T, len(_SIGNALS)).
+
+    A fall ends the run through the safety layer (tilt stop) before a trial completes, so ``fell`` and ``failed``
+    are 0 for every completed trial.
+    """
+    from cpgjax.objective import TrialRecord
+
+    v = signals[:, 0:2].astype(np.float64)
+    roll, pitch = signals[:, 4], signals[:, 5]
+    return TrialRecord(
+        velocity_xy_mps=v, energy_j=float(np.sum(signals[:, 2]) * dt_s), distance_m=float(np.sum(v[:, 0]) * dt_s),
+        total_mass_kg=float(total_mass_kg), c_load_n=float(np.mean(signals[:, 3])),
+        c_slope_rad=float(np.mean(pitch)), roll_mean_rad=float(np.mean(roll)), roll_std_rad=float(np.std(roll)),
+        pitch_std_rad=float(np.std(pitch)), saturation_fraction=float(np.sum(signals[:, 6]) / (12.0 * len(v))),
+        fell=0.0, failed=0.0)
+
+
+class _TrialLog:
+    """Per-trial rows → ``trials.parquet`` (rewritten after every trial) and ``trials.rrd`` (rerun)."""
+
+    def __init__(self, log_dir: Path):
+        import rerun as rr
+
+        self._rr = rr
+        self.dir = log_dir
+        self.rows: list[dict] = []
+        self._rec = rr.RecordingStream("cpgjax_deploy")
+        self._rec.save(str(log_dir / "trials.rrd"))
+
+    def append(self, row: dict) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        self.rows.append(row)
+        pq.write_table(pa.Table.from_pylist(self.rows), self.dir / "trials.parquet")
+        rr, rec = self._rr, self._rec
+        rec.set_time("trial", sequence=row["trial"])
+        for key in ("objective", "cost_of_transport", "v_x_mps", "c_load_n", "c_slope_rad", "wait_s"):
+            rec.log(f"trial/{key}", rr.Scalars(row[key]))
+        for name in param_space.PARAM_NAMES:
+            rec.log(f"params/{name}", rr.Scalars(row[name]))
+
+    def close(self) -> None:
+        self._rec.flush()
+
+
+def save_params(path, params: np.ndarray, **info) -> None:
+    """Parameters as JSON {names: values, ...info}; :func:`load_params` reads it back."""
+    Path(path).write_text(json.dumps({"params": param_space.as_dict(params), **info}, indent=1))
+
+
+def load_params(path) -> np.ndarray:
+    """Parameters (8,) from a :func:`save_params` file (or a JSON list of 8 numbers), validated."""
+    data = json.loads(Path(path).read_text())
+    if isinstance(data, dict):
+        data = [data["params"][name] for name in param_space.PARAM_NAMES]
+    return param_space.validate(np.asarray(data, np.float64), what=str(path))
+
+
+def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
+    """The optimizer's process: observe each finished trial, answer the next proposal at once, then log."""
+    import jax
+
+    os.nice(10)  # the robot's loop (and, on one machine, the simulated robot) come first
+    jax.config.update("jax_platforms", "cpu")
+    from cpgjax import objective
+
+    optimizer = (BayesianOptimizer(spec.seed, spec.tegotae) if spec.kind == "bo"
+                 else RandomSearch(spec.seed, spec.tegotae))
+    trial_log = _TrialLog(Path(spec.log_dir))
+    best = -np.inf
+    conn.send(("ready",))
+    while True:
+        message = conn.recv()
+        if message[0] == "stop":
+            break
+        _, trial, x, signals, wait_ticks = message
+        record = trial_record(signals, spec.total_mass_kg, spec.dt_s)
+        j = float(objective.objective(record, spec.target_velocity_mps))
+        c = np.asarray(objective.context(record), np.float64)
+        optimizer.observe(x, c, record, j)
+        conn.send(("params", optimizer.propose(c)))
+        row = {"trial": trial, "objective": j, "cost_of_transport": float(objective.cost_of_transport(record)),
+               "v_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
+               "v_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])), "c_load_n": float(c[0]),
+               "c_slope_rad": float(c[1]), "roll_std_rad": record.roll_std_rad, "pitch_std_rad": record.pitch_std_rad,
+               "saturation_fraction": record.saturation_fraction, "wait_s": wait_ticks * spec.dt_s,
+               **param_space.as_dict(x)}
+        trial_log.append(row)
+        if j > best:
+            best = j
+            save_params(Path(spec.log_dir) / "best_params.json", x, objective=j, trial=trial,
+                        controller=spec.controller, target_velocity_mps=spec.target_velocity_mps)
+    trial_log.close()
+    conn.send(("done", trial_log.rows))
+
+
+class TrialRunner:
+    """A :class:`~cpgjax.hardware_io.ParamSchedule` running Algorithm 1's trials inside the 1 kHz loop.
+
+    Cheap per tick: an interpolation, one row copy, and (only while waiting for a proposal) a pipe poll.
+    """
+
+    def __init__(self, conn, initial_params: np.ndarray, num_trials: int, timing: TrialTiming = TrialTiming()):
+        from cpgjax import hardware_io as hio
+
+        self._conn = conn
+        self._timing = timing
+        self._columns = np.array([hio.OUT_VELOCITY.start, hio.OUT_VELOCITY.start + 1, hio.OUT_POWER, hio.OUT_LOAD,
+                                  hio.OUT_RPY.start, hio.OUT_RPY.start + 1, hio.OUT_SATURATED])
+        self._signals = np.zeros((timing.steady_ticks, len(_SIGNALS)), np.float32)
+        self._previous = self._current = np.asarray(initial_params, np.float32)
+        self._num_trials = num_trials
+        self.trials_done = 0
+        self._tick_in_trial = 0
+        self._waiting_since = None  # run tick at which the last trial was handed to the optimizer
+        self._wait_ticks = 0  # ticks spent waiting for the current trial's parameters
+        self.finished = num_trials == 0
+
+    def params(self, run_tick: int) -> np.ndarray:
+        k = self._tick_in_trial
+        if self._waiting_since is None and k < self._timing.transition_ticks:
+            blend = (k + 1.0) / self._timing.transition_ticks
+            return self._previous + np.float32(blend) * (self._current - self._previous)
+        return self._current
+
+    def record(self, run_tick: int, out: np.ndarray) -> None:
+        if self._waiting_since is not None:
+            if self._conn.poll():
+                _, proposal = self._conn.recv()
+                self._previous, self._current = self._current, np.asarray(proposal, np.float32)
+                self._wait_ticks = run_tick - self._waiting_since
+                self._waiting_since, self._tick_in_trial = None, 0
+            return
+        steady = self._tick_in_trial - self._timing.transition_ticks
+        if steady >= 0:
+            self._signals[steady] = out[self._columns]
+        self._tick_in_trial += 1
+        if steady + 1 == self._timing.steady_ticks:
+            self._conn.send(("trial", self.trials_done, self._current.astype(np.float64), self._signals.copy(),
+                             self._wait_ticks))
+            self.trials_done += 1
+            self.finished = self.trials_done >= self._num_trials
+            self._waiting_since = run_tick
+
+
+def online_optimization(transport, controller, calibration, gates, spec: OptimizerSpec, initial_params: np.ndarray,
+                        num_trials: int, timing: TrialTiming = TrialTiming(), loop=None, safety=None):
+    """Algorithm 1 on the robot: ``num_trials`` trials back to back, the optimizer in its own process.
+
+    Returns (LoopResult, per-trial rows). The log files are in ``spec.log_dir``.
+    """
+    from cpgjax import hardware_io as hio
+
+    Path(spec.log_dir).mkdir(parents=True, exist_ok=True)
+    context = multiprocessing.get_context("spawn")  # never fork a process that has started JAX
+    conn, worker_conn = context.Pipe()
+    worker = context.Process(target=_optimizer_worker, args=(worker_conn, spec), daemon=True)
+    worker.start()
+    try:
+        if not conn.poll(120.0):
+            raise RuntimeError("the optimizer process did not start")
+        conn.recv()  # ready: its imports are done before the loop starts
+        runner = TrialRunner(conn, initial_params, num_trials, timing)
+        result = hio.run_loop(transport, controller, runner, calibration, gates, loop or hio.LoopConfig(),
+                              safety or hio.SafetyConfig())
+        conn.send(("stop",))
+        rows = []
+        while conn.poll(120.0):
+            message = conn.recv()
+            if message[0] == "done":
+                rows = message[1]
+                break
+        worker.join(timeout=30.0)
+    finally:
+        if worker.is_alive():
+            worker.kill()
+    return result, rows
