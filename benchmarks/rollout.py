@@ -2,16 +2,19 @@
 with a constant control, against single-threaded C MuJoCo, and against the same trial on the native backend (C MuJoCo
 through ``mujoco.rollout``, ``benchmarks/backend_speed.py``), measured in the same run.
 
-    python benchmarks/rollout.py            # full: batch 1, 4, 16, 64, 256
+    python benchmarks/rollout.py            # full: batch 1, 4, 16, 64, 256; one device and every core
     python benchmarks/rollout.py --quick    # under 2 minutes on a 2-core CPU
 
-The last line of the output is a JSON object of the figures.
+On a CPU, XLA runs one device's program on one thread, so the batch is sharded over one host device per core
+(``jax_num_cpu_devices``, ``--cpu-devices``); the full run also measures the one-device layout. The last line of the
+output is a JSON object of the figures.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import jax
@@ -37,11 +40,13 @@ def _timed(fn, *args, repeats: int):
     return first, best
 
 
-def closed_loop(batch: int, steps: int, repeats: int) -> dict:
-    """The paper's trial (transition + steady phase, sensors, controller, bookkeeping) for ``batch`` instances."""
+def closed_loop(batch: int, steps: int, repeats: int, devices: list) -> dict:
+    """The paper's trial (transition + steady phase, sensors, controller, bookkeeping) for ``batch`` instances
+    sharded over ``devices``."""
     transition = steps // 4
     config = mjx_go1.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
-    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)), trial_config=config)
+    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)), trial_config=config,
+                             devices=devices)
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = mjx_go1.batch_gates(["vmc_tegotae"] * batch)
     state = jax.block_until_ready(sim.reset(p))
@@ -57,20 +62,20 @@ def closed_loop(batch: int, steps: int, repeats: int) -> dict:
     return {"steps_per_s": batch * steps / best, "first_call_s": first_call}
 
 
-def bare_mjx(batch: int, steps: int, repeats: int) -> dict:
-    """``mjx.step`` in a scan with a constant control, vmapped, on the same batched model."""
-    batch_model = mjx_go1.make_batch_model(go1_model.make_scenarios(friction=np.full(batch, 0.6)))
+def bare_mjx(batch: int, steps: int, repeats: int, devices: list) -> dict:
+    """``mjx.step`` in a scan with a constant control, vmapped, on the same batched model and devices."""
+    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)), devices=devices)
     qpos = jnp.asarray(go1_model.standing_qpos(), jnp.float32)
 
     def run(model):
         data = mjx.make_data(model).replace(qpos=qpos, ctrl=jnp.full(model.nu, 1.0))
         return jax.lax.scan(lambda d, _: (mjx.step(model, d), None), data, None, length=steps)[0].qpos
 
-    fn = jax.jit(jax.vmap(run, in_axes=(batch_model.in_axes,)))
+    fn = jax.jit(jax.vmap(run, in_axes=(sim.batch.in_axes,)))
     t0 = time.perf_counter()
-    compiled = fn.lower(batch_model.model).compile()
+    compiled = fn.lower(sim.batch.model).compile()
     compile_s = time.perf_counter() - t0
-    _, best = _timed(compiled, batch_model.model, repeats=repeats)
+    _, best = _timed(compiled, sim.batch.model, repeats=repeats)
     return {"steps_per_s": batch * steps / best, "compile_s": compile_s}
 
 
@@ -86,38 +91,52 @@ def c_mujoco(steps: int) -> float:
     return steps / (time.perf_counter() - t0)
 
 
+def layouts(batch: int, quick: bool) -> list[list]:
+    """Device lists to measure ``batch`` on: every device (when the batch divides among them) and, in a full run,
+    also one device."""
+    every = jax.devices()
+    if len(every) == 1 or batch % len(every):
+        return [every[:1]]
+    return [every] if quick else [every[:1], every]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="batch 1, 16, 64 and short rollouts (< 2 min)")
+    parser.add_argument("--quick", action="store_true", help="batch 1 and 16, short rollouts (< 2 min)")
     parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=None)
     parser.add_argument("--steps", type=int, default=None, help="env steps per instance per timed run")
+    parser.add_argument("--cpu-devices", type=int, default=os.cpu_count(),
+                        help="host devices on a CPU (default: one per core)")
     args = parser.parse_args()
-    batches = args.batch_sizes or ([1, 16, 64] if args.quick else [1, 4, 16, 64, 256])
+    jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
+    batches = args.batch_sizes or ([1, 16] if args.quick else [1, 4, 16, 64, 256])
     steps = args.steps or (400 if args.quick else 2000)
     repeats = 1 if args.quick else 3
 
     device = jax.devices()[0]
-    print(f"# device: {device.platform} {device.device_kind}; host: {study_io.machine()}; "
+    print(f"# devices: {len(jax.devices())} x {device.platform} {device.device_kind}; host: {study_io.machine()}; "
           f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance")
-    print("| batch | closed loop [env-steps/s] | bare mjx.step [env-steps/s] | controller overhead | first call (compile) [s] "
-          "| bare compile [s] | native closed loop (C MuJoCo) [env-steps/s] |")
-    print("|---|---|---|---|---|---|---|")
-    figures: dict = {"device": f"{device.platform}:{device.device_kind}", "machine": study_io.machine(),
-                     "steps_per_instance": steps}
+    print("| batch | devices | closed loop [env-steps/s] | bare mjx.step [env-steps/s] | controller overhead "
+          "| first call (compile) [s] | bare compile [s] | native closed loop (C MuJoCo) [env-steps/s] |")
+    print("|---|---|---|---|---|---|---|---|")
+    figures: dict = {"device": f"{device.platform}:{device.device_kind}", "num_devices": len(jax.devices()),
+                     "machine": study_io.machine(), "steps_per_instance": steps}
     for b in batches:
-        loop = closed_loop(b, steps, repeats)
-        bare = bare_mjx(b, steps, repeats)
         native = trial_speed("native", b, steps, repeats)  # the same trial with the native backend
-        overhead = bare["steps_per_s"] / loop["steps_per_s"] - 1.0
-        print(f"| {b} | {loop['steps_per_s']:,.0f} | {bare['steps_per_s']:,.0f} | {overhead:+.1%} "
-              f"| {loop['first_call_s']:.1f} | {bare['compile_s']:.1f} | {native['env_steps_per_s']:,.0f} |",
-              flush=True)
         figures[f"native_closed_loop_env_steps_per_s_b{b}"] = round(native["env_steps_per_s"])
-        figures[f"closed_loop_env_steps_per_s_b{b}"] = round(loop["steps_per_s"])
-        figures[f"bare_mjx_env_steps_per_s_b{b}"] = round(bare["steps_per_s"])
-        figures[f"controller_overhead_ratio_b{b}"] = round(overhead, 4)
-        figures[f"bare_mjx_compile_s_b{b}"] = round(bare["compile_s"], 2)
-        figures[f"closed_loop_first_call_s_b{b}"] = round(loop["first_call_s"], 2)
+        for devices in layouts(b, args.quick):
+            loop = closed_loop(b, steps, repeats, devices)
+            bare = bare_mjx(b, steps, repeats, devices)
+            overhead = bare["steps_per_s"] / loop["steps_per_s"] - 1.0
+            print(f"| {b} | {len(devices)} | {loop['steps_per_s']:,.0f} | {bare['steps_per_s']:,.0f} | {overhead:+.1%} "
+                  f"| {loop['first_call_s']:.1f} | {bare['compile_s']:.1f} | {native['env_steps_per_s']:,.0f} |",
+                  flush=True)
+            key = f"b{b}_d{len(devices)}"
+            figures[f"closed_loop_env_steps_per_s_{key}"] = round(loop["steps_per_s"])
+            figures[f"bare_mjx_env_steps_per_s_{key}"] = round(bare["steps_per_s"])
+            figures[f"controller_overhead_ratio_{key}"] = round(overhead, 4)
+            figures[f"bare_mjx_compile_s_{key}"] = round(bare["compile_s"], 2)
+            figures[f"closed_loop_first_call_s_{key}"] = round(loop["first_call_s"], 2)
     c_rate = c_mujoco(5 * steps)
     print(f"C MuJoCo, single thread, batch 1: {c_rate:,.0f} env-steps/s")
     figures["c_mujoco_single_thread_env_steps_per_s"] = round(c_rate)

@@ -217,14 +217,10 @@ class Engine:
         allows) only when some instance's friction, slope or payload changes."""
         scenario = self.scenario(trial)
         if self._sim is None:
-            self._sim = backends.make_backend(scenario, self.backend_name, trial_config=self.spec.trial)
+            self._sim = backends.make_backend(scenario, self.backend_name, trial_config=self.spec.trial,
+                                              devices=self.placement.mesh.devices.tolist())
         elif any(not np.array_equal(a, b) for a, b in zip(scenario, self._sim.scenario)):
-            if hasattr(self._sim, "with_scenario"):
-                self._sim = self._sim.with_scenario(scenario)
-            else:
-                if hasattr(getattr(self._sim, "physics", None), "close"):
-                    self._sim.physics.close()
-                self._sim = backends.make_backend(scenario, self.backend_name, trial_config=self.spec.trial)
+            self._sim = self._sim.with_scenario(scenario)
         return self._sim
 
     def _place_sim(self, state):
@@ -294,8 +290,6 @@ class Engine:
             if sim_state is None:
                 sim_state = self._place_sim(sim.reset(x))
             sim_state, record = sim.trial(sim_state, x, self.gates)
-            if self.backend_name == "mjx":  # keep the input sharding of the compiled trial (no recompilation)
-                sim_state = jax.device_put(sim_state, self.placement.sharding)
             record = jax.block_until_ready(record)
             t2 = time.perf_counter()
             rec = fetch(record)

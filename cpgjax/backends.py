@@ -31,10 +31,13 @@ def resolve_backend(backend: str = "auto") -> str:
 
 
 def make_backend(scenario: go1_model.Scenario, backend: str = "auto", cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                 trial_config: mjx_go1.TrialConfig = mjx_go1.TrialConfig()):
-    """A batch simulator (``MJXBackend`` or ``NativeBackend``) for ``scenario``; its ``.name`` says which one."""
-    cls = {"mjx": mjx_go1.MJXBackend, "native": native_go1.NativeBackend}[resolve_backend(backend)]
-    return cls(scenario, cpg_config=cpg_config, trial_config=trial_config)
+                 trial_config: mjx_go1.TrialConfig = mjx_go1.TrialConfig(), *, devices=None):
+    """A batch simulator (``MJXBackend`` or ``NativeBackend``) for ``scenario``; its ``.name`` says which one.
+    ``devices``: what MJX shards the batch over (default: all that divide it); the native backend's physics runs on
+    host threads and ignores it."""
+    if resolve_backend(backend) == "mjx":
+        return mjx_go1.MJXBackend(scenario, cpg_config=cpg_config, trial_config=trial_config, devices=devices)
+    return native_go1.NativeBackend(scenario, cpg_config=cpg_config, trial_config=trial_config)
 
 
 def use_inline_cpu_dispatch() -> None:

@@ -6,7 +6,9 @@ which the parameters are interpolated linearly from the previous set to the new 
 back like the treadmill; after a fall the robot is reset to standing (decisions.md §8).
 
 Everything is vmapped over instances — parameters, scenario (as per-instance model leaves), simulator and controller
-state — and compiled once per batch shape. An instance whose state becomes non-finite is reset and its trial flagged
+state — and compiled once per batch shape. The batch is sharded over devices (``MJXBackend(devices=...)``): on a GPU
+host over its GPUs, on a CPU over host devices (``jax_num_cpu_devices``, one per core, since XLA runs one device's
+program on one thread). An instance whose state becomes non-finite is reset and its trial flagged
 ``failed``; ``jnp.where`` keeps the other instances bit-identical.
 """
 
@@ -14,15 +16,19 @@ from __future__ import annotations
 
 import copy
 import functools
+import logging
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from mujoco import mjx
 
 from cpgjax import cpg, go1_model, params as param_space
 from cpgjax.objective import TrialRecord
+
+log = logging.getLogger(__name__)
 
 
 
@@ -315,22 +321,40 @@ def check_gates(gates: cpg.Gates, batch_size: int) -> cpg.Gates:
     return cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (batch_size,)) for g in gates))
 
 
+def _batch_mesh(batch_size: int, devices) -> Mesh:
+    """A 1-D mesh (axis ``batch``) over ``devices`` (default: every device, when the batch divides among them,
+    otherwise the first device alone, said in a log line)."""
+    if devices is None:
+        devices = jax.devices()
+        if batch_size % len(devices):
+            log.info("batch %d does not divide over %d devices; running on %s only", batch_size, len(devices),
+                     devices[0])
+            devices = devices[:1]
+    devices = list(devices)
+    if batch_size % len(devices):
+        raise ValueError(f"batch size {batch_size} must be a multiple of the device count {len(devices)}")
+    return Mesh(np.array(devices), ("batch",))
+
+
 class MJXBackend:
     """A batch of simulated Go1s in MJX behind the trial interface shared by every backend.
 
     >>> sim = MJXBackend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))
     >>> state = sim.reset(params)                         # params (3, 8), physical units
     >>> state, record = sim.trial(state, new_params, gates)   # gates: cpg.Gates of (3,) arrays
+
+    ``devices``: the devices to shard the batch over (default: all of them when the batch divides among them).
     """
 
     name = "mjx"
 
     def __init__(self, scenario: go1_model.Scenario, cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                 trial_config: TrialConfig = TrialConfig()):
+                 trial_config: TrialConfig = TrialConfig(), *, devices=None):
         self.scenario = scenario
         self.cpg_config = cpg_config
         self.trial_config = trial_config
-        self.batch = make_batch_model(scenario)
+        self.mesh = _batch_mesh(scenario.batch_size, devices)
+        self.batch = self._placed(make_batch_model(scenario))
         axes = self.batch.in_axes
         self._reset = jax.jit(jax.vmap(_reset, in_axes=(axes, 0)))
         self._trial = jax.jit(jax.vmap(functools.partial(_trial, cpg_config, trial_config),
@@ -341,14 +365,28 @@ class MJXBackend:
     def batch_size(self) -> int:
         return self.scenario.batch_size
 
+    @property
+    def sharding(self) -> NamedSharding:
+        """Where batched arrays live: split along the batch axis over ``self.mesh``."""
+        return NamedSharding(self.mesh, PartitionSpec("batch"))
+
+    def _placed(self, batch: BatchModel) -> BatchModel:
+        replicated = NamedSharding(self.mesh, PartitionSpec())
+        model = jax.tree.map(lambda x, axis: jax.device_put(x, self.sharding if axis == 0 else replicated),
+                             batch.model, batch.in_axes)
+        return batch._replace(model=model)
+
+    def _put(self, tree):
+        return jax.device_put(tree, self.sharding)
+
     def reset(self, params) -> SimState:
         """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
-        return self._reset(self.batch.model, check_params(params, self.batch_size))
+        return self._reset(self.batch.model, self._put(check_params(params, self.batch_size)))
 
     def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, TrialRecord]:
         """One trial for every instance (the input state is consumed). Returns the next state and the records."""
-        return self._trial(self.batch.model, state, check_params(new_params, self.batch_size),
-                           check_gates(gates, self.batch_size))
+        return self._trial(self.batch.model, self._put(state), self._put(check_params(new_params, self.batch_size)),
+                           self._put(check_gates(gates, self.batch_size)))
 
     def with_scenario(self, scenario: go1_model.Scenario) -> "MJXBackend":
         """This backend for another batch of scenarios of the same size, sharing the compiled trial and rollout
@@ -358,7 +396,7 @@ class MJXBackend:
             raise ValueError(f"scenario batch {scenario.batch_size} != backend batch {self.batch_size}")
         other = copy.copy(self)
         other.scenario = scenario
-        other.batch = make_batch_model(scenario)
+        other.batch = self._placed(make_batch_model(scenario))
         return other
 
     def rollout(self, state: SimState, params, gates: cpg.Gates, num_steps: int) -> tuple[SimState, StepLog]:
@@ -366,8 +404,8 @@ class MJXBackend:
         if self._rollout is None:
             fn = functools.partial(rollout_log, self.cpg_config)
             self._rollout = jax.jit(jax.vmap(fn, in_axes=(self.batch.in_axes, 0, 0, 0, None)), static_argnums=(4,))
-        return self._rollout(self.batch.model, state, check_params(params, self.batch_size),
-                             check_gates(gates, self.batch_size), num_steps)
+        return self._rollout(self.batch.model, self._put(state), self._put(check_params(params, self.batch_size)),
+                             self._put(check_gates(gates, self.batch_size)), num_steps)
 
 
 def batch_gates(controllers) -> cpg.Gates:

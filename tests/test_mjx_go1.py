@@ -1,5 +1,11 @@
 """The MJX Go1: C-MuJoCo agreement, scenario physics, trial records, objective and failure isolation."""
 
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -167,3 +173,32 @@ def test_a_fall_is_detected_and_the_robot_stands_up_again(short_sim, mid_params,
                                   vmc_tegotae_gates)
     assert float(record.fell[0]) == 1.0 and float(record.fell[5]) == 0.0
     np.testing.assert_allclose(np.asarray(end.data.qpos[0]), go1_model.standing_qpos(), atol=1e-6)
+
+
+def test_batch_sharded_over_two_cpu_devices_equals_one_device(two_trials):
+    """The session batch sharded over two host devices (a subprocess: the device count is fixed at JAX start-up)
+    gives the records of the one-device run to float rounding (XLA vectorizes 3 instances differently from 6)."""
+    code = """
+import json, jax, numpy as np
+from cpgjax import go1_model, mjx_go1, params
+from tests.conftest import SCENARIOS, SHORT_TRIAL
+sim = mjx_go1.MJXBackend(go1_model.make_scenarios(**SCENARIOS), trial_config=SHORT_TRIAL)
+assert len(sim.mesh.devices.ravel()) == 2, sim.mesh
+p = np.tile(params.midpoint(), (6, 1))
+gates = mjx_go1.batch_gates(["vmc_tegotae"] * 6)
+state = sim.reset(p)
+state, _ = sim.trial(state, p, gates)
+state, record = sim.trial(state, p, gates)
+assert len(state.data.qpos.sharding.device_set) == 2
+print(json.dumps({k: np.asarray(v).tolist() for k, v in record._asdict().items()}))
+"""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600,
+                         cwd=pathlib.Path(__file__).resolve().parents[1])
+    assert out.returncode == 0, out.stderr[-3000:]
+    two = json.loads(out.stdout.strip().splitlines()[-1])
+    _, one = two_trials
+    np.testing.assert_array_equal(two["fell"], np.asarray(one.fell))
+    np.testing.assert_allclose(two["distance_m"], np.asarray(one.distance_m), atol=2e-3)
+    np.testing.assert_allclose(two["energy_j"], np.asarray(one.energy_j), rtol=1e-2)
+    np.testing.assert_allclose(two["c_load_n"], np.asarray(one.c_load_n), rtol=1e-3)
