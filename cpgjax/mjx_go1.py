@@ -356,10 +356,10 @@ class MJXBackend:
         self.mesh = _batch_mesh(scenario.batch_size, devices)
         self.batch = self._placed(make_batch_model(scenario))
         axes = self.batch.in_axes
-        self._reset = jax.jit(jax.vmap(_reset, in_axes=(axes, 0)))
-        self._trial = jax.jit(jax.vmap(functools.partial(_trial, cpg_config, trial_config),
-                                       in_axes=(axes, 0, 0, 0)), donate_argnums=(1,))
-        self._rollout = None  # compiled on first use
+        self._reset = jax.jit(self._per_shard(_reset, (axes, 0)))
+        self._trial = jax.jit(self._per_shard(functools.partial(_trial, cpg_config, trial_config), (axes, 0, 0, 0)),
+                              donate_argnums=(1,))
+        self._rollouts = {}  # num_steps → compiled rollout, on first use
 
     @property
     def batch_size(self) -> int:
@@ -369,6 +369,17 @@ class MJXBackend:
     def sharding(self) -> NamedSharding:
         """Where batched arrays live: split along the batch axis over ``self.mesh``."""
         return NamedSharding(self.mesh, PartitionSpec("batch"))
+
+    def _per_shard(self, fn, in_axes):
+        """``jax.vmap(fn, in_axes)`` applied by each device to its own slice of the batch (``jax.shard_map``).
+
+        With the batch merely sharded (GSPMD), the vmapped solver's while-loop condition "any instance not done"
+        becomes a cross-device all-reduce in every iteration; per shard, each device loops on its own instances and
+        never waits for another. (``check_vma=False``: MJX's internals are not written for varying-axis typing.)"""
+        specs = jax.tree.map(lambda axis: PartitionSpec() if axis is None else PartitionSpec("batch"), in_axes,
+                             is_leaf=lambda axis: axis is None)
+        return jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=self.mesh, in_specs=specs,
+                             out_specs=PartitionSpec("batch"), check_vma=False)
 
     def _placed(self, batch: BatchModel) -> BatchModel:
         replicated = NamedSharding(self.mesh, PartitionSpec())
@@ -401,11 +412,12 @@ class MJXBackend:
 
     def rollout(self, state: SimState, params, gates: cpg.Gates, num_steps: int) -> tuple[SimState, StepLog]:
         """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
-        if self._rollout is None:
-            fn = functools.partial(rollout_log, self.cpg_config)
-            self._rollout = jax.jit(jax.vmap(fn, in_axes=(self.batch.in_axes, 0, 0, 0, None)), static_argnums=(4,))
-        return self._rollout(self.batch.model, self._put(state), self._put(check_params(params, self.batch_size)),
-                             self._put(check_gates(gates, self.batch_size)), num_steps)
+        if num_steps not in self._rollouts:
+            fn = functools.partial(rollout_log, self.cpg_config, num_steps=num_steps)
+            self._rollouts[num_steps] = jax.jit(self._per_shard(fn, (self.batch.in_axes, 0, 0, 0)))
+        return self._rollouts[num_steps](self.batch.model, self._put(state),
+                                         self._put(check_params(params, self.batch_size)),
+                                         self._put(check_gates(gates, self.batch_size)))
 
 
 def batch_gates(controllers) -> cpg.Gates:
