@@ -1,0 +1,48 @@
+"""Reproducer of a hang: an MJX reset of the Go1 batch sharded over two CPU host devices never completes at 128
+instances per device (jax 0.10.2, mujoco 4.0.0; 64 per device complete). Each batch size runs in a subprocess with a
+time limit, so this script always ends.
+
+    python benchmarks/cpu_devices_hang.py [--batch-sizes 64,128,256] [--timeout-s 120]
+
+The last line is a JSON object: batch size → completed (true/false).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+CHILD = """
+import sys, jax, numpy as np
+from cpgjax import go1_model, mjx_go1, params
+batch = int(sys.argv[1])
+sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)))
+assert len(sim.mesh.devices.ravel()) == 2
+jax.block_until_ready(sim.reset(np.tile(params.midpoint(), (batch, 1))))
+"""
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=[128, 256])
+    parser.add_argument("--timeout-s", type=float, default=120.0)
+    args = parser.parse_args()
+    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2")
+    completed = {}
+    for batch in args.batch_sizes:
+        try:
+            subprocess.run([sys.executable, "-c", CHILD, str(batch)], env=env, check=True, timeout=args.timeout_s,
+                           capture_output=True)
+            completed[batch] = True
+        except subprocess.TimeoutExpired:
+            completed[batch] = False
+        print(f"batch {batch} on 2 CPU devices: {'completed' if completed[batch] else 'no result within the limit'}",
+              flush=True)
+    print(json.dumps({f"completed_b{b}": ok for b, ok in completed.items()}))
+
+
+if __name__ == "__main__":
+    main()
