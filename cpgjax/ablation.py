@@ -223,10 +223,6 @@ class Engine:
             self._sim = self._sim.with_scenario(scenario)
         return self._sim
 
-    def _place_sim(self, state):
-        # MJX state lives on the devices, sharded like the optimizer's; the native backend's physics is host memory.
-        return self.placement.put(fetch(state)) if self.backend_name == "mjx" else state
-
     def initial_opt_state(self) -> bo.OptimizerState:
         targets = jnp.asarray(self.padded.target_velocity_mps[:, 0], jnp.float32)
         return self._init(self.placement.put(self.active), self.placement.put(targets))
@@ -288,7 +284,7 @@ class Engine:
             t1 = time.perf_counter()
             sim = self.simulator(t)
             if sim_state is None:
-                sim_state = self._place_sim(sim.reset(x))
+                sim_state = sim.reset(x)
             sim_state, record = sim.trial(sim_state, x, self.gates)
             record = jax.block_until_ready(record)
             t2 = time.perf_counter()
@@ -338,7 +334,7 @@ class Engine:
         treedef = jax.tree.structure(template)
         kinds = [type(x) for x in jax.tree.leaves(template)]
         restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds)]
-        return self._place_sim(jax.tree.unflatten(treedef, restored))
+        return jax.tree.unflatten(treedef, restored)  # the backend places it on its devices
 
     def stack(self, logs: list[TrialLog]) -> TrialLog:
         """Per-trial logs → one TrialLog of (num_trials, B, ...) arrays without the padding instances."""
