@@ -336,6 +336,19 @@ def _batch_mesh(batch_size: int, devices) -> Mesh:
     return Mesh(np.array(devices), ("batch",))
 
 
+def per_shard(fn, in_axes, mesh: Mesh):
+    """``jax.vmap(fn, in_axes)`` applied by each device of ``mesh`` to its own slice of the batch (``jax.shard_map``
+    over axis ``batch``; arguments with in_axes None are replicated).
+
+    With the batch merely sharded (GSPMD), the vmapped solver's while-loop condition "any instance not done" becomes
+    a cross-device all-reduce in every iteration; per shard, each device loops on its own instances and never waits
+    for another. (``check_vma=False``: MJX's internals are not written for varying-axis typing.)"""
+    specs = jax.tree.map(lambda axis: PartitionSpec() if axis is None else PartitionSpec("batch"), in_axes,
+                         is_leaf=lambda axis: axis is None)
+    return jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=mesh, in_specs=specs, out_specs=PartitionSpec("batch"),
+                         check_vma=False)
+
+
 class MJXBackend:
     """A batch of simulated Go1s in MJX behind the trial interface shared by every backend.
 
@@ -356,9 +369,9 @@ class MJXBackend:
         self.mesh = _batch_mesh(scenario.batch_size, devices)
         self.batch = self._placed(make_batch_model(scenario))
         axes = self.batch.in_axes
-        self._reset = jax.jit(self._per_shard(_reset, (axes, 0)))
-        self._trial = jax.jit(self._per_shard(functools.partial(_trial, cpg_config, trial_config), (axes, 0, 0, 0)),
-                              donate_argnums=(1,))
+        self._reset = jax.jit(per_shard(_reset, (axes, 0), self.mesh))
+        trial = functools.partial(_trial, cpg_config, trial_config)
+        self._trial = jax.jit(per_shard(trial, (axes, 0, 0, 0), self.mesh), donate_argnums=(1,))
         self._rollouts = {}  # num_steps → compiled rollout, on first use
 
     @property
@@ -369,17 +382,6 @@ class MJXBackend:
     def sharding(self) -> NamedSharding:
         """Where batched arrays live: split along the batch axis over ``self.mesh``."""
         return NamedSharding(self.mesh, PartitionSpec("batch"))
-
-    def _per_shard(self, fn, in_axes):
-        """``jax.vmap(fn, in_axes)`` applied by each device to its own slice of the batch (``jax.shard_map``).
-
-        With the batch merely sharded (GSPMD), the vmapped solver's while-loop condition "any instance not done"
-        becomes a cross-device all-reduce in every iteration; per shard, each device loops on its own instances and
-        never waits for another. (``check_vma=False``: MJX's internals are not written for varying-axis typing.)"""
-        specs = jax.tree.map(lambda axis: PartitionSpec() if axis is None else PartitionSpec("batch"), in_axes,
-                             is_leaf=lambda axis: axis is None)
-        return jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=self.mesh, in_specs=specs,
-                             out_specs=PartitionSpec("batch"), check_vma=False)
 
     def _placed(self, batch: BatchModel) -> BatchModel:
         replicated = NamedSharding(self.mesh, PartitionSpec())
@@ -414,7 +416,7 @@ class MJXBackend:
         """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
         if num_steps not in self._rollouts:
             fn = functools.partial(rollout_log, self.cpg_config, num_steps=num_steps)
-            self._rollouts[num_steps] = jax.jit(self._per_shard(fn, (self.batch.in_axes, 0, 0, 0)))
+            self._rollouts[num_steps] = jax.jit(per_shard(fn, (self.batch.in_axes, 0, 0, 0), self.mesh))
         return self._rollouts[num_steps](self.batch.model, self._put(state),
                                          self._put(check_params(params, self.batch_size)),
                                          self._put(check_gates(gates, self.batch_size)))
