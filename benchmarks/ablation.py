@@ -22,14 +22,14 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from cpgjax import backends  # noqa: E402
+from cpgjax import cpu_dispatch  # noqa: E402
 
-if hasattr(backends, "use_inline_cpu_dispatch"):
-    backends.use_inline_cpu_dispatch()
+cpu_dispatch.request_inline()  # before any JAX computation
 
 import jax  # noqa: E402
 
-from cpgjax import ablation, cpg, study_io, studies  # noqa: E402
+from cpgjax import ablation, backends, cpg, study_io, studies  # noqa: E402
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

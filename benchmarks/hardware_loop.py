@@ -11,12 +11,20 @@ work, or the work's own CPU time. Before the loop, a probe busy-waits on the loo
 counts the stalls during which its thread did not run (on a VM: the hypervisor descheduling the virtual CPU, which
 no code in the guest can prevent); a stall of a millisecond makes one overrun wherever it falls in the tick.
 
-``--cpu N`` pins the loop to CPU N and the simulated Go1 to the other CPUs (when affinity is permitted).
+Two ways to wait for the next deadline are measured, one after the other:
 
-    python benchmarks/hardware_loop.py            # 60 s of walking (20 s probe)
-    python benchmarks/hardware_loop.py --quick    # 10 s (5 s probe)
+- ``sleep``: SCHED_FIFO 80 (when permitted), sleep until ``--spin-us`` before the deadline, then spin (the default
+  of ``cpgjax deploy``); ``--cpu N`` pins the loop to CPU N and the simulated Go1 to the others.
+- ``busy-wait``: spin through the whole period (``LoopConfig.busy_wait``), normal priority (the kernel's
+  real-time throttling would stop a SCHED_FIFO thread that never sleeps for 50 ms every second), the loop pinned to
+  the last CPU (or ``--cpu``), the simulated Go1 to the others. On a VM a sleeping virtual CPU is halted and handed
+  back to the host, and wakes up late or slow.
 
-The last line of the output is one JSON object with the figures (units in the names).
+    python benchmarks/hardware_loop.py                     # 60 s of walking per mode (20 s probe)
+    python benchmarks/hardware_loop.py --quick             # 10 s per mode (5 s probe)
+    python benchmarks/hardware_loop.py --modes busy-wait   # one mode
+
+The last line of the output is one JSON object with the figures (units in the names, mode as a key prefix).
 """
 
 import argparse
@@ -26,7 +34,7 @@ import time
 
 import numpy as np
 
-from cpgjax import cpg, deploy, params, study_io
+from cpgjax import cpg, cpu_dispatch, deploy, params, study_io
 from cpgjax import hardware_io as hio
 from cpgjax import sim_go1_server as sim
 
@@ -64,51 +72,56 @@ def cpu_stalls_us(seconds: float, cpu: int | None, priority: int | None, min_gap
     return np.asarray(stalls)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="10 s instead of 60 s")
-    parser.add_argument("--duration-s", type=float, help="walking time (default 60, --quick 10)")
-    parser.add_argument("--probe-s", type=float, help="CPU-stall probe before the loop (default 20, --quick 5; 0: off)")
-    parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
-    parser.add_argument("--cpu", type=int, help="pin the loop to this CPU and the simulated Go1 to the others")
-    parser.add_argument("--spin-us", type=float, default=hio.LoopConfig().spin_s * 1e6,
-                        help="spin this long before each deadline instead of sleeping")
-    parser.add_argument("--transport", choices=("udp", "sdk"), default="udp")
-    args = parser.parse_args()
-    duration_s = args.duration_s or (10.0 if args.quick else 60.0)
-    probe_s = args.probe_s if args.probe_s is not None else (5.0 if args.quick else 20.0)
-    sim_cpus = None if args.cpu is None else (set(os.sched_getaffinity(0)) - {args.cpu}) or None
-    loop_priority = None if args.no_realtime else 80
+def voluntary_waits() -> int:
+    """The calling thread's voluntary context switches so far (Linux; −1 elsewhere). The loop blocks once per tick
+    in its sleep; more means it waits on something else (e.g. an XLA worker thread)."""
+    try:
+        with open("/proc/thread-self/status") as f:
+            return int(next(line for line in f if line.startswith("voluntary_ctxt_switches")).split()[1])
+    except OSError:
+        return -1
 
+
+def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
+    """Walk ``duration_s`` against a fresh real-time simulated Go1 with the loop waiting as ``mode``; print and return
+    the figures."""
+    busy = mode == "busy-wait"
+    cpu = args.cpu if args.cpu is not None or not busy else max(os.sched_getaffinity(0))
+    sim_cpus = None if cpu is None else (set(os.sched_getaffinity(0)) - {cpu}) or None
+    loop_priority = None if args.no_realtime or busy else 80
     load_start = os.getloadavg()[0]
     # The simulated robot gets real-time priority too (just below the loop's): a real Go1 is not starved by this
     # machine's other processes, but its simulation on the same 2 CPUs would be.
     with sim.SimGo1Client(pacing="realtime", realtime_priority=None if args.no_realtime else 70,
                           cpus=sim_cpus) as robot:
         controller = hio.CompiledController()
-        stalls = cpu_stalls_us(probe_s, args.cpu, loop_priority) if probe_s > 0 else np.zeros(0)
+        stalls = cpu_stalls_us(probe_s, cpu, loop_priority) if probe_s > 0 else np.zeros(0)
         transport = (hio.SdkTransport("127.0.0.1", robot.port, deploy._free_port()) if args.transport == "sdk"
                      else hio.UdpTransport(robot.address))
-        loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=args.cpu,
+        loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=cpu, busy_wait=busy,
                               log_ticks=round((duration_s + 5.0) * 1000))
-        t0 = time.perf_counter()
+        t0, waits0 = time.perf_counter(), voluntary_waits()
         result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), round(duration_s * 1000)),
                               deploy.sim_calibration(), cpg.controller_gates("vmc_tegotae"), loop,
                               hio.SafetyConfig(watchdog_ticks=50))
-        wall_s = time.perf_counter() - t0
+        wall_s, waits = time.perf_counter() - t0, voluntary_waits() - waits0
         transport.close()
         walked_m = robot.stats()["trunk_xy_m"][0]
     timing = result.timing()
     log = result.log
+    print(f"## {mode}")
     print(f"events: {result.events}")
     print(f"scheduling: {result.realtime}; simulated Go1 on CPUs {sorted(sim_cpus) if sim_cpus else 'any'}; "
-          f"spin {args.spin_us:.0f} µs; load average at start {load_start:.2f}, at end {os.getloadavg()[0]:.2f}")
-    print(f"CPU-stall probe  {probe_s:.0f} s on CPU {'any' if args.cpu is None else args.cpu}: {np.sum(stalls >= 500)} stalls ≥ 500 µs "
-          f"({np.sum(stalls >= 1000)} ≥ 1 ms), max {stalls.max() if stalls.size else 0:.0f} µs")
+          f"spin {'the whole period' if busy else f'{args.spin_us:.0f} µs'}; load average at start {load_start:.2f}, "
+          f"at end {os.getloadavg()[0]:.2f}")
+    print(f"CPU-stall probe  {probe_s:.0f} s on CPU {'any' if cpu is None else cpu}: {np.sum(stalls >= 500)} stalls "
+          f"≥ 500 µs ({np.sum(stalls >= 1000)} ≥ 1 ms), max {stalls.max() if stalls.size else 0:.0f} µs")
     print(f"controller step  median {timing['step_median_us']:.1f} µs  p99 {timing['step_p99_us']:.1f} µs  "
           f"max {timing['step_max_us']:.1f} µs   (target p99 ≤ 200 µs)")
     print(f"loop period      median {timing['period_median_us']:.1f} µs  p1 {timing['period_p1_us']:.1f} µs  "
           f"p99 {timing['period_p99_us']:.1f} µs  max {timing['period_max_us']:.1f} µs   (target p99 ≤ 1100 µs)")
+    print(f"blocking waits   {waits / result.ticks:.2f} per tick (the sleep: ≤ 1; XLA dispatch "
+          f"{'inline' if controller.inline_dispatch else 'ASYNCHRONOUS'})")
     print(f"tick work        median {timing['work_median_us']:.1f} µs  p99 {timing['work_p99_us']:.1f} µs")
     print(f"overruns         {timing['overruns']} in {timing['ticks']} ticks = "
           f"{timing['overruns_per_10k_ticks']:.2f} per 10k   (target ≤ 1); by cause: "
@@ -116,17 +129,43 @@ def main() -> None:
     for k in np.flatnonzero(log.overrun)[:20]:
         print(f"  tick {k}: started {log.late_s[k] * 1e6:7.0f} µs late, work {log.work_s[k] * 1e6:6.0f} µs wall "
               f"/ {log.work_cpu_s[k] * 1e6:5.0f} µs CPU ({hio.PHASE_NAMES[log.phase[k]]})")
-    figures = {
-        "benchmark": "hardware_loop", "machine": study_io.machine(), "transport": args.transport,
-        "scheduling": result.realtime, "sim_cpus": sorted(sim_cpus) if sim_cpus else None, "spin_us": args.spin_us,
-        "walk_s": duration_s, "wall_s": round(wall_s, 1), "walked_m": round(walked_m, 2), "trip": result.trip,
-        "load_avg_1min_start": round(load_start, 2), "load_avg_1min_end": round(os.getloadavg()[0], 2),
-        "probe_s": probe_s, "cpu_stalls_ge_500us": int(np.sum(stalls >= 500)),
+    return {
+        "scheduling": result.realtime, "sim_cpus": sorted(sim_cpus) if sim_cpus else None,
+        "spin_us": duration_s * 1e6 if busy else args.spin_us, "wall_s": round(wall_s, 1),
+        "walked_m": round(walked_m, 2), "trip": result.trip, "load_avg_1min_start": round(load_start, 2),
+        "load_avg_1min_end": round(os.getloadavg()[0], 2), "cpu_stalls_ge_500us": int(np.sum(stalls >= 500)),
         "cpu_stalls_ge_1ms": int(np.sum(stalls >= 1000)),
         "cpu_stall_max_us": round(float(stalls.max()), 1) if stalls.size else 0.0,
         **{k: round(v, 2) if isinstance(v, float) else v for k, v in timing.items()},
-        "skipped_ticks": result.skipped_ticks,
+        "skipped_ticks": result.skipped_ticks, "inline_dispatch": controller.inline_dispatch,
+        "blocking_waits_per_tick": round(waits / result.ticks, 3),
     }
+
+
+def main() -> None:
+    cpu_dispatch.request_inline()  # before any JAX computation (hardware_io.CompiledController)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="10 s instead of 60 s per mode")
+    parser.add_argument("--duration-s", type=float, help="walking time per mode (default 60, --quick 10)")
+    parser.add_argument("--probe-s", type=float,
+                        help="CPU-stall probe before each loop (default 20, --quick 5; 0: off)")
+    parser.add_argument("--modes", default="sleep,busy-wait", help="comma list of sleep, busy-wait")
+    parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
+    parser.add_argument("--cpu", type=int, help="pin the loop to this CPU and the simulated Go1 to the others")
+    parser.add_argument("--spin-us", type=float, default=hio.LoopConfig().spin_s * 1e6,
+                        help="sleep mode: spin this long before each deadline instead of sleeping")
+    parser.add_argument("--transport", choices=("udp", "sdk"), default="udp")
+    args = parser.parse_args()
+    modes = args.modes.split(",")
+    if not set(modes) <= {"sleep", "busy-wait"}:
+        parser.error(f"--modes {args.modes!r}: each of sleep, busy-wait")
+    duration_s = args.duration_s or (10.0 if args.quick else 60.0)
+    probe_s = args.probe_s if args.probe_s is not None else (5.0 if args.quick else 20.0)
+    figures = {"benchmark": "hardware_loop", "machine": study_io.machine(), "transport": args.transport,
+               "walk_s": duration_s, "probe_s": probe_s}
+    for mode in modes:
+        mode_figures = run_mode(mode, duration_s, probe_s, args)
+        figures.update({f"{mode.replace('-', '_')}_{k}": v for k, v in mode_figures.items()})
     print(json.dumps(figures))
 
 

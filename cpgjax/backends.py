@@ -40,16 +40,6 @@ def make_backend(scenario: go1_model.Scenario, backend: str = "auto", cpg_config
     return native_go1.NativeBackend(scenario, cpg_config=cpg_config, trial_config=trial_config)
 
 
-def use_inline_cpu_dispatch() -> None:
-    """Run JAX's CPU computations inline on the calling thread (``jax_cpu_enable_async_dispatch = False``).
-
-    The native backend makes one small JAX call per control tick; inline dispatch saves the hand-off to an XLA worker
-    thread, which on a busy 2-core machine costs more than the computation (docs/backends.md). MJX is unaffected (one
-    call per trial). Takes effect only if called before JAX's first computation: call it at program start.
-    """
-    jax.config.update("jax_cpu_enable_async_dispatch", False)
-
-
 def add_backend_argument(parser: argparse.ArgumentParser) -> None:
     """``--backend {auto,mjx,native}`` for command-line tools (default auto)."""
     parser.add_argument("--backend", choices=BACKENDS, default="auto",

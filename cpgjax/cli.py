@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cpgjax import cpg, walk
+from cpgjax import cpg, cpu_dispatch, walk
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -34,16 +34,8 @@ def _progress_printer(stream=None):
     return show
 
 
-def _inline_dispatch() -> None:
-    # The native backend makes one small JAX call per control tick: inline CPU dispatch is faster (backends.py).
-    from cpgjax import backends
-    fn = getattr(backends, "use_inline_cpu_dispatch", None)
-    if fn is not None:
-        fn()
-
-
 def _study(args) -> int:
-    _inline_dispatch()
+    cpu_dispatch.request_inline()  # the native backend's per-tick controller call
     from cpgjax import ablation, studies
     if args.distributed:
         ablation.initialize_distributed()
@@ -59,7 +51,7 @@ def _study(args) -> int:
 
 
 def _optimize(args) -> int:
-    _inline_dispatch()
+    cpu_dispatch.request_inline()  # the native backend's per-tick controller call
     import pathlib
 
     from cpgjax import ablation, params as param_space, study_io

@@ -7,13 +7,17 @@ observation (SI units, foot forces through the calibration) into the flat input.
 
 from __future__ import annotations
 
+import logging
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cpgjax import cpg, kinematics
+from cpgjax import cpg, cpu_dispatch, kinematics
 from cpgjax import go1_protocol as proto
 from cpgjax.foot_force import FootForceCalibration
+
+log = logging.getLogger(__name__)
 
 OBS_SIZE = 35  # q 12 | dq 12 | quat 4 | gyro 3 | foot force 4
 IN_SIZE = OBS_SIZE + 8 + 2 + 9  # obs | params 8 | gates 2 | CPG state (amplitude 4, phase 4, heading 1)
@@ -76,10 +80,11 @@ class CompiledController:
     """
 
     def __init__(self, config: cpg.CPGConfig = cpg.CPGConfig(), warmup_calls: int = 200):
-        # Run CPU computations on the calling thread: with asynchronous dispatch the loop thread (real-time
-        # priority) waits for an XLA worker thread at normal priority, which a loaded machine delays by
-        # milliseconds (p99 ≈ 1 ms vs ≈ 0.12 ms measured here). This is a process-wide JAX setting.
-        jax.config.update("jax_cpu_enable_async_dispatch", False)
+        self.inline_dispatch = cpu_dispatch.request_inline()
+        if not self.inline_dispatch:
+            log.warning("JAX's CPU client was created with asynchronous dispatch before the controller: each step "
+                        "runs on an XLA worker thread at normal priority while the loop thread waits for it. Call "
+                        "cpgjax.cpu_dispatch.request_inline() at program start, before any JAX computation.")
         self.config = config
         x = np.zeros(IN_SIZE, np.float32)
         x[24] = 1.0  # identity quaternion

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cpgjax import cpu_dispatch
 from cpgjax import params as param_space
 from cpgjax.robot_trials import (  # noqa: F401  (re-exported)
     BayesianOptimizer, OnlineOptimizer, OptimizerSpec, RandomSearch, TrialRunner, TrialTiming, load_params,
@@ -41,13 +42,17 @@ def add_robot_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--slope-deg", type=float, default=0.0, help="sim only")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     p.add_argument("--cpu", type=int, help="pin the loop to this CPU (sim: the simulated Go1 to the others)")
+    p.add_argument("--busy-wait", action="store_true",
+                   help="spin through each period instead of sleeping (with --cpu; with --no-realtime unless the "
+                   "kernel's real-time throttling is off); fewer overruns on a VM (docs/hardware.md)")
 
 
 def loop_and_safety(args):
     """(LoopConfig, SafetyConfig) of the command line's options."""
     from cpgjax import hardware_io as hio
 
-    return (hio.LoopConfig(realtime_priority=None if args.no_realtime else 80, cpu=args.cpu),
+    return (hio.LoopConfig(realtime_priority=None if args.no_realtime else 80, cpu=args.cpu,
+                           busy_wait=args.busy_wait),
             hio.SafetyConfig(power_level=args.power_level))
 
 
@@ -130,6 +135,7 @@ def sim_calibration():
 def main(argv=None) -> int:
     """``cpgjax deploy`` (and ``cpgjax deploy calibrate``). Returns 0 after a clean end, 2 after a safety trip."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    cpu_dispatch.request_inline()  # before any JAX computation: the loop's controller step runs on its own thread
     if argv[:1] == ["calibrate"]:
         from cpgjax import calibrate
 

@@ -19,6 +19,7 @@ import logging
 import os
 import signal
 import time
+from pathlib import Path
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -76,6 +77,10 @@ class LoopConfig(NamedTuple):
 
     period_s: float = 0.001
     spin_s: float = 0.0002  # sleep until this long before the deadline, then spin
+    # Spin through the whole period, never sleep: the CPU stays awake (on a VM, the virtual CPU is not halted and
+    # handed back to the host). Needs a CPU of its own (``cpu``) and, at SCHED_FIFO, the kernel's real-time
+    # throttling off; benchmarks/hardware_loop.py compares it with sleeping.
+    busy_wait: bool = False
     connect_timeout_s: float = 2.0  # no robot state by then → give up
     hold_s: float = 0.5  # hold the measured pose while Kp ramps from hold_kp_fraction to stand_kp
     ramp_s: float = 1.0  # then move linearly to the standing pose
@@ -109,10 +114,13 @@ class TickLog(NamedTuple):
 
     @classmethod
     def allocate(cls, n: int) -> TickLog:
-        return cls(np.zeros(n), np.zeros(n, np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32),
-                   np.zeros(n, np.float32), np.zeros(n, bool), np.full(n, -1, np.int8), np.zeros(n, bool),
-                   np.zeros(n, np.uint32), np.zeros((n, 4), np.int16), np.zeros((n, OBS_SIZE), np.float32),
-                   np.zeros((n, 12), np.float32), np.zeros((n, 12), np.float32))
+        """Every page written before the loop starts. ``np.zeros`` maps zero pages that are faulted in on first write:
+        inside the loop that cost 0.3–1.8 ms of CPU per 2 MB of log on our VM (``benchmarks/hardware_loop.py``),
+        an overrun each."""
+        zeros = lambda shape, dtype=np.float32: np.full(shape, 0, dtype)  # noqa: E731 (np.full writes every page)
+        return cls(zeros(n, np.float64), zeros(n), zeros(n), zeros(n), zeros(n), zeros(n, bool),
+                   np.full(n, -1, np.int8), zeros(n, bool), zeros(n, np.uint32), zeros((n, 4), np.int16),
+                   zeros((n, OBS_SIZE)), zeros((n, 12)), zeros((n, 12)))
 
     def chronological(self, ticks: int) -> TickLog:
         n = self.phase.shape[0]
@@ -181,13 +189,36 @@ def _enter_realtime(loop: LoopConfig):
         except (OSError, AttributeError) as e:
             notes.append(f"affinity not permitted ({e})")
     if loop.realtime_priority is not None:
+        throttle = rt_throttling()
+        if loop.busy_wait and throttle is not None:
+            for restore in reversed(restores):
+                restore()
+            raise ValueError(
+                f"busy_wait at SCHED_FIFO {loop.realtime_priority}: the kernel's real-time throttling "
+                f"(kernel.sched_rt_runtime_us = {throttle[0]} of sched_rt_period_us = {throttle[1]}) would stop the "
+                f"loop for {(throttle[1] - throttle[0]) / 1000:.0f} ms every {throttle[1] / 1000:.0f} ms. Busy-wait "
+                "without real-time priority on a CPU of its own (realtime_priority=None, cpu=N), or turn the "
+                "throttling off (sysctl kernel.sched_rt_runtime_us=-1)")
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(loop.realtime_priority))
             restores.append(lambda: os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0)))
             notes.append(f"SCHED_FIFO {loop.realtime_priority}")
         except (OSError, AttributeError) as e:
             notes.append(f"real-time priority not permitted ({e})")
+    if loop.busy_wait:
+        notes.append("busy-wait")
     return ", ".join(notes) or "default scheduling", lambda: [r() for r in reversed(restores)]
+
+
+def rt_throttling() -> tuple[int, int] | None:
+    """(sched_rt_runtime_us, sched_rt_period_us) when the kernel throttles real-time threads, None when it does
+    not (runtime −1) or the setting cannot be read."""
+    try:
+        runtime = int(Path("/proc/sys/kernel/sched_rt_runtime_us").read_text())
+        period = int(Path("/proc/sys/kernel/sched_rt_period_us").read_text())
+    except (OSError, ValueError):
+        return None
+    return None if runtime < 0 or runtime >= period else (runtime, period)
 
 
 class _StopRequest:
@@ -376,7 +407,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                         skipped += missed
                         deadline += missed * period
                 else:
-                    _wait_until(deadline, loop.spin_s)
+                    _wait_until(deadline, loop.period_s if loop.busy_wait else loop.spin_s)
     finally:
         gc.enable()
         gc.unfreeze()

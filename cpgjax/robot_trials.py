@@ -214,7 +214,7 @@ class TrialRunner:
         self._timing = timing
         self._columns = np.array([hio.OUT_VELOCITY.start, hio.OUT_VELOCITY.start + 1, hio.OUT_POWER, hio.OUT_LOAD,
                                   hio.OUT_RPY.start, hio.OUT_RPY.start + 1, hio.OUT_SATURATED])
-        self._signals = np.zeros((timing.steady_ticks, len(_SIGNALS)), np.float32)
+        self._signals = np.full((timing.steady_ticks, len(_SIGNALS)), 0, np.float32)  # written now, not in the loop
         self._previous = self._current = np.asarray(initial_params, np.float32)
         self._num_trials = num_trials
         self.trials_done = 0

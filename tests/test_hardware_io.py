@@ -8,7 +8,10 @@ benchmarks/hardware_loop.py.
 """
 
 import json
+import os
 import signal
+import subprocess
+import sys
 import time
 
 import jax
@@ -169,6 +172,41 @@ def test_overrun_causes_name_the_largest_share_of_the_tick():
     assert [hio.OVERRUN_CAUSES[c] for c in hio.overrun_causes(log)] == ["late_start", "not_running", "work_cpu"]
 
 
+_BLOCKING_WAITS = """
+import logging, sys, numpy as np
+logging.basicConfig(level=logging.WARNING)
+if sys.argv[1] == "late":
+    import jax.numpy as jnp
+    jnp.zeros(1).block_until_ready()  # the CPU client exists before the controller asks for inline dispatch
+from cpgjax import hardware_io as hio
+controller = hio.CompiledController(warmup_calls=10)
+x = np.zeros(hio.IN_SIZE, np.float32)
+x[24] = 1.0
+def waits():
+    return int(next(l for l in open("/proc/thread-self/status") if l.startswith("voluntary_ctxt")).split()[1])
+before = waits()
+for _ in range(500):
+    controller.step(x)
+print(controller.inline_dispatch, waits() - before)
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/thread-self/status"), reason="counts context switches from /proc")
+@pytest.mark.parametrize("when", ["first", "late"])
+def test_the_controller_step_runs_on_the_loop_thread_unless_jax_computed_first(when):
+    """The loop thread must not block on an XLA worker thread in each step (priority inversion): with inline CPU
+    dispatch its 500 steps make (almost) no voluntary context switch; a process that computed with JAX before the
+    controller keeps asynchronous dispatch, which the controller reports and warns about."""
+    out = subprocess.run([sys.executable, "-c", _BLOCKING_WAITS, when], capture_output=True, text=True, timeout=120,
+                         env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    assert out.returncode == 0, out.stderr
+    inline, waits = out.stdout.split()
+    if when == "first":
+        assert inline == "True" and int(waits) <= 5  # measured 0
+    else:
+        assert inline == "False" and "asynchronous dispatch" in out.stderr and int(waits) >= 100  # measured 280–650
+
+
 def test_no_robot_gives_up_after_the_connect_timeout(controller):
     import socket
 
@@ -179,6 +217,38 @@ def test_no_robot_gives_up_after_the_connect_timeout(controller):
                               GATES, LOOP._replace(connect_timeout_s=0.05), SAFETY)
         transport.close()
     assert result.trip.startswith("no robot state")
+
+
+def test_busy_wait_loop_never_sleeps(robot, controller, monkeypatch):
+    sleeps = []
+    monkeypatch.setattr(hio.time, "sleep", lambda s: sleeps.append(s))
+    transport = hio.LockstepTransport(robot.address)
+    robot.reset()
+    try:
+        result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 200), deploy.sim_calibration(),
+                              GATES, LOOP._replace(busy_wait=True), SAFETY)
+    finally:
+        transport.close()
+    assert result.trip is None and "busy-wait" in result.realtime and result.ticks > 500
+    assert sleeps == []
+
+
+def test_busy_wait_at_realtime_priority_is_refused_while_the_kernel_throttles(controller, monkeypatch):
+    """A SCHED_FIFO thread that never sleeps would be stopped for 50 ms every second by the kernel's real-time
+    throttling: refused before anything is sent, with the setting named."""
+    monkeypatch.setattr(hio, "rt_throttling", lambda: (950_000, 1_000_000))
+    transport = hio.UdpTransport(("127.0.0.1", 9))  # never used: refused before the first tick
+    with pytest.raises(ValueError, match=r"sched_rt_runtime_us = 950000.*50 ms every 1000 ms"):
+        hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(), GATES,
+                     LOOP._replace(busy_wait=True, realtime_priority=80), SAFETY)
+    transport.close()
+    monkeypatch.setattr(hio, "rt_throttling", lambda: None)  # throttling off: allowed (priority where permitted)
+    transport = hio.UdpTransport(("127.0.0.1", 9))
+    result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(),
+                          GATES, LOOP._replace(busy_wait=True, realtime_priority=80, connect_timeout_s=0.02), SAFETY)
+    transport.close()
+    assert result.trip.startswith("no robot state")
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # restored after the loop
 
 
 # ------------------------------------------------------------------------------------- guards and units
