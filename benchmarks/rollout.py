@@ -1,6 +1,11 @@
-"""Environment steps per second of the batched closed-loop trial (CPG controller + MJX) against bare ``mjx.step``
-with a constant control, against single-threaded C MuJoCo, and against the same trial on the native backend (C MuJoCo
-through ``mujoco.rollout``, ``benchmarks/backend_speed.py``), measured in the same run.
+"""Environment steps per second of the batched closed-loop trial (CPG controller + MJX) against bare ``mjx.step``,
+against single-threaded C MuJoCo, and against the same trial on the native backend (C MuJoCo through
+``mujoco.rollout``, ``benchmarks/backend_speed.py``), measured in the same run.
+
+Two bare baselines (``measure``): *replay*, ``mjx.step`` driven by the torques the closed loop applied, which is the
+same physics bit for bit and so isolates what the controller, the sensors and the bookkeeping add; and *constant
+control* (1 N·m on every motor), under which the robot collapses onto its trunk and the solver works on other
+contacts. The three are timed in interleaved rounds (best of each).
 
     python benchmarks/rollout.py            # full: batch 1, 4, 16, 64, 256; one device and every core
     python benchmarks/rollout.py --quick    # under 2 minutes on a 2-core CPU
@@ -27,56 +32,74 @@ from backend_speed import trial_speed  # benchmarks/ is the script's directory
 from cpgjax import go1_model, mjx_go1, params as param_space, study_io
 
 
-def _timed(fn, *args, repeats: int):
-    """(compile+first-run seconds, best run seconds) of a jitted function."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    best = np.inf
+def _interleaved_best(runs: dict, repeats: int) -> dict:
+    """Best wall time [s] of each zero-argument run over ``repeats`` rounds that run them in turn, so that drift of
+    the machine's speed between rounds (up to ~40 % on this VM) biases none of them."""
+    best = dict.fromkeys(runs, np.inf)
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - t0)
-    return first, best
+        for name, run in runs.items():
+            best[name] = min(best[name], run())
+    return best
 
 
-def closed_loop(batch: int, steps: int, repeats: int, devices: list) -> dict:
-    """The paper's trial (transition + steady phase, sensors, controller, bookkeeping) for ``batch`` instances
-    sharded over ``devices``."""
+def measure(batch: int, steps: int, repeats: int, devices: list) -> dict:
+    """Env-steps/s of the closed-loop trial and of its two bare-``mjx.step`` baselines for ``batch`` instances sharded
+    over ``devices`` (all three mapped per shard, as the backend maps its trial):
+
+    - closed loop: the paper's trial (transition + steady phase, sensors, controller, bookkeeping) with constant
+      parameters, from standing;
+    - replay: ``mjx.step`` in a ``lax.scan`` driven by the torques that closed loop applied, recorded beforehand: the
+      same physics, bit for bit (checked: ``replay_max_abs_qpos_diff``), without the controller;
+    - constant control: the replay's program driven by ctrl = 1 N·m on every motor from standing; the robot
+      collapses onto its trunk, so the solver works on other contacts than in walking.
+    """
     transition = steps // 4
     config = mjx_go1.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
     sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)), trial_config=config,
                              devices=devices)
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = mjx_go1.batch_gates(["vmc_tegotae"] * batch)
-    state = jax.block_until_ready(sim.reset(p))
-    t0 = time.perf_counter()
-    jax.block_until_ready(sim.trial(state, p, gates))  # compiles; the trial consumes its input state
-    first_call = time.perf_counter() - t0
-    best = np.inf
-    for _ in range(repeats):
+    ids = go1_model.indices()
+    model, axes = sim.batch.model, sim.batch.in_axes
+
+    def closed_loop_run(first: bool = False):
         state = jax.block_until_ready(sim.reset(p))
         t0 = time.perf_counter()
-        jax.block_until_ready(sim.trial(state, p, gates))
-        best = min(best, time.perf_counter() - t0)
-    return {"steps_per_s": batch * steps / best, "first_call_s": first_call}
+        end = jax.block_until_ready(sim.trial(state, p, gates))[0]  # the trial consumes its input state
+        return (time.perf_counter() - t0, end) if first else time.perf_counter() - t0
 
+    first_call_s, trial_end = closed_loop_run(first=True)  # compiles
 
-def bare_mjx(batch: int, steps: int, repeats: int, devices: list) -> dict:
-    """``mjx.step`` in a scan with a constant control, vmapped, on the same batched model and devices."""
-    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)), devices=devices)
-    qpos = jnp.asarray(go1_model.standing_qpos(), jnp.float32)
+    def replay(m, data, torques_nm):
+        def body(d, tau):
+            return mjx.step(m, d.replace(ctrl=jnp.zeros(m.nu, tau.dtype).at[ids.actuator].set(tau))), None
+        return jax.lax.scan(body, data, torques_nm)[0]
 
-    def run(model):
-        data = mjx.make_data(model).replace(qpos=qpos, ctrl=jnp.full(model.nu, 1.0))
-        return jax.lax.scan(lambda d, _: (mjx.step(model, d), None), data, None, length=steps)[0].qpos
-
-    fn = jax.jit(mjx_go1.per_shard(run, (sim.batch.in_axes,), sim.mesh))  # mapped as the backend maps its trial
+    start = sim.reset(p)
+    torques = sim.rollout(sim.reset(p), p, gates, steps)[1].torque_nm  # (B, T, 12), what the closed loop applies
     t0 = time.perf_counter()
-    compiled = fn.lower(sim.batch.model).compile()
-    compile_s = time.perf_counter() - t0
-    _, best = _timed(compiled, sim.batch.model, repeats=repeats)
-    return {"steps_per_s": batch * steps / best, "compile_s": compile_s}
+    replay_fn = jax.jit(mjx_go1.per_shard(replay, (axes, 0, 0), sim.mesh)).lower(model, start.data, torques).compile()
+    replay_compile_s = time.perf_counter() - t0
+    replay_diff = float(jnp.max(jnp.abs(replay_fn(model, start.data, torques).qpos - trial_end.data.qpos)))
+
+    constant_torques = jnp.ones_like(torques)  # 1 N·m on every motor (model.nu = 12)
+
+    def timed(fn, *args):
+        def run():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            return time.perf_counter() - t0
+        return run
+
+    timed(replay_fn, model, start.data, torques)()  # warm
+    best = _interleaved_best({"closed_loop": closed_loop_run, "replay": timed(replay_fn, model, start.data, torques),
+                              "constant": timed(replay_fn, model, start.data, constant_torques)}, repeats)
+    rate = {k: batch * steps / v for k, v in best.items()}
+    return {"closed_loop_steps_per_s": rate["closed_loop"], "replay_steps_per_s": rate["replay"],
+            "constant_steps_per_s": rate["constant"], "overhead_vs_replay": best["closed_loop"] / best["replay"] - 1,
+            "overhead_vs_constant": best["closed_loop"] / best["constant"] - 1, "first_call_s": first_call_s,
+            "replay_compile_s": replay_compile_s,
+            "replay_max_abs_qpos_diff": replay_diff}
 
 
 def c_mujoco(steps: int) -> float:
@@ -108,41 +131,44 @@ def layouts(batch: int, quick: bool) -> list[list]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="batch 1 and 16, short rollouts (< 2 min)")
+    parser.add_argument("--quick", action="store_true", help="batch 16 on every device, short rollouts (< 2 min)")
     parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=None)
     parser.add_argument("--steps", type=int, default=None, help="env steps per instance per timed run")
     parser.add_argument("--cpu-devices", type=int, default=os.cpu_count(),
                         help="host devices on a CPU (default: one per core)")
     args = parser.parse_args()
     jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
-    batches = args.batch_sizes or ([1, 16] if args.quick else [1, 4, 16, 64, 256])
+    batches = args.batch_sizes or ([16] if args.quick else [1, 4, 16, 64, 256])
     steps = args.steps or (400 if args.quick else 2000)
-    repeats = 1 if args.quick else 3
+    repeats = 2 if args.quick else 3
 
     device = jax.devices()[0]
     print(f"# devices: {len(jax.devices())} x {device.platform} {device.device_kind}; host: {study_io.machine()}; "
           f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance")
-    print("| batch | devices | closed loop [env-steps/s] | bare mjx.step [env-steps/s] | controller overhead "
-          "| first call (compile) [s] | bare compile [s] | native closed loop (C MuJoCo) [env-steps/s] |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| batch | devices | closed loop [env-steps/s] | bare replay [env-steps/s] | controller overhead (vs replay) "
+          "| bare constant control [env-steps/s] | overhead vs constant control | first call (compile) [s] "
+          "| native closed loop (C MuJoCo) [env-steps/s] |")
+    print("|---|---|---|---|---|---|---|---|---|")
     figures: dict = {"device": f"{device.platform}:{device.device_kind}", "num_devices": len(jax.devices()),
-                     "machine": study_io.machine(), "steps_per_instance": steps}
+                     "machine": study_io.machine(), "steps_per_instance": steps, "repeats": repeats}
     for b in batches:
         native = trial_speed("native", b, steps, repeats)  # the same trial with the native backend
         figures[f"native_closed_loop_env_steps_per_s_b{b}"] = round(native["env_steps_per_s"])
         for devices in layouts(b, args.quick):
-            loop = closed_loop(b, steps, repeats, devices)
-            bare = bare_mjx(b, steps, repeats, devices)
-            overhead = bare["steps_per_s"] / loop["steps_per_s"] - 1.0
-            print(f"| {b} | {len(devices)} | {loop['steps_per_s']:,.0f} | {bare['steps_per_s']:,.0f} | {overhead:+.1%} "
-                  f"| {loop['first_call_s']:.1f} | {bare['compile_s']:.1f} | {native['env_steps_per_s']:,.0f} |",
-                  flush=True)
+            r = measure(b, steps, repeats, devices)
+            print(f"| {b} | {len(devices)} | {r['closed_loop_steps_per_s']:,.0f} | {r['replay_steps_per_s']:,.0f} "
+                  f"| {r['overhead_vs_replay']:+.1%} | {r['constant_steps_per_s']:,.0f} "
+                  f"| {r['overhead_vs_constant']:+.1%} "
+                  f"| {r['first_call_s']:.1f} | {native['env_steps_per_s']:,.0f} |", flush=True)
             key = f"b{b}_d{len(devices)}"
-            figures[f"closed_loop_env_steps_per_s_{key}"] = round(loop["steps_per_s"])
-            figures[f"bare_mjx_env_steps_per_s_{key}"] = round(bare["steps_per_s"])
-            figures[f"controller_overhead_ratio_{key}"] = round(overhead, 4)
-            figures[f"bare_mjx_compile_s_{key}"] = round(bare["compile_s"], 2)
-            figures[f"closed_loop_first_call_s_{key}"] = round(loop["first_call_s"], 2)
+            figures[f"closed_loop_env_steps_per_s_{key}"] = round(r["closed_loop_steps_per_s"])
+            figures[f"bare_replay_env_steps_per_s_{key}"] = round(r["replay_steps_per_s"])
+            figures[f"bare_constant_env_steps_per_s_{key}"] = round(r["constant_steps_per_s"])
+            figures[f"controller_overhead_ratio_{key}"] = round(r["overhead_vs_replay"], 4)
+            figures[f"overhead_vs_constant_control_ratio_{key}"] = round(r["overhead_vs_constant"], 4)
+            figures[f"replay_max_abs_qpos_diff_{key}"] = r["replay_max_abs_qpos_diff"]
+            figures[f"closed_loop_first_call_s_{key}"] = round(r["first_call_s"], 2)
+            figures[f"bare_compile_s_{key}"] = round(r["replay_compile_s"], 2)
     c_rate = c_mujoco(5 * steps)
     print(f"C MuJoCo, single thread, batch 1: {c_rate:,.0f} env-steps/s")
     figures["c_mujoco_single_thread_env_steps_per_s"] = round(c_rate)
