@@ -76,7 +76,7 @@ def measure(batch: int, steps: int, repeats: int, devices: list) -> dict:
         return jax.lax.scan(body, data, torques_nm)[0]
 
     start = sim.reset(p)
-    torques = sim.rollout(sim.reset(p), p, gates, steps)[1].torque_nm  # (B, T, 12), what the closed loop applies
+    torques = sim.rollout(start, p, gates, steps)[1].torque_nm  # (B, T, 12), what the closed loop applies
     t0 = time.perf_counter()
     replay_fn = jax.jit(mjx_go1.per_shard(replay, (axes, 0, 0), sim.mesh)).lower(model, start.data, torques).compile()
     replay_compile_s = time.perf_counter() - t0

@@ -9,7 +9,6 @@ import argparse
 import contextlib
 import json
 import logging
-import os
 import sys
 from pathlib import Path
 
@@ -73,10 +72,9 @@ def connect(args):
     if args.robot == "sim":
         # The simulated robot shares this machine's CPUs: real-time priority (below the loop's) keeps other
         # processes, the optimizer included, from starving it. With --cpu it runs on the other CPUs.
-        sim_cpus = None if args.cpu is None else (set(os.sched_getaffinity(0)) - {args.cpu}) or None
         server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
                                   payload_kg=args.payload_kg, realtime_priority=None if args.no_realtime else 70,
-                                  cpus=sim_cpus)
+                                  cpus=sim.cpus_besides(args.cpu))
         ip, port, local_port = server.address[0], server.port, 0
     else:
         ip, port, local_port = args.robot_ip, args.robot_port, args.local_port

@@ -179,6 +179,11 @@ def timing_stats(log: TickLog, overruns: int, ticks: int) -> dict:
 def _enter_realtime(loop: LoopConfig):
     """Apply SCHED_FIFO and CPU affinity where permitted; return (description, restore function)."""
     notes, restores = [], []
+
+    def restore() -> None:
+        for undo in reversed(restores):
+            undo()
+
     if loop.cpu is not None:
         try:
             old = os.sched_getaffinity(0)
@@ -190,8 +195,7 @@ def _enter_realtime(loop: LoopConfig):
     if loop.realtime_priority is not None:
         throttle = rt_throttling()
         if loop.busy_wait and throttle is not None:
-            for restore in reversed(restores):
-                restore()
+            restore()
             raise ValueError(
                 f"busy_wait at SCHED_FIFO {loop.realtime_priority}: the kernel's real-time throttling "
                 f"(kernel.sched_rt_runtime_us = {throttle[0]} of sched_rt_period_us = {throttle[1]}) would stop the "
@@ -206,7 +210,7 @@ def _enter_realtime(loop: LoopConfig):
             notes.append(f"real-time priority not permitted ({e})")
     if loop.busy_wait:
         notes.append("busy-wait")
-    return ", ".join(notes) or "default scheduling", lambda: [r() for r in reversed(restores)]
+    return ", ".join(notes) or "default scheduling", restore
 
 
 def rt_throttling() -> tuple[int, int] | None:

@@ -31,7 +31,6 @@ from cpgjax.objective import TrialRecord
 log = logging.getLogger(__name__)
 
 
-
 class TrialConfig(NamedTuple):
     """Trial timing and fall detection. Static: changing one recompiles."""
 

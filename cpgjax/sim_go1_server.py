@@ -14,7 +14,8 @@ physics is frozen until then, like a robot waiting for low-level control) and st
 with ``go1_transport.LockstepTransport``).
 
 Fault injection for tests, resets and lifting the robot off the ground (foot-force calibration) go through a second
-UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``python -m cpgjax.sim_go1_server --help``. Only 127.0.0.1 is ever bound.
+UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``python -m cpgjax.sim_go1_server
+--help``. Only 127.0.0.1 is ever bound.
 """
 
 from __future__ import annotations
@@ -290,6 +291,14 @@ class SimGo1Server:
                 next_deadline = max(next_deadline + TICK_S, time.perf_counter() - TICK_S)
         self.sock.close()
         self.ctrl.close()
+
+
+def cpus_besides(loop_cpu: int | None) -> set[int] | None:
+    """The CPUs this process may use other than the loop's (for the simulated Go1), or None: no loop CPU given, or no
+    other CPU left."""
+    if loop_cpu is None:
+        return None
+    return (set(os.sched_getaffinity(0)) - {loop_cpu}) or None
 
 
 class SimGo1Client:
