@@ -22,13 +22,17 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from cpgjax import cpu_dispatch  # noqa: E402
+from cpgjax.robot import cpu_dispatch  # noqa: E402
 
 cpu_dispatch.request_inline()  # before any JAX computation
 
 import jax  # noqa: E402
 
-from cpgjax import ablation, backends, cpg, study_io, studies  # noqa: E402
+from cpgjax import ablation
+from cpgjax.sim import backends
+from cpgjax import cpg
+from cpgjax.study import files as study_io
+from cpgjax.study import registry as studies  # noqa: E402
 
 
 def main() -> None:

@@ -24,7 +24,12 @@ import time
 import jax
 import numpy as np
 
-from cpgjax import cpg, go1_model, mjx_go1, native_go1, params as param_space, study_io
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.sim import native as native_go1
+from cpgjax.trial import params as param_space
+from cpgjax.study import files as study_io
 
 ABLATION_TRIALS = 40
 ABLATION_SEEDS = 5

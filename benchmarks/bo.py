@@ -1,4 +1,4 @@
-"""The GP-UCB optimizer (cpgjax.gp / cpgjax.bo) against BoTorch, same machine, same run.
+"""The GP-UCB optimizer (cpgjax.gp / cpgjax.optim.bo) against BoTorch, same machine, same run.
 
     python benchmarks/bo.py            # full (see benchmarks/RESULTS.md)
     python benchmarks/bo.py --quick    # under 2 minutes on a 2-core CPU
@@ -60,7 +60,9 @@ from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from gpytorch.priors import GammaPrior  # noqa: E402
 from scipy.stats import mannwhitneyu  # noqa: E402
 
-from cpgjax import bo, study_io  # noqa: E402
+from cpgjax.optim import bo
+from cpgjax.study import files as study_io  # noqa: E402
+from cpgjax.optim import config as optimizer_config
 
 torch.set_num_threads(1)
 warnings.filterwarnings("ignore")  # BoTorch's input-scaling and numerical notices
@@ -171,7 +173,7 @@ def vmapped_iteration(opt):
 
 def single_iteration(num_points, capacity, repeats, rng):
     """(a) cpgjax: median ms of observe (fit) and propose (acquisition), one instance."""
-    config = bo.OptimizerConfig((-1.0,) * 8, (1.0,) * 8, capacity=capacity)
+    config = optimizer_config.OptimizerConfig((-1.0,) * 8, (1.0,) * 8, capacity=capacity)
     opt = bo.make_optimizer(config)
     state, x, y = filled_state(opt, config, rng, num_points - 1)
     new_x = jnp.asarray(rng.uniform(-1, 1, 8), jnp.float32)
@@ -192,7 +194,7 @@ def botorch_single_iteration(x, y, repeats):
 
 def batched_iteration(batch, repeats, rng, num_points=40):
     """(b) cpgjax: wall ms of one vmapped iteration for ``batch`` instances, 40 points each."""
-    config = bo.OptimizerConfig((-1.0,) * 8, (1.0,) * 8, capacity=num_points)
+    config = optimizer_config.OptimizerConfig((-1.0,) * 8, (1.0,) * 8, capacity=num_points)
     opt = bo.make_optimizer(config)
     states = stack([filled_state(opt, config, rng, num_points - 1)[0] for _ in range(batch)])
     xs = jnp.asarray(rng.uniform(-1, 1, (batch, 8)), jnp.float32)
@@ -211,7 +213,7 @@ def cpgjax_regret(name, seeds, num_evals):
     """All seeds as one vmapped batch; returns the simple regret per seed."""
     fn, lower, upper, optimum = PROBLEMS[name]
     dims = len(lower)
-    config = bo.OptimizerConfig(tuple(lower), tuple(upper), capacity=num_evals)
+    config = optimizer_config.OptimizerConfig(tuple(lower), tuple(upper), capacity=num_evals)
     opt = bo.make_optimizer(config)
     propose, observe = jax.jit(jax.vmap(opt.propose)), jax.jit(jax.vmap(opt.observe))
     evaluate = jax.jit(jax.vmap(fn))

@@ -17,7 +17,9 @@ import sys
 
 CHILD = """
 import sys, jax, numpy as np
-from cpgjax import go1_model, mjx_go1, params
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import params
 batch = int(sys.argv[1])
 sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)))
 assert len(sim.mesh.devices.ravel()) == 2

@@ -34,9 +34,16 @@ import time
 
 import numpy as np
 
-from cpgjax import cpg, cpu_dispatch, deploy, params, study_io
+from cpgjax import cpg
+from cpgjax.robot import cpu_dispatch
+from cpgjax.robot import deploy
+from cpgjax.trial import params
+from cpgjax.study import files as study_io
 from cpgjax import hardware_io as hio
-from cpgjax import sim_go1_server as sim
+from cpgjax.robot import sim_server as sim
+from cpgjax.robot import controller as compiled_controller
+from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import transport as go1_transport
 
 
 def cpu_stalls_us(seconds: float, cpu: int | None, priority: int | None, min_gap_us: float = 200.0) -> np.ndarray:
@@ -94,16 +101,16 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     # machine's other processes, but its simulation on the same 2 CPUs would be.
     with sim.SimGo1Client(pacing="realtime", realtime_priority=None if args.no_realtime else 70,
                           cpus=sim_cpus) as robot:
-        controller = hio.CompiledController()
+        controller = compiled_controller.CompiledController()
         stalls = cpu_stalls_us(probe_s, cpu, loop_priority) if probe_s > 0 else np.zeros(0)
-        transport = (hio.SdkTransport("127.0.0.1", robot.port, deploy._free_port()) if args.transport == "sdk"
-                     else hio.UdpTransport(robot.address))
+        transport = (go1_transport.SdkTransport("127.0.0.1", robot.port, deploy._free_port()) if args.transport == "sdk"
+                     else go1_transport.UdpTransport(robot.address))
         loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=cpu, busy_wait=busy,
                               log_ticks=round((duration_s + 5.0) * 1000))
         t0, waits0 = time.perf_counter(), voluntary_waits()
         result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), round(duration_s * 1000)),
                               deploy.sim_calibration(), cpg.controller_gates("vmc_tegotae"), loop,
-                              hio.SafetyConfig(watchdog_ticks=50))
+                              go1_safety.SafetyConfig(watchdog_ticks=50))
         wall_s, waits = time.perf_counter() - t0, voluntary_waits() - waits0
         transport.close()
         walked_m = robot.stats()["trunk_xy_m"][0]

@@ -29,7 +29,10 @@ import numpy as np
 from mujoco import mjx
 
 from backend_speed import trial_speed  # benchmarks/ is the script's directory
-from cpgjax import go1_model, mjx_go1, params as param_space, study_io
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import params as param_space
+from cpgjax.study import files as study_io
 
 
 def _interleaved_best(runs: dict, repeats: int) -> dict:

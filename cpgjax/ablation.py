@@ -1,7 +1,7 @@
 r"""The lockstep engine: Algorithm 1 for a whole batch of instances at once.
 
 A study is a grid of instances — controller × seed × friction × slope × payload × target velocity × condition
-schedule × data reuse (:class:`StudySpec`, defined in :mod:`cpgjax.study_spec` and re-exported here) — each running
+schedule × data reuse (:class:`StudySpec`, defined in :mod:`cpgjax.study.spec` and re-exported here) — each running
 its own online optimization. Every trial is one lockstep
 round for the whole batch::
 
@@ -19,7 +19,7 @@ device (``jax.sharding``; several hosts through ``jax.distributed``, see :func:`
 ``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on the batch it is in or on the
 devices; its numbers agree to float rounding only (XLA vectorizes differently for another batch size or shard), and
 a walking robot amplifies a rounding difference within a trial or two, so one seed in two different batches gives
-statistically equivalent, not identical, runs. The state is checkpointed after every trial (``cpgjax.study_io``) and
+statistically equivalent, not identical, runs. The state is checkpointed after every trial (``cpgjax.study.files``) and
 :meth:`Engine.run` with ``resume=True`` continues from the last checkpoint to exactly (bit for bit) the results of
 an uninterrupted run.
 """
@@ -36,10 +36,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from cpgjax import backends, bo, go1_model, mjx_go1, objective, params as param_space, study_io
-from cpgjax.study_spec import (  # noqa: F401  (re-exported: the engine's public API)
-    CONDITION_FIELDS, LABELS, SCHEDULE_FIELDS, Change, Conditions, Schedule, StudyError, StudySpec, conditions,
-    instances, validate)
+from cpgjax.sim import backends
+from cpgjax.optim import bo
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import objective
+from cpgjax.trial import params as param_space
+from cpgjax.study import files as study_io
+from cpgjax.study.spec import (
+    Conditions, StudySpec, instances, validate)
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cpgjax import cpg, cpu_dispatch, walk
+from cpgjax import cpg
+from cpgjax.robot import cpu_dispatch
+from cpgjax.sim import walk
+from cpgjax.study import spec as study_spec
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -36,13 +39,14 @@ def _progress_printer(stream=None):
 
 def _study(args) -> int:
     cpu_dispatch.request_inline()  # the native backend's per-tick controller call
-    from cpgjax import ablation, studies
+    from cpgjax import ablation
+    from cpgjax.study import registry as studies
     if args.distributed:
         ablation.initialize_distributed()
     try:
         text, out = studies.run(args.name, seeds=args.seeds, trials=args.trials, quick=args.quick, out=args.out,
                                 resume=args.resume, backend=args.backend, progress=_progress_printer())
-    except ablation.StudyError as err:
+    except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
     print(text)
@@ -54,17 +58,19 @@ def _optimize(args) -> int:
     cpu_dispatch.request_inline()  # the native backend's per-tick controller call
     import pathlib
 
-    from cpgjax import ablation, params as param_space, study_io
-    spec = ablation.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,), seeds=(args.seed,),
+    from cpgjax import ablation
+    from cpgjax.trial import params as param_space
+    from cpgjax.study import files as study_io
+    spec = study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,), seeds=(args.seed,),
                               friction=(args.friction,), slope_deg=(args.slope,), payload_kg=(args.payload,),
                               target_velocity_mps=(args.target,))
     out = pathlib.Path(args.out)
     try:
         if not args.resume and (out / study_io.CHECKPOINT).exists():
-            raise ablation.StudyError(f"{out} already holds a checkpoint: pass --resume, or another --out")
+            raise study_spec.StudyError(f"{out} already holds a checkpoint: pass --resume, or another --out")
         engine = ablation.Engine(spec, backend=args.backend)
         result = engine.run(out, resume=args.resume, progress=_progress_printer())
-    except ablation.StudyError as err:
+    except study_spec.StudyError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 2
     tr = result.trials
@@ -115,7 +121,7 @@ def _show(args) -> int:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "deploy":  # its own parser: cpgjax deploy --help
-        from cpgjax import deploy
+        from cpgjax.robot import deploy
         return deploy.main(argv[1:])
     parser = argparse.ArgumentParser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1. "
                                      "Subcommands: walk, study, optimize, show, deploy (see `cpgjax deploy --help`).")
@@ -129,7 +135,8 @@ def main(argv=None) -> int:
     w.add_argument("--target", type=float, default=0.5, help="target velocity v_x* [m/s] for J")
     w.set_defaults(func=_walk)
 
-    from cpgjax import backends, studies
+    from cpgjax.sim import backends
+    from cpgjax.study import registry as studies
     s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/")
     s.add_argument("name", choices=sorted(studies.STUDIES), help="; ".join(
         f"{k}: {v.description}" for k, v in studies.STUDIES.items()))

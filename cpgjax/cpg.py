@@ -23,8 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cpgjax import kinematics
-from cpgjax.params import NUM_PARAMS
+from cpgjax.go1 import kinematics
+from cpgjax.trial.params import NUM_PARAMS
 
 # Trot phase lags φ_ij (eq. 3), leg order FR, FL, RR, RL.
 TROT_PHASE_LAG_RAD = np.pi * np.array([[0, 1, 1, 0], [-1, 0, 0, -1], [-1, 0, 0, -1], [0, 1, 1, 0]], dtype=np.float64)
@@ -114,7 +114,7 @@ def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_g
 
     Args:
       amplitude, phase_rad: r_i, θ_i, (4,) each.
-      params: the 8 physical parameters (see ``cpgjax.params``).
+      params: the 8 physical parameters (see ``cpgjax.trial.params``).
       foot_force_n: N_i, (4,).
       tegotae_gate: 1.0 adds −σ_N N_i cos θ_i (eq. 6), 0.0 gives the open-loop phase of eq. (2).
     """

@@ -8,7 +8,8 @@ outputs go to ``results/demo_controller_ablation/``.
 
 import pathlib
 
-from cpgjax import cli, study_io
+from cpgjax import cli
+from cpgjax.study import files as study_io
 
 
 def main() -> None:

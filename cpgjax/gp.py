@@ -2,11 +2,9 @@ r"""Gaussian-process regression for contextual Bayesian optimization (paper Secs
 
 This module is the entry point of cpgjax's optimizer. It holds the GP surrogate
 :math:`\hat f(\mathbf{x}, \mathbf{c})` of eq. (7); the acquisition of eq. (8) lives in
-:mod:`cpgjax.acquisition`, the optimizer of Algorithm 1 in :mod:`cpgjax.bo` (its static
-configuration in :mod:`cpgjax.optimizer_config`, the exploration factor of eqs. (12)-(14) in
-:mod:`cpgjax.exploration`) and the black-box convenience loop in :mod:`cpgjax.black_box`.
-Their public names are re-exported here, so ``from cpgjax import gp`` then
-``gp.make_optimizer``, ``gp.maximize``, ... is the one import other modules need.
+:mod:`cpgjax.optim.acquisition`, the optimizer of Algorithm 1 in :mod:`cpgjax.optim.bo` (its static
+configuration in :mod:`cpgjax.optim.config`, the exploration factor of eqs. (12)-(14) in
+:mod:`cpgjax.optim.exploration`) and the black-box convenience loop in :mod:`cpgjax.optim.black_box`.
 
 Model (the Krause & Ong product kernel of the paper's Sec. II-D):
 
@@ -585,26 +583,3 @@ def predict(
         MIN_VARIANCE_RATIO * outputscale,
     )
     return post.target_mean + post.target_std * mean_z, post.target_std**2 * variance_z
-
-
-_REEXPORTED = {
-    "acquisition": ("AcquisitionConfig", "maximize_acquisition", "ucb_multiplier"),
-    "bo": ("ContextualBO", "OptimizerState", "make_optimizer"),
-    "black_box": ("MaximizeResult", "maximize"),
-    "exploration": ("BetaInfo", "BetaSchedule", "exploration_beta", "paper_schedule"),
-    "optimizer_config": (
-        "OptimizerConfig", "PAPER_CONTEXT_LOWER", "PAPER_CONTEXT_UPPER",
-        "PAPER_CONTEXT_THRESHOLDS", "paper_config",
-    ),
-}
-
-
-def __getattr__(name):
-    """Re-export the acquisition and optimizer API lazily (PEP 562; avoids an import cycle,
-    since those modules import this one)."""
-    import importlib
-
-    for module_name, names in _REEXPORTED.items():
-        if name in names:
-            return getattr(importlib.import_module(f"cpgjax.{module_name}"), name)
-    raise AttributeError(f"module 'cpgjax.gp' has no attribute {name!r}")

@@ -1,15 +1,15 @@
 """Run the jitted CPG controller at 1 kHz on a Go1 (or the loopback simulated Go1), with safety.
 
 :func:`run_loop` is the 1 kHz loop — absolute deadlines with a short spin, overrun counting, frozen GC, real-time
-priority and CPU affinity when permitted — driving the safety layer (:mod:`cpgjax.go1_safety`): soft start (hold the
+priority and CPU affinity when permitted — driving the safety layer (:mod:`cpgjax.robot.safety`): soft start (hold the
 measured pose while the gains ramp, then move to the standing pose), clamps on torque, gains and joint positions
 checked *before* encoding, the SDK's power protection rule, tilt stop, stale-state watchdog, remote stop buttons,
 non-finite command guard, motor temperature limit, and a clean shutdown to damping on Ctrl-C. Every trip is logged
 with its reason and latches damping.
 
 The pieces it drives live in their own modules and are re-exported here (``hardware_io.X`` keeps working):
-transports (:mod:`cpgjax.go1_transport`), the foot-force calibration (:mod:`cpgjax.foot_force`), the compiled
-controller and its flat layout (:mod:`cpgjax.compiled_controller`) and the safety layer (:mod:`cpgjax.go1_safety`).
+transports (:mod:`cpgjax.robot.transport`), the foot-force calibration (:mod:`cpgjax.robot.foot_force`), the compiled
+controller and its flat layout (:mod:`cpgjax.robot.controller`) and the safety layer (:mod:`cpgjax.robot.safety`).
 """
 
 from __future__ import annotations
@@ -24,18 +24,18 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from cpgjax import cpg, go1_model
-from cpgjax import go1_protocol as proto
-from cpgjax.compiled_controller import (  # noqa: F401  (re-exported)
-    IN_SIZE, OBS_SIZE, OUT_LOAD, OUT_POWER, OUT_RPY, OUT_SATURATED, OUT_SIZE, OUT_STANCE, OUT_STATE, OUT_TORQUE,
-    OUT_VELOCITY, CompiledController, flat_initial_state, flat_step, leg_odometry_velocity, pack_observation,
-    unpack_observation)
-from cpgjax.foot_force import FootForceCalibration, calibrate_foot_force  # noqa: F401  (re-exported)
-from cpgjax.go1_safety import (  # noqa: F401  (re-exported)
-    JOINT_LOWER_RAD, JOINT_UPPER_RAD, TORQUE_LIMIT_NM, SafetyConfig, damping_command, guard_command, pd_command,
-    power_protect, state_trip_reason, tilt_rad, torque_command)
-from cpgjax.go1_transport import (  # noqa: F401  (re-exported)
-    GO1_LOCAL_PORT, GO1_ROBOT_IP, GO1_ROBOT_PORT, LockstepTransport, SdkTransport, Transport, UdpTransport)
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax.robot import protocol as proto
+from cpgjax.robot.controller import (
+    IN_SIZE, OBS_SIZE, OUT_STATE, OUT_TORQUE,
+    CompiledController, pack_observation)
+from cpgjax.robot.foot_force import FootForceCalibration
+from cpgjax.robot.safety import (
+    JOINT_LOWER_RAD, JOINT_UPPER_RAD, SafetyConfig, damping_command, guard_command, pd_command,
+    power_protect, state_trip_reason, torque_command)
+from cpgjax.robot.transport import (
+    Transport)
 
 log = logging.getLogger(__name__)
 

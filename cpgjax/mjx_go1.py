@@ -2,7 +2,7 @@
 
 A trial (paper Sec. "Implementation Details") continues from the current simulator state: 1.5 s of transition during
 which the parameters are interpolated linearly from the previous set to the new one, then 3 s of steady state
-(T = 3000 ticks at Δt = 1 ms) whose record gives J, CoT and the context (``cpgjax.objective``). Trials run back to
+(T = 3000 ticks at Δt = 1 ms) whose record gives J, CoT and the context (``cpgjax.trial.objective``). Trials run back to
 back like the treadmill; after a fall the robot is reset to standing (decisions.md §8).
 
 Everything is vmapped over instances — parameters, scenario (as per-instance model leaves), simulator and controller
@@ -25,8 +25,10 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from mujoco import mjx
 
-from cpgjax import cpg, go1_model, params as param_space
-from cpgjax.objective import TrialRecord
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax.trial import params as param_space
+from cpgjax.trial.objective import TrialRecord
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The paper's controller ablation result: ``cpgjax.studies.STUDIES["controller_ablation"]`` (see that module for what it runs and writes).
+"""The paper's controller ablation result: ``cpgjax.study.registry.STUDIES["controller_ablation"]`` (see that module for what it runs and writes).
 
     python studies/controller_ablation.py [--quick] [--seeds N] [--trials N] [--out DIR] [--resume] [--backend auto|mjx|native]
 

@@ -1,4 +1,4 @@
-"""The paper's friction result: ``cpgjax.studies.STUDIES["friction"]`` (see that module for what it runs and writes).
+"""The paper's friction result: ``cpgjax.study.registry.STUDIES["friction"]`` (see that module for what it runs and writes).
 
     python studies/friction.py [--quick] [--seeds N] [--trials N] [--out DIR] [--resume] [--backend auto|mjx|native]
 

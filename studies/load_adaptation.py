@@ -1,4 +1,4 @@
-"""The paper's load adaptation result: ``cpgjax.studies.STUDIES["load_adaptation"]`` (see that module for what it runs and writes).
+"""The paper's load adaptation result: ``cpgjax.study.registry.STUDIES["load_adaptation"]`` (see that module for what it runs and writes).
 
     python studies/load_adaptation.py [--quick] [--seeds N] [--trials N] [--out DIR] [--resume] [--backend auto|mjx|native]
 

@@ -1,4 +1,4 @@
-"""The paper's multi velocity result: ``cpgjax.studies.STUDIES["multi_velocity"]`` (see that module for what it runs and writes).
+"""The paper's multi velocity result: ``cpgjax.study.registry.STUDIES["multi_velocity"]`` (see that module for what it runs and writes).
 
     python studies/multi_velocity.py [--quick] [--seeds N] [--trials N] [--out DIR] [--resume] [--backend auto|mjx|native]
 

@@ -1,4 +1,4 @@
-"""The paper's slope adaptation result: ``cpgjax.studies.STUDIES["slope_adaptation"]`` (see that module for what it runs and writes).
+"""The paper's slope adaptation result: ``cpgjax.study.registry.STUDIES["slope_adaptation"]`` (see that module for what it runs and writes).
 
     python studies/slope_adaptation.py [--quick] [--seeds N] [--trials N] [--out DIR] [--resume] [--backend auto|mjx|native]
 

@@ -19,7 +19,12 @@ import argparse
 import jax
 import numpy as np
 
-from cpgjax import cpg, go1_model, mjx_go1, native_go1, objective, params as param_space
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.sim import native as native_go1
+from cpgjax.trial import objective
+from cpgjax.trial import params as param_space
 
 SOLVERS = {"model (2, 6)": (2, 6), "1 iteration, 6 ls": (1, 6), "1 iteration, 4 ls": (1, 4),
            "converged (100, 50)": (100, 50)}

@@ -20,7 +20,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from cpgjax import cpg, go1_model, mjx_go1, params as param_space, walk  # noqa: E402
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import params as param_space
+from cpgjax.sim import walk  # noqa: E402
 
 
 def gait_figure(path: pathlib.Path, controller: str = "vmc_tegotae", seconds: float = 3.0) -> None:

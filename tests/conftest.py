@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
-from cpgjax import go1_model, mjx_go1, params as param_space
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import params as param_space
 
 # Short trials keep the suite fast; the trial logic is identical to the paper's 1.5 s + 3 s.
 SHORT_TRIAL = mjx_go1.TrialConfig(transition_steps=400, steady_steps=1200)

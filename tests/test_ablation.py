@@ -17,15 +17,25 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax import ablation, acquisition, bo, gp, mjx_go1, native_go1, objective, params as param_space, study_io
-from cpgjax.ablation import Change, Schedule, StudyError, StudySpec
+from cpgjax import ablation
+from cpgjax.optim import acquisition
+from cpgjax.optim import bo
+from cpgjax import gp
+from cpgjax import mjx_go1
+from cpgjax.sim import native as native_go1
+from cpgjax.trial import objective
+from cpgjax.trial import params as param_space
+from cpgjax.study import files as study_io
+from cpgjax.study.spec import Change, Schedule, StudyError, StudySpec
+from cpgjax.optim import config as optimizer_config
+from cpgjax.study import spec as study_spec
 
 TRIAL = mjx_go1.TrialConfig(transition_steps=100, steady_steps=200)
 TRIALS = 5
 
 
 def small_optimizer(capacity=TRIALS):
-    return bo.paper_config(capacity=capacity, fit=gp.FitConfig(num_steps=8),
+    return optimizer_config.paper_config(capacity=capacity, fit=gp.FitConfig(num_steps=8),
                            acquisition=acquisition.AcquisitionConfig(num_candidates=32, num_restarts=2, num_steps=5))
 
 
@@ -39,13 +49,19 @@ def tiny_spec(**overrides):
 
 # The kill/resume and sharding subprocesses build the same study from this source.
 SPEC_SOURCE = """
-from cpgjax import ablation, acquisition, bo, gp, mjx_go1
-spec = ablation.StudySpec(
+from cpgjax import ablation
+from cpgjax.optim import acquisition
+from cpgjax.optim import bo
+from cpgjax import gp
+from cpgjax import mjx_go1
+from cpgjax.optim import config as optimizer_config
+from cpgjax.study import spec as study_spec
+spec = study_spec.StudySpec(
     name="tiny", num_trials=5, controllers=("open_loop", "vmc_tegotae"), seeds=(0, 1),
     trial=mjx_go1.TrialConfig(transition_steps=100, steady_steps=200),
-    optimizer=bo.paper_config(capacity=5, fit=gp.FitConfig(num_steps=8), acquisition=acquisition.AcquisitionConfig(
+    optimizer=optimizer_config.paper_config(capacity=5, fit=gp.FitConfig(num_steps=8), acquisition=acquisition.AcquisitionConfig(
         num_candidates=32, num_restarts=2, num_steps=5)),
-    schedules=(ablation.Schedule("load", (ablation.Change(3, "payload_kg", 7.5),)),))
+    schedules=(study_spec.Schedule("load", (study_spec.Change(3, "payload_kg", 7.5),)),))
 """
 
 
@@ -85,12 +101,12 @@ def test_grid_order_and_schedules():
     spec = tiny_spec(friction=(0.3, 0.9), schedules=(
         Schedule("a", (Change(2, "payload_kg", 7.5), Change(4, "payload_kg", 15.0), Change(3, "inference", 1))),
         Schedule("b", (Change(1, "target_velocity_mps", 0.3),))))
-    labels = ablation.instances(spec)
+    labels = study_spec.instances(spec)
     assert len(labels) == 2 * 2 * 2 * 2
     assert labels[0] == dict(controller="open_loop", seed=0, friction=0.3, slope_deg=0.0, payload_kg=0.0,
                              target_velocity_mps=0.5, schedule="a", data_reuse=True)
     assert labels[1]["schedule"] == "b" and labels[2]["friction"] == 0.9 and labels[4]["seed"] == 1
-    cond = ablation.conditions(spec)
+    cond = study_spec.conditions(spec)
     np.testing.assert_array_equal(cond.payload_kg[0], [0, 0, 7.5, 7.5, 15])
     np.testing.assert_array_equal(cond.inference[0], [0, 0, 0, 1, 1])
     np.testing.assert_array_equal(cond.target_velocity_mps[1], [0.5, 0.3, 0.3, 0.3, 0.3])
@@ -122,7 +138,7 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
         x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)[None]
         new_payload = 7.5 if t >= 3 else 0.0
         if new_payload != payload:
-            from cpgjax import go1_model
+            from cpgjax.go1 import model as go1_model
             sim = native_go1.NativeBackend(go1_model.make_scenarios(payload_kg=[new_payload]), trial_config=TRIAL)
             payload = new_payload
         if sim_state is None:
@@ -228,7 +244,7 @@ ablation.Engine(spec, backend="native").run({str(out)!r})
 
 def test_mjx_scenario_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_tegotae_gates):
     """A payload / slope schedule with the MJX backend: ``with_scenario`` swaps the model data, not the program."""
-    from cpgjax import go1_model
+    from cpgjax.go1 import model as go1_model
     state = short_sim.reset(mid_params)
     state, before = short_sim.trial(state, mid_params, vmc_tegotae_gates)
     compiled = short_sim._trial._cache_size()

@@ -1,4 +1,4 @@
-"""The optimizer of Algorithm 1 (cpgjax.bo): beta schedule and context counting on hand-built
+"""The optimizer of Algorithm 1 (cpgjax.optim.bo): beta schedule and context counting on hand-built
 histories, data reuse, validation, batching, and optimization of standard test functions."""
 
 from typing import NamedTuple
@@ -8,10 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax import black_box, bo, gp
-from cpgjax.acquisition import AcquisitionConfig
+from cpgjax.optim import black_box
+from cpgjax.optim import bo
+from cpgjax import gp
+from cpgjax.optim.acquisition import AcquisitionConfig
+from cpgjax.optim import config as optimizer_config
+from cpgjax.optim import exploration
 
-SMALL = bo.paper_config(capacity=12, fit=gp.FitConfig(30, 0.2),
+SMALL = optimizer_config.paper_config(capacity=12, fit=gp.FitConfig(30, 0.2),
                         acquisition=AcquisitionConfig(128, 4, 15, 0.05))
 LOWER, UPPER = np.array(SMALL.parameter_lower), np.array(SMALL.parameter_upper)
 MIDPOINT = 0.5 * (LOWER + UPPER)
@@ -65,7 +69,7 @@ def test_beta_schedule_and_context_counting(opt, contexts, query, beta, n, chang
 
 def test_beta_custom_schedule_and_inference_mode(opt):
     state = history(opt, [[40.0, -0.1]] * 3)._replace(
-        schedule=bo.paper_schedule(beta_init=2.0, gamma=0.5, n_decay=1))
+        schedule=exploration.paper_schedule(beta_init=2.0, gamma=0.5, n_decay=1))
     assert opt.beta(state, NOMINAL).beta == pytest.approx(2.0 * 0.5**2)
     inference = opt.set_inference_mode(state, True)
     assert opt.beta(inference, NOMINAL).beta == pytest.approx(1e-6)
@@ -231,11 +235,11 @@ def test_bad_calls_fail_with_clear_errors(opt):
         opt.propose(jax.tree.map(lambda a: jnp.stack([a, a]), state), NOMINAL,
                     jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="lower < upper"):
-        bo.OptimizerConfig((0.0, 1.0), (1.0, 1.0))
+        optimizer_config.OptimizerConfig((0.0, 1.0), (1.0, 1.0))
     with pytest.raises(ValueError, match="context_thresholds"):
-        bo.OptimizerConfig((0.0,), (1.0,), (0.0,), (1.0,))
+        optimizer_config.OptimizerConfig((0.0,), (1.0,), (0.0,), (1.0,))
     with pytest.raises(ValueError, match="ucb_form"):
-        bo.paper_config(ucb_form="sqrt")
+        optimizer_config.paper_config(ucb_form="sqrt")
     # An inactive parameter may hold any finite value.
     seven = opt.init(active_dims=jnp.arange(8) < 7)
     _, accepted = opt.observe(seven, x.at[7].set(-5.0), NOMINAL, 1.0)
@@ -253,7 +257,7 @@ def test_vmapped_instances_equal_unbatched_runs(opt):
     asserted <= 2 %). Then a non-finite and an over-capacity observation are rejected per
     instance under vmap."""
     inits = [opt.init(), opt.init(active_dims=jnp.arange(8) < 7),
-             opt.init(schedule=bo.paper_schedule(beta_init=1.0, gamma=0.5, n_decay=2))]
+             opt.init(schedule=exploration.paper_schedule(beta_init=1.0, gamma=0.5, n_decay=2))]
     contexts = jnp.array([[40.0, -0.1], [55.0, 0.0], [20.0, -0.3]])
     keys = jax.random.split(jax.random.PRNGKey(3), 3)
     stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)  # noqa: E731
@@ -313,7 +317,7 @@ def cosine8(x):  # maximum 0.8 at 0 on [-1, 1]^8
 
 def batched_regrets(fn, lower, upper, optimum, num_evals, num_seeds):
     """Simple regret of ``num_seeds`` independent runs, vmapped as one batch."""
-    opt = bo.make_optimizer(bo.OptimizerConfig(tuple(lower), tuple(upper), capacity=num_evals))
+    opt = bo.make_optimizer(optimizer_config.OptimizerConfig(tuple(lower), tuple(upper), capacity=num_evals))
     propose, observe = jax.jit(jax.vmap(opt.propose)), jax.jit(jax.vmap(opt.observe))
     states = jax.tree.map(lambda leaf: jnp.stack([leaf] * num_seeds), opt.init())
     no_context = jnp.zeros((num_seeds, 0))

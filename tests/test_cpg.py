@@ -5,7 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax import cpg, kinematics, params as param_space
+from cpgjax import cpg
+from cpgjax.go1 import kinematics
+from cpgjax.trial import params as param_space
 from tests import numpy_reference as ref
 
 RNG = np.random.default_rng(0)

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from cpgjax import go1_protocol as proto
+from cpgjax.robot import protocol as proto
 
 
 def _reference_crc(data: bytes) -> int:

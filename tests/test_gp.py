@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax import acquisition, gp
+from cpgjax.optim import acquisition
+from cpgjax import gp
 
 CONTEXT_DIMS = 2
 

@@ -19,21 +19,28 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax import cpg, deploy, params
-from cpgjax import go1_protocol as proto
+from cpgjax import cpg
+from cpgjax.robot import deploy
+from cpgjax.trial import params
+from cpgjax.robot import protocol as proto
 from cpgjax import hardware_io as hio
-from cpgjax import sim_go1_server as sim
+from cpgjax.robot import sim_server as sim
+from cpgjax.robot import controller as compiled_controller
+from cpgjax.robot import foot_force
+from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import transport as go1_transport
+from cpgjax.robot import trials as robot_trials
 
 GATES = cpg.controller_gates("vmc_tegotae")
 # Short soft start; a watchdog long enough for a loaded CI machine (the stale-state test shortens it).
 LOOP = hio.LoopConfig(hold_s=0.1, ramp_s=0.2, end_damping_s=0.05, realtime_priority=None)
-SAFETY = hio.SafetyConfig(watchdog_ticks=100)
+SAFETY = go1_safety.SafetyConfig(watchdog_ticks=100)
 RUN_STARTS_AT = 300  # server ticks: connect 1 + hold 100 + ramp 200
 
 
 @pytest.fixture(scope="module")
 def controller():
-    return hio.CompiledController()
+    return compiled_controller.CompiledController()
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +54,7 @@ def _run(robot, controller, run_ticks=600, fault=None, safety=SAFETY, schedule=N
     if fault is not None:
         kind, value, ticks = fault
         robot.inject(kind, value, after_ticks=RUN_STARTS_AT + 100, ticks=ticks)
-    transport = transport or hio.LockstepTransport(robot.address)
+    transport = transport or go1_transport.LockstepTransport(robot.address)
     try:
         result = hio.run_loop(transport, controller, schedule or hio.FixedParams(params.midpoint(), run_ticks),
                               deploy.sim_calibration(), GATES, LOOP, safety)
@@ -179,8 +186,9 @@ if sys.argv[1] == "late":
     import jax.numpy as jnp
     jnp.zeros(1).block_until_ready()  # the CPU client exists before the controller asks for inline dispatch
 from cpgjax import hardware_io as hio
-controller = hio.CompiledController(warmup_calls=10)
-x = np.zeros(hio.IN_SIZE, np.float32)
+from cpgjax.robot import controller as compiled_controller
+controller = compiled_controller.CompiledController(warmup_calls=10)
+x = np.zeros(compiled_controller.IN_SIZE, np.float32)
 x[24] = 1.0
 def waits():
     return int(next(l for l in open("/proc/thread-self/status") if l.startswith("voluntary_ctxt")).split()[1])
@@ -212,7 +220,7 @@ def test_no_robot_gives_up_after_the_connect_timeout(controller):
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
         silent.bind(("127.0.0.1", 0))  # a port where nobody answers
-        transport = hio.UdpTransport(silent.getsockname())
+        transport = go1_transport.UdpTransport(silent.getsockname())
         result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(),
                               GATES, LOOP._replace(connect_timeout_s=0.05), SAFETY)
         transport.close()
@@ -222,7 +230,7 @@ def test_no_robot_gives_up_after_the_connect_timeout(controller):
 def test_busy_wait_loop_never_sleeps(robot, controller, monkeypatch):
     sleeps = []
     monkeypatch.setattr(hio.time, "sleep", lambda s: sleeps.append(s))
-    transport = hio.LockstepTransport(robot.address)
+    transport = go1_transport.LockstepTransport(robot.address)
     robot.reset()
     try:
         result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 200), deploy.sim_calibration(),
@@ -237,13 +245,13 @@ def test_busy_wait_at_realtime_priority_is_refused_while_the_kernel_throttles(co
     """A SCHED_FIFO thread that never sleeps would be stopped for 50 ms every second by the kernel's real-time
     throttling: refused before anything is sent, with the setting named."""
     monkeypatch.setattr(hio, "rt_throttling", lambda: (950_000, 1_000_000))
-    transport = hio.UdpTransport(("127.0.0.1", 9))  # never used: refused before the first tick
+    transport = go1_transport.UdpTransport(("127.0.0.1", 9))  # never used: refused before the first tick
     with pytest.raises(ValueError, match=r"sched_rt_runtime_us = 950000.*50 ms every 1000 ms"):
         hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(), GATES,
                      LOOP._replace(busy_wait=True, realtime_priority=80), SAFETY)
     transport.close()
     monkeypatch.setattr(hio, "rt_throttling", lambda: None)  # throttling off: allowed (priority where permitted)
-    transport = hio.UdpTransport(("127.0.0.1", 9))
+    transport = go1_transport.UdpTransport(("127.0.0.1", 9))
     result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(),
                           GATES, LOOP._replace(busy_wait=True, realtime_priority=80, connect_timeout_s=0.02), SAFETY)
     transport.close()
@@ -254,30 +262,30 @@ def test_busy_wait_at_realtime_priority_is_refused_while_the_kernel_throttles(co
 # ------------------------------------------------------------------------------------- guards and units
 
 def test_guard_clamps_before_encoding_and_refuses_nan():
-    safety = hio.SafetyConfig()
-    cmd = hio.pd_command(np.full(12, 5.0), kp=500.0, kd=-1.0)._replace(tau_nm=np.full(12, 200.0))
-    guarded, reason = hio.guard_command(cmd, safety)
+    safety = go1_safety.SafetyConfig()
+    cmd = go1_safety.pd_command(np.full(12, 5.0), kp=500.0, kd=-1.0)._replace(tau_nm=np.full(12, 200.0))
+    guarded, reason = go1_safety.guard_command(cmd, safety)
     assert reason is None
-    np.testing.assert_array_equal(guarded.tau_nm, hio.TORQUE_LIMIT_NM)
+    np.testing.assert_array_equal(guarded.tau_nm, go1_safety.TORQUE_LIMIT_NM)
     np.testing.assert_array_equal(guarded.kp_nm_rad, safety.kp_max_nm_rad)
     np.testing.assert_array_equal(guarded.kd_nm_s_rad, 0.0)
-    np.testing.assert_array_equal(guarded.q_rad, np.minimum(5.0, hio.JOINT_UPPER_RAD))
+    np.testing.assert_array_equal(guarded.q_rad, np.minimum(5.0, go1_safety.JOINT_UPPER_RAD))
     proto.encode_low_cmd(guarded)  # encodable: nothing would wrap
-    torque_mode, _ = hio.guard_command(hio.torque_command(np.zeros(12)), safety)
+    torque_mode, _ = go1_safety.guard_command(go1_safety.torque_command(np.zeros(12)), safety)
     assert np.all(torque_mode.q_rad == proto.POS_STOP_F)  # the stop marker survives (position term stays off)
-    _, reason = hio.guard_command(hio.torque_command(np.full(12, np.nan)), safety)
+    _, reason = go1_safety.guard_command(go1_safety.torque_command(np.full(12, np.nan)), safety)
     assert reason == "non-finite command (tau)"
 
 
 def test_power_protection_counts_like_the_sdk():
-    safety = hio.SafetyConfig(power_level=1)
+    safety = go1_safety.SafetyConfig(power_level=1)
     hot = proto.RobotState(0, np.array([1.0, 0, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3),
                            np.full(12, 10, np.uint8), np.zeros(12), np.full(12, 1.0), np.full(12, 10.0),
                            np.zeros(12), np.zeros(4), bytes(40))  # 120 W > 100 W
     cold = hot._replace(dq_rad_s=np.zeros(12))
     counter, reasons = 0, []
     for state in [hot] * 5 + [cold] + [hot] * 2:
-        counter, reason = hio.power_protect(counter, state, safety)
+        counter, reason = go1_safety.power_protect(counter, state, safety)
         reasons.append(reason)
     assert reasons[:7] == [None] * 7 and reasons[7] is not None  # 5 up, 1 down, 2 up → 6
 
@@ -288,11 +296,11 @@ def test_foot_force_calibration_recovers_the_simulated_sensor(tmp_path):
     true = deploy.sim_calibration()
     air = true.offset_counts + rng.integers(0, 3, (200, 4))
     standing = true.offset_counts + np.round(weight_n / 4 / true.newton_per_count) + rng.integers(-2, 3, (500, 4))
-    cal = hio.calibrate_foot_force(air, standing, 12.74)
+    cal = foot_force.calibrate_foot_force(air, standing, 12.74)
     np.testing.assert_allclose(cal.offset_counts, true.offset_counts)
     np.testing.assert_allclose(cal.newton_per_count, true.newton_per_count, rtol=0.02)
     cal.save(tmp_path / "cal.json")
-    np.testing.assert_array_equal(hio.FootForceCalibration.load(tmp_path / "cal.json").offset_counts,
+    np.testing.assert_array_equal(foot_force.FootForceCalibration.load(tmp_path / "cal.json").offset_counts,
                                   cal.offset_counts)
 
 
@@ -302,10 +310,10 @@ def _rollout_torques(obs_sequence: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Torques of the MJX rollout's controller path (``cpg.controller_step`` vmapped over instances and scanned
     over ticks, as in ``mjx_go1``) for a given observation sequence (T, OBS_SIZE)."""
     def rollout(obs_seq, p_inst, gates):
-        state0 = cpg.init_state(hio.unpack_observation(obs_seq[0]))
+        state0 = cpg.init_state(compiled_controller.unpack_observation(obs_seq[0]))
 
         def body(state, x):
-            state, torque, _ = cpg.controller_step(cpg.CPGConfig(), state, p_inst, gates, hio.unpack_observation(x))
+            state, torque, _ = cpg.controller_step(cpg.CPGConfig(), state, p_inst, gates, compiled_controller.unpack_observation(x))
             return state, torque
         return jax.lax.scan(body, state0, obs_seq)[1]
 
@@ -322,7 +330,7 @@ def test_loop_torques_equal_the_rollout_for_the_same_observations(robot, control
     expected = _rollout_torques(obs, params.midpoint())
     np.testing.assert_allclose(loop_torque, expected, rtol=1e-4, atol=1e-3)
     sent = result.log.torque_nm[run]  # after the guard; the wire then truncates to 1/256 N·m
-    np.testing.assert_allclose(sent, np.clip(expected, -hio.TORQUE_LIMIT_NM, hio.TORQUE_LIMIT_NM), atol=1e-3)
+    np.testing.assert_allclose(sent, np.clip(expected, -go1_safety.TORQUE_LIMIT_NM, go1_safety.TORQUE_LIMIT_NM), atol=1e-3)
 
 
 def test_the_simulated_go1_walks_forward_under_the_deployed_controller(robot, controller):
@@ -334,20 +342,20 @@ def test_the_simulated_go1_walks_forward_under_the_deployed_controller(robot, co
 
 def test_the_official_sdk_drives_the_simulated_go1(robot, controller):
     pytest.importorskip("unitree_legged_sdk.robot_interface")
-    transport = hio.SdkTransport("127.0.0.1", robot.port, deploy._free_port(), power_level=9)
+    transport = go1_transport.SdkTransport("127.0.0.1", robot.port, deploy._free_port(), power_level=9)
     result, _, stats = _run(robot, controller, run_ticks=1000, transport=transport)
     assert result.trip is None, result.events
     assert stats["trunk_xy_m"][0] > 0.2 and stats["bad_packets"] == 0
 
 
 def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
-    """Random search stands in for the contextual BO (cpgjax.bo) until that lands."""
+    """Random search stands in for the contextual BO (cpgjax.optim.bo) until that lands."""
     robot.reset()
-    transport = hio.LockstepTransport(robot.address)
-    spec = deploy.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), "vmc_tegotae")
+    transport = go1_transport.LockstepTransport(robot.address)
+    spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), "vmc_tegotae")
     try:
-        result, rows = deploy.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
-                                                  params.midpoint(), 3, deploy.TrialTiming(300, 600), LOOP, SAFETY)
+        result, rows = robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
+                                                  params.midpoint(), 3, robot_trials.TrialTiming(300, 600), LOOP, SAFETY)
     finally:
         transport.close()
     assert result.trip is None, result.events
@@ -358,7 +366,7 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
 
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 3
     assert (tmp_path / "trials.rrd").stat().st_size > 0
-    best = deploy.load_params(tmp_path / "best_params.json")
+    best = robot_trials.load_params(tmp_path / "best_params.json")
     best_row = rows[int(np.argmax([r["objective"] for r in rows]))]
     np.testing.assert_allclose(best, [best_row[name] for name in params.PARAM_NAMES])
     replay, _, _ = _run(robot, controller, run_ticks=300, schedule=hio.FixedParams(best, 300))
@@ -368,7 +376,7 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
 # ------------------------------------------------------------------------------------- foot-force calibration
 
 def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robot, tmp_path):
-    from cpgjax import calibrate
+    from cpgjax.robot import calibrate
 
     def lifted(hung_up):
         if hung_up:
@@ -377,7 +385,7 @@ def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robo
         else:
             robot.reset()
 
-    transport = hio.LockstepTransport(robot.address)
+    transport = go1_transport.LockstepTransport(robot.address)
     try:
         m = calibrate.measure(transport, deploy.robot_mass_kg(0.0), lifted, air_s=0.3, stand_s=0.5, settle_s=0.3,
                               loop=LOOP, safety=SAFETY)
@@ -395,7 +403,7 @@ def test_deploy_calibrate_command_writes_the_file_the_loop_loads(tmp_path):
     code = deploy.main(["calibrate", "--robot", "sim", "--sim-pacing", "lockstep", "--no-realtime", "--out", str(out),
                         "--air-s", "0.3", "--stand-s", "0.5", "--settle-s", "0.3"])
     assert code == 0
-    cal = hio.FootForceCalibration.load(out)
+    cal = foot_force.FootForceCalibration.load(out)
     np.testing.assert_array_equal(cal.offset_counts, deploy.sim_calibration().offset_counts)
     np.testing.assert_allclose(cal.newton_per_count, deploy.sim_calibration().newton_per_count, rtol=0.02)
     info = json.loads(out.read_text())

@@ -12,7 +12,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from cpgjax import cpg, go1_model, mjx_go1, objective, params as param_space
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import objective
+from cpgjax.trial import params as param_space
 
 
 def test_model_names_and_mass():
@@ -180,7 +184,9 @@ def test_batch_sharded_over_two_cpu_devices_equals_one_device(two_trials):
     gives the records of the one-device run to float rounding (XLA vectorizes 3 instances differently from 6)."""
     code = """
 import json, jax, numpy as np
-from cpgjax import go1_model, mjx_go1, params
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import params
 from tests.conftest import SCENARIOS, SHORT_TRIAL
 sim = mjx_go1.MJXBackend(go1_model.make_scenarios(**SCENARIOS), trial_config=SHORT_TRIAL)
 assert len(sim.mesh.devices.ravel()) == 2, sim.mesh

@@ -12,7 +12,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from cpgjax import backends, cpg, go1_model, mjx_go1, native_go1, objective, params as param_space
+from cpgjax.sim import backends
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.sim import native as native_go1
+from cpgjax.trial import objective
+from cpgjax.trial import params as param_space
 from tests.conftest import SCENARIOS, SHORT_TRIAL
 
 NOMINAL, HEAVY, UPHILL, SLIPPERY, COARSE = 0, 1, 2, 3, 4

@@ -9,7 +9,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from cpgjax import ablation, cli, cpg, mjx_go1, params as param_space, studies
+from cpgjax import ablation
+from cpgjax import cli
+from cpgjax import cpg
+from cpgjax import mjx_go1
+from cpgjax.trial import params as param_space
+from cpgjax.study import registry as studies
+from cpgjax.study import spec as study_spec
 from tests.test_ablation import small_optimizer
 
 
@@ -19,15 +25,15 @@ def test_specs_follow_the_paper():
     spec = studies.make_spec("controller_ablation")
     assert spec.controllers == cpg.CONTROLLERS and spec.seeds == tuple(range(5)) and spec.num_trials == 40
     assert spec.target_velocity_mps == (0.5,) and spec.trial == mjx_go1.TrialConfig()  # 1.5 s + 3 s at 1 kHz
-    assert len(ablation.instances(spec)) * spec.num_trials * 4.5 == 3600.0  # robot-seconds
-    cond = ablation.conditions(studies.make_spec("load_adaptation"))
+    assert len(study_spec.instances(spec)) * spec.num_trials * 4.5 == 3600.0  # robot-seconds
+    cond = study_spec.conditions(studies.make_spec("load_adaptation"))
     np.testing.assert_array_equal(studies.phase_starts(cond.payload_kg[0]), [0, 36, 58])  # paper: trials 36, 58
     np.testing.assert_array_equal(cond.payload_kg[0, [0, 36, 58]], [0.0, 7.5, 15.0])
-    cond = ablation.conditions(studies.make_spec("multi_velocity"))
+    cond = study_spec.conditions(studies.make_spec("multi_velocity"))
     assert cond.target_velocity_mps.shape[1] == 140
     np.testing.assert_array_equal(np.unique(cond.target_velocity_mps[0]), [0.3, 0.6, 0.8])
     spec = studies.make_spec("slope_adaptation")
-    cond = ablation.conditions(spec)
+    cond = study_spec.conditions(spec)
     learn = int(np.argmax(cond.inference[0]))
     assert [cond.slope_deg[0, t] for t in studies.phase_starts(cond.slope_deg[0, :learn])] == [0.0, 10.0, 12.5]
     assert sorted(set(cond.slope_deg[0, learn:])) == [10.0, 12.5, 15.0, 17.5] and cond.inference[0, learn:].all()
@@ -43,7 +49,7 @@ def test_specs_follow_the_paper():
     (dict(name="friction", trials=3), "--trials 3"),
 ])
 def test_bad_study_options(kwargs, message):
-    with pytest.raises(ablation.StudyError, match=message):
+    with pytest.raises(study_spec.StudyError, match=message):
         studies.make_spec(**kwargs)
 
 

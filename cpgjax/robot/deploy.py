@@ -1,6 +1,6 @@
 """The ``cpgjax deploy`` command line: run the CPG on a Go1 (or the loopback simulated Go1), replaying parameters
-or optimizing them online (:mod:`cpgjax.robot_trials`, re-exported here), and ``cpgjax deploy calibrate``
-(:mod:`cpgjax.calibrate`).
+or optimizing them online (:mod:`cpgjax.robot.trials`, re-exported here), and ``cpgjax deploy calibrate``
+(:mod:`cpgjax.robot.calibrate`).
 """
 
 from __future__ import annotations
@@ -14,25 +14,28 @@ from pathlib import Path
 
 import numpy as np
 
-from cpgjax import cpu_dispatch
-from cpgjax import params as param_space
-from cpgjax.robot_trials import (  # noqa: F401  (re-exported)
-    BayesianOptimizer, OnlineOptimizer, OptimizerSpec, RandomSearch, TrialRunner, TrialTiming, load_params,
-    online_optimization, save_params, trial_record)
+from cpgjax.robot import cpu_dispatch
+from cpgjax.trial import params as param_space
+from cpgjax.robot.trials import (
+    OptimizerSpec, TrialTiming, load_params,
+    online_optimization)
+from cpgjax.robot import controller as compiled_controller
+from cpgjax.robot import foot_force
+from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import transport as go1_transport
 
 log = logging.getLogger(__name__)
 
 
 def add_robot_args(p: argparse.ArgumentParser) -> None:
     """The options that choose and reach the robot (``cpgjax deploy`` and ``cpgjax deploy calibrate``)."""
-    from cpgjax import hardware_io as hio
 
     p.add_argument("--robot", choices=("sim", "go1"), required=True,
                    help="sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
     p.add_argument("--transport", choices=("udp", "sdk"), help="default: sdk for go1, udp for sim")
-    p.add_argument("--robot-ip", default=hio.GO1_ROBOT_IP, help="go1 only")
-    p.add_argument("--robot-port", type=int, default=hio.GO1_ROBOT_PORT, help="go1 only")
-    p.add_argument("--local-port", type=int, default=hio.GO1_LOCAL_PORT, help="go1 only")
+    p.add_argument("--robot-ip", default=go1_transport.GO1_ROBOT_IP, help="go1 only")
+    p.add_argument("--robot-port", type=int, default=go1_transport.GO1_ROBOT_PORT, help="go1 only")
+    p.add_argument("--local-port", type=int, default=go1_transport.GO1_LOCAL_PORT, help="go1 only")
     p.add_argument("--power-level", type=int, default=9, help="power protection level 1…10 (100 W each)")
     p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime",
                    help="lockstep: one physics step per command, the loop waits for each answer (not real time)")
@@ -52,12 +55,12 @@ def loop_and_safety(args):
 
     return (hio.LoopConfig(realtime_priority=None if args.no_realtime else 80, cpu=args.cpu,
                            busy_wait=args.busy_wait),
-            hio.SafetyConfig(power_level=args.power_level))
+            go1_safety.SafetyConfig(power_level=args.power_level))
 
 
 def robot_mass_kg(payload_kg: float) -> float:
     """The Go1's mass in cpgjax's model plus the payload it carries [kg]."""
-    from cpgjax import go1_model
+    from cpgjax.go1 import model as go1_model
 
     return float(go1_model.load_model().body_subtreemass[go1_model.indices().trunk_body]) + payload_kg
 
@@ -65,8 +68,7 @@ def robot_mass_kg(payload_kg: float) -> float:
 @contextlib.contextmanager
 def connect(args):
     """(transport, simulated Go1 client or None) for the robot of the command line; both closed on exit."""
-    from cpgjax import hardware_io as hio
-    from cpgjax import sim_go1_server as sim
+    from cpgjax.robot import sim_server as sim
 
     server = None
     if args.robot == "sim":
@@ -80,11 +82,11 @@ def connect(args):
         ip, port, local_port = args.robot_ip, args.robot_port, args.local_port
     try:
         if (args.transport or ("sdk" if args.robot == "go1" else "udp")) == "sdk":
-            transport = hio.SdkTransport(ip, port, local_port or _free_port(), power_level=args.power_level)
+            transport = go1_transport.SdkTransport(ip, port, local_port or _free_port(), power_level=args.power_level)
         elif args.robot == "sim" and args.sim_pacing == "lockstep":
-            transport = hio.LockstepTransport((ip, port))
+            transport = go1_transport.LockstepTransport((ip, port))
         else:
-            transport = hio.UdpTransport((ip, port), local_port)
+            transport = go1_transport.UdpTransport((ip, port), local_port)
         try:
             yield transport, server
         finally:
@@ -123,10 +125,9 @@ def _parse_args(argv):
 
 def sim_calibration():
     """The simulated Go1's foot-sensor calibration (its offsets and scale are known by construction)."""
-    from cpgjax import hardware_io as hio
-    from cpgjax import sim_go1_server as sim
+    from cpgjax.robot import sim_server as sim
 
-    return hio.FootForceCalibration(sim.FOOT_FORCE_OFFSET_COUNTS.astype(np.float64),
+    return foot_force.FootForceCalibration(sim.FOOT_FORCE_OFFSET_COUNTS.astype(np.float64),
                                     np.full(4, sim.FOOT_FORCE_N_PER_COUNT))
 
 
@@ -135,7 +136,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     cpu_dispatch.request_inline()  # before any JAX computation: the loop's controller step runs on its own thread
     if argv[:1] == ["calibrate"]:
-        from cpgjax import calibrate
+        from cpgjax.robot import calibrate
 
         return calibrate.main(argv[1:])
     from cpgjax import cpg
@@ -150,12 +151,12 @@ def main(argv=None) -> int:
     if args.calibration is None:
         calibration = sim_calibration()
     else:
-        calibration = hio.FootForceCalibration.load(args.calibration)
+        calibration = foot_force.FootForceCalibration.load(args.calibration)
     log.info("foot-force calibration: offsets %s counts, %s N/count", calibration.offset_counts,
              calibration.newton_per_count)
     calibration.save(args.log_dir / "calibration.json")
     with connect(args) as (transport, _):
-        controller = hio.CompiledController()
+        controller = compiled_controller.CompiledController()
         if args.optimize:
             spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity, bool(gates.tegotae),
                                  robot_mass_kg(args.payload_kg), str(args.log_dir), args.controller)

@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cpgjax import go1_model
+from cpgjax.go1 import model as go1_model
 
 
 class FootForceCalibration(NamedTuple):

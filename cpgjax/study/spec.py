@@ -14,7 +14,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from cpgjax import bo, cpg, go1_model, mjx_go1, params as param_space
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import params as param_space
+from cpgjax.optim import config as optimizer_config
 
 CONDITION_FIELDS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
 SCHEDULE_FIELDS = CONDITION_FIELDS + ("inference",)
@@ -51,7 +55,7 @@ class StudySpec:
         an instance is one element of their product, in this order.
       group_by: instance labels whose combinations form the groups of the progress display and the summaries.
       trial: trial timing (static).
-      optimizer: the optimizer's static structure; ``None`` = :func:`bo.paper_config` with capacity ``num_trials``.
+      optimizer: the optimizer's static structure; ``None`` = :func:`optimizer_config.paper_config` with capacity ``num_trials``.
     """
 
     name: str
@@ -66,10 +70,10 @@ class StudySpec:
     data_reuse: tuple[bool, ...] = (True,)
     group_by: tuple[str, ...] = ("controller",)
     trial: mjx_go1.TrialConfig = mjx_go1.TrialConfig()
-    optimizer: bo.OptimizerConfig | None = None
+    optimizer: optimizer_config.OptimizerConfig | None = None
 
-    def optimizer_config(self) -> bo.OptimizerConfig:
-        return bo.paper_config(capacity=self.num_trials) if self.optimizer is None else self.optimizer
+    def optimizer_config(self) -> optimizer_config.OptimizerConfig:
+        return optimizer_config.paper_config(capacity=self.num_trials) if self.optimizer is None else self.optimizer
 
 
 LABELS = ("controller", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",

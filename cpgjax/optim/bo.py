@@ -12,7 +12,7 @@ style of optax's ``init``/``update`` pairs::
 Every function is jit-compiled and ``jax.vmap``-able over a batch of states (independent
 data, contexts, keys, β schedules, active inputs and targets). Structure (dimensions,
 capacity, step counts, the UCB form) is the static :class:`OptimizerConfig`
-(:mod:`cpgjax.optimizer_config`). :func:`cpgjax.black_box.maximize` wraps the optimizer for
+(:mod:`cpgjax.optim.config`). :func:`cpgjax.optim.black_box.maximize` wraps the optimizer for
 black-box functions.
 
 Algorithm 1, step by step:
@@ -21,9 +21,9 @@ Algorithm 1, step by step:
   previous fit (:func:`cpgjax.gp.fit`);
 * :meth:`propose` returns a uniform random point while fewer than ``num_random_proposals``
   (2) observations are stored, else :math:`\arg\max_x a(x; \beta, c)` of eq. (8) with the
-  context held at the given value (:mod:`cpgjax.acquisition`);
+  context held at the given value (:mod:`cpgjax.optim.acquisition`);
 * :math:`\beta` follows eqs. (12)-(14) with the paper's context-sharing count
-  (:mod:`cpgjax.exploration`), per instance;
+  (:mod:`cpgjax.optim.exploration`), per instance;
 * inference mode fixes :math:`\beta = 10^{-6}` and skips the random phase (paper Sec. IV-C);
 * data reuse (paper Sec. III-A-2): with an ``objective_fn(record, target_velocity)``, each
   observation stores its trial record, and :meth:`set_target` recomputes every stored
@@ -46,21 +46,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import gp
-from cpgjax.acquisition import (
+from cpgjax.optim.acquisition import (
     INACTIVE_VALUE,
     maximize_acquisition,
     ucb_multiplier,
     upper_confidence_bound,
 )
-from cpgjax.exploration import BetaInfo, BetaSchedule, exploration_beta, paper_schedule
-from cpgjax.optimizer_config import OptimizerConfig, paper_config
+from cpgjax.optim.exploration import BetaInfo, BetaSchedule, exploration_beta, paper_schedule
+from cpgjax.optim.config import OptimizerConfig
 
 __all__ = [
-    # This module: the optimizer of Algorithm 1.
     "BOX_TOLERANCE", "ContextualBO", "OptimizerState", "make_optimizer",
-    # Its configuration and β schedule, re-exported so ``from cpgjax import bo`` is the one
-    # import a caller of the optimizer needs.
-    "BetaInfo", "BetaSchedule", "OptimizerConfig", "paper_config", "paper_schedule",
 ]
 
 BOX_TOLERANCE = 1e-5

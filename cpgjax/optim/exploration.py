@@ -13,7 +13,7 @@ Sec. IV-C) fixes :math:`\beta` (1e-6 in the paper).
 
 Everything here is a pure jax function of arrays, so a batch of instances with their own
 schedules, contexts and histories is one ``jax.vmap``. How :math:`\beta` multiplies
-:math:`\sigma` (:math:`\beta` or :math:`\sqrt\beta`) is :func:`cpgjax.acquisition.ucb_multiplier`.
+:math:`\sigma` (:math:`\beta` or :math:`\sqrt\beta`) is :func:`cpgjax.optim.acquisition.ucb_multiplier`.
 """
 
 from typing import NamedTuple

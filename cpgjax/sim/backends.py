@@ -13,7 +13,10 @@ import argparse
 
 import jax
 
-from cpgjax import cpg, go1_model, mjx_go1, native_go1
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.sim import native as native_go1
 
 BACKENDS = ("auto", "mjx", "native")
 

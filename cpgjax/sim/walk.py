@@ -12,7 +12,11 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from cpgjax import cpg, go1_model, mjx_go1, objective, params as param_space
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import objective
+from cpgjax.trial import params as param_space
 
 
 class WalkRow(NamedTuple):

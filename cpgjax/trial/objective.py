@@ -10,7 +10,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from cpgjax.go1_model import GRAVITY_MPS2
+from cpgjax.go1.model import GRAVITY_MPS2
 
 VELOCITY_WEIGHT = 1.0  # w1
 COT_WEIGHT = 0.5  # w2

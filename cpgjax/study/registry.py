@@ -11,7 +11,7 @@
 ======================  =======================================================================================
 
 Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures, ``trials.parquet``,
-``recording.rrd``, ``metadata.json`` and the engine's ``checkpoint.npz`` (``cpgjax.study_io``).
+``recording.rrd``, ``metadata.json`` and the engine's ``checkpoint.npz`` (``cpgjax.study.files``).
 """
 
 from __future__ import annotations
@@ -23,8 +23,16 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from cpgjax import ablation, backends, cpg, go1_model, mjx_go1, objective, study_figures, study_io
-from cpgjax.ablation import Change, Schedule, StudySpec
+from cpgjax import ablation
+from cpgjax.sim import backends
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax import mjx_go1
+from cpgjax.trial import objective
+from cpgjax.study import figures as study_figures
+from cpgjax.study import files as study_io
+from cpgjax.study.spec import Change, Schedule, StudySpec
+from cpgjax.study import spec as study_spec
 
 DEFAULT_SEEDS = 5
 QUICK_SEEDS = 2
@@ -327,13 +335,13 @@ STUDIES = {s.name: s for s in (
 
 def make_spec(name: str, *, seeds=None, trials=None, quick=False) -> StudySpec:
     if name not in STUDIES:
-        raise ablation.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
+        raise study_spec.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
     if seeds is not None and seeds < 1:
-        raise ablation.StudyError(f"--seeds {seeds}: need at least 1")
+        raise study_spec.StudyError(f"--seeds {seeds}: need at least 1")
     if trials is not None and trials < 8:
-        raise ablation.StudyError(f"--trials {trials}: need at least 8 (2 random + some optimized trials)")
+        raise study_spec.StudyError(f"--trials {trials}: need at least 8 (2 random + some optimized trials)")
     spec = STUDIES[name].make_spec(seeds=seeds, trials=trials, quick=quick)
-    ablation.validate(spec)
+    study_spec.validate(spec)
     return spec
 
 
@@ -357,7 +365,7 @@ def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=Fal
     spec = make_spec(name, seeds=seeds, trials=trials, quick=quick)
     out = pathlib.Path(out or pathlib.Path("results") / name)
     if not resume and (out / study_io.CHECKPOINT).exists():
-        raise ablation.StudyError(f"{out} already holds a checkpoint: pass --resume to continue it, or another --out")
+        raise study_spec.StudyError(f"{out} already holds a checkpoint: pass --resume to continue it, or another --out")
     engine = ablation.Engine(spec, backend=backend)
     result = engine.run(out, resume=resume, progress=progress)
     return write_outputs(result, out, engine.backend_name, name), out

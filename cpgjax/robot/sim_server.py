@@ -1,7 +1,7 @@
 """A loopback simulated Go1: a separate process that speaks the robot's low-level UDP protocol on 127.0.0.1.
 
 It receives LowCmd datagrams and answers LowState datagrams in the SDK's exact wire format
-(``cpgjax.go1_protocol``: 614/807 bytes, fixed-point fields, CRC), so the real ``unitree_legged_sdk`` and
+(``cpgjax.robot.protocol``: 614/807 bytes, fixed-point fields, CRC), so the real ``unitree_legged_sdk`` and
 ``cpgjax.hardware_io`` both accept it. Each tick it applies the Go1 motor law to the latest command, steps C MuJoCo
 with cpgjax's own Go1 model (1 ms), and reports the sensors with the same definitions as the MJX simulator
 (``mjx_go1.observe``), encoded in the robot's raw units. Foot forces are reported as raw int16 counts with a per-foot
@@ -14,7 +14,7 @@ physics is frozen until then, like a robot waiting for low-level control) and st
 with ``go1_transport.LockstepTransport``).
 
 Fault injection for tests, resets and lifting the robot off the ground (foot-force calibration) go through a second
-UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``python -m cpgjax.sim_go1_server
+UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``python -m cpgjax.robot.sim_server
 --help``. Only 127.0.0.1 is ever bound.
 """
 
@@ -30,7 +30,7 @@ import sys
 import time
 import numpy as np
 
-from cpgjax import go1_protocol as proto
+from cpgjax.robot import protocol as proto
 
 LOOPBACK = "127.0.0.1"
 TICK_S = 0.001
@@ -69,7 +69,8 @@ class Go1Physics:
         import jax
         import mujoco
 
-        from cpgjax import go1_model, mjx_go1
+        from cpgjax.go1 import model as go1_model
+        from cpgjax import mjx_go1
 
         self._mujoco = mujoco
         self.model = go1_model.scenario_model(go1_model.make_scenarios(friction, slope_deg, payload_kg), 0)
@@ -155,7 +156,7 @@ def apply_sensor_faults(state: proto.RobotState, faults: dict) -> proto.RobotSta
 
 
 class SimGo1Server:
-    """The simulated Go1's event loop (run it in its own process: ``python -m cpgjax.sim_go1_server``)."""
+    """The simulated Go1's event loop (run it in its own process: ``python -m cpgjax.robot.sim_server``)."""
 
     def __init__(self, port: int = 0, control_port: int = 0, pacing: str = "realtime", **scenario):
         if pacing not in ("realtime", "lockstep"):
@@ -312,7 +313,7 @@ class SimGo1Client:
     def __init__(self, pacing: str = "realtime", friction: float = 0.6, slope_deg: float = 0.0,
                  payload_kg: float = 0.0, realtime_priority: int | None = None, cpus: set[int] | None = None,
                  startup_timeout_s: float = 60.0):
-        cmd = [sys.executable, "-m", "cpgjax.sim_go1_server", "--pacing", pacing, "--friction", str(friction),
+        cmd = [sys.executable, "-m", "cpgjax.robot.sim_server", "--pacing", pacing, "--friction", str(friction),
                "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg)]
         if realtime_priority is not None:
             cmd += ["--realtime-priority", str(realtime_priority)]

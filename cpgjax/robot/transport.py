@@ -2,7 +2,7 @@
 low-level UDP protocol, used for the loopback simulated Go1 and usable on the robot; :class:`LockstepTransport`
 waits for a lockstep simulated Go1's answers) and :class:`SdkTransport` (the official ``unitree_legged_sdk`` Python
 binding, optional extra ``go1``). Both move
-:class:`~cpgjax.go1_protocol.RobotState` in and :class:`~cpgjax.go1_protocol.MotorCommand` out (go1-sdk.md §1.5–1.7).
+:class:`~cpgjax.robot.protocol.RobotState` in and :class:`~cpgjax.robot.protocol.MotorCommand` out (go1-sdk.md §1.5–1.7).
 
 The robot's real address appears only as the default of :data:`GO1_ROBOT_IP`; tests and examples use 127.0.0.1.
 """
@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from cpgjax import go1_protocol as proto
+from cpgjax.robot import protocol as proto
 
 GO1_ROBOT_IP = "192.168.123.10"  # the SDK's low-level target (UDP_SERVER_IP_BASIC); used only with --robot go1
 GO1_ROBOT_PORT = 8007  # UDP_SERVER_PORT

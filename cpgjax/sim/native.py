@@ -35,8 +35,12 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from mujoco import rollout as mj_rollout
 
-from cpgjax import cpg, go1_model, kinematics, mjx_go1, params as param_space
-from cpgjax.objective import TrialRecord
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import kinematics
+from cpgjax import mjx_go1
+from cpgjax.trial import params as param_space
+from cpgjax.trial.objective import TrialRecord
 
 # The simulator clock after a reset [s]. Any value > 0 works: MuJoCo's own reset sets the clock to 0, so a step
 # that does not advance it from here by one time step reveals that MuJoCo reset a diverged instance.

@@ -1,5 +1,5 @@
 """GP-UCB for black-box functions: :func:`maximize`, a convenience loop over the optimizer of
-:mod:`cpgjax.bo` (Algorithm 1 without a context) for users who want to try it on their own
+:mod:`cpgjax.optim.bo` (Algorithm 1 without a context) for users who want to try it on their own
 problems. One compiled optimizer per configuration is cached, so repeated calls (seeds) do
 not recompile. The loop runs in Python, one evaluation of ``fn`` per trial; for many
 independent runs at once, ``jax.vmap`` the optimizer's ``propose``/``observe`` instead
@@ -15,10 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import gp
-from cpgjax.acquisition import AcquisitionConfig
-from cpgjax.bo import ContextualBO, make_optimizer
-from cpgjax.exploration import BetaSchedule
-from cpgjax.optimizer_config import OptimizerConfig
+from cpgjax.optim.acquisition import AcquisitionConfig
+from cpgjax.optim.bo import ContextualBO, make_optimizer
+from cpgjax.optim.exploration import BetaSchedule
+from cpgjax.optim.config import OptimizerConfig
 
 
 @functools.lru_cache(maxsize=16)

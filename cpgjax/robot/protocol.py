@@ -7,7 +7,7 @@ SDK's wire layout (go1-sdk.md §1.3, verified against the SDK wheel), and the CR
 
 The SDK *silently wraps* out-of-range tau, Kp and Kd (200 N·m is sent as −56 N·m; Kp = −1 as ≈2047).
 :func:`encode_low_cmd` therefore refuses any value the encoding cannot represent (and any non-finite value)
-with :class:`ProtocolError`; callers clamp and check before encoding (``cpgjax.go1_safety.guard_command``).
+with :class:`ProtocolError`; callers clamp and check before encoding (``cpgjax.robot.safety.guard_command``).
 """
 
 from __future__ import annotations

@@ -13,9 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cpgjax import cpg, cpu_dispatch, kinematics
-from cpgjax import go1_protocol as proto
-from cpgjax.foot_force import FootForceCalibration
+from cpgjax import cpg
+from cpgjax.robot import cpu_dispatch
+from cpgjax.go1 import kinematics
+from cpgjax.robot import protocol as proto
+from cpgjax.robot.foot_force import FootForceCalibration
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +86,7 @@ class CompiledController:
         if not self.inline_dispatch:
             log.warning("JAX's CPU client was created with asynchronous dispatch before the controller: each step "
                         "runs on an XLA worker thread at normal priority while the loop thread waits for it. Call "
-                        "cpgjax.cpu_dispatch.request_inline() at program start, before any JAX computation.")
+                        "cpgjax.robot.cpu_dispatch.request_inline() at program start, before any JAX computation.")
         self.config = config
         x = np.zeros(IN_SIZE, np.float32)
         x[24] = 1.0  # identity quaternion

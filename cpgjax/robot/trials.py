@@ -3,14 +3,14 @@
 Trials run back to back in robot time (loop ticks): 1.5 s of transition, interpolating the parameters linearly from
 the previous set to the new one, then 3 s of steady state whose per-tick signals (leg odometry velocity, power
 ⟨|τ|, |q̇|⟩, mean foot force, roll, pitch — all from the robot's own sensors) make the trial record; J, CoT and the
-context come from ``cpgjax.objective`` as in simulation. The optimizer runs in a separate process
+context come from ``cpgjax.trial.objective`` as in simulation. The optimizer runs in a separate process
 (:func:`_optimizer_worker`), so the 1 kHz loop never waits for it: after a trial the robot keeps walking with the
 current parameters until the next proposal arrives (the wait is logged per trial). The worker writes the per-trial
 log (``trials.parquet``, ``trials.rrd`` for rerun) and the best parameters (``best_params.json``, which
 ``cpgjax deploy --params`` replays).
 
 The optimizer is anything with ``propose(context) -> params`` and ``observe(params, context, record, objective)``
-(:class:`OnlineOptimizer`): the contextual BO of ``cpgjax.bo`` (:class:`BayesianOptimizer`, the default) or
+(:class:`OnlineOptimizer`): the contextual BO of ``cpgjax.optim.bo`` (:class:`BayesianOptimizer`, the default) or
 :class:`RandomSearch` (a baseline, and the fast stand-in of the tests).
 """
 
@@ -24,7 +24,10 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from cpgjax import params as param_space
+from cpgjax.trial import params as param_space
+from cpgjax.optim import config as optimizer_config
+from cpgjax.robot import controller as compiled_controller
+from cpgjax.robot import safety as go1_safety
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
 _SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")
@@ -63,20 +66,20 @@ class RandomSearch:
 
 
 class BayesianOptimizer:
-    """Adapter from ``cpgjax.bo``'s pure functions (``init`` / ``propose`` / ``observe``, scalar objectives) to
+    """Adapter from ``cpgjax.optim.bo``'s pure functions (``init`` / ``propose`` / ``observe``, scalar objectives) to
     :class:`OnlineOptimizer`. σ_N is an inactive input when Tegotae is off (decisions.md §13)."""
 
     def __init__(self, seed: int, tegotae: bool):
         import jax
         import jax.numpy as jnp
 
-        from cpgjax import bo
+        from cpgjax.optim import bo
 
         active = np.ones(param_space.NUM_PARAMS, bool)
         active[param_space.SIGMA_N_INDEX] = tegotae
         self._jax, self._jnp = jax, jnp
         self._key = jax.random.PRNGKey(seed)
-        self._opt = bo.make_optimizer(bo.paper_config())
+        self._opt = bo.make_optimizer(optimizer_config.paper_config())
         self._state = self._opt.init(active_dims=jnp.asarray(active))
 
     def propose(self, context: np.ndarray) -> np.ndarray:
@@ -109,7 +112,7 @@ def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = 0.001)
     A fall ends the run through the safety layer (tilt stop) before a trial completes, so ``fell`` and ``failed``
     are 0 for every completed trial.
     """
-    from cpgjax.objective import TrialRecord
+    from cpgjax.trial.objective import TrialRecord
 
     v = signals[:, 0:2].astype(np.float64)
     roll, pitch = signals[:, 4], signals[:, 5]
@@ -169,7 +172,7 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
 
     os.nice(10)  # the robot's loop (and, on one machine, the simulated robot) come first
     jax.config.update("jax_platforms", "cpu")
-    from cpgjax import objective
+    from cpgjax.trial import objective
 
     optimizer = (BayesianOptimizer(spec.seed, spec.tegotae) if spec.kind == "bo"
                  else RandomSearch(spec.seed, spec.tegotae))
@@ -208,12 +211,11 @@ class TrialRunner:
     """
 
     def __init__(self, conn, initial_params: np.ndarray, num_trials: int, timing: TrialTiming = TrialTiming()):
-        from cpgjax import hardware_io as hio
 
         self._conn = conn
         self._timing = timing
-        self._columns = np.array([hio.OUT_VELOCITY.start, hio.OUT_VELOCITY.start + 1, hio.OUT_POWER, hio.OUT_LOAD,
-                                  hio.OUT_RPY.start, hio.OUT_RPY.start + 1, hio.OUT_SATURATED])
+        self._columns = np.array([compiled_controller.OUT_VELOCITY.start, compiled_controller.OUT_VELOCITY.start + 1, compiled_controller.OUT_POWER, compiled_controller.OUT_LOAD,
+                                  compiled_controller.OUT_RPY.start, compiled_controller.OUT_RPY.start + 1, compiled_controller.OUT_SATURATED])
         self._signals = np.full((timing.steady_ticks, len(_SIGNALS)), 0, np.float32)  # written now, not in the loop
         self._previous = self._current = np.asarray(initial_params, np.float32)
         self._num_trials = num_trials
@@ -269,7 +271,7 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
         conn.recv()  # ready: its imports are done before the loop starts
         runner = TrialRunner(conn, initial_params, num_trials, timing)
         result = hio.run_loop(transport, controller, runner, calibration, gates, loop or hio.LoopConfig(),
-                              safety or hio.SafetyConfig())
+                              safety or go1_safety.SafetyConfig())
         conn.send(("stop",))
         rows = []
         while conn.poll(120.0):

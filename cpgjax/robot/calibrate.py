@@ -22,6 +22,9 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from cpgjax import hardware_io as hio
+from cpgjax.robot import foot_force
+from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import transport as go1_transport
 
 log = logging.getLogger(__name__)
 
@@ -31,13 +34,13 @@ class CalibrationError(RuntimeError):
 
 
 class Measurement(NamedTuple):
-    calibration: hio.FootForceCalibration
+    calibration: foot_force.FootForceCalibration
     air_counts: np.ndarray  # (K, 4) raw counts, feet in the air
     standing_counts: np.ndarray  # (M, 4) raw counts, standing still
 
 
-def measure_counts(transport: hio.Transport, measure_s: float, settle_s: float, loop: hio.LoopConfig,
-                   safety: hio.SafetyConfig) -> np.ndarray:
+def measure_counts(transport: go1_transport.Transport, measure_s: float, settle_s: float, loop: hio.LoopConfig,
+                   safety: go1_safety.SafetyConfig) -> np.ndarray:
     """Raw foot counts (K, 4) of the robot states received while the loop holds the standing pose, after the first
     ``settle_s`` of holding it.
 
@@ -55,16 +58,16 @@ def measure_counts(transport: hio.Transport, measure_s: float, settle_s: float, 
     return counts.astype(np.int64)
 
 
-def measure(transport: hio.Transport, total_mass_kg: float, lifted: Callable[[bool], None], air_s: float = 2.0,
+def measure(transport: go1_transport.Transport, total_mass_kg: float, lifted: Callable[[bool], None], air_s: float = 2.0,
             stand_s: float = 3.0, settle_s: float = 1.0, loop: hio.LoopConfig = hio.LoopConfig(),
-            safety: hio.SafetyConfig = hio.SafetyConfig()) -> Measurement:
+            safety: go1_safety.SafetyConfig = go1_safety.SafetyConfig()) -> Measurement:
     """The two measuring stands and the fit. ``lifted(True)`` must leave the robot hung up with its feet in the air,
     ``lifted(False)`` put it down on the ground (it stands up in the second stand)."""
     lifted(True)
     air = measure_counts(transport, air_s, settle_s, loop, safety)
     lifted(False)
     standing = measure_counts(transport, stand_s, settle_s, loop, safety)
-    return Measurement(hio.calibrate_foot_force(air, standing, total_mass_kg), air, standing)
+    return Measurement(foot_force.calibrate_foot_force(air, standing, total_mass_kg), air, standing)
 
 
 def _ask_operator(hung_up: bool) -> None:
@@ -74,7 +77,7 @@ def _ask_operator(hung_up: bool) -> None:
 
 def main(argv=None) -> int:
     """``cpgjax deploy calibrate``. Returns 0 when the calibration is saved, 2 when a measuring stand failed."""
-    from cpgjax import deploy
+    from cpgjax.robot import deploy
 
     p = argparse.ArgumentParser(prog="cpgjax deploy calibrate", description="Measure the Go1's foot-force sensors "
                                 "(feet in the air, then standing) and save their calibration to raw counts → N.")

@@ -6,7 +6,7 @@ context normalization ranges (physical units), the context-sharing thresholds of
 dataset capacity, the length of the random phase, the UCB form (decisions.md §2) and the
 static settings of the GP fit and of the acquisition maximizer. Changing it recompiles; per-
 instance data (β schedules, active inputs, targets) live in the optimizer state instead
-(:mod:`cpgjax.bo`).
+(:mod:`cpgjax.optim.bo`).
 """
 
 import dataclasses
@@ -14,8 +14,8 @@ import dataclasses
 import numpy as np
 
 from cpgjax import gp
-from cpgjax import params as param_space
-from cpgjax.acquisition import UCB_FORMS, AcquisitionConfig
+from cpgjax.trial import params as param_space
+from cpgjax.optim.acquisition import UCB_FORMS, AcquisitionConfig
 
 PAPER_CONTEXT_LOWER = (15.0, -0.4)
 PAPER_CONTEXT_UPPER = (75.0, 0.1)
@@ -93,7 +93,7 @@ def _check_box(name, lower, upper):
 
 
 def paper_config(**overrides) -> OptimizerConfig:
-    """The paper's setting: the Table I box of :mod:`cpgjax.params` (physical units, order
+    """The paper's setting: the Table I box of :mod:`cpgjax.trial.params` (physical units, order
     [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]), the context ranges of
     decisions.md §11 and the thresholds of eq. (14)."""
     settings = dict(

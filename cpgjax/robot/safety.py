@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax import cpg
-from cpgjax import go1_protocol as proto
+from cpgjax.robot import protocol as proto
 
 # Joint limits used by the SDK's Safety (go1_const.h), motor order; hip, thigh, calf [rad].
 JOINT_LOWER_RAD = np.tile(np.array([-1.047, -0.663, -2.721]), 4)

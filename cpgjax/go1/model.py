@@ -13,7 +13,7 @@ import jax
 import mujoco
 import numpy as np
 
-from cpgjax import kinematics
+from cpgjax.go1 import kinematics
 
 
 MODEL_FILE = "go1.xml"
@@ -33,7 +33,7 @@ FOOT_RADIUS_M = 0.02
 @functools.cache
 def load_model() -> mujoco.MjModel:
     """The nominal Go1 MjModel (no payload, flat floor, friction 0.6). Cached: copy before editing."""
-    with resources.as_file(resources.files("cpgjax.assets") / MODEL_FILE) as path:
+    with resources.as_file(resources.files("cpgjax.go1.assets") / MODEL_FILE) as path:
         return mujoco.MjModel.from_xml_path(str(path))
 
 

@@ -88,7 +88,7 @@ def load_checkpoint(out_dir, spec) -> Checkpoint | None:
 
 def trial_columns(result) -> dict[str, np.ndarray]:
     """One row per (instance, trial), instance-major: labels, conditions, parameters and trial figures."""
-    from cpgjax import params as param_space
+    from cpgjax.trial import params as param_space
 
     tr, cond = result.trials, result.conditions
     n, batch = tr.objective.shape
@@ -185,7 +185,7 @@ def write_recording(result, path, rollouts: dict[str, Any] | None = None) -> pat
     of one instance, arrays (T, ...)) on timeline ``step`` (1 ms ticks)."""
     import rerun as rr
 
-    from cpgjax import go1_model
+    from cpgjax.go1 import model as go1_model
 
     path = pathlib.Path(path)
     rec = rr.RecordingStream(f"cpgjax_{result.spec.name}")

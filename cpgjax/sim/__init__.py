@@ -1,0 +1,1 @@
+"""Simulation beside MJX: the native C-MuJoCo backend, the backend chooser and fixed-parameter walks."""
