@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	JAX_PLATFORMS=cpu $(PY) -m cpgjax.demo
+	JAX_PLATFORMS=cpu $(VENV)/bin/cpgjax demo
 
 test: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q

@@ -1,6 +1,6 @@
 """Wall time and real-time factor of the controller-ablation study (the paper's Table: 4 controllers × 5 seeds × 40
-trials of 1.5 s + 3 s = 3,600 simulated robot-seconds) with the lockstep engine, against the paper's real-time baseline (1×: Gazebo / the
-robot run in real time, ≈ 1 hour for this study).
+trials of 1.5 s + 3 s = 3,600 simulated robot-seconds) with the lockstep engine, against the paper's real-time
+baseline (1×: Gazebo / the robot run in real time, ≈ 1 hour for this study).
 
     python benchmarks/ablation.py                   # the full study (engine only: no figures or rollouts)
     python benchmarks/ablation.py --quick           # 4 controllers × 5 seeds × 4 trials (< 2 min on 2 CPU cores)

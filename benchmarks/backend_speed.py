@@ -30,6 +30,7 @@ from cpgjax import mjx_go1
 from cpgjax.sim import native as native_go1
 from cpgjax.trial import params as param_space
 from cpgjax.study import files as study_io
+from cpgjax.trial import protocol
 
 ABLATION_TRIALS = 40
 ABLATION_SEEDS = 5
@@ -43,10 +44,10 @@ def _make(backend: str, scenario, trial_config):
 def trial_speed(backend: str, batch: int, steps: int, repeats: int) -> dict:
     """Closed-loop trial env-steps/s (best of ``repeats`` after a warm-up call that compiles) for one backend."""
     transition = steps // 4
-    config = mjx_go1.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
+    config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
     sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6)), config)
     p = np.tile(param_space.midpoint(), (batch, 1))
-    gates = mjx_go1.batch_gates(["vmc_tegotae"] * batch)
+    gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     state = jax.block_until_ready(sim.reset(p))
     t0 = time.perf_counter()
     state, _ = jax.block_until_ready(sim.trial(state, p, gates))
@@ -67,8 +68,8 @@ def ablation_wall_time(backend: str, trials: int) -> dict:
     batch = len(controllers)
     rng = np.random.default_rng(0)
     t0 = time.perf_counter()
-    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6)), mjx_go1.TrialConfig())
-    gates = mjx_go1.batch_gates(controllers)
+    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6)), protocol.TrialConfig())
+    gates = protocol.batch_gates(controllers)
     state = sim.reset(np.tile(param_space.midpoint(), (batch, 1)))
     ends = []
     for _ in range(trials):
@@ -100,7 +101,8 @@ def main() -> None:
     load_start = os.getloadavg()[0]
 
     device = jax.devices()[0]
-    print(f"# {study_io.machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the rollout pool; "
+    print(f"# {study_io.machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the "
+          "rollout pool; "
           f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
           f"load average {load_start:.1f}")
     print("| batch | native [env-steps/s] | MJX [env-steps/s] | native / MJX | native first call [s] "

@@ -33,6 +33,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax import mjx_go1
 from cpgjax.trial import params as param_space
 from cpgjax.study import files as study_io
+from cpgjax.trial import protocol
 
 
 def _interleaved_best(runs: dict, repeats: int) -> dict:
@@ -57,11 +58,11 @@ def measure(batch: int, steps: int, repeats: int, devices: list) -> dict:
       collapses onto its trunk, so the solver works on other contacts than in walking.
     """
     transition = steps // 4
-    config = mjx_go1.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
+    config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
     sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)), trial_config=config,
                              devices=devices)
     p = np.tile(param_space.midpoint(), (batch, 1))
-    gates = mjx_go1.batch_gates(["vmc_tegotae"] * batch)
+    gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     ids = go1_model.indices()
     model, axes = sim.batch.model, sim.batch.in_axes
 

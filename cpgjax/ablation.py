@@ -26,6 +26,7 @@ an uninterrupted run.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Callable
@@ -39,12 +40,12 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from cpgjax.sim import backends
 from cpgjax.optim import bo
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
 from cpgjax.trial import objective
 from cpgjax.trial import params as param_space
 from cpgjax.study import files as study_io
 from cpgjax.study.spec import (
     Conditions, StudySpec, instances, validate)
+from cpgjax.trial import protocol
 
 log = logging.getLogger(__name__)
 
@@ -99,27 +100,6 @@ def _pad(array: np.ndarray, size: int) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------------- the engine
 
-class TrialLog(NamedTuple):
-    """What the engine keeps of one trial for every instance (leading axis B)."""
-
-    params: np.ndarray  # (B, 8) proposed parameters, physical units
-    context: np.ndarray  # (B, 2) measured [c_load N, c_slope rad]
-    objective: np.ndarray  # (B,) J for the trial's target
-    velocity_xy_mps: np.ndarray  # (B, 2) steady-phase mean
-    cot: np.ndarray  # (B,)
-    beta: np.ndarray  # (B,) β of the proposal
-    context_changed: np.ndarray  # (B,) whether the proposal used β_init,c
-    accepted: np.ndarray  # (B,) the optimizer stored the observation
-    roll_std_rad: np.ndarray
-    pitch_std_rad: np.ndarray
-    saturation_fraction: np.ndarray
-    energy_j: np.ndarray
-    distance_m: np.ndarray
-    total_mass_kg: np.ndarray
-    fell: np.ndarray
-    failed: np.ndarray
-
-
 class Timing(NamedTuple):
     """Wall seconds spent, summed over trials (and resumed segments)."""
 
@@ -145,7 +125,7 @@ class StudyResult(NamedTuple):
     spec: StudySpec
     labels: list[dict[str, Any]]
     conditions: Conditions
-    trials: TrialLog  # every field (num_trials, B, ...)
+    trials: study_io.TrialLog  # every field (num_trials, B, ...)
     opt_state: bo.OptimizerState  # final, host arrays (B, ...)
     wall_s: float  # compute wall time, summed over resumed segments
     timing: Timing
@@ -153,11 +133,11 @@ class StudyResult(NamedTuple):
     devices: list[str]
 
 
-def _record_template(trial: mjx_go1.TrialConfig) -> objective.TrialRecord:
+def _record_template(trial: protocol.TrialConfig) -> protocol.TrialRecord:
     scalar = jax.ShapeDtypeStruct((), jnp.float32)
-    fields = {f: scalar for f in objective.TrialRecord._fields}
+    fields = {f: scalar for f in protocol.TrialRecord._fields}
     fields["velocity_xy_mps"] = jax.ShapeDtypeStruct((trial.steady_steps, 2), jnp.float32)
-    return objective.TrialRecord(**fields)
+    return protocol.TrialRecord(**fields)
 
 
 def _where_batch(mask, a, b):
@@ -165,6 +145,28 @@ def _where_batch(mask, a, b):
         m = mask.reshape(mask.shape + (1,) * (x.ndim - 1))
         return jnp.where(m, x, y)
     return jax.tree.map(one, a, b)
+
+
+class _Run(NamedTuple):
+    """What :meth:`Engine.run` carries from trial to trial (host-side; ``timing`` is updated in place)."""
+
+    start: int  # the first trial of this segment (> 0 after a resume)
+    opt_state: Any  # optimizer state, sharded
+    sim_state: Any  # backend state (None before the first trial)
+    context: np.ndarray  # (B, 2) context measured in the last trial
+    logs: list  # a study_io.TrialLog per completed trial
+    wall_before: float  # compute wall time of earlier segments [s]
+    timing: dict[str, float]  # Timing's fields, summed
+
+
+@contextlib.contextmanager
+def _timed(timing: dict[str, float], *keys: str):
+    """Add the wall time of the block to each of ``timing[key]``."""
+    t0 = time.perf_counter()
+    yield
+    elapsed = time.perf_counter() - t0
+    for key in keys:
+        timing[key] += elapsed
 
 
 class Engine:
@@ -186,11 +188,11 @@ class Engine:
         size = self.placement.padded_size
         self.padded = Conditions(*(_pad(c, size) for c in self.conditions))
         controllers = _pad(np.array([lab["controller"] for lab in self.labels]), size)
-        self.gates = mjx_go1.batch_gates(controllers.tolist())
+        self.gates = protocol.batch_gates(controllers.tolist())
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
         self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
         self.active = np.ones((size, param_space.NUM_PARAMS), bool)
-        self.active[:, param_space.SIGMA_N_INDEX] = self.gates.tegotae > 0  # decisions.md §13
+        self.active[:, param_space.SIGMA_N_INDEX] = self.gates.tegotae > 0  # docs/decisions.md §13
         targets = self.padded.target_velocity_mps
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
         config = spec.optimizer_config()
@@ -258,80 +260,80 @@ class Engine:
         With ``out_dir`` the state is checkpointed atomically after every trial.
         """
         spec, n = self.spec, self.spec.num_trials
-        put = self.placement.put
-        opt_state = self.initial_opt_state()
-        context = self.initial_context()
-        logs: list[TrialLog] = []
-        sim_state, start, wall_before = None, 0, 0.0
-        timing = {name: 0.0 for name in Timing._fields}
-        if resume:
-            ckpt = study_io.load_checkpoint(out_dir, spec)
-            if ckpt is not None:
-                start = ckpt.trial
-                opt_state = put(jax.tree.unflatten(jax.tree.structure(opt_state), ckpt.opt_leaves))
-                context, logs, wall_before = ckpt.context, list(ckpt.logs), ckpt.wall_s
-                timing.update(ckpt.timing)
-                if start < n:
-                    sim_state = self._restore_sim(start, ckpt.sim_leaves)
-                log.info("resumed %s at trial %d", spec.name, start)
+        run = self._start(out_dir, resume)
         t_begin = time.perf_counter()
         env_steps = self.batch_size * (spec.trial.transition_steps + spec.trial.steady_steps)
-        for t in range(start, n):
-            t0 = time.perf_counter()
-            opt_state = self._change_targets(opt_state, t)
+        for t in range(run.start, n):
+            run = self._trial(run, t)
+            wall = run.wall_before + time.perf_counter() - t_begin
+            if out_dir is not None:
+                with _timed(run.timing, "checkpoint_s"):
+                    self._checkpoint(out_dir, run, t, wall)
+            if progress is not None:
+                done = t + 1 - run.start
+                elapsed = max(time.perf_counter() - t_begin, 1e-9)
+                progress(Progress(t + 1, n, self.best_by_group(run.logs), env_steps * done / elapsed,
+                                  (n - t - 1) * elapsed / done))
+        wall_s = run.wall_before + time.perf_counter() - t_begin
+        return StudyResult(
+            spec=spec, labels=self.labels, conditions=self.conditions, trials=self.stack(run.logs),
+            opt_state=jax.tree.map(lambda a: a[:self.batch_size], fetch(run.opt_state)), wall_s=wall_s,
+            timing=Timing(**run.timing), backend=self.backend_name,
+            devices=[str(d) for d in self.placement.mesh.devices])
+
+    def _start(self, out_dir, resume: bool) -> _Run:
+        """The run's state before its first trial: fresh, or restored from ``out_dir``'s checkpoint."""
+        run = _Run(start=0, opt_state=self.initial_opt_state(), sim_state=None, context=self.initial_context(),
+                   logs=[], wall_before=0.0, timing={name: 0.0 for name in Timing._fields})
+        ckpt = study_io.load_checkpoint(out_dir, self.spec) if resume else None
+        if ckpt is None:
+            return run
+        opt_state = self.placement.put(jax.tree.unflatten(jax.tree.structure(run.opt_state), ckpt.opt_leaves))
+        sim_state = self._restore_sim(ckpt.trial, ckpt.sim_leaves) if ckpt.trial < self.spec.num_trials else None
+        log.info("resumed %s at trial %d", self.spec.name, ckpt.trial)
+        return _Run(start=ckpt.trial, opt_state=opt_state, sim_state=sim_state, context=ckpt.context,
+                    logs=list(ckpt.logs), wall_before=ckpt.wall_s, timing={**run.timing, **ckpt.timing})
+
+    def _trial(self, run: _Run, t: int) -> _Run:
+        """Trial ``t`` for the whole batch: propose (eq. 8), simulate, summarize (eqs. 9-11), observe."""
+        put, timing = self.placement.put, run.timing
+        with _timed(timing, "propose_s", "optimizer_s"):
+            opt_state = self._change_targets(run.opt_state, t)
             opt_state = opt_state._replace(inference_mode=put(self.padded.inference[:, t]))
             keys = self._keys(put(self.seeds.astype(np.uint32)), t)
-            ctx = put(context)
+            ctx = put(run.context)
             beta = self._beta(opt_state, ctx)
             x = fetch(self._propose(opt_state, ctx, keys)).astype(np.float64)
             # The proposal is in the box up to float32 rounding; the simulator validates strictly.
             x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
-            t1 = time.perf_counter()
+        with _timed(timing, "simulation_s"):
             sim = self.simulator(t)
-            if sim_state is None:
-                sim_state = sim.reset(x)
+            sim_state = sim.reset(x) if run.sim_state is None else run.sim_state
             sim_state, record = sim.trial(sim_state, x, self.gates)
             record = jax.block_until_ready(record)
-            t2 = time.perf_counter()
+        with _timed(timing, "transfer_s"):
             rec = fetch(record)
             target = self.padded.target_velocity_mps[:, t].astype(np.float32)
             j, new_context, velocity, cot = fetch(self._summary(rec, target))
             record_d, x_d = put(rec), put(x.astype(np.float32))
-            t3 = time.perf_counter()
+        with _timed(timing, "observe_s", "optimizer_s"):
             observation = record_d if self.uses_records else put(j)
             opt_state, accepted = self._observe(opt_state, x_d, put(new_context), observation)
             accepted = jax.block_until_ready(accepted)
-            t4 = time.perf_counter()
-            logs.append(TrialLog(
-                params=x, context=new_context, objective=j, velocity_xy_mps=velocity, cot=cot, beta=fetch(beta.beta),
-                context_changed=fetch(beta.context_changed), accepted=fetch(accepted),
-                roll_std_rad=rec.roll_std_rad, pitch_std_rad=rec.pitch_std_rad,
-                saturation_fraction=rec.saturation_fraction, energy_j=rec.energy_j, distance_m=rec.distance_m,
-                total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed))
-            context = np.asarray(new_context, np.float32)
-            timing["simulation_s"] += t2 - t1
-            timing["optimizer_s"] += (t1 - t0) + (t4 - t3)
-            timing["propose_s"] += t1 - t0
-            timing["observe_s"] += t4 - t3
-            timing["transfer_s"] += t3 - t2
-            wall = wall_before + time.perf_counter() - t_begin
-            if out_dir is not None:
-                t5 = time.perf_counter()
-                study_io.save_checkpoint(out_dir, spec, study_io.Checkpoint(
-                    trial=t + 1, opt_leaves=fetch(jax.tree.leaves(opt_state)),
-                    sim_leaves=fetch(jax.tree.leaves(sim_state)), context=context, logs=logs, wall_s=wall,
-                    timing=dict(timing)))
-                timing["checkpoint_s"] += time.perf_counter() - t5
-            if progress is not None:
-                done = t + 1 - start
-                rate = env_steps * done / max(time.perf_counter() - t_begin, 1e-9)
-                progress(Progress(t + 1, n, self.best_by_group(logs), rate,
-                                  (n - t - 1) * (time.perf_counter() - t_begin) / done))
-        wall_s = wall_before + time.perf_counter() - t_begin
-        return StudyResult(
-            spec=spec, labels=self.labels, conditions=self.conditions, trials=self.stack(logs),
-            opt_state=jax.tree.map(lambda a: a[:self.batch_size], fetch(opt_state)), wall_s=wall_s,
-            timing=Timing(**timing), backend=self.backend_name, devices=[str(d) for d in self.placement.mesh.devices])
+        trial_log = study_io.TrialLog(
+            params=x, context=new_context, objective=j, velocity_xy_mps=velocity, cot=cot, beta=fetch(beta.beta),
+            context_changed=fetch(beta.context_changed), accepted=fetch(accepted),
+            roll_std_rad=rec.roll_std_rad, pitch_std_rad=rec.pitch_std_rad,
+            saturation_fraction=rec.saturation_fraction, energy_j=rec.energy_j, distance_m=rec.distance_m,
+            total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed)
+        return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(new_context, np.float32),
+                            logs=run.logs + [trial_log])
+
+    def _checkpoint(self, out_dir, run: _Run, t: int, wall_s: float) -> None:
+        study_io.save_checkpoint(out_dir, self.spec, study_io.Checkpoint(
+            trial=t + 1, opt_leaves=fetch(jax.tree.leaves(run.opt_state)),
+            sim_leaves=fetch(jax.tree.leaves(run.sim_state)), context=run.context, logs=run.logs, wall_s=wall_s,
+            timing=dict(run.timing)))
 
     def _restore_sim(self, trial: int, leaves):
         sim = self.simulator(max(trial - 1, 0))
@@ -341,16 +343,16 @@ class Engine:
         restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds)]
         return jax.tree.unflatten(treedef, restored)  # the backend places it on its devices
 
-    def stack(self, logs: list[TrialLog]) -> TrialLog:
-        """Per-trial logs → one TrialLog of (num_trials, B, ...) arrays without the padding instances."""
+    def stack(self, logs: list[study_io.TrialLog]) -> study_io.TrialLog:
+        """Per-trial logs → one study_io.TrialLog of (num_trials, B, ...) arrays without the padding instances."""
         if not logs:
-            return TrialLog(*(np.zeros((0, self.batch_size)) for _ in TrialLog._fields))
-        return TrialLog(*(np.stack([np.asarray(f)[:self.batch_size] for f in field]) for field in zip(*logs)))
+            return study_io.TrialLog(*(np.zeros((0, self.batch_size)) for _ in study_io.TrialLog._fields))
+        return study_io.TrialLog(*(np.stack([np.asarray(f)[:self.batch_size] for f in field]) for field in zip(*logs)))
 
     def group_names(self) -> list[str]:
         return [", ".join(str(lab[g]) for g in self.spec.group_by) for lab in self.labels]
 
-    def best_by_group(self, logs: list[TrialLog]) -> dict[str, float]:
+    def best_by_group(self, logs: list[study_io.TrialLog]) -> dict[str, float]:
         j = np.stack([np.asarray(lg.objective)[:self.batch_size] for lg in logs])  # (t, B)
         best: dict[str, float] = {}
         for b, name in enumerate(self.group_names()):

@@ -1,26 +1,45 @@
-"""The ``cpgjax`` command line."""
+"""The ``cpgjax`` command line: one argparse tree builds every command (walk, study, optimize, show, demo, deploy and
+deploy calibrate); each command's function takes the parsed options."""
 
 from __future__ import annotations
 
 import argparse
+import functools
+import json
+import pathlib
+import shutil
+import subprocess
 import sys
 
+from cpgjax import ablation
 from cpgjax import cpg
+from cpgjax.robot import calibrate
 from cpgjax.robot import cpu_dispatch
+from cpgjax.robot import deploy
+from cpgjax.robot import transport as go1_transport
+from cpgjax.sim import backends
 from cpgjax.sim import walk
+from cpgjax.study import files as study_io
+from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
+from cpgjax.trial import params as param_space
+
+DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 
 
 def _floats(text: str) -> tuple[float, ...]:
     return tuple(float(v) for v in text.split(","))
 
 
-def _walk(args) -> None:
+# ----------------------------------------------------------------------------------------------- commands
+
+def _walk(args) -> int:
     rows, timing = walk.walk(controllers=args.controllers.split(","), friction=args.friction,
                              slope_deg=args.slope, payload_kg=args.payload, num_trials=args.trials,
-                             target_velocity_mps=args.target)
+                             target_velocity_mps=args.target, backend=args.backend)
     print(walk.markdown_table(rows))
     print(timing)
+    return 0
 
 
 def _progress_printer(stream=None):
@@ -37,15 +56,10 @@ def _progress_printer(stream=None):
     return show
 
 
-def _study(args) -> int:
-    cpu_dispatch.request_inline()  # the native backend's per-tick controller call
-    from cpgjax import ablation
-    from cpgjax.study import registry as studies
-    if args.distributed:
-        ablation.initialize_distributed()
+def _run_study(name: str, **options) -> int:
+    """``studies.run`` with the progress display; prints its table and output folder, or its StudyError (then 2)."""
     try:
-        text, out = studies.run(args.name, seeds=args.seeds, trials=args.trials, quick=args.quick, out=args.out,
-                                resume=args.resume, backend=args.backend, progress=_progress_printer())
+        text, out = studies.run(name, progress=_progress_printer(), **options)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -54,16 +68,42 @@ def _study(args) -> int:
     return 0
 
 
-def _optimize(args) -> int:
-    cpu_dispatch.request_inline()  # the native backend's per-tick controller call
-    import pathlib
+def _study(args) -> int:
+    if args.distributed:
+        ablation.initialize_distributed()
+    return _run_study(args.name, seeds=args.seeds, trials=args.trials, quick=args.quick, out=args.out,
+                      resume=args.resume, backend=args.backend)
 
-    from cpgjax import ablation
-    from cpgjax.trial import params as param_space
-    from cpgjax.study import files as study_io
+
+def _demo(args) -> int:
+    """``make demo``: the paper's controller ablation — online optimization of the four CPG controllers.
+
+    Runs the ``--quick`` variant (4 controllers × 2 seeds × 12 trials of 1.5 s + 3 s: 41 s on the shared 2-core
+    development machine) because the full study (5 seeds × 40 trials, ``cpgjax study controller_ablation``) took 3.7
+    to 7.7 minutes there depending on the other jobs' load (docs/REPRODUCTION.md). Prints its table beside the
+    paper's; outputs go to ``results/demo_controller_ablation/``, computed afresh every time.
+    """
+    print("cpgjax demo: online optimization (contextual GP-UCB, Algorithm 1) of the four CPG controllers at "
+          "v* = 0.5 m/s, all runs batched in lockstep on the CPU (quick variant: 2 seeds × 12 trials; the first "
+          "trials compile).", flush=True)
+    (DEMO_OUT / study_io.CHECKPOINT).unlink(missing_ok=True)
+    return _run_study("controller_ablation", quick=True, out=DEMO_OUT)
+
+
+def _trials_table(trials) -> str:
+    """Markdown table of one optimization's trials (instance 0)."""
+    lines = ["| trial | J | v_x [m/s] | CoT | c_load [N] | c_slope [rad] | β | fell |", "|---" * 8 + "|"]
+    for t in range(trials.objective.shape[0]):
+        lines.append(f"| {t} | {trials.objective[t, 0]:.3f} | {trials.velocity_xy_mps[t, 0, 0]:.3f} | "
+                     f"{trials.cot[t, 0]:.3f} | {trials.context[t, 0, 0]:.1f} | {trials.context[t, 0, 1]:.3f} | "
+                     f"{trials.beta[t, 0]:.3g} | {int(trials.fell[t, 0])} |")
+    return "\n".join(lines)
+
+
+def _optimize(args) -> int:
     spec = study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,), seeds=(args.seed,),
-                              friction=(args.friction,), slope_deg=(args.slope,), payload_kg=(args.payload,),
-                              target_velocity_mps=(args.target,))
+                                friction=(args.friction,), slope_deg=(args.slope,), payload_kg=(args.payload,),
+                                target_velocity_mps=(args.target,))
     out = pathlib.Path(args.out)
     try:
         if not args.resume and (out / study_io.CHECKPOINT).exists():
@@ -74,10 +114,7 @@ def _optimize(args) -> int:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 2
     tr = result.trials
-    print("| trial | J | v_x [m/s] | CoT | c_load [N] | c_slope [rad] | β | fell |\n|---|---|---|---|---|---|---|---|")
-    for t in range(tr.objective.shape[0]):
-        print(f"| {t} | {tr.objective[t, 0]:.3f} | {tr.velocity_xy_mps[t, 0, 0]:.3f} | {tr.cot[t, 0]:.3f} | "
-              f"{tr.context[t, 0, 0]:.1f} | {tr.context[t, 0, 1]:.3f} | {tr.beta[t, 0]:.3g} | {int(tr.fell[t, 0])} |")
+    print(_trials_table(tr))
     best = int(tr.objective[:, 0].argmax())
     print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
     study_io.write_trials(result, out / "trials.parquet")
@@ -88,11 +125,6 @@ def _optimize(args) -> int:
 
 
 def _show(args) -> int:
-    import json
-    import pathlib
-    import shutil
-    import subprocess
-
     out = pathlib.Path(args.results)
     if not out.is_dir():
         print(f"cpgjax show: {out} is not a folder", file=sys.stderr)
@@ -118,14 +150,48 @@ def _show(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] == "deploy":  # its own parser: cpgjax deploy --help
-        from cpgjax.robot import deploy
-        return deploy.main(argv[1:])
-    parser = argparse.ArgumentParser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1. "
-                                     "Subcommands: walk, study, optimize, show, deploy (see `cpgjax deploy --help`).")
-    sub = parser.add_subparsers(dest="command", required=True)
+def _deploy(parser: argparse.ArgumentParser, args) -> int:
+    """``cpgjax deploy`` after the checks that span options (``parser.error`` exits with 2)."""
+    if args.robot is None:
+        parser.error("the following arguments are required: --robot")
+    if args.robot == "go1" and args.calibration is None:
+        parser.error("--robot go1 needs --calibration FILE (run `cpgjax deploy calibrate` first, see docs/hardware.md)")
+    return deploy.run(args)
+
+
+# ----------------------------------------------------------------------------------------------- shared options
+
+def _add_output_args(p: argparse.ArgumentParser, default: str | None, shown: str | None = None) -> None:
+    """``--out`` (the folder a study or an optimization writes, with its checkpoint) and ``--resume``."""
+    p.add_argument("--out", default=default, help=f"output folder (default {shown or default})")
+    p.add_argument("--resume", action="store_true", help="continue from the folder's checkpoint")
+
+
+def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> None:
+    """The options that choose and reach the robot (``cpgjax deploy`` and ``cpgjax deploy calibrate``)."""
+    p.add_argument("--robot", choices=("sim", "go1"), required=robot_required,
+                   help="sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
+    p.add_argument("--transport", choices=("udp", "sdk"), help="default: sdk for go1, udp for sim")
+    p.add_argument("--robot-ip", default=go1_transport.GO1_ROBOT_IP, help="go1 only")
+    p.add_argument("--robot-port", type=int, default=go1_transport.GO1_ROBOT_PORT, help="go1 only")
+    p.add_argument("--local-port", type=int, default=go1_transport.GO1_LOCAL_PORT, help="go1 only")
+    p.add_argument("--power-level", type=int, default=9, help="power protection level 1…10 (100 W each)")
+    p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime",
+                   help="lockstep: one physics step per command, the loop waits for each answer (not real time)")
+    p.add_argument("--payload-kg", type=float, default=0.0,
+                   help="payload carried [kg] (counts in CoT; sim: simulated)")
+    p.add_argument("--friction", type=float, default=0.6, help="sim only")
+    p.add_argument("--slope-deg", type=float, default=0.0, help="sim only: slope [deg]")
+    p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
+    p.add_argument("--cpu", type=int, help="pin the loop to this CPU (sim: the simulated Go1 to the others)")
+    p.add_argument("--busy-wait", action="store_true",
+                   help="spin through each period instead of sleeping (with --cpu; with --no-realtime unless the "
+                   "kernel's real-time throttling is off); fewer overruns on a VM (docs/hardware.md)")
+
+
+# ----------------------------------------------------------------------------------------------- the parser
+
+def _add_walk(sub) -> None:
     w = sub.add_parser("walk", help="walk with fixed parameters and print the trial figures")
     w.add_argument("--controllers", default=",".join(cpg.CONTROLLERS), help=f"comma list of {cpg.CONTROLLERS}")
     w.add_argument("--friction", type=_floats, default=(0.6,), help="comma list, e.g. 0.3,0.6,0.9")
@@ -133,10 +199,11 @@ def main(argv=None) -> int:
     w.add_argument("--payload", type=_floats, default=(0.0,), help="comma list of payloads [kg]")
     w.add_argument("--trials", type=int, default=2, help="back-to-back trials of 1.5 s + 3 s")
     w.add_argument("--target", type=float, default=0.5, help="target velocity v_x* [m/s] for J")
+    backends.add_backend_argument(w)
     w.set_defaults(func=_walk)
 
-    from cpgjax.sim import backends
-    from cpgjax.study import registry as studies
+
+def _add_study(sub) -> None:
     s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/")
     s.add_argument("name", choices=sorted(studies.STUDIES), help="; ".join(
         f"{k}: {v.description}" for k, v in studies.STUDIES.items()))
@@ -144,12 +211,13 @@ def main(argv=None) -> int:
                    f"--quick {studies.QUICK_SEEDS})")
     s.add_argument("--trials", type=int, default=None, help="trials per run (condition changes scale with it)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
-    s.add_argument("--out", default=None, help="output folder (default results/<study>)")
-    s.add_argument("--resume", action="store_true", help="continue from the folder's checkpoint")
+    _add_output_args(s, None, "results/<study>")
     s.add_argument("--distributed", action="store_true", help="multi-host: jax.distributed.initialize() first")
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
 
+
+def _add_optimize(sub) -> None:
     o = sub.add_parser("optimize", help="one online optimization (Algorithm 1) with a controller, scenario, target")
     o.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae")
     o.add_argument("--friction", type=float, default=0.6)
@@ -158,18 +226,76 @@ def main(argv=None) -> int:
     o.add_argument("--target", type=float, default=0.5, help="target velocity v_x* [m/s]")
     o.add_argument("--trials", type=int, default=40)
     o.add_argument("--seed", type=int, default=0)
-    o.add_argument("--out", default="results/optimize")
-    o.add_argument("--resume", action="store_true")
+    _add_output_args(o, "results/optimize")
     backends.add_backend_argument(o)
     o.set_defaults(func=_optimize)
 
+
+def _add_show(sub) -> None:
     v = sub.add_parser("show", help="print a results folder's tables and open its rerun recording")
     v.add_argument("results", help="e.g. results/controller_ablation")
     v.add_argument("--no-viewer", action="store_true", help="do not open the recording")
     v.set_defaults(func=_show)
 
-    args = parser.parse_args(argv)
-    return args.func(args) or 0
+
+def _add_demo(sub) -> None:
+    d = sub.add_parser("demo", help=f"`make demo`: the controller ablation's quick variant, afresh, into {DEMO_OUT}/")
+    d.set_defaults(func=_demo)
+
+
+def _add_deploy(sub) -> None:
+    d = sub.add_parser("deploy", help="run the CPG at 1 kHz on a Go1 or the loopback simulated Go1 "
+                       "(`cpgjax deploy calibrate`: the foot-force calibration)",
+                       description="Run the CPG controller at 1 kHz on a Go1 or on the loopback simulated Go1; "
+                       "replay parameters or optimize them online. `cpgjax deploy calibrate --help`: the foot-force "
+                       "calibration.")
+    _add_robot_args(d, robot_required=False)  # _deploy requires it: argparse would ask for it before `calibrate` too
+    what = d.add_mutually_exclusive_group()
+    what.add_argument("--params", type=pathlib.Path, help="replay these parameters (JSON from save_params / "
+                      "best_params)")
+    what.add_argument("--optimize", action="store_true", help="online optimization (Algorithm 1)")
+    d.add_argument("--trials", type=int, default=10, help="trials of online optimization")
+    d.add_argument("--optimizer", choices=("bo", "random"), default="bo")
+    d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae")
+    d.add_argument("--target-velocity", type=float, default=0.5, help="v_x* [m/s] of the objective")
+    d.add_argument("--duration-s", type=float, default=10.0, help="run time when replaying parameters [s]")
+    d.add_argument("--transition-s", type=float, default=1.5, help="each trial's parameter transition [s]")
+    d.add_argument("--steady-s", type=float, default=3.0, help="each trial's steady phase T [s]")
+    d.add_argument("--log-dir", type=pathlib.Path, default=pathlib.Path("runs/deploy"))
+    d.add_argument("--calibration", type=pathlib.Path, help="foot-force calibration JSON from `cpgjax deploy "
+                   "calibrate` (required with --robot go1; sim: the simulated sensor's exact calibration by default)")
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(func=functools.partial(_deploy, d))
+
+    c = d.add_subparsers(title="subcommands").add_parser(
+        "calibrate", help="measure the foot-force sensors and save their calibration",
+        description="Measure the Go1's foot-force sensors (feet in the air, then standing) and save their "
+        "calibration to raw counts → N.")
+    _add_robot_args(c)
+    c.add_argument("--out", type=pathlib.Path, default=pathlib.Path("go1_calibration.json"),
+                   help="calibration JSON to write")
+    c.add_argument("--air-s", type=float, default=2.0, help="measuring time with the feet in the air [s]")
+    c.add_argument("--stand-s", type=float, default=3.0, help="measuring time standing still [s]")
+    c.add_argument("--settle-s", type=float, default=1.0, help="time holding the pose before each measurement [s]")
+    c.add_argument("--mass-kg", type=float, help="the robot's total mass [kg] (default: cpgjax's Go1 model + payload)")
+    c.add_argument("--lift-m", type=float, default=0.3, help="sim only: how high the simulated Go1 is hung up [m]")
+    c.set_defaults(func=calibrate.run)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``cpgjax`` parser: every command, each with its function as ``func``."""
+    parser = argparse.ArgumentParser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_walk, _add_study, _add_optimize, _add_show, _add_demo, _add_deploy):
+        add(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline.
+    cpu_dispatch.request_inline()
+    return args.func(args)
 
 
 if __name__ == "__main__":

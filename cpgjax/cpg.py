@@ -1,7 +1,7 @@
 """The CPG controller of the paper as one pure, jit-able 1 kHz step.
 
 Oscillators (paper eqs. 1-3, Tegotae eq. 6), foot trajectories (eqs. 4-5), inverse kinematics and joint PD
-(τ_ref, K_p = 70, K_d = 1.3), and Virtual Model Control (τ_vmc, decisions.md §7): τ_cmd = τ_ref + τ_vmc, clipped
+(τ_ref, K_p = 70, K_d = 1.3), and Virtual Model Control (τ_vmc, docs/decisions.md §7): τ_cmd = τ_ref + τ_vmc, clipped
 to the Go1 motor limits. The same ``controller_step`` runs in MJX, in C MuJoCo and on the robot.
 
 Equation numbers follow the paper's displayed equations in order:
@@ -23,12 +23,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cpgjax.go1 import kinematics
+from cpgjax.go1 import attitude, constants, kinematics
 from cpgjax.trial.params import NUM_PARAMS
 
 # Trot phase lags φ_ij (eq. 3), leg order FR, FL, RR, RL.
 TROT_PHASE_LAG_RAD = np.pi * np.array([[0, 1, 1, 0], [-1, 0, 0, -1], [-1, 0, 0, -1], [0, 1, 1, 0]], dtype=np.float64)
-TORQUE_LIMIT_NM = np.tile(np.array([23.7, 23.7, 35.55]), 4)  # hip, thigh, calf x 4 legs
 
 CONTROLLERS = ("open_loop", "vmc", "tegotae", "vmc_tegotae")
 
@@ -51,7 +50,7 @@ class CPGConfig(NamedTuple):
     # vs 0.06 with VMC alone, mid-range parameters).
     vmc_contact_force_n: float = 10.0
     dt_s: float = 0.001  # control period (1 kHz)
-    # decisions.md §1 (switch): "paper" integrates α(μ² − r²)r (r → μ); "sqrt" integrates α(μ − r²)r (r → √μ),
+    # docs/decisions.md §1 (switch): "paper" integrates α(μ² − r²)r (r → μ); "sqrt" integrates α(μ − r²)r (r → √μ),
     # the form of the lab's public code.
     amplitude_form: str = "paper"
 
@@ -79,7 +78,8 @@ class CPGState(NamedTuple):
 
 
 class Observation(NamedTuple):
-    """Exactly what the Go1 reports each tick (LowState), in SI units; motor order FR, FL, RR, RL × (hip, thigh, calf)."""
+    """Exactly what the Go1 reports each tick (LowState), in SI units; motor order FR, FL, RR, RL × (hip, thigh,
+    calf)."""
 
     joint_pos_rad: jax.Array  # (12,)
     joint_vel_rad_s: jax.Array  # (12,)
@@ -98,15 +98,6 @@ class Diagnostics(NamedTuple):
     stance: jax.Array  # (4,) 1.0 for legs in stance (sin θ ≤ 0 and foot loaded), where VMC acts
     rpy_rad: jax.Array  # (3,) roll, pitch (nose-down positive), yaw
     saturated: jax.Array  # (12,) 1.0 where the commanded torque was clipped to the motor limit
-
-
-def quat_to_rpy(quat_wxyz: jax.Array) -> jax.Array:
-    """Roll, pitch, yaw (ZYX) [rad] from a unit quaternion. Pitch is positive nose-down (ROS, decisions.md §4)."""
-    w, x, y, z = quat_wxyz[0], quat_wxyz[1], quat_wxyz[2], quat_wxyz[3]
-    roll = jnp.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = jnp.arcsin(jnp.clip(2.0 * (w * y - z * x), -1.0, 1.0))
-    yaw = jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return jnp.stack([roll, pitch, yaw])
 
 
 def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_gate, config: CPGConfig):
@@ -141,7 +132,7 @@ def foot_targets(amplitude, phase_rad, params, config: CPGConfig) -> jax.Array:
 
 
 def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConfig) -> jax.Array:
-    """Attitude (roll, pitch) and direction (yaw) virtual-model torques (12,), decisions.md §7.
+    """Attitude (roll, pitch) and direction (yaw) virtual-model torques (12,), docs/decisions.md §7.
 
     On stance legs, F_z,i = k_att,r y_i sin(roll) − k_att,p x_i sin(pitch) and F_y,i = k_dir x_i wrap(ψ − ψ_des),
     with x_i = ±1 front/hind and y_i = ±1 left/right; τ_vmc,i = J_iᵀ [0, F_y,i, F_z,i]. F is the force the leg
@@ -158,12 +149,13 @@ def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConf
 
 
 def init_state(obs: Observation, initial_amplitude: float = 0.1) -> CPGState:
-    """Controller state at the start of a run: small amplitude, trot phases θ = φ_0j, heading reference = heading now."""
+    """Controller state at the start of a run: small amplitude, trot phases θ = φ_0j, heading reference = heading
+    now."""
     phase = jnp.mod(jnp.asarray(TROT_PHASE_LAG_RAD[0], jnp.float32), 2.0 * jnp.pi)
     return CPGState(
         amplitude=jnp.full((4,), initial_amplitude, jnp.float32),
         phase_rad=phase,
-        heading_ref_rad=quat_to_rpy(obs.imu_quat_wxyz)[2].astype(jnp.float32),
+        heading_ref_rad=attitude.quat_to_rpy(obs.imu_quat_wxyz)[2].astype(jnp.float32),
     )
 
 
@@ -186,12 +178,12 @@ def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates
     q_des = kinematics.legs_ik(targets, kinematics.SIDE_SIGN).reshape(12)
     tau_ref = config.kp_nm_rad * (q_des - obs.joint_pos_rad) - config.kd_nm_s_rad * obs.joint_vel_rad_s
 
-    rpy = quat_to_rpy(obs.imu_quat_wxyz)
+    rpy = attitude.quat_to_rpy(obs.imu_quat_wxyz)
     stance = ((jnp.sin(phase) <= 0.0) & (obs.foot_force_n > config.vmc_contact_force_n)).astype(tau_ref.dtype)
     tau_vmc = gates.vmc * vmc_torques(obs.joint_pos_rad, rpy, state.heading_ref_rad, stance, config)
 
     tau_cmd = tau_ref + tau_vmc
-    limit = jnp.asarray(TORQUE_LIMIT_NM, tau_cmd.dtype)
+    limit = jnp.asarray(constants.TORQUE_LIMIT_NM, tau_cmd.dtype)
     torque = jnp.clip(tau_cmd, -limit, limit)
     diagnostics = Diagnostics(
         foot_target_m=targets, joint_target_rad=q_des, tau_ref_nm=tau_ref, tau_vmc_nm=tau_vmc, stance=stance,

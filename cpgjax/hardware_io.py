@@ -14,11 +14,13 @@ controller and its flat layout (:mod:`cpgjax.robot.controller`) and the safety l
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
 import signal
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple, Protocol
 
@@ -171,7 +173,8 @@ def timing_stats(log: TickLog, overruns: int, ticks: int) -> dict:
         "step_median_us": pct(step_us, 50), "step_p99_us": pct(step_us, 99),
         "step_max_us": float(step_us.max()) if step_us.size else float("nan"),
         "period_median_us": pct(period_us, 50), "period_p1_us": pct(period_us, 1),
-        "period_p99_us": pct(period_us, 99), "period_max_us": float(period_us.max()) if period_us.size else float("nan"),
+        "period_p99_us": pct(period_us, 99),
+        "period_max_us": float(period_us.max()) if period_us.size else float("nan"),
         "work_median_us": pct(log.work_s[active] * 1e6, 50), "work_p99_us": pct(log.work_s[active] * 1e6, 99),
     }
 
@@ -254,6 +257,107 @@ def _wait_until(deadline: float, spin_s: float) -> None:
         pass
 
 
+@contextlib.contextmanager
+def _realtime_section(loop: LoopConfig) -> Iterator[str]:
+    """The loop's surroundings: real-time scheduling where permitted (:func:`_enter_realtime`) and the garbage
+    collector collected, frozen and off; yields what scheduling the loop got. On exit the GC is back on and the
+    scheduling restored."""
+    realtime, restore = _enter_realtime(loop)
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    try:
+        yield realtime
+    finally:
+        gc.enable()
+        gc.unfreeze()
+        restore()
+
+
+def _phase_ticks(loop: LoopConfig) -> tuple[int, ...]:
+    """How many ticks each phase lasts, indexed by phase: hold, ramp and the final damping at least one, stand
+    possibly none; connect and run end on events (0 here)."""
+    period_s = loop.period_s
+    return (0, max(1, round(loop.hold_s / period_s)), max(1, round(loop.ramp_s / period_s)),
+            round(loop.stand_s / period_s), 0, max(1, round(loop.end_damping_s / period_s)))
+
+
+def _controller_input(gates: cpg.Gates) -> np.ndarray:
+    """The controller's flat input (IN_SIZE,) with the gates set; the loop writes the rest each run tick."""
+    x = np.zeros(IN_SIZE, np.float32)
+    x[OBS_SIZE + 8], x[OBS_SIZE + 9] = float(gates.vmc), float(gates.tegotae)
+    return x
+
+
+def _enter_phase(events: list, tick: int, phase: int, message: str) -> tuple[int, int]:
+    """Record the loop entering ``phase`` at ``tick`` (an event and a log line); returns the loop's new
+    (phase, tick its phase time counts from)."""
+    events.append((tick, PHASE_NAMES[phase], message))
+    log.info("tick %d: %s (%s)", tick, PHASE_NAMES[phase], message)
+    return phase, tick
+
+
+def _trip_reason(power_counter: int, state: proto.RobotState | None, fresh: bool, stale_ticks: int,
+                 transport: Transport, stop: _StopRequest, safety: SafetyConfig,
+                 stop_mask: int) -> tuple[int, str | None]:
+    """The safety checks of one tick once connected, in order: the stale-state watchdog or, on a fresh state, tilt,
+    stop buttons, motor temperature and the power-protection counter; then the SDK's power trip and Ctrl-C.
+    Returns (power-protection counter, the first trip reason or None)."""
+    reason = None
+    if stale_ticks > safety.watchdog_ticks:
+        reason = f"stale state: no new robot tick for {stale_ticks} ticks"
+    elif fresh:
+        reason = state_trip_reason(state, safety, stop_mask)
+        if reason is None:
+            power_counter, reason = power_protect(power_counter, state, safety)
+    if reason is None and transport.power_tripped:
+        reason = "the SDK's power protection tripped"
+    if reason is None and stop.requested:
+        reason = "shutdown requested (Ctrl-C)"
+    return power_counter, reason
+
+
+def _soft_start_command(phase: int, ticks_in_phase: int, hold_q_rad: np.ndarray, stand_q_rad: np.ndarray,
+                        phase_ticks: tuple[int, ...], loop: LoopConfig) -> proto.MotorCommand:
+    """The motor PD command of one soft-start tick: hold the measured pose while Kp ramps from
+    ``loop.hold_kp_fraction`` of the standing Kp up to it, move linearly to the standing pose, stand."""
+    kp, kd = loop.stand_kp_nm_rad, loop.stand_kd_nm_s_rad
+    if phase == HOLD:
+        a = ticks_in_phase / phase_ticks[HOLD]
+        return pd_command(hold_q_rad, kp * min(1.0, loop.hold_kp_fraction + (1 - loop.hold_kp_fraction) * a), kd)
+    if phase == RAMP:
+        a = min(1.0, (ticks_in_phase + 1) / phase_ticks[RAMP])
+        return pd_command(hold_q_rad + a * (stand_q_rad - hold_q_rad), kp, kd)
+    return pd_command(stand_q_rad, kp, kd)
+
+
+def _after_soft_start_phase(phase: int, stand_ticks: int, schedule: ParamSchedule) -> tuple[int, str]:
+    """The phase that follows the hold, ramp or stand phase, and its event message (a schedule finished from the
+    start skips the run phase)."""
+    if phase == HOLD:
+        return RAMP, "moving to the standing pose"
+    if phase == RAMP and stand_ticks:
+        return STAND, "standing"
+    return (DAMP, "run complete") if schedule.finished else (RUN, "CPG running")
+
+
+def _log_tick(tick_log: TickLog, i: int, t0: float, cpu0: float, late_s: float, step_s: float, phase: int,
+              fresh: bool, robot_tick_ms: int, state: proto.RobotState | None, tau_nm: np.ndarray) -> None:
+    """Write one tick's record at ring index i (the run phase's obs and controller torque are written by the
+    loop); its work time (wall and thread CPU since t0, cpu0) last."""
+    tick_log.t_start_s[i] = t0
+    tick_log.late_s[i] = late_s
+    tick_log.step_s[i] = step_s
+    tick_log.phase[i] = phase
+    tick_log.fresh[i] = fresh
+    tick_log.robot_tick_ms[i] = robot_tick_ms
+    if state is not None:
+        tick_log.foot_force_raw[i] = state.foot_force_raw
+    tick_log.torque_nm[i] = tau_nm
+    tick_log.work_s[i] = time.perf_counter() - t0
+    tick_log.work_cpu_s[i] = time.thread_time() - cpu0
+
+
 def run_loop(transport: Transport, controller: CompiledController | None, schedule: ParamSchedule,
              calibration: FootForceCalibration | None, gates: cpg.Gates, loop: LoopConfig = LoopConfig(),
              safety: SafetyConfig = SafetyConfig()) -> LoopResult:
@@ -265,156 +369,97 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
     protection → send → wait for the next absolute deadline. A schedule finished from the start skips the run phase
     (``controller`` and ``calibration`` are then unused and may be None; see :func:`stand`).
     """
-    period = loop.period_s
-    ids = go1_model.indices()
-    stand_q = go1_model.standing_qpos()[ids.joint_qpos]
+    period_s, wait_spin_s = loop.period_s, loop.period_s if loop.busy_wait else loop.spin_s
+    stand_q_rad = go1_model.standing_qpos()[go1_model.indices().joint_qpos]
     stop_mask = sum(proto.REMOTE_BUTTON_BITS[b] for b in safety.stop_buttons)
-    hold_ticks, ramp_ticks = max(1, round(loop.hold_s / period)), max(1, round(loop.ramp_s / period))
-    stand_ticks = round(loop.stand_s / period)
-    end_ticks = max(1, round(loop.end_damping_s / period))
+    phase_ticks = _phase_ticks(loop)
     damp = damping_command(loop.damping_kd_nm_s_rad)
     n_log = loop.log_ticks
     tick_log = TickLog.allocate(n_log)
-    x = np.zeros(IN_SIZE, np.float32)
-    x[OBS_SIZE + 8], x[OBS_SIZE + 9] = float(gates.vmc), float(gates.tegotae)
+    x = _controller_input(gates)
 
     events: list = []
     trip = None
     phase, phase_tick = CONNECT, 0
-    last_state, last_robot_tick, stale = None, None, 0
-    power_counter, hold_q, run_tick = 0, None, 0
+    last_state, last_robot_tick, stale_ticks = None, None, 0
+    power_counter, hold_q_rad, run_tick = 0, None, 0
     overruns = skipped = k = 0
+    # The tick stays written out here: its state lives in locals, and each split would cost a call on the 1 ms path.
+    with _realtime_section(loop) as realtime, _StopRequest() as stop:
+        deadline = time.perf_counter()
+        while True:
+            t0, cpu0 = time.perf_counter(), time.thread_time()
+            i = k % n_log
+            state = transport.receive()
+            fresh = state is not None and state.tick_ms != last_robot_tick
+            if fresh:
+                last_state, last_robot_tick, stale_ticks = state, state.tick_ms, 0
+            else:
+                stale_ticks += 1
 
-    def enter(new_phase: int, message: str) -> None:
-        nonlocal phase, phase_tick
-        events.append((k, PHASE_NAMES[new_phase], message))
-        log.info("tick %d: %s (%s)", k, PHASE_NAMES[new_phase], message)
-        phase, phase_tick = new_phase, k
-
-    def end_soft_start() -> None:
-        if schedule.finished:
-            enter(DAMP, "run complete")
-        else:
-            enter(RUN, "CPG running")
-
-    realtime, restore = _enter_realtime(loop)
-    gc.collect()
-    gc.freeze()
-    gc.disable()
-    try:
-        with _StopRequest() as stop:
-            deadline = time.perf_counter()
-            while True:
-                t0, cpu0 = time.perf_counter(), time.thread_time()
-                state = transport.receive()
-                fresh = state is not None and state.tick_ms != last_robot_tick
+            reason = None
+            if phase == CONNECT:
                 if fresh:
-                    last_state, last_robot_tick, stale = state, state.tick_ms, 0
-                else:
-                    stale += 1
+                    hold_q_rad = np.clip(state.q_rad, JOINT_LOWER_RAD, JOINT_UPPER_RAD)
+                    phase, phase_tick = _enter_phase(events, k, HOLD, "first robot state; holding the measured pose")
+                elif k * period_s > loop.connect_timeout_s:
+                    reason = f"no robot state within {loop.connect_timeout_s} s"
+            elif phase != DAMP:
+                power_counter, reason = _trip_reason(power_counter, state, fresh, stale_ticks, transport, stop,
+                                                     safety, stop_mask)
+            if reason is not None:
+                trip = trip or reason
+                phase, phase_tick = _enter_phase(events, k, DAMP, reason)
 
-                reason = None
-                if phase == CONNECT:
-                    if fresh:
-                        hold_q = np.clip(state.q_rad, JOINT_LOWER_RAD, JOINT_UPPER_RAD)
-                        enter(HOLD, "first robot state; holding the measured pose")
-                    elif k * period > loop.connect_timeout_s:
-                        reason = f"no robot state within {loop.connect_timeout_s} s"
-                elif phase != DAMP:
-                    if stale > safety.watchdog_ticks:
-                        reason = f"stale state: no new robot tick for {stale} ticks"
-                    elif fresh:
-                        reason = state_trip_reason(state, safety, stop_mask)
-                        if reason is None:
-                            power_counter, reason = power_protect(power_counter, state, safety)
-                    if reason is None and transport.power_tripped:
-                        reason = "the SDK's power protection tripped"
-                    if reason is None and stop.requested:
-                        reason = "shutdown requested (Ctrl-C)"
-                if reason is not None:
-                    trip = trip or reason
-                    enter(DAMP, reason)
+            step_s = 0.0
+            command_phase = phase  # the phase whose command this tick sends (logged)
+            if phase == RUN:  # whole: step_s must time exactly pack + compiled call + unpack
+                ts = time.perf_counter()
+                pack_observation(last_state, calibration, x)
+                if run_tick == 0:  # start the CPG from the observation of its first tick (as the simulator)
+                    x[OBS_SIZE + 10:] = controller.initial_state(x[:OBS_SIZE])
+                x[OBS_SIZE:OBS_SIZE + 8] = schedule.params(run_tick)
+                out = controller.step(x)
+                x[OBS_SIZE + 10:] = out[OUT_STATE]
+                step_s = time.perf_counter() - ts
+                schedule.record(run_tick, out)
+                cmd = torque_command(out[OUT_TORQUE].astype(np.float64))
+                tick_log.obs[i] = x[:OBS_SIZE]
+                tick_log.controller_torque_nm[i] = out[OUT_TORQUE]
+                run_tick += 1
+                if schedule.finished:
+                    phase, phase_tick = _enter_phase(events, k, DAMP, "run complete")
+            elif HOLD <= phase <= STAND:
+                cmd = _soft_start_command(phase, k - phase_tick, hold_q_rad, stand_q_rad, phase_ticks, loop)
+                if k - phase_tick + 1 >= phase_ticks[phase]:  # the phase's last tick
+                    next_phase, message = _after_soft_start_phase(phase, phase_ticks[STAND], schedule)
+                    phase, phase_tick = _enter_phase(events, k, next_phase, message)
+            elif phase == DAMP and k - phase_tick >= phase_ticks[DAMP]:
+                break
+            else:  # connecting, or damping
+                cmd = damp
 
-                step_s = 0.0
-                command_phase = phase  # the phase whose command this tick sends (logged)
-                if phase == HOLD:
-                    a = (k - phase_tick) / hold_ticks
-                    cmd = pd_command(hold_q, loop.stand_kp_nm_rad * min(1.0, loop.hold_kp_fraction
-                                                                         + (1 - loop.hold_kp_fraction) * a),
-                                     loop.stand_kd_nm_s_rad)
-                    if k - phase_tick + 1 >= hold_ticks:
-                        enter(RAMP, "moving to the standing pose")
-                elif phase == RAMP:
-                    a = min(1.0, (k - phase_tick + 1) / ramp_ticks)
-                    cmd = pd_command(hold_q + a * (stand_q - hold_q), loop.stand_kp_nm_rad, loop.stand_kd_nm_s_rad)
-                    if a >= 1.0 and stand_ticks:
-                        enter(STAND, "standing")
-                    elif a >= 1.0:
-                        end_soft_start()
-                elif phase == STAND:
-                    cmd = pd_command(stand_q, loop.stand_kp_nm_rad, loop.stand_kd_nm_s_rad)
-                    if k - phase_tick + 1 >= stand_ticks:
-                        end_soft_start()
-                elif phase == RUN:
-                    ts = time.perf_counter()
-                    pack_observation(last_state, calibration, x)
-                    if run_tick == 0:  # start the CPG from the observation of its first tick (as the simulator)
-                        x[OBS_SIZE + 10:] = controller.initial_state(x[:OBS_SIZE])
-                    x[OBS_SIZE:OBS_SIZE + 8] = schedule.params(run_tick)
-                    out = controller.step(x)
-                    x[OBS_SIZE + 10:] = out[OUT_STATE]
-                    step_s = time.perf_counter() - ts
-                    schedule.record(run_tick, out)
-                    cmd = torque_command(out[OUT_TORQUE].astype(np.float64))
-                    i = k % n_log
-                    tick_log.obs[i] = x[:OBS_SIZE]
-                    tick_log.controller_torque_nm[i] = out[OUT_TORQUE]
-                    run_tick += 1
-                    if schedule.finished:
-                        enter(DAMP, "run complete")
-                elif phase == DAMP:
-                    cmd = damp
-                    if k - phase_tick >= end_ticks:
-                        break
-                else:
-                    cmd = damp
+            cmd, reason = guard_command(cmd, safety)
+            if reason is not None:
+                trip = trip or reason
+                phase, phase_tick = _enter_phase(events, k, DAMP, reason)
+                cmd = damp
+            transport.send(cmd, last_state)
+            _log_tick(tick_log, i, t0, cpu0, t0 - deadline, step_s, DAMP if reason is not None else command_phase,
+                      fresh, last_robot_tick or 0, last_state, cmd.tau_nm)
+            k += 1
 
-                cmd, reason = guard_command(cmd, safety)
-                if reason is not None:
-                    trip = trip or reason
-                    enter(DAMP, reason)
-                    cmd = damp
-                transport.send(cmd, last_state)
-
-                i = k % n_log
-                tick_log.t_start_s[i] = t0
-                tick_log.late_s[i] = t0 - deadline
-                tick_log.step_s[i] = step_s
-                tick_log.phase[i] = DAMP if reason is not None else command_phase
-                tick_log.fresh[i] = fresh
-                tick_log.robot_tick_ms[i] = last_robot_tick or 0
-                if last_state is not None:
-                    tick_log.foot_force_raw[i] = last_state.foot_force_raw
-                tick_log.torque_nm[i] = cmd.tau_nm
-                tick_log.work_s[i] = time.perf_counter() - t0
-                tick_log.work_cpu_s[i] = time.thread_time() - cpu0
-                k += 1
-
-                deadline += period
-                now = time.perf_counter()
-                tick_log.overrun[i] = now > deadline
-                if now > deadline:
-                    overruns += 1
-                    if now > deadline + period:  # more than a period late: drop the missed deadlines
-                        missed = int((now - deadline) / period)
-                        skipped += missed
-                        deadline += missed * period
-                else:
-                    _wait_until(deadline, loop.period_s if loop.busy_wait else loop.spin_s)
-    finally:
-        gc.enable()
-        gc.unfreeze()
-        restore()
+            deadline += period_s
+            now = time.perf_counter()
+            tick_log.overrun[i] = now > deadline
+            if now > deadline:
+                overruns += 1
+                if now > deadline + period_s:  # more than a period late: drop the missed deadlines
+                    missed = int((now - deadline) / period_s)
+                    skipped += missed
+                    deadline += missed * period_s
+            else:
+                _wait_until(deadline, wait_spin_s)
     return LoopResult(trip=trip, events=events, ticks=k, overruns=overruns, skipped_ticks=skipped,
                       rejected_packets=dict(getattr(transport, "rejected", {})), realtime=realtime,
                       log=tick_log.chronological(k))

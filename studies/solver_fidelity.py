@@ -21,10 +21,10 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
 from cpgjax.sim import native as native_go1
 from cpgjax.trial import objective
 from cpgjax.trial import params as param_space
+from cpgjax.trial import protocol
 
 SOLVERS = {"model (2, 6)": (2, 6), "1 iteration, 6 ls": (1, 6), "1 iteration, 4 ls": (1, 4),
            "converged (100, 50)": (100, 50)}
@@ -40,7 +40,7 @@ def run(iterations: int, ls_iterations: int, trial_params: np.ndarray, controlle
         model.opt.iterations = iterations
         model.opt.ls_iterations = ls_iterations
     batch = scenario.batch_size
-    gates = mjx_go1.batch_gates(controllers)
+    gates = protocol.batch_gates(controllers)
     state = sim.reset(np.tile(trial_params[0], (batch, 1)))
     records = []
     for p in trial_params:

@@ -25,13 +25,14 @@ from cpgjax.go1 import model as go1_model
 from cpgjax import mjx_go1
 from cpgjax.trial import params as param_space
 from cpgjax.sim import walk  # noqa: E402
+from cpgjax.trial import protocol
 
 
 def gait_figure(path: pathlib.Path, controller: str = "vmc_tegotae", seconds: float = 3.0) -> None:
     sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=[0.6]))
     p = param_space.midpoint()[None]
     steps = int(seconds * 1000)
-    _, log = sim.rollout(sim.reset(p), p, mjx_go1.batch_gates([controller]), steps)
+    _, log = sim.rollout(sim.reset(p), p, protocol.batch_gates([controller]), steps)
     t = np.arange(steps) * 1e-3
     window = t >= seconds - 0.6  # the last 0.6 s: a few gait cycles after the amplitude has converged
     legs = go1_model.kinematics.LEG_NAMES

@@ -6,9 +6,10 @@ import pytest
 from cpgjax.go1 import model as go1_model
 from cpgjax import mjx_go1
 from cpgjax.trial import params as param_space
+from cpgjax.trial import protocol
 
 # Short trials keep the suite fast; the trial logic is identical to the paper's 1.5 s + 3 s.
-SHORT_TRIAL = mjx_go1.TrialConfig(transition_steps=400, steady_steps=1200)
+SHORT_TRIAL = protocol.TrialConfig(transition_steps=400, steady_steps=1200)
 # One batch covering the scenario checks: nominal, heavy, uphill, slippery, coarse, nominal.
 SCENARIOS = dict(friction=[0.6, 0.6, 0.6, 0.1, 0.9, 0.6], slope_deg=[0, 0, 6, 0, 0, 0],
                  payload_kg=[0, 15, 0, 0, 0, 0])
@@ -26,7 +27,7 @@ def mid_params():
 
 @pytest.fixture(scope="session")
 def vmc_tegotae_gates():
-    return mjx_go1.batch_gates(["vmc_tegotae"] * len(SCENARIOS["friction"]))
+    return protocol.batch_gates(["vmc_tegotae"] * len(SCENARIOS["friction"]))
 
 
 @pytest.fixture(scope="session")

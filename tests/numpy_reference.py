@@ -1,4 +1,4 @@
-"""Independent float64 NumPy transcriptions of the paper's equations, written from paper.tex (not from cpgjax)."""
+"""Independent float64 NumPy transcriptions of the paper's equations, written from the paper (not from cpgjax)."""
 
 import numpy as np
 

@@ -21,7 +21,6 @@ from cpgjax import ablation
 from cpgjax.optim import acquisition
 from cpgjax.optim import bo
 from cpgjax import gp
-from cpgjax import mjx_go1
 from cpgjax.sim import native as native_go1
 from cpgjax.trial import objective
 from cpgjax.trial import params as param_space
@@ -29,8 +28,9 @@ from cpgjax.study import files as study_io
 from cpgjax.study.spec import Change, Schedule, StudyError, StudySpec
 from cpgjax.optim import config as optimizer_config
 from cpgjax.study import spec as study_spec
+from cpgjax.trial import protocol
 
-TRIAL = mjx_go1.TrialConfig(transition_steps=100, steady_steps=200)
+TRIAL = protocol.TrialConfig(transition_steps=100, steady_steps=200)
 TRIALS = 5
 
 
@@ -53,14 +53,15 @@ from cpgjax import ablation
 from cpgjax.optim import acquisition
 from cpgjax.optim import bo
 from cpgjax import gp
-from cpgjax import mjx_go1
 from cpgjax.optim import config as optimizer_config
 from cpgjax.study import spec as study_spec
+from cpgjax.trial import protocol
 spec = study_spec.StudySpec(
     name="tiny", num_trials=5, controllers=("open_loop", "vmc_tegotae"), seeds=(0, 1),
-    trial=mjx_go1.TrialConfig(transition_steps=100, steady_steps=200),
-    optimizer=optimizer_config.paper_config(capacity=5, fit=gp.FitConfig(num_steps=8), acquisition=acquisition.AcquisitionConfig(
-        num_candidates=32, num_restarts=2, num_steps=5)),
+    trial=protocol.TrialConfig(transition_steps=100, steady_steps=200),
+    optimizer=optimizer_config.paper_config(capacity=5, fit=gp.FitConfig(num_steps=8),
+                                            acquisition=acquisition.AcquisitionConfig(
+                                                num_candidates=32, num_restarts=2, num_steps=5)),
     schedules=(study_spec.Schedule("load", (study_spec.Change(3, "payload_kg", 7.5),)),))
 """
 
@@ -131,7 +132,7 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
     opt = bo.make_optimizer(small_optimizer())
     state = opt.init(active_dims=jnp.ones(8, bool))
     context = jnp.asarray(engine.initial_context()[0])
-    gates = mjx_go1.batch_gates(["vmc_tegotae"])
+    gates = protocol.batch_gates(["vmc_tegotae"])
     sim, sim_state, payload = None, None, None
     for t in range(TRIALS):
         x = np.asarray(opt.propose(state, context, jax.random.fold_in(jax.random.PRNGKey(seed), t)), np.float64)
@@ -152,7 +153,7 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
         np.testing.assert_allclose(uninterrupted.trials.objective[t, b], float(j), rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(uninterrupted.trials.context[t, b], np.asarray(context), rtol=1e-4, atol=1e-5)
     assert uninterrupted.trials.objective.shape == (TRIALS, 4)
-    # σ_N is masked out without Tegotae (decisions.md §13): the proposal holds the box midpoint.
+    # σ_N is masked out without Tegotae (docs/decisions.md §13): the proposal holds the box midpoint.
     sigma = uninterrupted.trials.params[:, 0, param_space.SIGMA_N_INDEX]
     np.testing.assert_allclose(sigma, param_space.midpoint()[param_space.SIGMA_N_INDEX], rtol=1e-6)
     assert np.all(np.isfinite(uninterrupted.trials.objective))
@@ -233,7 +234,7 @@ ablation.Engine(spec, backend="native").run({str(out)!r})
     proc.wait()
     assert 2 <= done < TRIALS, f"expected to kill mid-study, got {done} trials done (rc {proc.returncode})"
     resumed = ablation.Engine(tiny_spec(), backend="native").run(out, resume=True)
-    for name in ablation.TrialLog._fields:
+    for name in study_io.TrialLog._fields:
         np.testing.assert_array_equal(getattr(resumed.trials, name), getattr(uninterrupted.trials, name), name)
     for a, b in zip(jax.tree.leaves(resumed.opt_state), jax.tree.leaves(uninterrupted.opt_state)):
         np.testing.assert_array_equal(a, b)

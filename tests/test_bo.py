@@ -47,7 +47,7 @@ def history(opt, contexts, objectives=None):
     )
 
 
-# ---- beta, eqs. (12)-(14), decisions.md §11-12 -------------------------------------------------
+# ---- beta, eqs. (12)-(14), docs/decisions.md §11-12 -------------------------------------------------
 
 @pytest.mark.parametrize("contexts, query, beta, n, changed", [
     ([], NOMINAL, 5.0, 0, False),
@@ -79,7 +79,7 @@ def test_beta_custom_schedule_and_inference_mode(opt):
 
 def test_random_phase_then_acquisition_and_inactive_midpoint(opt):
     key = jax.random.PRNGKey(0)
-    seven = opt.init(active_dims=jnp.arange(8) < 7)  # no sigma_N (decisions.md §13)
+    seven = opt.init(active_dims=jnp.arange(8) < 7)  # no sigma_N (docs/decisions.md §13)
     first = np.asarray(opt.propose(seven, NOMINAL, key))
     assert np.all(first >= LOWER) and np.all(first <= UPPER)
     assert first[7] == pytest.approx(MIDPOINT[7], abs=1e-7)

@@ -9,6 +9,8 @@ from cpgjax import cpg
 from cpgjax.go1 import kinematics
 from cpgjax.trial import params as param_space
 from tests import numpy_reference as ref
+from cpgjax.go1 import attitude
+from cpgjax.go1 import constants
 
 RNG = np.random.default_rng(0)
 
@@ -158,7 +160,7 @@ def _tilted_quat(roll, pitch, yaw=0.0):
 
 
 def test_quaternion_to_rpy_convention():
-    rpy = cpg.quat_to_rpy(jnp.asarray(_tilted_quat(0.1, 0.2, 0.3), jnp.float32))
+    rpy = attitude.quat_to_rpy(jnp.asarray(_tilted_quat(0.1, 0.2, 0.3), jnp.float32))
     np.testing.assert_allclose(rpy, [0.1, 0.2, 0.3], atol=1e-6)
     # A rotation about +y tips the nose (body x axis) down: positive pitch is nose-down.
     nose = np.array([[np.cos(0.2), 0, np.sin(0.2)], [0, 1, 0], [-np.sin(0.2), 0, np.cos(0.2)]]) @ [1, 0, 0]
@@ -202,7 +204,7 @@ def test_torques_are_clipped_to_motor_limits():
     p = jnp.asarray(param_space.midpoint(), jnp.float32)
     obs = observation(q=np.tile([0.8, -0.5, -2.6], 4))  # far from the targets: PD asks for more than the motors have
     _, tau, diag = cpg.controller_step(cpg.CPGConfig(), cpg.init_state(obs), p, cpg.controller_gates("vmc"), obs)
-    assert np.all(np.abs(np.asarray(tau)) <= cpg.TORQUE_LIMIT_NM + 1e-6)
+    assert np.all(np.abs(np.asarray(tau)) <= constants.TORQUE_LIMIT_NM + 1e-6)
     assert np.asarray(diag.saturated).sum() > 0
 
 

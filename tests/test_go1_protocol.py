@@ -1,4 +1,4 @@
-"""The Go1 low-level wire format: sizes, offsets, fixed-point encodings, CRC — against go1-sdk.md and, when the
+"""The Go1 low-level wire format: sizes, offsets, fixed-point encodings, CRC — against docs/go1-sdk.md and, when the
 optional ``unitree_legged_sdk`` wheel is installed, against the real SDK over 127.0.0.1."""
 
 import socket
@@ -11,7 +11,7 @@ from cpgjax.robot import protocol as proto
 
 
 def _reference_crc(data: bytes) -> int:
-    """go1-sdk.md §1.4 literally: MSB-first CRC-32/0x04C11DB7 over little-endian uint32 words, bit by bit."""
+    """docs/go1-sdk.md §1.4 literally: MSB-first CRC-32/0x04C11DB7 over little-endian uint32 words, bit by bit."""
     crc = 0xFFFFFFFF
     for word in np.frombuffer(data, "<u4").tolist():
         for bit in range(31, -1, -1):

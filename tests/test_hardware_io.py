@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cpgjax import cli
 from cpgjax import cpg
 from cpgjax.robot import deploy
 from cpgjax.trial import params
@@ -30,6 +31,8 @@ from cpgjax.robot import foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
 from cpgjax.robot import trials as robot_trials
+from cpgjax.go1 import constants
+from cpgjax.trial import protocol
 
 GATES = cpg.controller_gates("vmc_tegotae")
 # Short soft start; a watchdog long enough for a loaded CI machine (the stale-state test shortens it).
@@ -266,10 +269,10 @@ def test_guard_clamps_before_encoding_and_refuses_nan():
     cmd = go1_safety.pd_command(np.full(12, 5.0), kp=500.0, kd=-1.0)._replace(tau_nm=np.full(12, 200.0))
     guarded, reason = go1_safety.guard_command(cmd, safety)
     assert reason is None
-    np.testing.assert_array_equal(guarded.tau_nm, go1_safety.TORQUE_LIMIT_NM)
+    np.testing.assert_array_equal(guarded.tau_nm, constants.TORQUE_LIMIT_NM)
     np.testing.assert_array_equal(guarded.kp_nm_rad, safety.kp_max_nm_rad)
     np.testing.assert_array_equal(guarded.kd_nm_s_rad, 0.0)
-    np.testing.assert_array_equal(guarded.q_rad, np.minimum(5.0, go1_safety.JOINT_UPPER_RAD))
+    np.testing.assert_array_equal(guarded.q_rad, np.minimum(5.0, constants.JOINT_UPPER_RAD))
     proto.encode_low_cmd(guarded)  # encodable: nothing would wrap
     torque_mode, _ = go1_safety.guard_command(go1_safety.torque_command(np.zeros(12)), safety)
     assert np.all(torque_mode.q_rad == proto.POS_STOP_F)  # the stop marker survives (position term stays off)
@@ -313,7 +316,8 @@ def _rollout_torques(obs_sequence: np.ndarray, p: np.ndarray) -> np.ndarray:
         state0 = cpg.init_state(compiled_controller.unpack_observation(obs_seq[0]))
 
         def body(state, x):
-            state, torque, _ = cpg.controller_step(cpg.CPGConfig(), state, p_inst, gates, compiled_controller.unpack_observation(x))
+            state, torque, _ = cpg.controller_step(cpg.CPGConfig(), state, p_inst, gates,
+                                                   compiled_controller.unpack_observation(x))
             return state, torque
         return jax.lax.scan(body, state0, obs_seq)[1]
 
@@ -330,7 +334,8 @@ def test_loop_torques_equal_the_rollout_for_the_same_observations(robot, control
     expected = _rollout_torques(obs, params.midpoint())
     np.testing.assert_allclose(loop_torque, expected, rtol=1e-4, atol=1e-3)
     sent = result.log.torque_nm[run]  # after the guard; the wire then truncates to 1/256 N·m
-    np.testing.assert_allclose(sent, np.clip(expected, -go1_safety.TORQUE_LIMIT_NM, go1_safety.TORQUE_LIMIT_NM), atol=1e-3)
+    np.testing.assert_allclose(sent, np.clip(expected, -constants.TORQUE_LIMIT_NM, constants.TORQUE_LIMIT_NM),
+                               atol=1e-3)
 
 
 def test_the_simulated_go1_walks_forward_under_the_deployed_controller(robot, controller):
@@ -355,7 +360,7 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), "vmc_tegotae")
     try:
         result, rows = robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
-                                                  params.midpoint(), 3, robot_trials.TrialTiming(300, 600), LOOP, SAFETY)
+                                                  params.midpoint(), 3, protocol.TrialConfig(300, 600), LOOP, SAFETY)
     finally:
         transport.close()
     assert result.trip is None, result.events
@@ -400,8 +405,8 @@ def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robo
 
 def test_deploy_calibrate_command_writes_the_file_the_loop_loads(tmp_path):
     out = tmp_path / "cal.json"
-    code = deploy.main(["calibrate", "--robot", "sim", "--sim-pacing", "lockstep", "--no-realtime", "--out", str(out),
-                        "--air-s", "0.3", "--stand-s", "0.5", "--settle-s", "0.3"])
+    code = cli.main(["deploy", "calibrate", "--robot", "sim", "--sim-pacing", "lockstep", "--no-realtime",
+                     "--out", str(out), "--air-s", "0.3", "--stand-s", "0.5", "--settle-s", "0.3"])
     assert code == 0
     cal = foot_force.FootForceCalibration.load(out)
     np.testing.assert_array_equal(cal.offset_counts, deploy.sim_calibration().offset_counts)

@@ -14,9 +14,11 @@ import pytest
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
 from cpgjax.trial import objective
 from cpgjax.trial import params as param_space
+from cpgjax.go1 import constants
+from cpgjax.go1 import sensors
+from cpgjax.trial import protocol
 
 
 def test_model_names_and_mass():
@@ -25,8 +27,8 @@ def test_model_names_and_mass():
     assert m.opt.timestep == pytest.approx(0.001)
     assert [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n))
             for n in go1_model.JOINT_NAMES] == list(go1_model.JOINT_NAMES)
-    assert m.body_subtreemass[ids.trunk_body] == pytest.approx(12.74, abs=0.01)  # go1-model.md: ≈ 12.7 kg
-    np.testing.assert_allclose(m.actuator_ctrlrange[ids.actuator, 1], cpg.TORQUE_LIMIT_NM)
+    assert m.body_subtreemass[ids.trunk_body] == pytest.approx(12.74, abs=0.01)  # docs/go1-model.md: ≈ 12.7 kg
+    np.testing.assert_allclose(m.actuator_ctrlrange[ids.actuator, 1], constants.TORQUE_LIMIT_NM)
     heavy = go1_model.model_with_payload(15.0)
     assert heavy.body_subtreemass[ids.trunk_body] == pytest.approx(12.74 + 15.0, abs=0.01)
 
@@ -35,7 +37,7 @@ def test_c_mujoco_agrees_with_mjx_over_a_short_closed_loop_rollout(short_sim):
     """MJX (float32, JAX) and C MuJoCo (float64) driven by the same jitted controller for 300 ticks (0.3 s)."""
     steps = 300
     p = np.tile(param_space.midpoint(), (short_sim.batch_size, 1))
-    gates = mjx_go1.batch_gates(["vmc_tegotae"] * short_sim.batch_size)
+    gates = protocol.batch_gates(["vmc_tegotae"] * short_sim.batch_size)
     _, log = short_sim.rollout(short_sim.reset(p), p, gates, steps)
 
     m = go1_model.scenario_model(short_sim.scenario, 0)
@@ -43,7 +45,7 @@ def test_c_mujoco_agrees_with_mjx_over_a_short_closed_loop_rollout(short_sim):
     d.qpos[:] = go1_model.standing_qpos()
     mujoco.mj_forward(m, d)
     ids = go1_model.indices()
-    observe = jax.jit(mjx_go1.observe)
+    observe = jax.jit(sensors.observe)
     step = jax.jit(cpg.controller_step, static_argnums=0)
     obs = observe(d.qpos, d.qvel, d.sensordata, m.opt.gravity)
     params = jnp.asarray(p[0], jnp.float32)
@@ -89,7 +91,7 @@ def test_scenarios_have_their_physical_effect(two_trials):
 
 def test_low_friction_floor_makes_the_feet_slip(short_sim):
     p = np.tile(param_space.midpoint(), (short_sim.batch_size, 1))
-    gates = mjx_go1.batch_gates(["vmc_tegotae"] * short_sim.batch_size)
+    gates = protocol.batch_gates(["vmc_tegotae"] * short_sim.batch_size)
     _, log = short_sim.rollout(short_sim.reset(p), p, gates, 1500)
     feet = np.asarray(log.foot_pos_m)[:, 500:]  # (B, T, 4, 3) after start-up
     force = np.asarray(log.foot_force_n)[:, 500:]
@@ -112,7 +114,7 @@ def test_objective_recomputed_for_a_new_target_from_a_stored_record(two_trials, 
     _, record = two_trials
     one = jax.tree.map(lambda x: np.asarray(x)[0], record)
     np.savez(tmp_path / "record.npz", **one._asdict())
-    loaded = objective.TrialRecord(**dict(np.load(tmp_path / "record.npz")))
+    loaded = protocol.TrialRecord(**dict(np.load(tmp_path / "record.npz")))
     for target in (0.3, 0.5, 0.8):
         assert float(objective.objective(loaded, target)) == pytest.approx(_reference_objective(one, target),
                                                                              rel=1e-4, abs=1e-4)
@@ -121,7 +123,7 @@ def test_objective_recomputed_for_a_new_target_from_a_stored_record(two_trials, 
 
 def test_degenerate_trials_get_a_finite_floor():
     steps = 100
-    base = objective.TrialRecord(
+    base = protocol.TrialRecord(
         velocity_xy_mps=np.tile([0.5, 0.0], (steps, 1)), energy_j=np.float32(2.0), distance_m=np.float32(0.05),
         total_mass_kg=np.float32(12.74), c_load_n=np.float32(31.0), c_slope_rad=np.float32(0.0),
         roll_mean_rad=np.float32(0), roll_std_rad=np.float32(0), pitch_std_rad=np.float32(0),
@@ -186,12 +188,12 @@ def test_batch_sharded_over_two_cpu_devices_equals_one_device(two_trials):
 import json, jax, numpy as np
 from cpgjax.go1 import model as go1_model
 from cpgjax import mjx_go1
-from cpgjax.trial import params
+from cpgjax.trial import params, protocol
 from tests.conftest import SCENARIOS, SHORT_TRIAL
 sim = mjx_go1.MJXBackend(go1_model.make_scenarios(**SCENARIOS), trial_config=SHORT_TRIAL)
 assert len(sim.mesh.devices.ravel()) == 2, sim.mesh
 p = np.tile(params.midpoint(), (6, 1))
-gates = mjx_go1.batch_gates(["vmc_tegotae"] * 6)
+gates = protocol.batch_gates(["vmc_tegotae"] * 6)
 state = sim.reset(p)
 state, _ = sim.trial(state, p, gates)
 state, record = sim.trial(state, p, gates)

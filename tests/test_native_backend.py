@@ -15,11 +15,11 @@ import pytest
 from cpgjax.sim import backends
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
 from cpgjax.sim import native as native_go1
 from cpgjax.trial import objective
 from cpgjax.trial import params as param_space
 from tests.conftest import SCENARIOS, SHORT_TRIAL
+from cpgjax.trial import protocol
 
 NOMINAL, HEAVY, UPHILL, SLIPPERY, COARSE = 0, 1, 2, 3, 4
 # Instances whose gait is well conditioned with the mid-box parameters (no slipping, no marginal balance): here the
@@ -84,7 +84,7 @@ def test_trajectories_agree_with_mjx_over_a_short_horizon(short_sim, native_sim,
     steps = 300
     _, mjx_log = short_sim.rollout(short_sim.reset(mid_params), mid_params, vmc_tegotae_gates, steps)
     _, native_log = native_sim.rollout(native_sim.reset(mid_params), mid_params, vmc_tegotae_gates, steps)
-    for field in mjx_go1.StepLog._fields:
+    for field in protocol.StepLog._fields:
         assert np.shape(getattr(native_log, field)) == np.shape(getattr(mjx_log, field)), field
     ids = go1_model.indices()
     mq, nq = np.asarray(mjx_log.qpos), np.asarray(native_log.qpos)
@@ -102,7 +102,7 @@ def test_trajectories_agree_with_mjx_over_a_short_horizon(short_sim, native_sim,
 def test_trial_records_have_the_mjx_definitions(native_two_trials, two_trials):
     _, native = native_two_trials
     _, mjx = two_trials
-    for a, b, name in zip(native, mjx, objective.TrialRecord._fields):
+    for a, b, name in zip(native, mjx, protocol.TrialRecord._fields):
         assert np.shape(a) == np.shape(b) and np.asarray(a).dtype == np.asarray(b).dtype, name
     n, m = _figures(native), _figures(mjx)
     # Tolerance on the well-conditioned instances: 0.02 m/s, 5 % CoT, 2 % c_load, 0.01 rad c_slope.
@@ -211,10 +211,10 @@ def test_backend_selection():
 
 
 def test_a_new_scenario_reuses_the_compiled_tick():
-    config = mjx_go1.TrialConfig(transition_steps=20, steady_steps=50)
+    config = protocol.TrialConfig(transition_steps=20, steady_steps=50)
     sim = native_go1.NativeBackend(go1_model.make_scenarios(friction=[0.6, 0.6]), trial_config=config)
     params = np.tile(param_space.midpoint(), (2, 1))
-    gates = mjx_go1.batch_gates(["open_loop", "vmc"])
+    gates = protocol.batch_gates(["open_loop", "vmc"])
     sim.trial(sim.reset(params), params, gates)
     heavier = sim.with_scenario(go1_model.make_scenarios(friction=[0.3, 0.9], payload_kg=[0.0, 15.0]))
     assert heavier._compiled is sim._compiled

@@ -12,11 +12,11 @@ import pytest
 from cpgjax import ablation
 from cpgjax import cli
 from cpgjax import cpg
-from cpgjax import mjx_go1
 from cpgjax.trial import params as param_space
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
 from tests.test_ablation import small_optimizer
+from cpgjax.trial import protocol
 
 
 # ----------------------------------------------------------------------------------------------- specifications
@@ -24,7 +24,7 @@ from tests.test_ablation import small_optimizer
 def test_specs_follow_the_paper():
     spec = studies.make_spec("controller_ablation")
     assert spec.controllers == cpg.CONTROLLERS and spec.seeds == tuple(range(5)) and spec.num_trials == 40
-    assert spec.target_velocity_mps == (0.5,) and spec.trial == mjx_go1.TrialConfig()  # 1.5 s + 3 s at 1 kHz
+    assert spec.target_velocity_mps == (0.5,) and spec.trial == protocol.TrialConfig()  # 1.5 s + 3 s at 1 kHz
     assert len(study_spec.instances(spec)) * spec.num_trials * 4.5 == 3600.0  # robot-seconds
     cond = study_spec.conditions(studies.make_spec("load_adaptation"))
     np.testing.assert_array_equal(studies.phase_starts(cond.payload_kg[0]), [0, 36, 58])  # paper: trials 36, 58
@@ -83,7 +83,7 @@ def test_last_mean_and_phase_starts():
 @pytest.fixture(scope="module")
 def tiny_ablation(tmp_path_factory):
     spec = dataclasses.replace(studies.ablation_spec(seeds=1, trials=4), optimizer=small_optimizer(4),
-                               trial=mjx_go1.TrialConfig(transition_steps=100, steady_steps=200))
+                               trial=protocol.TrialConfig(transition_steps=100, steady_steps=200))
     out = tmp_path_factory.mktemp("controller_ablation")
     engine = ablation.Engine(spec, backend="native")
     result = engine.run(out)

@@ -2,7 +2,7 @@
 
 Leg frame: origin at the hip-abduction joint, axes parallel to the trunk (x forward, y left, z up).
 Joint vector of one leg q = (q1 abduction, q2 thigh, q3 calf) in rad; side = -1 for right legs, +1 for left.
-Link lengths (go1-model.md): l1 = 0.08 m hip offset along y, l2 = l3 = 0.213 m thigh and calf.
+Link lengths (docs/go1-model.md): l1 = 0.08 m hip offset along y, l2 = l3 = 0.213 m thigh and calf.
 
 All functions take one leg and are lifted over the four legs with ``jax.vmap`` (see ``legs_*``).
 """
@@ -17,8 +17,7 @@ HIP_OFFSET_M = 0.08  # l1
 THIGH_LENGTH_M = 0.213  # l2
 CALF_LENGTH_M = 0.213  # l3
 
-# Leg order everywhere: FR, FL, RR, RL (the SDK's motor order).
-LEG_NAMES = ("FR", "FL", "RR", "RL")
+# Leg order everywhere: constants.LEG_NAMES (FR, FL, RR, RL, the SDK's motor order).
 SIDE_SIGN = np.array([-1.0, 1.0, -1.0, 1.0])  # -1 right, +1 left
 FRONT_SIGN = np.array([1.0, 1.0, -1.0, -1.0])  # +1 front, -1 hind
 # Hip-abduction joint positions in the trunk frame [m].

@@ -13,15 +13,14 @@ import jax
 import mujoco
 import numpy as np
 
-from cpgjax.go1 import kinematics
+from cpgjax.go1 import constants, kinematics
 
 
 MODEL_FILE = "go1.xml"
-JOINT_NAMES = tuple(f"{leg}_{part}_joint" for leg in kinematics.LEG_NAMES for part in ("hip", "thigh", "calf"))
-FOOT_SENSOR_NAMES = tuple(f"{leg}_foot_force" for leg in kinematics.LEG_NAMES)
-GRAVITY_MPS2 = 9.81
+JOINT_NAMES = tuple(f"{leg}_{part}_joint" for leg in constants.LEG_NAMES for part in constants.JOINT_PARTS)
+FOOT_SENSOR_NAMES = tuple(f"{leg}_foot_force" for leg in constants.LEG_NAMES)
 MAX_ABS_SLOPE_DEG = 45.0
-# decisions.md §6: the payload is a rigid box of 0.3 x 0.2 x 0.1 m at the trunk's centre of mass.
+# docs/decisions.md §6: the payload is a rigid box of 0.3 x 0.2 x 0.1 m at the trunk's centre of mass.
 PAYLOAD_BOX_M = (0.3, 0.2, 0.1)
 # Standing pose: feet under the hips at the controller's nominal height h = 0.30 m (foot centre), x at the middle
 # of the x-offset range; the foot sphere radius puts the trunk origin at 0.32 m.
@@ -78,7 +77,7 @@ def indices() -> Go1Indices:
         joint_dof=np.array([m.jnt_dofadr[j] for j in joints]),
         actuator=np.array([actuator_of_joint[j] for j in joints]),
         foot_force_sensor=np.array([m.sensor_adr[s] for s in sensors]),
-        foot_geom=np.array([obj_id(mujoco.mjtObj.mjOBJ_GEOM, f"{leg}_foot") for leg in kinematics.LEG_NAMES]),
+        foot_geom=np.array([obj_id(mujoco.mjtObj.mjOBJ_GEOM, f"{leg}_foot") for leg in constants.LEG_NAMES]),
     )
 
 
@@ -86,8 +85,8 @@ class Scenario(NamedTuple):
     """A batch of scenarios, one entry per instance, each a float64 array of shape (batch,)."""
 
     friction: np.ndarray  # floor friction coefficient (the paper: 0.3 slippery, 0.6 normal, 0.9 coarse)
-    slope_deg: np.ndarray  # terrain slope, uphill along +x (gravity rotated about y, decisions.md §4)
-    payload_kg: np.ndarray  # mass added on the trunk (decisions.md §6)
+    slope_deg: np.ndarray  # terrain slope, uphill along +x (gravity rotated about y, docs/decisions.md §4)
+    payload_kg: np.ndarray  # mass added on the trunk (docs/decisions.md §6)
 
     @property
     def batch_size(self) -> int:
@@ -115,18 +114,19 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0) -> Scenario:
         bad = ~np.isfinite(values) | ~ok(np.where(np.isfinite(values), values, 0.0))
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range {allowed}")
+            raise ValueError(f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range "
+                             f"{allowed}")
     return scenario
 
 
 def gravity_vector(slope_deg) -> np.ndarray:
     """Gravity (..., 3) [m/s²] in the floor frame for a slope climbed along +x: g·(−sin s, 0, −cos s)."""
     s = np.deg2rad(np.asarray(slope_deg, np.float64))
-    return GRAVITY_MPS2 * np.stack([-np.sin(s), np.zeros_like(s), -np.cos(s)], axis=-1)
+    return constants.GRAVITY_MPS2 * np.stack([-np.sin(s), np.zeros_like(s), -np.cos(s)], axis=-1)
 
 
 def payload_inertia(payload_kg: float) -> np.ndarray:
-    """Principal inertia (3,) [kg·m²] of the payload box (decisions.md §6)."""
+    """Principal inertia (3,) [kg·m²] of the payload box (docs/decisions.md §6)."""
     a, b, c = PAYLOAD_BOX_M
     return payload_kg / 12.0 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
 

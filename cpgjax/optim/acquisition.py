@@ -5,7 +5,7 @@ r"""Upper-confidence-bound acquisition (paper eq. (8)) and its maximization over
 
 is the paper's form (``ucb_form="paper"``, the default). BoTorch's ``UpperConfidenceBound``
 multiplies :math:`\sigma` by :math:`\sqrt\beta` instead (``ucb_form="botorch"``;
-decisions.md §2). :math:`\sigma` is the latent standard deviation, without observation
+docs/decisions.md §2). :math:`\sigma` is the latent standard deviation, without observation
 noise, as in BoTorch.
 
 The maximizer works in the unit cube of the parameters, with the context held fixed by the

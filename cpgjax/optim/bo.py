@@ -38,6 +38,7 @@ values are concrete (not traced). Under ``jit``/``vmap`` the same checks run on 
 observation is not stored and ``observe`` returns ``accepted = False``.
 """
 
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -142,6 +143,299 @@ def _check_finite(name: str, value) -> None:
         raise ValueError(f"{name} must be finite, got {array}")
 
 
+class _Static(NamedTuple):
+    """What the optimizer's functions close over: the static configuration and the arrays derived from it."""
+
+    config: OptimizerConfig
+    objective_fn: Callable | None  # with it, observations are trial records (data reuse)
+    record_template: Any
+    template_tree: Any  # record_template's tree structure (None without data reuse)
+    template_specs: tuple  # (shape, dtype) of each record leaf
+    lower: jax.Array  # (P,) parameter box, float32
+    width: jax.Array
+    lower_inside: jax.Array  # the box's float32 bounds that are inside the float64 box
+    upper_inside: jax.Array
+    context_lower: jax.Array  # (C,) context normalisation range
+    context_width: jax.Array
+    context_tolerance: jax.Array  # (C,) context-change thresholds in physical units
+
+    @property
+    def reuses_data(self) -> bool:
+        return self.objective_fn is not None
+
+
+def _static(config: OptimizerConfig, objective_fn, record_template) -> _Static:
+    if (objective_fn is None) != (record_template is None):
+        raise ValueError("objective_fn and record_template must be given together")
+    tree, specs = None, ()
+    if objective_fn is not None:
+        leaves, tree = jax.tree.flatten(record_template)
+        specs = tuple((tuple(leaf.shape), jnp.dtype(leaf.dtype)) for leaf in leaves)
+    lower = jnp.asarray(config.parameter_lower, jnp.float32)
+    context_lower = jnp.asarray(config.context_lower, jnp.float32)
+    context_width = jnp.asarray(config.context_upper, jnp.float32) - context_lower
+    return _Static(
+        config=config, objective_fn=objective_fn, record_template=record_template, template_tree=tree,
+        template_specs=specs, lower=lower, width=jnp.asarray(config.parameter_upper, jnp.float32) - lower,
+        # Proposals are clipped to these, so float32 rounding never leaves the float64 box.
+        lower_inside=jnp.asarray(_float32_inside(config.parameter_lower, np.inf)),
+        upper_inside=jnp.asarray(_float32_inside(config.parameter_upper, -np.inf)),
+        context_lower=context_lower, context_width=context_width,
+        context_tolerance=jnp.asarray(config.context_thresholds, jnp.float32) * context_width)
+
+
+# ----------------------------------------------------------------------------------------------- pure cores (jitted)
+
+def _dataset(s: _Static, state: OptimizerState) -> gp.Dataset:
+    inputs = jnp.concatenate([(state.parameters - s.lower) / s.width, (state.contexts - s.context_lower) /
+                              s.context_width], axis=-1)
+    valid = state.stored & jnp.isfinite(state.objectives)
+    return gp.Dataset(inputs, state.objectives, valid)
+
+
+def _kernel_active(s: _Static, state: OptimizerState) -> jax.Array:
+    return jnp.concatenate([state.active_dims, jnp.ones((s.config.num_contexts,), bool)])
+
+
+def _refit(s: _Static, state: OptimizerState) -> OptimizerState:
+    params = gp.fit(_dataset(s, state), _kernel_active(s, state), state.gp_params, s.config.num_contexts,
+                    s.config.fit)
+    return state._replace(gp_params=params)
+
+
+def _beta(s: _Static, state: OptimizerState, context) -> BetaInfo:
+    return exploration_beta(state.schedule, state.contexts, state.stored, context, s.context_tolerance,
+                            state.inference_mode, s.config.inference_beta)
+
+
+def _to_physical(s: _Static, unit_point) -> jax.Array:
+    return jnp.clip(s.lower + unit_point * s.width, s.lower_inside, s.upper_inside)
+
+
+def _condition(s: _Static, state: OptimizerState) -> gp.Posterior:
+    return gp.posterior(state.gp_params, _dataset(s, state), _kernel_active(s, state), s.config.num_contexts)
+
+
+def _maximize_ucb(s: _Static, post, state: OptimizerState, context, key, multiplier):
+    """The UCB maximizer (eq. 8) over the unit box of the active parameters, the context held fixed."""
+    num_contexts = s.config.num_contexts
+    unit_context = (context - s.context_lower) / s.context_width
+
+    def acquisition(unit_points):
+        contexts = jnp.broadcast_to(unit_context, (unit_points.shape[0], num_contexts))
+        queries = jnp.concatenate([unit_points, contexts], axis=-1)
+        return upper_confidence_bound(post, queries, multiplier, num_contexts)
+
+    return maximize_acquisition(acquisition, key, state.active_dims, s.config.acquisition)
+
+
+def _propose(s: _Static, state: OptimizerState, context, key) -> jax.Array:
+    """Random in the box for the first ``num_random_proposals`` trials (not in inference mode), then the UCB argmax."""
+    config = s.config
+    random_key, acquisition_key = jax.random.split(key)
+    use_random = (state.num_stored < config.num_random_proposals) & ~state.inference_mode
+
+    def random_point():
+        uniform = jax.random.uniform(random_key, (config.num_parameters,), jnp.float32)
+        return jnp.where(state.active_dims, uniform, INACTIVE_VALUE)
+
+    def ucb_point():
+        multiplier = ucb_multiplier(_beta(s, state, context).beta, config.ucb_form)
+        return _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier)[0]
+
+    return _to_physical(s, jax.lax.cond(use_random, random_point, ucb_point))
+
+
+def _observe(s: _Static, state: OptimizerState, x, context, observation) -> tuple[OptimizerState, jax.Array]:
+    """Store one observation (if finite, in the box and within capacity) and refit the GP."""
+    capacity = s.config.capacity
+    if s.reuses_data:
+        objective = jnp.asarray(s.objective_fn(observation, state.target_velocity), jnp.float32)
+    else:
+        objective = jnp.asarray(observation, jnp.float32)
+    slack = BOX_TOLERANCE * s.width
+    in_box = jnp.where(state.active_dims, (x >= s.lower - slack) & (x <= s.lower + s.width + slack), True)
+    accepted = (jnp.isfinite(objective) & jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(context))
+                & jnp.all(in_box) & (state.num_stored < capacity))
+    row = jnp.minimum(state.num_stored, capacity - 1)
+    written = state._replace(
+        parameters=state.parameters.at[row].set(x),
+        contexts=state.contexts.at[row].set(context),
+        objectives=state.objectives.at[row].set(objective),
+        stored=state.stored.at[row].set(True),
+        records=(jax.tree.map(lambda buf, r: buf.at[row].set(r), state.records, observation)
+                 if s.reuses_data else state.records),
+        num_stored=state.num_stored + 1,
+    )
+    new_state = jax.lax.cond(accepted, lambda: _refit(s, written), lambda: state)
+    return new_state, accepted
+
+
+def _set_target(s: _Static, state: OptimizerState, target_velocity) -> OptimizerState:
+    """Data reuse: every stored J recomputed for a new target from the stored records, then a refit."""
+    recomputed = jax.vmap(s.objective_fn, in_axes=(0, None))(state.records, target_velocity)
+    objectives = jnp.where(state.stored, jnp.asarray(recomputed, jnp.float32), 0.0)
+    return _refit(s, state._replace(objectives=objectives, target_velocity=target_velocity))
+
+
+def _best_observed(state: OptimizerState):
+    valid = state.stored & jnp.isfinite(state.objectives)
+    scores = jnp.where(valid, state.objectives, -jnp.inf)
+    best = jnp.argmax(scores)
+    return state.parameters[best], state.contexts[best], scores[best]
+
+
+def _posterior_mean_argmax(s: _Static, state: OptimizerState, context, key):
+    post = _condition(s, state)
+    unit_point, standardized = _maximize_ucb(s, post, state, context, key, jnp.zeros((), jnp.float32))
+    return _to_physical(s, unit_point), post.target_mean + post.target_std * standardized
+
+
+class _Compiled(NamedTuple):
+    """The jitted cores of one optimizer."""
+
+    propose: Callable
+    observe: Callable
+    set_target: Callable
+    beta: Callable
+    best_observed: Callable
+    posterior_mean_argmax: Callable
+
+
+# ----------------------------------------------------------------------------------------------- public functions
+# Python-level validation of the arguments (clear errors before any compute), then the jitted core.
+
+def _check_state(s: _Static, state) -> None:
+    if not isinstance(state, OptimizerState):
+        raise TypeError(f"expected an OptimizerState, got {type(state).__name__}")
+    _check_shape("state.parameters", state.parameters, (s.config.capacity, s.config.num_parameters))
+    _check_shape("state.contexts", state.contexts, (s.config.capacity, s.config.num_contexts))
+
+
+def _check_context(s: _Static, context) -> None:
+    _check_shape("context", context, (s.config.num_contexts,))
+    if _is_concrete(context):
+        _check_finite("context", context)
+
+
+def _init(s: _Static, active_dims=None, schedule=None, target_velocity=None) -> OptimizerState:
+    """A fresh state. ``active_dims``: (P,) bool, default all True; ``schedule``: default :func:`paper_schedule`;
+    ``target_velocity``: required with data reuse."""
+    config = s.config
+    num_params, num_contexts = config.num_parameters, config.num_contexts
+    if active_dims is None:
+        active_dims = jnp.ones((num_params,), bool)
+    _check_shape("active_dims", active_dims, (num_params,))
+    if _is_concrete(active_dims) and not np.any(np.asarray(active_dims)):
+        raise ValueError("active_dims must enable at least one parameter")
+    if s.reuses_data:
+        if target_velocity is None:
+            raise ValueError("target_velocity is required with objective_fn (data reuse)")
+        target = jnp.asarray(target_velocity, jnp.float32)
+        records = jax.tree.map(lambda leaf: jnp.zeros((config.capacity, *leaf.shape), leaf.dtype),
+                               s.record_template)
+    else:
+        if target_velocity is not None:
+            raise ValueError("target_velocity needs an objective_fn (data reuse)")
+        target, records = jnp.zeros((0,), jnp.float32), ()
+    return OptimizerState(
+        parameters=jnp.zeros((config.capacity, num_params), jnp.float32),
+        contexts=jnp.zeros((config.capacity, num_contexts), jnp.float32),
+        objectives=jnp.zeros((config.capacity,), jnp.float32),
+        stored=jnp.zeros((config.capacity,), bool),
+        records=records,
+        num_stored=jnp.zeros((), jnp.int32),
+        target_velocity=target,
+        active_dims=jnp.asarray(active_dims, bool),
+        schedule=paper_schedule() if schedule is None else schedule,
+        inference_mode=jnp.zeros((), bool),
+        gp_params=gp.default_params(num_params + num_contexts),
+    )
+
+
+def _propose_checked(s: _Static, jitted: _Compiled, state, context, key):
+    _check_state(s, state)
+    _check_context(s, context)
+    return jitted.propose(state, jnp.asarray(context, jnp.float32), key)
+
+
+def _check_observation(s: _Static, state, x, context, observation) -> None:
+    """x in the box (active parameters), room left, and an observation of the expected kind and shape."""
+    config = s.config
+    _check_shape("x", x, (config.num_parameters,))
+    concrete = _is_concrete(state, x, context, observation)
+    if concrete:
+        _check_finite("x", x)
+        x_np, active = np.asarray(x, np.float64), np.asarray(state.active_dims)
+        lo, hi = np.asarray(config.parameter_lower), np.asarray(config.parameter_upper)
+        slack = BOX_TOLERANCE * (hi - lo)
+        outside = active & ((x_np < lo - slack) | (x_np > hi + slack))
+        if np.any(outside):
+            i = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"x[{i}] = {x_np[i]} is outside its range [{lo[i]}, {hi[i]}]")
+        if int(state.num_stored) >= config.capacity:
+            raise ValueError(f"capacity exceeded: all {config.capacity} rows are stored")
+    if s.reuses_data:
+        leaves, tree = jax.tree.flatten(observation)
+        if tree != s.template_tree:
+            raise ValueError(f"trial record structure {tree} differs from the template {s.template_tree}")
+        for i, (leaf, (shape, _)) in enumerate(zip(leaves, s.template_specs)):
+            _check_shape(f"trial record leaf {i}", leaf, shape)
+    else:
+        _check_shape("objective value (this optimizer has no objective_fn)", observation, ())
+        if concrete:
+            _check_finite("objective value", observation)
+
+
+def _observe_checked(s: _Static, jitted: _Compiled, state, x, context, observation):
+    _check_state(s, state)
+    _check_context(s, context)
+    _check_observation(s, state, x, context, observation)
+    new_state, accepted = jitted.observe(state, jnp.asarray(x, jnp.float32), jnp.asarray(context, jnp.float32),
+                                         observation)
+    if _is_concrete(accepted) and not bool(accepted):
+        raise ValueError("observation rejected: objective_fn returned a non-finite objective for this trial "
+                         "record; the state is unchanged")
+    return new_state, accepted
+
+
+def _set_target_checked(s: _Static, jitted: _Compiled, state, target_velocity):
+    if not s.reuses_data:
+        raise ValueError("set_target needs an optimizer built with objective_fn")
+    _check_state(s, state)
+    _check_shape("target_velocity", target_velocity, state.target_velocity.shape)
+    if _is_concrete(target_velocity):
+        _check_finite("target_velocity", target_velocity)
+    return jitted.set_target(state, jnp.asarray(target_velocity, jnp.float32))
+
+
+def _set_inference_mode(s: _Static, state, enabled):
+    """Inference mode (paper Sec. IV-C): beta = ``inference_beta``, no random phase."""
+    _check_state(s, state)
+    return state._replace(inference_mode=jnp.asarray(enabled, bool))
+
+
+def _beta_checked(s: _Static, jitted: _Compiled, state, context):
+    _check_state(s, state)
+    _check_context(s, context)
+    return jitted.beta(state, jnp.asarray(context, jnp.float32))
+
+
+def _best_observed_checked(s: _Static, jitted: _Compiled, state):
+    """Best stored observation (x, context, J); J = -inf when nothing is stored."""
+    _check_state(s, state)
+    if _is_concrete(state) and int(state.num_stored) == 0:
+        raise ValueError("best_observed: no observation stored yet")
+    return jitted.best_observed(state)
+
+
+def _posterior_mean_argmax_checked(s: _Static, jitted: _Compiled, state, context, key):
+    """Maximizer of the posterior mean mu(x; c) at the given context, and mu there."""
+    _check_state(s, state)
+    _check_context(s, context)
+    return jitted.posterior_mean_argmax(state, jnp.asarray(context, jnp.float32), key)
+
+
 def make_optimizer(
     config: OptimizerConfig,
     objective_fn: Callable[[Any, jax.Array], jax.Array] | None = None,
@@ -157,242 +451,21 @@ def make_optimizer(
         dtypes of one trial record; required with ``objective_fn``.
 
     Returns:
-      A :class:`ContextualBO`.
+      A :class:`ContextualBO`: each function validates its arguments, then runs its jitted core.
     """
-    if (objective_fn is None) != (record_template is None):
-        raise ValueError("objective_fn and record_template must be given together")
-    reuses_data = objective_fn is not None
-    num_params, num_contexts = config.num_parameters, config.num_contexts
-    lower = jnp.asarray(config.parameter_lower, jnp.float32)
-    width = jnp.asarray(config.parameter_upper, jnp.float32) - lower
-    # Proposals are clipped to these, so float32 rounding never leaves the float64 box.
-    lower_inside = jnp.asarray(_float32_inside(config.parameter_lower, np.inf))
-    upper_inside = jnp.asarray(_float32_inside(config.parameter_upper, -np.inf))
-    context_lower = jnp.asarray(config.context_lower, jnp.float32)
-    context_width = jnp.asarray(config.context_upper, jnp.float32) - context_lower
-    context_tolerance = jnp.asarray(config.context_thresholds, jnp.float32) * context_width
-    if reuses_data:
-        template_leaves, template_tree = jax.tree.flatten(record_template)
-        template_specs = [(tuple(leaf.shape), jnp.dtype(leaf.dtype)) for leaf in template_leaves]
-
-    # ---- pure, jit-compiled cores -------------------------------------------------------
-
-    def dataset(state: OptimizerState) -> gp.Dataset:
-        inputs = jnp.concatenate(
-            [(state.parameters - lower) / width, (state.contexts - context_lower) / context_width],
-            axis=-1,
-        )
-        valid = state.stored & jnp.isfinite(state.objectives)
-        return gp.Dataset(inputs, state.objectives, valid)
-
-    def kernel_active(state):
-        return jnp.concatenate([state.active_dims, jnp.ones((num_contexts,), bool)])
-
-    def refit(state: OptimizerState) -> OptimizerState:
-        params = gp.fit(dataset(state), kernel_active(state), state.gp_params, num_contexts,
-                        config.fit)
-        return state._replace(gp_params=params)
-
-    def beta(state, context):
-        return exploration_beta(state.schedule, state.contexts, state.stored, context,
-                                context_tolerance, state.inference_mode, config.inference_beta)
-
-    def to_physical(unit_point):
-        return jnp.clip(lower + unit_point * width, lower_inside, upper_inside)
-
-    def condition(state):
-        return gp.posterior(state.gp_params, dataset(state), kernel_active(state), num_contexts)
-
-    def maximize_ucb(post, state, context, key, multiplier):
-        unit_context = (context - context_lower) / context_width
-
-        def acquisition(unit_points):
-            contexts = jnp.broadcast_to(unit_context, (unit_points.shape[0], num_contexts))
-            queries = jnp.concatenate([unit_points, contexts], axis=-1)
-            return upper_confidence_bound(post, queries, multiplier, num_contexts)
-
-        return maximize_acquisition(acquisition, key, state.active_dims, config.acquisition)
-
-    def propose(state, context, key):
-        random_key, acquisition_key = jax.random.split(key)
-        use_random = (state.num_stored < config.num_random_proposals) & ~state.inference_mode
-
-        def random_point():
-            uniform = jax.random.uniform(random_key, (num_params,), jnp.float32)
-            return jnp.where(state.active_dims, uniform, INACTIVE_VALUE)
-
-        def ucb_point():
-            multiplier = ucb_multiplier(beta(state, context).beta, config.ucb_form)
-            return maximize_ucb(condition(state), state, context, acquisition_key, multiplier)[0]
-
-        return to_physical(jax.lax.cond(use_random, random_point, ucb_point))
-
-    def observe(state, x, context, observation):
-        if reuses_data:
-            objective = jnp.asarray(objective_fn(observation, state.target_velocity), jnp.float32)
-        else:
-            objective = jnp.asarray(observation, jnp.float32)
-        slack = BOX_TOLERANCE * width
-        in_box = jnp.where(state.active_dims, (x >= lower - slack) & (x <= lower + width + slack),
-                           True)
-        accepted = (
-            jnp.isfinite(objective)
-            & jnp.all(jnp.isfinite(x))
-            & jnp.all(jnp.isfinite(context))
-            & jnp.all(in_box)
-            & (state.num_stored < config.capacity)
-        )
-        row = jnp.minimum(state.num_stored, config.capacity - 1)
-        written = state._replace(
-            parameters=state.parameters.at[row].set(x),
-            contexts=state.contexts.at[row].set(context),
-            objectives=state.objectives.at[row].set(objective),
-            stored=state.stored.at[row].set(True),
-            records=(jax.tree.map(lambda buf, r: buf.at[row].set(r), state.records, observation)
-                     if reuses_data else state.records),
-            num_stored=state.num_stored + 1,
-        )
-        new_state = jax.lax.cond(accepted, lambda: refit(written), lambda: state)
-        return new_state, accepted
-
-    def set_target(state, target_velocity):
-        recomputed = jax.vmap(objective_fn, in_axes=(0, None))(state.records, target_velocity)
-        objectives = jnp.where(state.stored, jnp.asarray(recomputed, jnp.float32), 0.0)
-        return refit(state._replace(objectives=objectives, target_velocity=target_velocity))
-
-    def best_observed(state):
-        valid = state.stored & jnp.isfinite(state.objectives)
-        scores = jnp.where(valid, state.objectives, -jnp.inf)
-        best = jnp.argmax(scores)
-        return state.parameters[best], state.contexts[best], scores[best]
-
-    def posterior_mean_argmax(state, context, key):
-        post = condition(state)
-        unit_point, standardized = maximize_ucb(post, state, context, key,
-                                                jnp.zeros((), jnp.float32))
-        return to_physical(unit_point), post.target_mean + post.target_std * standardized
-
-    jit_propose, jit_observe = jax.jit(propose), jax.jit(observe)
-    jit_set_target, jit_beta = jax.jit(set_target), jax.jit(beta)
-    jit_best_observed = jax.jit(best_observed)
-    jit_posterior_mean_argmax = jax.jit(posterior_mean_argmax)
-
-    # ---- Python-level validation wrappers (the public functions) ------------------------
-
-    def check_state(state):
-        if not isinstance(state, OptimizerState):
-            raise TypeError(f"expected an OptimizerState, got {type(state).__name__}")
-        _check_shape("state.parameters", state.parameters, (config.capacity, num_params))
-        _check_shape("state.contexts", state.contexts, (config.capacity, num_contexts))
-
-    def check_context(context):
-        _check_shape("context", context, (num_contexts,))
-        if _is_concrete(context):
-            _check_finite("context", context)
-
-    def init_fn(active_dims=None, schedule=None, target_velocity=None) -> OptimizerState:
-        """A fresh state. ``active_dims``: (P,) bool, default all True; ``schedule``: default
-        :func:`paper_schedule`; ``target_velocity``: required with data reuse."""
-        if active_dims is None:
-            active_dims = jnp.ones((num_params,), bool)
-        _check_shape("active_dims", active_dims, (num_params,))
-        if _is_concrete(active_dims) and not np.any(np.asarray(active_dims)):
-            raise ValueError("active_dims must enable at least one parameter")
-        if reuses_data:
-            if target_velocity is None:
-                raise ValueError("target_velocity is required with objective_fn (data reuse)")
-            target = jnp.asarray(target_velocity, jnp.float32)
-            records = jax.tree.map(
-                lambda leaf: jnp.zeros((config.capacity, *leaf.shape), leaf.dtype),
-                record_template)
-        else:
-            if target_velocity is not None:
-                raise ValueError("target_velocity needs an objective_fn (data reuse)")
-            target, records = jnp.zeros((0,), jnp.float32), ()
-        return OptimizerState(
-            parameters=jnp.zeros((config.capacity, num_params), jnp.float32),
-            contexts=jnp.zeros((config.capacity, num_contexts), jnp.float32),
-            objectives=jnp.zeros((config.capacity,), jnp.float32),
-            stored=jnp.zeros((config.capacity,), bool),
-            records=records,
-            num_stored=jnp.zeros((), jnp.int32),
-            target_velocity=target,
-            active_dims=jnp.asarray(active_dims, bool),
-            schedule=paper_schedule() if schedule is None else schedule,
-            inference_mode=jnp.zeros((), bool),
-            gp_params=gp.default_params(num_params + num_contexts),
-        )
-
-    def propose_fn(state, context, key):
-        check_state(state)
-        check_context(context)
-        return jit_propose(state, jnp.asarray(context, jnp.float32), key)
-
-    def observe_fn(state, x, context, observation):
-        check_state(state)
-        check_context(context)
-        _check_shape("x", x, (num_params,))
-        concrete = _is_concrete(state, x, context, observation)
-        if concrete:
-            _check_finite("x", x)
-            x_np, active = np.asarray(x, np.float64), np.asarray(state.active_dims)
-            lo, hi = np.asarray(config.parameter_lower), np.asarray(config.parameter_upper)
-            slack = BOX_TOLERANCE * (hi - lo)
-            outside = active & ((x_np < lo - slack) | (x_np > hi + slack))
-            if np.any(outside):
-                i = int(np.flatnonzero(outside)[0])
-                raise ValueError(f"x[{i}] = {x_np[i]} is outside its range [{lo[i]}, {hi[i]}]")
-            if int(state.num_stored) >= config.capacity:
-                raise ValueError(f"capacity exceeded: all {config.capacity} rows are stored")
-        if reuses_data:
-            leaves, tree = jax.tree.flatten(observation)
-            if tree != template_tree:
-                raise ValueError(f"trial record structure {tree} differs from the template"
-                                 f" {template_tree}")
-            for i, (leaf, (shape, dtype)) in enumerate(zip(leaves, template_specs)):
-                _check_shape(f"trial record leaf {i}", leaf, shape)
-        else:
-            _check_shape("objective value (this optimizer has no objective_fn)", observation, ())
-            if concrete:
-                _check_finite("objective value", observation)
-        new_state, accepted = jit_observe(state, jnp.asarray(x, jnp.float32),
-                                          jnp.asarray(context, jnp.float32), observation)
-        if _is_concrete(accepted) and not bool(accepted):
-            raise ValueError("observation rejected: objective_fn returned a non-finite"
-                             " objective for this trial record; the state is unchanged")
-        return new_state, accepted
-
-    def set_target_fn(state, target_velocity):
-        if not reuses_data:
-            raise ValueError("set_target needs an optimizer built with objective_fn")
-        check_state(state)
-        _check_shape("target_velocity", target_velocity, state.target_velocity.shape)
-        if _is_concrete(target_velocity):
-            _check_finite("target_velocity", target_velocity)
-        return jit_set_target(state, jnp.asarray(target_velocity, jnp.float32))
-
-    def set_inference_mode_fn(state, enabled):
-        """Inference mode (paper Sec. IV-C): beta = ``inference_beta``, no random phase."""
-        check_state(state)
-        return state._replace(inference_mode=jnp.asarray(enabled, bool))
-
-    def beta_fn(state, context):
-        check_state(state)
-        check_context(context)
-        return jit_beta(state, jnp.asarray(context, jnp.float32))
-
-    def best_observed_fn(state):
-        """Best stored observation (x, context, J); J = -inf when nothing is stored."""
-        check_state(state)
-        if _is_concrete(state) and int(state.num_stored) == 0:
-            raise ValueError("best_observed: no observation stored yet")
-        return jit_best_observed(state)
-
-    def posterior_mean_argmax_fn(state, context, key):
-        """Maximizer of the posterior mean mu(x; c) at the given context, and mu there."""
-        check_state(state)
-        check_context(context)
-        return jit_posterior_mean_argmax(state, jnp.asarray(context, jnp.float32), key)
-
-    return ContextualBO(init_fn, propose_fn, observe_fn, set_target_fn, set_inference_mode_fn,
-                        beta_fn, best_observed_fn, posterior_mean_argmax_fn)
+    s = _static(config, objective_fn, record_template)
+    jitted = _Compiled(
+        propose=jax.jit(functools.partial(_propose, s)), observe=jax.jit(functools.partial(_observe, s)),
+        set_target=jax.jit(functools.partial(_set_target, s)), beta=jax.jit(functools.partial(_beta, s)),
+        best_observed=jax.jit(_best_observed),
+        posterior_mean_argmax=jax.jit(functools.partial(_posterior_mean_argmax, s)))
+    return ContextualBO(
+        init=functools.partial(_init, s),
+        propose=functools.partial(_propose_checked, s, jitted),
+        observe=functools.partial(_observe_checked, s, jitted),
+        set_target=functools.partial(_set_target_checked, s, jitted),
+        set_inference_mode=functools.partial(_set_inference_mode, s),
+        beta=functools.partial(_beta_checked, s, jitted),
+        best_observed=functools.partial(_best_observed_checked, s, jitted),
+        posterior_mean_argmax=functools.partial(_posterior_mean_argmax_checked, s, jitted),
+    )

@@ -3,7 +3,7 @@ setting (:func:`paper_config`).
 
 A configuration fixes everything that shapes the compiled program: the parameter box and the
 context normalization ranges (physical units), the context-sharing thresholds of eq. (14), the
-dataset capacity, the length of the random phase, the UCB form (decisions.md §2) and the
+dataset capacity, the length of the random phase, the UCB form (docs/decisions.md §2) and the
 static settings of the GP fit and of the acquisition maximizer. Changing it recompiles; per-
 instance data (β schedules, active inputs, targets) live in the optimizer state instead
 (:mod:`cpgjax.optim.bo`).
@@ -19,7 +19,7 @@ from cpgjax.optim.acquisition import UCB_FORMS, AcquisitionConfig
 
 PAPER_CONTEXT_LOWER = (15.0, -0.4)
 PAPER_CONTEXT_UPPER = (75.0, 0.1)
-"""Ranges of c = [c_load (N), c_slope (rad)] (decisions.md §11)."""
+"""Ranges of c = [c_load (N), c_slope (rad)] (docs/decisions.md §11)."""
 
 PAPER_CONTEXT_THRESHOLDS = (0.2, 0.1)
 """t_load, t_slope of eq. (14), as fractions of the range widths."""
@@ -95,7 +95,7 @@ def _check_box(name, lower, upper):
 def paper_config(**overrides) -> OptimizerConfig:
     """The paper's setting: the Table I box of :mod:`cpgjax.trial.params` (physical units, order
     [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]), the context ranges of
-    decisions.md §11 and the thresholds of eq. (14)."""
+    docs/decisions.md §11 and the thresholds of eq. (14)."""
     settings = dict(
         parameter_lower=tuple(float(v) for v in param_space.PARAM_LOWER),
         parameter_upper=tuple(float(v) for v in param_space.PARAM_UPPER),

@@ -7,8 +7,8 @@ r"""The exploration factor :math:`\beta` of the UCB (paper eqs. (12)-(14), Table
 where :math:`n` counts the stored trials *in the current context* (eq. (14)): trial :math:`i`
 counts when :math:`|c_k - c^i_k| \le t_k r_k` for every context component :math:`k`, with
 :math:`t_k` the threshold and :math:`r_k` the width of the normalization range
-(decisions.md §11). Eq. (13) applies once the context has changed, i.e. once any stored trial
-lies outside those thresholds (decisions.md §12); eq. (12) otherwise. Inference mode (paper
+(docs/decisions.md §11). Eq. (13) applies once the context has changed, i.e. once any stored trial
+lies outside those thresholds (docs/decisions.md §12); eq. (12) otherwise. Inference mode (paper
 Sec. IV-C) fixes :math:`\beta` (1e-6 in the paper).
 
 Everything here is a pure jax function of arrays, so a batch of instances with their own

@@ -1,4 +1,4 @@
-"""``cpgjax deploy calibrate``: measure the Go1's foot-force sensors and store their calibration (decisions.md §3).
+"""``cpgjax deploy calibrate``: measure the Go1's foot-force sensors and save their calibration (docs/decisions.md §3).
 
 The Go1 reports each foot's force as a raw int16 with an offset and no unit. The calibration is measured in two
 stands of the 1 kHz loop (:func:`hardware_io.stand`: soft start, hold the standing pose, damp; every safety check
@@ -13,15 +13,14 @@ and put down through its control port.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
-from pathlib import Path
 from typing import Callable, NamedTuple
 
 import numpy as np
 
 from cpgjax import hardware_io as hio
+from cpgjax.robot import deploy
 from cpgjax.robot import foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
@@ -58,8 +57,8 @@ def measure_counts(transport: go1_transport.Transport, measure_s: float, settle_
     return counts.astype(np.int64)
 
 
-def measure(transport: go1_transport.Transport, total_mass_kg: float, lifted: Callable[[bool], None], air_s: float = 2.0,
-            stand_s: float = 3.0, settle_s: float = 1.0, loop: hio.LoopConfig = hio.LoopConfig(),
+def measure(transport: go1_transport.Transport, total_mass_kg: float, lifted: Callable[[bool], None],
+            air_s: float = 2.0, stand_s: float = 3.0, settle_s: float = 1.0, loop: hio.LoopConfig = hio.LoopConfig(),
             safety: go1_safety.SafetyConfig = go1_safety.SafetyConfig()) -> Measurement:
     """The two measuring stands and the fit. ``lifted(True)`` must leave the robot hung up with its feet in the air,
     ``lifted(False)`` put it down on the ground (it stands up in the second stand)."""
@@ -75,32 +74,19 @@ def _ask_operator(hung_up: bool) -> None:
           "Put the robot down on the ground (lying or on its feet), then press Enter; it will stand up: ")
 
 
-def main(argv=None) -> int:
-    """``cpgjax deploy calibrate``. Returns 0 when the calibration is saved, 2 when a measuring stand failed."""
-    from cpgjax.robot import deploy
+def _sim_lifter(server, lift_m: float) -> Callable[[bool], None]:
+    """``lifted`` for the simulated Go1: hang it up ``lift_m`` [m] high, or put it down (reset) on the ground."""
+    return lambda hung_up: server.lift(lift_m) if hung_up else server.reset()
 
-    p = argparse.ArgumentParser(prog="cpgjax deploy calibrate", description="Measure the Go1's foot-force sensors "
-                                "(feet in the air, then standing) and save their calibration to raw counts → N.")
-    deploy.add_robot_args(p)
-    p.add_argument("--out", type=Path, default=Path("go1_calibration.json"), help="calibration JSON to write")
-    p.add_argument("--air-s", type=float, default=2.0, help="measuring time with the feet in the air")
-    p.add_argument("--stand-s", type=float, default=3.0, help="measuring time standing still")
-    p.add_argument("--settle-s", type=float, default=1.0, help="time holding the pose before each measurement")
-    p.add_argument("--mass-kg", type=float, help="the robot's total mass (default: cpgjax's Go1 model + payload)")
-    p.add_argument("--lift-m", type=float, default=0.3, help="sim only: how high the simulated Go1 is hung up")
-    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+
+def run(args) -> int:
+    """``cpgjax deploy calibrate`` with its parsed options. Returns 0 when the calibration is saved, 2 when a
+    measuring stand failed."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     loop, safety = deploy.loop_and_safety(args)
     mass_kg = args.mass_kg if args.mass_kg is not None else deploy.robot_mass_kg(args.payload_kg)
     with deploy.connect(args) as (transport, server):
-        if server is None:
-            lifted = _ask_operator
-        else:
-            def lifted(hung_up: bool) -> None:
-                if hung_up:
-                    server.lift(args.lift_m)
-                else:
-                    server.reset()
+        lifted = _ask_operator if server is None else _sim_lifter(server, args.lift_m)
         try:
             m = measure(transport, mass_kg, lifted, args.air_s, args.stand_s, args.settle_s, loop, safety)
         except (CalibrationError, ValueError) as e:

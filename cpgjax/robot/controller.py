@@ -15,9 +15,10 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.robot import cpu_dispatch
-from cpgjax.go1 import kinematics
+from cpgjax.go1 import attitude, kinematics
 from cpgjax.robot import protocol as proto
 from cpgjax.robot.foot_force import FootForceCalibration
+from cpgjax.trial import protocol
 
 log = logging.getLogger(__name__)
 
@@ -40,14 +41,8 @@ def leg_odometry_velocity(obs: cpg.Observation, stance: jax.Array) -> jax.Array:
     p_foot = kinematics.legs_fk(q, kinematics.SIDE_SIGN) + jnp.asarray(kinematics.HIP_POS_M, q.dtype)
     v_legs = -(foot_rel + jnp.cross(obs.gyro_rad_s, p_foot))
     v_body = jnp.sum(stance[:, None] * v_legs, axis=0) / jnp.maximum(jnp.sum(stance), 1.0)
-    w, x, y, z = obs.imu_quat_wxyz
-    rot = jnp.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-    v_world = rot @ v_body
-    yaw = cpg.quat_to_rpy(obs.imu_quat_wxyz)[2]
-    c, s = jnp.cos(yaw), jnp.sin(yaw)
-    return jnp.stack([c * v_world[0] + s * v_world[1], -s * v_world[0] + c * v_world[1]])
+    v_world = attitude.quat_to_matrix(obs.imu_quat_wxyz) @ v_body
+    return attitude.to_heading_frame(v_world, attitude.quat_to_rpy(obs.imu_quat_wxyz)[2])
 
 
 def unpack_observation(x: jax.Array) -> cpg.Observation:
@@ -62,10 +57,9 @@ def flat_step(config: cpg.CPGConfig, x: jax.Array) -> jax.Array:
     s = x[OBS_SIZE + 10:]
     state, torque, diag = cpg.controller_step(config, cpg.CPGState(s[0:4], s[4:8], s[8]), params, gates, obs)
     velocity = leg_odometry_velocity(obs, diag.stance)
-    power = jnp.sum(jnp.abs(torque) * jnp.abs(obs.joint_vel_rad_s))
+    pre = protocol.pre_step(obs, torque, diag)  # the trial's per-tick power, load and clipped torques
     return jnp.concatenate([torque, state.amplitude, state.phase_rad, state.heading_ref_rad[None], diag.rpy_rad,
-                            diag.stance, velocity, power[None], jnp.mean(obs.foot_force_n)[None],
-                            jnp.sum(diag.saturated)[None]])
+                            diag.stance, velocity, pre.power_w[None], pre.load_n[None], pre.saturated[None]])
 
 
 def flat_initial_state(x_obs: jax.Array) -> jax.Array:

@@ -1,4 +1,4 @@
-"""The Go1's foot-force sensors in Newtons (decisions.md §3): a stored calibration N = (raw − offset) · scale."""
+"""The Go1's foot-force sensors in Newtons (docs/decisions.md §3): a stored calibration N = (raw − offset) · scale."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import constants
 
 
 class FootForceCalibration(NamedTuple):
-    """N_i = (raw_i − offset_i) · scale_i: the Go1's foot sensor counts in Newtons (decisions.md §3)."""
+    """N_i = (raw_i − offset_i) · scale_i: the Go1's foot sensor counts in Newtons (docs/decisions.md §3)."""
 
     offset_counts: np.ndarray  # (4,) raw value with the foot in the air
     newton_per_count: np.ndarray  # (4,)
@@ -44,4 +44,4 @@ def calibrate_foot_force(air_counts: np.ndarray, standing_counts: np.ndarray,
     loaded = np.sum(np.mean(np.asarray(standing_counts, np.float64), axis=0) - offset)
     if not loaded > 0:
         raise ValueError(f"standing foot counts are not above the in-air offsets {offset}; cannot calibrate")
-    return FootForceCalibration(offset, np.full(4, total_mass_kg * go1_model.GRAVITY_MPS2 / loaded))
+    return FootForceCalibration(offset, np.full(4, total_mass_kg * constants.GRAVITY_MPS2 / loaded))

@@ -1,7 +1,7 @@
 """The Go1's low-level UDP wire format (unitree_legged_sdk 3.8.x): LowCmd (614 B) and LowState (807 B).
 
 Pure NumPy: each datagram is one record of a packed little-endian structured dtype whose field offsets are the
-SDK's wire layout (go1-sdk.md §1.3, verified against the SDK wheel), and the CRC is the SDK's word-wise CRC-32
+SDK's wire layout (docs/go1-sdk.md §1.3, verified against the SDK wheel), and the CRC is the SDK's word-wise CRC-32
 (§1.4). Values are carried in SI units in :class:`MotorCommand` / :class:`RobotState`; the fixed-point encodings
 (tau 1/256 N·m, Kp 1/32, Kd 1/16, tauEst /256) happen only here.
 
@@ -80,7 +80,7 @@ class MotorCommand(NamedTuple):
     sent as the SDK's InitCmdData leaves them: servo mode, PosStopF, VelStopF, zero gains).
 
     The motor applies τ = tau + kp (q − q_meas) + kd (dq − dq_meas) at ~10 kHz; q = POS_STOP_F disables the position
-    term and dq = VEL_STOP_F the velocity term (go1-sdk.md §1.8).
+    term and dq = VEL_STOP_F the velocity term (docs/go1-sdk.md §1.8).
     """
 
     mode: np.ndarray  # uint8: MODE_SERVO or MODE_DAMPING
@@ -113,7 +113,7 @@ _BIT_REVERSED_BYTE = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 
 def crc32_words(data: bytes) -> int:
     """The SDK's CRC over ``data`` (length a multiple of 4): MSB-first CRC-32, polynomial 0x04C11DB7, init
-    0xFFFFFFFF, no reflection, no final XOR, fed little-endian uint32 words MSB first (go1-sdk.md §1.4).
+    0xFFFFFFFF, no reflection, no final XOR, fed little-endian uint32 words MSB first (docs/go1-sdk.md §1.4).
 
     Computed with zlib's (reflected) CRC-32: feeding each word MSB first equals feeding the word's 32 bits reversed
     LSB first, and a non-reflected CRC is the bit-reversal of the reflected CRC of the bit-reversed input

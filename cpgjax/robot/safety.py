@@ -1,23 +1,19 @@
 """The deployment's safety layer, as pure functions: trip conditions on robot states (tilt, stop buttons, motor
 temperature, the SDK's power-protection rule), the commands of each loop phase (torque, motor PD, damping), and the
 guard that clamps and checks every command *before* it is encoded (the SDK silently wraps out-of-range torque and
-gains, go1-sdk.md §1.3).
+gains, docs/go1-sdk.md §1.3).
 """
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
 
-from cpgjax import cpg
+from cpgjax.go1 import attitude
+from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD, TORQUE_LIMIT_NM
 from cpgjax.robot import protocol as proto
 
-# Joint limits used by the SDK's Safety (go1_const.h), motor order; hip, thigh, calf [rad].
-JOINT_LOWER_RAD = np.tile(np.array([-1.047, -0.663, -2.721]), 4)
-JOINT_UPPER_RAD = np.tile(np.array([1.047, 2.966, -0.837]), 4)
-TORQUE_LIMIT_NM = np.asarray(cpg.TORQUE_LIMIT_NM, np.float64)
 
 
 class SafetyConfig(NamedTuple):
@@ -27,7 +23,7 @@ class SafetyConfig(NamedTuple):
     watchdog_ticks: int = 5  # this many consecutive ticks without a new robot tick → damping
     stop_buttons: tuple[str, ...] = ("L2", "B")  # all pressed on the remote → damping (Unitree's damping combo)
     max_motor_temperature_c: int = 70
-    # The SDK's PowerProtect rule (go1-sdk.md §1.10): Σ|tauEst·dq| over the 12 legs motors above 100 W × level
+    # The SDK's PowerProtect rule (docs/go1-sdk.md §1.10): Σ|tauEst·dq| over the 12 legs motors above 100 W × level
     # counts up, below counts down; the trip fires at power_trip_count and latches.
     power_level: int = 9
     power_trip_count: int = 6
@@ -36,10 +32,8 @@ class SafetyConfig(NamedTuple):
 
 
 def tilt_rad(quaternion_wxyz: np.ndarray) -> tuple[float, float]:
-    """(roll, pitch) [rad] of a unit quaternion (same convention as ``cpg.quat_to_rpy``)."""
-    w, x, y, z = (float(v) for v in quaternion_wxyz)
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
+    """(roll, pitch) [rad] of a unit quaternion (``attitude.quat_to_rpy``)."""
+    roll, pitch, _ = attitude.quat_to_rpy(tuple(float(v) for v in quaternion_wxyz))
     return roll, pitch
 
 
@@ -63,7 +57,8 @@ def power_protect(counter: int, state: proto.RobotState, safety: SafetyConfig) -
     limit_w = 100.0 * min(max(safety.power_level, 1), 10)
     counter = counter + 1 if power_w > limit_w else max(counter - 1, 0)
     if counter >= safety.power_trip_count:
-        return counter, f"power protection: Σ|tauEst·dq| = {power_w:.0f} W > {limit_w:.0f} W (level {safety.power_level})"
+        return counter, (f"power protection: Σ|tauEst·dq| = {power_w:.0f} W > {limit_w:.0f} W "
+                         f"(level {safety.power_level})")
     return counter, None
 
 

@@ -3,10 +3,10 @@
 It receives LowCmd datagrams and answers LowState datagrams in the SDK's exact wire format
 (``cpgjax.robot.protocol``: 614/807 bytes, fixed-point fields, CRC), so the real ``unitree_legged_sdk`` and
 ``cpgjax.hardware_io`` both accept it. Each tick it applies the Go1 motor law to the latest command, steps C MuJoCo
-with cpgjax's own Go1 model (1 ms), and reports the sensors with the same definitions as the MJX simulator
-(``mjx_go1.observe``), encoded in the robot's raw units. Foot forces are reported as raw int16 counts with a per-foot
-offset and a scale (:data:`FOOT_FORCE_OFFSET_COUNTS`, :data:`FOOT_FORCE_N_PER_COUNT`) so that the deployment's
-calibration path is exercised (decisions.md §3).
+with cpgjax's own Go1 model (1 ms), and reports the sensors with the same definitions as the simulator backends
+(``cpgjax.go1.sensors.observe``), encoded in the robot's raw units. Foot forces are reported as raw int16 counts with a
+per-foot offset and a scale (:data:`FOOT_FORCE_OFFSET_COUNTS`, :data:`FOOT_FORCE_N_PER_COUNT`) so that the deployment's
+calibration path is exercised (docs/decisions.md §3).
 
 Pacing: ``realtime`` steps at 1 kHz on absolute wall-clock deadlines once the first command has arrived (the
 physics is frozen until then, like a robot waiting for low-level control) and streams one state per tick;
@@ -28,17 +28,22 @@ import socket
 import subprocess
 import sys
 import time
+
+import jax
+import mujoco
 import numpy as np
 
+from cpgjax.go1 import attitude, sensors
+from cpgjax.go1 import model as go1_model
+from cpgjax.go1.constants import GRAVITY_MPS2, TORQUE_LIMIT_NM
 from cpgjax.robot import protocol as proto
 
 LOOPBACK = "127.0.0.1"
 TICK_S = 0.001
 # The simulated foot sensor: raw = offset + N / scale (the real Go1's values are unknown and drift; the deployment
-# calibrates them, decisions.md §3).
+# calibrates them, docs/decisions.md §3).
 FOOT_FORCE_OFFSET_COUNTS = np.array([14, -6, 22, 9])
 FOOT_FORCE_N_PER_COUNT = 0.5
-MOTOR_LIMIT_NM = np.tile(np.array([23.7, 23.7, 35.55]), 4)
 BRAKE_KD_NM_S_RAD = 20.0  # mode 0x00 (damping): Unitree's Gazebo motor model brakes with Kd = 20
 MOTOR_TEMPERATURE_C = 38
 FAULT_KINDS = ("drop", "late_ms", "corrupt_crc", "wrong_head", "freeze_tick", "silence", "push_roll_nm",
@@ -46,7 +51,7 @@ FAULT_KINDS = ("drop", "late_ms", "corrupt_crc", "wrong_head", "freeze_tick", "s
 
 
 def motor_torque(cmd: proto.MotorCommand, q_rad: np.ndarray, dq_rad_s: np.ndarray) -> np.ndarray:
-    """The Go1 motor law (go1-sdk.md §1.8): in servo mode τ = tau + Kp (q* − q) + Kd (dq* − dq), with the position
+    """The Go1 motor law (docs/go1-sdk.md §1.8): in servo mode τ = tau + Kp (q* − q) + Kd (dq* − dq), with the position
     term off when q* = PosStopF and the velocity term off when dq* = VelStopF; in damping mode τ = −Kd_brake dq.
     Clipped to the motor limits (12,)."""
     kp = np.where(np.abs(cmd.q_rad - proto.POS_STOP_F) < 1e3, 0.0, cmd.kp_nm_rad)
@@ -55,7 +60,7 @@ def motor_torque(cmd: proto.MotorCommand, q_rad: np.ndarray, dq_rad_s: np.ndarra
     dq_err = np.where(kd > 0.0, cmd.dq_rad_s - dq_rad_s, 0.0)
     servo = cmd.tau_nm + kp * q_err + kd * dq_err
     tau = np.where(cmd.mode == proto.MODE_SERVO, servo, -BRAKE_KD_NM_S_RAD * dq_rad_s)
-    return np.clip(tau, -MOTOR_LIMIT_NM, MOTOR_LIMIT_NM)
+    return np.clip(tau, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM)
 
 
 class Go1Physics:
@@ -66,27 +71,20 @@ class Go1Physics:
     """
 
     def __init__(self, friction: float = 0.6, slope_deg: float = 0.0, payload_kg: float = 0.0):
-        import jax
-        import mujoco
-
-        from cpgjax.go1 import model as go1_model
-        from cpgjax import mjx_go1
-
-        self._mujoco = mujoco
         self.model = go1_model.scenario_model(go1_model.make_scenarios(friction, slope_deg, payload_kg), 0)
         self.data = mujoco.MjData(self.model)
         self.ids = go1_model.indices()
         self._standing = go1_model.standing_qpos(self.model)
-        gravity = np.asarray(self.model.opt.gravity, np.float32)
+        gravity = jax.numpy.asarray(self.model.opt.gravity, jax.numpy.float32)
         # The MJX sensor model, compiled once for host arrays: one definition of what the robot senses.
-        self._observe = jax.jit(lambda qpos, qvel, sens: mjx_go1.observe(qpos, qvel, sens, gravity))
+        self._observe = jax.jit(lambda qpos, qvel, sens: sensors.observe(qpos, qvel, sens, gravity))
         self.reset()
 
     def reset(self) -> None:
         """Standing at the origin, at rest (on the ground)."""
-        self._mujoco.mj_resetData(self.model, self.data)
+        mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = self._standing
-        self._mujoco.mj_forward(self.model, self.data)
+        mujoco.mj_forward(self.model, self.data)
         self.held_root_qpos = None
 
     def lift(self, height_m: float) -> None:
@@ -104,7 +102,7 @@ class Go1Physics:
             self.data.qvel[dof:dof + 6] = 0.0
         self.data.ctrl[self.ids.actuator] = torque_nm
         self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
-        self._mujoco.mj_step(self.model, self.data)
+        mujoco.mj_step(self.model, self.data)
 
     def joint_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Joint angles and velocities (12,) each, motor order: what the motor drivers measure."""
@@ -120,23 +118,15 @@ class Go1Physics:
         return float(self.data.qpos[self.ids.root_qpos + 2])
 
 
-def _quat_to_rpy(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array([np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
-                     np.arcsin(np.clip(2 * (w * y - z * x), -1, 1)),
-                     np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))])
-
-
 def robot_state(obs, torque_nm: np.ndarray, tick_ms: int, *, buttons: tuple[str, ...] = ()) -> proto.RobotState:
     """Encode an observation as the Go1 reports it: IMU, joints, tauEst = applied torque, raw foot counts."""
     quat = obs.imu_quat_wxyz
-    w, x, y, z = quat
-    gravity_body = 9.81 * np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+    gravity_body = GRAVITY_MPS2 * attitude.quat_to_matrix(quat)[2]  # R^T ẑ: the world's up in the trunk frame
     counts = FOOT_FORCE_OFFSET_COUNTS + np.round(obs.foot_force_n / FOOT_FORCE_N_PER_COUNT)
     return proto.RobotState(
         tick_ms=tick_ms, quaternion_wxyz=quat, gyro_rad_s=obs.gyro_rad_s,
         accel_mps2=gravity_body,  # specific force of a robot at rest (linear acceleration not modelled)
-        rpy_rad=_quat_to_rpy(quat), motor_mode=np.full(12, proto.MODE_SERVO, np.uint8), q_rad=obs.joint_pos_rad,
+        rpy_rad=attitude.quat_to_rpy(quat), motor_mode=np.full(12, proto.MODE_SERVO, np.uint8), q_rad=obs.joint_pos_rad,
         dq_rad_s=obs.joint_vel_rad_s, tau_est_nm=torque_nm,
         motor_temperature_c=np.full(12, MOTOR_TEMPERATURE_C), foot_force_raw=np.clip(counts, -32768, 32767),
         wireless_remote=proto.remote_with_buttons(*buttons))

@@ -2,7 +2,8 @@
 low-level UDP protocol, used for the loopback simulated Go1 and usable on the robot; :class:`LockstepTransport`
 waits for a lockstep simulated Go1's answers) and :class:`SdkTransport` (the official ``unitree_legged_sdk`` Python
 binding, optional extra ``go1``). Both move
-:class:`~cpgjax.robot.protocol.RobotState` in and :class:`~cpgjax.robot.protocol.MotorCommand` out (go1-sdk.md §1.5–1.7).
+:class:`~cpgjax.robot.protocol.RobotState` in and :class:`~cpgjax.robot.protocol.MotorCommand` out
+(docs/go1-sdk.md §1.5–1.7).
 
 The robot's real address appears only as the default of :data:`GO1_ROBOT_IP`; tests and examples use 127.0.0.1.
 """
@@ -138,7 +139,7 @@ class SdkTransport:
         self.cmd = sdk.LowCmd()
         self.state = sdk.LowState()
         self.udp.InitCmdData(self.cmd)
-        self._motors = self.cmd.motorCmd  # a cached list of references into the C++ struct (go1-sdk.md §1.7)
+        self._motors = self.cmd.motorCmd  # a cached list of references into the C++ struct (docs/go1-sdk.md §1.7)
         self.safety = sdk.Safety(sdk.LeggedType.Go1) if power_level else None
         self.power_level = power_level
 

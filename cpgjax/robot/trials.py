@@ -22,20 +22,20 @@ import os
 from pathlib import Path
 from typing import NamedTuple, Protocol
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from cpgjax import hardware_io as hio
+from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
+from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import safety as go1_safety
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
 _SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")
-
-
-class TrialTiming(NamedTuple):
-    transition_ticks: int = 1500  # 1.5 s at 1 kHz
-    steady_ticks: int = 3000  # 3 s
 
 
 class OnlineOptimizer(Protocol):
@@ -67,28 +67,20 @@ class RandomSearch:
 
 class BayesianOptimizer:
     """Adapter from ``cpgjax.optim.bo``'s pure functions (``init`` / ``propose`` / ``observe``, scalar objectives) to
-    :class:`OnlineOptimizer`. σ_N is an inactive input when Tegotae is off (decisions.md §13)."""
+    :class:`OnlineOptimizer`. σ_N is an inactive input when Tegotae is off (docs/decisions.md §13)."""
 
     def __init__(self, seed: int, tegotae: bool):
-        import jax
-        import jax.numpy as jnp
-
-        from cpgjax.optim import bo
-
         active = np.ones(param_space.NUM_PARAMS, bool)
         active[param_space.SIGMA_N_INDEX] = tegotae
-        self._jax, self._jnp = jax, jnp
         self._key = jax.random.PRNGKey(seed)
         self._opt = bo.make_optimizer(optimizer_config.paper_config())
         self._state = self._opt.init(active_dims=jnp.asarray(active))
 
     def propose(self, context: np.ndarray) -> np.ndarray:
-        self._key, key = self._jax.random.split(self._key)
-        return np.asarray(self._opt.propose(self._state, self._jnp.asarray(context, self._jnp.float32), key),
-                          np.float64)
+        self._key, key = jax.random.split(self._key)
+        return np.asarray(self._opt.propose(self._state, jnp.asarray(context, jnp.float32), key), np.float64)
 
     def observe(self, params, context, record, objective) -> None:
-        jnp = self._jnp
         self._state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
                                            jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32))
 
@@ -106,22 +98,18 @@ class OptimizerSpec(NamedTuple):
     dt_s: float = 0.001
 
 
-def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = 0.001):
-    """``objective.TrialRecord`` from the steady phase's per-tick robot signals (T, len(_SIGNALS)).
+def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = 0.001) -> protocol.TrialRecord:
+    """The trial record of the steady phase's per-tick robot signals (T, len(_SIGNALS)), summarized by
+    ``protocol.summarize`` exactly as in simulation.
 
     A fall ends the run through the safety layer (tilt stop) before a trial completes, so ``fell`` and ``failed``
     are 0 for every completed trial.
     """
-    from cpgjax.trial.objective import TrialRecord
-
-    v = signals[:, 0:2].astype(np.float64)
-    roll, pitch = signals[:, 4], signals[:, 5]
-    return TrialRecord(
-        velocity_xy_mps=v, energy_j=float(np.sum(signals[:, 2]) * dt_s), distance_m=float(np.sum(v[:, 0]) * dt_s),
-        total_mass_kg=float(total_mass_kg), c_load_n=float(np.mean(signals[:, 3])),
-        c_slope_rad=float(np.mean(pitch)), roll_mean_rad=float(np.mean(roll)), roll_std_rad=float(np.std(roll)),
-        pitch_std_rad=float(np.std(pitch)), saturation_fraction=float(np.sum(signals[:, 6]) / (12.0 * len(v))),
-        fell=0.0, failed=0.0)
+    s = jnp.asarray(signals, jnp.float32)
+    zero = jnp.zeros(s.shape[0], jnp.float32)
+    ticks = protocol.Tick(velocity_xy_mps=s[:, 0:2], power_w=s[:, 2], load_n=s[:, 3], roll_rad=s[:, 4],
+                          pitch_rad=s[:, 5], saturated=s[:, 6], fell=zero, failed=zero)
+    return protocol.summarize(ticks, jnp.float32(total_mass_kg), dt_s, jnp.float32(0.0), jnp.float32(0.0))
 
 
 class _TrialLog:
@@ -168,12 +156,8 @@ def load_params(path) -> np.ndarray:
 
 def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     """The optimizer's process: observe each finished trial, answer the next proposal at once, then log."""
-    import jax
-
     os.nice(10)  # the robot's loop (and, on one machine, the simulated robot) come first
-    jax.config.update("jax_platforms", "cpu")
-    from cpgjax.trial import objective
-
+    jax.config.update("jax_platforms", "cpu")  # before this process's first JAX computation
     optimizer = (BayesianOptimizer(spec.seed, spec.tegotae) if spec.kind == "bo"
                  else RandomSearch(spec.seed, spec.tegotae))
     trial_log = _TrialLog(Path(spec.log_dir))
@@ -192,8 +176,9 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
         row = {"trial": trial, "objective": j, "cost_of_transport": float(objective.cost_of_transport(record)),
                "v_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
                "v_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])), "c_load_n": float(c[0]),
-               "c_slope_rad": float(c[1]), "roll_std_rad": record.roll_std_rad, "pitch_std_rad": record.pitch_std_rad,
-               "saturation_fraction": record.saturation_fraction, "wait_s": wait_ticks * spec.dt_s,
+               "c_slope_rad": float(c[1]), "roll_std_rad": float(record.roll_std_rad),
+               "pitch_std_rad": float(record.pitch_std_rad),
+               "saturation_fraction": float(record.saturation_fraction), "wait_s": wait_ticks * spec.dt_s,
                **param_space.as_dict(x)}
         trial_log.append(row)
         if j > best:
@@ -210,13 +195,14 @@ class TrialRunner:
     Cheap per tick: an interpolation, one row copy, and (only while waiting for a proposal) a pipe poll.
     """
 
-    def __init__(self, conn, initial_params: np.ndarray, num_trials: int, timing: TrialTiming = TrialTiming()):
-
+    def __init__(self, conn, initial_params: np.ndarray, num_trials: int,
+                 timing: protocol.TrialConfig = protocol.TrialConfig()):
+        out = compiled_controller
         self._conn = conn
         self._timing = timing
-        self._columns = np.array([compiled_controller.OUT_VELOCITY.start, compiled_controller.OUT_VELOCITY.start + 1, compiled_controller.OUT_POWER, compiled_controller.OUT_LOAD,
-                                  compiled_controller.OUT_RPY.start, compiled_controller.OUT_RPY.start + 1, compiled_controller.OUT_SATURATED])
-        self._signals = np.full((timing.steady_ticks, len(_SIGNALS)), 0, np.float32)  # written now, not in the loop
+        self._columns = np.array([out.OUT_VELOCITY.start, out.OUT_VELOCITY.start + 1, out.OUT_POWER, out.OUT_LOAD,
+                                  out.OUT_RPY.start, out.OUT_RPY.start + 1, out.OUT_SATURATED])
+        self._signals = np.full((timing.steady_steps, len(_SIGNALS)), 0, np.float32)  # written now, not in the loop
         self._previous = self._current = np.asarray(initial_params, np.float32)
         self._num_trials = num_trials
         self.trials_done = 0
@@ -227,9 +213,9 @@ class TrialRunner:
 
     def params(self, run_tick: int) -> np.ndarray:
         k = self._tick_in_trial
-        if self._waiting_since is None and k < self._timing.transition_ticks:
-            blend = (k + 1.0) / self._timing.transition_ticks
-            return self._previous + np.float32(blend) * (self._current - self._previous)
+        if self._waiting_since is None and k < self._timing.transition_steps:
+            fraction = np.float32(protocol.transition_fraction(k, self._timing.transition_steps))
+            return protocol.transition_params(self._previous, self._current, fraction)
         return self._current
 
     def record(self, run_tick: int, out: np.ndarray) -> None:
@@ -240,11 +226,11 @@ class TrialRunner:
                 self._wait_ticks = run_tick - self._waiting_since
                 self._waiting_since, self._tick_in_trial = None, 0
             return
-        steady = self._tick_in_trial - self._timing.transition_ticks
+        steady = self._tick_in_trial - self._timing.transition_steps
         if steady >= 0:
             self._signals[steady] = out[self._columns]
         self._tick_in_trial += 1
-        if steady + 1 == self._timing.steady_ticks:
+        if steady + 1 == self._timing.steady_steps:
             self._conn.send(("trial", self.trials_done, self._current.astype(np.float64), self._signals.copy(),
                              self._wait_ticks))
             self.trials_done += 1
@@ -253,13 +239,12 @@ class TrialRunner:
 
 
 def online_optimization(transport, controller, calibration, gates, spec: OptimizerSpec, initial_params: np.ndarray,
-                        num_trials: int, timing: TrialTiming = TrialTiming(), loop=None, safety=None):
+                        num_trials: int, timing: protocol.TrialConfig = protocol.TrialConfig(), loop=None,
+                        safety=None):
     """Algorithm 1 on the robot: ``num_trials`` trials back to back, the optimizer in its own process.
 
     Returns (LoopResult, per-trial rows). The log files are in ``spec.log_dir``.
     """
-    from cpgjax import hardware_io as hio
-
     Path(spec.log_dir).mkdir(parents=True, exist_ok=True)
     context = multiprocessing.get_context("spawn")  # never fork a process that has started JAX
     conn, worker_conn = context.Pipe()

@@ -1,7 +1,7 @@
 """Choosing the physics backend: MJX on accelerators, C MuJoCo (native) on CPU-only machines.
 
 Both backends run the same trial with the same jitted controller and sensor model and return the same
-``objective.TrialRecord`` (see docs/backends.md for speeds and the differences between the two physics engines).
+``protocol.TrialRecord`` (see docs/backends.md for speeds and the differences between the two physics engines).
 
 >>> sim = make_backend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))   # "auto"
 >>> sim.name                                                                  # "native" on a laptop
@@ -17,6 +17,7 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax import mjx_go1
 from cpgjax.sim import native as native_go1
+from cpgjax.trial import protocol
 
 BACKENDS = ("auto", "mjx", "native")
 
@@ -34,7 +35,7 @@ def resolve_backend(backend: str = "auto") -> str:
 
 
 def make_backend(scenario: go1_model.Scenario, backend: str = "auto", cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                 trial_config: mjx_go1.TrialConfig = mjx_go1.TrialConfig(), *, devices=None):
+                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, devices=None):
     """A batch simulator (``MJXBackend`` or ``NativeBackend``) for ``scenario``; its ``.name`` says which one.
     ``devices``: what MJX shards the batch over (default: all that divide it); the native backend's physics runs on
     host threads and ignores it."""

@@ -1,4 +1,4 @@
-"""The Go1 in C MuJoCo on the CPU: the MJX backend's trial (``cpgjax.mjx_go1``) with native physics.
+"""The Go1 in C MuJoCo on the CPU: the paper's trial (``cpgjax.trial.protocol``) with native physics.
 
 Physics: :class:`BatchPhysics` steps the whole batch one physics step per call through ``mujoco.rollout`` (a
 persistent C++ thread pool, one thread per core, one ``MjModel`` variant per instance from
@@ -6,11 +6,12 @@ persistent C++ thread pool, one thread per core, one ``MjModel`` variant per ins
 previous step's acceleration exactly as a persistent ``mj_step`` loop would be.
 
 Control: one jitted, vmapped call per control tick for the whole batch runs the shared sensor model
-(``mjx_go1.observe``) and controller (``cpg.controller_step``) and writes the tick's record into a device buffer
-that is donated from call to call (updated in place). At the end of a trial the buffer is summarized by
-``mjx_go1.summarize``, so a record means the same thing whichever backend produced it.
+(``cpgjax.go1.sensors.observe``) and controller (``cpg.controller_step``) and writes the tick's record into a device
+buffer that is donated from call to call (updated in place). At the end of a trial the buffer is summarized by
+``protocol.summarize``, so a record means the same thing whichever backend produced it.
 
-Tick k is, as in ``mjx_go1._tick``: observe S_k → controller → torque_k → physics step → S_{k+1} → record k.
+Tick k is, as in the MJX backend (``cpgjax.mjx_go1``): observe S_k → controller → torque_k → physics step → S_{k+1}
+→ record k.
 Here the record's pre-step half (power, load, attitude, saturation) is computed with the control and its
 post-step half (velocity, fall, failure) at the next call, which sees S_{k+1}:
 
@@ -37,10 +38,9 @@ from mujoco import rollout as mj_rollout
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax.go1 import kinematics
-from cpgjax import mjx_go1
+from cpgjax.go1 import sensors
 from cpgjax.trial import params as param_space
-from cpgjax.trial.objective import TrialRecord
+from cpgjax.trial import protocol
 
 # The simulator clock after a reset [s]. Any value > 0 works: MuJoCo's own reset sets the clock to 0, so a step
 # that does not advance it from here by one time step reveals that MuJoCo reset a diverged instance.
@@ -86,7 +86,7 @@ class BatchPhysics:
     """B C-MuJoCo Go1s (one scenario each) stepped together, one physics step per :meth:`step`.
 
     The current state lives in reused host buffers: ``physics`` (B, nstate), ``sensordata`` (B, nsensordata) and
-    ``warmstart`` (B, nv). Shared by the native backend and the loopback simulated robot (one CPU physics path).
+    ``warmstart`` (B, nv). Used by the native backend only (the loopback simulated Go1 steps its own ``mj_step``).
     """
 
     def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None):
@@ -199,54 +199,50 @@ class _Recorder(NamedTuple):
     row: Callable  # (trial_config, pending, qpos, qvel, failed) -> row
 
 
-def _trial_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state) -> mjx_go1.PreStep:
+def _trial_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state) -> protocol.PreStep:
     del qpos, cpg_state
-    return mjx_go1.pre_step(obs, torque, diag)
-
-
-def _rotate(quat_wxyz, v):
-    """Rotate v (..., 3) by the unit quaternion (4,)."""
-    w, u = quat_wxyz[0], quat_wxyz[1:]
-    t = 2.0 * jnp.cross(u, v)
-    return v + w * t + jnp.cross(u, t)
-
-
-def foot_positions(qpos) -> jax.Array:
-    """Foot-sphere centres (4, 3) [m] in the floor frame from qpos (the model's leg geometry is ``kinematics``)."""
-    ids = go1_model.indices()
-    r = ids.root_qpos
-    legs = kinematics.legs_fk(qpos[ids.joint_qpos].reshape(4, 3), jnp.asarray(kinematics.SIDE_SIGN, qpos.dtype))
-    return qpos[r:r + 3] + _rotate(qpos[r + 3:r + 7], jnp.asarray(kinematics.HIP_POS_M, qpos.dtype) + legs)
+    return protocol.pre_step(obs, torque, diag)
 
 
 def _log_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state: cpg.CPGState):
     # Feet before the step: MJX logs geom_xpos, which mjx.step computes at the start of the step.
-    return (torque, obs.foot_force_n, foot_positions(qpos), cpg_state.amplitude, cpg_state.phase_rad,
+    return (torque, obs.foot_force_n, sensors.foot_positions(qpos), cpg_state.amplitude, cpg_state.phase_rad,
             diag.foot_target_m, diag.rpy_rad)
 
 
-def _log_row(trial_config, pending, qpos, qvel, failed) -> mjx_go1.StepLog:
-    """``mjx_go1.StepLog`` row with ``mjx_go1.rollout_log``'s definitions (qpos, qvel after the step)."""
+def _log_row(trial_config, pending, qpos, qvel, failed) -> protocol.StepLog:
+    """``protocol.StepLog`` row with the MJX rollout's definitions (qpos, qvel after the step)."""
     del trial_config, failed
     torque, force, feet, amplitude, phase, target, rpy = pending
-    return mjx_go1.StepLog(qpos=qpos, qvel=qvel, torque_nm=torque, foot_force_n=force,
+    return protocol.StepLog(qpos=qpos, qvel=qvel, torque_nm=torque, foot_force_n=force,
                            foot_pos_m=feet, amplitude=amplitude, phase_rad=phase,
                            foot_target_m=target, rpy_rad=rpy)
 
 
-TRIAL_RECORDER = _Recorder(pending=_trial_pending, row=mjx_go1.tick_row)
+TRIAL_RECORDER = _Recorder(pending=_trial_pending, row=protocol.tick_row)
 LOG_RECORDER = _Recorder(pending=_log_pending, row=_log_row)
 
 
 def _control(cpg_config: cpg.CPGConfig, recorder: _Recorder, n_transition: int, k: jax.Array, consts: _Constants,
              cpg_state: cpg.CPGState, qpos, qvel, sensordata):
     """Sensors → controller for one instance at tick k, with the transition's linear parameter interpolation."""
-    blend = (k.astype(jnp.float32) + 1.0) / max(n_transition, 1)
-    params = jnp.where(k < n_transition, consts.prev_params + blend * (consts.new_params - consts.prev_params),
+    fraction = protocol.transition_fraction(k.astype(jnp.float32), n_transition)
+    params = jnp.where(k < n_transition, protocol.transition_params(consts.prev_params, consts.new_params, fraction),
                        consts.new_params)
-    obs = mjx_go1.observe(qpos, qvel, sensordata, consts.gravity_mps2)
+    obs = sensors.observe(qpos, qvel, sensordata, consts.gravity_mps2)
     cpg_state, torque, diag = cpg.controller_step(cpg_config, cpg_state, params, consts.gates, obs)
     return cpg_state, torque, recorder.pending(qpos, obs, torque, diag, cpg_state)
+
+
+class _Program(NamedTuple):
+    """A run's compiled pieces for one recorder and trial timing (:meth:`NativeBackend._program`)."""
+
+    packing: "_Packing"
+    pending_size: int  # length of the flat pre-step half of a row
+    row_size: int  # length of a flat row
+    advance: Callable  # jitted _advance: finish row k−1, control tick k
+    complete: Callable  # jitted _complete: finish the last row
+    summarize: Callable  # jitted _summarize: flat rows → trial records
 
 
 class _Packing(NamedTuple):
@@ -273,7 +269,7 @@ def _complete(trial_config, recorder: _Recorder, packing: _Packing, consts_flat,
     consts = packing.consts(consts_flat)
     qpos, qvel, _, failed = _host_inputs(packing, host_in)
     row = jax.vmap(functools.partial(recorder.row, trial_config))(packing.pending(carry.pending), qpos, qvel, failed)
-    cpg_state = _where_batch(failed, consts.reset_cpg, packing.cpg(carry.cpg))
+    cpg_state = protocol.where_batch(failed, consts.reset_cpg, packing.cpg(carry.cpg))
     return carry._replace(cpg=ravel_pytree(cpg_state)[0], rows=carry.rows.at[carry.step - 1].set(ravel_pytree(row)[0]))
 
 
@@ -293,20 +289,16 @@ def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, c
                   rows=carry.rows), torque
 
 
-def _summarize(trial_config: mjx_go1.TrialConfig, dt_s: float, unravel_row: Callable, rows,
-               total_mass_kg) -> TrialRecord:
-    """Trial records (B, ...) from the flat rows (N, R) with ``mjx_go1.summarize`` (steady phase, plus the
+def _summarize(trial_config: protocol.TrialConfig, dt_s: float, unravel_row: Callable, rows,
+               total_mass_kg) -> protocol.TrialRecord:
+    """Trial records (B, ...) from the flat rows (N, R) with ``protocol.summarize`` (steady phase, plus the
     transition's falls and failures)."""
     ticks = jax.vmap(unravel_row)(rows)  # Tick of (N, B, ...)
     n_transition = trial_config.transition_steps
     steady = jax.tree.map(lambda x: x[n_transition:], ticks)
     fell_tr = jnp.max(ticks.fell[:n_transition], axis=0, initial=0.0)
     failed_tr = jnp.max(ticks.failed[:n_transition], axis=0, initial=0.0)
-    return jax.vmap(mjx_go1.summarize, in_axes=(1, 0, None, 0, 0))(steady, total_mass_kg, dt_s, fell_tr, failed_tr)
-
-
-def _where_batch(mask, a, b):
-    return jax.tree.map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+    return jax.vmap(protocol.summarize, in_axes=(1, 0, None, 0, 0))(steady, total_mass_kg, dt_s, fell_tr, failed_tr)
 
 
 # ----------------------------------------------------------------------------------------------- batch interface
@@ -316,13 +308,13 @@ class NativeBackend:
 
     >>> sim = NativeBackend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))
     >>> state = sim.reset(params)                               # params (3, 8), physical units
-    >>> state, record = sim.trial(state, new_params, gates)     # the same TrialRecord as MJXBackend.trial
+    >>> state, record = sim.trial(state, new_params, gates)     # the same protocol.TrialRecord as MJXBackend.trial
     """
 
     name = "native"
 
     def __init__(self, scenario: go1_model.Scenario, cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                 trial_config: mjx_go1.TrialConfig = mjx_go1.TrialConfig(), *, nthread: int | None = None):
+                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, nthread: int | None = None):
         self.scenario = scenario
         self.cpg_config = cpg_config
         self.trial_config = trial_config
@@ -331,7 +323,7 @@ class NativeBackend:
         self._total_mass = jnp.asarray(self.physics.total_mass_kg, jnp.float32)
         lay = self.physics.layout
         standing = jnp.asarray(self.physics.standing_physics, jnp.float32)
-        obs = jax.vmap(mjx_go1.observe)(standing[:, lay.qpos], standing[:, lay.qvel],
+        obs = jax.vmap(sensors.observe)(standing[:, lay.qpos], standing[:, lay.qvel],
                                         jnp.asarray(self.physics.standing_sensordata, jnp.float32), self._gravity)
         self._reset_cpg = jax.vmap(cpg.init_state)(obs)
         self._host_in = np.zeros((self.batch_size, lay.size + self.physics.sensordata.shape[1] + 1), np.float32)
@@ -352,17 +344,17 @@ class NativeBackend:
 
     def reset(self, params) -> NativeState:
         """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
-        params = mjx_go1.check_params(params, self.batch_size)
+        params = protocol.check_params(params, self.batch_size)
         p = self.physics
         return NativeState(physics=p.standing_physics.copy(), warmstart=np.zeros_like(p.warmstart),
                            sensordata=p.standing_sensordata.copy(), cpg=self._reset_cpg, params=params)
 
     def _constants(self, prev_params, new_params, gates) -> _Constants:
         return _Constants(self._gravity, self._reset_cpg, jnp.asarray(prev_params, jnp.float32), new_params,
-                          mjx_go1.check_gates(gates, self.batch_size))
+                          protocol.check_gates(gates, self.batch_size))
 
-    def _program(self, recorder: _Recorder, trial_config: mjx_go1.TrialConfig):
-        """(packing, advance, complete, summarize) compiled once per recorder and trial timing."""
+    def _program(self, recorder: _Recorder, trial_config: protocol.TrialConfig) -> _Program:
+        """The run's compiled pieces (:class:`_Program`), compiled once per recorder and trial timing."""
         key = (recorder, trial_config)
         if key not in self._compiled:
             p = self.physics
@@ -386,9 +378,10 @@ class NativeBackend:
             advance = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing)
             complete = functools.partial(_complete, trial_config, recorder, packing)
             summarize = functools.partial(_summarize, trial_config, self.cpg_config.dt_s, packing.row)
-            self._compiled[key] = (packing, ravel_pytree(zeros(pending))[0].size, ravel_pytree(zeros(row))[0].size,
-                                   jax.jit(advance, donate_argnums=(1,)), jax.jit(complete, donate_argnums=(1,)),
-                                   jax.jit(summarize))
+            self._compiled[key] = _Program(
+                packing=packing, pending_size=ravel_pytree(zeros(pending))[0].size,
+                row_size=ravel_pytree(zeros(row))[0].size, advance=jax.jit(advance, donate_argnums=(1,)),
+                complete=jax.jit(complete, donate_argnums=(1,)), summarize=jax.jit(summarize))
         return self._compiled[key]
 
     def _pack_host_inputs(self, failed: np.ndarray) -> np.ndarray:
@@ -398,41 +391,42 @@ class NativeBackend:
         buf[:, -1] = failed
         return buf
 
-    def _run(self, state: NativeState, recorder: _Recorder, trial_config: mjx_go1.TrialConfig,
+    def _run(self, state: NativeState, recorder: _Recorder, trial_config: protocol.TrialConfig,
              consts: _Constants) -> tuple[cpg.CPGState, jax.Array]:
         """Run ``transition_steps + steady_steps`` ticks from ``state``; returns the controller state and the flat
         rows (N, R). The physics state is left in ``self.physics``."""
-        packing, pending_size, row_size, advance, complete, _ = self._program(recorder, trial_config)
+        program = self._program(recorder, trial_config)
         num_steps = trial_config.transition_steps + trial_config.steady_steps
         p = self.physics
         p.set_state(state.physics, state.warmstart, state.sensordata)
         consts_flat = ravel_pytree(consts)[0]
-        carry = _Carry(cpg=ravel_pytree(state.cpg)[0], pending=jnp.zeros(pending_size), step=jnp.int32(0),
-                       rows=jnp.zeros((num_steps, row_size)))
+        carry = _Carry(cpg=ravel_pytree(state.cpg)[0], pending=jnp.zeros(program.pending_size), step=jnp.int32(0),
+                       rows=jnp.zeros((num_steps, program.row_size)))
         failed = np.zeros(self.batch_size, bool)
+        advance = program.advance  # one attribute lookup, not one per tick
         for _ in range(num_steps):
             carry, torque = advance(consts_flat, carry, self._pack_host_inputs(failed))
             failed = p.step(np.asarray(torque))
-        carry = complete(consts_flat, carry, self._pack_host_inputs(failed))
-        return packing.cpg(carry.cpg), carry.rows
+        carry = program.complete(consts_flat, carry, self._pack_host_inputs(failed))
+        return program.packing.cpg(carry.cpg), carry.rows
 
-    def trial(self, state: NativeState, new_params, gates: cpg.Gates) -> tuple[NativeState, TrialRecord]:
+    def trial(self, state: NativeState, new_params, gates: cpg.Gates) -> tuple[NativeState, protocol.TrialRecord]:
         """One trial for every instance. Returns the next state and the records (same fields as MJXBackend's)."""
-        new_params = mjx_go1.check_params(new_params, self.batch_size)
+        new_params = protocol.check_params(new_params, self.batch_size)
         consts = self._constants(state.params, new_params, gates)
         cpg_state, rows = self._run(state, TRIAL_RECORDER, self.trial_config, consts)
-        record = self._program(TRIAL_RECORDER, self.trial_config)[-1](rows, self._total_mass)
+        record = self._program(TRIAL_RECORDER, self.trial_config).summarize(rows, self._total_mass)
         fell = np.asarray(record.fell) > 0
         self.physics.reset(fell)
-        cpg_state = _where_batch(jnp.asarray(fell), self._reset_cpg, cpg_state)
+        cpg_state = protocol.where_batch(jnp.asarray(fell), self._reset_cpg, cpg_state)
         return NativeState(*self.physics.get_state(), cpg=cpg_state, params=new_params), record
 
     def rollout(self, state: NativeState, params, gates: cpg.Gates,
-                num_steps: int) -> tuple[NativeState, mjx_go1.StepLog]:
+                num_steps: int) -> tuple[NativeState, protocol.StepLog]:
         """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
-        params = mjx_go1.check_params(params, self.batch_size)
-        config = mjx_go1.TrialConfig(transition_steps=0, steady_steps=num_steps)
-        packing = self._program(LOG_RECORDER, config)[0]
+        params = protocol.check_params(params, self.batch_size)
+        config = protocol.TrialConfig(transition_steps=0, steady_steps=num_steps)
+        packing = self._program(LOG_RECORDER, config).packing
         cpg_state, rows = self._run(state, LOG_RECORDER, config, self._constants(params, params, gates))
         log = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), jax.vmap(packing.row)(rows))
         return NativeState(*self.physics.get_state(), cpg=cpg_state, params=params), log

@@ -1,6 +1,6 @@
 """Walk the simulated Go1 with fixed CPG parameters for a few back-to-back trials and report the paper's trial figures.
 
-Used by ``make demo`` (the four controllers on flat ground) and by ``cpgjax walk``.
+Used by ``cpgjax walk`` and studies/walk_evidence.py.
 """
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
+from cpgjax.sim import backends
 from cpgjax.trial import objective
 from cpgjax.trial import params as param_space
+from cpgjax.trial import protocol
 
 
 class WalkRow(NamedTuple):
@@ -36,17 +37,18 @@ class WalkRow(NamedTuple):
 
 
 def walk(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload_kg=(0.0,), params=None,
-         num_trials: int = 2, target_velocity_mps: float = 0.5, trial_config=mjx_go1.TrialConfig(),
+         num_trials: int = 2, target_velocity_mps: float = 0.5,
+         trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
          progress=print) -> tuple[list[WalkRow], dict]:
     """Every combination of controller × friction × slope × payload, ``num_trials`` trials back to back with the same
-    parameters (default: the middle of the paper's ranges). Figures are those of the last trial; ``falls`` counts
-    trials with a fall over the whole walk."""
+    parameters (default: the middle of the paper's ranges) on ``backend`` (:func:`backends.make_backend`). Figures
+    are those of the last trial; ``falls`` counts trials with a fall over the whole walk."""
     grid = list(itertools.product(controllers, friction, slope_deg, payload_kg))
     scenario = go1_model.make_scenarios(friction=[g[1] for g in grid], slope_deg=[g[2] for g in grid],
                                         payload_kg=[g[3] for g in grid])
     p = np.tile(param_space.midpoint() if params is None else params, (len(grid), 1))
-    gates = mjx_go1.batch_gates([g[0] for g in grid])
-    sim = mjx_go1.MJXBackend(scenario, trial_config=trial_config)
+    gates = protocol.batch_gates([g[0] for g in grid])
+    sim = backends.make_backend(scenario, backend, trial_config=trial_config)
     t0 = time.perf_counter()
     state = sim.reset(p)
     falls = np.zeros(len(grid), int)

@@ -21,7 +21,32 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from cpgjax.go1 import model as go1_model
+from cpgjax.study.spec import StudyError
+from cpgjax.trial import params as param_space
+
 CHECKPOINT = "checkpoint.npz"
+
+
+class TrialLog(NamedTuple):
+    """What the engine keeps of one trial for every instance (leading axis B)."""
+
+    params: np.ndarray  # (B, 8) proposed parameters, physical units
+    context: np.ndarray  # (B, 2) measured [c_load N, c_slope rad]
+    objective: np.ndarray  # (B,) J for the trial's target
+    velocity_xy_mps: np.ndarray  # (B, 2) steady-phase mean
+    cot: np.ndarray  # (B,)
+    beta: np.ndarray  # (B,) β of the proposal
+    context_changed: np.ndarray  # (B,) whether the proposal used β_init,c
+    accepted: np.ndarray  # (B,) the optimizer stored the observation
+    roll_std_rad: np.ndarray
+    pitch_std_rad: np.ndarray
+    saturation_fraction: np.ndarray
+    energy_j: np.ndarray
+    distance_m: np.ndarray
+    total_mass_kg: np.ndarray
+    fell: np.ndarray
+    failed: np.ndarray
 
 
 class Checkpoint(NamedTuple):
@@ -29,7 +54,7 @@ class Checkpoint(NamedTuple):
     opt_leaves: list  # optimizer-state leaves (padded batch first)
     sim_leaves: list  # simulator-state leaves
     context: np.ndarray  # (B, 2) last measured context
-    logs: list  # TrialLog per completed trial
+    logs: list  # a TrialLog per completed trial
     wall_s: float
     timing: dict
 
@@ -41,8 +66,6 @@ def fingerprint(spec) -> str:
 
 def save_checkpoint(out_dir, spec, ckpt: Checkpoint) -> None:
     """Write ``out_dir/checkpoint.npz`` atomically (temporary file, fsync, rename)."""
-    from cpgjax.ablation import TrialLog
-
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     arrays = {f"opt_{i}": np.asarray(a) for i, a in enumerate(ckpt.opt_leaves)}
@@ -67,8 +90,6 @@ def load_checkpoint(out_dir, spec) -> Checkpoint | None:
     Raises:
       ValueError: the checkpoint belongs to a different study definition.
     """
-    from cpgjax.ablation import StudyError, TrialLog
-
     path = pathlib.Path(out_dir) / CHECKPOINT
     if not path.exists():
         return None
@@ -88,7 +109,6 @@ def load_checkpoint(out_dir, spec) -> Checkpoint | None:
 
 def trial_columns(result) -> dict[str, np.ndarray]:
     """One row per (instance, trial), instance-major: labels, conditions, parameters and trial figures."""
-    from cpgjax.trial import params as param_space
 
     tr, cond = result.trials, result.conditions
     n, batch = tr.objective.shape
@@ -181,11 +201,10 @@ def write_metadata(result, path, extra: dict | None = None) -> dict:
 # ----------------------------------------------------------------------------------------------- rerun
 
 def write_recording(result, path, rollouts: dict[str, Any] | None = None) -> pathlib.Path:
-    """A rerun ``.rrd``: per-instance trial curves on timeline ``trial``, and each rollout (a ``mjx_go1.StepLog``
+    """A rerun ``.rrd``: per-instance trial curves on timeline ``trial``, and each rollout (a ``protocol.StepLog``
     of one instance, arrays (T, ...)) on timeline ``step`` (1 ms ticks)."""
     import rerun as rr
 
-    from cpgjax.go1 import model as go1_model
 
     path = pathlib.Path(path)
     rec = rr.RecordingStream(f"cpgjax_{result.spec.name}")

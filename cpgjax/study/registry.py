@@ -27,12 +27,12 @@ from cpgjax import ablation
 from cpgjax.sim import backends
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
 from cpgjax.trial import objective
 from cpgjax.study import figures as study_figures
 from cpgjax.study import files as study_io
 from cpgjax.study.spec import Change, Schedule, StudySpec
 from cpgjax.study import spec as study_spec
+from cpgjax.trial import protocol
 
 DEFAULT_SEEDS = 5
 QUICK_SEEDS = 2
@@ -126,7 +126,7 @@ def evaluate(params: np.ndarray, controllers, scenario: go1_model.Scenario, tria
 
     Returns (velocity_x, CoT, J) arrays (B,)."""
     sim = backends.make_backend(scenario, backend, trial_config=trial_config)
-    gates = mjx_go1.batch_gates(list(controllers))
+    gates = protocol.batch_gates(list(controllers))
     state = sim.reset(params)
     for _ in range(settle_trials + 1):
         state, record = sim.trial(state, params, gates)
@@ -137,9 +137,9 @@ def evaluate(params: np.ndarray, controllers, scenario: go1_model.Scenario, tria
 
 
 def rollouts(params: np.ndarray, controllers, scenario, trial_config, backend: str, steps: int = 3000) -> list:
-    """Per-step logs (``mjx_go1.StepLog`` of NumPy (T, ...)) of fixed parameters after one settling trial."""
+    """Per-step logs (``protocol.StepLog`` of NumPy (T, ...)) of fixed parameters after one settling trial."""
     sim = backends.make_backend(scenario, backend, trial_config=trial_config)
-    gates = mjx_go1.batch_gates(list(controllers))
+    gates = protocol.batch_gates(list(controllers))
     state, _ = sim.trial(sim.reset(params), params, gates)
     _, log = sim.rollout(state, params, gates, steps)
     log = ablation.fetch(log)

@@ -16,9 +16,9 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
 from cpgjax.trial import params as param_space
 from cpgjax.optim import config as optimizer_config
+from cpgjax.trial import protocol
 
 CONDITION_FIELDS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
 SCHEDULE_FIELDS = CONDITION_FIELDS + ("inference",)
@@ -55,7 +55,8 @@ class StudySpec:
         an instance is one element of their product, in this order.
       group_by: instance labels whose combinations form the groups of the progress display and the summaries.
       trial: trial timing (static).
-      optimizer: the optimizer's static structure; ``None`` = :func:`optimizer_config.paper_config` with capacity ``num_trials``.
+      optimizer: the optimizer's static structure; ``None`` = :func:`optimizer_config.paper_config` with capacity
+        ``num_trials``.
     """
 
     name: str
@@ -69,7 +70,7 @@ class StudySpec:
     schedules: tuple[Schedule, ...] = (Schedule("constant"),)
     data_reuse: tuple[bool, ...] = (True,)
     group_by: tuple[str, ...] = ("controller",)
-    trial: mjx_go1.TrialConfig = mjx_go1.TrialConfig()
+    trial: protocol.TrialConfig = protocol.TrialConfig()
     optimizer: optimizer_config.OptimizerConfig | None = None
 
     def optimizer_config(self) -> optimizer_config.OptimizerConfig:

@@ -5,47 +5,26 @@ stored records (the paper's data reuse) by any caller, e.g. the optimizer, witho
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
 
-from cpgjax.go1.model import GRAVITY_MPS2
+from cpgjax.go1.constants import GRAVITY_MPS2
+from cpgjax.trial.protocol import TrialRecord
 
 VELOCITY_WEIGHT = 1.0  # w1
 COT_WEIGHT = 0.5  # w2
 MAX_VELOCITY_REWARD = 0.85  # l_r
 VELOCITY_KERNEL_WIDTH = 0.05  # [m²/s²], the 0.05 in eq. (9)
 STEADY_DT_S = 0.001  # Δt
-# decisions.md §10, degenerate trials: CoT divides by at least MIN_DISTANCE_M of forward progress (so standing
+# docs/decisions.md §10, degenerate trials: CoT divides by at least MIN_DISTANCE_M of forward progress (so standing
 # still or walking backwards gives a large CoT), and J is bounded below by MIN_OBJECTIVE; a fall or a non-finite
 # state gives exactly MIN_OBJECTIVE. Typical J of a walking gait is 1.5 … 2.3; the floor sits well below.
 MIN_DISTANCE_M = 0.05
 MIN_OBJECTIVE = -1.0
 
 
-class TrialRecord(NamedTuple):
-    """What one trial's 3 s steady phase leaves behind: enough to recompute J for any target velocity.
-
-    Leading batch axes are allowed on every field (one record per instance, per trial, ...).
-    """
-
-    velocity_xy_mps: jax.Array  # (T, 2) trunk velocity (v_x, v_y) in the heading frame, every step
-    energy_j: jax.Array  # Σ_i ⟨|τ_i|, |q̇_i|⟩ Δt, the numerator of eq. (10)
-    distance_m: jax.Array  # forward distance Σ v_x Δt along the heading
-    total_mass_kg: jax.Array  # robot + payload
-    c_load_n: jax.Array  # eq. (11), mean foot normal force [N]
-    c_slope_rad: jax.Array  # eq. (11), mean IMU pitch (nose-down positive)
-    roll_mean_rad: jax.Array
-    roll_std_rad: jax.Array
-    pitch_std_rad: jax.Array
-    saturation_fraction: jax.Array  # share of (tick, joint) torque commands clipped to the motor limit
-    fell: jax.Array  # 1.0 if the trunk fell during the trial (height or tilt threshold)
-    failed: jax.Array  # 1.0 if the simulation became non-finite (the instance was reset)
-
-
 def cost_of_transport(record: TrialRecord) -> jax.Array:
-    """CoT = Σ⟨|τ|, |q̇|⟩Δt / (m g d), eq. (10), with d ≥ MIN_DISTANCE_M (decisions.md §10)."""
+    """CoT = Σ⟨|τ|, |q̇|⟩Δt / (m g d), eq. (10), with d ≥ MIN_DISTANCE_M (docs/decisions.md §10)."""
     distance = jnp.maximum(record.distance_m, MIN_DISTANCE_M)
     return record.energy_j / (record.total_mass_kg * GRAVITY_MPS2 * distance)
 
@@ -60,7 +39,7 @@ def velocity_reward(record: TrialRecord, target_velocity_mps) -> jax.Array:
 
 def objective(record: TrialRecord, target_velocity_mps) -> jax.Array:
     """J of eq. (9) for target velocity v_x*, always finite and ≥ MIN_OBJECTIVE; MIN_OBJECTIVE after a fall or a
-    non-finite simulation (decisions.md §10)."""
+    non-finite simulation (docs/decisions.md §10)."""
     j = velocity_reward(record, target_velocity_mps) - COT_WEIGHT * cost_of_transport(record)
     degenerate = (record.fell > 0) | (record.failed > 0) | ~jnp.isfinite(j)
     return jnp.where(degenerate, MIN_OBJECTIVE, jnp.maximum(j, MIN_OBJECTIVE))

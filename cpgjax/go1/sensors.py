@@ -1,0 +1,49 @@
+"""The Go1's sensor model: what the robot's sensors report, computed from a simulator state.
+
+One definition for every simulator (MJX, C MuJoCo, the loopback simulated Go1): the controller's observation as the
+Go1's ``LowState`` reports it in SI units, and the simulator-side quantities the trial records (velocity in the heading
+frame, foot positions).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from cpgjax import cpg
+from cpgjax.go1 import attitude, kinematics
+from cpgjax.go1 import model as go1_model
+
+
+def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: jax.Array) -> cpg.Observation:
+    """The controller's observation computed as the Go1's sensors would report it.
+
+    IMU orientation relative to gravity (so a slope reads as pitch, docs/decisions.md §4), gyro in the trunk frame,
+    joint encoders, and each foot's contact normal force [N]. Works on MJX and C-MuJoCo arrays alike.
+    """
+    ids = go1_model.indices()
+    r = ids.root_qpos
+    quat_floor = qpos[r + 3:r + 7]
+    return cpg.Observation(
+        joint_pos_rad=qpos[ids.joint_qpos],
+        joint_vel_rad_s=qvel[ids.joint_dof],
+        imu_quat_wxyz=attitude.quat_mul(attitude.gravity_frame_quat(gravity), quat_floor),
+        gyro_rad_s=qvel[ids.root_dof + 3:ids.root_dof + 6],
+        foot_force_n=sensordata[ids.foot_force_sensor],
+    )
+
+
+def heading_velocity(qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+    """Trunk linear velocity (v_x, v_y) [m/s] in the heading (yaw-only) frame on the floor (docs/decisions.md §9)."""
+    ids = go1_model.indices()
+    yaw = attitude.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])[2]
+    return attitude.to_heading_frame(qvel[ids.root_dof:ids.root_dof + 2], yaw)
+
+
+def foot_positions(qpos: jax.Array) -> jax.Array:
+    """Foot-sphere centres (4, 3) [m] in the floor frame from qpos (the model's leg geometry is ``kinematics``)."""
+    ids = go1_model.indices()
+    r = ids.root_qpos
+    legs = kinematics.legs_fk(qpos[ids.joint_qpos].reshape(4, 3), jnp.asarray(kinematics.SIDE_SIGN, qpos.dtype))
+    return qpos[r:r + 3] + attitude.quat_rotate(qpos[r + 3:r + 7],
+                                                jnp.asarray(kinematics.HIP_POS_M, qpos.dtype) + legs)

@@ -1,0 +1,185 @@
+"""The paper's trial, one protocol for every backend and for the robot (paper Sec. "Implementation Details").
+
+A trial continues from the current state: ``transition_steps`` ticks (1.5 s) during which the parameters are
+interpolated linearly from the previous set to the new one (:func:`transition_params`), then ``steady_steps`` ticks
+(T = 3 s at 1 kHz) whose per-tick rows (:class:`Tick`: heading-frame velocity, power ⟨|τ|, |q̇|⟩, mean foot force,
+roll, pitch, clipped torques, fall, failure) are summarized into a :class:`TrialRecord` by :func:`summarize`; J, CoT
+and the context come from it (``cpgjax.trial.objective``). Trials run back to back; after a fall the instance is
+reset to standing (docs/decisions.md §8).
+
+Here live the backend-neutral pieces: the timing (:class:`TrialConfig`), the blend, the per-tick sums
+(:func:`pre_step` at control time, :func:`tick_row` after the physics step), the summary, the checks on parameters
+and gates, and the per-tick log format of fixed-parameter rollouts (:class:`StepLog`). ``cpgjax.mjx_go1`` and
+``cpgjax.sim.native`` run them in their own loops; the robot (``cpgjax.robot.trials``) computes its per-tick row with
+:func:`pre_step` in the compiled controller and summarizes with :func:`summarize`, keeping only what is really
+different there: wall-clock ticks and safety.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cpgjax import cpg
+from cpgjax.go1 import attitude, sensors
+from cpgjax.go1 import model as go1_model
+from cpgjax.trial import params as param_space
+
+
+class TrialConfig(NamedTuple):
+    """Trial timing and fall detection. Static: changing one recompiles."""
+
+    transition_steps: int = 1500  # 1.5 s at 1 kHz
+    steady_steps: int = 3000  # T
+    fall_height_m: float = 0.12  # trunk origin below this height above the floor = fall
+    fall_tilt_rad: float = 0.8  # |roll| or |pitch| relative to the floor beyond this = fall
+
+
+class TrialRecord(NamedTuple):
+    """What one trial's 3 s steady phase leaves behind: enough to recompute J for any target velocity.
+
+    Leading batch axes are allowed on every field (one record per instance, per trial, ...).
+    """
+
+    velocity_xy_mps: jax.Array  # (T, 2) trunk velocity (v_x, v_y) in the heading frame, every step
+    energy_j: jax.Array  # Σ_i ⟨|τ_i|, |q̇_i|⟩ Δt, the numerator of eq. (10)
+    distance_m: jax.Array  # forward distance Σ v_x Δt along the heading
+    total_mass_kg: jax.Array  # robot + payload
+    c_load_n: jax.Array  # eq. (11), mean foot normal force [N]
+    c_slope_rad: jax.Array  # eq. (11), mean IMU pitch (nose-down positive)
+    roll_mean_rad: jax.Array
+    roll_std_rad: jax.Array
+    pitch_std_rad: jax.Array
+    saturation_fraction: jax.Array  # share of (tick, joint) torque commands clipped to the motor limit
+    fell: jax.Array  # 1.0 if the trunk fell during the trial (height or tilt threshold)
+    failed: jax.Array  # 1.0 if the simulation became non-finite (the instance was reset)
+
+
+class Tick(NamedTuple):
+    """Per-tick quantities recorded during the steady phase."""
+
+    velocity_xy_mps: jax.Array  # (2,) heading frame
+    power_w: jax.Array  # ⟨|τ|, |q̇|⟩
+    load_n: jax.Array  # mean foot normal force
+    roll_rad: jax.Array
+    pitch_rad: jax.Array
+    saturated: jax.Array  # number of clipped joint torques
+    fell: jax.Array
+    failed: jax.Array
+
+
+class PreStep(NamedTuple):
+    """The half of a tick's record known at control time (before the physics step)."""
+
+    power_w: jax.Array  # ⟨|τ|, |q̇|⟩
+    load_n: jax.Array  # mean foot normal force
+    roll_rad: jax.Array
+    pitch_rad: jax.Array
+    saturated: jax.Array  # number of clipped joint torques
+
+
+def pre_step(obs: cpg.Observation, torque: jax.Array, diag: cpg.Diagnostics) -> PreStep:
+    """Record quantities of the state the controller saw and the torque it applied (shared by every backend)."""
+    return PreStep(power_w=jnp.sum(jnp.abs(torque) * jnp.abs(obs.joint_vel_rad_s)),
+                   load_n=jnp.mean(obs.foot_force_n), roll_rad=diag.rpy_rad[0], pitch_rad=diag.rpy_rad[1],
+                   saturated=jnp.sum(diag.saturated))
+
+
+def tick_row(trial_config: TrialConfig, pre: PreStep, qpos: jax.Array, qvel: jax.Array, failed: jax.Array) -> Tick:
+    """A tick's record from its pre-step half and the state after the step (and after a reset, if ``failed``).
+
+    Fall: trunk origin below ``fall_height_m`` or floor-frame |roll| or |pitch| above ``fall_tilt_rad``. A failed
+    tick contributes nothing to the sums (velocity, power, load, attitude are zeroed)."""
+    ids = go1_model.indices()
+    floor_rpy = attitude.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])
+    fell = ((qpos[ids.root_qpos + 2] < trial_config.fall_height_m)
+            | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
+            | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))
+    finite = jnp.where(failed, 0.0, 1.0)
+    return Tick(
+        velocity_xy_mps=finite * sensors.heading_velocity(qpos, qvel),
+        power_w=finite * pre.power_w,
+        load_n=finite * pre.load_n,
+        roll_rad=finite * pre.roll_rad,
+        pitch_rad=finite * pre.pitch_rad,
+        saturated=pre.saturated,
+        fell=fell.astype(jnp.float32),
+        failed=failed.astype(jnp.float32),
+    )
+
+
+def summarize(steady: Tick, total_mass_kg: jax.Array, dt_s: float, transition_fell: jax.Array,
+              transition_failed: jax.Array) -> TrialRecord:
+    """The trial record (eqs. 10-11 inputs, attitude statistics, flags) from the steady phase's ticks (T, ...);
+    a fall or failure during the transition counts for the trial too. Shared by every backend."""
+    steps = steady.power_w.shape[0]
+    return TrialRecord(
+        velocity_xy_mps=steady.velocity_xy_mps,
+        energy_j=jnp.sum(steady.power_w) * dt_s,
+        distance_m=jnp.sum(steady.velocity_xy_mps[:, 0]) * dt_s,
+        total_mass_kg=total_mass_kg,
+        c_load_n=jnp.mean(steady.load_n),
+        c_slope_rad=jnp.mean(steady.pitch_rad),
+        roll_mean_rad=jnp.mean(steady.roll_rad),
+        roll_std_rad=jnp.std(steady.roll_rad),
+        pitch_std_rad=jnp.std(steady.pitch_rad),
+        saturation_fraction=jnp.sum(steady.saturated) / (12.0 * steps),
+        fell=jnp.maximum(jnp.max(steady.fell), transition_fell),
+        failed=jnp.maximum(jnp.max(steady.failed), transition_failed),
+    )
+
+
+def transition_fraction(tick, transition_steps: int):
+    """The blend fraction (k + 1) / n of transition tick k (reaches 1 at the last transition tick)."""
+    return (tick + 1.0) / max(transition_steps, 1)
+
+
+def transition_params(previous, new, fraction):
+    """The linear parameter blend of the transition: previous + fraction · (new − previous). NumPy or JAX."""
+    return previous + fraction * (new - previous)
+
+
+def where_batch(mask, a, b):
+    """Pytree ``a`` where ``mask`` else ``b``, leaf by leaf; ``mask`` has the leading batch axes of every leaf
+    (a scalar mask selects whole trees) and is broadcast over the trailing axes."""
+    def one(x, y):
+        return jnp.where(jnp.reshape(mask, jnp.shape(mask) + (1,) * (jnp.ndim(x) - jnp.ndim(mask))), x, y)
+    return jax.tree.map(one, a, b)
+
+
+def check_params(params, batch_size: int) -> jax.Array:
+    """Validated parameters (batch_size, 8) as float32 (``params.validate``: range and finiteness per parameter)."""
+    arr = param_space.validate(params)
+    if arr.shape != (batch_size, param_space.NUM_PARAMS):
+        raise ValueError(f"params: expected shape ({batch_size}, {param_space.NUM_PARAMS}), got {arr.shape}")
+    return jnp.asarray(arr, jnp.float32)
+
+
+def check_gates(gates: cpg.Gates, batch_size: int) -> cpg.Gates:
+    """Gates broadcast to (batch_size,) float32 each."""
+    return cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (batch_size,)) for g in gates))
+
+
+def batch_gates(controllers) -> cpg.Gates:
+    """Gates (each (B,)) for a sequence of controller names (see ``cpg.CONTROLLERS``)."""
+    gates = [cpg.controller_gates(c) for c in controllers]
+    return cpg.Gates(vmc=np.array([g.vmc for g in gates]), tegotae=np.array([g.tegotae for g in gates]))
+
+
+class StepLog(NamedTuple):
+    """Per-tick log of a rollout with constant parameters (figures, recordings, backend comparisons); both backends
+    write it with these definitions."""
+
+    qpos: jax.Array  # (T, nq) floor frame
+    qvel: jax.Array  # (T, nv)
+    torque_nm: jax.Array  # (T, 12) applied joint torques
+    foot_force_n: jax.Array  # (T, 4)
+    foot_pos_m: jax.Array  # (T, 4, 3) foot centres, floor frame, of the state at the start of the tick (the step's
+    #                        kinematics), while qpos/qvel are the state after it
+    amplitude: jax.Array  # (T, 4) r_i
+    phase_rad: jax.Array  # (T, 4) θ_i
+    foot_target_m: jax.Array  # (T, 4, 3) leg-frame targets
+    rpy_rad: jax.Array  # (T, 3) IMU roll, pitch, yaw

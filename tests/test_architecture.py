@@ -1,0 +1,228 @@
+"""The layout of docs/architecture.md, checked on the source: layers, import cycles, where names are defined, and
+that every citation resolves inside the repository.
+
+The import graph is read with ``ast`` from every module of the package (imports inside functions included); the
+same check runs from the command line: ``python tests/test_architecture.py``.
+"""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+import re
+import subprocess
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "cpgjax"
+
+# docs/architecture.md: the layers, lowest first. A module may import modules of its own layer or of lower ones.
+LAYERS = (
+    ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.model")),
+    ("parameters and GP", ("trial.params", "gp")),
+    ("controller", ("cpg",)),
+    ("sensors and trial", ("go1.sensors", "trial.protocol", "trial.objective")),
+    ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
+    ("simulation", ("mjx_go1", "sim.native", "sim.backends", "sim.walk")),
+    ("studies", ("study.spec", "study.files", "study.figures", "ablation", "study.registry")),
+    ("robot", ("robot.protocol", "robot.transport", "robot.cpu_dispatch", "robot.foot_force", "robot.safety",
+               "robot.controller", "robot.sim_server", "hardware_io", "robot.trials", "robot.deploy",
+               "robot.calibrate")),
+    ("command line", ("cli",)),
+)
+TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli"}  # the design's modules and the entry point
+
+
+def module_files() -> dict[str, pathlib.Path]:
+    """Dotted module name below ``cpgjax`` (``""`` for the package) → file."""
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(PACKAGE).with_suffix("").parts
+        out[".".join(p for p in parts if p != "__init__")] = path
+    return out
+
+
+def _resolve(name: str, modules) -> str | None:
+    """The cpgjax module a dotted import target names (a name imported from a module counts as that module)."""
+    if name == "cpgjax":
+        return ""
+    if not name.startswith("cpgjax."):
+        return None
+    name = name[len("cpgjax."):]
+    while name and name not in modules:
+        name = name.rpartition(".")[0]
+    return name
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module → the cpgjax modules it imports (at any depth of the file)."""
+    modules = module_files()
+    graph = {}
+    for name, path in modules.items():
+        edges = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets = [f"{node.module}.{a.name}" for a in node.names]
+            else:
+                continue
+            edges |= {t for t in (_resolve(x, modules) for x in targets) if t is not None and t != name}
+        graph[name] = edges - {""}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every strongly connected component of more than one module (Tarjan)."""
+    index, low, stack, on_stack, found = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def layer_of() -> dict[str, int]:
+    return {module: rank for rank, (_, members) in enumerate(LAYERS) for module in members}
+
+
+def test_every_module_has_a_layer():
+    modules = {m for m in module_files() if m}
+    packages = {m for m in modules if (PACKAGE / m.replace(".", "/") / "__init__.py").exists()}
+    modules -= packages
+    assert sorted(modules - set(layer_of())) == []
+    assert sorted(set(layer_of()) - modules) == []
+
+
+def test_top_level_holds_the_design_modules_only():
+    top = {p.stem for p in PACKAGE.glob("*.py")} - {"__init__"}
+    assert top == TOP_LEVEL
+
+
+def test_no_import_cycles():
+    assert cycles(import_graph()) == []
+
+
+def test_lower_layers_never_import_higher_ones():
+    rank = layer_of()
+    upward = [f"{a} ({LAYERS[rank[a]][0]}) imports {b} ({LAYERS[rank[b]][0]})"
+              for a, targets in import_graph().items() if a in rank
+              for b in sorted(targets) if b in rank and rank[b] > rank[a]]
+    assert upward == []
+
+
+def test_every_module_imports_in_a_fresh_interpreter():
+    names = [f"cpgjax.{m}" if m else "cpgjax" for m in module_files()]
+    code = "import importlib\nfor n in %r:\n    importlib.import_module(n)\nprint('ok')" % names
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT,
+                         env={"JAX_PLATFORMS": "cpu", "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
+
+
+def _defined_names(path: pathlib.Path) -> set[str]:
+    """Names a module defines at its top level (functions, classes, assignments), not the ones it imports."""
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign, ast.AugAssign)):
+            for target in (node.targets if isinstance(node, ast.Assign) else [node.target]):
+                names |= {n.id for n in ast.walk(target) if isinstance(n, ast.Name)}
+    return names
+
+
+def _source_files():
+    for folder in ("cpgjax", "tests", "benchmarks", "studies"):
+        yield from sorted((ROOT / folder).rglob("*.py"))
+
+
+def test_names_are_used_from_the_module_that_defines_them():
+    """No re-export: ``from cpgjax.m import name`` and ``alias.name`` (alias bound to a cpgjax module) name something
+    ``m`` itself defines, or one of its submodules."""
+    modules = module_files()
+    defined = {m: _defined_names(p) for m, p in modules.items()}
+    wrong = []
+    for path in _source_files():
+        tree = ast.parse(path.read_text())
+        aliases = {}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("cpgjax") \
+                    and node.level == 0:
+                source = _resolve(node.module, modules)
+                for a in node.names:
+                    sub = f"{source}.{a.name}" if source else a.name
+                    if sub in modules:
+                        aliases[a.asname or a.name] = sub
+                    elif a.name not in defined[source]:
+                        wrong.append(f"{path.relative_to(ROOT)}:{node.lineno} imports {a.name} from cpgjax.{source}")
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases:
+                module = aliases[node.value.id]
+                if node.attr not in defined[module] and f"{module}.{node.attr}" not in modules:
+                    wrong.append(f"{path.relative_to(ROOT)}:{node.lineno} uses {node.value.id}.{node.attr}, "
+                                 f"not defined in cpgjax.{module}")
+    assert wrong == []
+
+
+# A citation of the project's own record: docs/<file>.md, optionally followed by §<number>.
+_DOC_CITATION = re.compile(r"docs/([\w.-]+\.md)(?:\s*§\s*(\d+(?:\.\d+)?))?")
+# The brief's file names, which exist only outside the repository.
+_OUTSIDE = re.compile(r"(?<![\w/])(?:decisions|go1-sdk|go1-model|controller|bayesopt|mjx-and-style)\.md|paper\.tex"
+                      r"|\.\./shared")
+
+
+def _cited_files():
+    yield from _source_files()
+    yield from sorted((ROOT / "docs").glob("*.md"))
+    yield ROOT / "README.md"
+    yield ROOT / "benchmarks" / "RESULTS.md"
+
+
+def _sections(doc: pathlib.Path) -> set[str]:
+    return set(re.findall(r"^#+ .*?§\s*(\d+(?:\.\d+)?)", doc.read_text(), flags=re.M))
+
+
+def test_every_citation_resolves_inside_the_repository():
+    problems = []
+    for path in _cited_files():
+        text = path.read_text()
+        in_docs = path.parent == ROOT / "docs"
+        for m in _DOC_CITATION.finditer(text):
+            doc = ROOT / "docs" / m.group(1)
+            if not doc.exists():
+                problems.append(f"{path.relative_to(ROOT)}: {m.group(0)} (no such file)")
+            elif m.group(2) and m.group(2) not in _sections(doc):
+                problems.append(f"{path.relative_to(ROOT)}: {m.group(0)} (no such section)")
+        for m in _OUTSIDE.finditer(text):
+            name = m.group(0)
+            # inside docs/, a bare sibling name is a relative link to the file beside it
+            if in_docs and name.endswith(".md") and (ROOT / "docs" / name).exists():
+                continue
+            problems.append(f"{path.relative_to(ROOT)}: cites {name}, which is not in the repository")
+    assert problems == []
+
+
+if __name__ == "__main__":
+    graph = import_graph()
+    print(f"{len(graph)} modules, {sum(map(len, graph.values()))} import arrows, cycles: {cycles(graph) or 'none'}")
