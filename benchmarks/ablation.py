@@ -28,9 +28,8 @@ cpu_dispatch.request_inline()  # before any JAX computation
 
 import jax  # noqa: E402
 
-from cpgjax import ablation
+from cpgjax import ablation, cpg
 from cpgjax.sim import backends
-from cpgjax import cpg
 from cpgjax.study import files as study_io
 from cpgjax.study import registry as studies  # noqa: E402
 

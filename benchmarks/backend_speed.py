@@ -24,12 +24,11 @@ import time
 import jax
 import numpy as np
 
-from cpgjax import cpg
+from cpgjax import cpg, mjx_go1
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
 from cpgjax.sim import native as native_go1
-from cpgjax.trial import params as param_space
 from cpgjax.study import files as study_io
+from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
 ABLATION_TRIALS = 40

@@ -61,8 +61,8 @@ from gpytorch.priors import GammaPrior  # noqa: E402
 from scipy.stats import mannwhitneyu  # noqa: E402
 
 from cpgjax.optim import bo
-from cpgjax.study import files as study_io  # noqa: E402
 from cpgjax.optim import config as optimizer_config
+from cpgjax.study import files as study_io  # noqa: E402
 
 torch.set_num_threads(1)
 warnings.filterwarnings("ignore")  # BoTorch's input-scaling and numerical notices

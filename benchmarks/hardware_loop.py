@@ -35,15 +35,14 @@ import time
 import numpy as np
 
 from cpgjax import cpg
-from cpgjax.robot import cpu_dispatch
-from cpgjax.robot import deploy
-from cpgjax.trial import params
-from cpgjax.study import files as study_io
 from cpgjax import hardware_io as hio
-from cpgjax.robot import sim_server as sim
 from cpgjax.robot import controller as compiled_controller
+from cpgjax.robot import cpu_dispatch, deploy
 from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
+from cpgjax.study import files as study_io
+from cpgjax.trial import params
 
 
 def cpu_stalls_us(seconds: float, cpu: int | None, priority: int | None, min_gap_us: float = 200.0) -> np.ndarray:

@@ -26,13 +26,13 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from backend_speed import trial_speed  # benchmarks/ is the script's directory
 from mujoco import mjx
 
-from backend_speed import trial_speed  # benchmarks/ is the script's directory
-from cpgjax.go1 import model as go1_model
 from cpgjax import mjx_go1
-from cpgjax.trial import params as param_space
+from cpgjax.go1 import model as go1_model
 from cpgjax.study import files as study_io
+from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
 

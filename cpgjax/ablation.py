@@ -37,15 +37,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from cpgjax.sim import backends
-from cpgjax.optim import bo
 from cpgjax.go1 import model as go1_model
-from cpgjax.trial import objective
-from cpgjax.trial import params as param_space
+from cpgjax.optim import bo
+from cpgjax.sim import backends
 from cpgjax.study import files as study_io
-from cpgjax.study.spec import (
-    Conditions, StudySpec, instances, validate)
-from cpgjax.trial import protocol
+from cpgjax.study.spec import Conditions, StudySpec, instances, validate
+from cpgjax.trial import objective, protocol
+from cpgjax.trial import params as param_space
 
 log = logging.getLogger(__name__)
 

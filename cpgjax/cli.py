@@ -11,14 +11,10 @@ import shutil
 import subprocess
 import sys
 
-from cpgjax import ablation
-from cpgjax import cpg
-from cpgjax.robot import calibrate
-from cpgjax.robot import cpu_dispatch
-from cpgjax.robot import deploy
+from cpgjax import ablation, cpg
+from cpgjax.robot import calibrate, cpu_dispatch, deploy
 from cpgjax.robot import transport as go1_transport
-from cpgjax.sim import backends
-from cpgjax.sim import walk
+from cpgjax.sim import backends, walk
 from cpgjax.study import files as study_io
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec

@@ -7,9 +7,9 @@ checked *before* encoding, the SDK's power protection rule, tilt stop, stale-sta
 non-finite command guard, motor temperature limit, and a clean shutdown to damping on Ctrl-C. Every trip is logged
 with its reason and latches damping.
 
-The pieces it drives live in their own modules and are re-exported here (``hardware_io.X`` keeps working):
-transports (:mod:`cpgjax.robot.transport`), the foot-force calibration (:mod:`cpgjax.robot.foot_force`), the compiled
-controller and its flat layout (:mod:`cpgjax.robot.controller`) and the safety layer (:mod:`cpgjax.robot.safety`).
+The pieces it drives live in their own modules: transports (:mod:`cpgjax.robot.transport`), the foot-force
+calibration (:mod:`cpgjax.robot.foot_force`), the compiled controller and its flat layout
+(:mod:`cpgjax.robot.controller`) and the safety layer (:mod:`cpgjax.robot.safety`).
 """
 
 from __future__ import annotations
@@ -28,16 +28,27 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD
 from cpgjax.robot import protocol as proto
 from cpgjax.robot.controller import (
-    IN_SIZE, OBS_SIZE, OUT_STATE, OUT_TORQUE,
-    CompiledController, pack_observation)
+    IN_SIZE,
+    OBS_SIZE,
+    OUT_STATE,
+    OUT_TORQUE,
+    CompiledController,
+    pack_observation,
+)
 from cpgjax.robot.foot_force import FootForceCalibration
 from cpgjax.robot.safety import (
-    JOINT_LOWER_RAD, JOINT_UPPER_RAD, SafetyConfig, damping_command, guard_command, pd_command,
-    power_protect, state_trip_reason, torque_command)
-from cpgjax.robot.transport import (
-    Transport)
+    SafetyConfig,
+    damping_command,
+    guard_command,
+    pd_command,
+    power_protect,
+    state_trip_reason,
+    torque_command,
+)
+from cpgjax.robot.transport import Transport
 
 log = logging.getLogger(__name__)
 

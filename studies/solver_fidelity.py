@@ -22,9 +22,8 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native as native_go1
-from cpgjax.trial import objective
+from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
-from cpgjax.trial import protocol
 
 SOLVERS = {"model (2, 6)": (2, 6), "1 iteration, 6 ls": (1, 6), "1 iteration, 4 ls": (1, 4),
            "converged (100, 50)": (100, 50)}

@@ -20,11 +20,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from cpgjax import cpg
+from cpgjax import cpg, mjx_go1
+from cpgjax.go1 import constants
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
-from cpgjax.trial import params as param_space
 from cpgjax.sim import walk  # noqa: E402
+from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
 
@@ -35,7 +35,7 @@ def gait_figure(path: pathlib.Path, controller: str = "vmc_tegotae", seconds: fl
     _, log = sim.rollout(sim.reset(p), p, protocol.batch_gates([controller]), steps)
     t = np.arange(steps) * 1e-3
     window = t >= seconds - 0.6  # the last 0.6 s: a few gait cycles after the amplitude has converged
-    legs = go1_model.kinematics.LEG_NAMES
+    legs = constants.LEG_NAMES
     fig, axes = plt.subplots(2, 2, figsize=(11, 7))
     ax = axes[0, 0]
     for i, leg in enumerate(legs):

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from cpgjax.go1 import model as go1_model
 from cpgjax import mjx_go1
+from cpgjax.go1 import model as go1_model
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 

@@ -17,18 +17,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax import ablation
-from cpgjax.optim import acquisition
-from cpgjax.optim import bo
-from cpgjax import gp
-from cpgjax.sim import native as native_go1
-from cpgjax.trial import objective
-from cpgjax.trial import params as param_space
-from cpgjax.study import files as study_io
-from cpgjax.study.spec import Change, Schedule, StudyError, StudySpec
+from cpgjax import ablation, gp
+from cpgjax.optim import acquisition, bo
 from cpgjax.optim import config as optimizer_config
+from cpgjax.sim import native as native_go1
+from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
-from cpgjax.trial import protocol
+from cpgjax.study.spec import Change, Schedule, StudyError, StudySpec
+from cpgjax.trial import objective, protocol
+from cpgjax.trial import params as param_space
 
 TRIAL = protocol.TrialConfig(transition_steps=100, steady_steps=200)
 TRIALS = 5

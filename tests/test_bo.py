@@ -8,12 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax.optim import black_box
-from cpgjax.optim import bo
 from cpgjax import gp
-from cpgjax.optim.acquisition import AcquisitionConfig
+from cpgjax.optim import black_box, bo, exploration
 from cpgjax.optim import config as optimizer_config
-from cpgjax.optim import exploration
+from cpgjax.optim.acquisition import AcquisitionConfig
 
 SMALL = optimizer_config.paper_config(capacity=12, fit=gp.FitConfig(30, 0.2),
                         acquisition=AcquisitionConfig(128, 4, 15, 0.05))

@@ -6,11 +6,9 @@ import numpy as np
 import pytest
 
 from cpgjax import cpg
-from cpgjax.go1 import kinematics
+from cpgjax.go1 import attitude, constants, kinematics
 from cpgjax.trial import params as param_space
 from tests import numpy_reference as ref
-from cpgjax.go1 import attitude
-from cpgjax.go1 import constants
 
 RNG = np.random.default_rng(0)
 

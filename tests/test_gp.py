@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax.optim import acquisition
 from cpgjax import gp
+from cpgjax.optim import acquisition
 
 CONTEXT_DIMS = 2
 

@@ -19,20 +19,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpgjax import cli
-from cpgjax import cpg
-from cpgjax.robot import deploy
-from cpgjax.trial import params
-from cpgjax.robot import protocol as proto
+from cpgjax import cli, cpg
 from cpgjax import hardware_io as hio
-from cpgjax.robot import sim_server as sim
+from cpgjax.go1 import constants
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import foot_force
+from cpgjax.robot import deploy, foot_force
+from cpgjax.robot import protocol as proto
 from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.robot import trials as robot_trials
-from cpgjax.go1 import constants
-from cpgjax.trial import protocol
+from cpgjax.trial import params, protocol
 
 GATES = cpg.controller_gates("vmc_tegotae")
 # Short soft start; a watchdog long enough for a loaded CI machine (the stale-state test shortens it).

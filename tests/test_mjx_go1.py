@@ -13,12 +13,10 @@ import numpy as np
 import pytest
 
 from cpgjax import cpg
+from cpgjax.go1 import constants, sensors
 from cpgjax.go1 import model as go1_model
-from cpgjax.trial import objective
+from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
-from cpgjax.go1 import constants
-from cpgjax.go1 import sensors
-from cpgjax.trial import protocol
 
 
 def test_model_names_and_mass():

@@ -12,14 +12,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from cpgjax.sim import backends
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
+from cpgjax.sim import backends
 from cpgjax.sim import native as native_go1
-from cpgjax.trial import objective
+from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
 from tests.conftest import SCENARIOS, SHORT_TRIAL
-from cpgjax.trial import protocol
 
 NOMINAL, HEAVY, UPHILL, SLIPPERY, COARSE = 0, 1, 2, 3, 4
 # Instances whose gait is well conditioned with the mid-box parameters (no slipping, no marginal balance): here the

@@ -9,15 +9,12 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from cpgjax import ablation
-from cpgjax import cli
-from cpgjax import cpg
-from cpgjax.trial import params as param_space
+from cpgjax import ablation, cli, cpg
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
-from tests.test_ablation import small_optimizer
+from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
-
+from tests.test_ablation import small_optimizer
 
 # ----------------------------------------------------------------------------------------------- specifications
 

@@ -15,7 +15,6 @@ import numpy as np
 
 from cpgjax.go1 import constants, kinematics
 
-
 MODEL_FILE = "go1.xml"
 JOINT_NAMES = tuple(f"{leg}_{part}_joint" for leg in constants.LEG_NAMES for part in constants.JOINT_PARTS)
 FOOT_SENSOR_NAMES = tuple(f"{leg}_foot_force" for leg in constants.LEG_NAMES)

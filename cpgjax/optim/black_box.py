@@ -17,8 +17,8 @@ import numpy as np
 from cpgjax import gp
 from cpgjax.optim.acquisition import AcquisitionConfig
 from cpgjax.optim.bo import ContextualBO, make_optimizer
-from cpgjax.optim.exploration import BetaSchedule
 from cpgjax.optim.config import OptimizerConfig
+from cpgjax.optim.exploration import BetaSchedule
 
 
 @functools.lru_cache(maxsize=16)

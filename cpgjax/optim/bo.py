@@ -53,8 +53,13 @@ from cpgjax.optim.acquisition import (
     ucb_multiplier,
     upper_confidence_bound,
 )
-from cpgjax.optim.exploration import BetaInfo, BetaSchedule, exploration_beta, paper_schedule
 from cpgjax.optim.config import OptimizerConfig
+from cpgjax.optim.exploration import (
+    BetaInfo,
+    BetaSchedule,
+    exploration_beta,
+    paper_schedule,
+)
 
 __all__ = [
     "BOX_TOLERANCE", "ContextualBO", "OptimizerState", "make_optimizer",

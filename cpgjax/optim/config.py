@@ -14,8 +14,8 @@ import dataclasses
 import numpy as np
 
 from cpgjax import gp
-from cpgjax.trial import params as param_space
 from cpgjax.optim.acquisition import UCB_FORMS, AcquisitionConfig
+from cpgjax.trial import params as param_space
 
 PAPER_CONTEXT_LOWER = (15.0, -0.4)
 PAPER_CONTEXT_UPPER = (75.0, 0.1)

@@ -20,8 +20,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from cpgjax import hardware_io as hio
-from cpgjax.robot import deploy
-from cpgjax.robot import foot_force
+from cpgjax.robot import deploy, foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
 

@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import cpg
-from cpgjax.robot import cpu_dispatch
 from cpgjax.go1 import attitude, kinematics
+from cpgjax.robot import cpu_dispatch
 from cpgjax.robot import protocol as proto
 from cpgjax.robot.foot_force import FootForceCalibration
 from cpgjax.trial import protocol

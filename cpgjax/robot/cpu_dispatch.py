@@ -19,7 +19,9 @@ def request_inline() -> bool:
     start. Called after JAX has computed anything it returns False (unless the setting was already off): the client
     keeps dispatching asynchronously. Process-wide.
     """
-    from jax._src import xla_bridge  # no public API tells whether the CPU client exists yet
+    from jax._src import (
+        xla_bridge,  # no public API tells whether the CPU client exists yet
+    )
 
     was_inline = not jax.config.read("jax_cpu_enable_async_dispatch")
     jax.config.update("jax_cpu_enable_async_dispatch", False)

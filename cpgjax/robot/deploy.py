@@ -15,16 +15,14 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax import hardware_io as hio
 from cpgjax.go1 import model as go1_model
-from cpgjax.trial import params as param_space
-from cpgjax.trial import protocol
-from cpgjax.robot.trials import (
-    OptimizerSpec, load_params,
-    online_optimization)
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
+from cpgjax.robot.trials import OptimizerSpec, load_params, online_optimization
+from cpgjax.trial import params as param_space
+from cpgjax.trial import protocol
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,6 @@ from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD, TORQUE_LIMIT_
 from cpgjax.robot import protocol as proto
 
 
-
 class SafetyConfig(NamedTuple):
     """Limits of the safety layer. Each trip latches damping and is logged with its reason."""
 

@@ -27,12 +27,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import hardware_io as hio
-from cpgjax.trial import objective, protocol
-from cpgjax.trial import params as param_space
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import safety as go1_safety
+from cpgjax.trial import objective, protocol
+from cpgjax.trial import params as param_space
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
 _SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")

@@ -13,9 +13,8 @@ import argparse
 
 import jax
 
-from cpgjax import cpg
+from cpgjax import cpg, mjx_go1
 from cpgjax.go1 import model as go1_model
-from cpgjax import mjx_go1
 from cpgjax.sim import native as native_go1
 from cpgjax.trial import protocol
 

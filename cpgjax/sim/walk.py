@@ -15,9 +15,8 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import backends
-from cpgjax.trial import objective
+from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
-from cpgjax.trial import protocol
 
 
 class WalkRow(NamedTuple):

@@ -23,16 +23,14 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from cpgjax import ablation
-from cpgjax.sim import backends
-from cpgjax import cpg
+from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax.trial import objective
+from cpgjax.sim import backends
 from cpgjax.study import figures as study_figures
 from cpgjax.study import files as study_io
-from cpgjax.study.spec import Change, Schedule, StudySpec
 from cpgjax.study import spec as study_spec
-from cpgjax.trial import protocol
+from cpgjax.study.spec import Change, Schedule, StudySpec
+from cpgjax.trial import objective, protocol
 
 DEFAULT_SEEDS = 5
 QUICK_SEEDS = 2

@@ -16,8 +16,8 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax.trial import params as param_space
 from cpgjax.optim import config as optimizer_config
+from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
 CONDITION_FIELDS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
