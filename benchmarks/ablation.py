@@ -5,6 +5,7 @@ baseline (1×: Gazebo / the robot run in real time, ≈ 1 hour for this study).
     python benchmarks/ablation.py                   # the full study (engine only: no figures or rollouts)
     python benchmarks/ablation.py --quick           # 4 controllers × 5 seeds × 4 trials (< 2 min on 2 CPU cores)
     python benchmarks/ablation.py --sweep 1000      # ≥ 1,000 instances × 40 trials (GPU: --backend mjx)
+    python benchmarks/ablation.py --physics soft,paper,go1   # the study once per physics profile (ratios vs first)
 
 Target (issue 4): full study ≤ 5 minutes on 2 CPU cores, i.e. a real-time factor ≥ 12×. Reports env-steps/s, the
 real-time factor and where the time goes (simulation, optimizer = propose + observe incl. GP refits, host
@@ -14,6 +15,7 @@ transfers, checkpoints). The last line of the output is a JSON object of the fig
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -39,8 +41,23 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--sweep", type=int, default=0, help="instances (4 controllers × seeds) instead of 20")
     parser.add_argument("--trials", type=int, default=None)
+    parser.add_argument("--physics", default=None, help="comma list of physics profiles, one run each, wall-time "
+                        "ratios against the first (default: the study's own, paper)")
     backends.add_backend_argument(parser)
     args = parser.parse_args()
+    if args.physics:
+        walls = {}
+        for name in args.physics.split(","):
+            walls[name] = run_once(args, name)
+        first = next(iter(walls))
+        print(json.dumps({"benchmark": "ablation_profiles", **{f"study_wall_s_{k}": v for k, v in walls.items()},
+                          **{f"wall_ratio_{k}_vs_{first}": round(v / walls[first], 3) for k, v in walls.items()}}))
+        return
+    run_once(args, None)
+
+
+def run_once(args, physics: str | None) -> float:
+    """One study run (the physics profile replaced when given); prints its figures, returns its study wall time."""
     if args.sweep:
         seeds = -(-args.sweep // len(cpg.CONTROLLERS))
         spec = studies.ablation_spec(seeds=seeds, trials=args.trials or 40)
@@ -51,6 +68,8 @@ def main() -> None:
     else:
         spec = studies.ablation_spec(trials=args.trials)
         mode = "full"
+    if physics is not None:
+        spec = dataclasses.replace(spec, physics=(physics,))
     t0 = time.perf_counter()
     engine = ablation.Engine(spec, backend=args.backend)
     last = [None]
@@ -73,9 +92,10 @@ def main() -> None:
         real_time_factor=fig["real_time_factor"], paper_baseline_real_time_factor=1.0,
         simulation_s=fig["simulation_s"], optimizer_s=fig["optimizer_s"], propose_s=fig["propose_s"],
         observe_s=fig["observe_s"], transfer_s=fig["transfer_s"],
-        checkpoint_s=fig["checkpoint_s"],
+        checkpoint_s=fig["checkpoint_s"], physics=spec.physics[0],
         load_avg_1min_end=round(os.getloadavg()[0], 2), jax=jax.__version__)
     print(json.dumps(summary))
+    return fig["wall_s"]
 
 
 if __name__ == "__main__":

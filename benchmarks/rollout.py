@@ -9,6 +9,10 @@ contacts. The three are timed in interleaved rounds (best of each).
 
     python benchmarks/rollout.py            # full: batch 1, 4, 16, 64, 256; one device and every core
     python benchmarks/rollout.py --quick    # under 2 minutes on a 2-core CPU
+    python benchmarks/rollout.py --profiles soft,paper,go1 [--quick]   # only: each physics profile's cost
+
+``--profiles`` times the closed-loop trial (MJX, batch 16 on every device, and the native backend) under each physics
+profile (docs/physics.md) in interleaved rounds, as ratios against the first profile of the list in the same run.
 
 On a CPU, XLA runs one device's program on one thread, so the batch is sharded over one host device per core
 (``jax_num_cpu_devices``, ``--cpu-devices``); the full run also measures the one-device layout. The last line of the
@@ -31,6 +35,7 @@ from mujoco import mjx
 
 from cpgjax import mjx_go1
 from cpgjax.go1 import model as go1_model
+from cpgjax.sim import native as native_go1
 from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
@@ -106,6 +111,35 @@ def measure(batch: int, steps: int, repeats: int, devices: list) -> dict:
             "replay_max_abs_qpos_diff": replay_diff}
 
 
+def profile_costs(profiles: list[str], batch: int, steps: int, repeats: int) -> dict:
+    """Closed-loop env-steps/s per physics profile on MJX (every device) and on the native backend, timed in
+    interleaved rounds; ratios against ``profiles[0]``."""
+    transition = steps // 4
+    config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
+    p = np.tile(param_space.midpoint(), (batch, 1))
+    gates = protocol.batch_gates(["vmc_tegotae"] * batch)
+    runs = {}
+    for name in profiles:
+        scenario = go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=name)
+        for kind, sim in (("mjx", mjx_go1.MJXBackend(scenario, trial_config=config)),
+                          ("native", native_go1.NativeBackend(scenario, trial_config=config))):
+            def run(sim=sim):
+                state = jax.block_until_ready(sim.reset(p))
+                t0 = time.perf_counter()
+                jax.block_until_ready(sim.trial(state, p, gates)[1])
+                return time.perf_counter() - t0
+            run()  # compiles
+            runs[f"{kind}:{name}"] = run
+    best = _interleaved_best(runs, repeats)
+    out = {}
+    for kind in ("mjx", "native"):
+        base = best[f"{kind}:{profiles[0]}"]
+        for name in profiles:
+            out[f"{kind}_{name}_env_steps_per_s"] = round(batch * steps / best[f"{kind}:{name}"])
+            out[f"{kind}_{name}_time_ratio_vs_{profiles[0]}"] = round(best[f"{kind}:{name}"] / base, 3)
+    return out
+
+
 def c_mujoco(steps: int) -> float:
     """Single-threaded C MuJoCo, one instance, constant control: env-steps/s."""
     m = go1_model.load_model()
@@ -140,11 +174,27 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="env steps per instance per timed run")
     parser.add_argument("--cpu-devices", type=int, default=os.cpu_count(),
                         help="host devices on a CPU (default: one per core)")
+    parser.add_argument("--profiles", help="comma list of physics profiles: time only their closed loops (ratios "
+                        "against the first)")
     args = parser.parse_args()
     jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
     batches = args.batch_sizes or ([16] if args.quick else [1, 4, 16, 64, 256])
     steps = args.steps or (400 if args.quick else 2000)
     repeats = 2 if args.quick else 3
+    if args.profiles:
+        profiles = args.profiles.split(",")
+        figures = {"benchmark": "rollout_profiles", "machine": study_io.machine(), "batch": batches[0],
+                   "steps_per_instance": steps, "repeats": repeats, "num_devices": len(jax.devices()),
+                   **profile_costs(profiles, batches[0], steps, repeats)}
+        print("| profile | MJX closed loop [env-steps/s] | time vs " + profiles[0] + " | native closed loop "
+              "[env-steps/s] | time vs " + profiles[0] + " |\n|---|---|---|---|---|")
+        for name in profiles:
+            print(f"| {name} | {figures[f'mjx_{name}_env_steps_per_s']:,} | "
+                  f"{figures[f'mjx_{name}_time_ratio_vs_{profiles[0]}']:.2f}× | "
+                  f"{figures[f'native_{name}_env_steps_per_s']:,} | "
+                  f"{figures[f'native_{name}_time_ratio_vs_{profiles[0]}']:.2f}× |")
+        print(json.dumps(figures))
+        return
 
     device = jax.devices()[0]
     print(f"# devices: {len(jax.devices())} x {device.platform} {device.device_kind}; host: {study_io.machine()}; "

@@ -39,6 +39,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cpgjax.go1 import model as go1_model
 from cpgjax.optim import bo
+from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import backends
 from cpgjax.study import files as study_io
 from cpgjax.study.spec import Conditions, StudySpec, instances, validate
@@ -188,12 +189,13 @@ class Engine:
         controllers = _pad(np.array([lab["controller"] for lab in self.labels]), size)
         self.gates = protocol.batch_gates(controllers.tolist())
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
+        self.physics = _pad(np.array([lab["physics"] for lab in self.labels]), size)
         self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
         self.active = np.ones((size, param_space.NUM_PARAMS), bool)
         self.active[:, param_space.SIGMA_N_INDEX] = self.gates.tegotae > 0  # docs/decisions.md §13
         targets = self.padded.target_velocity_mps
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
-        config = spec.optimizer_config()
+        config = self.optimizer_config = spec.optimizer_config()
         self.optimizer = (bo.make_optimizer(config, objective.objective, _record_template(spec.trial))
                           if self.uses_records else bo.make_optimizer(config))
         opt = self.optimizer
@@ -215,7 +217,8 @@ class Engine:
 
     def scenario(self, trial: int) -> go1_model.Scenario:
         c = self.padded
-        return go1_model.make_scenarios(c.friction[:, trial], c.slope_deg[:, trial], c.payload_kg[:, trial])
+        return go1_model.make_scenarios(c.friction[:, trial], c.slope_deg[:, trial], c.payload_kg[:, trial],
+                                        self.physics, c.mass_scale[:, trial], c.latency_ticks[:, trial])
 
     def simulator(self, trial: int):
         """The backend for trial ``trial``'s scenario; rebuilt (reusing its compiled code where the backend
@@ -233,7 +236,7 @@ class Engine:
         return self._init(self.placement.put(self.active), self.placement.put(targets))
 
     def initial_context(self) -> np.ndarray:
-        config = self.spec.optimizer_config()
+        config = self.optimizer_config
         mid = 0.5 * (np.asarray(config.context_lower) + np.asarray(config.context_upper))
         return np.tile(mid, (self.placement.padded_size, 1)).astype(np.float32)
 
@@ -313,10 +316,11 @@ class Engine:
             rec = fetch(record)
             target = self.padded.target_velocity_mps[:, t].astype(np.float32)
             j, new_context, velocity, cot = fetch(self._summary(rec, target))
+            gp_context = self._clip_context(t, new_context)
             record_d, x_d = put(rec), put(x.astype(np.float32))
         with _timed(timing, "observe_s", "optimizer_s"):
             observation = record_d if self.uses_records else put(j)
-            opt_state, accepted = self._observe(opt_state, x_d, put(new_context), observation)
+            opt_state, accepted = self._observe(opt_state, x_d, put(gp_context), observation)
             accepted = jax.block_until_ready(accepted)
         trial_log = study_io.TrialLog(
             params=x, context=new_context, objective=j, velocity_xy_mps=velocity, cot=cot, beta=fetch(beta.beta),
@@ -324,8 +328,18 @@ class Engine:
             roll_std_rad=rec.roll_std_rad, pitch_std_rad=rec.pitch_std_rad,
             saturation_fraction=rec.saturation_fraction, energy_j=rec.energy_j, distance_m=rec.distance_m,
             total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed)
-        return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(new_context, np.float32),
+        return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(gp_context, np.float32),
                             logs=run.logs + [trial_log])
+
+    def _clip_context(self, trial: int, context: np.ndarray) -> np.ndarray:
+        """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
+        when any is; the trial log keeps the measured values."""
+        clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:self.batch_size])
+        if messages:
+            log.warning("trial %d: %d context value(s) outside the GP's range, clipped; first: %s", trial,
+                        len(messages), messages[0])
+        return np.concatenate([clipped, np.clip(context[self.batch_size:], self.optimizer_config.context_lower,
+                                                self.optimizer_config.context_upper)]).astype(np.float32)
 
     def _checkpoint(self, out_dir, run: _Run, t: int, wall_s: float) -> None:
         study_io.save_checkpoint(out_dir, self.spec, study_io.Checkpoint(

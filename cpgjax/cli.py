@@ -12,6 +12,7 @@ import subprocess
 import sys
 
 from cpgjax import ablation, cpg
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.robot import calibrate, cpu_dispatch, deploy
 from cpgjax.robot import transport as go1_transport
 from cpgjax.sim import backends, walk
@@ -32,7 +33,7 @@ def _floats(text: str) -> tuple[float, ...]:
 def _walk(args) -> int:
     rows, timing = walk.walk(controllers=args.controllers.split(","), friction=args.friction,
                              slope_deg=args.slope, payload_kg=args.payload, num_trials=args.trials,
-                             target_velocity_mps=args.target, backend=args.backend)
+                             target_velocity_mps=args.target, backend=args.backend, physics=args.physics)
     print(walk.markdown_table(rows))
     print(timing)
     return 0
@@ -68,7 +69,7 @@ def _study(args) -> int:
     if args.distributed:
         ablation.initialize_distributed()
     return _run_study(args.name, seeds=args.seeds, trials=args.trials, quick=args.quick, out=args.out,
-                      resume=args.resume, backend=args.backend)
+                      resume=args.resume, backend=args.backend, physics=args.physics)
 
 
 def _demo(args) -> int:
@@ -99,7 +100,7 @@ def _trials_table(trials) -> str:
 def _optimize(args) -> int:
     spec = study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,), seeds=(args.seed,),
                                 friction=(args.friction,), slope_deg=(args.slope,), payload_kg=(args.payload,),
-                                target_velocity_mps=(args.target,))
+                                target_velocity_mps=(args.target,), physics=(args.physics,))
     out = pathlib.Path(args.out)
     try:
         if not args.resume and (out / study_io.CHECKPOINT).exists():
@@ -163,6 +164,27 @@ def _add_output_args(p: argparse.ArgumentParser, default: str | None, shown: str
     p.add_argument("--resume", action="store_true", help="continue from the folder's checkpoint")
 
 
+def _physics_names(text: str) -> tuple[str, ...]:
+    names = tuple(text.split(","))
+    for name in names:
+        if name not in physics_profiles.PROFILES:
+            raise argparse.ArgumentTypeError(f"unknown physics profile {name!r}; allowed: "
+                                             f"{', '.join(physics_profiles.PROFILES)}")
+    return names
+
+
+def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool = False) -> None:
+    """``--physics``: the physics profile(s) of the simulated Go1 (docs/physics.md)."""
+    allowed = ", ".join(physics_profiles.PROFILES)
+    if many:
+        p.add_argument("--physics", type=_physics_names, default=(default,),
+                       help=f"comma list of physics profiles ({allowed}; default {default})")
+    else:
+        shown = default or "the study's own"
+        p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=default,
+                       help=f"physics profile (default {shown})")
+
+
 def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> None:
     """The options that choose and reach the robot (``cpgjax deploy`` and ``cpgjax deploy calibrate``)."""
     p.add_argument("--robot", choices=("sim", "go1"), required=robot_required,
@@ -178,6 +200,8 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
                    help="payload carried [kg] (counts in CoT; sim: simulated)")
     p.add_argument("--friction", type=float, default=0.6, help="sim only")
     p.add_argument("--slope-deg", type=float, default=0.0, help="sim only: slope [deg]")
+    p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
+                   help="sim only: the simulated Go1's physics profile (docs/physics.md)")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     p.add_argument("--cpu", type=int, help="pin the loop to this CPU (sim: the simulated Go1 to the others)")
     p.add_argument("--busy-wait", action="store_true",
@@ -195,20 +219,23 @@ def _add_walk(sub) -> None:
     w.add_argument("--payload", type=_floats, default=(0.0,), help="comma list of payloads [kg]")
     w.add_argument("--trials", type=int, default=2, help="back-to-back trials of 1.5 s + 3 s")
     w.add_argument("--target", type=float, default=0.5, help="target velocity v_x* [m/s] for J")
+    _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
     backends.add_backend_argument(w)
     w.set_defaults(func=_walk)
 
 
 def _add_study(sub) -> None:
     s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/")
-    s.add_argument("name", choices=sorted(studies.STUDIES), help="; ".join(
-        f"{k}: {v.description}" for k, v in studies.STUDIES.items()))
+    descriptions = {k: v.description for k, v in studies.STUDIES.items()}
+    descriptions.update({k: v[1] for k, v in studies.STUDIES_OF_SEVERAL_RUNS.items()})
+    s.add_argument("name", choices=sorted(descriptions), help="; ".join(f"{k}: {v}" for k, v in descriptions.items()))
     s.add_argument("--seeds", type=int, default=None, help=f"seeds per group (default {studies.DEFAULT_SEEDS}, "
                    f"--quick {studies.QUICK_SEEDS})")
     s.add_argument("--trials", type=int, default=None, help="trials per run (condition changes scale with it)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
     _add_output_args(s, None, "results/<study>")
     s.add_argument("--distributed", action="store_true", help="multi-host: jax.distributed.initialize() first")
+    _add_physics_arg(s, None)
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
 
@@ -223,6 +250,7 @@ def _add_optimize(sub) -> None:
     o.add_argument("--trials", type=int, default=40)
     o.add_argument("--seed", type=int, default=0)
     _add_output_args(o, "results/optimize")
+    _add_physics_arg(o, physics_profiles.PAPER_STUDIES_PROFILE)
     backends.add_backend_argument(o)
     o.set_defaults(func=_optimize)
 

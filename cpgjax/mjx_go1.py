@@ -27,10 +27,12 @@ from mujoco import mjx
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax.go1 import sensors
+from cpgjax.go1 import physics, sensors
 from cpgjax.trial import protocol
 
 log = logging.getLogger(__name__)
+
+MIN_FRICTIONLOSS_NM = 1e-6  # the smallest joint friction-loss bound MJX is given (see make_batch_model)
 
 
 class SimState(NamedTuple):
@@ -39,39 +41,50 @@ class SimState(NamedTuple):
     data: mjx.Data
     cpg: cpg.CPGState
     params: jax.Array  # (8,) the parameters applied at the end of the last trial (start of the next transition)
+    io: physics.ActuatorSensorState  # the physics profile's foot sensor and motors
 
 
 # ----------------------------------------------------------------------------------------------- scenarios
 
 class BatchModel(NamedTuple):
-    """An MJX model whose scenario-dependent leaves carry a leading batch axis, and the matching vmap in_axes."""
+    """An MJX model whose scenario-dependent leaves carry a leading batch axis, the matching vmap in_axes, and the
+    physics profiles' per-instance actuator and sensor arrays."""
 
     model: mjx.Model
     in_axes: mjx.Model
     scenario: go1_model.Scenario
+    profile: physics.ProfileArrays  # (B, ...) leaves
 
 
 def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     """Per-instance MJX model data for a whole batch of scenarios, in one call.
 
     Floor friction → ``geom_friction[floor, 0]`` (the floor has priority, docs/decisions.md §5); slope →
-    ``opt.gravity``; payload → every mass-dependent field, recomputed by ``mj_setConst`` once per distinct payload
-    value.
+    ``opt.gravity``; payload and physics profile → every field they change, recomputed by ``mj_setConst`` once per
+    distinct (payload, profile).
     """
     ids = go1_model.indices()
-    base = go1_model.load_model()
+    base = go1_model.load_model().__copy__()
+    # Every joint carries friction-loss rows whatever the profiles of this batch (a profile without joint friction
+    # has a zero bound there), so that switching profiles never changes the compiled program.
+    base.dof_frictionloss[ids.joint_dof] = 1.0
     mx = mjx.put_model(base)
     batch = scenario.batch_size
-    fields = [f for f in go1_model.mass_dependent_fields() if hasattr(mx, f)]
-    per_payload = {p: go1_model.model_with_payload(p) for p in sorted(set(scenario.payload_kg.tolist()))}
-    updates = {f: jnp.asarray(np.stack([getattr(per_payload[p], f) for p in scenario.payload_kg.tolist()]),
-                              dtype=getattr(mx, f).dtype) for f in fields}
+    fields = [f for f in go1_model.scenario_dependent_fields() if hasattr(mx, f)]
+    keys = list(zip(scenario.payload_kg.tolist(), scenario.physics.tolist(), scenario.mass_scale.tolist()))
+    per_key = {k: go1_model.model_with_payload(*k) for k in dict.fromkeys(keys)}
+    updates = {f: jnp.asarray(np.stack([getattr(per_key[k], f) for k in keys]), dtype=getattr(mx, f).dtype)
+               for f in fields}
+    # A zero bound makes MJX's friction-loss row act as a stiff constraint on the joint (measured: the soft profile
+    # then walks 0.09 m/s instead of 0.53), so MJX carries a negligible bound where a profile has no joint friction.
+    updates["dof_frictionloss"] = jnp.maximum(updates["dof_frictionloss"], MIN_FRICTIONLOSS_NM)
     friction = np.broadcast_to(np.asarray(base.geom_friction), (batch,) + base.geom_friction.shape).copy()
     friction[:, ids.floor_geom, 0] = scenario.friction
     updates["geom_friction"] = jnp.asarray(friction, getattr(mx, "geom_friction").dtype)
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})
-    return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario)
+    return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario,
+                      profile=physics.batch_arrays(scenario.physics, scenario.latency_ticks))
 
 
 # ----------------------------------------------------------------------------------------------- one instance
@@ -81,13 +94,20 @@ def _standing_data(model: mjx.Model) -> mjx.Data:
     return mjx.forward(model, data)
 
 
-def _observe_data(model: mjx.Model, data: mjx.Data) -> cpg.Observation:
-    return sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
-
-
 def _reset(model: mjx.Model, params: jax.Array) -> SimState:
     data = _standing_data(model)
-    return SimState(data=data, cpg=cpg.init_state(_observe_data(model, data)), params=params)
+    obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
+    return SimState(data=data, cpg=cpg.init_state(obs), params=params, io=physics.init_state(obs.foot_force_n))
+
+
+def _control(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics.ProfileArrays, data: mjx.Data,
+             io: physics.ActuatorSensorState, cpg_state: cpg.CPGState, params: jax.Array,
+             gates: cpg.Gates) -> tuple[protocol.Control, mjx.Data]:
+    """The shared control tick, then one physics step with its torques."""
+    c = protocol.control(cpg_config, profile, io, cpg_state, params, gates, data.qpos, data.qvel, data.sensordata,
+                         model.opt.gravity)
+    ctrl = jnp.zeros(model.nu, c.torque_nm.dtype).at[go1_model.indices().actuator].set(c.torque_nm)
+    return c, mjx.step(model, data.replace(ctrl=ctrl))
 
 
 # What the next tick reads of mjx.Data: the sensors (observation) and the inputs of mjx.step; every other field is
@@ -95,72 +115,68 @@ def _reset(model: mjx.Model, params: jax.Array) -> SimState:
 _TICK_STATE_FIELDS = ("time", "qpos", "qvel", "qacc_warmstart", "sensordata")
 
 
-def _reset_state_where(cond, reset: mjx.Data, data: mjx.Data) -> mjx.Data:
+def _reset_tick_state_where(cond, reset: mjx.Data, data: mjx.Data) -> mjx.Data:
     """``data`` with its tick state taken from ``reset`` where ``cond``; derived fields are left to the next step."""
     return data.replace(**{f: jnp.where(cond, getattr(reset, f), getattr(data, f)) for f in _TICK_STATE_FIELDS})
 
 
-def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model, gates: cpg.Gates,
-          reset: SimState, data: mjx.Data, cpg_state: cpg.CPGState, params_now: jax.Array):
-    """Sensors → controller → one physics step; a non-finite result is replaced by the standing reset."""
-    ids = go1_model.indices()
-    obs = _observe_data(model, data)
-    cpg_state, torque, diag = cpg.controller_step(cpg_config, cpg_state, params_now, gates, obs)
-    ctrl = jnp.zeros(model.nu, torque.dtype).at[ids.actuator].set(torque)
-    stepped = mjx.step(model, data.replace(ctrl=ctrl))
+def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model,
+          profile: physics.ProfileArrays, gates: cpg.Gates, reset: SimState, state: SimState,
+          params_now: jax.Array) -> tuple[SimState, protocol.Tick]:
+    """Sensors → controller → motors → one physics step; a non-finite result is replaced by the standing reset."""
+    c, stepped = _control(cpg_config, model, profile, state.data, state.io, state.cpg, params_now, gates)
     failed = ~(jnp.all(jnp.isfinite(stepped.qpos)) & jnp.all(jnp.isfinite(stepped.qvel)))
-    data = _reset_state_where(failed, reset.data, stepped)
-    cpg_state = protocol.where_batch(failed, reset.cpg, cpg_state)
-    row = protocol.tick_row(trial_config, protocol.pre_step(obs, torque, diag), data.qpos, data.qvel, failed)
-    return data, cpg_state, row
+    data = _reset_tick_state_where(failed, reset.data, stepped)
+    cpg_state = protocol.where_batch(failed, reset.cpg, c.cpg)
+    io = protocol.where_batch(failed, reset.io, c.io)
+    row = protocol.tick_row(trial_config, protocol.pre_step(c.obs, c.torque_nm, c.diag), data.qpos, data.qvel,
+                            failed)
+    return state._replace(data=data, cpg=cpg_state, io=io), row
 
 
-def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model, state: SimState,
-           new_params: jax.Array, gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
+def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model,
+           profile: physics.ProfileArrays, state: SimState, new_params: jax.Array,
+           gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
     """One trial of one instance: transition (linear interpolation) then steady phase; reset after a fall."""
     reset = _reset(model, new_params)
-    tick = functools.partial(_tick, cpg_config, trial_config, model, gates, reset)
+    tick = functools.partial(_tick, cpg_config, trial_config, model, profile, gates, reset)
     n_transition = trial_config.transition_steps
 
     def transition_body(carry, k):
-        data, cpg_state, fell, failed = carry
+        s, fell, failed = carry
         fraction = protocol.transition_fraction(k, n_transition)
-        data, cpg_state, t = tick(data, cpg_state, protocol.transition_params(state.params, new_params, fraction))
-        return (data, cpg_state, jnp.maximum(fell, t.fell), jnp.maximum(failed, t.failed)), None
+        s, t = tick(s, protocol.transition_params(state.params, new_params, fraction))
+        return (s, jnp.maximum(fell, t.fell), jnp.maximum(failed, t.failed)), None
 
-    def steady_body(carry, _):
-        data, cpg_state = carry
-        data, cpg_state, t = tick(data, cpg_state, new_params)
-        return (data, cpg_state), t
+    def steady_body(s, _):
+        return tick(s, new_params)
 
     zero = jnp.float32(0.0)
-    (data, cpg_state, fell_tr, failed_tr), _ = jax.lax.scan(
-        transition_body, (state.data, state.cpg, zero, zero), jnp.arange(n_transition, dtype=jnp.float32))
-    (data, cpg_state), ticks = jax.lax.scan(steady_body, (data, cpg_state), None, length=trial_config.steady_steps)
+    (s, fell_tr, failed_tr), _ = jax.lax.scan(transition_body, (state, zero, zero),
+                                              jnp.arange(n_transition, dtype=jnp.float32))
+    s, ticks = jax.lax.scan(steady_body, s, None, length=trial_config.steady_steps)
 
     total_mass = model.body_subtreemass[go1_model.indices().trunk_body]
     record = protocol.summarize(ticks, total_mass, cpg_config.dt_s, fell_tr, failed_tr)
-    end = SimState(data=data, cpg=cpg_state, params=new_params)
+    end = s._replace(params=new_params)
     return protocol.where_batch((record.fell > 0) | (record.failed > 0), reset, end), record
 
 
-def rollout_log(cpg_config: cpg.CPGConfig, model: mjx.Model, state: SimState, params: jax.Array, gates: cpg.Gates,
-                num_steps: int) -> tuple[SimState, protocol.StepLog]:
+def rollout_log(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics.ProfileArrays, state: SimState,
+                params: jax.Array, gates: cpg.Gates, num_steps: int) -> tuple[SimState, protocol.StepLog]:
     """``num_steps`` ticks of one instance with constant parameters, logging every tick. Not vmapped: wrap it."""
     ids = go1_model.indices()
 
-    def body(carry, _):
-        data, cpg_state = carry
-        obs = _observe_data(model, data)
-        cpg_state, torque, diag = cpg.controller_step(cpg_config, cpg_state, params, gates, obs)
-        data = mjx.step(model, data.replace(ctrl=jnp.zeros(model.nu, torque.dtype).at[ids.actuator].set(torque)))
-        row = protocol.StepLog(qpos=data.qpos, qvel=data.qvel, torque_nm=torque, foot_force_n=obs.foot_force_n,
-                               foot_pos_m=data.geom_xpos[ids.foot_geom], amplitude=cpg_state.amplitude,
-                               phase_rad=cpg_state.phase_rad, foot_target_m=diag.foot_target_m, rpy_rad=diag.rpy_rad)
-        return (data, cpg_state), row
+    def body(s, _):
+        c, data = _control(cpg_config, model, profile, s.data, s.io, s.cpg, params, gates)
+        row = protocol.StepLog(qpos=data.qpos, qvel=data.qvel, torque_nm=c.torque_nm, foot_force_n=c.obs.foot_force_n,
+                               foot_pos_m=data.geom_xpos[ids.foot_geom], amplitude=c.cpg.amplitude,
+                               phase_rad=c.cpg.phase_rad, foot_target_m=c.diag.foot_target_m,
+                               rpy_rad=c.diag.rpy_rad)
+        return s._replace(data=data, cpg=c.cpg, io=c.io), row
 
-    (data, cpg_state), log_rows = jax.lax.scan(body, (state.data, state.cpg), None, length=num_steps)
-    return SimState(data=data, cpg=cpg_state, params=params), log_rows
+    s, log_rows = jax.lax.scan(body, state, None, length=num_steps)
+    return s._replace(params=params), log_rows
 
 
 # ----------------------------------------------------------------------------------------------- batch interface
@@ -215,7 +231,7 @@ class MJXBackend:
         axes = self.batch.in_axes
         self._reset = jax.jit(per_shard(_reset, (axes, 0), self.mesh))
         trial = functools.partial(_trial, cpg_config, trial_config)
-        self._trial = jax.jit(per_shard(trial, (axes, 0, 0, 0), self.mesh), donate_argnums=(1,))
+        self._trial = jax.jit(per_shard(trial, (axes, 0, 0, 0, 0), self.mesh), donate_argnums=(2,))
         self._rollouts = {}  # num_steps → compiled rollout, on first use
 
     @property
@@ -231,7 +247,7 @@ class MJXBackend:
         replicated = NamedSharding(self.mesh, PartitionSpec())
         model = jax.tree.map(lambda x, axis: jax.device_put(x, self.sharding if axis == 0 else replicated),
                              batch.model, batch.in_axes)
-        return batch._replace(model=model)
+        return batch._replace(model=model, profile=jax.device_put(batch.profile, self.sharding))
 
     def _put(self, tree):
         return jax.device_put(tree, self.sharding)
@@ -242,7 +258,7 @@ class MJXBackend:
 
     def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
         """One trial for every instance (the input state is consumed). Returns the next state and the records."""
-        return self._trial(self.batch.model, self._put(state),
+        return self._trial(self.batch.model, self.batch.profile, self._put(state),
                            self._put(protocol.check_params(new_params, self.batch_size)),
                            self._put(protocol.check_gates(gates, self.batch_size)))
 
@@ -261,7 +277,7 @@ class MJXBackend:
         """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
         if num_steps not in self._rollouts:
             fn = functools.partial(rollout_log, self.cpg_config, num_steps=num_steps)
-            self._rollouts[num_steps] = jax.jit(per_shard(fn, (self.batch.in_axes, 0, 0, 0), self.mesh))
-        return self._rollouts[num_steps](self.batch.model, self._put(state),
+            self._rollouts[num_steps] = jax.jit(per_shard(fn, (self.batch.in_axes, 0, 0, 0, 0), self.mesh))
+        return self._rollouts[num_steps](self.batch.model, self.batch.profile, self._put(state),
                                          self._put(protocol.check_params(params, self.batch_size)),
                                          self._put(protocol.check_gates(gates, self.batch_size)))

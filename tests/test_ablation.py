@@ -32,8 +32,12 @@ TRIALS = 5
 
 
 def small_optimizer(capacity=TRIALS):
+    # The soft physics profile's context ranges (docs/decisions.md §11), which these studies simulate.
+    ranges = StudySpec("ranges").optimizer_config()
     return optimizer_config.paper_config(capacity=capacity, fit=gp.FitConfig(num_steps=8),
-                           acquisition=acquisition.AcquisitionConfig(num_candidates=32, num_restarts=2, num_steps=5))
+                                         context_lower=ranges.context_lower, context_upper=ranges.context_upper,
+                                         acquisition=acquisition.AcquisitionConfig(num_candidates=32, num_restarts=2,
+                                                                                   num_steps=5))
 
 
 def tiny_spec(**overrides):
@@ -57,6 +61,8 @@ spec = study_spec.StudySpec(
     name="tiny", num_trials=5, controllers=("open_loop", "vmc_tegotae"), seeds=(0, 1),
     trial=protocol.TrialConfig(transition_steps=100, steady_steps=200),
     optimizer=optimizer_config.paper_config(capacity=5, fit=gp.FitConfig(num_steps=8),
+                                            context_lower=study_spec.StudySpec("ranges").optimizer_config().context_lower,
+                                            context_upper=study_spec.StudySpec("ranges").optimizer_config().context_upper,
                                             acquisition=acquisition.AcquisitionConfig(
                                                 num_candidates=32, num_restarts=2, num_steps=5)),
     schedules=(study_spec.Schedule("load", (study_spec.Change(3, "payload_kg", 7.5),)),))
@@ -102,7 +108,7 @@ def test_grid_order_and_schedules():
     labels = study_spec.instances(spec)
     assert len(labels) == 2 * 2 * 2 * 2
     assert labels[0] == dict(controller="open_loop", seed=0, friction=0.3, slope_deg=0.0, payload_kg=0.0,
-                             target_velocity_mps=0.5, schedule="a", data_reuse=True)
+                             target_velocity_mps=0.5, schedule="a", data_reuse=True, physics="soft")
     assert labels[1]["schedule"] == "b" and labels[2]["friction"] == 0.9 and labels[4]["seed"] == 1
     cond = study_spec.conditions(spec)
     np.testing.assert_array_equal(cond.payload_kg[0], [0, 0, 7.5, 7.5, 15])
@@ -121,19 +127,43 @@ def test_placement_pads_to_the_device_count():
 
 # ----------------------------------------------------------------------------------------------- the run
 
+def _ucb(config, state, context, beta, x):
+    """The UCB acquisition (eq. 8) of the optimizer ``state`` at parameters x (P,) and a context (C,)."""
+    lower, width = np.asarray(config.parameter_lower), np.asarray(config.parameter_upper) - config.parameter_lower
+    c_lower = np.asarray(config.context_lower)
+    c_width = np.asarray(config.context_upper) - c_lower
+    dataset = gp.Dataset(jnp.concatenate([(state.parameters - lower) / width, (state.contexts - c_lower) / c_width],
+                                         1).astype(jnp.float32), state.objectives, state.stored)
+    post = gp.posterior(state.gp_params, dataset, jnp.ones(10, bool), 2)
+    query = jnp.concatenate([(x - lower) / width, (np.asarray(context) - c_lower) / c_width])[None].astype(jnp.float32)
+    return float(acquisition.upper_confidence_bound(post, query, acquisition.ucb_multiplier(beta, "paper"), 2)[0])
+
+
 def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
     """Instance 3 (vmc_tegotae, seed 1) of the batch vs Algorithm 1 written out for that instance alone: unbatched
-    propose / a batch-1 simulator / observe, the same keys fold_in(PRNGKey(seed), trial), the same schedule."""
+    propose / a batch-1 simulator / observe, the same keys fold_in(PRNGKey(seed), trial), the same schedule.
+
+    The random proposals agree to float rounding. A UCB proposal is an argmax that float rounding between a batched
+    and an unbatched program can move to another, equally good point: there the engine's proposal must reach the
+    acquisition of the hand-written one (within 1e-3 of its magnitude), and the loop continues from the engine's."""
     b, seed = 3, 1
     assert engine.labels[b]["controller"] == "vmc_tegotae" and engine.labels[b]["seed"] == seed
-    opt = bo.make_optimizer(small_optimizer())
+    config = small_optimizer()
+    opt = bo.make_optimizer(config)
     state = opt.init(active_dims=jnp.ones(8, bool))
     context = jnp.asarray(engine.initial_context()[0])
     gates = protocol.batch_gates(["vmc_tegotae"])
     sim, sim_state, payload = None, None, None
     for t in range(TRIALS):
         x = np.asarray(opt.propose(state, context, jax.random.fold_in(jax.random.PRNGKey(seed), t)), np.float64)
-        x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)[None]
+        x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
+        if t >= config.num_random_proposals:
+            ours, theirs = uninterrupted.trials.params[t, b], x
+            beta = float(opt.beta(state, context).beta)
+            assert _ucb(config, state, context, beta, ours) >= _ucb(config, state, context, beta, theirs) - 1e-3 * abs(
+                _ucb(config, state, context, beta, theirs))
+            x = ours
+        x = x[None]
         new_payload = 7.5 if t >= 3 else 0.0
         if new_payload != payload:
             from cpgjax.go1 import model as go1_model
@@ -144,11 +174,14 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
         sim_state, record = sim.trial(sim_state, x, gates)
         one = jax.tree.map(lambda a: a[0], record)
         j = objective.objective(one, 0.5)
-        state, _ = opt.observe(state, jnp.asarray(x[0], jnp.float32), objective.context(one), j)
-        context = objective.context(one)
+        measured = objective.context(one)
+        # The GP sees the context clipped to the optimizer's ranges (docs/decisions.md §11); the log keeps it raw.
+        config = small_optimizer()
+        context = jnp.clip(measured, jnp.asarray(config.context_lower), jnp.asarray(config.context_upper))
+        state, _ = opt.observe(state, jnp.asarray(x[0], jnp.float32), context, j)
         np.testing.assert_allclose(uninterrupted.trials.params[t, b], x[0], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(uninterrupted.trials.objective[t, b], float(j), rtol=1e-4, atol=1e-5)
-        np.testing.assert_allclose(uninterrupted.trials.context[t, b], np.asarray(context), rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(uninterrupted.trials.context[t, b], np.asarray(measured), rtol=1e-4, atol=1e-5)
     assert uninterrupted.trials.objective.shape == (TRIALS, 4)
     # σ_N is masked out without Tegotae (docs/decisions.md §13): the proposal holds the box midpoint.
     sigma = uninterrupted.trials.params[:, 0, param_space.SIGMA_N_INDEX]

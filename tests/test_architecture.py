@@ -18,13 +18,13 @@ PACKAGE = ROOT / "cpgjax"
 
 # docs/architecture.md: the layers, lowest first. A module may import modules of its own layer or of lower ones.
 LAYERS = (
-    ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.model")),
+    ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.model")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
     ("sensors and trial", ("go1.sensors", "trial.protocol", "trial.objective")),
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
     ("simulation", ("mjx_go1", "sim.native", "sim.backends", "sim.walk")),
-    ("studies", ("study.spec", "study.files", "study.figures", "ablation", "study.registry")),
+    ("studies", ("study.spec", "study.files", "study.figures", "ablation", "study.transfer", "study.registry")),
     ("robot", ("robot.protocol", "robot.transport", "robot.cpu_dispatch", "robot.foot_force", "robot.safety",
                "robot.controller", "robot.sim_server", "hardware_io", "robot.trials", "robot.deploy",
                "robot.calibrate")),

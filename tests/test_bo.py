@@ -51,11 +51,12 @@ def history(opt, contexts, objectives=None):
     ([], NOMINAL, 5.0, 0, False),
     ([[40.0, -0.1]] * 10, NOMINAL, 5.0, 10, False),  # decay starts after n_decay = 10
     ([[40.0, -0.1]] * 12, NOMINAL, 5.0 * 0.7**2, 12, False),
-    # 8 trials at 40 N, then 4 at 60 N (|20 N| > t_load r_load = 0.2 * 60 = 12 N): changed.
-    ([[40.0, -0.1]] * 8 + [[60.0, -0.1]] * 4, [60.0, -0.1], 1.5 * 0.7**1, 4, True),
-    ([[40.0, -0.1]] * 8 + [[60.0, -0.1]] * 4, NOMINAL, 1.5 * 0.7**5, 8, True),
-    # Threshold edges: 12 N in load, t_slope r_slope = 0.1 * 0.5 = 0.05 rad in slope.
-    ([[51.9, -0.1], [52.1, -0.1], [28.1, -0.1], [27.9, -0.1], [40.0, -0.149], [40.0, -0.151]],
+    # 8 trials at 40 N, then 4 at 55 N (|15 N| > t_load r_load = 0.2 * 40 = 8 N): changed.
+    ([[40.0, -0.1]] * 8 + [[55.0, -0.1]] * 4, [55.0, -0.1], 1.5 * 0.7**1, 4, True),
+    ([[40.0, -0.1]] * 8 + [[55.0, -0.1]] * 4, NOMINAL, 1.5 * 0.7**5, 8, True),
+    # Threshold edges: 8 N in load (r_load = 55 − 15 = 40 N, docs/decisions.md §11), t_slope r_slope = 0.1 * 0.5 =
+    # 0.05 rad in slope.
+    ([[47.9, -0.1], [48.1, -0.1], [32.1, -0.1], [31.9, -0.1], [40.0, -0.149], [40.0, -0.151]],
      NOMINAL, 1.5, 3, True),
 ])
 def test_beta_schedule_and_context_counting(opt, contexts, query, beta, n, changed):
@@ -125,7 +126,7 @@ def test_queries_best_observed_and_posterior_mean_argmax(opt, trained):
     # It maximizes the posterior mean: at least its value at every stored point.
     dataset = gp.Dataset(
         jnp.concatenate([(trained.parameters - LOWER) / (UPPER - LOWER),
-                         (trained.contexts - np.array([15.0, -0.4])) / np.array([60.0, 0.5])], 1),
+                         (trained.contexts - np.array([15.0, -0.4])) / np.array([40.0, 0.5])], 1),
         trained.objectives, trained.stored)
     post = gp.posterior(trained.gp_params, dataset, jnp.ones(10, bool), 2)
     stored_means, _ = gp.predict(post, dataset.inputs[:10], 2)

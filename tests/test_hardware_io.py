@@ -410,3 +410,15 @@ def test_deploy_calibrate_command_writes_the_file_the_loop_loads(tmp_path):
     np.testing.assert_allclose(cal.newton_per_count, deploy.sim_calibration().newton_per_count, rtol=0.02)
     info = json.loads(out.read_text())
     assert info["robot"] == "sim" and info["air_samples"] >= 250 and info["standing_samples"] >= 450
+
+
+def test_go1_profile_foot_sensor_is_recovered_by_deploy_calibrate(tmp_path):
+    """The loopback Go1 under the go1 physics profile (latency, envelope, joint friction, quantized counts of the
+    contact normal force): the calibration recovers the simulated sensor's offsets and scale."""
+    out = tmp_path / "cal.json"
+    code = cli.main(["deploy", "calibrate", "--robot", "sim", "--physics", "go1", "--sim-pacing", "lockstep",
+                     "--no-realtime", "--out", str(out), "--air-s", "0.3", "--stand-s", "0.5", "--settle-s", "0.3"])
+    assert code == 0
+    cal = foot_force.FootForceCalibration.load(out)
+    np.testing.assert_array_equal(cal.offset_counts, sim.FOOT_FORCE_OFFSET_COUNTS)
+    np.testing.assert_allclose(cal.newton_per_count, sim.FOOT_FORCE_N_PER_COUNT, rtol=0.02)

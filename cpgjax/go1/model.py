@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 
 from cpgjax.go1 import constants, kinematics
+from cpgjax.go1 import physics as physics_profiles
 
 MODEL_FILE = "go1.xml"
 JOINT_NAMES = tuple(f"{leg}_{part}_joint" for leg in constants.LEG_NAMES for part in constants.JOINT_PARTS)
@@ -48,6 +49,8 @@ class Go1Indices:
     joint_dof: np.ndarray  # (12,) dof address of each leg joint
     actuator: np.ndarray  # (12,) actuator id driving each leg joint
     foot_force_sensor: np.ndarray  # (4,) sensordata address of each foot's contact force (normal component first)
+    foot_contact_data: np.ndarray  # (4, 9) sensordata addresses of each foot's (force | normal | tangent) slots
+    calf_body: np.ndarray  # (4,) calf bodies (the foot sphere's body)
     foot_geom: np.ndarray  # (4,) foot sphere geoms
 
 
@@ -76,31 +79,41 @@ def indices() -> Go1Indices:
         joint_dof=np.array([m.jnt_dofadr[j] for j in joints]),
         actuator=np.array([actuator_of_joint[j] for j in joints]),
         foot_force_sensor=np.array([m.sensor_adr[s] for s in sensors]),
+        foot_contact_data=np.array([m.sensor_adr[s] + np.arange(9) for s in sensors]),
+        calf_body=np.array([obj_id(mujoco.mjtObj.mjOBJ_BODY, f"{leg}_calf") for leg in constants.LEG_NAMES]),
         foot_geom=np.array([obj_id(mujoco.mjtObj.mjOBJ_GEOM, f"{leg}_foot") for leg in constants.LEG_NAMES]),
     )
 
 
 class Scenario(NamedTuple):
-    """A batch of scenarios, one entry per instance, each a float64 array of shape (batch,)."""
+    """A batch of scenarios, one entry per instance, each an array of shape (batch,)."""
 
     friction: np.ndarray  # floor friction coefficient (the paper: 0.3 slippery, 0.6 normal, 0.9 coarse)
     slope_deg: np.ndarray  # terrain slope, uphill along +x (gravity rotated about y, docs/decisions.md §4)
     payload_kg: np.ndarray  # mass added on the trunk (docs/decisions.md §6)
+    physics: np.ndarray  # str, the physics profile (cpgjax.go1.physics.PROFILES, docs/decisions.md §15)
+    mass_scale: np.ndarray  # every link's mass and inertia × this (domain randomization; 1: the URDF's)
+    latency_ticks: np.ndarray  # int, actuation latency replacing the profile's (−1: the profile's own)
 
     @property
     def batch_size(self) -> int:
         return int(self.friction.shape[0])
 
 
-def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0) -> Scenario:
+def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_profiles.DEFAULT_PROFILE,
+                   mass_scale=1.0, latency_ticks=-1) -> Scenario:
     """Broadcast scalars or sequences to a batch of scenarios and validate them.
 
     Raises:
-      ValueError: a non-finite value, friction ≤ 0, |slope| ≥ 45°, or a negative payload; the message names the
-        field, the value, the instance and the allowed range.
+      ValueError: a non-finite value, friction ≤ 0, |slope| ≥ 45°, a negative payload, an unknown physics profile, a
+        mass scale outside [0.5, 1.5] or a latency outside −1 … MAX_LATENCY_TICKS; the message names the field, the
+        value, the instance and the allowed range.
     """
-    arrays = np.broadcast_arrays(*(np.atleast_1d(np.asarray(v, np.float64)) for v in (friction, slope_deg, payload_kg)))
-    scenario = Scenario(*(np.array(a) for a in arrays))
+    numbers = [np.atleast_1d(np.asarray(v, np.float64)) for v in (friction, slope_deg, payload_kg)]
+    arrays = np.broadcast_arrays(*numbers, np.atleast_1d(np.asarray(physics, str)),
+                                 np.atleast_1d(np.asarray(mass_scale, np.float64)),
+                                 np.atleast_1d(np.asarray(latency_ticks, np.float64)))
+    scenario = Scenario(*(np.array(a) for a in arrays[:5]), latency_ticks=np.array(arrays[5]))
     if scenario.friction.ndim != 1:
         raise ValueError(f"scenario fields must be scalars or 1-D sequences, got shape {scenario.friction.shape}")
     checks = (
@@ -108,6 +121,10 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0) -> Scenario:
         ("slope_deg", scenario.slope_deg, lambda v: np.abs(v) < MAX_ABS_SLOPE_DEG,
          f"(-{MAX_ABS_SLOPE_DEG}, {MAX_ABS_SLOPE_DEG})"),
         ("payload_kg", scenario.payload_kg, lambda v: v >= 0.0, "[0, inf)"),
+        ("mass_scale", scenario.mass_scale, lambda v: (v >= 0.5) & (v <= 1.5), "[0.5, 1.5]"),
+        ("latency_ticks", scenario.latency_ticks,
+         lambda v: (v == np.round(v)) & (v >= -1) & (v <= physics_profiles.MAX_LATENCY_TICKS),
+         f"-1 (the profile's) or 0 … {physics_profiles.MAX_LATENCY_TICKS} ticks"),
     )
     for name, values, ok, allowed in checks:
         bad = ~np.isfinite(values) | ~ok(np.where(np.isfinite(values), values, 0.0))
@@ -115,6 +132,12 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0) -> Scenario:
             i = int(np.argmax(bad))
             raise ValueError(f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range "
                              f"{allowed}")
+    scenario = scenario._replace(latency_ticks=scenario.latency_ticks.astype(np.int64))
+    unknown = [i for i, name in enumerate(scenario.physics) if name not in physics_profiles.PROFILES]
+    if unknown:
+        i = unknown[0]
+        raise ValueError(f"scenario physics = {str(scenario.physics[i])!r} (instance {i}) is not a profile; allowed: "
+                         f"{tuple(physics_profiles.PROFILES)}")
     return scenario
 
 
@@ -130,12 +153,18 @@ def payload_inertia(payload_kg: float) -> np.ndarray:
     return payload_kg / 12.0 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
 
 
-@functools.lru_cache(maxsize=64)
-def model_with_payload(payload_kg: float) -> mujoco.MjModel:
-    """A copy of the nominal model carrying ``payload_kg``, with every derived mass quantity recomputed
-    (``mj_setConst``: subtree masses, inverse weights, actuator_acc0, ...). Cached per payload value."""
+@functools.lru_cache(maxsize=512)
+def model_with_payload(payload_kg: float, physics: str = physics_profiles.DEFAULT_PROFILE,
+                       mass_scale: float = 1.0) -> mujoco.MjModel:
+    """A copy of the nominal model carrying ``payload_kg`` under the ``physics`` profile's contact and joint fields,
+    its links' masses and inertias × ``mass_scale``, with every derived quantity recomputed (``mj_setConst``: subtree
+    masses, inverse weights, actuator_acc0, ...). Cached per (payload, profile, mass scale)."""
     m = load_model().__copy__()
     ids = indices()
+    physics_profiles.apply_to_model(m, physics_profiles.get(physics), ids.floor_geom, ids.joint_dof)
+    links = np.array([b for b in range(1, m.nbody) if b != ids.payload_body])
+    m.body_mass[links] *= mass_scale
+    m.body_inertia[links] *= mass_scale
     m.body_mass[ids.payload_body] = payload_kg
     m.body_inertia[ids.payload_body] = payload_inertia(payload_kg)
     mujoco.mj_setConst(m, mujoco.MjData(m))
@@ -143,20 +172,25 @@ def model_with_payload(payload_kg: float) -> mujoco.MjModel:
 
 
 def scenario_model(scenario: Scenario, i: int) -> mujoco.MjModel:
-    """The C-MuJoCo model of instance i: payload, floor friction and gravity applied (a fresh copy)."""
-    m = model_with_payload(float(scenario.payload_kg[i])).__copy__()
+    """The C-MuJoCo model of instance i: profile, payload, floor friction and gravity applied (a fresh copy)."""
+    m = model_with_payload(float(scenario.payload_kg[i]), str(scenario.physics[i]),
+                           float(scenario.mass_scale[i])).__copy__()
     m.geom_friction[indices().floor_geom, 0] = scenario.friction[i]
     m.opt.gravity[:] = gravity_vector(scenario.slope_deg[i])
     return m
 
 
-def mass_dependent_fields() -> tuple[str, ...]:
-    """Names of the model's float arrays that a payload changes (found by comparison, not by a hand-kept list)."""
-    light, heavy = model_with_payload(0.0), model_with_payload(15.0)
+def scenario_dependent_fields() -> tuple[str, ...]:
+    """Names of the model's float arrays that a payload or a physics profile changes (found by comparing models, not
+    from a hand-kept list)."""
+    base = model_with_payload(0.0)
+    others = ([model_with_payload(15.0), model_with_payload(0.0, physics_profiles.DEFAULT_PROFILE, 1.1)]
+              + [model_with_payload(0.0, name) for name in physics_profiles.PROFILES])
     names = []
-    for name in dir(light):
-        a = getattr(light, name, None)
-        if isinstance(a, np.ndarray) and a.dtype.kind == "f" and not np.array_equal(a, getattr(heavy, name)):
+    for name in dir(base):
+        a = getattr(base, name, None)
+        if isinstance(a, np.ndarray) and a.dtype.kind == "f" and any(
+                not np.array_equal(a, getattr(other, name)) for other in others):
             names.append(name)
     return tuple(names)
 

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from cpgjax import cpg
-from cpgjax.go1 import attitude, kinematics
+from cpgjax.go1 import attitude, kinematics, physics
 from cpgjax.go1 import model as go1_model
 
 
@@ -31,6 +31,17 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
         gyro_rad_s=qvel[ids.root_dof + 3:ids.root_dof + 6],
         foot_force_n=sensordata[ids.foot_force_sensor],
     )
+
+
+def measure(profile: physics.ProfileArrays, io: physics.ActuatorSensorState, qpos: jax.Array, qvel: jax.Array,
+            sensordata: jax.Array, gravity: jax.Array) -> tuple[physics.ActuatorSensorState, cpg.Observation]:
+    """The observation under a physics profile: :func:`observe` with the profile's foot-force signal (contact normal
+    or calf-frame z, quantized when the sensor counts), sampled and held at the profile's rate."""
+    ids = go1_model.indices()
+    signal = physics.foot_force_signal(profile, qpos, sensordata[ids.foot_contact_data], ids.root_qpos,
+                                       ids.joint_qpos)
+    io, held = physics.sample_and_hold(profile, io, signal)
+    return io, observe(qpos, qvel, sensordata, gravity)._replace(foot_force_n=held)
 
 
 def heading_velocity(qpos: jax.Array, qvel: jax.Array) -> jax.Array:

@@ -18,8 +18,10 @@ from cpgjax.optim.acquisition import UCB_FORMS, AcquisitionConfig
 from cpgjax.trial import params as param_space
 
 PAPER_CONTEXT_LOWER = (15.0, -0.4)
-PAPER_CONTEXT_UPPER = (75.0, 0.1)
-"""Ranges of c = [c_load (N), c_slope (rad)] (docs/decisions.md §11)."""
+PAPER_CONTEXT_UPPER = (55.0, 0.1)
+"""The paper's ranges of c = [c_load (N), c_slope (rad)]: r_load = 40 N, r_slope = 0.5 rad (docs/decisions.md §11).
+A physics profile whose foot-force signal reads otherwise carries its own c_load range
+(``cpgjax.go1.physics.PhysicsProfile.context_load_range_n``)."""
 
 PAPER_CONTEXT_THRESHOLDS = (0.2, 0.1)
 """t_load, t_slope of eq. (14), as fractions of the range widths."""
@@ -90,6 +92,19 @@ def _check_box(name, lower, upper):
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise ValueError(f"{name} bounds [{i}] must be finite with lower < upper, got"
                              f" [{lo}, {hi}]")
+
+
+def clip_context(config: OptimizerConfig, context: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Contexts (..., C) clipped to the normalization ranges for the GP input, and one message per clipped value
+    (docs/decisions.md §11: never silently). The caller logs the messages; the unclipped values stay in the record."""
+    context = np.asarray(context)
+    lower, upper = np.asarray(config.context_lower), np.asarray(config.context_upper)
+    clipped = np.clip(context, lower, upper)
+    names, units = ("c_load", "c_slope"), ("N", "rad")
+    messages = [f"instance {idx[0] if len(idx) > 1 else 0}: {names[idx[-1]]} = {context[idx]:.4g} "
+                f"{units[idx[-1]]} outside [{lower[idx[-1]]:g}, {upper[idx[-1]]:g}], clipped for the GP"
+                for idx in zip(*np.nonzero(clipped != context))] if len(lower) == 2 else []
+    return clipped.astype(context.dtype), messages
 
 
 def paper_config(**overrides) -> OptimizerConfig:

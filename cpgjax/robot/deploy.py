@@ -48,7 +48,7 @@ def connect(args):
         # processes, the optimizer included, from starving it. With --cpu it runs on the other CPUs.
         server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
                                   payload_kg=args.payload_kg, realtime_priority=None if args.no_realtime else 70,
-                                  cpus=sim.cpus_besides(args.cpu))
+                                  cpus=sim.cpus_besides(args.cpu), physics=args.physics)
         ip, port, local_port = server.address[0], server.port, 0
     else:
         ip, port, local_port = args.robot_ip, args.robot_port, args.local_port

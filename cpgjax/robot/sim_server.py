@@ -35,6 +35,7 @@ import numpy as np
 
 from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import GRAVITY_MPS2, TORQUE_LIMIT_NM
 from cpgjax.robot import protocol as proto
 
@@ -70,15 +71,20 @@ class Go1Physics:
     C-MuJoCo backend would replace.
     """
 
-    def __init__(self, friction: float = 0.6, slope_deg: float = 0.0, payload_kg: float = 0.0):
-        self.model = go1_model.scenario_model(go1_model.make_scenarios(friction, slope_deg, payload_kg), 0)
+    def __init__(self, friction: float = 0.6, slope_deg: float = 0.0, payload_kg: float = 0.0,
+                 physics: str = physics_profiles.ROBOT_PROFILE):
+        self.model = go1_model.scenario_model(go1_model.make_scenarios(friction, slope_deg, payload_kg, physics), 0)
         self.data = mujoco.MjData(self.model)
         self.ids = go1_model.indices()
         self._standing = go1_model.standing_qpos(self.model)
         gravity = jax.numpy.asarray(self.model.opt.gravity, jax.numpy.float32)
-        # The MJX sensor model, compiled once for host arrays: one definition of what the robot senses.
-        self._observe = jax.jit(lambda qpos, qvel, sens: sensors.observe(qpos, qvel, sens, gravity))
+        profile = jax.tree.map(jax.numpy.asarray, physics_profiles.arrays(physics_profiles.get(physics)))
+        # The simulators' sensor model and the profile's foot sensor and motors, compiled once for host arrays: one
+        # definition of what the robot senses and how its motors respond.
+        self._measure = jax.jit(lambda io, qpos, qvel, sens: sensors.measure(profile, io, qpos, qvel, sens, gravity))
+        self._actuate = jax.jit(lambda io, torque, dq: physics_profiles.actuate(profile, io, torque, dq))
         self.reset()
+        self._actuate(self._io, np.zeros(12, np.float32), np.zeros(12, np.float32))  # compile before the first tick
 
     def reset(self) -> None:
         """Standing at the origin, at rest (on the ground)."""
@@ -86,6 +92,7 @@ class Go1Physics:
         self.data.qpos[:] = self._standing
         mujoco.mj_forward(self.model, self.data)
         self.held_root_qpos = None
+        self._io = physics_profiles.init_state(np.zeros(4, np.float32))
 
     def lift(self, height_m: float) -> None:
         """Hold the trunk ``height_m`` above its standing pose, like a robot hung from a crane for calibration: from
@@ -95,12 +102,15 @@ class Go1Physics:
         self.held_root_qpos[2] += height_m
 
     def step(self, torque_nm: np.ndarray, push_roll_nm: float = 0.0) -> None:
-        """Apply joint torques (12,) [and an external roll torque on the trunk] for one 1 ms physics step."""
+        """Apply the motor torques (12,) [and an external roll torque on the trunk] for one 1 ms physics step, through
+        the physics profile's motors (latency, torque-speed envelope, velocity limit)."""
         if self.held_root_qpos is not None:
             root, dof = self.ids.root_qpos, self.ids.root_dof
             self.data.qpos[root:root + 7] = self.held_root_qpos
             self.data.qvel[dof:dof + 6] = 0.0
-        self.data.ctrl[self.ids.actuator] = torque_nm
+        self._io, applied = self._actuate(self._io, np.asarray(torque_nm, np.float32),
+                                          np.asarray(self.data.qvel[self.ids.joint_dof], np.float32))
+        self.data.ctrl[self.ids.actuator] = np.asarray(applied)
         self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
         mujoco.mj_step(self.model, self.data)
 
@@ -109,9 +119,11 @@ class Go1Physics:
         return self.data.qpos[self.ids.joint_qpos].copy(), self.data.qvel[self.ids.joint_dof].copy()
 
     def observation(self):
-        """The controller-facing sensors (``cpg.Observation`` of NumPy arrays, SI units)."""
-        obs = self._observe(np.asarray(self.data.qpos, np.float32), np.asarray(self.data.qvel, np.float32),
-                            np.asarray(self.data.sensordata, np.float32))
+        """The controller-facing sensors (``cpg.Observation`` of NumPy arrays, SI units), the foot force as the
+        physics profile's sensor reports it."""
+        self._io, obs = self._measure(self._io, np.asarray(self.data.qpos, np.float32),
+                                      np.asarray(self.data.qvel, np.float32),
+                                      np.asarray(self.data.sensordata, np.float32))
         return type(obs)(*(np.asarray(x, np.float64) for x in obs))
 
     def trunk_height_m(self) -> float:
@@ -302,9 +314,10 @@ class SimGo1Client:
 
     def __init__(self, pacing: str = "realtime", friction: float = 0.6, slope_deg: float = 0.0,
                  payload_kg: float = 0.0, realtime_priority: int | None = None, cpus: set[int] | None = None,
-                 startup_timeout_s: float = 60.0):
+                 startup_timeout_s: float = 60.0, physics: str = physics_profiles.ROBOT_PROFILE):
+        physics_profiles.get(physics)  # an unknown name fails here, not in the child process
         cmd = [sys.executable, "-m", "cpgjax.robot.sim_server", "--pacing", pacing, "--friction", str(friction),
-               "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg)]
+               "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg), "--physics", physics]
         if realtime_priority is not None:
             cmd += ["--realtime-priority", str(realtime_priority)]
         if cpus:
@@ -375,6 +388,8 @@ def main(argv=None) -> None:
     parser.add_argument("--friction", type=float, default=0.6)
     parser.add_argument("--slope-deg", type=float, default=0.0)
     parser.add_argument("--payload-kg", type=float, default=0.0)
+    parser.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
+                        help="physics profile (docs/physics.md)")
     parser.add_argument("--realtime-priority", type=int,
                         help="SCHED_FIFO priority for the physics loop, when permitted (a robot is not starved "
                              "by other processes; on a shared machine its simulation can be)")
@@ -391,7 +406,7 @@ def main(argv=None) -> None:
         except OSError as e:
             print(f"real-time priority not permitted ({e})", file=sys.stderr)
     server = SimGo1Server(args.port, args.control_port, args.pacing, friction=args.friction,
-                          slope_deg=args.slope_deg, payload_kg=args.payload_kg)
+                          slope_deg=args.slope_deg, payload_kg=args.payload_kg, physics=args.physics)
     server.physics.observation()  # compile the sensor model before announcing readiness
     print("READY", *server.ports, flush=True)
     server.serve_forever()

@@ -17,6 +17,7 @@ The optimizer is anything with ``propose(context) -> params`` and ``observe(para
 from __future__ import annotations
 
 import json
+import logging
 import multiprocessing
 import os
 from pathlib import Path
@@ -27,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import hardware_io as hio
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
@@ -35,7 +37,14 @@ from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
+log = logging.getLogger(__name__)
+
 _SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")
+# The robot's context normalization: its foot force is calibrated so that the feet carry its weight standing, the
+# signal of the go1 physics profile, whose c_load range it takes (docs/decisions.md §3, §11).
+CONTEXT_RANGES = optimizer_config.paper_config(
+    context_lower=(physics_profiles.get("go1").context_load_range_n[0], optimizer_config.PAPER_CONTEXT_LOWER[1]),
+    context_upper=(physics_profiles.get("go1").context_load_range_n[1], optimizer_config.PAPER_CONTEXT_UPPER[1]))
 
 
 class OnlineOptimizer(Protocol):
@@ -73,7 +82,7 @@ class BayesianOptimizer:
         active = np.ones(param_space.NUM_PARAMS, bool)
         active[param_space.SIGMA_N_INDEX] = tegotae
         self._key = jax.random.PRNGKey(seed)
-        self._opt = bo.make_optimizer(optimizer_config.paper_config())
+        self._opt = bo.make_optimizer(CONTEXT_RANGES)
         self._state = self._opt.init(active_dims=jnp.asarray(active))
 
     def propose(self, context: np.ndarray) -> np.ndarray:
@@ -171,8 +180,11 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
         record = trial_record(signals, spec.total_mass_kg, spec.dt_s)
         j = float(objective.objective(record, spec.target_velocity_mps))
         c = np.asarray(objective.context(record), np.float64)
-        optimizer.observe(x, c, record, j)
-        conn.send(("params", optimizer.propose(c)))
+        c_gp, messages = optimizer_config.clip_context(CONTEXT_RANGES, c)  # docs/decisions.md §11: never silently
+        for message in messages:
+            log.warning("trial %d: %s", trial, message)
+        optimizer.observe(x, c_gp, record, j)
+        conn.send(("params", optimizer.propose(c_gp)))
         row = {"trial": trial, "objective": j, "cost_of_transport": float(objective.cost_of_transport(record)),
                "v_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
                "v_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])), "c_load_n": float(c[0]),

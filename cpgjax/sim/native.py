@@ -38,6 +38,7 @@ from mujoco import rollout as mj_rollout
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import sensors
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
@@ -78,6 +79,7 @@ class NativeState(NamedTuple):
     sensordata: np.ndarray  # (B, nsensordata) float64, as left by the last step (computed at its start, as in MJX)
     cpg: cpg.CPGState  # device arrays
     params: jax.Array  # (B, 8) the parameters applied at the end of the last trial
+    io: physics_profiles.ActuatorSensorState  # device arrays: the physics profile's foot sensor and motors
 
 
 # ----------------------------------------------------------------------------------------------- physics
@@ -92,7 +94,7 @@ class BatchPhysics:
     def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None):
         self.scenario = scenario
         # Instances with the same scenario share one MjModel (read-only during a step): less memory traffic.
-        keys = list(zip(*(field.tolist() for field in scenario)))  # (friction, slope, payload) per instance
+        keys = list(zip(*(field.tolist() for field in scenario)))  # (friction, slope, payload, physics) per instance
         unique = {key: go1_model.scenario_model(scenario, keys.index(key)) for key in dict.fromkeys(keys)}
         self.models = [unique[key] for key in keys]
         m = self.models[0]
@@ -172,21 +174,29 @@ class BatchPhysics:
 
 # ----------------------------------------------------------------------------------------------- per-tick logic
 
+class _Controller(NamedTuple):
+    """The per-instance state on the controller's side of the physics step."""
+
+    cpg: cpg.CPGState
+    io: physics_profiles.ActuatorSensorState
+
+
 class _Constants(NamedTuple):
     """Per-trial inputs of the jitted tick, each with a leading batch axis."""
 
     gravity_mps2: jax.Array  # (3,)
-    reset_cpg: cpg.CPGState  # controller state after a reset
+    reset: _Controller  # controller state after a reset
     prev_params: jax.Array  # (8,) start of the transition
     new_params: jax.Array  # (8,)
     gates: cpg.Gates
+    profile: physics_profiles.ProfileArrays
 
 
 class _Carry(NamedTuple):
     """Device state carried from tick to tick (donated: updated in place). Pytrees travel as flat vectors
     (``_Packing``): a handful of buffers per call keeps the per-tick dispatch cheap."""
 
-    cpg: jax.Array  # (C,) the batch's controller state, flat
+    controller: jax.Array  # (C,) the batch's _Controller, flat
     pending: jax.Array  # (P,) the batch's pre-step half of the last tick's row, flat
     step: jax.Array  # () int32, control ticks issued so far in this run
     rows: jax.Array  # (N, R) one flat row per tick
@@ -224,14 +234,14 @@ LOG_RECORDER = _Recorder(pending=_log_pending, row=_log_row)
 
 
 def _control(cpg_config: cpg.CPGConfig, recorder: _Recorder, n_transition: int, k: jax.Array, consts: _Constants,
-             cpg_state: cpg.CPGState, qpos, qvel, sensordata):
-    """Sensors → controller for one instance at tick k, with the transition's linear parameter interpolation."""
+             controller: _Controller, qpos, qvel, sensordata):
+    """The shared control tick for one instance at tick k, with the transition's linear parameter interpolation."""
     fraction = protocol.transition_fraction(k.astype(jnp.float32), n_transition)
     params = jnp.where(k < n_transition, protocol.transition_params(consts.prev_params, consts.new_params, fraction),
                        consts.new_params)
-    obs = sensors.observe(qpos, qvel, sensordata, consts.gravity_mps2)
-    cpg_state, torque, diag = cpg.controller_step(cpg_config, cpg_state, params, consts.gates, obs)
-    return cpg_state, torque, recorder.pending(qpos, obs, torque, diag, cpg_state)
+    c = protocol.control(cpg_config, consts.profile, controller.io, controller.cpg, params, consts.gates, qpos, qvel,
+                         sensordata, consts.gravity_mps2)
+    return _Controller(c.cpg, c.io), c.torque_nm, recorder.pending(qpos, c.obs, c.torque_nm, c.diag, c.cpg)
 
 
 class _Program(NamedTuple):
@@ -250,7 +260,7 @@ class _Packing(NamedTuple):
     the host input row is laid out: [physics state | sensordata | failed]."""
 
     consts: Callable
-    cpg: Callable
+    controller: Callable
     pending: Callable
     row: Callable
     layout: PhysicsLayout
@@ -269,8 +279,9 @@ def _complete(trial_config, recorder: _Recorder, packing: _Packing, consts_flat,
     consts = packing.consts(consts_flat)
     qpos, qvel, _, failed = _host_inputs(packing, host_in)
     row = jax.vmap(functools.partial(recorder.row, trial_config))(packing.pending(carry.pending), qpos, qvel, failed)
-    cpg_state = protocol.where_batch(failed, consts.reset_cpg, packing.cpg(carry.cpg))
-    return carry._replace(cpg=ravel_pytree(cpg_state)[0], rows=carry.rows.at[carry.step - 1].set(ravel_pytree(row)[0]))
+    controller = protocol.where_batch(failed, consts.reset, packing.controller(carry.controller))
+    return carry._replace(controller=ravel_pytree(controller)[0],
+                          rows=carry.rows.at[carry.step - 1].set(ravel_pytree(row)[0]))
 
 
 def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, consts_flat, carry: _Carry,
@@ -283,9 +294,9 @@ def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, c
     carry = _complete(trial_config, recorder, packing, consts_flat, carry, host_in)
     qpos, qvel, sensordata, _ = _host_inputs(packing, host_in)
     control = functools.partial(_control, cpg_config, recorder, trial_config.transition_steps, carry.step)
-    cpg_state, torque, pending = jax.vmap(control)(packing.consts(consts_flat), packing.cpg(carry.cpg), qpos, qvel,
-                                                   sensordata)
-    return _Carry(cpg=ravel_pytree(cpg_state)[0], pending=ravel_pytree(pending)[0], step=carry.step + 1,
+    controller, torque, pending = jax.vmap(control)(packing.consts(consts_flat), packing.controller(carry.controller),
+                                                    qpos, qvel, sensordata)
+    return _Carry(controller=ravel_pytree(controller)[0], pending=ravel_pytree(pending)[0], step=carry.step + 1,
                   rows=carry.rows), torque
 
 
@@ -325,7 +336,10 @@ class NativeBackend:
         standing = jnp.asarray(self.physics.standing_physics, jnp.float32)
         obs = jax.vmap(sensors.observe)(standing[:, lay.qpos], standing[:, lay.qvel],
                                         jnp.asarray(self.physics.standing_sensordata, jnp.float32), self._gravity)
-        self._reset_cpg = jax.vmap(cpg.init_state)(obs)
+        self._reset = _Controller(jax.vmap(cpg.init_state)(obs),
+                                  jax.vmap(physics_profiles.init_state)(obs.foot_force_n))
+        self._profile = jax.tree.map(jnp.asarray, physics_profiles.batch_arrays(scenario.physics,
+                                                                                 scenario.latency_ticks))
         self._host_in = np.zeros((self.batch_size, lay.size + self.physics.sensordata.shape[1] + 1), np.float32)
         self._compiled = {}
 
@@ -347,11 +361,12 @@ class NativeBackend:
         params = protocol.check_params(params, self.batch_size)
         p = self.physics
         return NativeState(physics=p.standing_physics.copy(), warmstart=np.zeros_like(p.warmstart),
-                           sensordata=p.standing_sensordata.copy(), cpg=self._reset_cpg, params=params)
+                           sensordata=p.standing_sensordata.copy(), cpg=self._reset.cpg, params=params,
+                           io=self._reset.io)
 
     def _constants(self, prev_params, new_params, gates) -> _Constants:
-        return _Constants(self._gravity, self._reset_cpg, jnp.asarray(prev_params, jnp.float32), new_params,
-                          protocol.check_gates(gates, self.batch_size))
+        return _Constants(self._gravity, self._reset, jnp.asarray(prev_params, jnp.float32), new_params,
+                          protocol.check_gates(gates, self.batch_size), self._profile)
 
     def _program(self, recorder: _Recorder, trial_config: protocol.TrialConfig) -> _Program:
         """The run's compiled pieces (:class:`_Program`), compiled once per recorder and trial timing."""
@@ -366,13 +381,13 @@ class NativeBackend:
             def one_tick(consts):
                 qpos, qvel, _, failed = _host_inputs(p_layout, jnp.zeros(self._host_in.shape))
                 control = functools.partial(_control, self.cpg_config, recorder, 1, jnp.int32(0))
-                _, _, pending = jax.vmap(control)(consts, consts.reset_cpg, qpos, qvel, jnp.zeros(p.sensordata.shape))
+                _, _, pending = jax.vmap(control)(consts, consts.reset, qpos, qvel, jnp.zeros(p.sensordata.shape))
                 row = jax.vmap(functools.partial(recorder.row, trial_config))(pending, qpos, qvel, failed)
                 return pending, row
 
             pending, row = jax.eval_shape(one_tick, consts)
             zeros = functools.partial(jax.tree.map, lambda s: jnp.zeros(s.shape, s.dtype))
-            packing = _Packing(consts=ravel_pytree(consts)[1], cpg=ravel_pytree(self._reset_cpg)[1],
+            packing = _Packing(consts=ravel_pytree(consts)[1], controller=ravel_pytree(self._reset)[1],
                                pending=ravel_pytree(zeros(pending))[1], row=ravel_pytree(zeros(row))[1],
                                layout=p.layout, nsensordata=p.sensordata.shape[1])
             advance = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing)
@@ -392,15 +407,16 @@ class NativeBackend:
         return buf
 
     def _run(self, state: NativeState, recorder: _Recorder, trial_config: protocol.TrialConfig,
-             consts: _Constants) -> tuple[cpg.CPGState, jax.Array]:
-        """Run ``transition_steps + steady_steps`` ticks from ``state``; returns the controller state and the flat
-        rows (N, R). The physics state is left in ``self.physics``."""
+             consts: _Constants) -> tuple[_Controller, jax.Array]:
+        """Run ``transition_steps + steady_steps`` ticks from ``state``; returns the controller-side state and the
+        flat rows (N, R). The physics state is left in ``self.physics``."""
         program = self._program(recorder, trial_config)
         num_steps = trial_config.transition_steps + trial_config.steady_steps
         p = self.physics
         p.set_state(state.physics, state.warmstart, state.sensordata)
         consts_flat = ravel_pytree(consts)[0]
-        carry = _Carry(cpg=ravel_pytree(state.cpg)[0], pending=jnp.zeros(program.pending_size), step=jnp.int32(0),
+        carry = _Carry(controller=ravel_pytree(_Controller(state.cpg, state.io))[0],
+                       pending=jnp.zeros(program.pending_size), step=jnp.int32(0),
                        rows=jnp.zeros((num_steps, program.row_size)))
         failed = np.zeros(self.batch_size, bool)
         advance = program.advance  # one attribute lookup, not one per tick
@@ -408,18 +424,18 @@ class NativeBackend:
             carry, torque = advance(consts_flat, carry, self._pack_host_inputs(failed))
             failed = p.step(np.asarray(torque))
         carry = program.complete(consts_flat, carry, self._pack_host_inputs(failed))
-        return program.packing.cpg(carry.cpg), carry.rows
+        return program.packing.controller(carry.controller), carry.rows
 
     def trial(self, state: NativeState, new_params, gates: cpg.Gates) -> tuple[NativeState, protocol.TrialRecord]:
         """One trial for every instance. Returns the next state and the records (same fields as MJXBackend's)."""
         new_params = protocol.check_params(new_params, self.batch_size)
         consts = self._constants(state.params, new_params, gates)
-        cpg_state, rows = self._run(state, TRIAL_RECORDER, self.trial_config, consts)
+        controller, rows = self._run(state, TRIAL_RECORDER, self.trial_config, consts)
         record = self._program(TRIAL_RECORDER, self.trial_config).summarize(rows, self._total_mass)
         fell = np.asarray(record.fell) > 0
         self.physics.reset(fell)
-        cpg_state = protocol.where_batch(jnp.asarray(fell), self._reset_cpg, cpg_state)
-        return NativeState(*self.physics.get_state(), cpg=cpg_state, params=new_params), record
+        controller = protocol.where_batch(jnp.asarray(fell), self._reset, controller)
+        return NativeState(*self.physics.get_state(), cpg=controller.cpg, params=new_params, io=controller.io), record
 
     def rollout(self, state: NativeState, params, gates: cpg.Gates,
                 num_steps: int) -> tuple[NativeState, protocol.StepLog]:
@@ -427,6 +443,6 @@ class NativeBackend:
         params = protocol.check_params(params, self.batch_size)
         config = protocol.TrialConfig(transition_steps=0, steady_steps=num_steps)
         packing = self._program(LOG_RECORDER, config).packing
-        cpg_state, rows = self._run(state, LOG_RECORDER, config, self._constants(params, params, gates))
+        controller, rows = self._run(state, LOG_RECORDER, config, self._constants(params, params, gates))
         log = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), jax.vmap(packing.row)(rows))
-        return NativeState(*self.physics.get_state(), cpg=cpg_state, params=params), log
+        return NativeState(*self.physics.get_state(), cpg=controller.cpg, params=params, io=controller.io), log

@@ -120,9 +120,10 @@ def trial_columns(result) -> dict[str, np.ndarray]:
         return np.swapaxes(x, 0, 1).reshape((batch * n,) + x.shape[2:])
 
     cols: dict[str, np.ndarray] = {"instance": inst, "trial": trial}
-    for label in ("controller", "seed", "schedule", "data_reuse"):
+    for label in ("controller", "seed", "schedule", "data_reuse", "physics"):
         cols[label] = np.array([lab[label] for lab in result.labels])[inst]
-    for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference"):
+    for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "mass_scale",
+                  "latency_ticks"):
         cols[field] = np.asarray(getattr(cond, field))[:, :n].reshape(-1)
     params = per(tr.params)
     for i, name in enumerate(param_space.PARAM_NAMES):

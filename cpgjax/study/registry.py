@@ -16,6 +16,7 @@ Each writes to its output folder: ``table.md`` (the paper's numbers beside ours)
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 from collections.abc import Callable
 from typing import NamedTuple
@@ -25,10 +26,12 @@ import numpy as np
 
 from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
 from cpgjax.study import figures as study_figures
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
+from cpgjax.study import transfer
 from cpgjax.study.spec import Change, Schedule, StudySpec
 from cpgjax.trial import objective, protocol
 
@@ -50,6 +53,9 @@ PAPER_LOAD_TABLE = {  # load kg: (velocity, CoT, J) after adaptation, (same) wit
 }
 
 
+PHYSICS = (physics_profiles.PAPER_STUDIES_PROFILE,)  # the paper's Gazebo-like physics (docs/physics.md)
+
+
 def _scaled(trial: int, paper_total: int, total: int) -> int:
     """A schedule's change trial scaled from the paper's run length to ours."""
     return int(round(trial * total / paper_total))
@@ -63,7 +69,7 @@ def _seeds(seeds: int | None, quick: bool) -> tuple[int, ...]:
 
 def ablation_spec(seeds=None, trials=None, quick=False) -> StudySpec:
     return StudySpec("controller_ablation", num_trials=trials or (12 if quick else 40), controllers=cpg.CONTROLLERS,
-                     seeds=_seeds(seeds, quick), target_velocity_mps=(0.5,))
+                     seeds=_seeds(seeds, quick), target_velocity_mps=(0.5,), physics=PHYSICS)
 
 
 def load_spec(seeds=None, trials=None, quick=False) -> StudySpec:
@@ -71,12 +77,12 @@ def load_spec(seeds=None, trials=None, quick=False) -> StudySpec:
     schedule = Schedule("0→7.5→15 kg", (Change(_scaled(36, 80, n), "payload_kg", 7.5),
                                          Change(_scaled(58, 80, n), "payload_kg", 15.0)))
     return StudySpec("load_adaptation", num_trials=n, seeds=_seeds(seeds, quick), schedules=(schedule,),
-                     group_by=("schedule",))
+                     group_by=("schedule",), physics=PHYSICS)
 
 
 def friction_spec(seeds=None, trials=None, quick=False) -> StudySpec:
     return StudySpec("friction", num_trials=trials or (12 if quick else 40), seeds=_seeds(seeds, quick),
-                     friction=(0.3, 0.6, 0.9), group_by=("friction",))
+                     friction=(0.3, 0.6, 0.9), group_by=("friction",), physics=PHYSICS)
 
 
 def multi_velocity_spec(seeds=None, trials=None, quick=False) -> StudySpec:
@@ -84,7 +90,7 @@ def multi_velocity_spec(seeds=None, trials=None, quick=False) -> StudySpec:
     schedule = Schedule("0.8→0.3→0.6 m/s", (Change(_scaled(40, 140, n), "target_velocity_mps", 0.3),
                                              Change(_scaled(90, 140, n), "target_velocity_mps", 0.6)))
     return StudySpec("multi_velocity", num_trials=n, seeds=_seeds(seeds, quick), target_velocity_mps=(0.8,),
-                     schedules=(schedule,), data_reuse=(True, False), group_by=("data_reuse",))
+                     schedules=(schedule,), data_reuse=(True, False), group_by=("data_reuse",), physics=PHYSICS)
 
 
 SLOPE_PHASES_DEG = (0.0, 10.0, 12.5)
@@ -99,7 +105,8 @@ def slope_spec(seeds=None, trials=None, quick=False) -> StudySpec:
                Change(learn, "inference", 1.0)]
     changes += [Change(learn + k * per_slope, "slope_deg", s) for k, s in enumerate(INFERENCE_SLOPES_DEG)]
     return StudySpec("slope_adaptation", num_trials=n, seeds=_seeds(seeds, quick),
-                     schedules=(Schedule("0→10→12.5° + inference 10…17.5°", tuple(changes)),), group_by=("schedule",))
+                     schedules=(Schedule("0→10→12.5° + inference 10…17.5°", tuple(changes)),), group_by=("schedule",),
+                     physics=PHYSICS)
 
 
 # ----------------------------------------------------------------------------------------------- analysis helpers
@@ -160,7 +167,8 @@ def representative_rollout(result, backend: str) -> dict:
     fields = (cond.friction[b], cond.slope_deg[b], cond.payload_kg[b], cond.target_velocity_mps[b])
     start = max(max(phase_starts(f[:n])) for f in fields)
     t = start + int(np.argmax(tr.objective[start:n, b]))
-    scenario = go1_model.make_scenarios(cond.friction[b, n - 1], cond.slope_deg[b, n - 1], cond.payload_kg[b, n - 1])
+    scenario = go1_model.make_scenarios(cond.friction[b, n - 1], cond.slope_deg[b, n - 1], cond.payload_kg[b, n - 1],
+                                        result.labels[b]["physics"])
     controller = result.labels[b]["controller"]
     log = rollouts(tr.params[t, b][None], [controller], scenario, result.spec.trial, backend)[0]
     return {f"best_{controller}_run{b}_trial{t}": log}
@@ -194,7 +202,8 @@ def report_ablation(result, out: pathlib.Path, backend: str):
     if picks:
         best = [best_params(result, controllers == c) for c in picks]
         params = np.stack([b[0] for b in best])
-        scenario = go1_model.make_scenarios(friction=[result.spec.friction[0]] * len(picks))
+        scenario = go1_model.make_scenarios(friction=[result.spec.friction[0]] * len(picks),
+                                            physics=[result.labels[b]["physics"] for _, b, _ in best])
         for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend)):
             logs[f"best_{c}"] = lg
         study_figures.attitude(out / "attitude.png", logs)
@@ -217,7 +226,7 @@ def report_load(result, out: pathlib.Path, backend: str):
         after = [last_mean(x, stop) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective)]
         before = None
         if load > 0:
-            scenario = go1_model.make_scenarios(payload_kg=[load] * len(flat))
+            scenario = go1_model.make_scenarios(payload_kg=[load] * len(flat), physics=_labels(result, "physics"))
             before = evaluate(flat, _labels(result, "controller"), scenario, result.spec.trial, backend, 0.5)
         paper_after, paper_before = PAPER_LOAD_TABLE.get(load, (None, None))
         cells = []
@@ -328,10 +337,17 @@ STUDIES = {s.name: s for s in (
     Study("friction", friction_spec, report_friction, "friction 0.3 / 0.6 / 0.9 learning curves"),
     Study("multi_velocity", multi_velocity_spec, report_multi_velocity, "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
     Study("slope_adaptation", slope_spec, report_slope, "0° → 10° → 12.5°, then inference mode on 10°…17.5°"),
+
 )}
 
 
-def make_spec(name: str, *, seeds=None, trials=None, quick=False) -> StudySpec:
+# Studies beyond the paper's that run several engine runs and write their own outputs: name → (run, description).
+STUDIES_OF_SEVERAL_RUNS = {
+    "transfer": (transfer.run, "optimize under one physics profile, walk the best gaits under the others"),
+}
+
+
+def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str | None = None) -> StudySpec:
     if name not in STUDIES:
         raise study_spec.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
     if seeds is not None and seeds < 1:
@@ -339,6 +355,8 @@ def make_spec(name: str, *, seeds=None, trials=None, quick=False) -> StudySpec:
     if trials is not None and trials < 8:
         raise study_spec.StudyError(f"--trials {trials}: need at least 8 (2 random + some optimized trials)")
     spec = STUDIES[name].make_spec(seeds=seeds, trials=trials, quick=quick)
+    if physics is not None:
+        spec = dataclasses.replace(spec, physics=(physics,))
     study_spec.validate(spec)
     return spec
 
@@ -358,9 +376,16 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
 
 
 def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=False, backend="auto",
-        progress=None) -> tuple[str, pathlib.Path]:
-    """Run (or resume) a study and write its outputs; returns (table text, output folder)."""
-    spec = make_spec(name, seeds=seeds, trials=trials, quick=quick)
+        progress=None, physics: str | None = None) -> tuple[str, pathlib.Path]:
+    """Run (or resume) a study and write its outputs; returns (table text, output folder). ``physics``: the
+    profile every instance simulates (default: the study's own)."""
+    if name in STUDIES_OF_SEVERAL_RUNS:
+        if (seeds is not None and seeds < 1) or (trials is not None and trials < 8):
+            raise study_spec.StudyError(f"{name}: need --seeds ≥ 1 and --trials ≥ 8")
+        runner = STUDIES_OF_SEVERAL_RUNS[name][0]
+        return runner(seeds=seeds, trials=trials, quick=quick, out=out, resume=resume, backend=backend,
+                      progress=progress, physics=physics)
+    spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics)
     out = pathlib.Path(out or pathlib.Path("results") / name)
     if not resume and (out / study_io.CHECKPOINT).exists():
         raise study_spec.StudyError(f"{out} already holds a checkpoint: pass --resume to continue it, or another --out")

@@ -16,6 +16,7 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.optim import config as optimizer_config
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
@@ -37,6 +38,18 @@ class Change(NamedTuple):
     value: float
 
 
+class Randomization(NamedTuple):
+    """Domain randomization: every trial of every instance draws its physics uniformly from these ranges (each a
+    (low, high) pair; equal ends fix the value), so the optimizer tunes for a distribution, not one floor. The draws
+    are a pure function of the instance and the trial (resume reproduces them)."""
+
+    friction: tuple[float, float] = (0.4, 1.0)
+    payload_kg: tuple[float, float] = (0.0, 5.0)
+    mass_scale: tuple[float, float] = (0.9, 1.1)  # links' masses ±10 %
+    latency_ticks: tuple[int, int] = (0, 2)  # integers, both ends included
+    seed: int = 0
+
+
 class Schedule(NamedTuple):
     """A named sequence of condition changes, one grid axis of a study."""
 
@@ -51,9 +64,11 @@ class StudySpec:
     Attributes:
       name: the study's name (output folder, metadata).
       num_trials: trials per instance (each 1.5 s + 3 s at the paper's timing).
-      controllers, seeds, friction, slope_deg, payload_kg, target_velocity_mps, schedules, data_reuse: grid axes;
-        an instance is one element of their product, in this order.
+      controllers, seeds, friction, slope_deg, payload_kg, target_velocity_mps, schedules, data_reuse, physics:
+        grid axes; an instance is one element of their product, in this order (physics: profile names of
+        ``cpgjax.go1.physics.PROFILES``).
       group_by: instance labels whose combinations form the groups of the progress display and the summaries.
+      randomize: domain randomization of every trial's physics (None: the grid's fixed values).
       trial: trial timing (static).
       optimizer: the optimizer's static structure; ``None`` = :func:`optimizer_config.paper_config` with capacity
         ``num_trials``.
@@ -69,22 +84,31 @@ class StudySpec:
     target_velocity_mps: tuple[float, ...] = (0.5,)
     schedules: tuple[Schedule, ...] = (Schedule("constant"),)
     data_reuse: tuple[bool, ...] = (True,)
+    physics: tuple[str, ...] = (physics_profiles.DEFAULT_PROFILE,)
+    randomize: Randomization | None = None
     group_by: tuple[str, ...] = ("controller",)
     trial: protocol.TrialConfig = protocol.TrialConfig()
     optimizer: optimizer_config.OptimizerConfig | None = None
 
     def optimizer_config(self) -> optimizer_config.OptimizerConfig:
-        return optimizer_config.paper_config(capacity=self.num_trials) if self.optimizer is None else self.optimizer
+        """``optimizer``, or the paper's setting with capacity ``num_trials`` and the c_load range of the physics
+        profiles' foot-force signal (docs/decisions.md §11; :func:`validate` checks the profiles agree)."""
+        if self.optimizer is not None:
+            return self.optimizer
+        load_lower, load_upper = physics_profiles.get(self.physics[0]).context_load_range_n
+        return optimizer_config.paper_config(
+            capacity=self.num_trials, context_lower=(load_lower, optimizer_config.PAPER_CONTEXT_LOWER[1]),
+            context_upper=(load_upper, optimizer_config.PAPER_CONTEXT_UPPER[1]))
 
 
 LABELS = ("controller", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
-          "data_reuse")
+          "data_reuse", "physics")
 
 
 def instances(spec: StudySpec) -> list[dict[str, Any]]:
     """The labels of every instance of the grid, in batch order."""
     axes = (spec.controllers, spec.seeds, spec.friction, spec.slope_deg, spec.payload_kg, spec.target_velocity_mps,
-            [s.label for s in spec.schedules], spec.data_reuse)
+            [s.label for s in spec.schedules], spec.data_reuse, spec.physics)
     return [dict(zip(LABELS, combo)) for combo in itertools.product(*axes)]
 
 
@@ -96,6 +120,8 @@ class Conditions(NamedTuple):
     payload_kg: np.ndarray
     target_velocity_mps: np.ndarray
     inference: np.ndarray  # bool
+    mass_scale: np.ndarray  # 1 unless randomized
+    latency_ticks: np.ndarray  # int, −1 (the profile's) unless randomized
 
 
 def conditions(spec: StudySpec) -> Conditions:
@@ -110,7 +136,24 @@ def conditions(spec: StudySpec) -> Conditions:
         for change in sorted(schedules[lab["schedule"]].changes, key=lambda c: c.trial):
             out[change.field][b, change.trial:] = change.value
     out["inference"] = out["inference"] > 0.5
+    out["mass_scale"], out["latency_ticks"] = np.ones((len(labels), n)), np.full((len(labels), n), -1, np.int64)
+    if spec.randomize is not None:
+        out.update(randomized(spec.randomize, len(labels), n))
     return Conditions(**out)
+
+
+def randomized(ranges: Randomization, batch: int, num_trials: int) -> dict[str, np.ndarray]:
+    """Per-instance, per-trial draws (B, num_trials) of the randomized fields; instance b's draws depend on b and
+    ``ranges.seed`` only."""
+    draws = {f: np.zeros((batch, num_trials)) for f in ("friction", "payload_kg", "mass_scale")}
+    latency = np.zeros((batch, num_trials), np.int64)
+    for b in range(batch):
+        rng = np.random.default_rng([ranges.seed, b])
+        for f in draws:
+            low, high = getattr(ranges, f)
+            draws[f][b] = rng.uniform(low, high, num_trials)
+        latency[b] = rng.integers(ranges.latency_ticks[0], ranges.latency_ticks[1] + 1, num_trials)
+    return {**draws, "latency_ticks": latency}
 
 
 def validate(spec: StudySpec) -> Conditions:
@@ -125,7 +168,7 @@ def validate(spec: StudySpec) -> Conditions:
     if not isinstance(spec.num_trials, int) or spec.num_trials < 1:
         fail(f"num_trials = {spec.num_trials!r}; need an integer >= 1")
     for axis in ("controllers", "seeds", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedules",
-                 "data_reuse"):
+                 "data_reuse", "physics"):
         values = getattr(spec, axis)
         if len(values) == 0:
             fail(f"grid axis {axis} is empty")
@@ -134,6 +177,13 @@ def validate(spec: StudySpec) -> Conditions:
     for c in spec.controllers:
         if c not in cpg.CONTROLLERS:
             fail(f"unknown controller {c!r}; allowed: {cpg.CONTROLLERS}")
+    for name in spec.physics:
+        if name not in physics_profiles.PROFILES:
+            fail(f"unknown physics profile {name!r}; allowed: {tuple(physics_profiles.PROFILES)}")
+    ranges = {physics_profiles.get(name).context_load_range_n for name in spec.physics}
+    if spec.optimizer is None and len(ranges) > 1:
+        fail(f"physics profiles {spec.physics} normalize c_load over different ranges {sorted(ranges)}; run them as "
+             f"separate studies or give an optimizer config")
     for s in spec.seeds:
         if not isinstance(s, (int, np.integer)) or s < 0:
             fail(f"seed {s!r}: need a non-negative integer")
@@ -160,7 +210,8 @@ def validate(spec: StudySpec) -> Conditions:
         fail(f"target velocity {float(bad)!r} m/s outside (0, {MAX_TARGET_VELOCITY_MPS}]")
     try:
         for t in range(spec.num_trials):
-            go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t])
+            go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t],
+                                     mass_scale=cond.mass_scale[:, t], latency_ticks=cond.latency_ticks[:, t])
     except ValueError as err:
         fail(f"trial {t}: {err}")
     return cond

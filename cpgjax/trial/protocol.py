@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import cpg
-from cpgjax.go1 import attitude, sensors
+from cpgjax.go1 import attitude, physics, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.trial import params as param_space
 
@@ -130,6 +130,26 @@ def summarize(steady: Tick, total_mass_kg: jax.Array, dt_s: float, transition_fe
         fell=jnp.maximum(jnp.max(steady.fell), transition_fell),
         failed=jnp.maximum(jnp.max(steady.failed), transition_failed),
     )
+
+
+class Control(NamedTuple):
+    """One control tick's output (:func:`control`)."""
+
+    io: physics.ActuatorSensorState
+    cpg: cpg.CPGState
+    obs: cpg.Observation  # what the controller read
+    torque_nm: jax.Array  # (12,) the torque the motors apply
+    diag: cpg.Diagnostics
+
+
+def control(cpg_config: cpg.CPGConfig, profile: physics.ProfileArrays, io: physics.ActuatorSensorState,
+            cpg_state: cpg.CPGState, params: jax.Array, gates: cpg.Gates, qpos: jax.Array, qvel: jax.Array,
+            sensordata: jax.Array, gravity: jax.Array) -> Control:
+    """Sensors → controller → motors for one instance, under its physics profile; every backend's tick."""
+    io, obs = sensors.measure(profile, io, qpos, qvel, sensordata, gravity)
+    cpg_state, command, diag = cpg.controller_step(cpg_config, cpg_state, params, gates, obs)
+    io, torque = physics.actuate(profile, io, command, obs.joint_vel_rad_s)
+    return Control(io=io, cpg=cpg_state, obs=obs, torque_nm=torque, diag=diag)
 
 
 def transition_fraction(tick, transition_steps: int):

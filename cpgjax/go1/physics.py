@@ -1,0 +1,248 @@
+"""Physics profiles: named sets of contact, joint, actuator and foot-sensor fields of the simulated Go1.
+
+A profile is data, chosen per instance (docs/decisions.md §15; every constant and its source in docs/physics.md):
+
+* ``soft`` — the model cpgjax used before profiles existed: MuJoCo's default soft contact, armature 0.01, light
+  damping, no joint friction, the foot force as the world-frame contact normal force at 1 kHz. Kept for comparison.
+* ``paper`` — the paper's Gazebo Go1 as closely as MuJoCo allows: near-rigid foot contact, the unitree_ros Gazebo
+  joint damping and Coulomb friction, no reflected rotor inertia, Gazebo's velocity limits, and the paper's foot-force
+  signal: the z component of the contact force in the calf frame, sampled at 100 Hz and held between samples.
+* ``go1`` — the best estimate of the real robot: reflected rotor inertia, joint friction, the DC-motor torque-speed
+  envelope, actuation latency, and the foot sensor's int16 counts of the contact normal force.
+
+Model fields (floor contact ``solref``/``solimp``, ``dof_armature``, ``dof_damping``, ``dof_frictionloss``) are
+applied to the MuJoCo model of each instance (batched model leaves in MJX, one ``MjModel`` per instance in C MuJoCo);
+the actuator and sensor fields are per-instance arrays (:class:`ProfileArrays`) read by :func:`measure_foot_force` and
+:func:`actuate` inside the compiled tick, so one batch can mix profiles and switching one never recompiles.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from cpgjax.go1 import attitude, constants
+
+# Largest actuation latency a profile may have [ticks]; the command queue has this many slots (static).
+MAX_LATENCY_TICKS = 4
+FOOT_FRAMES = ("contact", "calf")
+
+
+class PhysicsProfile(NamedTuple):
+    """One profile's fields (per joint type: hip, thigh, calf; the same on the four legs)."""
+
+    floor_solref: tuple[float, float]  # (time constant [s], damping ratio) of foot-floor contact (the floor's priority)
+    floor_solimp: tuple[float, float, float, float, float]  # (d0, dwidth, width [m], midpoint, power)
+    armature_kg_m2: tuple[float, float, float]  # reflected rotor inertia
+    damping_nm_s_rad: tuple[float, float, float]  # viscous joint damping
+    frictionloss_nm: tuple[float, float, float]  # Coulomb joint friction
+    velocity_limit_rad_s: tuple[float, float, float]  # Gazebo: no torque along the motion beyond it (inf: none)
+    no_load_speed_rad_s: tuple[float, float, float]  # DC-motor envelope: motoring |τ| ≤ τ_stall (1 − |q̇|/ω₀)
+    latency_ticks: int  # the torque applied at tick k is the command of tick k − latency
+    foot_force_frame: str  # "contact": world-frame contact normal; "calf": z of the contact force in the calf frame
+    foot_force_period_ticks: int  # sample-and-hold period of the foot force (1: every tick; 10: 100 Hz)
+    foot_force_n_per_count: float  # > 0: the force is reported in int16 counts of this size (0: continuous)
+    context_load_range_n: tuple[float, float]  # the c_load normalization range of this signal (decisions §11)
+
+
+_MUJOCO_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)  # MuJoCo XML reference, geom/solimp default
+
+PROFILES: dict[str, PhysicsProfile] = {
+    "soft": PhysicsProfile(
+        floor_solref=(0.02, 1.0),  # MuJoCo's default (XML reference, geom/solref)
+        floor_solimp=_MUJOCO_DEFAULT_SOLIMP,
+        armature_kg_m2=(0.01, 0.01, 0.01), damping_nm_s_rad=(0.05, 0.05, 0.05), frictionloss_nm=(0.0, 0.0, 0.0),
+        velocity_limit_rad_s=(np.inf,) * 3, no_load_speed_rad_s=(np.inf,) * 3, latency_ticks=0,
+        foot_force_frame="contact", foot_force_period_ticks=1, foot_force_n_per_count=0.0,
+        context_load_range_n=(15.0, 75.0)),  # the world-frame normal reads ≈ 31 N standing: the widened range
+    "paper": PhysicsProfile(
+        # The stiffest reference MuJoCo integrates stably: time constant 2 Δt (MuJoCo clamps smaller ones to 2 Δt,
+        # XML reference, flag/refsafe), critically damped; impedance near 1 so the force follows it (near-rigid,
+        # like the unitree_ros Gazebo foot contact kp 1e6, kd 1).
+        floor_solref=(0.002, 1.0), floor_solimp=(0.99, 0.999, 0.001, 0.5, 2.0),
+        armature_kg_m2=(0.0, 0.0, 0.0),  # Gazebo models no rotor
+        damping_nm_s_rad=(0.01, 0.01, 0.01), frictionloss_nm=(0.2, 0.2, 0.2),  # unitree_ros go1_description
+        velocity_limit_rad_s=(30.1, 30.1, 20.06),  # URDF joint velocity limits, applied as Gazebo does
+        no_load_speed_rad_s=(np.inf,) * 3, latency_ticks=0,
+        foot_force_frame="calf", foot_force_period_ticks=10,  # unitree_ros foot contact plugin at 100 Hz
+        foot_force_n_per_count=0.0, context_load_range_n=(15.0, 55.0)),  # the paper's range
+    "go1": PhysicsProfile(
+        floor_solref=(0.02, 1.0), floor_solimp=_MUJOCO_DEFAULT_SOLIMP,  # no measured foot contact: MuJoCo's default
+        # Rotor inertia 0.000111842 kg·m² (unitree_ros go1.urdf) × gear ratio² (6 hip and thigh, 9 knee: mjlab's Go1).
+        armature_kg_m2=(0.000111842 * 6.0 ** 2, 0.000111842 * 6.0 ** 2, 0.000111842 * 9.0 ** 2),
+        damping_nm_s_rad=(0.01, 0.01, 0.01), frictionloss_nm=(0.2, 0.2, 0.2),  # unitree_ros go1_description
+        velocity_limit_rad_s=(np.inf,) * 3,
+        no_load_speed_rad_s=(30.1, 30.1, 20.06),  # URDF velocity limits as the no-load speed of the envelope
+        latency_ticks=2,  # SDK UDP round trip + motor driver, 1-2 ms: the upper end
+        # The foot pad's pressure sensor, calibrated on the robot so that the four feet carry its weight standing
+        # (docs/decisions.md §3): the contact normal force, in counts of the loopback simulated Go1's scale.
+        foot_force_frame="contact", foot_force_period_ticks=1,
+        foot_force_n_per_count=0.5,  # cpgjax.robot.sim_server.FOOT_FORCE_N_PER_COUNT
+        context_load_range_n=(15.0, 75.0)),  # a weight-calibrated signal: ≈ 31 N standing, ≈ 68 N with 15 kg
+}
+DEFAULT_PROFILE = "soft"  # the Python API's default: scripts written before profiles keep their numbers
+PAPER_STUDIES_PROFILE = "paper"  # the five paper studies, cpgjax walk and cpgjax optimize
+ROBOT_PROFILE = "go1"  # the loopback simulated Go1 (cpgjax deploy --robot sim)
+
+
+def get(name: str) -> PhysicsProfile:
+    """The profile called ``name``.
+
+    Raises:
+      ValueError: an unknown name (the message lists the known ones).
+    """
+    if name not in PROFILES:
+        raise ValueError(f"unknown physics profile {name!r}; allowed: {tuple(PROFILES)}")
+    return PROFILES[name]
+
+
+def _per_joint(values) -> np.ndarray:
+    return np.tile(np.asarray(values, np.float64), len(constants.LEG_NAMES))
+
+
+# ----------------------------------------------------------------------------------------------- model fields
+
+def model_fields(profile: PhysicsProfile, floor_geom: int, joint_dof: np.ndarray, model: mujoco.MjModel) -> dict:
+    """The profile's values of the MuJoCo model fields it sets (full arrays, shaped like ``model``'s)."""
+    solref, solimp = np.array(model.geom_solref), np.array(model.geom_solimp)
+    solref[floor_geom], solimp[floor_geom] = profile.floor_solref, profile.floor_solimp
+    fields = {"geom_solref": solref, "geom_solimp": solimp}
+    for name, values in (("dof_armature", profile.armature_kg_m2), ("dof_damping", profile.damping_nm_s_rad),
+                         ("dof_frictionloss", profile.frictionloss_nm)):
+        array = np.array(getattr(model, name))
+        array[joint_dof] = _per_joint(values)
+        fields[name] = array
+    return fields
+
+
+def apply_to_model(model: mujoco.MjModel, profile: PhysicsProfile, floor_geom: int, joint_dof: np.ndarray) -> None:
+    """Write the profile's model fields into a C-MuJoCo model (in place)."""
+    for name, value in model_fields(profile, floor_geom, joint_dof, model).items():
+        getattr(model, name)[:] = value
+
+
+# ----------------------------------------------------------------------------------------------- per-tick arrays
+
+class ProfileArrays(NamedTuple):
+    """The actuator and sensor fields of a profile as arrays (a leading batch axis when batched)."""
+
+    stall_torque_nm: jax.Array  # (12,)
+    no_load_speed_rad_s: jax.Array  # (12,) inf: no envelope
+    velocity_limit_rad_s: jax.Array  # (12,) inf: no limit
+    latency_ticks: jax.Array  # () int32
+    calf_frame: jax.Array  # () bool: the calf-frame z signal, else the contact normal
+    force_period_ticks: jax.Array  # () int32
+    force_n_per_count: jax.Array  # () float32, 0: continuous
+
+
+def arrays(profile: PhysicsProfile) -> ProfileArrays:
+    """One instance's :class:`ProfileArrays` (NumPy)."""
+    if profile.foot_force_frame not in FOOT_FRAMES:
+        raise ValueError(f"foot_force_frame {profile.foot_force_frame!r}; allowed: {FOOT_FRAMES}")
+    if not 0 <= profile.latency_ticks <= MAX_LATENCY_TICKS:
+        raise ValueError(f"latency_ticks {profile.latency_ticks}; allowed: 0 … {MAX_LATENCY_TICKS}")
+    if profile.foot_force_period_ticks < 1:
+        raise ValueError(f"foot_force_period_ticks {profile.foot_force_period_ticks}; allowed: ≥ 1")
+    return ProfileArrays(
+        stall_torque_nm=np.asarray(constants.TORQUE_LIMIT_NM, np.float32),
+        no_load_speed_rad_s=_per_joint(profile.no_load_speed_rad_s).astype(np.float32),
+        velocity_limit_rad_s=_per_joint(profile.velocity_limit_rad_s).astype(np.float32),
+        latency_ticks=np.int32(profile.latency_ticks),
+        calf_frame=np.bool_(profile.foot_force_frame == "calf"),
+        force_period_ticks=np.int32(profile.foot_force_period_ticks),
+        force_n_per_count=np.float32(profile.foot_force_n_per_count))
+
+
+def batch_arrays(names, latency_ticks=None) -> ProfileArrays:
+    """:class:`ProfileArrays` with a leading batch axis, one row per profile name; ``latency_ticks`` (one per row,
+    −1: the profile's own) replaces the profiles' latencies (domain randomization)."""
+    rows = [arrays(get(str(n))) for n in names]
+    batch = ProfileArrays(*(np.stack(field) for field in zip(*rows)))
+    if latency_ticks is not None:
+        override = np.asarray(latency_ticks, np.int32)
+        batch = batch._replace(latency_ticks=np.where(override >= 0, override, batch.latency_ticks).astype(np.int32))
+    return batch
+
+
+# ----------------------------------------------------------------------------------------------- sensor and motors
+
+class ActuatorSensorState(NamedTuple):
+    """What the profile's sensor and motors remember between ticks (per instance)."""
+
+    held_force_n: jax.Array  # (4,) the foot force last sampled
+    commands_nm: jax.Array  # (MAX_LATENCY_TICKS + 1, 12) the last commands, newest first
+    tick: jax.Array  # () int32 ticks since the reset
+
+
+def calf_rotations(qpos: jax.Array, root_qpos: int, joint_qpos: np.ndarray) -> jax.Array:
+    """Calf-body rotation matrices (4, 3, 3), calf frame → floor frame, from qpos: trunk ⊗ Rx(hip) ⊗ Ry(thigh + knee)
+    (the model's body frames carry no rotation of their own)."""
+    trunk = attitude.quat_to_matrix(qpos[root_qpos + 3:root_qpos + 7])
+    q = qpos[joint_qpos].reshape(4, 3)
+    c1, s1 = jnp.cos(q[:, 0]), jnp.sin(q[:, 0])
+    c23, s23 = jnp.cos(q[:, 1] + q[:, 2]), jnp.sin(q[:, 1] + q[:, 2])
+    one, zero = jnp.ones_like(c1), jnp.zeros_like(c1)
+    rx = jnp.stack([jnp.stack([one, zero, zero], -1), jnp.stack([zero, c1, -s1], -1),
+                    jnp.stack([zero, s1, c1], -1)], -2)
+    ry = jnp.stack([jnp.stack([c23, zero, s23], -1), jnp.stack([zero, one, zero], -1),
+                    jnp.stack([-s23, zero, c23], -1)], -2)
+    return trunk @ rx @ ry
+
+
+def contact_force_world(contact_data: jax.Array) -> jax.Array:
+    """The force the floor exerts on each foot (4, 3) [N], floor frame, from the contact sensors' (force | normal |
+    tangent) slots (4, 9). The sensor's frame (normal, tangent, normal × tangent) points from the foot (the sensor's
+    first geom) into the floor, so its force is the foot's push on the floor: the reaction is its negative."""
+    force, normal, tangent = contact_data[:, 0:3], contact_data[:, 3:6], contact_data[:, 6:9]
+    bitangent = jnp.cross(normal, tangent)
+    return -(force[:, 0:1] * normal + force[:, 1:2] * tangent + force[:, 2:3] * bitangent)
+
+
+def foot_force_signal(profile: ProfileArrays, qpos: jax.Array, contact_data: jax.Array, root_qpos: int,
+                      joint_qpos: np.ndarray) -> jax.Array:
+    """The profile's instantaneous foot-force signal (4,) [N]: the contact normal force, or the z component of the
+    contact force in the calf frame; quantized to the sensor's counts when it has them."""
+    normal = contact_data[:, 0]
+    calf = jnp.einsum("lji,lj->li", calf_rotations(qpos, root_qpos, joint_qpos),
+                      contact_force_world(contact_data))[:, 2]
+    signal = jnp.where(profile.calf_frame, calf, normal)
+    step = profile.force_n_per_count
+    return jnp.where(step > 0, jnp.round(signal / jnp.where(step > 0, step, 1.0)) * step, signal)
+
+
+def init_state(force_n: jax.Array) -> ActuatorSensorState:
+    """At a reset: the sensor holds the force of the reset state, the command queue is empty."""
+    return ActuatorSensorState(held_force_n=jnp.asarray(force_n, jnp.float32),
+                               commands_nm=jnp.zeros((MAX_LATENCY_TICKS + 1, constants.NUM_JOINTS), jnp.float32),
+                               tick=jnp.zeros((), jnp.int32))
+
+
+def sample_and_hold(profile: ProfileArrays, state: ActuatorSensorState,
+                    force_n: jax.Array) -> tuple[ActuatorSensorState, jax.Array]:
+    """The force the controller reads at this tick: sampled every ``force_period_ticks`` ticks, held between."""
+    held = jnp.where(state.tick % profile.force_period_ticks == 0, force_n, state.held_force_n)
+    return state._replace(held_force_n=held), held
+
+
+def actuate(profile: ProfileArrays, state: ActuatorSensorState, command_nm: jax.Array,
+            joint_vel_rad_s: jax.Array) -> tuple[ActuatorSensorState, jax.Array]:
+    """The torque the motors apply this tick (12,) [N·m] for the controller's command, and the next state.
+
+    The command of ``latency_ticks`` ticks ago, limited by the DC-motor envelope (when motoring, |τ| ≤
+    τ_stall (1 − |q̇|/ω₀); braking up to τ_stall) and by Gazebo's velocity limit (no torque in the direction of
+    motion beyond it, gazebo-classic ``Joint::CheckAndTruncateForce``).
+    """
+    commands = jnp.concatenate([command_nm[None].astype(jnp.float32), state.commands_nm[:-1]])
+    torque = commands[profile.latency_ticks]
+    motoring = torque * joint_vel_rad_s > 0
+    envelope = profile.stall_torque_nm * jnp.clip(1.0 - jnp.abs(joint_vel_rad_s) / profile.no_load_speed_rad_s,
+                                                  0.0, 1.0)
+    limit = jnp.where(motoring, envelope, profile.stall_torque_nm)
+    torque = jnp.clip(torque, -limit, limit)
+    beyond = (jnp.abs(joint_vel_rad_s) > profile.velocity_limit_rad_s) & motoring
+    torque = jnp.where(beyond, 0.0, torque)
+    return state._replace(commands_nm=commands, tick=state.tick + 1), torque

@@ -1,0 +1,159 @@
+"""The transfer study (``cpgjax study transfer``): does force feedback (Tegotae) or VMC make a tuned gait survive a
+change of physics?
+
+Three arms each optimize the four controllers online (Algorithm 1, v* = 0.5 m/s, flat floor μ 0.6), under one physics
+profile (docs/physics.md):
+
+* ``paper`` — at home under the paper's Gazebo-like physics;
+* ``go1`` — at home under the best estimate of the real robot;
+* ``paper_randomized`` — under ``paper`` with every trial's physics drawn per instance (domain randomization:
+  friction, payload, link masses ±10 %, actuation latency).
+
+Each run's best parameters are then walked (a settling trial, then a measured trial) under every fixed profile and
+under ``EVALUATION_DRAWS`` randomized physics (drawn with another seed than any training draw). The table gives, per
+controller and arm, J, velocity, CoT and falls at home and away, and the drop of J. Each arm is its own engine run
+with its own folder and checkpoint below the study's output folder, so ``--resume`` continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import jax
+import numpy as np
+
+from cpgjax import ablation, cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
+from cpgjax.sim import backends
+from cpgjax.study import files as study_io
+from cpgjax.study import spec as study_spec
+from cpgjax.trial import objective, protocol
+
+TARGET_MPS = 0.5
+ARMS = (("paper", "paper", False), ("go1", "go1", False), ("paper_randomized", "paper", True))  # name, home, DR
+TRAINING_RANDOMIZATION = study_spec.Randomization(seed=0)
+EVALUATION_RANDOMIZATION = study_spec.Randomization(seed=1)
+EVALUATION_DRAWS = 8
+DEFAULT_SEEDS, QUICK_SEEDS = 5, 2
+
+
+def specs(seeds=None, trials=None, quick=False) -> list[study_spec.StudySpec]:
+    """One study spec per arm."""
+    n = trials or (12 if quick else 40)
+    seeds = tuple(range(seeds if seeds is not None else (QUICK_SEEDS if quick else DEFAULT_SEEDS)))
+    return [study_spec.StudySpec(f"transfer_{name}", num_trials=n, controllers=cpg.CONTROLLERS, seeds=seeds,
+                                 target_velocity_mps=(TARGET_MPS,), physics=(home,),
+                                 randomize=TRAINING_RANDOMIZATION if randomized else None)
+            for name, home, randomized in ARMS]
+
+
+class Environments:
+    """Where the best parameters are evaluated: each fixed profile, then the randomized draws."""
+
+    def __init__(self, home: str):
+        self.names = list(physics_profiles.PROFILES) + [f"randomized {k}" for k in range(EVALUATION_DRAWS)]
+        draws = study_spec.randomized(EVALUATION_RANDOMIZATION, EVALUATION_DRAWS, 1)
+        fixed = len(physics_profiles.PROFILES)
+        self.physics = list(physics_profiles.PROFILES) + [home] * EVALUATION_DRAWS
+        self.friction = [0.6] * fixed + draws["friction"][:, 0].tolist()
+        self.payload_kg = [0.0] * fixed + draws["payload_kg"][:, 0].tolist()
+        self.mass_scale = [1.0] * fixed + draws["mass_scale"][:, 0].tolist()
+        self.latency_ticks = [-1] * fixed + draws["latency_ticks"][:, 0].tolist()
+
+
+def evaluate(params: np.ndarray, controllers: list[str], env: Environments, trial_config, backend: str):
+    """Every run's parameters (R, 8) in every environment (E): (J, v_x, CoT, fell), each (R, E)."""
+    runs, count = params.shape[0], len(env.names)
+    scenario = go1_model.make_scenarios(
+        friction=np.tile(env.friction, runs), payload_kg=np.tile(env.payload_kg, runs),
+        physics=np.tile(env.physics, runs), mass_scale=np.tile(env.mass_scale, runs),
+        latency_ticks=np.tile(env.latency_ticks, runs))
+    x = np.repeat(params, count, axis=0)
+    sim = backends.make_backend(scenario, backend, trial_config=trial_config)
+    gates = protocol.batch_gates([c for c in controllers for _ in range(count)])
+    state = sim.reset(x)
+    fell = np.zeros(runs * count)
+    for _ in range(2):  # a settling trial, then the measured one
+        state, record = sim.trial(state, x, gates)
+        record = ablation.fetch(record)
+        fell = np.maximum(fell, np.asarray(record.fell))
+    j = np.asarray(jax.vmap(objective.objective, in_axes=(0, None))(record, np.float32(TARGET_MPS)))
+    v = np.asarray(objective.mean_velocity(record))[:, 0]
+    cot = np.asarray(objective.cost_of_transport(record))
+    return tuple(a.reshape(runs, count) for a in (j, v, cot, fell))
+
+
+def _best(result) -> np.ndarray:
+    """Each run's best observed parameters (R, 8)."""
+    j = result.trials.objective
+    t = np.argmax(j, axis=0)
+    return result.trials.params[t, np.arange(j.shape[1])]
+
+
+def table(arm_results: dict, evaluations: dict) -> str:
+    """The transfer table: per controller and arm, at home and away (J, v_x, CoT, falls) and the drop of J."""
+    fixed = list(physics_profiles.PROFILES)
+    head = ("| controller | optimized under | J at home | " + " | ".join(f"J {p}" for p in fixed)
+            + " | J randomized | drop: worst fixed | drop: randomized | v_x home / randomized [m/s] | "
+            "CoT home / randomized | falls away |")
+    rows = [head, "|" + "---|" * (len(fixed) + 9)]
+    for c in cpg.CONTROLLERS:
+        for arm, home, randomized in ARMS:
+            result, (j, v, cot, fell) = arm_results[arm], evaluations[arm]
+            m = np.array([lab["controller"] == c for lab in result.labels])
+            home_col = fixed.index(home)
+            jm = j[m]
+            rand = jm[:, len(fixed):]
+            away_fixed = [k for k in range(len(fixed)) if k != home_col]
+            worst = np.min(jm[:, away_fixed].mean(axis=0))
+            label = home + (" + randomization" if randomized else "")
+            away = [k for k in range(j.shape[1]) if k != home_col]
+            j_home = jm[:, home_col].mean()
+            rows.append(
+                f"| {c} | {label} | {j_home:.3f} ± {jm[:, home_col].std():.3f} | "
+                + " | ".join(f"{jm[:, k].mean():.3f}" for k in range(len(fixed)))
+                + f" | {rand.mean():.3f} ± {rand.mean(axis=1).std():.3f} | {worst - j_home:+.3f} | "
+                f"{rand.mean() - j_home:+.3f} | {v[m][:, home_col].mean():.3f} / {v[m][:, len(fixed):].mean():.3f} | "
+                f"{cot[m][:, home_col].mean():.3f} / {cot[m][:, len(fixed):].mean():.3f} | "
+                f"{int(fell[m][:, away].sum())}/{fell[m].shape[0] * len(away)} |")
+    return "\n".join(rows) + "\n"
+
+
+def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, backend="auto", progress=None,
+        physics=None) -> tuple[str, pathlib.Path]:
+    """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder)."""
+    if physics is not None:
+        raise study_spec.StudyError("the transfer study sets each arm's physics itself; drop --physics")
+    out = pathlib.Path(out or "results/transfer")
+    arm_specs = specs(seeds, trials, quick)
+    for spec in arm_specs:
+        study_spec.validate(spec)
+    if not resume:
+        for spec in arm_specs:
+            if (out / spec.name / study_io.CHECKPOINT).exists():
+                raise study_spec.StudyError(f"{out / spec.name} already holds a checkpoint: pass --resume to "
+                                            "continue it, or another --out")
+    arm_results, evaluations, wall = {}, {}, 0.0
+    for (arm, home, _), spec in zip(ARMS, arm_specs):
+        engine = ablation.Engine(spec, backend=backend)
+        result = engine.run(out / spec.name, resume=resume, progress=progress)
+        study_io.write_trials(result, out / spec.name / "trials.parquet")
+        study_io.write_metadata(result, out / spec.name / "metadata.json")
+        arm_results[arm] = result
+        evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels],
+                                    Environments(home), spec.trial, engine.backend_name)
+        wall += result.wall_s
+    env = Environments("paper")
+    draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms" for f, p, s, lat in zip(
+        env.friction[3:], env.payload_kg[3:], env.mass_scale[3:], env.latency_ticks[3:]))
+    n, runs = arm_specs[0].num_trials, len(arm_specs[0].seeds)
+    text = (f"# transfer\n\nEach controller optimized online for {n} trials ({runs} seeds) under one physics profile "
+            f"(or under randomized paper physics), then its best parameters walked — one settling trial, one measured "
+            f"trial, v* = {TARGET_MPS} m/s — under every fixed profile (flat, μ 0.6) and under {EVALUATION_DRAWS} "
+            f"randomized physics ({draws}, on the arm's home profile). J: mean ± std over seeds; drop: J away − J at "
+            f"home (worst fixed profile; mean over the randomized draws).\n\n" + table(arm_results, evaluations)
+            + f"\nOptimization wall time {wall:.0f} s (all arms).\n")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table.md").write_text(text)
+    return text, out

@@ -1,0 +1,211 @@
+"""Physics profiles (cpgjax.go1.physics) against independent references: C MuJoCo's own contact forces and body
+frames, the analytic DC-motor line, hand-written sample-and-hold and delay sequences, and the profiles' sources."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from cpgjax import ablation, mjx_go1
+from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics
+from cpgjax.optim import config as optimizer_config
+from cpgjax.sim import native as native_go1
+from cpgjax.study import spec as study_spec
+from cpgjax.study import transfer
+from cpgjax.trial import params, protocol
+
+IDS = go1_model.indices()
+
+
+def _settled(profile: str):
+    """C-MuJoCo model and data of the Go1 standing 0.5 s under joint PD (feet loaded unevenly: a real contact)."""
+    m = go1_model.model_with_payload(0.0, profile).__copy__()
+    d = mujoco.MjData(m)
+    d.qpos[:] = go1_model.standing_qpos(m)
+    d.qpos[IDS.root_qpos + 3:IDS.root_qpos + 7] = [0.999, 0.02, 0.03, 0.0]  # a little roll and pitch
+    target = d.qpos[IDS.joint_qpos].copy()
+    for _ in range(500):
+        d.ctrl[IDS.actuator] = 70.0 * (target - d.qpos[IDS.joint_qpos]) - 1.3 * d.qvel[IDS.joint_dof]
+        mujoco.mj_step(m, d)
+    mujoco.mj_forward(m, d)
+    return m, d
+
+
+@pytest.mark.parametrize("profile", ["paper", "soft"])
+def test_calf_frame_force_is_the_contact_force_rotated_into_the_calf_body(profile):
+    m, d = _settled(profile)
+    reference = np.zeros(4)
+    for leg in range(4):
+        force_on_foot = np.zeros(3)
+        for c in range(d.ncon):
+            con = d.contact[c]
+            if {con.geom1, con.geom2} != {IDS.foot_geom[leg], IDS.floor_geom}:
+                continue
+            wrench = np.zeros(6)
+            mujoco.mj_contactForce(m, d, c, wrench)  # in the contact frame, exerted by geom1 on geom2
+            world = con.frame.reshape(3, 3).T @ wrench[:3]
+            force_on_foot += world if con.geom2 == IDS.foot_geom[leg] else -world
+        calf_to_world = d.xmat[IDS.calf_body[leg]].reshape(3, 3)
+        reference[leg] = (calf_to_world.T @ force_on_foot)[2]
+    assert np.all(reference > 5.0)  # every foot loaded
+    paper = physics.arrays(physics.get("paper"))
+    signal = physics.foot_force_signal(paper, jnp.asarray(d.qpos), jnp.asarray(d.sensordata[IDS.foot_contact_data]),
+                                       IDS.root_qpos, IDS.joint_qpos)
+    np.testing.assert_allclose(np.asarray(signal), reference, rtol=1e-5, atol=1e-4)
+    # The soft profile's signal is the contact normal force (the sensor's first component), as before profiles.
+    soft = physics.arrays(physics.get("soft"))
+    normal = physics.foot_force_signal(soft, jnp.asarray(d.qpos), jnp.asarray(d.sensordata[IDS.foot_contact_data]),
+                                       IDS.root_qpos, IDS.joint_qpos)
+    np.testing.assert_array_equal(np.asarray(normal), d.sensordata[IDS.foot_force_sensor].astype(np.float32))
+
+
+def test_the_paper_signal_holds_each_sample_for_exactly_ten_ticks():
+    profile = physics.arrays(physics.get("paper"))
+    state = physics.init_state(jnp.zeros(4))
+    forces = np.arange(35.0)[:, None] * np.array([1.0, 2.0, 3.0, 4.0])
+    seen = []
+    for k in range(35):
+        state, held = physics.sample_and_hold(profile, state, jnp.asarray(forces[k], jnp.float32))
+        state, _ = physics.actuate(profile, state, jnp.zeros(12), jnp.zeros(12))  # one tick passes
+        seen.append(np.asarray(held))
+    expected = forces[(np.arange(35) // 10) * 10]
+    np.testing.assert_array_equal(np.array(seen), expected)
+
+
+@pytest.mark.parametrize("speed_rad_s", [0.0, 5.0, 15.05, 29.0, 30.1, 45.0])
+def test_the_torque_speed_envelope_is_the_dc_motor_line(speed_rad_s):
+    profile = physics.arrays(physics.get("go1"))
+    stall = np.tile([23.7, 23.7, 35.55], 4)
+    no_load = np.tile([30.1, 30.1, 20.06], 4)
+    state = physics.init_state(jnp.zeros(4))
+    dq = np.full(12, speed_rad_s, np.float32)
+    for k in range(profile.latency_ticks + 1):  # let the full-torque command through the latency
+        state, motoring = physics.actuate(profile, state, jnp.asarray(stall, jnp.float32), dq)
+    line = stall * np.clip(1.0 - speed_rad_s / no_load, 0.0, 1.0)
+    np.testing.assert_allclose(np.asarray(motoring), line, rtol=1e-6, atol=1e-5)
+    state = physics.init_state(jnp.zeros(4))
+    for k in range(profile.latency_ticks + 1):
+        state, braking = physics.actuate(profile, state, jnp.asarray(-stall, jnp.float32), dq)
+    np.testing.assert_allclose(np.asarray(braking), -stall if speed_rad_s > 0 else -line, rtol=1e-6)
+
+
+def test_gazebo_velocity_limit_cuts_torque_along_the_motion_only():
+    profile = physics.arrays(physics.get("paper"))
+    dq = np.tile([31.0, -31.0, 10.0], 4).astype(np.float32)  # hip over +30.1, thigh under −30.1, calf within 20.06
+    command = np.tile([5.0, -5.0, 5.0], 4).astype(np.float32)
+    _, applied = physics.actuate(profile, physics.init_state(jnp.zeros(4)), jnp.asarray(command), dq)
+    np.testing.assert_array_equal(np.asarray(applied), np.tile([0.0, 0.0, 5.0], 4))
+    _, braking = physics.actuate(profile, physics.init_state(jnp.zeros(4)), jnp.asarray(-command), dq)
+    np.testing.assert_array_equal(np.asarray(braking), -command)
+
+
+@pytest.mark.parametrize("latency", [0, 1, 2, 4])
+def test_a_latency_of_k_ticks_shifts_the_applied_torques_by_k(latency):
+    profile = physics.arrays(physics.get("soft"))._replace(latency_ticks=np.int32(latency))
+    commands = np.random.default_rng(latency).uniform(-20.0, 20.0, (12, 12)).astype(np.float32)
+    state, applied = physics.init_state(jnp.zeros(4)), []
+    for command in commands:
+        state, torque = physics.actuate(profile, state, jnp.asarray(command), jnp.zeros(12))
+        applied.append(np.asarray(torque))
+    expected = np.concatenate([np.zeros((latency, 12), np.float32), commands[:12 - latency]])
+    np.testing.assert_array_equal(np.array(applied), expected)
+
+
+def test_go1_armature_is_the_rotor_inertia_times_the_gear_ratio_squared():
+    rotor_kg_m2 = 0.000111842  # unitree_ros go1.urdf, the motor rotor's inertia about its axis
+    ratios = np.tile([6.0, 6.0, 9.0], 4)  # mjlab's Go1: 6 hip and thigh, 1.5 × 6 knee
+    m = go1_model.model_with_payload(0.0, "go1")
+    np.testing.assert_allclose(m.dof_armature[IDS.joint_dof], rotor_kg_m2 * ratios ** 2, rtol=1e-12)
+    assert np.all(go1_model.model_with_payload(0.0, "paper").dof_armature[IDS.joint_dof] == 0.0)
+
+
+def test_profiles_set_the_sources_values():
+    paper = go1_model.model_with_payload(0.0, "paper")
+    np.testing.assert_array_equal(paper.dof_damping[IDS.joint_dof], 0.01)  # unitree_ros Gazebo joint damping
+    np.testing.assert_array_equal(paper.dof_frictionloss[IDS.joint_dof], 0.2)  # unitree_ros Gazebo joint friction
+    np.testing.assert_array_equal(paper.geom_solref[IDS.floor_geom], [2 * paper.opt.timestep, 1.0])
+    # One solver for every profile: the fewest Newton iterations whose trials stay within the tolerance of a
+    # converged solver under the stiff paper contact (studies/solver_fidelity.py, docs/physics.md).
+    assert (paper.opt.iterations, paper.opt.ls_iterations) == (6, 10)
+    soft = go1_model.model_with_payload(0.0, "soft")
+    base = go1_model.load_model()
+    for field in ("dof_armature", "dof_damping", "dof_frictionloss", "geom_solref", "geom_solimp"):
+        np.testing.assert_array_equal(getattr(soft, field), getattr(base, field))  # soft = the MJCF as written
+
+
+def test_unknown_profile_is_refused_with_the_allowed_names():
+    with pytest.raises(ValueError, match=r"physics = 'gazebo' \(instance 1\).*allowed: \('soft', 'paper', 'go1'\)"):
+        go1_model.make_scenarios(physics=["soft", "gazebo"])
+
+
+def test_profiles_are_per_instance_and_switching_keeps_the_compiled_trial():
+    config = protocol.TrialConfig(transition_steps=20, steady_steps=60)
+    sim = native_go1.NativeBackend(go1_model.make_scenarios(physics=["soft", "paper", "go1"]), trial_config=config)
+    armature = [mi.dof_armature[IDS.joint_dof[2]] for mi in sim.physics.models]
+    assert armature == [0.01, 0.0, pytest.approx(0.000111842 * 81)]
+    p = np.tile(params.midpoint(), (3, 1))
+    gates = protocol.batch_gates(["vmc_tegotae"] * 3)
+    _, first = sim.trial(sim.reset(p), p, gates)
+    program = sim._program(native_go1.TRIAL_RECORDER, config)
+    compiled = program.advance._cache_size()
+    switched = sim.with_scenario(go1_model.make_scenarios(physics=["go1", "soft", "paper"]))
+    _, second = switched.trial(switched.reset(p), p, gates)
+    assert switched._program(native_go1.TRIAL_RECORDER, config) is program
+    assert program.advance._cache_size() == compiled
+    # Same three physics in another order: the same per-instance trials, moved with their instances.
+    np.testing.assert_allclose(np.asarray(second.c_load_n), np.asarray(first.c_load_n)[[2, 0, 1]], rtol=1e-5)
+    switched.physics.close()
+
+
+def test_mjx_batches_profile_fields_per_instance():
+    batch = mjx_go1.make_batch_model(go1_model.make_scenarios(physics=["soft", "paper", "go1"]))
+    armature = np.asarray(batch.model.dof_armature)[:, IDS.joint_dof]
+    np.testing.assert_allclose(armature[:, 2], [0.01, 0.0, 0.000111842 * 81], rtol=1e-6)
+    assert batch.in_axes.dof_armature == 0 and batch.in_axes.geom_solref == 0 and batch.in_axes.dof_frictionloss == 0
+    np.testing.assert_allclose(np.asarray(batch.model.geom_solref)[:, IDS.floor_geom, 0], [0.02, 0.002, 0.02])
+    assert np.asarray(batch.profile.calf_frame).tolist() == [False, True, False]
+    assert jax.tree.structure(batch.model) == jax.tree.structure(
+        mjx_go1.make_batch_model(go1_model.make_scenarios(physics=["paper"] * 3)).model)
+
+
+def test_context_ranges_follow_the_profile_and_clipping_is_reported():
+    paper = study_spec.StudySpec("t", physics=("paper",)).optimizer_config()
+    assert (paper.context_lower, paper.context_upper) == ((15.0, -0.4), (55.0, 0.1))  # docs/decisions.md §11
+    assert study_spec.StudySpec("t").optimizer_config().context_upper == (75.0, 0.1)  # soft: the widened range
+    with pytest.raises(study_spec.StudyError, match="normalize c_load over different ranges"):
+        study_spec.validate(study_spec.StudySpec("t", physics=("soft", "paper")))
+    clipped, messages = optimizer_config.clip_context(paper, np.array([[60.0, -0.1], [30.0, 0.2], [40.0, 0.0]]))
+    np.testing.assert_array_equal(clipped, [[55.0, -0.1], [30.0, 0.1], [40.0, 0.0]])
+    assert messages == ["instance 0: c_load = 60 N outside [15, 55], clipped for the GP",
+                        "instance 1: c_slope = 0.2 rad outside [-0.4, 0.1], clipped for the GP"]
+
+
+def test_domain_randomization_draws_each_trials_physics_and_the_engine_simulates_it():
+    ranges = study_spec.Randomization(friction=(0.4, 1.0), payload_kg=(0.0, 5.0), mass_scale=(0.9, 1.1),
+                                      latency_ticks=(0, 2), seed=3)
+    draws = study_spec.randomized(ranges, 2, 50)
+    assert np.all((draws["friction"] >= 0.4) & (draws["friction"] <= 1.0))
+    assert set(np.unique(draws["latency_ticks"])) == {0, 1, 2}
+    np.testing.assert_array_equal(study_spec.randomized(ranges, 3, 50)["mass_scale"][:2], draws["mass_scale"])
+    spec = study_spec.StudySpec("dr", num_trials=3, controllers=("open_loop",), randomize=ranges,
+                                trial=protocol.TrialConfig(transition_steps=20, steady_steps=60),
+                                optimizer=optimizer_config.paper_config(capacity=3))
+    result = ablation.Engine(spec, backend="native").run()
+    cond = result.conditions
+    urdf_mass_kg = 12.74  # docs/go1-model.md: the model's total mass
+    np.testing.assert_allclose(result.trials.total_mass_kg[:, 0],
+                               urdf_mass_kg * cond.mass_scale[0] + cond.payload_kg[0], atol=0.01)
+    assert len(set(cond.friction[0].tolist())) == 3
+
+
+def test_transfer_evaluates_every_run_in_every_environment():
+    env = transfer.Environments("paper")
+    assert env.names[:3] == ["soft", "paper", "go1"] and len(env.names) == 3 + transfer.EVALUATION_DRAWS
+    j, v, cot, fell = transfer.evaluate(np.tile(params.midpoint(), (2, 1)), ["open_loop", "vmc_tegotae"], env,
+                                        protocol.TrialConfig(transition_steps=20, steady_steps=100), "native")
+    assert j.shape == v.shape == cot.shape == fell.shape == (2, len(env.names))
+    assert np.all(np.isfinite(j)) and np.all(j >= -1.0)
