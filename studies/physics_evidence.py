@@ -6,11 +6,15 @@
    the four feet's normal forces, Σ F dt, must equal m g T + Δp (vertical momentum balance of the trunk, the legs'
    momentum being periodic). With stiff contact and few Newton iterations the solver is not converged: its contact
    forces are not those of the step it integrated, and the sensor reads high.
+3. ``--components``: which part of the ``paper`` profile changes a walk? Each component alone on top of ``soft``,
+   mid-range parameters, 3 back-to-back trials on flat ground and on a 10° uphill.
 
-    python studies/physics_evidence.py
+    python studies/physics_evidence.py [--components]
 """
 
 from __future__ import annotations
+
+import sys
 
 import jax.numpy as jnp
 import mujoco
@@ -63,7 +67,35 @@ def impulse(profile: str, iterations: int, ls_iterations: int, seconds: float = 
           f"{100 * (measured / needed - 1):+.1f} % | {vx:.3f} |")
 
 
+def components() -> None:
+    from cpgjax.sim import walk
+
+    soft, paper = physics.PROFILES["soft"], physics.PROFILES["paper"]
+    variants = {
+        "soft": soft,
+        "soft + stiff contact": soft._replace(floor_solref=paper.floor_solref, floor_solimp=paper.floor_solimp),
+        "soft + joint friction and damping": soft._replace(frictionloss_nm=paper.frictionloss_nm,
+                                                           damping_nm_s_rad=paper.damping_nm_s_rad),
+        "soft + no armature": soft._replace(armature_kg_m2=paper.armature_kg_m2),
+        "soft + velocity limit": soft._replace(velocity_limit_rad_s=paper.velocity_limit_rad_s),
+        "soft + calf-frame 100 Hz signal": soft._replace(foot_force_frame="calf", foot_force_period_ticks=10),
+        "paper": paper,
+    }
+    for name, profile in variants.items():
+        physics.PROFILES[f"component: {name}"] = profile
+    rows, _ = walk.walk(controllers=("vmc_tegotae", "open_loop"), slope_deg=(0.0, 10.0),
+                        physics=[f"component: {name}" for name in variants], num_trials=3, backend="native",
+                        progress=lambda _: None)
+    print("| variant | controller | slope [°] | v_x [m/s] | CoT | J | falls |\n|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r.physics.removeprefix('component: ')} | {r.controller} | {r.slope_deg:g} | {r.vx_mps:.3f} | "
+              f"{r.cot:.2f} | {r.objective:.2f} | {r.falls} |")
+
+
 def main() -> None:
+    if "--components" in sys.argv[1:]:
+        components()
+        return
     print("| profile | foot penetration [mm] | contact normal [N] | calf-frame z [N] | calf-frame z mean [N] |")
     print("|---|---|---|---|---|")
     profiles = list(physics.PROFILES)
