@@ -14,6 +14,7 @@ import dataclasses
 import numpy as np
 
 from cpgjax import gp
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.optim.acquisition import UCB_FORMS, AcquisitionConfig
 from cpgjax.trial import params as param_space
 
@@ -105,6 +106,14 @@ def clip_context(config: OptimizerConfig, context: np.ndarray) -> tuple[np.ndarr
                 f"{units[idx[-1]]} outside [{lower[idx[-1]]:g}, {upper[idx[-1]]:g}], clipped for the GP"
                 for idx in zip(*np.nonzero(clipped != context))] if len(lower) == 2 else []
     return clipped.astype(context.dtype), messages
+
+
+def profile_config(physics: str, **overrides) -> OptimizerConfig:
+    """:func:`paper_config` with the c_load normalization range of a physics profile's foot-force signal
+    (docs/decisions.md §11)."""
+    load_lower, load_upper = physics_profiles.get(physics).context_load_range_n
+    return paper_config(**{"context_lower": (load_lower, PAPER_CONTEXT_LOWER[1]),
+                           "context_upper": (load_upper, PAPER_CONTEXT_UPPER[1]), **overrides})
 
 
 def paper_config(**overrides) -> OptimizerConfig:

@@ -42,9 +42,7 @@ log = logging.getLogger(__name__)
 _SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")
 # The robot's context normalization: its foot force is calibrated so that the feet carry its weight standing, the
 # signal of the go1 physics profile, whose c_load range it takes (docs/decisions.md §3, §11).
-CONTEXT_RANGES = optimizer_config.paper_config(
-    context_lower=(physics_profiles.get("go1").context_load_range_n[0], optimizer_config.PAPER_CONTEXT_LOWER[1]),
-    context_upper=(physics_profiles.get("go1").context_load_range_n[1], optimizer_config.PAPER_CONTEXT_UPPER[1]))
+CONTEXT_RANGES = optimizer_config.profile_config(physics_profiles.ROBOT_PROFILE)
 
 
 class OnlineOptimizer(Protocol):

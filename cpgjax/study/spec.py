@@ -95,10 +95,7 @@ class StudySpec:
         profiles' foot-force signal (docs/decisions.md §11; :func:`validate` checks the profiles agree)."""
         if self.optimizer is not None:
             return self.optimizer
-        load_lower, load_upper = physics_profiles.get(self.physics[0]).context_load_range_n
-        return optimizer_config.paper_config(
-            capacity=self.num_trials, context_lower=(load_lower, optimizer_config.PAPER_CONTEXT_LOWER[1]),
-            context_upper=(load_upper, optimizer_config.PAPER_CONTEXT_UPPER[1]))
+        return optimizer_config.profile_config(self.physics[0], capacity=self.num_trials)
 
 
 LABELS = ("controller", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
