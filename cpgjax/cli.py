@@ -19,6 +19,7 @@ from cpgjax.sim import backends, walk
 from cpgjax.study import files as study_io
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
+from cpgjax.study import transfer
 from cpgjax.trial import params as param_space
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
@@ -56,7 +57,8 @@ def _progress_printer(stream=None):
 def _run_study(name: str, **options) -> int:
     """``studies.run`` with the progress display; prints its table and output folder, or its StudyError (then 2)."""
     try:
-        text, out = studies.run(name, progress=_progress_printer(), **options)
+        run = transfer.run if name == transfer.NAME else functools.partial(studies.run, name)
+        text, out = run(progress=_progress_printer(), **options)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -227,7 +229,7 @@ def _add_walk(sub) -> None:
 def _add_study(sub) -> None:
     s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/")
     descriptions = {k: v.description for k, v in studies.STUDIES.items()}
-    descriptions.update({k: v[1] for k, v in studies.STUDIES_OF_SEVERAL_RUNS.items()})
+    descriptions[transfer.NAME] = transfer.DESCRIPTION
     s.add_argument("name", choices=sorted(descriptions), help="; ".join(f"{k}: {v}" for k, v in descriptions.items()))
     s.add_argument("--seeds", type=int, default=None, help=f"seeds per group (default {studies.DEFAULT_SEEDS}, "
                    f"--quick {studies.QUICK_SEEDS})")

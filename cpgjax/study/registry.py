@@ -31,7 +31,6 @@ from cpgjax.sim import backends
 from cpgjax.study import figures as study_figures
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
-from cpgjax.study import transfer
 from cpgjax.study.spec import Change, Schedule, StudySpec
 from cpgjax.trial import objective, protocol
 
@@ -129,16 +128,19 @@ def evaluate(params: np.ndarray, controllers, scenario: go1_model.Scenario, tria
              target_mps: float, settle_trials: int = 1):
     """Fixed parameters (B, 8) on ``scenario``: ``settle_trials`` trials, then one measured trial.
 
-    Returns (velocity_x, CoT, J) arrays (B,)."""
+    Returns (velocity_x, CoT, J, fell) arrays (B,), the first three of the measured trial, ``fell`` 1 where any of
+    the trials fell."""
     sim = backends.make_backend(scenario, backend, trial_config=trial_config)
     gates = protocol.batch_gates(list(controllers))
     state = sim.reset(params)
+    fell = np.zeros(params.shape[0])
     for _ in range(settle_trials + 1):
         state, record = sim.trial(state, params, gates)
-    record = ablation.fetch(record)
+        record = ablation.fetch(record)
+        fell = np.maximum(fell, np.asarray(record.fell))
     j = jax.vmap(objective.objective, in_axes=(0, None))(record, np.float32(target_mps))
     return (np.asarray(objective.mean_velocity(record))[:, 0], np.asarray(objective.cost_of_transport(record)),
-            np.asarray(j))
+            np.asarray(j), fell)
 
 
 def rollouts(params: np.ndarray, controllers, scenario, trial_config, backend: str, steps: int = 3000) -> list:
@@ -341,12 +343,6 @@ STUDIES = {s.name: s for s in (
 )}
 
 
-# Studies beyond the paper's that run several engine runs and write their own outputs: name → (run, description).
-STUDIES_OF_SEVERAL_RUNS = {
-    "transfer": (transfer.run, "optimize under one physics profile, walk the best gaits under the others"),
-}
-
-
 def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str | None = None) -> StudySpec:
     if name not in STUDIES:
         raise study_spec.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
@@ -379,12 +375,6 @@ def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=Fal
         progress=None, physics: str | None = None) -> tuple[str, pathlib.Path]:
     """Run (or resume) a study and write its outputs; returns (table text, output folder). ``physics``: the
     profile every instance simulates (default: the study's own)."""
-    if name in STUDIES_OF_SEVERAL_RUNS:
-        if (seeds is not None and seeds < 1) or (trials is not None and trials < 8):
-            raise study_spec.StudyError(f"{name}: need --seeds ≥ 1 and --trials ≥ 8")
-        runner = STUDIES_OF_SEVERAL_RUNS[name][0]
-        return runner(seeds=seeds, trials=trials, quick=quick, out=out, resume=resume, backend=backend,
-                      progress=progress, physics=physics)
     spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics)
     out = pathlib.Path(out or pathlib.Path("results") / name)
     if not resume and (out / study_io.CHECKPOINT).exists():

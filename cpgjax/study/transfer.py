@@ -19,17 +19,17 @@ from __future__ import annotations
 
 import pathlib
 
-import jax
 import numpy as np
 
 from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
-from cpgjax.sim import backends
 from cpgjax.study import files as study_io
+from cpgjax.study import registry
 from cpgjax.study import spec as study_spec
-from cpgjax.trial import objective, protocol
 
+NAME = "transfer"
+DESCRIPTION = "optimize under one physics profile, walk the best gaits under the others"
 TARGET_MPS = 0.5
 ARMS = (("paper", "paper", False), ("go1", "go1", False), ("paper_randomized", "paper", True))  # name, home, DR
 TRAINING_RANDOMIZATION = study_spec.Randomization(seed=0)
@@ -63,24 +63,16 @@ class Environments:
 
 
 def evaluate(params: np.ndarray, controllers: list[str], env: Environments, trial_config, backend: str):
-    """Every run's parameters (R, 8) in every environment (E): (J, v_x, CoT, fell), each (R, E)."""
+    """Every run's parameters (R, 8) in every environment (E), a settling trial then the measured one:
+    (J, v_x, CoT, fell), each (R, E)."""
     runs, count = params.shape[0], len(env.names)
     scenario = go1_model.make_scenarios(
         friction=np.tile(env.friction, runs), payload_kg=np.tile(env.payload_kg, runs),
         physics=np.tile(env.physics, runs), mass_scale=np.tile(env.mass_scale, runs),
         latency_ticks=np.tile(env.latency_ticks, runs))
-    x = np.repeat(params, count, axis=0)
-    sim = backends.make_backend(scenario, backend, trial_config=trial_config)
-    gates = protocol.batch_gates([c for c in controllers for _ in range(count)])
-    state = sim.reset(x)
-    fell = np.zeros(runs * count)
-    for _ in range(2):  # a settling trial, then the measured one
-        state, record = sim.trial(state, x, gates)
-        record = ablation.fetch(record)
-        fell = np.maximum(fell, np.asarray(record.fell))
-    j = np.asarray(jax.vmap(objective.objective, in_axes=(0, None))(record, np.float32(TARGET_MPS)))
-    v = np.asarray(objective.mean_velocity(record))[:, 0]
-    cot = np.asarray(objective.cost_of_transport(record))
+    repeated = [c for c in controllers for _ in range(count)]
+    v, cot, j, fell = registry.evaluate(np.repeat(params, count, axis=0), repeated, scenario, trial_config, backend,
+                                        TARGET_MPS)
     return tuple(a.reshape(runs, count) for a in (j, v, cot, fell))
 
 
@@ -125,6 +117,8 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, backend
     """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder)."""
     if physics is not None:
         raise study_spec.StudyError("the transfer study sets each arm's physics itself; drop --physics")
+    if (seeds is not None and seeds < 1) or (trials is not None and trials < 8):
+        raise study_spec.StudyError(f"{NAME}: need --seeds ≥ 1 and --trials ≥ 8")
     out = pathlib.Path(out or "results/transfer")
     arm_specs = specs(seeds, trials, quick)
     for spec in arm_specs:
@@ -144,9 +138,9 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, backend
         evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels],
                                     Environments(home), spec.trial, engine.backend_name)
         wall += result.wall_s
-    env = Environments("paper")
+    env, fixed = Environments("paper"), len(physics_profiles.PROFILES)
     draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms" for f, p, s, lat in zip(
-        env.friction[3:], env.payload_kg[3:], env.mass_scale[3:], env.latency_ticks[3:]))
+        env.friction[fixed:], env.payload_kg[fixed:], env.mass_scale[fixed:], env.latency_ticks[fixed:]))
     n, runs = arm_specs[0].num_trials, len(arm_specs[0].seeds)
     text = (f"# transfer\n\nEach controller optimized online for {n} trials ({runs} seeds) under one physics profile "
             f"(or under randomized paper physics), then its best parameters walked — one settling trial, one measured "
