@@ -218,7 +218,8 @@ class Engine:
     def scenario(self, trial: int) -> go1_model.Scenario:
         c = self.padded
         return go1_model.make_scenarios(c.friction[:, trial], c.slope_deg[:, trial], c.payload_kg[:, trial],
-                                        self.physics, c.mass_scale[:, trial], c.latency_ticks[:, trial])
+                                        self.physics, c.mass_scale[:, trial], c.latency_ticks[:, trial],
+                                        c.noise_scale[:, trial], self.seeds)  # one noise stream per seed
 
     def simulator(self, trial: int):
         """The backend for trial ``trial``'s scenario; rebuilt (reusing its compiled code where the backend

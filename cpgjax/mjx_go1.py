@@ -84,7 +84,8 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})
     return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario,
-                      profile=physics.batch_arrays(scenario.physics, scenario.latency_ticks))
+                      profile=physics.batch_arrays(scenario.physics, scenario.latency_ticks, scenario.noise_scale,
+                                                   scenario.noise_seed))
 
 
 # ----------------------------------------------------------------------------------------------- one instance
@@ -129,8 +130,8 @@ def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: 
     data = _reset_tick_state_where(failed, reset.data, stepped)
     cpg_state = protocol.where_batch(failed, reset.cpg, c.cpg)
     io = protocol.where_batch(failed, reset.io, c.io)
-    row = protocol.tick_row(trial_config, protocol.pre_step(c.obs, c.torque_nm, c.diag), data.qpos, data.qvel,
-                            failed)
+    pre = protocol.pre_step(c.obs, c.torque_nm, c.diag, c.joint_vel_rad_s)
+    row = protocol.tick_row(trial_config, pre, data.qpos, data.qvel, failed)
     return state._replace(data=data, cpg=cpg_state, io=io), row
 
 

@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from cpgjax import ablation, mjx_go1
+from cpgjax import ablation, cpg, mjx_go1
+from cpgjax.go1 import attitude, physics, sensors
 from cpgjax.go1 import model as go1_model
-from cpgjax.go1 import physics
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import native as native_go1
 from cpgjax.study import spec as study_spec
@@ -224,3 +224,58 @@ def test_mjx_profile_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_
     assert switched._trial._cache_size() == compiled
     flat = (scenario.slope_deg == 0) & (scenario.payload_kg == 0) & (scenario.friction >= 0.6)
     assert np.all(np.asarray(paper.c_load_n)[flat] < 0.9 * np.asarray(soft.c_load_n)[flat])
+
+
+def test_go1_sensor_noise_is_uniform_within_its_amplitudes_and_a_pure_function_of_seed_and_tick():
+    """The go1 profile's readings differ from the noise-free observation (sensors.observe, the reference) by at most
+    legged_gym's amplitudes, with zero mean; the paper profile reads exactly the truth; a seed and a tick fix the
+    draw, another seed gives another; the motors and the trial's power see the true joint velocity."""
+    m, d = _settled("go1")
+    qpos, qvel, sens = (jnp.asarray(a, jnp.float32) for a in (d.qpos, d.qvel, d.sensordata))
+    gravity = jnp.asarray(m.opt.gravity, jnp.float32)
+    truth = sensors.observe(qpos, qvel, sens, gravity)
+
+    def read(name, tick, seed=0):
+        profile = physics.batch_arrays([name], noise_seed=[seed])
+        profile = jax.tree.map(lambda x: x[0], profile)
+        io = physics.init_state(jnp.zeros(4))._replace(tick=jnp.int32(tick))
+        return sensors.measure(profile, io, qpos, qvel, sens, gravity)[1]
+
+    draws = jax.vmap(lambda t: read("go1", t))(jnp.arange(2000))
+    for field, amplitude in (("joint_pos_rad", 0.01), ("joint_vel_rad_s", 1.5), ("gyro_rad_s", 0.2)):
+        error = np.asarray(getattr(draws, field)) - np.asarray(getattr(truth, field))
+        assert np.all(np.abs(error) <= amplitude * (1 + 1e-4)), field
+        assert np.abs(error).max() > 0.95 * amplitude, field  # the draws fill the range
+        np.testing.assert_allclose(error.mean(), 0.0, atol=0.03 * amplitude)
+        np.testing.assert_allclose(error.std(), amplitude / np.sqrt(3.0), rtol=0.05)  # uniform's std
+    # The IMU turned about the trunk's x and y axes only, by at most 0.05 rad per axis.
+    conjugate = jnp.array([1.0, -1.0, -1.0, -1.0]) * truth.imu_quat_wxyz
+    turn = jax.vmap(lambda q: attitude.quat_mul(conjugate, q))(draws.imu_quat_wxyz)  # truth⁻¹ ⊗ reading
+    turn = np.asarray(turn) * np.sign(np.asarray(turn)[:, :1])
+    angle = 2 * np.arcsin(np.linalg.norm(turn[:, 1:], axis=1))
+    assert np.all(angle <= 0.05 * np.sqrt(2) + 1e-4) and angle.max() > 0.03
+    assert np.all(np.abs(turn[:, 3]) < 1e-3)
+    force_error = np.asarray(draws.foot_force_n) - np.asarray(truth.foot_force_n)
+    assert np.all(np.abs(force_error) <= 0.5 + 0.25 + 1e-3)  # ±1 count of noise, then counted in 0.5 N steps
+    np.testing.assert_allclose(np.asarray(draws.foot_force_n) / 0.5, np.round(np.asarray(draws.foot_force_n) / 0.5),
+                               atol=1e-3)
+    # Pure function of (seed, tick); another seed draws differently; the paper profile has no noise.
+    a, b, c = read("go1", 7), read("go1", 7), read("go1", 7, seed=1)
+    np.testing.assert_array_equal(np.asarray(a.joint_vel_rad_s), np.asarray(b.joint_vel_rad_s))
+    assert not np.allclose(np.asarray(a.joint_vel_rad_s), np.asarray(c.joint_vel_rad_s))
+    paper = read("paper", 7)
+    np.testing.assert_array_equal(np.asarray(paper.joint_vel_rad_s), np.asarray(truth.joint_vel_rad_s))
+    np.testing.assert_array_equal(np.asarray(paper.imu_quat_wxyz), np.asarray(truth.imu_quat_wxyz))
+    # A noise scale on the paper profile gives it that multiple of the go1 amplitudes.
+    scaled = physics.batch_arrays(["paper", "paper"], noise_scale=[2.0, -1.0])
+    np.testing.assert_allclose(scaled.noise[0], 2 * physics.arrays(physics.get("go1")).noise)
+    np.testing.assert_array_equal(scaled.noise[1], 0.0)
+    # The motors see the true velocity: the control tick's torque equals actuate on qvel's joint velocities.
+    profile = jax.tree.map(lambda x: x[0], physics.batch_arrays(["go1"]))
+    io = physics.init_state(jnp.zeros(4))
+    state, mid, gates = cpg.init_state(truth), jnp.asarray(params.midpoint()), cpg.Gates(1.0, 1.0)
+    c = protocol.control(cpg.CPGConfig(), profile, io, state, mid, gates, qpos, qvel, sens, gravity)
+    _, command, _ = cpg.controller_step(cpg.CPGConfig(), state, mid, gates, c.obs)
+    _, expected = physics.actuate(profile, io, command, truth.joint_vel_rad_s)
+    np.testing.assert_array_equal(np.asarray(c.torque_nm), np.asarray(expected))
+    assert not np.allclose(np.asarray(c.obs.joint_vel_rad_s), np.asarray(truth.joint_vel_rad_s))

@@ -94,6 +94,8 @@ class Scenario(NamedTuple):
     physics: np.ndarray  # str, the physics profile (cpgjax.go1.physics.PROFILES, docs/decisions.md §15)
     mass_scale: np.ndarray  # every link's mass and inertia × this (domain randomization; 1: the URDF's)
     latency_ticks: np.ndarray  # int, actuation latency replacing the profile's (−1: the profile's own)
+    noise_scale: np.ndarray  # sensor noise as a multiple of the robot's (go1 profile's); −1: the profile's own
+    noise_seed: np.ndarray  # int, the instance's sensor-noise stream
 
     @property
     def batch_size(self) -> int:
@@ -101,19 +103,22 @@ class Scenario(NamedTuple):
 
 
 def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_profiles.DEFAULT_PROFILE,
-                   mass_scale=1.0, latency_ticks=-1) -> Scenario:
+                   mass_scale=1.0, latency_ticks=-1, noise_scale=-1.0, noise_seed=0) -> Scenario:
     """Broadcast scalars or sequences to a batch of scenarios and validate them.
 
     Raises:
       ValueError: a non-finite value, friction ≤ 0, |slope| ≥ 45°, a negative payload, an unknown physics profile, a
-        mass scale outside [0.5, 1.5] or a latency outside −1 … MAX_LATENCY_TICKS; the message names the field, the
-        value, the instance and the allowed range.
+        mass scale outside [0.5, 1.5], a latency outside −1 … MAX_LATENCY_TICKS, a noise scale neither −1 nor in
+        [0, 5], or a noise seed that is not an integer in [0, 2³²); the message names the field, the value, the
+        instance and the allowed range.
     """
     numbers = [np.atleast_1d(np.asarray(v, np.float64)) for v in (friction, slope_deg, payload_kg)]
     arrays = np.broadcast_arrays(*numbers, np.atleast_1d(np.asarray(physics, str)),
                                  np.atleast_1d(np.asarray(mass_scale, np.float64)),
-                                 np.atleast_1d(np.asarray(latency_ticks, np.float64)))
-    scenario = Scenario(*(np.array(a) for a in arrays[:5]), latency_ticks=np.array(arrays[5]))
+                                 np.atleast_1d(np.asarray(latency_ticks, np.float64)),
+                                 np.atleast_1d(np.asarray(noise_scale, np.float64)),
+                                 np.atleast_1d(np.asarray(noise_seed, np.float64)))
+    scenario = Scenario(*(np.array(a) for a in arrays))
     if scenario.friction.ndim != 1:
         raise ValueError(f"scenario fields must be scalars or 1-D sequences, got shape {scenario.friction.shape}")
     checks = (
@@ -125,6 +130,10 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
         ("latency_ticks", scenario.latency_ticks,
          lambda v: (v == np.round(v)) & (v >= -1) & (v <= physics_profiles.MAX_LATENCY_TICKS),
          f"-1 (the profile's) or 0 … {physics_profiles.MAX_LATENCY_TICKS} ticks"),
+        ("noise_scale", scenario.noise_scale, lambda v: (v == -1.0) | ((v >= 0.0) & (v <= 5.0)),
+         "-1 (the profile's) or [0, 5] × the go1 profile's"),
+        ("noise_seed", scenario.noise_seed, lambda v: (v == np.round(v)) & (v >= 0) & (v < 2.0 ** 32),
+         "an integer in [0, 2**32)"),
     )
     for name, values, ok, allowed in checks:
         bad = ~np.isfinite(values) | ~ok(np.where(np.isfinite(values), values, 0.0))
@@ -132,7 +141,8 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
             i = int(np.argmax(bad))
             raise ValueError(f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range "
                              f"{allowed}")
-    scenario = scenario._replace(latency_ticks=scenario.latency_ticks.astype(np.int64))
+    scenario = scenario._replace(latency_ticks=scenario.latency_ticks.astype(np.int64),
+                                 noise_seed=scenario.noise_seed.astype(np.int64))
     unknown = [i for i, name in enumerate(scenario.physics) if name not in physics_profiles.PROFILES]
     if unknown:
         i = unknown[0]

@@ -47,6 +47,12 @@ class PhysicsProfile(NamedTuple):
     foot_force_period_ticks: int  # sample-and-hold period of the foot force (1: every tick; 10: 100 Hz)
     foot_force_n_per_count: float  # > 0: the force is reported in int16 counts of this size (0: continuous)
     context_load_range_n: tuple[float, float]  # the c_load normalization range of this signal (decisions §11)
+    # Sensor noise, drawn every tick independently per reading, uniform in ± the amplitude (0: none).
+    joint_pos_noise_rad: float = 0.0  # each encoder angle
+    joint_vel_noise_rad_s: float = 0.0  # each joint velocity
+    gyro_noise_rad_s: float = 0.0  # each gyro axis
+    tilt_noise_rad: float = 0.0  # the IMU orientation, turned about the trunk's x and y axes by this much at most
+    foot_force_noise_n: float = 0.0  # each foot force, before it is counted
 
 
 _MUJOCO_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)  # MuJoCo XML reference, geom/solimp default
@@ -82,7 +88,12 @@ PROFILES: dict[str, PhysicsProfile] = {
         # (docs/decisions.md §3): the contact normal force, in counts of the loopback simulated Go1's scale.
         foot_force_frame="contact", foot_force_period_ticks=1,
         foot_force_n_per_count=0.5,  # cpgjax.robot.sim_server.FOOT_FORCE_N_PER_COUNT
-        context_load_range_n=(15.0, 75.0)),  # a weight-calibrated signal: ≈ 31 N standing, ≈ 68 N with 15 kg
+        context_load_range_n=(15.0, 75.0),  # a weight-calibrated signal: ≈ 31 N standing, ≈ 68 N with 15 kg
+        # legged_gym's LeggedRobotCfg.noise.noise_scales (dof_pos, dof_vel, ang_vel, gravity), the proprioceptive
+        # noise walk-these-ways uses for the Go1; no public Go1 foot-sensor noise figure: ±1 count, ours
+        # (docs/physics.md).
+        joint_pos_noise_rad=0.01, joint_vel_noise_rad_s=1.5, gyro_noise_rad_s=0.2, tilt_noise_rad=0.05,
+        foot_force_noise_n=0.5),
 }
 DEFAULT_PROFILE = "soft"  # the Python API's default: scripts written before profiles keep their numbers
 PAPER_STUDIES_PROFILE = "paper"  # the five paper studies, cpgjax walk and cpgjax optimize
@@ -137,6 +148,8 @@ class ProfileArrays(NamedTuple):
     calf_frame: jax.Array  # () bool: the calf-frame z signal, else the contact normal
     force_period_ticks: jax.Array  # () int32
     force_n_per_count: jax.Array  # () float32, 0: continuous
+    noise: jax.Array  # (5,) float32, the noise amplitudes (joint pos, joint vel, gyro, tilt, foot force)
+    noise_seed: jax.Array  # () uint32, this instance's noise stream
 
 
 def arrays(profile: PhysicsProfile) -> ProfileArrays:
@@ -154,17 +167,28 @@ def arrays(profile: PhysicsProfile) -> ProfileArrays:
         latency_ticks=np.int32(profile.latency_ticks),
         calf_frame=np.bool_(profile.foot_force_frame == "calf"),
         force_period_ticks=np.int32(profile.foot_force_period_ticks),
-        force_n_per_count=np.float32(profile.foot_force_n_per_count))
+        force_n_per_count=np.float32(profile.foot_force_n_per_count),
+        noise=np.array([profile.joint_pos_noise_rad, profile.joint_vel_noise_rad_s, profile.gyro_noise_rad_s,
+                        profile.tilt_noise_rad, profile.foot_force_noise_n], np.float32),
+        noise_seed=np.uint32(0))
 
 
-def batch_arrays(names, latency_ticks=None) -> ProfileArrays:
-    """:class:`ProfileArrays` with a leading batch axis, one row per profile name; ``latency_ticks`` (one per row,
-    −1: the profile's own) replaces the profiles' latencies (domain randomization)."""
+def batch_arrays(names, latency_ticks=None, noise_scale=None, noise_seed=None) -> ProfileArrays:
+    """:class:`ProfileArrays` with a leading batch axis, one row per profile name. Per row (domain
+    randomization): ``latency_ticks`` (−1: the profile's own) replaces the profile's latency, ``noise_scale`` (−1:
+    the profile's own) replaces its sensor noise by that multiple of the robot's (ROBOT_PROFILE's), and
+    ``noise_seed`` chooses the instance's noise stream."""
     rows = [arrays(get(str(n))) for n in names]
     batch = ProfileArrays(*(np.stack(field) for field in zip(*rows)))
     if latency_ticks is not None:
         override = np.asarray(latency_ticks, np.int32)
         batch = batch._replace(latency_ticks=np.where(override >= 0, override, batch.latency_ticks).astype(np.int32))
+    if noise_scale is not None:
+        scale = np.asarray(noise_scale, np.float32)[:, None]
+        robot = arrays(get(ROBOT_PROFILE)).noise
+        batch = batch._replace(noise=np.where(scale >= 0, scale * robot, batch.noise).astype(np.float32))
+    if noise_seed is not None:
+        batch = batch._replace(noise_seed=np.asarray(noise_seed, np.uint32))
     return batch
 
 
@@ -205,13 +229,27 @@ def contact_force_world(contact_data: jax.Array) -> jax.Array:
 def foot_force_signal(profile: ProfileArrays, qpos: jax.Array, contact_data: jax.Array, root_qpos: int,
                       joint_qpos: np.ndarray) -> jax.Array:
     """The profile's instantaneous foot-force signal (4,) [N]: the contact normal force, or the z component of the
-    contact force in the calf frame; quantized to the sensor's counts when it has them."""
+    contact force in the calf frame (noise-free, continuous)."""
     normal = contact_data[:, 0]
     calf = jnp.einsum("lji,lj->li", calf_rotations(qpos, root_qpos, joint_qpos),
                       contact_force_world(contact_data))[:, 2]
-    signal = jnp.where(profile.calf_frame, calf, normal)
+    return jnp.where(profile.calf_frame, calf, normal)
+
+
+def count(profile: ProfileArrays, force_n: jax.Array) -> jax.Array:
+    """The force as the sensor reports it: rounded to its counts when it has them [N]."""
     step = profile.force_n_per_count
-    return jnp.where(step > 0, jnp.round(signal / jnp.where(step > 0, step, 1.0)) * step, signal)
+    return jnp.where(step > 0, jnp.round(force_n / jnp.where(step > 0, step, 1.0)) * step, force_n)
+
+
+NUM_NOISY_READINGS = 12 + 12 + 3 + 2 + 4  # joint angles, joint velocities, gyro axes, tilt axes, foot forces
+
+
+def noise_draws(profile: ProfileArrays, tick: jax.Array) -> jax.Array:
+    """Uniform draws in [−1, 1) (NUM_NOISY_READINGS,) for one tick of one instance: a pure function of the
+    instance's noise seed and the tick, so a run and its resume see the same noise."""
+    key = jax.random.fold_in(jax.random.PRNGKey(profile.noise_seed), tick)
+    return jax.random.uniform(key, (NUM_NOISY_READINGS,), jnp.float32, -1.0, 1.0)
 
 
 def init_state(force_n: jax.Array) -> ActuatorSensorState:

@@ -36,12 +36,25 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
 def measure(profile: physics.ProfileArrays, io: physics.ActuatorSensorState, qpos: jax.Array, qvel: jax.Array,
             sensordata: jax.Array, gravity: jax.Array) -> tuple[physics.ActuatorSensorState, cpg.Observation]:
     """The observation under a physics profile: :func:`observe` with the profile's foot-force signal (contact normal
-    or calf-frame z, quantized when the sensor counts), sampled and held at the profile's rate."""
+    or calf-frame z), its sensor noise (uniform, drawn every tick), the force counted when the sensor counts, and
+    sampled and held at the profile's rate."""
     ids = go1_model.indices()
+    obs = observe(qpos, qvel, sensordata, gravity)
+    u = physics.noise_draws(profile, io.tick)
+    amplitude = profile.noise
     signal = physics.foot_force_signal(profile, qpos, sensordata[ids.foot_contact_data], ids.root_qpos,
                                        ids.joint_qpos)
-    io, held = physics.sample_and_hold(profile, io, signal)
-    return io, observe(qpos, qvel, sensordata, gravity)._replace(foot_force_n=held)
+    io, held = physics.sample_and_hold(profile, io, physics.count(profile, signal + amplitude[4] * u[29:33]))
+    # The IMU's orientation turned in the trunk frame about x and y by the tilt noise (rotation vector → quaternion;
+    # sin(θ/2)/θ = sinc(θ/2π)/2 is finite at θ = 0).
+    turn = amplitude[3] * jnp.concatenate([u[27:29], jnp.zeros(1, u.dtype)])
+    angle = jnp.linalg.norm(turn)
+    tilt = jnp.concatenate([jnp.cos(angle / 2)[None], 0.5 * jnp.sinc(angle / (2 * jnp.pi)) * turn])
+    return io, obs._replace(joint_pos_rad=obs.joint_pos_rad + amplitude[0] * u[0:12],
+                            joint_vel_rad_s=obs.joint_vel_rad_s + amplitude[1] * u[12:24],
+                            imu_quat_wxyz=attitude.quat_mul(obs.imu_quat_wxyz, tilt.astype(obs.imu_quat_wxyz.dtype)),
+                            gyro_rad_s=obs.gyro_rad_s + amplitude[2] * u[24:27],
+                            foot_force_n=held)
 
 
 def heading_velocity(qpos: jax.Array, qvel: jax.Array) -> jax.Array:

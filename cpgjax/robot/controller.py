@@ -57,7 +57,7 @@ def flat_step(config: cpg.CPGConfig, x: jax.Array) -> jax.Array:
     s = x[OBS_SIZE + 10:]
     state, torque, diag = cpg.controller_step(config, cpg.CPGState(s[0:4], s[4:8], s[8]), params, gates, obs)
     velocity = leg_odometry_velocity(obs, diag.stance)
-    pre = protocol.pre_step(obs, torque, diag)  # the trial's per-tick power, load and clipped torques
+    pre = protocol.pre_step(obs, torque, diag, obs.joint_vel_rad_s)  # the trial's per-tick power, load, clipping
     return jnp.concatenate([torque, state.amplitude, state.phase_rad, state.heading_ref_rad[None], diag.rpy_rad,
                             diag.stance, velocity, pre.power_w[None], pre.load_n[None], pre.saturated[None]])
 

@@ -33,14 +33,14 @@ class FootForceCalibration(NamedTuple):
 
 def calibrate_foot_force(air_counts: np.ndarray, standing_counts: np.ndarray,
                          total_mass_kg: float) -> FootForceCalibration:
-    """Calibration from raw samples: the offset is each foot's minimum in the air (swing phases or lifted robot,
-    ``air_counts`` (K, 4)); one common scale makes the four feet carry the robot's weight while standing still
-    (``standing_counts`` (M, 4)).
+    """Calibration from raw samples: the offset is each foot's median with the robot lifted, feet in the air
+    (``air_counts`` (K, 4); the median, not the minimum, so the sensor's noise does not bias it); one common scale
+    makes the four feet carry the robot's weight while standing still (``standing_counts`` (M, 4)).
 
     Raises:
       ValueError: the standing signal is not above the offsets (no load seen).
     """
-    offset = np.min(np.asarray(air_counts, np.float64), axis=0)
+    offset = np.median(np.asarray(air_counts, np.float64), axis=0)
     loaded = np.sum(np.mean(np.asarray(standing_counts, np.float64), axis=0) - offset)
     if not loaded > 0:
         raise ValueError(f"standing foot counts are not above the in-air offsets {offset}; cannot calibrate")

@@ -205,19 +205,19 @@ class _Carry(NamedTuple):
 class _Recorder(NamedTuple):
     """What a run records: the pre-step half of a row (at control time) and the row (after the physics step)."""
 
-    pending: Callable  # (qpos, obs, torque, diag, cpg_state) -> pending
+    pending: Callable  # (qpos, control: protocol.Control) -> pending
     row: Callable  # (trial_config, pending, qpos, qvel, failed) -> row
 
 
-def _trial_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state) -> protocol.PreStep:
-    del qpos, cpg_state
-    return protocol.pre_step(obs, torque, diag)
+def _trial_pending(qpos, c: protocol.Control) -> protocol.PreStep:
+    del qpos
+    return protocol.pre_step(c.obs, c.torque_nm, c.diag, c.joint_vel_rad_s)
 
 
-def _log_pending(qpos, obs: cpg.Observation, torque, diag: cpg.Diagnostics, cpg_state: cpg.CPGState):
+def _log_pending(qpos, c: protocol.Control):
     # Feet before the step: MJX logs geom_xpos, which mjx.step computes at the start of the step.
-    return (torque, obs.foot_force_n, sensors.foot_positions(qpos), cpg_state.amplitude, cpg_state.phase_rad,
-            diag.foot_target_m, diag.rpy_rad)
+    return (c.torque_nm, c.obs.foot_force_n, sensors.foot_positions(qpos), c.cpg.amplitude, c.cpg.phase_rad,
+            c.diag.foot_target_m, c.diag.rpy_rad)
 
 
 def _log_row(trial_config, pending, qpos, qvel, failed) -> protocol.StepLog:
@@ -241,7 +241,7 @@ def _control(cpg_config: cpg.CPGConfig, recorder: _Recorder, n_transition: int, 
                        consts.new_params)
     c = protocol.control(cpg_config, consts.profile, controller.io, controller.cpg, params, consts.gates, qpos, qvel,
                          sensordata, consts.gravity_mps2)
-    return _Controller(c.cpg, c.io), c.torque_nm, recorder.pending(qpos, c.obs, c.torque_nm, c.diag, c.cpg)
+    return _Controller(c.cpg, c.io), c.torque_nm, recorder.pending(qpos, c)
 
 
 class _Program(NamedTuple):
@@ -338,8 +338,8 @@ class NativeBackend:
                                         jnp.asarray(self.physics.standing_sensordata, jnp.float32), self._gravity)
         self._reset = _Controller(jax.vmap(cpg.init_state)(obs),
                                   jax.vmap(physics_profiles.init_state)(obs.foot_force_n))
-        self._profile = jax.tree.map(jnp.asarray, physics_profiles.batch_arrays(scenario.physics,
-                                                                                 scenario.latency_ticks))
+        self._profile = jax.tree.map(jnp.asarray, physics_profiles.batch_arrays(
+            scenario.physics, scenario.latency_ticks, scenario.noise_scale, scenario.noise_seed))
         self._host_in = np.zeros((self.batch_size, lay.size + self.physics.sensordata.shape[1] + 1), np.float32)
         self._compiled = {}
 

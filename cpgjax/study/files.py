@@ -123,7 +123,7 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     for label in ("controller", "seed", "schedule", "data_reuse", "physics"):
         cols[label] = np.array([lab[label] for lab in result.labels])[inst]
     for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "mass_scale",
-                  "latency_ticks"):
+                  "latency_ticks", "noise_scale"):
         cols[field] = np.asarray(getattr(cond, field))[:, :n].reshape(-1)
     params = per(tr.params)
     for i, name in enumerate(param_space.PARAM_NAMES):

@@ -47,6 +47,7 @@ class Randomization(NamedTuple):
     payload_kg: tuple[float, float] = (0.0, 5.0)
     mass_scale: tuple[float, float] = (0.9, 1.1)  # links' masses ±10 %
     latency_ticks: tuple[int, int] = (0, 2)  # integers, both ends included
+    noise_scale: tuple[float, float] = (0.0, 2.0)  # sensor noise × the robot's (the go1 profile's)
     seed: int = 0
 
 
@@ -119,6 +120,7 @@ class Conditions(NamedTuple):
     inference: np.ndarray  # bool
     mass_scale: np.ndarray  # 1 unless randomized
     latency_ticks: np.ndarray  # int, −1 (the profile's) unless randomized
+    noise_scale: np.ndarray  # sensor noise × the robot's; −1 (the profile's own) unless randomized
 
 
 def conditions(spec: StudySpec) -> Conditions:
@@ -134,6 +136,7 @@ def conditions(spec: StudySpec) -> Conditions:
             out[change.field][b, change.trial:] = change.value
     out["inference"] = out["inference"] > 0.5
     out["mass_scale"], out["latency_ticks"] = np.ones((len(labels), n)), np.full((len(labels), n), -1, np.int64)
+    out["noise_scale"] = np.full((len(labels), n), -1.0)
     if spec.randomize is not None:
         out.update(randomized(spec.randomize, len(labels), n))
     return Conditions(**out)
@@ -142,14 +145,15 @@ def conditions(spec: StudySpec) -> Conditions:
 def randomized(ranges: Randomization, batch: int, num_trials: int) -> dict[str, np.ndarray]:
     """Per-instance, per-trial draws (B, num_trials) of the randomized fields; instance b's draws depend on b and
     ``ranges.seed`` only."""
-    draws = {f: np.zeros((batch, num_trials)) for f in ("friction", "payload_kg", "mass_scale")}
+    draws = {f: np.zeros((batch, num_trials)) for f in ("friction", "payload_kg", "mass_scale", "noise_scale")}
     latency = np.zeros((batch, num_trials), np.int64)
     for b in range(batch):
         rng = np.random.default_rng([ranges.seed, b])
-        for f in draws:
+        for f in ("friction", "payload_kg", "mass_scale"):
             low, high = getattr(ranges, f)
             draws[f][b] = rng.uniform(low, high, num_trials)
         latency[b] = rng.integers(ranges.latency_ticks[0], ranges.latency_ticks[1] + 1, num_trials)
+        draws["noise_scale"][b] = rng.uniform(*ranges.noise_scale, num_trials)  # drawn last: the others keep theirs
     return {**draws, "latency_ticks": latency}
 
 
@@ -208,7 +212,8 @@ def validate(spec: StudySpec) -> Conditions:
     try:
         for t in range(spec.num_trials):
             go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t],
-                                     mass_scale=cond.mass_scale[:, t], latency_ticks=cond.latency_ticks[:, t])
+                                     mass_scale=cond.mass_scale[:, t], latency_ticks=cond.latency_ticks[:, t],
+                                     noise_scale=cond.noise_scale[:, t])
     except ValueError as err:
         fail(f"trial {t}: {err}")
     return cond

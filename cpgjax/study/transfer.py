@@ -60,6 +60,7 @@ class Environments:
         self.payload_kg = [0.0] * fixed + draws["payload_kg"][:, 0].tolist()
         self.mass_scale = [1.0] * fixed + draws["mass_scale"][:, 0].tolist()
         self.latency_ticks = [-1] * fixed + draws["latency_ticks"][:, 0].tolist()
+        self.noise_scale = [-1.0] * fixed + draws["noise_scale"][:, 0].tolist()
 
 
 def evaluate(params: np.ndarray, controllers: list[str], env: Environments, trial_config, backend: str):
@@ -69,7 +70,7 @@ def evaluate(params: np.ndarray, controllers: list[str], env: Environments, tria
     scenario = go1_model.make_scenarios(
         friction=np.tile(env.friction, runs), payload_kg=np.tile(env.payload_kg, runs),
         physics=np.tile(env.physics, runs), mass_scale=np.tile(env.mass_scale, runs),
-        latency_ticks=np.tile(env.latency_ticks, runs))
+        latency_ticks=np.tile(env.latency_ticks, runs), noise_scale=np.tile(env.noise_scale, runs))
     repeated = [c for c in controllers for _ in range(count)]
     v, cot, j, fell = registry.evaluate(np.repeat(params, count, axis=0), repeated, scenario, trial_config, backend,
                                         TARGET_MPS)
@@ -139,8 +140,9 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, backend
                                     Environments(home), spec.trial, engine.backend_name)
         wall += result.wall_s
     env, fixed = Environments("paper"), len(physics_profiles.PROFILES)
-    draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms" for f, p, s, lat in zip(
-        env.friction[fixed:], env.payload_kg[fixed:], env.mass_scale[fixed:], env.latency_ticks[fixed:]))
+    draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}" for f, p, s, lat, z in zip(
+        env.friction[fixed:], env.payload_kg[fixed:], env.mass_scale[fixed:], env.latency_ticks[fixed:],
+        env.noise_scale[fixed:]))
     n, runs = arm_specs[0].num_trials, len(arm_specs[0].seeds)
     text = (f"# transfer\n\nEach controller optimized online for {n} trials ({runs} seeds) under one physics profile "
             f"(or under randomized paper physics), then its best parameters walked — one settling trial, one measured "

@@ -81,9 +81,12 @@ class PreStep(NamedTuple):
     saturated: jax.Array  # number of clipped joint torques
 
 
-def pre_step(obs: cpg.Observation, torque: jax.Array, diag: cpg.Diagnostics) -> PreStep:
-    """Record quantities of the state the controller saw and the torque it applied (shared by every backend)."""
-    return PreStep(power_w=jnp.sum(jnp.abs(torque) * jnp.abs(obs.joint_vel_rad_s)),
+def pre_step(obs: cpg.Observation, torque: jax.Array, diag: cpg.Diagnostics, joint_vel_rad_s: jax.Array) -> PreStep:
+    """Record quantities of the state the controller saw and the torque it applied (shared by every backend).
+
+    The power is |τ|·|q̇| with ``joint_vel_rad_s`` the joints' true velocity in a simulator (sensor noise would bias
+    it upwards) and the measured one on the robot; the load is the force the controller read (the context)."""
+    return PreStep(power_w=jnp.sum(jnp.abs(torque) * jnp.abs(joint_vel_rad_s)),
                    load_n=jnp.mean(obs.foot_force_n), roll_rad=diag.rpy_rad[0], pitch_rad=diag.rpy_rad[1],
                    saturated=jnp.sum(diag.saturated))
 
@@ -137,7 +140,8 @@ class Control(NamedTuple):
 
     io: physics.ActuatorSensorState
     cpg: cpg.CPGState
-    obs: cpg.Observation  # what the controller read
+    obs: cpg.Observation  # what the controller read (with the profile's sensor noise)
+    joint_vel_rad_s: jax.Array  # (12,) the joints' true velocity
     torque_nm: jax.Array  # (12,) the torque the motors apply
     diag: cpg.Diagnostics
 
@@ -148,8 +152,9 @@ def control(cpg_config: cpg.CPGConfig, profile: physics.ProfileArrays, io: physi
     """Sensors → controller → motors for one instance, under its physics profile; every backend's tick."""
     io, obs = sensors.measure(profile, io, qpos, qvel, sensordata, gravity)
     cpg_state, command, diag = cpg.controller_step(cpg_config, cpg_state, params, gates, obs)
-    io, torque = physics.actuate(profile, io, command, obs.joint_vel_rad_s)
-    return Control(io=io, cpg=cpg_state, obs=obs, torque_nm=torque, diag=diag)
+    joint_vel_rad_s = qvel[go1_model.indices().joint_dof]
+    io, torque = physics.actuate(profile, io, command, joint_vel_rad_s)  # the motors feel the true velocity
+    return Control(io=io, cpg=cpg_state, obs=obs, joint_vel_rad_s=joint_vel_rad_s, torque_nm=torque, diag=diag)
 
 
 def transition_fraction(tick, transition_steps: int):
