@@ -108,7 +108,7 @@ def test_ablation_outputs(tiny_ablation):
     row = table["instance"].index(b) + t
     assert table["controller"][row] == result.labels[b]["controller"] and table["trial"][row] == t
     assert table["objective"][row] == pytest.approx(float(result.trials.objective[t, b]))
-    assert table["mu"][row] == pytest.approx(float(result.trials.params[t, b, 4]))
+    assert table["amplitude_mu"][row] == pytest.approx(float(result.trials.params[t, b, 4]))
     recording = (out / "recording.rrd").read_bytes()
     assert len(recording) > 10_000 and b"rollout/best_vmc_tegotae" in recording
     meta = json.loads((out / "metadata.json").read_text())
