@@ -234,11 +234,16 @@ def write_best_params(path: pathlib.Path, trial_log, controller: str, target_vel
     return best
 
 
-def _optimize(args) -> int:
-    spec = study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,), seeds=(args.seed,),
-                                friction=(args.friction,), slope_deg=(args.slope_deg,),
+def optimize_spec(args) -> study_spec.StudySpec:
+    """The one-instance study of ``cpgjax optimize``'s options."""
+    return study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,),
+                                seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
                                 payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
                                 physics=(args.physics,))
+
+
+def _optimize(args) -> int:
+    spec = optimize_spec(args)
     out = pathlib.Path(args.out)
     try:
         study_spec.validate(spec)
@@ -441,7 +446,7 @@ def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool
 def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> None:
     """The options that choose and reach the robot (``cpgjax deploy`` and ``cpgjax deploy calibrate``)."""
     p.add_argument("--robot", choices=("sim", "go1"), required=robot_required,
-                   help="sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
+                   help="required; sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
     p.add_argument("--transport", choices=("udp", "sdk"), help="(default: sdk for go1, udp for sim)")
     p.add_argument("--robot-ip", default=go1_transport.GO1_ROBOT_IP, help="go1 only")
     p.add_argument("--robot-port", type=_port, default=go1_transport.GO1_ROBOT_PORT, help="go1 only")

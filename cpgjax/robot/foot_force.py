@@ -74,8 +74,8 @@ def check_calibration(cal: FootForceCalibration, what: str = "calibration") -> F
         bad = ~(np.isfinite(values) & (values >= lo) & (values <= hi))
         if bad.any():
             foot = int(np.argmax(bad))
-            raise ValueError(f"{what}: {key}[{foot}] = {values[foot]!r} is outside the allowed range [{lo:g}, {hi:g}] "
-                             f"{unit}")
+            raise ValueError(f"{what}: {key}[{foot}] = {float(values[foot])!r} is outside the allowed range "
+                             f"[{lo:g}, {hi:g}] {unit}")
     return cal
 
 

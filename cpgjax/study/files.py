@@ -141,8 +141,9 @@ def resume_point(out_dir, spec, backend: str) -> int:
 def open_run(out_dir, spec, backend: str, *, resume: bool = False, overwrite: bool = False) -> int:
     """Check a study's output folder before any compute (:func:`claim_folder`; with ``resume``,
     :func:`resume_point`) and return the trial the run starts at (0: afresh)."""
+    start = resume_point(out_dir, spec, backend) if resume else 0
     claim_folder(out_dir, overwrite=overwrite, resume=resume)
-    return resume_point(out_dir, spec, backend) if resume else 0
+    return start
 
 
 def load_checkpoint(out_dir, spec) -> Checkpoint | None:
