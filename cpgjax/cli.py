@@ -291,15 +291,13 @@ def _metadata_line(path: pathlib.Path) -> str:
             raise ValueError("not a JSON object")
     except (OSError, UnicodeDecodeError, ValueError) as err:
         return f"{path}: corrupt or truncated ({err})"
-    parts = [f"{m.get('study', '?')}:"]
-    if "instances" in m and "trials" in m:
-        parts.append(f"{m['instances']} instances × {m['trials']} trials")
+    parts = [f"{m['instances']} instances × {m['trials']} trials"] if "instances" in m and "trials" in m else []
     for key, label, unit in (("backend", "on", ""), ("wall_s", "wall", " s"), ("env_steps_per_s", "", " env-steps/s"),
                              ("real_time_factor", "real-time factor", "×"), ("git_commit", "commit", ""),
                              ("command", "command:", "")):
         if m.get(key) is not None:
             parts.append(f"{label} {m[key]}{unit}".strip())
-    return " ".join(parts)
+    return f"{m.get('study', '(no study name)')}: " + ", ".join(parts)
 
 
 def _show(args) -> int:

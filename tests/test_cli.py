@@ -414,7 +414,7 @@ def test_show_reports_missing_and_damaged_files(tmp_path, capsys):
     _write(out / "metadata.json", {"study": "optimize", "backend": "native"})  # no instances
     assert cli.main(["show", str(out), "--no-viewer"]) == 0
     printed = capsys.readouterr().out
-    assert "optimize: on native" in printed and f"(no trials.parquet in {out})" in printed
+    assert "optimize: on native" in printed and "KeyError" not in printed and f"(no trials.parquet in {out})" in printed
     assert "trials.parquet'" not in printed and "(no rerun recording" in printed
     _write(out / "metadata.json", '{"study": ')
     _write(out / "trials.parquet", "PAR1 truncated")

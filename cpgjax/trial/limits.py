@@ -1,5 +1,5 @@
 """The allowed range of every physical input a user gives (command-line options, study definitions), each with the
-reason for it, and the check that names the value, the range and the reason (docs/simulation.md "Inputs and their
+reason for it, and the check that names the value, the range and the reason (docs/cli.md, "Inputs and their
 ranges"). The command line turns each check into an option type; :func:`cpgjax.study.spec.validate` applies the same
 ones to a study's grid, so a value means the same and is refused the same way in every command.
 """
