@@ -5,9 +5,11 @@ program: every refused input stops at parsing or at the output folder's check.""
 import json
 import os
 import pathlib
+import signal
 import socket
 import subprocess
 import sys
+import time
 from typing import NamedTuple
 
 import numpy as np
@@ -463,3 +465,37 @@ def test_recording_paths_carry_the_study_labels():
     assert "friction\\=0.3" in paths[0] and "friction\\=0.9" in paths[2]
     assert "controller\\=vmc_tegotae" in paths[0] and "seed\\=1" in paths[1]
     assert "data_reuse" not in paths[0] and "schedule" not in paths[0]  # the same for every instance
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_a_real_optimization_saves_and_says_how_to_resume(tmp_path):
+    """SIGINT to a running `cpgjax optimize` (C MuJoCo, a few short trials): exit 130, the checkpoint of the last
+    finished trial kept, the resume command printed, no traceback."""
+    out = tmp_path / "opt"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
+    argv = ["optimize", "--trials", "12", "--out", str(out), "--backend", "native"]
+    proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", *argv], env=env, cwd=REPO, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None and not (out / study_io.CHECKPOINT).exists():
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    saved = study_io.checkpoint_meta(out)["trial"]
+    assert proc.returncode == 130 and 1 <= saved < 12, err
+    assert f"resume with: cpgjax {' '.join(argv)} --resume" in err and "Traceback" not in err
+
+
+def test_the_botorch_benchmark_says_what_to_install():
+    import importlib.util
+
+    if importlib.util.find_spec("torch") is not None and importlib.util.find_spec("botorch") is not None:
+        pytest.skip("the bench extra is installed here")
+    done = subprocess.run([sys.executable, str(REPO / "benchmarks" / "bo.py"), "--quick"], capture_output=True,
+                          text=True, timeout=60, cwd=REPO)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert "pip install -e '.[bench]' (or make bench-deps)" in done.stderr
