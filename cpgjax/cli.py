@@ -404,7 +404,8 @@ def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bo
             ("--friction", limits.FRICTION, 0.6, "Coulomb friction", "sim only: "),
             ("--slope-deg", limits.SLOPE_DEG, 0.0, "slope [deg], uphill along +x", "sim only: "),
             ("--payload-kg", limits.PAYLOAD_KG, 0.0, "payload [kg]", "counts in CoT; sim: simulated; ")):
-        p.add_argument(name, type=kind(allowed), default=(default,) if many else default,
+        # a string default goes through the type like a typed value (and shows as typed in the help)
+        p.add_argument(name, type=kind(allowed), default=f"{default:g}" if many else default,
                        help=f"{on_robot if robot else ''}{what}{text} in {allowed}")
 
 
@@ -434,7 +435,7 @@ def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool
     """``--physics``: the physics profile(s) of the simulated Go1 (docs/physics.md)."""
     allowed = ", ".join(physics_profiles.PROFILES)
     if many:
-        p.add_argument("--physics", type=_physics_names, default=(default,),
+        p.add_argument("--physics", type=_physics_names, default=default,
                        help=f"comma list of physics profiles ({allowed})")
     else:
         p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=default,
@@ -472,7 +473,7 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
 def _add_walk(sub) -> None:
     w = sub.add_parser("walk", help="walk with fixed parameters and print the trial figures",
                        formatter_class=_HelpFormatter)
-    w.add_argument("--controllers", type=_controller_names, default=cpg.CONTROLLERS,
+    w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS),
                    help="comma list of controllers")
     _add_scenario_args(w, many=True)
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
