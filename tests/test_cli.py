@@ -229,6 +229,16 @@ def test_a_non_empty_folder_is_not_overwritten(tmp_path, capsys, no_engine):
     assert (robot_run / "trials.parquet").read_text() == "robot data"
 
 
+def test_transfer_study_folders(tmp_path, capsys, no_engine):
+    out = tmp_path / "transfer"
+    assert cli.main(["study", "transfer", "--quick", "--out", str(out), "--resume"]) == 2
+    assert "--resume: no arm of" in capsys.readouterr().err and not out.exists()
+    (out / "transfer_go1").mkdir(parents=True)
+    _write(out / "transfer_go1" / "trials.parquet", "keep")
+    assert cli.main(["study", "transfer", "--quick", "--out", str(out)]) == 2
+    assert f"{out} is not empty (transfer_go1): pass --overwrite" in capsys.readouterr().err
+
+
 def test_overwrite_starts_afresh(tmp_path):
     out = tmp_path / "out"
     out.mkdir()

@@ -132,12 +132,12 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
     arm_specs = specs(seeds, trials, quick)
     for spec in arm_specs:
         study_spec.validate(spec)
-    study_io.claim_folder(out, overwrite=overwrite, resume=resume)
     resumed = {}
     if resume:
         resumed = {spec.name: spec for spec in arm_specs if (out / spec.name / study_io.CHECKPOINT).exists()}
         if not resumed:
             raise study_spec.StudyError(f"--resume: no arm of {out} has a checkpoint; run without --resume to start")
+    study_io.claim_folder(out, overwrite=overwrite, resume=resume)
     for spec in arm_specs:
         arm_resume = spec.name in resumed
         start = study_io.open_run(out / spec.name, spec, backends.resolve_backend(backend), resume=arm_resume,
