@@ -128,12 +128,20 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 # ----------------------------------------------------------------------------------------------- commands
 
+def _notice(line: str) -> None:
+    """A line for the person at the terminal (stderr: stdout holds a command's results)."""
+    print(line, file=sys.stderr, flush=True)
+
+
 def _walk(args) -> int:
     rows, timing = walk.walk(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
                              payload_kg=args.payload_kg, num_trials=args.trials,
-                             target_velocity_mps=args.target_velocity_mps, backend=args.backend, physics=args.physics)
+                             target_velocity_mps=args.target_velocity_mps, backend=args.backend, physics=args.physics,
+                             progress=_notice)  # progress on stderr: stdout holds the table
     print(walk.markdown_table(rows))
-    print(timing)
+    pace = timing["env_steps_per_s"]
+    print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
+          + ("" if pace is None else f"; then {pace:,.0f} env-steps/s"))
     return 0
 
 
@@ -150,10 +158,6 @@ def _progress_printer(stream=None):
         stream.write(("\r\033[K" + line + ("\n" if p.trial == p.num_trials else "")) if tty else line + "\n")
         stream.flush()
     return show
-
-
-def _notice(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
 
 
 def _interrupted(command: str, args, out: pathlib.Path | None) -> int:
