@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench bench-deps clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) benchmarks/rollout.py --quick
+
+# What the benchmarks import beyond the package (benchmarks/bo.py: torch, BoTorch).
+bench-deps: $(STAMP)
+	$(PY) -m pip install -q -e '.[bench]'
 
 clean:
 	rm -rf $(VENV) .pytest_cache

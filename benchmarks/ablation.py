@@ -76,7 +76,8 @@ def run_once(args, physics: str | None) -> float:
 
     def progress(p):
         last[0] = p
-        print(f"trial {p.trial}/{p.num_trials}: {p.env_steps_per_s:,.0f} env-steps/s, ETA {p.eta_s:.0f} s",
+        print(f"{p.trial}/{p.num_trials} trials done: {p.env_steps_per_s:,.0f} env-steps/s, ETA "
+              + ("after the first trial" if p.eta_s is None else f"{p.eta_s:.0f} s"),
               flush=True)
 
     with tempfile.TemporaryDirectory() as out:

@@ -26,8 +26,10 @@ The last line of the output is a JSON object of the figures.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
+import sys
 import time
 import warnings
 
@@ -41,7 +43,17 @@ def parse_args():
     return parser.parse_args()
 
 
+BENCH_MODULES = ("torch", "botorch", "gpytorch", "scipy")  # the `bench` extra of pyproject.toml
+
+
+def missing_modules() -> list[str]:
+    return [name for name in BENCH_MODULES if importlib.util.find_spec(name) is None]
+
+
 ARGS = parse_args()
+if missing_modules():
+    sys.exit(f"benchmarks/bo.py compares against BoTorch and needs {', '.join(missing_modules())}, not installed "
+             f"here: pip install -e '.[bench]' (or make bench-deps)")
 os.sched_setaffinity(0, {ARGS.cpu})  # before jax and torch start their threads
 
 import jax  # noqa: E402

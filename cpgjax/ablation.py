@@ -116,8 +116,8 @@ class Progress(NamedTuple):
     trial: int  # trials done
     num_trials: int
     best_by_group: dict[str, float]  # best J so far per group
-    env_steps_per_s: float
-    eta_s: float
+    env_steps_per_s: float  # over this segment's trials after its first (which compiles), if there are any
+    eta_s: float | None  # from those trials' pace; None after the segment's first trial
 
 
 class StudyResult(NamedTuple):
@@ -263,7 +263,7 @@ class Engine:
         """
         spec, n = self.spec, self.spec.num_trials
         run = self._start(out_dir, resume)
-        t_begin = time.perf_counter()
+        t_begin = t_first = time.perf_counter()
         env_steps = self.batch_size * (spec.trial.transition_steps + spec.trial.steady_steps)
         for t in range(run.start, n):
             run = self._trial(run, t)
@@ -271,11 +271,16 @@ class Engine:
             if out_dir is not None:
                 with _timed(run.timing, "checkpoint_s"):
                     self._checkpoint(out_dir, run, t, wall)
+            if t == run.start:
+                t_first = time.perf_counter()  # the first trial compiles: the pace is that of the later ones
             if progress is not None:
-                done = t + 1 - run.start
-                elapsed = max(time.perf_counter() - t_begin, 1e-9)
-                progress(Progress(t + 1, n, self.best_by_group(run.logs), env_steps * done / elapsed,
-                                  (n - t - 1) * elapsed / done))
+                paced = t - run.start
+                if paced:
+                    per_trial = max(time.perf_counter() - t_first, 1e-9) / paced
+                    figures = env_steps / per_trial, (n - t - 1) * per_trial
+                else:
+                    figures = env_steps / max(time.perf_counter() - t_begin, 1e-9), None
+                progress(Progress(t + 1, n, self.best_by_group(run.logs), *figures))
         wall_s = run.wall_before + time.perf_counter() - t_begin
         return StudyResult(
             spec=spec, labels=self.labels, conditions=self.conditions, trials=self.stack(run.logs),
@@ -346,7 +351,7 @@ class Engine:
         study_io.save_checkpoint(out_dir, self.spec, study_io.Checkpoint(
             trial=t + 1, opt_leaves=fetch(jax.tree.leaves(run.opt_state)),
             sim_leaves=fetch(jax.tree.leaves(run.sim_state)), context=run.context, logs=run.logs, wall_s=wall_s,
-            timing=dict(run.timing)))
+            timing=dict(run.timing)), self.backend_name)
 
     def _restore_sim(self, trial: int, leaves):
         sim = self.simulator(max(trial - 1, 0))

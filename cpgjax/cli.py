@@ -4,74 +4,197 @@ deploy calibrate); each command's function takes the parsed options."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
+import io
 import json
+import os
 import pathlib
+import shlex
 import shutil
 import subprocess
 import sys
+import time
 
-from cpgjax import ablation, cpg
-from cpgjax.go1 import physics as physics_profiles
-from cpgjax.robot import calibrate, cpu_dispatch, deploy
-from cpgjax.robot import transport as go1_transport
-from cpgjax.sim import backends, walk
-from cpgjax.study import files as study_io
-from cpgjax.study import registry as studies
-from cpgjax.study import spec as study_spec
-from cpgjax.study import transfer
-from cpgjax.trial import params as param_space
+
+def _import_mjx_without_its_warp_probe() -> None:
+    """Import ``mujoco.mjx`` with the two lines its import prints to stdout when NVIDIA Warp is absent ("Failed to
+    import warp…", always so on a CPU) dropped, so they cannot land in a redirected output; other output passes."""
+    probe = io.StringIO()
+    with contextlib.redirect_stdout(probe):
+        import mujoco.mjx  # noqa: F401
+    sys.stdout.write("".join(line for line in probe.getvalue().splitlines(keepends=True)
+                             if not line.startswith(("Failed to import warp:", "Failed to import mujoco_warp:"))))
+
+
+_import_mjx_without_its_warp_probe()
+
+import numpy as np  # noqa: E402
+
+import cpgjax  # noqa: E402
+from cpgjax import ablation, cpg  # noqa: E402
+from cpgjax.go1 import physics as physics_profiles  # noqa: E402
+from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, trials  # noqa: E402
+from cpgjax.robot import safety as go1_safety  # noqa: E402
+from cpgjax.robot import transport as go1_transport  # noqa: E402
+from cpgjax.sim import backends, walk  # noqa: E402
+from cpgjax.study import files as study_io  # noqa: E402
+from cpgjax.study import registry as studies  # noqa: E402
+from cpgjax.study import spec as study_spec  # noqa: E402
+from cpgjax.study import transfer  # noqa: E402
+from cpgjax.trial import limits  # noqa: E402
+from cpgjax.trial import params as param_space  # noqa: E402
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
+DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
+VIEWER_START_S = 2.0  # a viewer still running after this long counts as started
+INTERRUPTED = 130  # the exit status of a run stopped by Ctrl-C (128 + SIGINT)
 
 
-def _floats(text: str) -> tuple[float, ...]:
-    return tuple(float(v) for v in text.split(","))
+# ----------------------------------------------------------------------------------------------- option types
+# Each checks its value when the command line is parsed: a refused value stops the command before anything runs
+# (argparse prints "argument --x: <why>" and exits with 2). The ranges live in cpgjax.trial.limits, the robot's in
+# cpgjax.robot.safety and cpgjax.robot.foot_force.
+
+def _argument_type(convert):
+    """An argparse type from ``convert(text)``, which raises ValueError with the message to show."""
+    @functools.wraps(convert)
+    def parse(text: str):
+        try:
+            return convert(text)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+    return parse
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{text!r} is not a number") from None
+
+
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"{text!r} is not an integer") from None
+
+
+def _in(allowed: limits.Range):
+    """A number in ``allowed``."""
+    return _argument_type(lambda text: allowed.check(_number(text)))
+
+
+def _list_in(allowed: limits.Range):
+    """A comma list of numbers, each in ``allowed``."""
+    return _argument_type(lambda text: tuple(allowed.check(_number(v)) for v in text.split(",")))
+
+
+def _count(minimum: int = limits.MIN_TRIALS, reason: str = ""):
+    """An integer of at least ``minimum``."""
+    return _argument_type(lambda text: limits.check_count(_integer(text), None, minimum, reason))
+
+
+def _integer_in(allowed: range, what: str):
+    def convert(text: str) -> int:
+        value = _integer(text)
+        if value not in allowed:
+            raise ValueError(f"{value} is outside the allowed range {allowed.start} … {allowed.stop - 1} ({what})")
+        return value
+    return _argument_type(convert)
+
+
+_power_level = _integer_in(go1_safety.POWER_LEVELS, "the SDK's power protection trips above 100 W per level")
+_port = _integer_in(range(1, 65536), "a UDP port")
+_params_file = _argument_type(trials.load_params)
+_calibration_file = _argument_type(foot_force.FootForceCalibration.load)
+
+
+@_argument_type
+def _cpu(text: str) -> int:
+    value = _integer(text)
+    if not 0 <= value < (os.cpu_count() or 1):
+        raise ValueError(f"{value} is outside this machine's CPUs 0 … {(os.cpu_count() or 1) - 1}")
+    return value
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's help ends with its default; an option whose default is None says it in its help text."""
+
+    def _get_help_string(self, action):
+        return action.help if action.default is None else super()._get_help_string(action)
 
 
 # ----------------------------------------------------------------------------------------------- commands
 
+def _notice(line: str) -> None:
+    """A line for the person at the terminal (stderr: stdout holds a command's results)."""
+    print(line, file=sys.stderr, flush=True)
+
+
 def _walk(args) -> int:
-    rows, timing = walk.walk(controllers=args.controllers.split(","), friction=args.friction,
-                             slope_deg=args.slope, payload_kg=args.payload, num_trials=args.trials,
-                             target_velocity_mps=args.target, backend=args.backend, physics=args.physics)
+    rows, timing = walk.walk(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
+                             payload_kg=args.payload_kg, num_trials=args.trials,
+                             target_velocity_mps=args.target_velocity_mps, backend=args.backend, physics=args.physics,
+                             progress=_notice)  # progress on stderr: stdout holds the table
     print(walk.markdown_table(rows))
-    print(timing)
+    pace = timing["env_steps_per_s"]
+    print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
+          + ("" if pace is None else f"; then {pace:,.0f} env-steps/s"))
     return 0
 
 
 def _progress_printer(stream=None):
-    """The live progress display: trial, best J per group, env-steps/s, ETA (one rewritten line on a terminal)."""
+    """The live progress display: trials done, best J per group, env-steps/s, ETA (one rewritten line on a
+    terminal). The first trial of a run compiles, so the pace and the ETA come from the trials after it."""
     stream = stream or sys.stderr
     tty = stream.isatty()
 
     def show(p) -> None:
         best = ", ".join(f"{k} {v:.3f}" for k, v in p.best_by_group.items())
-        line = (f"trial {p.trial}/{p.num_trials} | best J: {best} | {p.env_steps_per_s:,.0f} env-steps/s | "
-                f"ETA {p.eta_s / 60:.1f} min")
+        eta = "ETA after the next trial" if p.eta_s is None else f"ETA {p.eta_s / 60:.1f} min"
+        line = f"{p.trial}/{p.num_trials} trials done | best J: {best} | {p.env_steps_per_s:,.0f} env-steps/s | {eta}"
         stream.write(("\r\033[K" + line + ("\n" if p.trial == p.num_trials else "")) if tty else line + "\n")
         stream.flush()
     return show
 
 
-def _run_study(name: str, **options) -> int:
-    """``studies.run`` with the progress display; prints its table and output folder, or its StudyError (then 2)."""
+def _interrupted(command: str, args, out: pathlib.Path | None) -> int:
+    """After Ctrl-C: what the checkpoint holds and how to resume (exit status 130)."""
     try:
-        run = transfer.run if name == transfer.NAME else functools.partial(studies.run, name)
-        text, out = run(progress=_progress_printer(), **options)
-    except study_spec.StudyError as err:
-        print(f"cpgjax study: {err}", file=sys.stderr)
-        return 2
-    print(text)
-    print(f"outputs in {out}/")
-    return 0
+        meta = study_io.checkpoint_meta(out) if out is not None else None
+    except study_spec.StudyError:
+        meta = None
+    if meta is None:
+        print(f"\ncpgjax {args.command}: interrupted before the first trial was saved", file=sys.stderr)
+    else:
+        again = command if "--resume" in shlex.split(command) else f"{command} --resume"
+        print(f"\ncpgjax {args.command}: interrupted; trials 0…{meta['trial'] - 1} are saved in "
+              f"{out / study_io.CHECKPOINT}\nresume with: {again}", file=sys.stderr)
+    return INTERRUPTED
 
 
 def _study(args) -> int:
     if args.distributed:
         ablation.initialize_distributed()
-    return _run_study(args.name, seeds=args.seeds, trials=args.trials, quick=args.quick, out=args.out,
-                      resume=args.resume, backend=args.backend, physics=args.physics)
+    name = args.name
+    run = transfer.run if name == transfer.NAME else functools.partial(studies.run, name)
+    out = studies.output_folder(name, args.out)
+    try:
+        text, out = run(seeds=args.seeds, trials=args.trials, quick=args.quick, out=out, resume=args.resume,
+                        overwrite=args.overwrite, backend=args.backend, physics=args.physics,
+                        command=args.command_line, notify=_notice, progress=_progress_printer())
+    except study_spec.StudyError as err:
+        print(f"cpgjax study: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        arm = next((out / s.name for s in reversed(transfer.specs(args.seeds, args.trials, args.quick))
+                    if (out / s.name / study_io.CHECKPOINT).exists()), None) if name == transfer.NAME else out
+        return _interrupted(args.command_line, args, arm)
+    print(text)
+    print(f"outputs in {out}/")
+    return 0
 
 
 def _demo(args) -> int:
@@ -80,47 +203,105 @@ def _demo(args) -> int:
     Runs the ``--quick`` variant (4 controllers × 2 seeds × 12 trials of 1.5 s + 3 s: 41 s on the shared 2-core
     development machine) because the full study (5 seeds × 40 trials, ``cpgjax study controller_ablation``) took 3.7
     to 7.7 minutes there depending on the other jobs' load (docs/REPRODUCTION.md). Prints its table beside the
-    paper's; outputs go to ``results/demo_controller_ablation/``, computed afresh every time.
+    paper's; outputs go to ``results/demo_controller_ablation/``, replaced every time.
     """
     print("cpgjax demo: online optimization (contextual GP-UCB, Algorithm 1) of the four CPG controllers at "
           "v* = 0.5 m/s, all runs batched in lockstep on the CPU (quick variant: 2 seeds × 12 trials; the first "
-          "trials compile).", flush=True)
-    (DEMO_OUT / study_io.CHECKPOINT).unlink(missing_ok=True)
-    return _run_study("controller_ablation", quick=True, out=DEMO_OUT)
+          f"trial compiles). Outputs replace those in {DEMO_OUT}/.", flush=True)
+    try:
+        text, out = studies.run("controller_ablation", quick=True, out=DEMO_OUT, overwrite=True,
+                                command=args.command_line, progress=_progress_printer())
+    except KeyboardInterrupt:
+        print("\ncpgjax demo: interrupted", file=sys.stderr)
+        return INTERRUPTED
+    print(text)
+    print(f"outputs in {out}/")
+    return 0
 
 
-def _trials_table(trials) -> str:
-    """Markdown table of one optimization's trials (instance 0)."""
+def _trials_table(trial_log) -> str:
+    """Markdown table of one optimization's trials (instance 0), numbered from 0 as in trials.parquet."""
     lines = ["| trial | J | v_x [m/s] | CoT | c_load [N] | c_slope [rad] | β | fell |", "|---" * 8 + "|"]
-    for t in range(trials.objective.shape[0]):
-        lines.append(f"| {t} | {trials.objective[t, 0]:.3f} | {trials.velocity_xy_mps[t, 0, 0]:.3f} | "
-                     f"{trials.cot[t, 0]:.3f} | {trials.context[t, 0, 0]:.1f} | {trials.context[t, 0, 1]:.3f} | "
-                     f"{trials.beta[t, 0]:.3g} | {int(trials.fell[t, 0])} |")
+    for t in range(trial_log.objective.shape[0]):
+        lines.append(f"| {t} | {trial_log.objective[t, 0]:.3f} | {trial_log.velocity_xy_mps[t, 0, 0]:.3f} | "
+                     f"{trial_log.cot[t, 0]:.3f} | {trial_log.context[t, 0, 0]:.1f} | "
+                     f"{trial_log.context[t, 0, 1]:.3f} | {trial_log.beta[t, 0]:.3g} | {bool(trial_log.fell[t, 0])} |")
     return "\n".join(lines)
 
 
+def write_best_params(path: pathlib.Path, trial_log, controller: str, target_velocity_mps: float) -> int:
+    """``best_params.json`` of one optimization (instance 0) in the format ``cpgjax deploy --params`` replays;
+    returns the best trial."""
+    best = int(np.argmax(trial_log.objective[:, 0]))
+    trials.save_params(path, trial_log.params[best, 0], objective=float(trial_log.objective[best, 0]), trial=best,
+                       controller=controller, target_velocity_mps=target_velocity_mps)
+    return best
+
+
+def optimize_spec(args) -> study_spec.StudySpec:
+    """The one-instance study of ``cpgjax optimize``'s options."""
+    return study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,),
+                                seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
+                                payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
+                                physics=(args.physics,))
+
+
 def _optimize(args) -> int:
-    spec = study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,), seeds=(args.seed,),
-                                friction=(args.friction,), slope_deg=(args.slope,), payload_kg=(args.payload,),
-                                target_velocity_mps=(args.target,), physics=(args.physics,))
+    spec = optimize_spec(args)
     out = pathlib.Path(args.out)
     try:
-        if not args.resume and (out / study_io.CHECKPOINT).exists():
-            raise study_spec.StudyError(f"{out} already holds a checkpoint: pass --resume, or another --out")
+        study_spec.validate(spec)
+        start = study_io.open_run(out, spec, backends.resolve_backend(args.backend), resume=args.resume,
+                                  overwrite=args.overwrite)
+        if start:
+            _notice(studies.resume_notice(out, start, spec.num_trials))
         engine = ablation.Engine(spec, backend=args.backend)
         result = engine.run(out, resume=args.resume, progress=_progress_printer())
     except study_spec.StudyError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return _interrupted(args.command_line, args, out)
     tr = result.trials
     print(_trials_table(tr))
-    best = int(tr.objective[:, 0].argmax())
+    best = write_best_params(out / "best_params.json", tr, args.controller, args.target_velocity_mps)
     print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
     study_io.write_trials(result, out / "trials.parquet")
     study_io.write_recording(result, out / "recording.rrd")
-    study_io.write_metadata(result, out / "metadata.json")
-    print(f"outputs in {out}/")
+    study_io.write_metadata(result, out / "metadata.json", command=args.command_line)
+    print(f"outputs in {out}/ (replay the best: cpgjax deploy --robot sim --params {out / 'best_params.json'})")
     return 0
+
+
+def _has_display() -> bool:
+    """Whether a viewer window can open here: macOS and Windows have a desktop; elsewhere X11 or Wayland must be
+    named in the environment."""
+    return sys.platform in ("darwin", "win32") or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def _viewer() -> str | None:
+    """The rerun viewer: the venv's, also when the venv is not activated, else the one on PATH."""
+    beside = pathlib.Path(sys.executable).parent / "rerun"
+    return str(beside) if beside.exists() else shutil.which("rerun")
+
+
+RRD_MAGIC = b"RRF2"  # the first bytes of a rerun recording file
+
+
+def _metadata_line(path: pathlib.Path) -> str:
+    try:
+        m = json.loads(path.read_text())
+        if not isinstance(m, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        return f"{path}: corrupt or truncated ({err})"
+    parts = [f"{m['instances']} instances × {m['trials']} trials"] if "instances" in m and "trials" in m else []
+    for key, label, unit in (("backend", "on", ""), ("wall_s", "wall", " s"), ("env_steps_per_s", "", " env-steps/s"),
+                             ("real_time_factor", "real-time factor", "×"), ("git_commit", "commit", ""),
+                             ("command", "command:", "")):
+        if m.get(key) is not None:
+            parts.append(f"{label} {m[key]}{unit}".strip())
+    return f"{m.get('study', '(no study name)')}: " + ", ".join(parts)
 
 
 def _show(args) -> int:
@@ -130,40 +311,111 @@ def _show(args) -> int:
         return 2
     table = out / "table.md"
     print(table.read_text() if table.exists() else f"(no table.md in {out})")
-    meta = out / "metadata.json"
-    if meta.exists():
-        m = json.loads(meta.read_text())
-        print(f"{m['study']}: {m['instances']} instances × {m['trials']} trials on {m['backend']}, wall "
-              f"{m['wall_s']} s, {m['env_steps_per_s']} env-steps/s, real-time factor {m['real_time_factor']}×")
-    print("trial data: pyarrow.parquet.read_table / pandas.read_parquet / polars.read_parquet(" +
-          repr(str(out / "trials.parquet")) + ")")
-    recording = out / "recording.rrd"
-    if recording.exists() and not args.no_viewer:
-        beside = pathlib.Path(sys.executable).parent / "rerun"  # the venv's viewer, also when not activated
-        viewer = str(beside) if beside.exists() else shutil.which("rerun")
-        if viewer is None:
-            print(f"recording: {recording} (install the rerun viewer to open it: `rerun {recording}`)")
-        else:
-            subprocess.Popen([viewer, str(recording)])
-            print(f"opened {recording} in the rerun viewer")
+    if (out / "metadata.json").exists():
+        print(_metadata_line(out / "metadata.json"))
+    data = out / "trials.parquet"
+    if data.exists():
+        import pyarrow.parquet as pq
+
+        try:
+            rows = pq.read_metadata(data).num_rows
+            print(f"trial data ({rows} rows): pandas.read_parquet({str(data)!r}) or pyarrow.parquet.read_table(...)")
+        except Exception as err:  # pyarrow raises several types for a damaged file
+            print(f"trial data: {data} is truncated or corrupt ({type(err).__name__}: {err})")
+    else:
+        print(f"(no trials.parquet in {out})")
+    recording = next((out / name for name in ("recording.rrd", "trials.rrd") if (out / name).exists()), None)
+    if recording is None:
+        print(f"(no rerun recording in {out})")
+        return 0
+    with open(recording, "rb") as f:
+        if f.read(len(RRD_MAGIC)) != RRD_MAGIC:
+            print(f"recording: {recording} is empty or not a rerun recording")
+            return 0
+    viewer = _viewer()
+    elsewhere = f"copy it to a machine with a display and run `rerun {recording.name}` (pip install rerun-sdk)"
+    if args.no_viewer:
+        print(f"recording: {recording}")
+    elif not _has_display():
+        print(f"recording: {recording}; no display here (DISPLAY and WAYLAND_DISPLAY are unset): {elsewhere}")
+    elif viewer is None:
+        print(f"recording: {recording}; the rerun viewer is not installed (pip install rerun-sdk): {elsewhere}")
+    else:
+        proc = subprocess.Popen([viewer, "--bind", "127.0.0.1", str(recording)], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        try:
+            code = proc.wait(VIEWER_START_S)
+        except subprocess.TimeoutExpired:
+            print(f"opened {recording} in the rerun viewer (pid {proc.pid}, serving on 127.0.0.1 only)")
+            return 0
+        print(f"recording: {recording}; the rerun viewer exited at once (status {code}): {elsewhere}")
+        return 1
     return 0
 
 
 def _deploy(parser: argparse.ArgumentParser, args) -> int:
-    """``cpgjax deploy`` after the checks that span options (``parser.error`` exits with 2)."""
+    """``cpgjax deploy`` after the checks that span options (``parser.error`` exits with 2) and the choice of its
+    folder: every option is checked at parsing and the folder here, before anything is sent to a robot."""
     if args.robot is None:
         parser.error("the following arguments are required: --robot")
     if args.robot == "go1" and args.calibration is None:
         parser.error("--robot go1 needs --calibration FILE (run `cpgjax deploy calibrate` first, see docs/hardware.md)")
+    try:
+        args.log_dir = study_io.claim_folder(args.log_dir or fresh_run_folder(DEPLOY_RUNS), overwrite=args.overwrite)
+    except study_spec.StudyError as err:
+        print(f"cpgjax deploy: {err}", file=sys.stderr)
+        return 2
+    _notice(f"cpgjax deploy: writing to {args.log_dir}/")
     return deploy.run(args)
+
+
+def fresh_run_folder(parent: pathlib.Path) -> pathlib.Path:
+    """``parent/<date>-<time>`` (with ``-2``, ``-3``… when that exists): a new folder for each robot run."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    folder, k = parent / stamp, 1
+    while folder.exists():
+        k += 1
+        folder = parent / f"{stamp}-{k}"
+    return folder
+
+
+def _calibrate(args) -> int:
+    try:
+        study_io.claim_file(args.out, overwrite=args.overwrite)
+    except study_spec.StudyError as err:
+        print(f"cpgjax deploy calibrate: {err}", file=sys.stderr)
+        return 2
+    return calibrate.run(args)
 
 
 # ----------------------------------------------------------------------------------------------- shared options
 
 def _add_output_args(p: argparse.ArgumentParser, default: str | None, shown: str | None = None) -> None:
-    """``--out`` (the folder a study or an optimization writes, with its checkpoint) and ``--resume``."""
-    p.add_argument("--out", default=default, help=f"output folder (default {shown or default})")
-    p.add_argument("--resume", action="store_true", help="continue from the folder's checkpoint")
+    """``--out`` (the folder a study or an optimization writes, with its checkpoint), ``--resume``, ``--overwrite``."""
+    p.add_argument("--out", default=default, help=f"output folder{f' (default: {shown})' if shown else ''}")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--resume", action="store_true", help="continue from the folder's checkpoint (an error without "
+                     "one)")
+    how.add_argument("--overwrite", action="store_true", help="replace the files of a non-empty output folder and "
+                     "start afresh")
+
+
+def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bool = False) -> None:
+    """``--friction``, ``--slope-deg`` and ``--payload-kg``, one name, unit and range in every command
+    (``many``: comma lists, every combination is run; ``robot``: deploy's, which only the simulated Go1 simulates)."""
+    kind, what = (_list_in, "comma list of ") if many else (_in, "")
+    for name, allowed, default, text, on_robot in (
+            ("--friction", limits.FRICTION, 0.6, "Coulomb friction", "sim only: "),
+            ("--slope-deg", limits.SLOPE_DEG, 0.0, "slope [deg], uphill along +x", "sim only: "),
+            ("--payload-kg", limits.PAYLOAD_KG, 0.0, "payload [kg]", "counts in CoT; sim: simulated; ")):
+        # a string default goes through the type like a typed value (and shows as typed in the help)
+        p.add_argument(name, type=kind(allowed), default=f"{default:g}" if many else default,
+                       help=f"{on_robot if robot else ''}{what}{text} in {allowed}")
+
+
+def _add_target_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--target-velocity-mps", type=_in(limits.TARGET_VELOCITY_MPS), default=0.5,
+                   help=f"target velocity v_x* [m/s] of the objective J, in {limits.TARGET_VELOCITY_MPS}")
 
 
 def _physics_names(text: str) -> tuple[str, ...]:
@@ -175,65 +427,76 @@ def _physics_names(text: str) -> tuple[str, ...]:
     return names
 
 
+def _controller_names(text: str) -> tuple[str, ...]:
+    names = tuple(text.split(","))
+    for name in names:
+        if name not in cpg.CONTROLLERS:
+            raise argparse.ArgumentTypeError(f"unknown controller {name!r}; allowed: {', '.join(cpg.CONTROLLERS)}")
+    return names
+
+
 def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool = False) -> None:
     """``--physics``: the physics profile(s) of the simulated Go1 (docs/physics.md)."""
     allowed = ", ".join(physics_profiles.PROFILES)
     if many:
-        p.add_argument("--physics", type=_physics_names, default=(default,),
-                       help=f"comma list of physics profiles ({allowed}; default {default})")
+        p.add_argument("--physics", type=_physics_names, default=default,
+                       help=f"comma list of physics profiles ({allowed})")
     else:
-        shown = default or "the study's own"
         p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=default,
-                       help=f"physics profile (default {shown})")
+                       help="physics profile" + ("" if default else " (default: the study's own)"))
 
 
 def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> None:
     """The options that choose and reach the robot (``cpgjax deploy`` and ``cpgjax deploy calibrate``)."""
     p.add_argument("--robot", choices=("sim", "go1"), required=robot_required,
-                   help="sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
-    p.add_argument("--transport", choices=("udp", "sdk"), help="default: sdk for go1, udp for sim")
+                   help="required; sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
+    p.add_argument("--transport", choices=("udp", "sdk"), help="(default: sdk for go1, udp for sim)")
     p.add_argument("--robot-ip", default=go1_transport.GO1_ROBOT_IP, help="go1 only")
-    p.add_argument("--robot-port", type=int, default=go1_transport.GO1_ROBOT_PORT, help="go1 only")
-    p.add_argument("--local-port", type=int, default=go1_transport.GO1_LOCAL_PORT, help="go1 only")
-    p.add_argument("--power-level", type=int, default=9, help="power protection level 1…10 (100 W each)")
+    p.add_argument("--robot-port", type=_port, default=go1_transport.GO1_ROBOT_PORT, help="go1 only")
+    p.add_argument("--local-port", type=_port, default=go1_transport.GO1_LOCAL_PORT, help="go1 only")
+    levels = go1_safety.POWER_LEVELS
+    p.add_argument("--power-level", type=_power_level, default=9,
+                   help=f"power protection level {levels.start}…{levels.stop - 1} (trips above 100 W each)")
     p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime",
                    help="lockstep: one physics step per command, the loop waits for each answer (not real time)")
-    p.add_argument("--payload-kg", type=float, default=0.0,
-                   help="payload carried [kg] (counts in CoT; sim: simulated)")
-    p.add_argument("--friction", type=float, default=0.6, help="sim only")
-    p.add_argument("--slope-deg", type=float, default=0.0, help="sim only: slope [deg]")
+    _add_scenario_args(p, robot=True)
     p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
                    help="sim only: the simulated Go1's physics profile (docs/physics.md)")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
-    p.add_argument("--cpu", type=int, help="pin the loop to this CPU (sim: the simulated Go1 to the others)")
+    p.add_argument("--cpu", type=_cpu, help="pin the loop to this CPU (sim: the simulated Go1 to the others; "
+                   "default: not pinned)")
     p.add_argument("--busy-wait", action="store_true",
                    help="spin through each period instead of sleeping (with --cpu; with --no-realtime unless the "
                    "kernel's real-time throttling is off); fewer overruns on a VM (docs/hardware.md)")
+    p.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder or over an "
+                   "existing file")
 
 
 # ----------------------------------------------------------------------------------------------- the parser
 
 def _add_walk(sub) -> None:
-    w = sub.add_parser("walk", help="walk with fixed parameters and print the trial figures")
-    w.add_argument("--controllers", default=",".join(cpg.CONTROLLERS), help=f"comma list of {cpg.CONTROLLERS}")
-    w.add_argument("--friction", type=_floats, default=(0.6,), help="comma list, e.g. 0.3,0.6,0.9")
-    w.add_argument("--slope", type=_floats, default=(0.0,), help="comma list of slopes [deg], uphill along +x")
-    w.add_argument("--payload", type=_floats, default=(0.0,), help="comma list of payloads [kg]")
-    w.add_argument("--trials", type=int, default=2, help="back-to-back trials of 1.5 s + 3 s")
-    w.add_argument("--target", type=float, default=0.5, help="target velocity v_x* [m/s] for J")
+    w = sub.add_parser("walk", help="walk with fixed parameters and print the trial figures",
+                       formatter_class=_HelpFormatter)
+    w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS),
+                   help="comma list of controllers")
+    _add_scenario_args(w, many=True)
+    w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
+    _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
     backends.add_backend_argument(w)
     w.set_defaults(func=_walk)
 
 
 def _add_study(sub) -> None:
-    s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/")
+    s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/",
+                       formatter_class=_HelpFormatter)
     descriptions = {k: v.description for k, v in studies.STUDIES.items()}
     descriptions[transfer.NAME] = transfer.DESCRIPTION
     s.add_argument("name", choices=sorted(descriptions), help="; ".join(f"{k}: {v}" for k, v in descriptions.items()))
-    s.add_argument("--seeds", type=int, default=None, help=f"seeds per group (default {studies.DEFAULT_SEEDS}, "
+    s.add_argument("--seeds", type=_count(), default=None, help=f"seeds per group (default: {studies.DEFAULT_SEEDS}, "
                    f"--quick {studies.QUICK_SEEDS})")
-    s.add_argument("--trials", type=int, default=None, help="trials per run (condition changes scale with it)")
+    s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
+                   help="trials per run; condition changes scale with it (default: the study's)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
     _add_output_args(s, None, "results/<study>")
     s.add_argument("--distributed", action="store_true", help="multi-host: jax.distributed.initialize() first")
@@ -243,14 +506,13 @@ def _add_study(sub) -> None:
 
 
 def _add_optimize(sub) -> None:
-    o = sub.add_parser("optimize", help="one online optimization (Algorithm 1) with a controller, scenario, target")
-    o.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae")
-    o.add_argument("--friction", type=float, default=0.6)
-    o.add_argument("--slope", type=float, default=0.0, help="slope [deg], uphill")
-    o.add_argument("--payload", type=float, default=0.0, help="payload [kg]")
-    o.add_argument("--target", type=float, default=0.5, help="target velocity v_x* [m/s]")
-    o.add_argument("--trials", type=int, default=40)
-    o.add_argument("--seed", type=int, default=0)
+    o = sub.add_parser("optimize", help="one online optimization (Algorithm 1) with a controller, scenario, target",
+                       formatter_class=_HelpFormatter)
+    o.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", help="the CPG controller")
+    _add_scenario_args(o)
+    _add_target_arg(o)
+    o.add_argument("--trials", type=_count(), default=40, help="trials of 1.5 s + 3 s")
+    o.add_argument("--seed", type=_count(0), default=0, help="the optimizer's random seed")
     _add_output_args(o, "results/optimize")
     _add_physics_arg(o, physics_profiles.PAPER_STUDIES_PROFILE)
     backends.add_backend_argument(o)
@@ -258,14 +520,16 @@ def _add_optimize(sub) -> None:
 
 
 def _add_show(sub) -> None:
-    v = sub.add_parser("show", help="print a results folder's tables and open its rerun recording")
+    v = sub.add_parser("show", help="print a results folder's tables and open its rerun recording",
+                       formatter_class=_HelpFormatter)
     v.add_argument("results", help="e.g. results/controller_ablation")
     v.add_argument("--no-viewer", action="store_true", help="do not open the recording")
     v.set_defaults(func=_show)
 
 
 def _add_demo(sub) -> None:
-    d = sub.add_parser("demo", help=f"`make demo`: the controller ablation's quick variant, afresh, into {DEMO_OUT}/")
+    d = sub.add_parser("demo", help=f"`make demo`: the controller ablation's quick variant, afresh, into {DEMO_OUT}/",
+                       formatter_class=_HelpFormatter)
     d.set_defaults(func=_demo)
 
 
@@ -274,43 +538,53 @@ def _add_deploy(sub) -> None:
                        "(`cpgjax deploy calibrate`: the foot-force calibration)",
                        description="Run the CPG controller at 1 kHz on a Go1 or on the loopback simulated Go1; "
                        "replay parameters or optimize them online. `cpgjax deploy calibrate --help`: the foot-force "
-                       "calibration.")
+                       "calibration.", formatter_class=_HelpFormatter)
     _add_robot_args(d, robot_required=False)  # _deploy requires it: argparse would ask for it before `calibrate` too
     what = d.add_mutually_exclusive_group()
-    what.add_argument("--params", type=pathlib.Path, help="replay these parameters (JSON from save_params / "
-                      "best_params)")
+    what.add_argument("--params", type=_params_file, help="replay these parameters: JSON of `cpgjax optimize` or "
+                      "`deploy --optimize` (best_params.json), or a list of 8 numbers (default: the middle of the "
+                      "paper's ranges)")
     what.add_argument("--optimize", action="store_true", help="online optimization (Algorithm 1)")
-    d.add_argument("--trials", type=int, default=10, help="trials of online optimization")
-    d.add_argument("--optimizer", choices=("bo", "random"), default="bo")
-    d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae")
-    d.add_argument("--target-velocity", type=float, default=0.5, help="v_x* [m/s] of the objective")
-    d.add_argument("--duration-s", type=float, default=10.0, help="run time when replaying parameters [s]")
-    d.add_argument("--transition-s", type=float, default=1.5, help="each trial's parameter transition [s]")
-    d.add_argument("--steady-s", type=float, default=3.0, help="each trial's steady phase T [s]")
-    d.add_argument("--log-dir", type=pathlib.Path, default=pathlib.Path("runs/deploy"))
-    d.add_argument("--calibration", type=pathlib.Path, help="foot-force calibration JSON from `cpgjax deploy "
-                   "calibrate` (required with --robot go1; sim: the simulated sensor's exact calibration by default)")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--trials", type=_count(), default=10, help="trials of online optimization")
+    d.add_argument("--optimizer", choices=("bo", "random"), default="bo", help="the online optimizer")
+    d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", help="the CPG controller")
+    _add_target_arg(d)
+    d.add_argument("--duration-s", type=_in(limits.RUN_DURATION_S), default=10.0,
+                   help=f"run time when replaying parameters [s], in {limits.RUN_DURATION_S}")
+    d.add_argument("--transition-s", type=_in(limits.TRANSITION_S), default=1.5,
+                   help=f"each trial's parameter transition [s], in {limits.TRANSITION_S}")
+    d.add_argument("--steady-s", type=_in(limits.STEADY_S), default=3.0,
+                   help=f"each trial's steady phase T [s], in {limits.STEADY_S}")
+    d.add_argument("--log-dir", type=pathlib.Path, help=f"the run's folder (default: a new {DEPLOY_RUNS}/<date>-<time>"
+                   "; an existing non-empty one needs --overwrite)")
+    d.add_argument("--calibration", type=_calibration_file, help="foot-force calibration JSON from `cpgjax deploy "
+                   "calibrate` (required with --robot go1; default with sim: the simulated sensor's exact one)")
+    d.add_argument("--seed", type=_count(0), default=0, help="the optimizer's random seed")
     d.set_defaults(func=functools.partial(_deploy, d))
 
     c = d.add_subparsers(title="subcommands").add_parser(
         "calibrate", help="measure the foot-force sensors and save their calibration",
         description="Measure the Go1's foot-force sensors (feet in the air, then standing) and save their "
-        "calibration to raw counts → N.")
+        "calibration to raw counts → N.", formatter_class=_HelpFormatter)
     _add_robot_args(c)
     c.add_argument("--out", type=pathlib.Path, default=pathlib.Path("go1_calibration.json"),
-                   help="calibration JSON to write")
-    c.add_argument("--air-s", type=float, default=2.0, help="measuring time with the feet in the air [s]")
-    c.add_argument("--stand-s", type=float, default=3.0, help="measuring time standing still [s]")
-    c.add_argument("--settle-s", type=float, default=1.0, help="time holding the pose before each measurement [s]")
-    c.add_argument("--mass-kg", type=float, help="the robot's total mass [kg] (default: cpgjax's Go1 model + payload)")
-    c.add_argument("--lift-m", type=float, default=0.3, help="sim only: how high the simulated Go1 is hung up [m]")
-    c.set_defaults(func=calibrate.run)
+                   help="calibration JSON to write (an existing one needs --overwrite)")
+    c.add_argument("--air-s", type=_in(limits.MEASURE_S), default=2.0,
+                   help="measuring time with the feet in the air [s]")
+    c.add_argument("--stand-s", type=_in(limits.MEASURE_S), default=3.0, help="measuring time standing still [s]")
+    c.add_argument("--settle-s", type=_in(limits.SETTLE_S), default=1.0,
+                   help="time holding the pose before each measurement [s]")
+    c.add_argument("--mass-kg", type=_in(limits.ROBOT_MASS_KG), help=f"the robot's total mass [kg] in "
+                   f"{limits.ROBOT_MASS_KG} (default: cpgjax's Go1 model + --payload-kg)")
+    c.add_argument("--lift-m", type=_in(limits.LIFT_M), default=0.3,
+                   help="sim only: how high the simulated Go1 is hung up [m]")
+    c.set_defaults(func=_calibrate)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``cpgjax`` parser: every command, each with its function as ``func``."""
     parser = argparse.ArgumentParser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1.")
+    parser.add_argument("--version", action="version", version=f"cpgjax {cpgjax.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_add_walk, _add_study, _add_optimize, _add_show, _add_demo, _add_deploy):
         add(sub)
@@ -318,7 +592,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.command_line = "cpgjax " + shlex.join(argv)  # metadata.json and the resume hint
     # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline.
     cpu_dispatch.request_inline()
     return args.func(args)

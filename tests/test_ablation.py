@@ -89,9 +89,10 @@ def uninterrupted(engine):
     (dict(seeds=(0, 0)), "duplicates"),
     (dict(schedules=(Schedule("x", (Change(9, "payload_kg", 5.0),)),)), "change at trial 9 outside [0, 5)"),
     (dict(schedules=(Schedule("x", (Change(1, "mass", 5.0),)),)), "unknown field 'mass'"),
-    (dict(schedules=(Schedule("x", (Change(2, "payload_kg", -3.0),)),)), "trial 2: scenario payload_kg = -3.0"),
+    (dict(schedules=(Schedule("x", (Change(2, "payload_kg", -3.0),)),)), "trial 2: payload_kg = -3.0 is outside"),
     (dict(slope_deg=(50.0,)), "slope_deg = 50.0"),
-    (dict(target_velocity_mps=(0.0,)), "target velocity 0.0"),
+    (dict(target_velocity_mps=(0.0,)), "target_velocity_mps = 0.0 is outside the allowed range (0, 2]"),
+    (dict(friction=(5.0,)), "friction = 5.0 is outside the allowed range [0.1, 1.5]"),
     (dict(optimizer=small_optimizer(capacity=3)), "capacity 3 < num_trials 5"),
     (dict(group_by=("colour",)), "group_by 'colour'"),
 ])
@@ -237,6 +238,23 @@ print(json.dumps(dict(
     diff = json.loads(out.stdout.strip().splitlines()[-1])
     assert diff["shape"] == [4, 3]
     assert diff["params"] <= 1e-5 and diff["objective"] <= 1e-4, diff
+
+
+def test_progress_pace_and_eta_leave_out_the_first_trial(engine, uninterrupted, monkeypatch):
+    """The first trial of a run compiles: the ETA waits for the second and takes the pace of the later trials."""
+    delays = iter([1.0] + [0.05] * (TRIALS - 1))  # a slow (compiling) first trial, then quick ones
+    first = uninterrupted.trials
+
+    def fake_trial(run, t):
+        time.sleep(next(delays))
+        log = study_io.TrialLog(*(np.asarray(getattr(first, name)[t]) for name in study_io.TrialLog._fields))
+        return run._replace(logs=run.logs + [log])
+    monkeypatch.setattr(engine, "_trial", fake_trial)
+    progress = []
+    engine.run(progress=progress.append)
+    assert [p.trial for p in progress] == list(range(1, TRIALS + 1)) and progress[0].eta_s is None
+    assert progress[1].eta_s == pytest.approx((TRIALS - 2) * 0.05, abs=0.1)  # not the first trial's 1 s
+    assert progress[-1].eta_s == 0.0
 
 
 def test_killed_study_resumes_to_the_uninterrupted_result(tmp_path, uninterrupted):

@@ -363,7 +363,7 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     assert result.trip is None, result.events
     assert [r["trial"] for r in rows] == [0, 1, 2]
     assert all(np.isfinite(r["objective"]) and 15.0 < r["c_load_n"] < 50.0 for r in rows)
-    assert rows[0]["v_x_mps"] > 0.2  # the midpoint gait walks forward (leg odometry)
+    assert rows[0]["velocity_x_mps"] > 0.2  # the midpoint gait walks forward (leg odometry)
     import pyarrow.parquet as pq
 
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 3

@@ -149,7 +149,7 @@ def test_bad_scenarios_are_rejected():
 def test_bad_parameters_are_rejected_before_simulation(short_sim, mid_params):
     bad = mid_params.copy()
     bad[2, 4] = 2.5
-    with pytest.raises(ValueError, match=r"mu = 2.5 \(instance 2\)"):
+    with pytest.raises(ValueError, match=r"amplitude_mu = 2.5 \(instance 2\)"):
         short_sim.reset(bad)
     with pytest.raises(ValueError, match="expected shape"):
         short_sim.reset(mid_params[:2])

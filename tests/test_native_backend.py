@@ -188,7 +188,7 @@ def test_a_fall_is_detected_and_the_robot_stands_up_again(native_sim, mid_params
 def test_bad_parameters_are_rejected_before_simulation(native_sim, mid_params):
     bad = mid_params.copy()
     bad[2, 4] = 2.5
-    with pytest.raises(ValueError, match=r"mu = 2.5 \(instance 2\)"):
+    with pytest.raises(ValueError, match=r"amplitude_mu = 2.5 \(instance 2\)"):
         native_sim.reset(bad)
     with pytest.raises(ValueError, match="expected shape"):
         native_sim.reset(mid_params[:2])

@@ -9,6 +9,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+import cpgjax
 from cpgjax import ablation, cli, cpg
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
@@ -51,8 +52,11 @@ def test_bad_study_options(kwargs, message):
 
 
 def test_cli_rejects_bad_options_before_compute(capsys, tmp_path):
-    assert cli.main(["study", "friction", "--trials", "3", "--out", str(tmp_path)]) == 2
-    assert "--trials 3" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["study", "friction", "--trials", "3", "--out", str(tmp_path)])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --trials: 3: need an integer >= 8 (a paper study changes its conditions" in err
     assert not any(tmp_path.iterdir())
 
 
@@ -101,19 +105,23 @@ def test_ablation_outputs(tiny_ablation):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     table = pq.read_table(out / "trials.parquet").to_pydict()
     assert len(table["objective"]) == 4 * 4
-    for col in ("controller", "seed", "trial", "c_load_n", "c_slope_rad", "objective", "velocity_x_mps", "cot",
-                "fell", "payload_kg", *param_space.PARAM_NAMES):
+    for col in ("controller", "seed", "trial", "c_load_n", "c_slope_rad", "objective", "velocity_x_mps",
+                "cost_of_transport", "fell", "payload_kg", *param_space.PARAM_NAMES):
         assert col in table, col
     b, t = 2, 3
     row = table["instance"].index(b) + t
     assert table["controller"][row] == result.labels[b]["controller"] and table["trial"][row] == t
     assert table["objective"][row] == pytest.approx(float(result.trials.objective[t, b]))
-    assert table["mu"][row] == pytest.approx(float(result.trials.params[t, b, 4]))
+    assert table["amplitude_mu"][row] == pytest.approx(float(result.trials.params[t, b, 4]))
     recording = (out / "recording.rrd").read_bytes()
     assert len(recording) > 10_000 and b"rollout/best_vmc_tegotae" in recording
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["instances"] == 4 and meta["env_steps"] == 4 * 4 * 300 and meta["real_time_factor"] > 0
     assert {"jax", "mujoco", "devices"} <= set(meta["environment"])
+    assert meta["cpgjax_version"] == cpgjax.__version__ and meta["optimizer"]["num_random_proposals"] == 2
+    assert meta["git_commit"] is None or len(meta["git_commit"].split("-")[0]) == 40
+    schema = pq.read_schema(out / "trials.parquet")
+    assert all(str(schema.field(name).type) == "bool" for name in ("fell", "failed", "accepted", "context_changed"))
 
 
 def test_cli_show_prints_the_table(tiny_ablation, capsys):

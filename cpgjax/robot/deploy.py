@@ -20,7 +20,7 @@ from cpgjax.robot import foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
-from cpgjax.robot.trials import OptimizerSpec, load_params, online_optimization
+from cpgjax.robot.trials import OptimizerSpec, online_optimization
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -28,10 +28,11 @@ log = logging.getLogger(__name__)
 
 
 def loop_and_safety(args):
-    """(LoopConfig, SafetyConfig) of the command line's options."""
+    """(LoopConfig, SafetyConfig) of the command line's options, the safety limits checked
+    (:func:`go1_safety.check_safety`)."""
     return (hio.LoopConfig(realtime_priority=None if args.no_realtime else 80, cpu=args.cpu,
                            busy_wait=args.busy_wait),
-            go1_safety.SafetyConfig(power_level=args.power_level))
+            go1_safety.check_safety(go1_safety.SafetyConfig(power_level=args.power_level)))
 
 
 def robot_mass_kg(payload_kg: float) -> float:
@@ -75,16 +76,15 @@ def sim_calibration():
 
 
 def run(args) -> int:
-    """``cpgjax deploy`` with its parsed options. Returns 0 after a clean end, 2 after a safety trip."""
+    """``cpgjax deploy`` with its parsed options (checked by the parser: ``params`` an array, ``calibration`` a
+    :class:`foot_force.FootForceCalibration` or None, ``log_dir`` a folder it may write). Returns 0 after a clean
+    end, 2 after a safety trip."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     gates = cpg.controller_gates(args.controller)
-    params = load_params(args.params) if args.params else param_space.midpoint()
+    params = param_space.midpoint() if args.params is None else args.params
     loop, safety = loop_and_safety(args)
     args.log_dir.mkdir(parents=True, exist_ok=True)
-    if args.calibration is None:
-        calibration = sim_calibration()
-    else:
-        calibration = foot_force.FootForceCalibration.load(args.calibration)
+    calibration = sim_calibration() if args.calibration is None else foot_force.check_calibration(args.calibration)
     log.info("foot-force calibration: offsets %s counts, %s N/count", calibration.offset_counts,
              calibration.newton_per_count)
     calibration.save(args.log_dir / "calibration.json")
@@ -98,7 +98,7 @@ def run(args) -> int:
                                                args.trials, timing, loop, safety)
             for row in rows:
                 log.info("trial %d: J = %.3f, v_x = %.2f m/s, context = (%.1f N, %.3f rad)", row["trial"],
-                         row["objective"], row["v_x_mps"], row["c_load_n"], row["c_slope_rad"])
+                         row["objective"], row["velocity_x_mps"], row["c_load_n"], row["c_slope_rad"])
         else:
             result = hio.run_loop(transport, controller, hio.FixedParams(params, round(args.duration_s * 1000)),
                                   calibration, gates, loop, safety)

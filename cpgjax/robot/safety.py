@@ -30,6 +30,42 @@ class SafetyConfig(NamedTuple):
     kd_max_nm_s_rad: float = 10.0
 
 
+POWER_LEVELS = range(1, 11)  # the SDK's PowerProtect levels: a limit of 100 W per level
+MAX_TILT_RAD = 1.2  # beyond ~70° the robot is on its side: a stop there protects nothing
+MAX_MOTOR_TEMPERATURE_C = 90  # the motors' own protection is near 90 °C
+
+
+def check_safety(safety: SafetyConfig) -> SafetyConfig:
+    """``safety`` if every limit is in its allowed range; to call before anything is sent to a robot.
+
+    Raises:
+      ValueError: the message names the limit, its value and the allowed range.
+    """
+    def need(ok: bool, name: str, allowed: str) -> None:
+        if not ok:
+            raise ValueError(f"safety {name} = {getattr(safety, name)!r} is outside the allowed range {allowed}")
+
+    def number(name: str) -> float:
+        value = getattr(safety, name)
+        return float(value) if isinstance(value, (int, float, np.number)) and not isinstance(value, bool) else np.nan
+
+    level = safety.power_level
+    need(isinstance(level, (int, np.integer)) and not isinstance(level, bool) and level in POWER_LEVELS,
+         "power_level", f"{POWER_LEVELS.start} … {POWER_LEVELS.stop - 1} (100 W each)")
+    need(0.0 < number("max_tilt_rad") <= MAX_TILT_RAD, "max_tilt_rad", f"(0, {MAX_TILT_RAD}] rad")
+    need(isinstance(safety.watchdog_ticks, int) and 1 <= safety.watchdog_ticks <= 100, "watchdog_ticks",
+         "1 … 100 ticks")
+    need(0 < number("max_motor_temperature_c") <= MAX_MOTOR_TEMPERATURE_C, "max_motor_temperature_c",
+         f"(0, {MAX_MOTOR_TEMPERATURE_C}] °C")
+    need(isinstance(safety.power_trip_count, int) and safety.power_trip_count >= 1, "power_trip_count", "integers >= 1")
+    need(0.0 <= number("kp_max_nm_rad") <= proto.KP_RANGE[1], "kp_max_nm_rad", f"[0, {proto.KP_RANGE[1]}] N·m/rad")
+    need(0.0 <= number("kd_max_nm_s_rad") <= proto.KD_RANGE[1], "kd_max_nm_s_rad",
+         f"[0, {proto.KD_RANGE[1]}] N·m·s/rad")
+    unknown = [b for b in safety.stop_buttons if b not in proto.REMOTE_BUTTON_BITS]
+    need(not unknown, "stop_buttons", f"names of {tuple(proto.REMOTE_BUTTON_BITS)}")
+    return safety
+
+
 def tilt_rad(quaternion_wxyz: np.ndarray) -> tuple[float, float]:
     """(roll, pitch) [rad] of a unit quaternion (``attitude.quat_to_rpy``)."""
     roll, pitch, _ = attitude.quat_to_rpy(tuple(float(v) for v in quaternion_wxyz))

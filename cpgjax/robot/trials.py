@@ -139,7 +139,7 @@ class _TrialLog:
         pq.write_table(pa.Table.from_pylist(self.rows), self.dir / "trials.parquet")
         rr, rec = self._rr, self._rec
         rec.set_time("trial", sequence=row["trial"])
-        for key in ("objective", "cost_of_transport", "v_x_mps", "c_load_n", "c_slope_rad", "wait_s"):
+        for key in ("objective", "cost_of_transport", "velocity_x_mps", "c_load_n", "c_slope_rad", "wait_s"):
             rec.log(f"trial/{key}", rr.Scalars(row[key]))
         for name in param_space.PARAM_NAMES:
             rec.log(f"params/{name}", rr.Scalars(row[name]))
@@ -154,11 +154,30 @@ def save_params(path, params: np.ndarray, **info) -> None:
 
 
 def load_params(path) -> np.ndarray:
-    """Parameters (8,) from a :func:`save_params` file (or a JSON list of 8 numbers), validated."""
-    data = json.loads(Path(path).read_text())
+    """Parameters (8,) from a :func:`save_params` file (or a JSON list of 8 numbers), validated.
+
+    Raises:
+      ValueError: unreadable or invalid JSON, a missing key, or a value outside the paper's range; the message names
+        the file and the key.
+    """
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"parameter file {path}: cannot read it ({err})") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"parameter file {path}: not valid JSON ({err})") from None
     if isinstance(data, dict):
+        if not isinstance(data.get("params"), dict):
+            raise ValueError(f"parameter file {path}: missing key 'params' (an object of {param_space.PARAM_NAMES})")
+        missing = [name for name in param_space.PARAM_NAMES if name not in data["params"]]
+        if missing:
+            raise ValueError(f"parameter file {path}: missing key 'params.{missing[0]}'")
         data = [data["params"][name] for name in param_space.PARAM_NAMES]
-    return param_space.validate(np.asarray(data, np.float64), what=str(path))
+    try:
+        values = np.asarray(data, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"parameter file {path}: expected {param_space.NUM_PARAMS} numbers") from None
+    return param_space.validate(values, what=f"parameter file {path}")
 
 
 def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
@@ -184,8 +203,8 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
         optimizer.observe(x, c_gp, record, j)
         conn.send(("params", optimizer.propose(c_gp)))
         row = {"trial": trial, "objective": j, "cost_of_transport": float(objective.cost_of_transport(record)),
-               "v_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
-               "v_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])), "c_load_n": float(c[0]),
+               "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
+               "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])), "c_load_n": float(c[0]),
                "c_slope_rad": float(c[1]), "roll_std_rad": float(record.roll_std_rad),
                "pitch_std_rad": float(record.pitch_std_rad),
                "saturation_fraction": float(record.saturation_fraction), "wait_s": wait_ticks * spec.dt_s,

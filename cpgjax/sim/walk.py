@@ -16,7 +16,7 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
-from cpgjax.trial import objective, protocol
+from cpgjax.trial import limits, objective, protocol
 from cpgjax.trial import params as param_space
 
 
@@ -29,7 +29,8 @@ class WalkRow(NamedTuple):
     vx_mps: float
     vy_mps: float
     cot: float
-    objective: float
+    objective: float  # J for target_velocity_mps
+    target_velocity_mps: float
     c_load_n: float
     c_slope_rad: float
     roll_std_rad: float
@@ -44,7 +45,13 @@ def walk(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload
     """Every combination of controller × friction × slope × payload × physics profile, ``num_trials`` trials back to
     back with the same parameters (default: the middle of the paper's ranges) on ``backend``
     (:func:`backends.make_backend`). Figures are those of the last trial; ``falls`` counts trials with a fall over the
-    whole walk."""
+    whole walk.
+
+    Raises:
+      ValueError: ``num_trials`` < 1 or a target velocity outside ``limits.TARGET_VELOCITY_MPS``, before any compute.
+    """
+    limits.check_count(num_trials, "num_trials")
+    limits.TARGET_VELOCITY_MPS.check(target_velocity_mps, "target_velocity_mps")
     grid = list(itertools.product(controllers, friction, slope_deg, payload_kg, physics))
     scenario = go1_model.make_scenarios(friction=[g[1] for g in grid], slope_deg=[g[2] for g in grid],
                                         payload_kg=[g[3] for g in grid], physics=[g[4] for g in grid])
@@ -61,13 +68,13 @@ def walk(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload
         if compile_s is None:
             compile_s = time.perf_counter() - t0
             t1 = time.perf_counter()
-        progress(f"trial {k + 1}/{num_trials} done ({time.perf_counter() - t0:.1f} s)")
+        progress(f"{k + 1}/{num_trials} trials done ({time.perf_counter() - t0:.1f} s)")
     run_s = time.perf_counter() - t1
     steps = len(grid) * (num_trials - 1) * (trial_config.transition_steps + trial_config.steady_steps)
     j = jax.vmap(objective.objective, in_axes=(0, None))(record, target_velocity_mps)
     cot = objective.cost_of_transport(record)
     v = objective.mean_velocity(record)
-    rows = [WalkRow(c, f, s, m, ph, float(v[i, 0]), float(v[i, 1]), float(cot[i]), float(j[i]),
+    rows = [WalkRow(c, f, s, m, ph, float(v[i, 0]), float(v[i, 1]), float(cot[i]), float(j[i]), target_velocity_mps,
                     float(record.c_load_n[i]), float(record.c_slope_rad[i]), float(record.roll_std_rad[i]),
                     float(record.pitch_std_rad[i]), int(falls[i]))
             for i, (c, f, s, m, ph) in enumerate(grid)]
@@ -76,7 +83,9 @@ def walk(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload
 
 
 def markdown_table(rows: list[WalkRow]) -> str:
-    head = ("| controller | friction | slope [°] | payload [kg] | physics | v_x [m/s] | v_y [m/s] | CoT | J (v*=0.5) "
+    """The rows as a markdown table; J is that of the walk's target velocity."""
+    head = ("| controller | friction | slope [°] | payload [kg] | physics | v_x [m/s] | v_y [m/s] | CoT "
+            f"| J (v*={rows[0].target_velocity_mps:g} m/s) "
             "| c_load [N] | c_slope [rad] | roll std [rad] | pitch std [rad] | falls |")
     lines = [head, "|" + "---|" * 14]
     for r in rows:

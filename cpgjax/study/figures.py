@@ -36,7 +36,7 @@ def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), t
     plt = _plt()
     tr = result.trials
     n = tr.objective.shape[0]
-    trials = np.arange(1, n + 1)
+    trials = np.arange(n)  # numbered from 0, as in trials.parquet, the schedules and the progress lines
     rows = (("velocity $v_x$ [m/s]", tr.velocity_xy_mps[..., 0]), ("CoT", tr.cot), ("objective J", tr.objective),
             (CONTEXT_LABELS[context_index], tr.context[..., context_index]))
     labels = np.array([str(lab[group_key]) for lab in result.labels])
@@ -54,11 +54,11 @@ def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), t
     axes[1].set_ylim(0, min(3.0, float(np.nanpercentile(tr.cot, 95)) * 1.2 + 0.1))
     axes[2].set_ylim(-1.1, 2.6)
     for c in changes:
-        axes[2].annotate("", xy=(c + 1, -1.0), xytext=(c + 1, -0.3), arrowprops=dict(color="red", arrowstyle="->"))
+        axes[2].annotate("", xy=(c, -1.0), xytext=(c, -0.3), arrowprops=dict(color="red", arrowstyle="->"))
         for ax in axes:
-            ax.axvline(c + 0.5, color="red", lw=0.6, alpha=0.5)
+            ax.axvline(c - 0.5, color="red", lw=0.6, alpha=0.5)
     axes[0].legend(fontsize=7, loc="lower right")
-    axes[-1].set_xlabel("trial")
+    axes[-1].set_xlabel("trial (from 0)")
     fig.suptitle(f"{result.spec.name}: {len(result.labels)} runs, mean ± std", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

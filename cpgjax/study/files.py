@@ -2,25 +2,33 @@
 
 * ``checkpoint.npz`` — the whole engine state after trial t (optimizer and simulator leaves, last context, every
   trial's log, wall time), written to a temporary file and renamed (atomic: a kill leaves the previous one). It
-  carries the study's fingerprint; resuming a different study from it is refused.
+  carries the study's fingerprint and backend; resuming a different study from it, or on another backend, is refused,
+  and a damaged one is reported as corrupt with its path (it is read without pickles).
 * ``trials.parquet`` — one row per (instance, trial): instance labels, conditions, the 8 parameters, context, J,
   velocity, CoT, falls. ``pandas.read_parquet(path)`` or ``polars.read_parquet(path)``.
 * ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and
   representative rollouts (trunk pose and feet per step, foot forces, CPG phases and amplitudes).
-* ``metadata.json`` — versions, devices, backend, wall time, env-steps/s and real-time factor.
+* ``metadata.json`` — the command line, cpgjax's version and git commit, the optimizer's settings, versions,
+  devices, backend, wall time, env-steps/s and real-time factor.
+
+No command writes into a non-empty folder or over a file unless told to (:func:`claim_folder`, :func:`claim_file`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import pathlib
 import platform
+import subprocess
 import sys
+import zipfile
 from typing import Any, NamedTuple
 
 import numpy as np
 
+import cpgjax
 from cpgjax.go1 import model as go1_model
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
@@ -64,8 +72,8 @@ def fingerprint(spec) -> str:
     return repr(spec)
 
 
-def save_checkpoint(out_dir, spec, ckpt: Checkpoint) -> None:
-    """Write ``out_dir/checkpoint.npz`` atomically (temporary file, fsync, rename)."""
+def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str) -> None:
+    """Write ``out_dir/checkpoint.npz`` atomically (temporary file, fsync, rename); ``backend``: the simulator's."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     arrays = {f"opt_{i}": np.asarray(a) for i, a in enumerate(ckpt.opt_leaves)}
@@ -73,8 +81,8 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint) -> None:
     arrays["context"] = np.asarray(ckpt.context)
     for name in TrialLog._fields:
         arrays[f"log_{name}"] = np.stack([np.asarray(getattr(lg, name)) for lg in ckpt.logs])
-    meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), wall_s=ckpt.wall_s, timing=ckpt.timing,
-                num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves))
+    meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), backend=backend, wall_s=ckpt.wall_s,
+                timing=ckpt.timing, num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves))
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     tmp = out / (CHECKPOINT + ".tmp")
     with open(tmp, "wb") as f:
@@ -84,25 +92,135 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint) -> None:
     os.replace(tmp, out / CHECKPOINT)
 
 
-def load_checkpoint(out_dir, spec) -> Checkpoint | None:
-    """The checkpoint in ``out_dir`` (None if there is none).
+_DAMAGE = (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile, UnicodeDecodeError)
+
+
+def _corrupt(path, err) -> StudyError:
+    # numpy's own messages for a file it cannot parse suggest loading it with pickles: never pass them on
+    return StudyError(f"checkpoint {path} is corrupt ({type(err).__name__}); delete it, or use another --out")
+
+
+def checkpoint_meta(out_dir) -> dict | None:
+    """The metadata (trial, fingerprint, backend, ...) of ``out_dir``'s checkpoint, None if there is none.
 
     Raises:
-      ValueError: the checkpoint belongs to a different study definition.
+      StudyError: the checkpoint is corrupt (unreadable, truncated, not an archive of ours); the message names it.
     """
     path = pathlib.Path(out_dir) / CHECKPOINT
     if not path.exists():
         return None
-    with np.load(path) as z:
-        meta = json.loads(bytes(z["meta"]).decode())
-        if meta["fingerprint"] != fingerprint(spec):
-            raise StudyError(f"{path} was written by a different study definition; use another --out or delete it "
-                             f"(checkpoint: {meta['fingerprint'][:200]}...)")
-        opt = [z[f"opt_{i}"] for i in range(meta["num_opt"])]
-        sim = [z[f"sim_{i}"] for i in range(meta["num_sim"])]
-        stacked = {name: z[f"log_{name}"] for name in TrialLog._fields}
-        logs = [TrialLog(*(stacked[name][t] for name in TrialLog._fields)) for t in range(meta["trial"])]
-        return Checkpoint(meta["trial"], opt, sim, z["context"], logs, meta["wall_s"], meta["timing"])
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+        if not isinstance(meta, dict) or not isinstance(meta.get("trial"), int):
+            raise KeyError("trial")
+        return meta
+    except _DAMAGE as err:
+        raise _corrupt(path, err) from None
+
+
+def resume_point(out_dir, spec, backend: str) -> int:
+    """The trial a resume of ``spec`` on ``backend`` from ``out_dir`` starts at (the trials its checkpoint holds).
+
+    Raises:
+      StudyError: no checkpoint, a corrupt one, one of another study definition or of another backend.
+    """
+    path = pathlib.Path(out_dir) / CHECKPOINT
+    meta = checkpoint_meta(out_dir)
+    if meta is None:
+        raise StudyError(f"--resume: there is no checkpoint {path}; run without --resume to start afresh")
+    if meta.get("fingerprint") != fingerprint(spec):
+        raise StudyError(f"{path} was written by a different study definition; use another --out or delete it "
+                         f"(checkpoint: {str(meta.get('fingerprint'))[:200]}...)")
+    if meta.get("backend", backend) != backend:
+        raise StudyError(f"{path} was written on the {meta['backend']} backend, this run would use {backend}: resume "
+                         f"with --backend {meta['backend']} (one run, one simulator)")
+    return meta["trial"]
+
+
+def open_run(out_dir, spec, backend: str, *, resume: bool = False, overwrite: bool = False) -> int:
+    """Check a study's output folder before any compute (:func:`claim_folder`; with ``resume``,
+    :func:`resume_point`) and return the trial the run starts at (0: afresh)."""
+    start = resume_point(out_dir, spec, backend) if resume else 0
+    claim_folder(out_dir, overwrite=overwrite, resume=resume)
+    return start
+
+
+def load_checkpoint(out_dir, spec) -> Checkpoint | None:
+    """The checkpoint in ``out_dir`` (None if there is none).
+
+    Raises:
+      StudyError: the checkpoint belongs to a different study definition, or is corrupt.
+    """
+    path = pathlib.Path(out_dir) / CHECKPOINT
+    meta = checkpoint_meta(out_dir)
+    if meta is None:
+        return None
+    if meta["fingerprint"] != fingerprint(spec):
+        raise StudyError(f"{path} was written by a different study definition; use another --out or delete it "
+                         f"(checkpoint: {meta['fingerprint'][:200]}...)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            opt = [z[f"opt_{i}"] for i in range(meta["num_opt"])]
+            sim = [z[f"sim_{i}"] for i in range(meta["num_sim"])]
+            stacked = {name: z[f"log_{name}"] for name in TrialLog._fields}
+            logs = [TrialLog(*(stacked[name][t] for name in TrialLog._fields)) for t in range(meta["trial"])]
+            return Checkpoint(meta["trial"], opt, sim, z["context"], logs, meta["wall_s"], meta["timing"])
+    except _DAMAGE as err:
+        raise _corrupt(path, err) from None
+
+
+# ----------------------------------------------------------------------------------------------- output paths
+
+def _entries(folder: pathlib.Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir())
+
+
+def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pathlib.Path:
+    """Make sure a command may write into ``folder`` before it computes anything, and create it.
+
+    A missing or empty folder is fine; a non-empty one only with ``resume`` (its checkpoint is continued) or
+    ``overwrite`` (the command's files replace theirs; with a checkpoint there, it is deleted so that the run starts
+    afresh).
+
+    Raises:
+      StudyError: ``folder`` is a file, cannot be created, or holds files and neither flag is given.
+    """
+    folder = pathlib.Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise StudyError(f"{folder} is a file, not a folder: give a folder to write into")
+    if folder.is_dir() and not resume:
+        entries = _entries(folder)
+        if entries and not overwrite:
+            hint = " --resume to continue its checkpoint," if CHECKPOINT in entries else ""
+            shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+            raise StudyError(f"{folder} is not empty ({shown}): pass{hint} --overwrite to replace its files, or "
+                             f"write somewhere else")
+        if overwrite:
+            (folder / CHECKPOINT).unlink(missing_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise StudyError(f"cannot create the folder {folder}: {err.strerror}") from None
+    return folder
+
+
+def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
+    """Make sure a command may write the file ``path`` before it does anything (creating its folder).
+
+    Raises:
+      StudyError: ``path`` is a folder, exists and ``overwrite`` is not given, or its folder cannot be created.
+    """
+    path = pathlib.Path(path)
+    if path.is_dir():
+        raise StudyError(f"{path} is a folder: give a file name")
+    if path.exists() and not overwrite:
+        raise StudyError(f"{path} exists: pass --overwrite to replace it, or give another file")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise StudyError(f"cannot create the folder {path.parent}: {err.strerror}") from None
+    return path
 
 
 # ----------------------------------------------------------------------------------------------- trial table
@@ -133,9 +251,12 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     cols["objective"] = per(tr.objective)
     vel = per(tr.velocity_xy_mps)
     cols["velocity_x_mps"], cols["velocity_y_mps"] = vel[:, 0], vel[:, 1]
-    for name in ("cot", "beta", "context_changed", "accepted", "roll_std_rad", "pitch_std_rad",
-                 "saturation_fraction", "energy_j", "distance_m", "total_mass_kg", "fell", "failed"):
+    cols["cost_of_transport"] = per(tr.cot)
+    for name in ("beta", "roll_std_rad", "pitch_std_rad", "saturation_fraction", "energy_j", "distance_m",
+                 "total_mass_kg"):
         cols[name] = per(getattr(tr, name))
+    for name in ("context_changed", "accepted", "fell", "failed"):
+        cols[name] = per(getattr(tr, name)) > 0
     return cols
 
 
@@ -191,15 +312,43 @@ def run_figures(result) -> dict[str, float]:
                 transfer_s=round(result.timing.transfer_s, 2), checkpoint_s=round(result.timing.checkpoint_s, 2))
 
 
-def write_metadata(result, path, extra: dict | None = None) -> dict:
-    meta = dict(study=result.spec.name, instances=len(result.labels), trials=int(result.trials.objective.shape[0]),
+def git_commit() -> str | None:
+    """The commit of the cpgjax checkout that runs ("<hash>-dirty" with uncommitted changes), None outside git."""
+    root = pathlib.Path(cpgjax.__file__).resolve().parent.parent
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10)
+        if commit.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return commit.stdout.strip() + ("-dirty" if dirty else "")
+
+
+def write_metadata(result, path, extra: dict | None = None, command: str | None = None) -> dict:
+    """``metadata.json``: the study, how it was run (``command``: the exact command line) and its run figures."""
+    meta = dict(study=result.spec.name, command=command, cpgjax_version=cpgjax.__version__, git_commit=git_commit(),
+                instances=len(result.labels), trials=int(result.trials.objective.shape[0]),
                 backend=result.backend, sharded_over=result.devices, spec=repr(result.spec),
+                optimizer=dataclasses.asdict(result.spec.optimizer_config()),
                 **run_figures(result), environment=environment(), **(extra or {}))
     pathlib.Path(path).write_text(json.dumps(meta, indent=2, default=str))
     return meta
 
 
 # ----------------------------------------------------------------------------------------------- rerun
+
+def instance_path(labels: list[dict[str, Any]], b: int) -> str:
+    """Instance ``b``'s entity path below each recorded series: every label that differs between the study's
+    instances as ``label=value`` (controller and seed always), then ``i<b>``; so the friction 0.3 and 0.9 curves, or
+    the runs with and without data reuse, are told apart in the viewer."""
+    import rerun as rr
+
+    keys = [k for k in labels[0] if k in ("controller", "seed") or len({str(lab[k]) for lab in labels}) > 1]
+    return "/".join(rr.escape_entity_path_part(f"{k}={labels[b][k]}") for k in keys) + f"/i{b}"
+
 
 def write_recording(result, path, rollouts: dict[str, Any] | None = None) -> pathlib.Path:
     """A rerun ``.rrd``: per-instance trial curves on timeline ``trial``, and each rollout (a ``protocol.StepLog``
@@ -213,10 +362,10 @@ def write_recording(result, path, rollouts: dict[str, Any] | None = None) -> pat
     tr = result.trials
     n = tr.objective.shape[0]
     trial_index = rr.TimeColumn("trial", sequence=np.arange(n))
-    series = dict(objective=tr.objective, velocity_x_mps=tr.velocity_xy_mps[..., 0], cot=tr.cot,
+    series = dict(objective=tr.objective, velocity_x_mps=tr.velocity_xy_mps[..., 0], cost_of_transport=tr.cot,
                   c_load_n=tr.context[..., 0], c_slope_rad=tr.context[..., 1], beta=tr.beta)
-    for b, lab in enumerate(result.labels):
-        name = "/".join(str(lab[k]) for k in ("controller", "seed")) + f"/i{b}"
+    for b in range(len(result.labels)):
+        name = instance_path(result.labels, b)
         for key, values in series.items():
             rr.send_columns(f"optimization/{key}/{name}", indexes=[trial_index],
                             columns=rr.Scalars.columns(scalars=np.asarray(values[:, b], np.float64)),

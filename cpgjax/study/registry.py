@@ -32,7 +32,7 @@ from cpgjax.study import figures as study_figures
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import Change, Schedule, StudySpec
-from cpgjax.trial import objective, protocol
+from cpgjax.trial import limits, objective, protocol
 
 DEFAULT_SEEDS = 5
 QUICK_SEEDS = 2
@@ -348,8 +348,9 @@ def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str |
         raise study_spec.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
     if seeds is not None and seeds < 1:
         raise study_spec.StudyError(f"--seeds {seeds}: need at least 1")
-    if trials is not None and trials < 8:
-        raise study_spec.StudyError(f"--trials {trials}: need at least 8 (2 random + some optimized trials)")
+    if trials is not None and trials < limits.MIN_STUDY_TRIALS:
+        raise study_spec.StudyError(f"--trials {trials}: need at least {limits.MIN_STUDY_TRIALS} "
+                                    f"({limits.MIN_STUDY_TRIALS_REASON})")
     spec = STUDIES[name].make_spec(seeds=seeds, trials=trials, quick=quick)
     if physics is not None:
         spec = dataclasses.replace(spec, physics=(physics,))
@@ -357,7 +358,7 @@ def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str |
     return spec
 
 
-def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None) -> str:
+def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None, command: str | None = None) -> str:
     """Every file of a finished study; returns the table text."""
     out.mkdir(parents=True, exist_ok=True)
     report = STUDIES[name or result.spec.name].report
@@ -367,18 +368,31 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
     (out / "table.md").write_text(text)
     study_io.write_trials(result, out / "trials.parquet")
     study_io.write_recording(result, out / "recording.rrd", logs)
-    study_io.write_metadata(result, out / "metadata.json")
+    study_io.write_metadata(result, out / "metadata.json", command=command)
     return text
 
 
-def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=False, backend="auto",
-        progress=None, physics: str | None = None) -> tuple[str, pathlib.Path]:
+def output_folder(name: str, out=None) -> pathlib.Path:
+    """A study's output folder: ``out``, by default ``results/<name>``."""
+    return pathlib.Path(out or pathlib.Path("results") / name)
+
+
+def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
+    return f"resuming {out} at trial {start} (trials are numbered from 0; {start} of {num_trials} are done)"
+
+
+def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
+        progress=None, physics: str | None = None, command: str | None = None,
+        notify: Callable[[str], None] | None = None) -> tuple[str, pathlib.Path]:
     """Run (or resume) a study and write its outputs; returns (table text, output folder). ``physics``: the
-    profile every instance simulates (default: the study's own)."""
+    profile every instance simulates (default: the study's own). The output folder is checked first
+    (:func:`study_io.open_run`: a non-empty one needs ``resume`` or ``overwrite``); ``notify`` gets the line that
+    says where a resume starts; ``command`` goes into ``metadata.json``."""
     spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics)
-    out = pathlib.Path(out or pathlib.Path("results") / name)
-    if not resume and (out / study_io.CHECKPOINT).exists():
-        raise study_spec.StudyError(f"{out} already holds a checkpoint: pass --resume to continue it, or another --out")
+    out = output_folder(name, out)
+    start = study_io.open_run(out, spec, backends.resolve_backend(backend), resume=resume, overwrite=overwrite)
+    if start and notify is not None:
+        notify(resume_notice(out, start, spec.num_trials))
     engine = ablation.Engine(spec, backend=backend)
     result = engine.run(out, resume=resume, progress=progress)
-    return write_outputs(result, out, engine.backend_name, name), out
+    return write_outputs(result, out, engine.backend_name, name, command), out

@@ -18,12 +18,11 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.optim import config as optimizer_config
+from cpgjax.trial import limits, protocol
 from cpgjax.trial import params as param_space
-from cpgjax.trial import protocol
 
 CONDITION_FIELDS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
 SCHEDULE_FIELDS = CONDITION_FIELDS + ("inference",)
-MAX_TARGET_VELOCITY_MPS = 2.0
 
 
 class StudyError(ValueError):
@@ -205,10 +204,17 @@ def validate(spec: StudySpec) -> Conditions:
     if spec.trial.steady_steps < 1 or spec.trial.transition_steps < 0:
         fail(f"trial timing {spec.trial} needs steady_steps >= 1 and transition_steps >= 0")
     cond = conditions(spec)
-    target = cond.target_velocity_mps
-    if not np.all(np.isfinite(target)) or np.any(target <= 0) or np.any(target > MAX_TARGET_VELOCITY_MPS):
-        bad = target[~(np.isfinite(target) & (target > 0) & (target <= MAX_TARGET_VELOCITY_MPS))][0]
-        fail(f"target velocity {float(bad)!r} m/s outside (0, {MAX_TARGET_VELOCITY_MPS}]")
+    # the same ranges as the command line's options (cpgjax.trial.limits), for every trial's conditions
+    for field, allowed in (("friction", limits.FRICTION), ("slope_deg", limits.SLOPE_DEG),
+                           ("payload_kg", limits.PAYLOAD_KG), ("target_velocity_mps", limits.TARGET_VELOCITY_MPS)):
+        values = np.asarray(getattr(cond, field), np.float64)
+        bad = ~np.vectorize(allowed.contains)(values)
+        if bad.any():
+            b, t = np.argwhere(bad)[0]
+            try:
+                allowed.check(values[b, t], field)
+            except ValueError as err:
+                fail(f"instance {b}, trial {t}: {err}")
     try:
         for t in range(spec.num_trials):
             go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t],

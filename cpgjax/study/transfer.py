@@ -18,15 +18,18 @@ with its own folder and checkpoint below the study's output folder, so ``--resum
 from __future__ import annotations
 
 import pathlib
+from collections.abc import Callable
 
 import numpy as np
 
 from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.sim import backends
 from cpgjax.study import files as study_io
 from cpgjax.study import registry
 from cpgjax.study import spec as study_spec
+from cpgjax.trial import limits
 
 NAME = "transfer"
 DESCRIPTION = "optimize under one physics profile, walk the best gaits under the others"
@@ -113,28 +116,41 @@ def table(arm_results: dict, evaluations: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
-def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, backend="auto", progress=None,
-        physics=None) -> tuple[str, pathlib.Path]:
-    """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder)."""
+def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
+        progress=None, physics=None, command: str | None = None,
+        notify: Callable[[str], None] | None = None) -> tuple[str, pathlib.Path]:
+    """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder).
+    Output folders, ``resume``, ``overwrite``, ``command`` and ``notify`` as in :func:`registry.run`; a resume
+    continues the arms that have a checkpoint and starts the others."""
     if physics is not None:
         raise study_spec.StudyError("the transfer study sets each arm's physics itself; drop --physics")
-    if (seeds is not None and seeds < 1) or (trials is not None and trials < 8):
-        raise study_spec.StudyError(f"{NAME}: need --seeds ≥ 1 and --trials ≥ 8")
-    out = pathlib.Path(out or "results/transfer")
+    if seeds is not None and seeds < 1:
+        raise study_spec.StudyError(f"{NAME}: --seeds {seeds}: need at least 1")
+    if trials is not None and trials < limits.MIN_STUDY_TRIALS:
+        raise study_spec.StudyError(f"{NAME}: --trials {trials}: need at least {limits.MIN_STUDY_TRIALS} "
+                                    f"({limits.MIN_STUDY_TRIALS_REASON})")
+    out = registry.output_folder(NAME, out)
     arm_specs = specs(seeds, trials, quick)
     for spec in arm_specs:
         study_spec.validate(spec)
-    if not resume:
-        for spec in arm_specs:
-            if (out / spec.name / study_io.CHECKPOINT).exists():
-                raise study_spec.StudyError(f"{out / spec.name} already holds a checkpoint: pass --resume to "
-                                            "continue it, or another --out")
+    resumed = {}
+    if resume:
+        resumed = {spec.name: spec for spec in arm_specs if (out / spec.name / study_io.CHECKPOINT).exists()}
+        if not resumed:
+            raise study_spec.StudyError(f"--resume: no arm of {out} has a checkpoint; run without --resume to start")
+    study_io.claim_folder(out, overwrite=overwrite, resume=resume)
+    for spec in arm_specs:
+        arm_resume = spec.name in resumed
+        start = study_io.open_run(out / spec.name, spec, backends.resolve_backend(backend), resume=arm_resume,
+                                  overwrite=overwrite)
+        if start and notify is not None:
+            notify(registry.resume_notice(out / spec.name, start, spec.num_trials))
     arm_results, evaluations, wall = {}, {}, 0.0
     for (arm, home, _), spec in zip(ARMS, arm_specs):
         engine = ablation.Engine(spec, backend=backend)
-        result = engine.run(out / spec.name, resume=resume, progress=progress)
+        result = engine.run(out / spec.name, resume=spec.name in resumed, progress=progress)
         study_io.write_trials(result, out / spec.name / "trials.parquet")
-        study_io.write_metadata(result, out / spec.name / "metadata.json")
+        study_io.write_metadata(result, out / spec.name / "metadata.json", command=command)
         arm_results[arm] = result
         evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels],
                                     Environments(home), spec.trial, engine.backend_name)

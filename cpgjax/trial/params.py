@@ -14,7 +14,7 @@ PARAM_NAMES = (
     "ground_penetration_m",  # g_p
     "omega_swing_rad_s",  # ω_swing
     "omega_stance_rad_s",  # ω_stance
-    "mu",  # μ, intrinsic amplitude
+    "amplitude_mu",  # μ, the CPG's intrinsic amplitude (not a friction)
     "x_offset_front_m",  # x_offset for the front legs
     "x_offset_hind_m",  # x_offset for the hind legs
     "sigma_n",  # σ_N, Tegotae feedback gain [rad/(s·N)]

@@ -1,0 +1,77 @@
+"""The allowed range of every physical input a user gives (command-line options, study definitions), each with the
+reason for it, and the check that names the value, the range and the reason (docs/cli.md, "Inputs and their
+ranges"). The command line turns each check into an option type; :func:`cpgjax.study.spec.validate` applies the same
+ones to a study's grid, so a value means the same and is refused the same way in every command.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+from cpgjax.go1.model import MAX_ABS_SLOPE_DEG
+
+
+class Range(NamedTuple):
+    """An interval of allowed values and why it is allowed."""
+
+    low: float
+    high: float
+    reason: str
+    low_open: bool = False
+    high_open: bool = False
+
+    def __str__(self) -> str:
+        return f"{'(' if self.low_open else '['}{self.low:g}, {self.high:g}{')' if self.high_open else ']'}"
+
+    def contains(self, value: float) -> bool:
+        if not math.isfinite(value):
+            return False
+        above = value > self.low if self.low_open else value >= self.low
+        below = value < self.high if self.high_open else value <= self.high
+        return above and below
+
+    def check(self, value: float, name: str | None = None) -> float:
+        """``value`` if it is allowed.
+
+        Raises:
+          ValueError: "[<name> = ]<value> is outside the allowed range <range> (<reason>)".
+        """
+        value = float(value)
+        if not self.contains(value):
+            shown = f"{name} = {value!r}" if name else repr(value)
+            raise ValueError(f"{shown} is outside the allowed range {self} ({self.reason})")
+        return value
+
+
+FRICTION = Range(0.1, 1.5, "Coulomb friction of the feet on the floor, from wet ice ≈ 0.1 to grippy rubber on dry "
+                 "concrete ≈ 1.5")
+SLOPE_DEG = Range(-MAX_ABS_SLOPE_DEG, MAX_ABS_SLOPE_DEG, "uphill along +x; the model's gravity tilt", low_open=True,
+                  high_open=True)
+PAYLOAD_KG = Range(0.0, 20.0, "a load on the ~12 kg robot; the paper's heaviest is 15 kg")
+TARGET_VELOCITY_MPS = Range(0.0, 2.0, "forward walking; the paper's targets are 0.3…0.8 m/s", low_open=True)
+ROBOT_MASS_KG = Range(5.0, 40.0, "the Go1 weighs ~12 kg, with at most a 20 kg payload")
+RUN_DURATION_S = Range(0.0, 3600.0, "a run of at most an hour", low_open=True)
+TRANSITION_S = Range(0.0, 60.0, "each trial's parameter transition")
+STEADY_S = Range(0.001, 600.0, "each trial's measured phase: at least one 1 ms tick")
+MEASURE_S = Range(0.001, 600.0, "a measuring window: at least one 1 ms tick")
+SETTLE_S = Range(0.0, 60.0, "holding the pose before measuring")
+LIFT_M = Range(0.0, 1.0, "how high the simulated Go1 is hung up", low_open=True)
+
+MIN_TRIALS = 1
+MIN_STUDY_TRIALS = 8
+MIN_STUDY_TRIALS_REASON = ("a paper study changes its conditions at trials scaled to the run length and starts with "
+                           "random trials; below 8 a phase has no optimized trial")
+
+
+def check_count(value: int, name: str | None = None, minimum: int = MIN_TRIALS, reason: str = "") -> int:
+    """An integer count of at least ``minimum``.
+
+    Raises:
+      ValueError: not an integer, or below ``minimum`` (the message gives ``reason`` when there is one).
+    """
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        why = f" ({reason})" if reason else ""
+        shown = f"{name} = {value!r}" if name else repr(value)
+        raise ValueError(f"{shown}: need an integer >= {minimum}{why}")
+    return value

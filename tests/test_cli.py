@@ -1,0 +1,511 @@
+"""The command line's checks, before anything runs: safety inputs refused before any robot is reached, no silent
+overwrite, errors instead of tracebacks, one option per quantity, truthful `show`. None of these compiles a JAX
+program: every refused input stops at parsing or at the output folder's check."""
+
+import json
+import os
+import pathlib
+import signal
+import socket
+import subprocess
+import sys
+import time
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+
+import cpgjax
+from cpgjax import ablation, cli
+from cpgjax.robot import calibrate, deploy, foot_force, sim_server
+from cpgjax.robot import safety as go1_safety
+from cpgjax.sim import walk
+from cpgjax.study import files as study_io
+from cpgjax.study import registry as studies
+from cpgjax.study import spec as study_spec
+from cpgjax.trial import params as param_space
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+
+
+def _write(path: pathlib.Path, value) -> pathlib.Path:
+    path.write_text(value if isinstance(value, str) else json.dumps(value))
+    return path
+
+
+def _refused(argv, capsys) -> str:
+    """Run the command line, expecting argparse's refusal (exit 2); returns stderr."""
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(argv)
+    assert exit_.value.code == 2
+    return capsys.readouterr().err
+
+
+@pytest.fixture
+def no_robot(monkeypatch):
+    """Fails the test if a robot connection, a simulated Go1 or a deploy run is started."""
+    started = []
+
+    def forbidden(*args, **kwargs):
+        started.append(args)
+        raise AssertionError("a robot connection was started")
+    monkeypatch.setattr(deploy, "connect", forbidden)
+    monkeypatch.setattr(sim_server, "SimGo1Client", forbidden)
+    monkeypatch.setattr(deploy, "run", forbidden)
+    monkeypatch.setattr(calibrate, "run", forbidden)
+    return started
+
+
+# ----------------------------------------------------------------------------------------------- safety inputs
+
+GOOD_CALIBRATION = {"offset_counts": [14, -6, 22, 9], "newton_per_count": [0.5, 0.5, 0.5, 0.5]}
+GOOD_PARAMS = {"params": param_space.as_dict(param_space.midpoint())}
+
+
+def _bad_files(tmp_path: pathlib.Path) -> dict[str, pathlib.Path]:
+    mid = param_space.as_dict(param_space.midpoint())
+    return {
+        "cal3": _write(tmp_path / "cal3.json", {"offset_counts": [1, 2, 3], "newton_per_count": [0.5] * 4}),
+        "cal_scales": _write(tmp_path / "cal_scales.json", {"offset_counts": [0, 0, 0, 0],
+                                                             "newton_per_count": [-0.5, 0, 0.5, 1e9]}),
+        "cal_huge": _write(tmp_path / "cal_huge.json", {"offset_counts": [0, 0, 0, 0],
+                                                         "newton_per_count": [0.5, 0.5, 0.5, 1e9]}),
+        "cal_nan": _write(tmp_path / "cal_nan.json", '{"offset_counts": [0, 0, NaN, 0], "newton_per_count": '
+                                                     '[0.5, 0.5, 0.5, 0.5]}'),
+        "cal_key": _write(tmp_path / "cal_key.json", {"offset_counts": [0, 0, 0, 0]}),
+        "cal_json": _write(tmp_path / "cal_json.json", '{"offset_counts": [0, 0'),
+        "params_json": _write(tmp_path / "params_json.json", '{"params": {'),
+        "params_key": _write(tmp_path / "params_key.json", {"params": {k: v for k, v in mid.items()
+                                                                      if k != "sigma_n"}}),
+        "params_range": _write(tmp_path / "params_range.json", {"params": {**mid, "omega_swing_rad_s": 99.0}}),
+    }
+
+
+REFUSED = [  # (extra arguments, what stderr must say)
+    (["--power-level", "99"], "argument --power-level: 99 is outside the allowed range 1 … 10"),
+    (["--power-level", "0"], "argument --power-level: 0 is outside the allowed range 1 … 10"),
+    (["--calibration", "{cal3}"], "offset_counts needs exactly 4 values"),
+    (["--calibration", "{cal_scales}"], "newton_per_count[0] = -0.5 is outside the allowed range [0.001, 10]"),
+    (["--calibration", "{cal_huge}"], "newton_per_count[3] = 1000000000.0 is outside the allowed range"),
+    (["--calibration", "{cal_nan}"], "offset_counts[2] = nan is outside the allowed range"),
+    (["--calibration", "{cal_key}"], "cal_key.json: missing key 'newton_per_count'"),
+    (["--calibration", "{cal_json}"], "cal_json.json: not valid JSON"),
+    (["--params", "{params_json}"], "params_json.json: not valid JSON"),
+    (["--params", "{params_key}"], "params_key.json: missing key 'params.sigma_n'"),
+    (["--params", "{params_range}"], "omega_swing_rad_s = 99.0 is outside the allowed range [16.0, 23.0]"),
+    (["--optimize", "--trials", "0"], "argument --trials: 0: need an integer >= 1"),
+    (["--optimize", "--trials", "-2"], "argument --trials: -2: need an integer >= 1"),
+    (["--duration-s", "-1"], "argument --duration-s: -1.0 is outside the allowed range (0, 3600]"),
+    (["--duration-s", "nan"], "argument --duration-s: nan is outside"),
+    (["--transition-s", "-1"], "argument --transition-s: -1.0 is outside"),
+    (["--steady-s", "0"], "argument --steady-s: 0.0 is outside the allowed range [0.001, 600]"),
+    (["--target-velocity-mps", "-1"], "argument --target-velocity-mps: -1.0 is outside the allowed range (0, 2]"),
+    (["--friction", "5"], "argument --friction: 5.0 is outside the allowed range [0.1, 1.5]"),
+    (["--slope-deg", "60"], "argument --slope-deg: 60.0 is outside the allowed range (-45, 45)"),
+    (["--payload-kg", "50"], "argument --payload-kg: 50.0 is outside the allowed range [0, 20]"),
+    (["--cpu", "999"], "argument --cpu: 999 is outside this machine's CPUs"),
+    (["--robot-port", "70000"], "argument --robot-port: 70000 is outside the allowed range 1 … 65535"),
+]
+
+
+@pytest.mark.parametrize("extra, message", REFUSED, ids=[" ".join(e) for e, _ in REFUSED])
+def test_deploy_refuses_a_bad_input_before_any_robot(extra, message, tmp_path, capsys, no_robot):
+    files = _bad_files(tmp_path)
+    err = _refused(["deploy", "--robot", "sim", "--log-dir", str(tmp_path / "run")]
+                   + [e.format(**files) for e in extra], capsys)
+    assert message in err and "Traceback" not in err
+    assert no_robot == [] and not (tmp_path / "run").exists()
+
+
+CALIBRATE_REFUSED = [
+    (["--mass-kg", "-5"], "argument --mass-kg: -5.0 is outside the allowed range [5, 40]"),
+    (["--mass-kg", "500"], "argument --mass-kg: 500.0 is outside"),
+    (["--air-s", "0"], "argument --air-s: 0.0 is outside"),
+    (["--settle-s", "-1"], "argument --settle-s: -1.0 is outside"),
+    (["--lift-m", "0"], "argument --lift-m: 0.0 is outside the allowed range (0, 1]"),
+    (["--power-level", "11"], "argument --power-level: 11 is outside the allowed range 1 … 10"),
+]
+
+
+@pytest.mark.parametrize("extra, message", CALIBRATE_REFUSED, ids=[" ".join(e) for e, _ in CALIBRATE_REFUSED])
+def test_calibrate_refuses_a_bad_input_before_any_robot(extra, message, tmp_path, capsys, no_robot):
+    err = _refused(["deploy", "calibrate", "--robot", "sim", "--out", str(tmp_path / "c.json")] + extra, capsys)
+    assert message in err and no_robot == [] and not (tmp_path / "c.json").exists()
+
+
+def test_no_packet_reaches_the_loopback_robot_when_an_input_is_refused(tmp_path, capsys):
+    """The real path (no stand-ins): a Go1 'robot' listening on 127.0.0.1 gets nothing from a refused deploy."""
+    robot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    robot.bind(("127.0.0.1", 0))
+    robot.settimeout(0.5)
+    calibration = _write(tmp_path / "cal.json", GOOD_CALIBRATION)
+    bad = _bad_files(tmp_path)
+    try:
+        for extra in (["--power-level", "99"], ["--calibration", str(bad["cal_scales"])],
+                      ["--params", str(bad["params_key"])], ["--duration-s", "-1"]):
+            argv = ["deploy", "--robot", "go1", "--transport", "udp", "--robot-ip", "127.0.0.1", "--robot-port",
+                    str(robot.getsockname()[1]), "--calibration", str(calibration), "--no-realtime",
+                    "--log-dir", str(tmp_path / "run")] + extra
+            _refused(argv, capsys)
+            with pytest.raises(socket.timeout):
+                robot.recvfrom(4096)
+    finally:
+        robot.close()
+
+
+def test_accepted_files_parse_to_their_values(tmp_path):
+    calibration = _write(tmp_path / "cal.json", GOOD_CALIBRATION)
+    params = _write(tmp_path / "p.json", GOOD_PARAMS)
+    args = cli.build_parser().parse_args(["deploy", "--robot", "go1", "--calibration", str(calibration),
+                                          "--params", str(params), "--power-level", "10"])
+    np.testing.assert_array_equal(args.calibration.offset_counts, [14, -6, 22, 9])
+    np.testing.assert_array_equal(args.calibration.newton_per_count, [0.5] * 4)
+    np.testing.assert_allclose(args.params, 0.5 * (param_space.PARAM_LOWER + param_space.PARAM_UPPER))
+    assert args.power_level == 10
+
+
+def test_safety_config_is_checked():
+    assert go1_safety.check_safety(go1_safety.SafetyConfig()) == go1_safety.SafetyConfig()
+    for bad, match in ((dict(power_level=99), "power_level = 99"), (dict(power_level=0), "power_level = 0"),
+                       (dict(kp_max_nm_rad=-1.0), "kp_max_nm_rad"), (dict(kd_max_nm_s_rad=1e6), "kd_max_nm_s_rad"),
+                       (dict(max_tilt_rad=float("nan")), "max_tilt_rad"), (dict(stop_buttons=("Z9",)),
+                                                                          "stop_buttons")):
+        with pytest.raises(ValueError, match=match):
+            go1_safety.check_safety(go1_safety.SafetyConfig(**bad))
+
+
+def test_a_negative_mass_gives_no_calibration():
+    air = np.zeros((10, 4))
+    standing = np.full((10, 4), 60.0)
+    assert foot_force.calibrate_foot_force(air, standing, 12.0).newton_per_count[0] == pytest.approx(
+        12.0 * 9.81 / 240.0, rel=1e-3)
+    with pytest.raises(ValueError, match="newton_per_count"):
+        foot_force.calibrate_foot_force(air, standing, -5.0)
+
+
+class _Log(NamedTuple):
+    objective: np.ndarray
+    params: np.ndarray
+
+
+def test_optimize_best_params_replay_with_deploy(tmp_path):
+    """`optimize` writes best_params.json; `deploy --params` reads back the best trial's parameters."""
+    params = param_space.from_unit(np.array([[[0.1] * 8], [[0.7] * 8], [[0.4] * 8]]))  # (trials, B=1, 8)
+    log = _Log(objective=np.array([[0.5], [1.9], [1.2]]), params=params)
+    path = tmp_path / "best_params.json"
+    assert cli.write_best_params(path, log, "vmc", 0.6) == 1
+    saved = json.loads(path.read_text())
+    assert saved["trial"] == 1 and saved["controller"] == "vmc" and saved["objective"] == 1.9
+    args = cli.build_parser().parse_args(["deploy", "--robot", "sim", "--params", str(path)])
+    np.testing.assert_allclose(args.params, params[1, 0])
+
+
+# ----------------------------------------------------------------------------------------------- output folders
+
+@pytest.fixture
+def no_engine(monkeypatch):
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the engine was built")
+    monkeypatch.setattr(ablation, "Engine", forbidden)
+
+
+def test_out_pointing_at_a_file_fails_at_once(tmp_path, capsys, no_engine):
+    target = _write(tmp_path / "afile", "keep")
+    assert cli.main(["optimize", "--trials", "2", "--out", str(target)]) == 2
+    assert f"{target} is a file, not a folder" in capsys.readouterr().err and target.read_text() == "keep"
+    assert cli.main(["study", "friction", "--quick", "--out", str(target)]) == 2
+    assert "is a file" in capsys.readouterr().err
+
+
+def test_a_non_empty_folder_is_not_overwritten(tmp_path, capsys, no_engine):
+    robot_run = tmp_path / "run"
+    robot_run.mkdir()
+    _write(robot_run / "trials.parquet", "robot data")
+    for argv in (["optimize", "--trials", "2", "--out", str(robot_run)],
+                 ["study", "friction", "--quick", "--out", str(robot_run)]):
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"{robot_run} is not empty (trials.parquet): pass --overwrite" in err and "--resume" not in err
+    assert (robot_run / "trials.parquet").read_text() == "robot data"
+
+
+def test_transfer_study_folders(tmp_path, capsys, no_engine):
+    out = tmp_path / "transfer"
+    assert cli.main(["study", "transfer", "--quick", "--out", str(out), "--resume"]) == 2
+    assert "--resume: no arm of" in capsys.readouterr().err and not out.exists()
+    (out / "transfer_go1").mkdir(parents=True)
+    _write(out / "transfer_go1" / "trials.parquet", "keep")
+    assert cli.main(["study", "transfer", "--quick", "--out", str(out)]) == 2
+    assert f"{out} is not empty (transfer_go1): pass --overwrite" in capsys.readouterr().err
+
+
+def test_overwrite_starts_afresh(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    _write(out / study_io.CHECKPOINT, "old")
+    with pytest.raises(study_spec.StudyError, match="--resume to continue its checkpoint, --overwrite"):
+        study_io.claim_folder(out)
+    assert study_io.claim_folder(out, overwrite=True) == out and not (out / study_io.CHECKPOINT).exists()
+
+
+def test_deploy_and_calibrate_outputs(tmp_path, capsys, monkeypatch):
+    folders = []
+    monkeypatch.setattr(deploy, "run", lambda args: folders.append(args.log_dir) or 0)
+    monkeypatch.setattr(calibrate, "run", lambda args: 0)
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["deploy", "--robot", "sim"]) == 0 and cli.main(["deploy", "--robot", "sim"]) == 0
+    assert folders[0] != folders[1] and all(f.parent == pathlib.Path("runs/deploy") and f.is_dir() for f in folders)
+    _write(folders[0] / "trials.parquet", "3 trials")
+    assert cli.main(["deploy", "--robot", "sim", "--log-dir", str(folders[0])]) == 2
+    assert "is not empty (trials.parquet): pass --overwrite" in capsys.readouterr().err
+    assert cli.main(["deploy", "--robot", "sim", "--log-dir", str(folders[0]), "--overwrite"]) == 0
+    old = _write(tmp_path / "go1_calibration.json", "previous")
+    assert cli.main(["deploy", "calibrate", "--robot", "sim"]) == 2
+    assert "go1_calibration.json exists: pass --overwrite" in capsys.readouterr().err and old.read_text() == "previous"
+    assert cli.main(["deploy", "calibrate", "--robot", "sim", "--out", str(tmp_path)]) == 2
+    assert "is a folder" in capsys.readouterr().err
+    assert cli.main(["deploy", "calibrate", "--robot", "sim", "--overwrite"]) == 0
+
+
+# ----------------------------------------------------------------------------------------------- checkpoints, resume
+
+def _optimize_spec(trials=2):
+    args = cli.build_parser().parse_args(["optimize", "--trials", str(trials)])
+    return cli.optimize_spec(args)
+
+
+def _fake_checkpoint(out: pathlib.Path, spec, trial: int, backend: str) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    meta = dict(trial=trial, fingerprint=study_io.fingerprint(spec), backend=backend)
+    np.savez(out / study_io.CHECKPOINT, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8))
+
+
+def _truncated(path: pathlib.Path) -> None:
+    np.savez(path, meta=np.zeros(1000, np.uint8), other=np.arange(10_000))
+    path.write_bytes(path.read_bytes()[:3000])
+
+
+@pytest.mark.parametrize("damage", ["garbage", "empty", "truncated", "pickled"])
+def test_a_corrupt_checkpoint_is_named(damage, tmp_path, capsys, no_engine):
+    out = tmp_path / "out"
+    out.mkdir()
+    path = out / study_io.CHECKPOINT
+    if damage == "garbage":
+        path.write_bytes(b"\x80\x04 not a checkpoint at all" * 10)
+    elif damage == "empty":
+        path.write_bytes(b"")
+    elif damage == "truncated":
+        _truncated(path)
+    else:
+        np.savez(path, meta=np.array([{"trial": 1}], dtype=object))
+    with pytest.raises(study_spec.StudyError) as err:
+        study_io.checkpoint_meta(out)
+    assert f"checkpoint {path} is corrupt" in str(err.value) and "pickle" not in str(err.value).lower()
+    assert cli.main(["optimize", "--trials", "2", "--out", str(out), "--resume"]) == 2
+    printed = capsys.readouterr().err
+    assert "is corrupt" in printed and "pickle" not in printed.lower() and "Traceback" not in printed
+
+
+def test_resume_needs_a_checkpoint_of_the_same_backend(tmp_path, capsys, no_engine):
+    out = tmp_path / "out"
+    assert cli.main(["optimize", "--trials", "2", "--out", str(out), "--resume"]) == 2
+    assert "--resume: there is no checkpoint" in capsys.readouterr().err and not out.exists()
+    spec = _optimize_spec()
+    _fake_checkpoint(out, spec, 1, "mjx")
+    assert cli.main(["optimize", "--trials", "2", "--out", str(out), "--resume", "--backend", "native"]) == 2
+    assert "written on the mjx backend, this run would use native: resume with --backend mjx" in \
+        capsys.readouterr().err
+    assert study_io.resume_point(out, spec, "mjx") == 1
+    with pytest.raises(study_spec.StudyError, match="different study definition"):
+        study_io.resume_point(out, _optimize_spec(trials=3), "mjx")
+
+
+def test_resume_says_where_and_ctrl_c_says_how_to_resume(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    _fake_checkpoint(out, _optimize_spec(), 1, "native")
+
+    class Interrupted:
+        def __init__(self, spec, backend):
+            pass
+
+        def run(self, *args, **kwargs):
+            raise KeyboardInterrupt
+    monkeypatch.setattr(ablation, "Engine", Interrupted)
+    argv = ["optimize", "--trials", "2", "--out", str(out), "--resume", "--backend", "native"]
+    assert cli.main(argv) == cli.INTERRUPTED == 130
+    err = capsys.readouterr().err
+    assert f"resuming {out} at trial 1 (trials are numbered from 0; 1 of 2 are done)" in err
+    assert f"resume with: cpgjax optimize --trials 2 --out {out} --resume --backend native\n" in err
+
+
+def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "study"
+
+    def interrupted(name, **kwargs):
+        _fake_checkpoint(kwargs["out"], studies.make_spec(name, quick=True), 3, "native")
+        raise KeyboardInterrupt
+    monkeypatch.setattr(studies, "run", interrupted)
+    assert cli.main(["study", "friction", "--quick", "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert f"trials 0…2 are saved in {out / study_io.CHECKPOINT}" in err and "Traceback" not in err
+    assert f"resume with: cpgjax study friction --quick --out {out} --resume" in err
+
+
+# ----------------------------------------------------------------------------------------------- options
+
+def _subparsers(parser):
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield name, sub
+                yield from _subparsers(sub)
+
+
+def test_every_option_shows_its_default():
+    for name, sub in _subparsers(cli.build_parser()):
+        assert sub.formatter_class is cli._HelpFormatter, name
+        for action in sub._actions:
+            if not action.option_strings or action.dest == "help":
+                continue
+            assert action.help, (name, action.dest)
+            if action.default is None:
+                assert "default" in action.help or "required" in action.help, (name, action.dest)
+    deploy_help = next(sub for name, sub in _subparsers(cli.build_parser()) if name == "deploy").format_help()
+    assert "(default: 9)" in " ".join(deploy_help.split())
+
+
+def test_one_name_unit_and_range_for_the_scenario_in_every_command(capsys):
+    subs = dict(_subparsers(cli.build_parser()))
+    for command in ("walk", "optimize", "deploy", "calibrate"):
+        options = {s for a in subs[command]._actions for s in a.option_strings}
+        assert {"--friction", "--slope-deg", "--payload-kg"} <= options, command
+        assert not {"--slope", "--payload", "--target", "--target-velocity"} & options, command
+    for command in (["walk"], ["optimize"], ["deploy", "--robot", "sim"]):
+        assert "[0.1, 1.5]" in _refused(command + ["--friction", "5"], capsys)
+        assert "(0, 2]" in _refused(command + ["--target-velocity-mps", "-1"], capsys)
+    with pytest.raises(study_spec.StudyError, match=r"friction = 5.0 is outside the allowed range \[0.1, 1.5\]"):
+        study_spec.validate(study_spec.StudySpec("x", friction=(5.0,)))
+    with pytest.raises(study_spec.StudyError, match=r"payload_kg = 30.0 is outside the allowed range \[0, 20\]"):
+        study_spec.validate(study_spec.StudySpec("x", payload_kg=(30.0,)))
+
+
+def test_walk_refuses_zero_trials_and_names_its_target(capsys):
+    assert "argument --trials: 0: need an integer >= 1" in _refused(["walk", "--trials", "0"], capsys)
+    with pytest.raises(ValueError, match="num_trials = 0"):
+        walk.walk(num_trials=0)
+    row = walk.WalkRow("vmc", 0.6, 0.0, 0.0, "paper", 0.5, 0.0, 0.6, 1.8, 0.8, 30.0, 0.0, 0.01, 0.01, 0)
+    assert "| J (v*=0.8 m/s) |" in walk.markdown_table([row])
+
+
+def test_version_and_no_warp_probe_on_stdout():
+    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
+    done = subprocess.run([sys.executable, "-m", "cpgjax.cli", "--version"], capture_output=True, text=True,
+                          env=env, cwd=REPO, timeout=120)
+    assert done.returncode == 0 and done.stdout == f"cpgjax {cpgjax.__version__}\n"
+
+
+def test_progress_lines_count_trials_done_and_wait_for_the_pace(capsys):
+    show = cli._progress_printer(sys.stdout)
+    show(ablation.Progress(1, 12, {"vmc": 1.5}, 100.0, None))
+    show(ablation.Progress(2, 12, {"vmc": 1.6}, 900.0, 600.0))
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("1/12 trials done") and out[0].endswith("ETA after the next trial")
+    assert out[1].endswith("ETA 10.0 min")
+
+
+# ----------------------------------------------------------------------------------------------- show
+
+RRD = b"RRF2" + bytes(100)
+
+
+def test_show_reports_missing_and_damaged_files(tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    _write(out / "metadata.json", {"study": "optimize", "backend": "native"})  # no instances
+    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    printed = capsys.readouterr().out
+    assert "optimize: on native" in printed and "KeyError" not in printed and f"(no trials.parquet in {out})" in printed
+    assert "trials.parquet'" not in printed and "(no rerun recording" in printed
+    _write(out / "metadata.json", '{"study": ')
+    _write(out / "trials.parquet", "PAR1 truncated")
+    _write(out / "recording.rrd", "")
+    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    printed = capsys.readouterr().out
+    assert "metadata.json: corrupt or truncated" in printed and "trials.parquet is truncated or corrupt" in printed
+    assert "recording.rrd is empty or not a rerun recording" in printed
+
+
+def _fake_viewer(tmp_path: pathlib.Path, seconds: float) -> pathlib.Path:
+    script = tmp_path / "viewer"
+    script.write_text(f'#!/bin/sh\necho "$@" > {tmp_path}/viewer_args\nsleep {seconds}\nexit 3\n')
+    script.chmod(0o755)
+    return script
+
+
+def test_show_opens_a_viewer_only_where_one_can_run(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "recording.rrd").write_bytes(RRD)
+    monkeypatch.setattr(cli, "VIEWER_START_S", 0.5)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(cli, "_viewer", lambda: str(_fake_viewer(tmp_path, 0)))
+    assert cli.main(["show", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "no display here" in printed and "rerun recording.rrd" in printed and "opened" not in printed
+    assert not (tmp_path / "viewer_args").exists()
+    monkeypatch.setenv("DISPLAY", ":0")
+    assert cli.main(["show", str(out)]) == 1  # the viewer dies at once: not "opened"
+    assert "exited at once (status 3)" in capsys.readouterr().out
+    monkeypatch.setattr(cli, "_viewer", lambda: str(_fake_viewer(tmp_path, 2)))
+    assert cli.main(["show", str(out)]) == 0
+    assert "opened" in capsys.readouterr().out
+    assert (tmp_path / "viewer_args").read_text().split() == ["--bind", "127.0.0.1", str(out / "recording.rrd")]
+
+
+# ----------------------------------------------------------------------------------------------- outputs
+
+def test_recording_paths_carry_the_study_labels():
+    labels = [dict(controller="vmc_tegotae", seed=s, friction=f, data_reuse=True, schedule="constant")
+              for f in (0.3, 0.9) for s in (0, 1)]
+    paths = [study_io.instance_path(labels, b) for b in range(len(labels))]
+    assert len(set(paths)) == 4
+    assert "friction\\=0.3" in paths[0] and "friction\\=0.9" in paths[2]
+    assert "controller\\=vmc_tegotae" in paths[0] and "seed\\=1" in paths[1]
+    assert "data_reuse" not in paths[0] and "schedule" not in paths[0]  # the same for every instance
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_a_real_optimization_saves_and_says_how_to_resume(tmp_path):
+    """SIGINT to a running `cpgjax optimize` (C MuJoCo, a few short trials): exit 130, the checkpoint of the last
+    finished trial kept, the resume command printed, no traceback."""
+    out = tmp_path / "opt"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
+    argv = ["optimize", "--trials", "12", "--out", str(out), "--backend", "native"]
+    proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", *argv], env=env, cwd=REPO, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None and not (out / study_io.CHECKPOINT).exists():
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    saved = study_io.checkpoint_meta(out)["trial"]
+    assert proc.returncode == 130 and 1 <= saved < 12, err
+    assert f"resume with: cpgjax {' '.join(argv)} --resume" in err and "Traceback" not in err
+
+
+def test_the_botorch_benchmark_says_what_to_install():
+    import importlib.util
+
+    if importlib.util.find_spec("torch") is not None and importlib.util.find_spec("botorch") is not None:
+        pytest.skip("the bench extra is installed here")
+    done = subprocess.run([sys.executable, str(REPO / "benchmarks" / "bo.py"), "--quick"], capture_output=True,
+                          text=True, timeout=60, cwd=REPO)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert "pip install -e '.[bench]' (or make bench-deps)" in done.stderr
