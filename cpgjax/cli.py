@@ -13,7 +13,7 @@ import sys
 
 from cpgjax import ablation, cpg
 from cpgjax.go1 import physics as physics_profiles
-from cpgjax.robot import calibrate, cpu_dispatch, deploy
+from cpgjax.robot import calibrate, cpu_dispatch, deploy, tick_log
 from cpgjax.robot import transport as go1_transport
 from cpgjax.sim import backends, walk
 from cpgjax.study import files as study_io
@@ -128,6 +128,9 @@ def _show(args) -> int:
     if not out.is_dir():
         print(f"cpgjax show: {out} is not a folder", file=sys.stderr)
         return 2
+    if (out / tick_log.FILE_NAME).exists() or (out / "run.json").exists():  # a `cpgjax deploy` run
+        print(tick_log.summarize_run(out))
+        return 0
     table = out / "table.md"
     print(table.read_text() if table.exists() else f"(no table.md in {out})")
     meta = out / "metadata.json"
