@@ -29,7 +29,7 @@ EXAMPLES = {  # name: the command's arguments after `cpgjax` (docs/hardware.md);
     "optimize": ["deploy", "--robot", "sim", "--optimize", "--trials", "3", "--log-dir", "{out}/run"],
     "calibrate": ["deploy", "calibrate", "--robot", "sim", "--out", "{out}/calibration.json"],
 }
-_TRIP = re.compile(r"(?:safety trip|stopped): (.*)")
+_TRIP = re.compile(r"(?:safety trip|stopped): ([^;\n]*)")
 
 
 def run_once(name: str, timeout_s: float) -> dict:

@@ -33,6 +33,8 @@ from cpgjax.robot import protocol as proto
 from cpgjax.robot.controller import (
     IN_SIZE,
     OBS_SIZE,
+    OUT_FINITE,
+    OUT_GUARDED,
     OUT_STATE,
     OUT_TORQUE,
     CompiledController,
@@ -485,6 +487,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 phase, phase_tick = _enter_phase(events, k, DAMP, "stopped (Ctrl-C)")
 
             step_s = 0.0
+            guarded = False  # the run phase's torque command was guarded inside the compiled step
             command_phase = phase  # the phase whose command this tick sends (logged)
             if phase == RUN:  # whole: step_s must time exactly pack + compiled call + unpack
                 ts = time.perf_counter()
@@ -496,7 +499,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 x[OBS_SIZE + 10:] = out[OUT_STATE]
                 step_s = time.perf_counter() - ts
                 schedule.record(run_tick, out)
-                cmd = torque_command(out[OUT_TORQUE].astype(np.float64))
+                cmd, guarded = torque_command(out[OUT_GUARDED].astype(np.float64)), True
                 tick_log.obs[i] = x[:OBS_SIZE]
                 tick_log.controller_torque_nm[i] = out[OUT_TORQUE]
                 run_tick += 1
@@ -512,7 +515,10 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
             else:  # connecting, or damping
                 cmd = damp
 
-            cmd, reason = guard_command(cmd, safety)
+            if guarded:  # safety.guard_command of a torque command: finite, clamped to the motor limits
+                reason = None if out[OUT_FINITE] else "non-finite command (tau)"
+            else:
+                cmd, reason = guard_command(cmd, safety)
             if reason is not None:
                 trip = trip or reason
                 phase, phase_tick = _enter_phase(events, k, DAMP, reason)

@@ -425,3 +425,26 @@ def test_go1_profile_foot_sensor_is_recovered_by_deploy_calibrate(tmp_path):
     cal = foot_force.FootForceCalibration.load(out)
     np.testing.assert_array_equal(cal.offset_counts, sim.FOOT_FORCE_OFFSET_COUNTS)
     np.testing.assert_allclose(cal.newton_per_count, sim.FOOT_FORCE_N_PER_COUNT, rtol=0.02)
+
+
+def test_the_compiled_step_guards_its_torque_as_the_safety_guard_does(controller):
+    """The run phase's guard runs inside the compiled step (one dispatch a tick): its torque and finiteness flag
+    must be what ``safety.guard_command`` makes of the controller's torque command, saturated and NaN alike."""
+    rng = np.random.default_rng(0)
+    x = np.zeros(compiled_controller.IN_SIZE, np.float32)
+    x[compiled_controller.OBS_SIZE:compiled_controller.OBS_SIZE + 8] = params.midpoint()
+    x[compiled_controller.OBS_SIZE + 8:compiled_controller.OBS_SIZE + 10] = 1.0
+    clipped = 0
+    for k in range(40):
+        x[:compiled_controller.OBS_SIZE] = rng.normal(0.0, 3.0, compiled_controller.OBS_SIZE)
+        x[24:28] /= np.linalg.norm(x[24:28])
+        if k == 39:
+            x[3] = np.nan
+        out = controller.step(x)
+        torque = out[compiled_controller.OUT_TORQUE].astype(np.float64)
+        guarded, reason = go1_safety.guard_command(go1_safety.torque_command(torque), SAFETY)
+        assert bool(out[compiled_controller.OUT_FINITE]) == (reason is None)
+        if reason is None:
+            np.testing.assert_allclose(out[compiled_controller.OUT_GUARDED], guarded.tau_nm, rtol=1e-6)
+            clipped += int(np.any(np.abs(torque) > constants.TORQUE_LIMIT_NM))
+    assert reason is not None and clipped > 0  # both cases were exercised
