@@ -448,3 +448,30 @@ def test_the_compiled_step_guards_its_torque_as_the_safety_guard_does(controller
             np.testing.assert_allclose(out[compiled_controller.OUT_GUARDED], guarded.tau_nm, rtol=1e-6)
             clipped += int(np.any(np.abs(torque) > constants.TORQUE_LIMIT_NM))
     assert reason is not None and clipped > 0  # both cases were exercised
+
+
+def test_the_simulated_go1_motor_law():
+    """The compiled motor law against the SDK's motor law written out per motor (docs/go1-sdk.md §1.8): servo
+    τ = tau + Kp (q* − q) + Kd (dq* − dq), the position term off at PosStopF, the velocity term off at VelStopF,
+    damping mode −20 dq, clipped to the motor limits."""
+    rng = np.random.default_rng(1)
+    q, dq = rng.normal(0, 1, 12), rng.normal(0, 5, 12)
+    mode = np.where(np.arange(12) % 5 == 4, proto.MODE_DAMPING, proto.MODE_SERVO).astype(np.uint8)
+    q_cmd = np.where(np.arange(12) % 3 == 0, proto.POS_STOP_F, rng.normal(0, 1, 12))
+    dq_cmd = np.where(np.arange(12) % 4 == 1, proto.VEL_STOP_F, rng.normal(0, 2, 12))
+    cmd = proto.MotorCommand(mode, q_cmd, dq_cmd, rng.normal(0, 10, 12), rng.uniform(0, 80, 12), rng.uniform(0, 5, 12))
+    expected = np.empty(12)
+    for i in range(12):
+        if mode[i] != proto.MODE_SERVO:
+            tau = -sim.BRAKE_KD_NM_S_RAD * dq[i]
+        else:
+            tau = cmd.tau_nm[i]
+            if q_cmd[i] != proto.POS_STOP_F:
+                tau += cmd.kp_nm_rad[i] * (q_cmd[i] - q[i])
+            if dq_cmd[i] != proto.VEL_STOP_F:
+                tau += cmd.kd_nm_s_rad[i] * (dq_cmd[i] - dq[i])
+        expected[i] = np.clip(tau, -constants.TORQUE_LIMIT_NM[i], constants.TORQUE_LIMIT_NM[i])
+    c32 = proto.MotorCommand(*sim.command_vector(cmd).reshape(6, 12))
+    got = np.asarray(sim.motor_torque(c32, q.astype(np.float32), dq.astype(np.float32)))
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-4)
+    assert np.any(np.abs(expected) == constants.TORQUE_LIMIT_NM)  # the clip was exercised
