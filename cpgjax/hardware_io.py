@@ -19,6 +19,7 @@ import gc
 import logging
 import os
 import signal
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -53,6 +54,10 @@ from cpgjax.robot.safety import (
 from cpgjax.robot.transport import Transport
 
 log = logging.getLogger(__name__)
+
+# While the loop runs, a thread holding the GIL (the per-tick log's writer) gives it up after this long when the
+# loop wants it (Python's default: 5 ms, five periods).
+GIL_SWITCH_S = 50e-6
 
 # Loop phases (logged per tick).
 CONNECT, HOLD, RAMP, STAND, RUN, DAMP = range(6)
@@ -309,16 +314,19 @@ def _wait_until(deadline: float, spin_s: float) -> None:
 
 @contextlib.contextmanager
 def _realtime_section(loop: LoopConfig) -> Iterator[str]:
-    """The loop's surroundings: real-time scheduling where permitted (:func:`_enter_realtime`) and the garbage
-    collector collected, frozen and off; yields what scheduling the loop got. On exit the GC is back on and the
-    scheduling restored."""
+    """The loop's surroundings: real-time scheduling where permitted (:func:`_enter_realtime`), the garbage
+    collector collected, frozen and off, and a short GIL switch interval (:data:`GIL_SWITCH_S`); yields what
+    scheduling the loop got. On exit all three are restored."""
     realtime, restore = _enter_realtime(loop)
     gc.collect()
     gc.freeze()
     gc.disable()
+    switch_s = sys.getswitchinterval()
+    sys.setswitchinterval(GIL_SWITCH_S)
     try:
         yield realtime
     finally:
+        sys.setswitchinterval(switch_s)
         gc.enable()
         gc.unfreeze()
         restore()
