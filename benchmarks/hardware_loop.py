@@ -38,6 +38,7 @@ from cpgjax import cpg
 from cpgjax import hardware_io as hio
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import cpu_dispatch, deploy
+from cpgjax.robot import protocol as proto
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
@@ -88,6 +89,67 @@ def voluntary_waits() -> int:
         return -1
 
 
+STAGES = ("receive", "decode", "checks", "controller step", "guard", "encode", "send", "log")
+
+
+class StageTimer:
+    """Wall time per call of the tick's stages [s], by wrapping the functions the loop calls (≈ 0.3 µs each):
+    receive (the transport's, less decode), decode, checks, controller step (pack + compiled call + unpack, as the
+    loop's own ``step_s``), guard, encode, send (less encode), log."""
+
+    def __init__(self, transport, controller, n: int):
+        self.times = {name: np.zeros(n) for name in STAGES}
+        self.calls = dict.fromkeys(STAGES, 0)
+        self._patches = []
+        self._wrap(transport, "receive", "receive", inner="decode")
+        self._wrap(proto, "decode_low_state", "decode")
+        self._wrap(hio, "_trip_reason", "checks")
+        self._wrap(hio, "guard_command", "guard")
+        self._wrap(proto, "encode_low_cmd", "encode")
+        self._wrap(transport, "send", "send", inner="encode")
+        self._wrap(hio, "_log_tick", "log")
+
+    def _wrap(self, owner, attr: str, stage: str, inner: str | None = None) -> None:
+        original = getattr(owner, attr)
+        times, calls, clock = self.times[stage], self.calls, time.perf_counter
+        inner_times = self.times[inner] if inner else None
+
+        def timed(*a, **k):
+            i = calls[stage]
+            inner_before = calls[inner] if inner else 0
+            t = clock()
+            out = original(*a, **k)
+            dt = clock() - t
+            if inner and calls[inner] > inner_before:
+                dt -= inner_times[calls[inner] - 1]
+            if i < times.shape[0]:
+                times[i] = dt
+            calls[stage] = i + 1
+            return out
+
+        setattr(owner, attr, timed)
+        self._patches.append((owner, attr, original))
+
+    def restore(self) -> None:
+        for owner, attr, original in reversed(self._patches):
+            setattr(owner, attr, original)
+
+    def table(self, step_s: np.ndarray, work_s: np.ndarray) -> tuple[str, dict]:
+        """Median / p99 [µs] and share of the 1 ms period per stage, and the whole tick's work."""
+        lines = ["| stage | median [µs] | p99 [µs] | p99 / period |", "|---|---|---|---|"]
+        figures = {}
+        rows = [(name, self.times[name][:min(self.calls[name], self.times[name].shape[0])]) for name in STAGES]
+        rows[STAGES.index("controller step")] = ("controller step", step_s)
+        for name, t in rows + [("tick work (all)", work_s)]:
+            if t.size == 0:
+                continue
+            median, p99 = float(np.median(t)) * 1e6, float(np.percentile(t, 99)) * 1e6
+            lines.append(f"| {name} | {median:.1f} | {p99:.1f} | {p99 / 1000:.3f} |")
+            figures[f"stage_{name.split(' (')[0].replace(' ', '_')}_median_us"] = round(median, 1)
+            figures[f"stage_{name.split(' (')[0].replace(' ', '_')}_p99_us"] = round(p99, 1)
+        return "\n".join(lines), figures
+
+
 def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     """Walk ``duration_s`` against a fresh real-time simulated Go1 with the loop waiting as ``mode``; print and return
     the figures."""
@@ -106,10 +168,15 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
                      else go1_transport.UdpTransport(robot.address))
         loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=cpu, busy_wait=busy,
                               log_ticks=round((duration_s + 5.0) * 1000))
+        stages = StageTimer(transport, controller, loop.log_ticks) if args.stages else None
         t0, waits0 = time.perf_counter(), voluntary_waits()
-        result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), round(duration_s * 1000)),
-                              deploy.sim_calibration(), cpg.controller_gates("vmc_tegotae"), loop,
-                              go1_safety.SafetyConfig(watchdog_ticks=50))
+        try:
+            result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), round(duration_s * 1000)),
+                                  deploy.sim_calibration(), cpg.controller_gates("vmc_tegotae"), loop,
+                                  go1_safety.SafetyConfig(watchdog_ticks=50))
+        finally:
+            if stages is not None:
+                stages.restore()
         wall_s, waits = time.perf_counter() - t0, voluntary_waits() - waits0
         transport.close()
         walked_m = robot.stats()["trunk_xy_m"][0]
@@ -132,6 +199,11 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     print(f"overruns         {timing['overruns']} in {timing['ticks']} ticks = "
           f"{timing['overruns_per_10k_ticks']:.2f} per 10k   (target ≤ 1); by cause: "
           + ", ".join(f"{name} {timing[f'overruns_{name}']}" for name in hio.OVERRUN_CAUSES))
+    stage_figures = {}
+    if stages is not None:
+        active = log.phase > hio.CONNECT
+        text, stage_figures = stages.table(log.step_s[log.phase == hio.RUN], log.work_s[active])
+        print(f"time per stage (wall, every tick after connecting; the stage timers add ≈ 0.3 µs per call)\n{text}")
     for k in np.flatnonzero(log.overrun)[:20]:
         print(f"  tick {k}: started {log.late_s[k] * 1e6:7.0f} µs late, work {log.work_s[k] * 1e6:6.0f} µs wall "
               f"/ {log.work_cpu_s[k] * 1e6:5.0f} µs CPU ({hio.PHASE_NAMES[log.phase[k]]})")
@@ -144,7 +216,7 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
         "cpu_stall_max_us": round(float(stalls.max()), 1) if stalls.size else 0.0,
         **{k: round(v, 2) if isinstance(v, float) else v for k, v in timing.items()},
         "skipped_ticks": result.skipped_ticks, "inline_dispatch": controller.inline_dispatch,
-        "blocking_waits_per_tick": round(waits / result.ticks, 3),
+        "blocking_waits_per_tick": round(waits / result.ticks, 3), **stage_figures,
     }
 
 
@@ -161,6 +233,8 @@ def main() -> None:
     parser.add_argument("--spin-us", type=float, default=hio.LoopConfig().spin_s * 1e6,
                         help="sleep mode: spin this long before each deadline instead of sleeping")
     parser.add_argument("--transport", choices=("udp", "sdk"), default="udp")
+    parser.add_argument("--stages", action="store_true", help="time each stage of the tick (receive, decode, "
+                        "checks, controller step, guard, encode, send, log)")
     args = parser.parse_args()
     modes = args.modes.split(",")
     if not set(modes) <= {"sleep", "busy-wait"}:

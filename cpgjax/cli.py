@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 import cpgjax  # noqa: E402
 from cpgjax import ablation, cpg  # noqa: E402
 from cpgjax.go1 import physics as physics_profiles  # noqa: E402
-from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, trials  # noqa: E402
+from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, tick_log, trials  # noqa: E402
 from cpgjax.robot import safety as go1_safety  # noqa: E402
 from cpgjax.robot import transport as go1_transport  # noqa: E402
 from cpgjax.sim import backends, walk  # noqa: E402
@@ -309,6 +309,9 @@ def _show(args) -> int:
     if not out.is_dir():
         print(f"cpgjax show: {out} is not a folder", file=sys.stderr)
         return 2
+    if (out / tick_log.FILE_NAME).exists() or (out / "run.json").exists():  # a `cpgjax deploy` run
+        print(tick_log.summarize_run(out))
+        return 0
     table = out / "table.md"
     print(table.read_text() if table.exists() else f"(no table.md in {out})")
     if (out / "metadata.json").exists():

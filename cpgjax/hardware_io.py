@@ -19,6 +19,7 @@ import gc
 import logging
 import os
 import signal
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,6 +34,8 @@ from cpgjax.robot import protocol as proto
 from cpgjax.robot.controller import (
     IN_SIZE,
     OBS_SIZE,
+    OUT_FINITE,
+    OUT_GUARDED,
     OUT_STATE,
     OUT_TORQUE,
     CompiledController,
@@ -52,6 +55,10 @@ from cpgjax.robot.transport import Transport
 
 log = logging.getLogger(__name__)
 
+# While the loop runs, a thread holding the GIL (the per-tick log's writer) gives it up after this long when the
+# loop wants it (Python's default: 5 ms, five periods).
+GIL_SWITCH_S = 50e-6
+
 # Loop phases (logged per tick).
 CONNECT, HOLD, RAMP, STAND, RUN, DAMP = range(6)
 PHASE_NAMES = ("connect", "hold", "ramp", "stand", "run", "damp")
@@ -61,6 +68,7 @@ class ParamSchedule(Protocol):
     """Supplies the CPG parameters during the run phase and sees every controller output (robot time = ticks)."""
 
     finished: bool
+    trial: int  # the trial the parameters belong to (logged per tick)
 
     def params(self, run_tick: int) -> np.ndarray:
         """Parameters (8,) for this tick of the run phase."""
@@ -71,6 +79,8 @@ class ParamSchedule(Protocol):
 
 class FixedParams:
     """One parameter set for ``run_ticks`` ticks (None: until stopped; 0: the run phase is skipped)."""
+
+    trial = 0
 
     def __init__(self, params: np.ndarray, run_ticks: int | None = None):
         self._params = np.asarray(params, np.float32)
@@ -105,7 +115,8 @@ class LoopConfig(NamedTuple):
     end_damping_s: float = 1.0  # damping sent after a trip, Ctrl-C or the end of the run, before returning
     realtime_priority: int | None = 80  # SCHED_FIFO priority when permitted (None: leave the scheduler alone)
     cpu: int | None = None  # pin the loop thread to this CPU when permitted
-    log_ticks: int = 120_000  # per-tick log ring buffer (the newest ticks are kept)
+    log_ticks: int = 120_000  # per-tick log ring buffer (the newest ticks are kept); a multiple of flush_ticks
+    flush_ticks: int = 1000  # hand the per-tick log to the sink in batches of this many ticks
 
 
 class TickLog(NamedTuple):
@@ -122,8 +133,18 @@ class TickLog(NamedTuple):
     robot_tick_ms: np.ndarray
     foot_force_raw: np.ndarray  # (n, 4) the latest robot state's raw foot-sensor counts
     obs: np.ndarray  # (n, OBS_SIZE) observation given to the controller (run phase)
-    torque_nm: np.ndarray  # (n, 12) torque sent (run phase, after clamping)
+    torque_nm: np.ndarray  # (n, 12) torque sent (after clamping)
     controller_torque_nm: np.ndarray  # (n, 12) torque returned by the controller (before clamping)
+    q_rad: np.ndarray  # (n, 12) the latest robot state's joint angles (every phase)
+    dq_rad_s: np.ndarray  # (n, 12) its joint velocities
+    quaternion_wxyz: np.ndarray  # (n, 4) its IMU attitude
+    gyro_rad_s: np.ndarray  # (n, 3) its IMU angular velocity
+    command_q_rad: np.ndarray  # (n, 12) position target sent (PosStopF: off)
+    command_kp: np.ndarray  # Kp sent (motor 0; every phase sends one Kp and one Kd to all motors)
+    command_kd: np.ndarray
+    stale_ticks: np.ndarray  # ticks since the last new robot tick (the watchdog's count)
+    power_counter: np.ndarray  # the power-protection counter
+    trial: np.ndarray  # the schedule's trial
 
     @classmethod
     def allocate(cls, n: int) -> TickLog:
@@ -132,7 +153,9 @@ class TickLog(NamedTuple):
         zeros = lambda shape, dtype=np.float32: np.full(shape, 0, dtype)  # noqa: E731 (np.full writes every page)
         return cls(zeros(n, np.float64), zeros(n), zeros(n), zeros(n), zeros(n), zeros(n, bool),
                    np.full(n, -1, np.int8), zeros(n, bool), zeros(n, np.uint32), zeros((n, 4), np.int16),
-                   zeros((n, OBS_SIZE)), zeros((n, 12)), zeros((n, 12)))
+                   zeros((n, OBS_SIZE)), zeros((n, 12)), zeros((n, 12)), zeros((n, 12)), zeros((n, 12)),
+                   zeros((n, 4)), zeros((n, 3)), zeros((n, 12)), zeros(n), zeros(n), zeros(n, np.int32),
+                   zeros(n, np.int16), zeros(n, np.int16))
 
     def chronological(self, ticks: int) -> TickLog:
         n = self.phase.shape[0]
@@ -143,7 +166,7 @@ class TickLog(NamedTuple):
 
 
 class LoopResult(NamedTuple):
-    trip: str | None  # the first safety trip, or None (clean end)
+    trip: str | None  # the first safety trip, or None (clean end, or stopped)
     events: list  # (tick, phase name, message)
     ticks: int
     overruns: int  # ticks whose work ended after the next deadline
@@ -151,6 +174,7 @@ class LoopResult(NamedTuple):
     rejected_packets: dict
     realtime: str  # what scheduling the loop actually got
     log: TickLog
+    stopped: bool = False  # Ctrl-C (SIGINT) stopped the run: damped, not a trip
 
     def timing(self) -> dict:
         return timing_stats(self.log, self.overruns, self.ticks)
@@ -187,7 +211,27 @@ def timing_stats(log: TickLog, overruns: int, ticks: int) -> dict:
         "period_p99_us": pct(period_us, 99),
         "period_max_us": float(period_us.max()) if period_us.size else float("nan"),
         "work_median_us": pct(log.work_s[active] * 1e6, 50), "work_p99_us": pct(log.work_s[active] * 1e6, 99),
+        "work_max_us": float(log.work_s[active].max() * 1e6) if active.any() else float("nan"),
     }
+
+
+def timing_table(timing: dict, deadlines: bool = True) -> str:
+    """:func:`timing_stats` as a few aligned lines (µs, and as a fraction of the 1 ms period). ``deadlines``
+    False (a lockstep simulated robot, which answers each command instead of keeping time): periods and overruns
+    measure the simulation's speed, not the loop's, and are left out."""
+    rows = [("controller step", "step"), ("tick work", "work")] + ([("period", "period")] if deadlines else [])
+    lines = [f"{'':16s} {'median':>9s} {'p99':>9s} {'max':>9s}   [µs]"]
+    for label, key in rows:
+        median, p99 = timing[f"{key}_median_us"], timing[f"{key}_p99_us"]
+        worst = timing.get(f"{key}_max_us", float("nan"))
+        lines.append(f"{label:16s} {median:9.1f} {p99:9.1f} {worst:9.1f}   (p99 {p99 / 1000:.2f} of the period)")
+    if deadlines:
+        causes = ", ".join(f"{name.replace('_', ' ')} {timing[f'overruns_{name}']}" for name in OVERRUN_CAUSES)
+        lines.append(f"overruns         {timing['overruns']} in {timing['ticks']} ticks "
+                     f"({timing['overruns_per_10k_ticks']:.2f} per 10k; {causes})")
+    else:
+        lines.append(f"overruns         do not apply: lockstep pacing has no deadlines ({timing['ticks']} ticks)")
+    return "\n".join(lines)
 
 
 def _enter_realtime(loop: LoopConfig):
@@ -270,16 +314,19 @@ def _wait_until(deadline: float, spin_s: float) -> None:
 
 @contextlib.contextmanager
 def _realtime_section(loop: LoopConfig) -> Iterator[str]:
-    """The loop's surroundings: real-time scheduling where permitted (:func:`_enter_realtime`) and the garbage
-    collector collected, frozen and off; yields what scheduling the loop got. On exit the GC is back on and the
-    scheduling restored."""
+    """The loop's surroundings: real-time scheduling where permitted (:func:`_enter_realtime`), the garbage
+    collector collected, frozen and off, and a short GIL switch interval (:data:`GIL_SWITCH_S`); yields what
+    scheduling the loop got. On exit all three are restored."""
     realtime, restore = _enter_realtime(loop)
     gc.collect()
     gc.freeze()
     gc.disable()
+    switch_s = sys.getswitchinterval()
+    sys.setswitchinterval(GIL_SWITCH_S)
     try:
         yield realtime
     finally:
+        sys.setswitchinterval(switch_s)
         gc.enable()
         gc.unfreeze()
         restore()
@@ -309,22 +356,20 @@ def _enter_phase(events: list, tick: int, phase: int, message: str) -> tuple[int
 
 
 def _trip_reason(power_counter: int, state: proto.RobotState | None, fresh: bool, stale_ticks: int,
-                 transport: Transport, stop: _StopRequest, safety: SafetyConfig,
-                 stop_mask: int) -> tuple[int, str | None]:
+                 transport: Transport, safety: SafetyConfig, stop_mask: int,
+                 stale_hint: str) -> tuple[int, str | None]:
     """The safety checks of one tick once connected, in order: the stale-state watchdog or, on a fresh state, tilt,
-    stop buttons, motor temperature and the power-protection counter; then the SDK's power trip and Ctrl-C.
+    stop buttons, motor temperature and the power-protection counter; then the SDK's power trip.
     Returns (power-protection counter, the first trip reason or None)."""
     reason = None
     if stale_ticks > safety.watchdog_ticks:
-        reason = f"stale state: no new robot tick for {stale_ticks} ticks"
+        reason = f"stale state: no new robot tick for {stale_ticks} ticks{stale_hint}"
     elif fresh:
         reason = state_trip_reason(state, safety, stop_mask)
         if reason is None:
             power_counter, reason = power_protect(power_counter, state, safety)
     if reason is None and transport.power_tripped:
         reason = "the SDK's power protection tripped"
-    if reason is None and stop.requested:
-        reason = "shutdown requested (Ctrl-C)"
     return power_counter, reason
 
 
@@ -353,7 +398,8 @@ def _after_soft_start_phase(phase: int, stand_ticks: int, schedule: ParamSchedul
 
 
 def _log_tick(tick_log: TickLog, i: int, t0: float, cpu0: float, late_s: float, step_s: float, phase: int,
-              fresh: bool, robot_tick_ms: int, state: proto.RobotState | None, tau_nm: np.ndarray) -> None:
+              fresh: bool, robot_tick_ms: int, state: proto.RobotState | None, cmd: proto.MotorCommand,
+              stale_ticks: int, power_counter: int, trial: int) -> None:
     """Write one tick's record at ring index i (the run phase's obs and controller torque are written by the
     loop); its work time (wall and thread CPU since t0, cpu0) last."""
     tick_log.t_start_s[i] = t0
@@ -364,16 +410,37 @@ def _log_tick(tick_log: TickLog, i: int, t0: float, cpu0: float, late_s: float, 
     tick_log.robot_tick_ms[i] = robot_tick_ms
     if state is not None:
         tick_log.foot_force_raw[i] = state.foot_force_raw
-    tick_log.torque_nm[i] = tau_nm
+        tick_log.q_rad[i] = state.q_rad
+        tick_log.dq_rad_s[i] = state.dq_rad_s
+        tick_log.quaternion_wxyz[i] = state.quaternion_wxyz
+        tick_log.gyro_rad_s[i] = state.gyro_rad_s
+    tick_log.torque_nm[i] = cmd.tau_nm
+    tick_log.command_q_rad[i] = cmd.q_rad
+    tick_log.command_kp[i] = cmd.kp_nm_rad[0]
+    tick_log.command_kd[i] = cmd.kd_nm_s_rad[0]
+    tick_log.stale_ticks[i] = stale_ticks
+    tick_log.power_counter[i] = power_counter
+    tick_log.trial[i] = trial
     tick_log.work_s[i] = time.perf_counter() - t0
     tick_log.work_cpu_s[i] = time.thread_time() - cpu0
 
 
+class TickSink(Protocol):
+    """Takes the per-tick log as the loop runs (e.g. :class:`cpgjax.robot.tick_log.TickLogWriter`)."""
+
+    def write(self, log: TickLog, rows: slice, ticks: range) -> None:
+        """Rows ``rows`` of the ring buffer ``log`` hold loop ticks ``ticks`` (called every
+        ``LoopConfig.flush_ticks`` ticks, inside a tick after its command was sent, and once at the end)."""
+
+
 def run_loop(transport: Transport, controller: CompiledController | None, schedule: ParamSchedule,
              calibration: FootForceCalibration | None, gates: cpg.Gates, loop: LoopConfig = LoopConfig(),
-             safety: SafetyConfig = SafetyConfig()) -> LoopResult:
+             safety: SafetyConfig = SafetyConfig(), sink: TickSink | None = None,
+             stale_hint: str = "") -> LoopResult:
     """Connect, soft-start (hold, ramp, ``loop.stand_s`` of standing), run the CPG at 1 kHz until
-    ``schedule.finished``, Ctrl-C or a safety trip; then damp for ``loop.end_damping_s`` and return.
+    ``schedule.finished``, Ctrl-C (a stop, not a trip) or a safety trip; then damp for ``loop.end_damping_s`` and
+    return. ``sink`` gets the per-tick log in batches as the loop runs, the last one before returning (a trip or a
+    stop keeps every tick up to it); ``stale_hint`` is appended to a stale-state trip's reason.
 
     Each tick: take the newest valid state (non-blocking) → watchdog and state checks → the phase's command (hold /
     ramp / stand: motor PD; run: the compiled controller's torques; damp) → guard (finite, clamped) → power
@@ -385,12 +452,14 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
     stop_mask = sum(proto.REMOTE_BUTTON_BITS[b] for b in safety.stop_buttons)
     phase_ticks = _phase_ticks(loop)
     damp = damping_command(loop.damping_kd_nm_s_rad)
-    n_log = loop.log_ticks
+    n_log, flush = loop.log_ticks, loop.flush_ticks
+    if n_log % flush:
+        raise ValueError(f"log_ticks {n_log} must be a multiple of flush_ticks {flush}")
     tick_log = TickLog.allocate(n_log)
     x = _controller_input(gates)
 
     events: list = []
-    trip = None
+    trip, stopped = None, False
     phase, phase_tick = CONNECT, 0
     last_state, last_robot_tick, stale_ticks = None, None, 0
     power_counter, hold_q_rad, run_tick = 0, None, 0
@@ -416,13 +485,17 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 elif k * period_s > loop.connect_timeout_s:
                     reason = f"no robot state within {loop.connect_timeout_s} s"
             elif phase != DAMP:
-                power_counter, reason = _trip_reason(power_counter, state, fresh, stale_ticks, transport, stop,
-                                                     safety, stop_mask)
+                power_counter, reason = _trip_reason(power_counter, state, fresh, stale_ticks, transport, safety,
+                                                     stop_mask, stale_hint)
             if reason is not None:
                 trip = trip or reason
                 phase, phase_tick = _enter_phase(events, k, DAMP, reason)
+            elif stop.requested and phase != DAMP:
+                stopped = True
+                phase, phase_tick = _enter_phase(events, k, DAMP, "stopped (Ctrl-C)")
 
             step_s = 0.0
+            guarded = False  # the run phase's torque command was guarded inside the compiled step
             command_phase = phase  # the phase whose command this tick sends (logged)
             if phase == RUN:  # whole: step_s must time exactly pack + compiled call + unpack
                 ts = time.perf_counter()
@@ -434,7 +507,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 x[OBS_SIZE + 10:] = out[OUT_STATE]
                 step_s = time.perf_counter() - ts
                 schedule.record(run_tick, out)
-                cmd = torque_command(out[OUT_TORQUE].astype(np.float64))
+                cmd, guarded = torque_command(out[OUT_GUARDED].astype(np.float64)), True
                 tick_log.obs[i] = x[:OBS_SIZE]
                 tick_log.controller_torque_nm[i] = out[OUT_TORQUE]
                 run_tick += 1
@@ -450,19 +523,24 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
             else:  # connecting, or damping
                 cmd = damp
 
-            cmd, reason = guard_command(cmd, safety)
+            if guarded:  # safety.guard_command of a torque command: finite, clamped to the motor limits
+                reason = None if out[OUT_FINITE] else "non-finite command (tau)"
+            else:
+                cmd, reason = guard_command(cmd, safety)
             if reason is not None:
                 trip = trip or reason
                 phase, phase_tick = _enter_phase(events, k, DAMP, reason)
                 cmd = damp
             transport.send(cmd, last_state)
             _log_tick(tick_log, i, t0, cpu0, t0 - deadline, step_s, DAMP if reason is not None else command_phase,
-                      fresh, last_robot_tick or 0, last_state, cmd.tau_nm)
+                      fresh, last_robot_tick or 0, last_state, cmd, stale_ticks, power_counter, schedule.trial)
             k += 1
 
             deadline += period_s
             now = time.perf_counter()
             tick_log.overrun[i] = now > deadline
+            if sink is not None and k % flush == 0:  # in this tick's slack, before waiting
+                sink.write(tick_log, slice(i + 1 - flush, i + 1), range(k - flush, k))
             if now > deadline:
                 overruns += 1
                 if now > deadline + period_s:  # more than a period late: drop the missed deadlines
@@ -471,14 +549,17 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                     deadline += missed * period_s
             else:
                 _wait_until(deadline, wait_spin_s)
+    if sink is not None and k % flush:
+        first = k - k % flush
+        sink.write(tick_log, slice(first % n_log, first % n_log + k % flush), range(first, k))
     return LoopResult(trip=trip, events=events, ticks=k, overruns=overruns, skipped_ticks=skipped,
                       rejected_packets=dict(getattr(transport, "rejected", {})), realtime=realtime,
-                      log=tick_log.chronological(k))
+                      log=tick_log.chronological(k), stopped=stopped)
 
 
 def stand(transport: Transport, stand_s: float, loop: LoopConfig = LoopConfig(),
-          safety: SafetyConfig = SafetyConfig()) -> LoopResult:
+          safety: SafetyConfig = SafetyConfig(), sink: TickSink | None = None, stale_hint: str = "") -> LoopResult:
     """The loop without the controller: connect, soft start, hold the standing pose for ``stand_s``, damp (with
     every safety check of :func:`run_loop`). What the foot-force calibration measures the sensors with."""
     return run_loop(transport, None, FixedParams(np.zeros(8), 0), None, cpg.Gates(0.0, 0.0),
-                    loop._replace(stand_s=stand_s), safety)
+                    loop._replace(stand_s=stand_s), safety, sink, stale_hint)

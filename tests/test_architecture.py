@@ -26,7 +26,7 @@ LAYERS = (
     ("simulation", ("mjx_go1", "sim.native", "sim.backends", "sim.walk")),
     ("studies", ("study.spec", "study.files", "study.figures", "ablation", "study.transfer", "study.registry")),
     ("robot", ("robot.protocol", "robot.transport", "robot.cpu_dispatch", "robot.foot_force", "robot.safety",
-               "robot.controller", "robot.sim_server", "hardware_io", "robot.trials", "robot.deploy",
+               "robot.controller", "robot.sim_server", "hardware_io", "robot.tick_log", "robot.trials", "robot.deploy",
                "robot.calibrate")),
     ("command line", ("cli",)),
 )

@@ -138,9 +138,11 @@ class _CtrlCAt(hio.FixedParams):
             signal.raise_signal(signal.SIGINT)
 
 
-def test_ctrl_c_shuts_down_to_damping(robot, controller):
+def test_ctrl_c_is_a_stop_to_damping_not_a_trip(robot, controller):
     result, _, stats = _run(robot, controller, schedule=_CtrlCAt(params.midpoint()))
-    _assert_damped_after_trip(result, stats, "Ctrl-C")
+    assert result.trip is None and result.stopped, result.events
+    assert result.events[-1][1:] == ("damp", "stopped (Ctrl-C)")
+    assert stats["damping_commands"] > 0 and stats["max_abs_tau_cmd_nm"] <= 35.55
 
 
 class _StallAt(hio.FixedParams):
@@ -162,7 +164,8 @@ def test_a_stalled_tick_is_an_overrun_of_the_thread_not_running(robot, controlle
     assert result.overruns == int(np.sum(log.overrun)) >= 1  # every tick is logged here
     stalled = int(np.flatnonzero(log.phase == hio.RUN)[100])
     assert log.overrun[stalled] and log.work_s[stalled] >= 0.03 and log.work_cpu_s[stalled] < 0.02
-    assert hio.OVERRUN_CAUSES[hio.overrun_causes(log)[list(np.flatnonzero(log.overrun)).index(stalled)]] == "not_running"
+    cause = hio.overrun_causes(log)[list(np.flatnonzero(log.overrun)).index(stalled)]
+    assert hio.OVERRUN_CAUSES[cause] == "not_running"
     assert result.skipped_ticks >= 25  # the missed deadlines were dropped, not run in a burst ...
     assert 0.0 <= log.late_s[stalled + 1] < LOOP.period_s  # ... so the next tick starts less than a period late
     timing = result.timing()
@@ -422,3 +425,53 @@ def test_go1_profile_foot_sensor_is_recovered_by_deploy_calibrate(tmp_path):
     cal = foot_force.FootForceCalibration.load(out)
     np.testing.assert_array_equal(cal.offset_counts, sim.FOOT_FORCE_OFFSET_COUNTS)
     np.testing.assert_allclose(cal.newton_per_count, sim.FOOT_FORCE_N_PER_COUNT, rtol=0.02)
+
+
+def test_the_compiled_step_guards_its_torque_as_the_safety_guard_does(controller):
+    """The run phase's guard runs inside the compiled step (one dispatch a tick): its torque and finiteness flag
+    must be what ``safety.guard_command`` makes of the controller's torque command, saturated and NaN alike."""
+    rng = np.random.default_rng(0)
+    x = np.zeros(compiled_controller.IN_SIZE, np.float32)
+    x[compiled_controller.OBS_SIZE:compiled_controller.OBS_SIZE + 8] = params.midpoint()
+    x[compiled_controller.OBS_SIZE + 8:compiled_controller.OBS_SIZE + 10] = 1.0
+    clipped = 0
+    for k in range(40):
+        x[:compiled_controller.OBS_SIZE] = rng.normal(0.0, 3.0, compiled_controller.OBS_SIZE)
+        x[24:28] /= np.linalg.norm(x[24:28])
+        if k == 39:
+            x[3] = np.nan
+        out = controller.step(x)
+        torque = out[compiled_controller.OUT_TORQUE].astype(np.float64)
+        guarded, reason = go1_safety.guard_command(go1_safety.torque_command(torque), SAFETY)
+        assert bool(out[compiled_controller.OUT_FINITE]) == (reason is None)
+        if reason is None:
+            np.testing.assert_allclose(out[compiled_controller.OUT_GUARDED], guarded.tau_nm, rtol=1e-6)
+            clipped += int(np.any(np.abs(torque) > constants.TORQUE_LIMIT_NM))
+    assert reason is not None and clipped > 0  # both cases were exercised
+
+
+def test_the_simulated_go1_motor_law():
+    """The compiled motor law against the SDK's motor law written out per motor (docs/go1-sdk.md §1.8): servo
+    τ = tau + Kp (q* − q) + Kd (dq* − dq), the position term off at PosStopF, the velocity term off at VelStopF,
+    damping mode −20 dq, clipped to the motor limits."""
+    rng = np.random.default_rng(1)
+    q, dq = rng.normal(0, 1, 12), rng.normal(0, 5, 12)
+    mode = np.where(np.arange(12) % 5 == 4, proto.MODE_DAMPING, proto.MODE_SERVO).astype(np.uint8)
+    q_cmd = np.where(np.arange(12) % 3 == 0, proto.POS_STOP_F, rng.normal(0, 1, 12))
+    dq_cmd = np.where(np.arange(12) % 4 == 1, proto.VEL_STOP_F, rng.normal(0, 2, 12))
+    cmd = proto.MotorCommand(mode, q_cmd, dq_cmd, rng.normal(0, 10, 12), rng.uniform(0, 80, 12), rng.uniform(0, 5, 12))
+    expected = np.empty(12)
+    for i in range(12):
+        if mode[i] != proto.MODE_SERVO:
+            tau = -sim.BRAKE_KD_NM_S_RAD * dq[i]
+        else:
+            tau = cmd.tau_nm[i]
+            if q_cmd[i] != proto.POS_STOP_F:
+                tau += cmd.kp_nm_rad[i] * (q_cmd[i] - q[i])
+            if dq_cmd[i] != proto.VEL_STOP_F:
+                tau += cmd.kd_nm_s_rad[i] * (dq_cmd[i] - dq[i])
+        expected[i] = np.clip(tau, -constants.TORQUE_LIMIT_NM[i], constants.TORQUE_LIMIT_NM[i])
+    c32 = proto.MotorCommand(*sim.command_vector(cmd).reshape(6, 12))
+    got = np.asarray(sim.motor_torque(c32, q.astype(np.float32), dq.astype(np.float32)))
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-4)
+    assert np.any(np.abs(expected) == constants.TORQUE_LIMIT_NM)  # the clip was exercised

@@ -15,6 +15,7 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import attitude, kinematics
+from cpgjax.go1.constants import TORQUE_LIMIT_NM
 from cpgjax.robot import cpu_dispatch
 from cpgjax.robot import protocol as proto
 from cpgjax.robot.foot_force import FootForceCalibration
@@ -25,10 +26,12 @@ log = logging.getLogger(__name__)
 OBS_SIZE = 35  # q 12 | dq 12 | quat 4 | gyro 3 | foot force 4
 IN_SIZE = OBS_SIZE + 8 + 2 + 9  # obs | params 8 | gates 2 | CPG state (amplitude 4, phase 4, heading 1)
 # Output layout (float32): torque | CPG state | rpy | stance | odometry velocity (v_x, v_y) | power ⟨|τ|, |q̇|⟩ [W] |
-# mean foot force [N] | number of torques clipped to the motor limits.
+# mean foot force [N] | number of torques clipped to the motor limits | the guarded torque | 1 if every torque is
+# finite (the guard of a torque command, ``safety.guard_command``, in the same compiled call: one dispatch a tick).
 OUT_TORQUE, OUT_STATE, OUT_RPY, OUT_STANCE = slice(0, 12), slice(12, 21), slice(21, 24), slice(24, 28)
 OUT_VELOCITY, OUT_POWER, OUT_LOAD, OUT_SATURATED = slice(28, 30), 30, 31, 32
-OUT_SIZE = 33
+OUT_GUARDED, OUT_FINITE = slice(33, 45), 45
+OUT_SIZE = 46
 
 
 def leg_odometry_velocity(obs: cpg.Observation, stance: jax.Array) -> jax.Array:
@@ -58,8 +61,11 @@ def flat_step(config: cpg.CPGConfig, x: jax.Array) -> jax.Array:
     state, torque, diag = cpg.controller_step(config, cpg.CPGState(s[0:4], s[4:8], s[8]), params, gates, obs)
     velocity = leg_odometry_velocity(obs, diag.stance)
     pre = protocol.pre_step(obs, torque, diag, obs.joint_vel_rad_s)  # the trial's per-tick power, load, clipping
+    guarded = jnp.clip(torque, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM)
+    finite = jnp.all(jnp.isfinite(torque)).astype(torque.dtype)
     return jnp.concatenate([torque, state.amplitude, state.phase_rad, state.heading_ref_rad[None], diag.rpy_rad,
-                            diag.stance, velocity, pre.power_w[None], pre.load_n[None], pre.saturated[None]])
+                            diag.stance, velocity, pre.power_w[None], pre.load_n[None], pre.saturated[None], guarded,
+                            finite[None]])
 
 
 def flat_initial_state(x_obs: jax.Array) -> jax.Array:

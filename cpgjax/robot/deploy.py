@@ -16,7 +16,7 @@ from cpgjax import cpg
 from cpgjax import hardware_io as hio
 from cpgjax.go1 import model as go1_model
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import foot_force
+from cpgjax.robot import foot_force, tick_log
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
@@ -88,25 +88,42 @@ def run(args) -> int:
     log.info("foot-force calibration: offsets %s counts, %s N/count", calibration.offset_counts,
              calibration.newton_per_count)
     calibration.save(args.log_dir / "calibration.json")
-    with connect(args) as (transport, _):
+    hint = stale_hint(args)
+    with connect(args) as (transport, _), tick_log.TickLogWriter(args.log_dir / tick_log.FILE_NAME) as ticks:
         controller = compiled_controller.CompiledController()
         if args.optimize:
-            spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity, bool(gates.tegotae),
+            spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
                                  robot_mass_kg(args.payload_kg), str(args.log_dir), args.controller)
             timing = protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
-            result, rows = online_optimization(transport, controller, calibration, gates, spec, params,
-                                               args.trials, timing, loop, safety)
-            for row in rows:
-                log.info("trial %d: J = %.3f, v_x = %.2f m/s, context = (%.1f N, %.3f rad)", row["trial"],
-                         row["objective"], row["velocity_x_mps"], row["c_load_n"], row["c_slope_rad"])
+            result, _ = online_optimization(transport, controller, calibration, gates, spec, params,
+                                            args.trials, timing, loop, safety, ticks, hint)
         else:
             result = hio.run_loop(transport, controller, hio.FixedParams(params, round(args.duration_s * 1000)),
-                                  calibration, gates, loop, safety)
-    summary = {"trip": result.trip, "events": result.events, "realtime": result.realtime,
-               "rejected_packets": result.rejected_packets, "timing": result.timing()}
+                                  calibration, gates, loop, safety, ticks, hint)
+    return report(args, result)
+
+
+def stale_hint(args) -> str:
+    """What a stale-state trip adds to its reason: with the simulated Go1 in real time, where lockstep goes."""
+    if args.robot != "sim" or args.sim_pacing != "realtime":
+        return ""
+    return (" (the simulated Go1 shares this machine's CPUs and did not keep time; `--sim-pacing lockstep` runs "
+            "without deadlines, docs/hardware.md)")
+
+
+def report(args, result: hio.LoopResult) -> int:
+    """Write ``run.json`` and print how the run ended and its timing. Returns the exit status: 0 after a clean end,
+    130 after Ctrl-C (a stop), 2 after a safety trip."""
+    lockstep = args.robot == "sim" and args.sim_pacing == "lockstep"
+    summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events, "realtime": result.realtime,
+               "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
+               "timing": result.timing()}
     (args.log_dir / "run.json").write_text(json.dumps(summary, indent=1))
-    log.info("%s; timing %s", f"safety trip: {result.trip}" if result.trip else "clean end", summary["timing"])
-    return 2 if result.trip else 0
+    ended = (f"safety trip: {result.trip}" if result.trip else "stopped by Ctrl-C (damped)" if result.stopped
+             else "clean end")
+    log.info("%s; per-tick log %s\n%s", ended, args.log_dir / tick_log.FILE_NAME,
+             hio.timing_table(summary["timing"], deadlines=not lockstep))
+    return 2 if result.trip else 130 if result.stopped else 0
 
 
 def _free_port() -> int:

@@ -21,22 +21,27 @@ UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``p
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import select
+import signal
 import socket
 import subprocess
 import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from cpgjax import cpg
 from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import GRAVITY_MPS2, TORQUE_LIMIT_NM
+from cpgjax.robot import cpu_dispatch
 from cpgjax.robot import protocol as proto
 
 LOOPBACK = "127.0.0.1"
@@ -51,17 +56,36 @@ FAULT_KINDS = ("drop", "late_ms", "corrupt_crc", "wrong_head", "freeze_tick", "s
                "buttons", "power", "temperature_c", "nan_q")
 
 
-def motor_torque(cmd: proto.MotorCommand, q_rad: np.ndarray, dq_rad_s: np.ndarray) -> np.ndarray:
+def motor_torque(cmd: proto.MotorCommand, q_rad, dq_rad_s):
     """The Go1 motor law (docs/go1-sdk.md §1.8): in servo mode τ = tau + Kp (q* − q) + Kd (dq* − dq), with the position
     term off when q* = PosStopF and the velocity term off when dq* = VelStopF; in damping mode τ = −Kd_brake dq.
-    Clipped to the motor limits (12,)."""
-    kp = np.where(np.abs(cmd.q_rad - proto.POS_STOP_F) < 1e3, 0.0, cmd.kp_nm_rad)
-    kd = np.where(np.abs(cmd.dq_rad_s - proto.VEL_STOP_F) < 1.0, 0.0, cmd.kd_nm_s_rad)
-    q_err = np.where(kp > 0.0, cmd.q_rad - q_rad, 0.0)
-    dq_err = np.where(kd > 0.0, cmd.dq_rad_s - dq_rad_s, 0.0)
+    Clipped to the motor limits (12,). JAX (it runs inside the simulated Go1's compiled motor step)."""
+    kp = jnp.where(jnp.abs(cmd.q_rad - proto.POS_STOP_F) < 1e3, 0.0, cmd.kp_nm_rad)
+    kd = jnp.where(jnp.abs(cmd.dq_rad_s - proto.VEL_STOP_F) < 1.0, 0.0, cmd.kd_nm_s_rad)
+    q_err = jnp.where(kp > 0.0, cmd.q_rad - q_rad, 0.0)
+    dq_err = jnp.where(kd > 0.0, cmd.dq_rad_s - dq_rad_s, 0.0)
     servo = cmd.tau_nm + kp * q_err + kd * dq_err
-    tau = np.where(cmd.mode == proto.MODE_SERVO, servo, -BRAKE_KD_NM_S_RAD * dq_rad_s)
-    return np.clip(tau, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM)
+    tau = jnp.where(cmd.mode == proto.MODE_SERVO, servo, -BRAKE_KD_NM_S_RAD * dq_rad_s)
+    return jnp.clip(tau, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM)
+
+
+_IO_COMMANDS = (physics_profiles.MAX_LATENCY_TICKS + 1) * 12
+_IO_SIZE = 4 + _IO_COMMANDS + 1  # the profile's sensor and motor state as one float32 vector: force held | queue | tick
+_OBS_SIZES = (12, 12, 4, 3, 4)  # cpg.Observation's fields: q, dq, quaternion, gyro, foot force
+
+
+def _io_vector(io: physics_profiles.ActuatorSensorState) -> jax.Array:
+    return jnp.concatenate([io.held_force_n, io.commands_nm.ravel(), io.tick.astype(jnp.float32)[None]])
+
+
+def _io_state(v: jax.Array) -> physics_profiles.ActuatorSensorState:
+    return physics_profiles.ActuatorSensorState(v[:4], v[4:4 + _IO_COMMANDS].reshape(-1, 12),
+                                                v[-1].astype(jnp.int32))
+
+
+def command_vector(cmd: proto.MotorCommand) -> np.ndarray:
+    """A motor command as the compiled motor step takes it: mode | q | dq | tau | Kp | Kd, float32 (72,)."""
+    return np.concatenate(cmd).astype(np.float32)
 
 
 class Go1Physics:
@@ -79,12 +103,31 @@ class Go1Physics:
         self._standing = go1_model.standing_qpos(self.model)
         gravity = jax.numpy.asarray(self.model.opt.gravity, jax.numpy.float32)
         profile = jax.tree.map(jax.numpy.asarray, physics_profiles.arrays(physics_profiles.get(physics)))
-        # The simulators' sensor model and the profile's foot sensor and motors, compiled once for host arrays: one
-        # definition of what the robot senses and how its motors respond.
-        self._measure = jax.jit(lambda io, qpos, qvel, sens: sensors.measure(profile, io, qpos, qvel, sens, gravity))
-        self._actuate = jax.jit(lambda io, torque, dq: physics_profiles.actuate(profile, io, torque, dq))
+        # The simulators' sensor model and the profile's foot sensor and motors, compiled ahead of time on one flat
+        # float32 vector in and out (a compiled call costs per argument): one definition of what the robot senses and
+        # how its motors respond.
+        n_qpos, n_qvel = self.model.nq, self.model.nv
+
+        def drive(x):  # io | command (72) | q | dq → io | the motor law's τ | applied τ
+            io, c = _io_state(x[:_IO_SIZE]), x[_IO_SIZE:_IO_SIZE + 72].reshape(6, 12)
+            dq = x[_IO_SIZE + 84:]
+            torque = motor_torque(proto.MotorCommand(*c), x[_IO_SIZE + 72:_IO_SIZE + 84], dq)
+            io, applied = physics_profiles.actuate(profile, io, torque, dq)
+            return jnp.concatenate([_io_vector(io), torque, applied])
+
+        def sense(x):  # io | qpos | qvel | sensordata → io | observation (35)
+            io = _io_state(x[:_IO_SIZE])
+            qpos, qvel = x[_IO_SIZE:_IO_SIZE + n_qpos], x[_IO_SIZE + n_qpos:_IO_SIZE + n_qpos + n_qvel]
+            io, obs = sensors.measure(profile, io, qpos, qvel, x[_IO_SIZE + n_qpos + n_qvel:], gravity)
+            return jnp.concatenate([_io_vector(io), *obs])
+
+        compile_for = lambda f, n: jax.jit(f).lower(np.zeros(n, np.float32)).compile()  # noqa: E731
+        self._drive = compile_for(drive, _IO_SIZE + 96)
+        self._sense = compile_for(sense, _IO_SIZE + n_qpos + n_qvel + self.model.nsensordata)
+        self._drive_in = np.zeros(_IO_SIZE + 96, np.float32)
+        self._sense_in = np.zeros(_IO_SIZE + n_qpos + n_qvel + self.model.nsensordata, np.float32)
+        self._split = np.cumsum(_OBS_SIZES)[:-1]
         self.reset()
-        self._actuate(self._io, np.zeros(12, np.float32), np.zeros(12, np.float32))  # compile before the first tick
 
     def reset(self) -> None:
         """Standing at the origin, at rest (on the ground)."""
@@ -92,7 +135,7 @@ class Go1Physics:
         self.data.qpos[:] = self._standing
         mujoco.mj_forward(self.model, self.data)
         self.held_root_qpos = None
-        self._io = physics_profiles.init_state(np.zeros(4, np.float32))
+        self._io = np.asarray(_io_vector(physics_profiles.init_state(np.zeros(4, np.float32))))
 
     def lift(self, height_m: float) -> None:
         """Hold the trunk ``height_m`` above its standing pose, like a robot hung from a crane for calibration: from
@@ -101,30 +144,37 @@ class Go1Physics:
         self.held_root_qpos = self.data.qpos[root:root + 7].copy()
         self.held_root_qpos[2] += height_m
 
-    def step(self, torque_nm: np.ndarray, push_roll_nm: float = 0.0) -> None:
-        """Apply the motor torques (12,) [and an external roll torque on the trunk] for one 1 ms physics step, through
-        the physics profile's motors (latency, torque-speed envelope, velocity limit)."""
+    def step(self, cmd: np.ndarray, push_roll_nm: float = 0.0) -> np.ndarray:
+        """Apply a motor command (:func:`command_vector`) for one 1 ms physics step [and an external roll torque on
+        the trunk]: the motor law (:func:`motor_torque`), then the physics profile's motors (latency, torque-speed
+        envelope, velocity limit). Returns the motor law's torque (12,) [N·m]."""
         if self.held_root_qpos is not None:
             root, dof = self.ids.root_qpos, self.ids.root_dof
             self.data.qpos[root:root + 7] = self.held_root_qpos
             self.data.qvel[dof:dof + 6] = 0.0
-        self._io, applied = self._actuate(self._io, np.asarray(torque_nm, np.float32),
-                                          np.asarray(self.data.qvel[self.ids.joint_dof], np.float32))
-        self.data.ctrl[self.ids.actuator] = np.asarray(applied)
+        x = self._drive_in
+        x[:_IO_SIZE] = self._io
+        x[_IO_SIZE:_IO_SIZE + 72] = cmd
+        x[_IO_SIZE + 72:_IO_SIZE + 84] = self.data.qpos[self.ids.joint_qpos]
+        x[_IO_SIZE + 84:] = self.data.qvel[self.ids.joint_dof]
+        out = np.asarray(self._drive(x))
+        self._io = out[:_IO_SIZE]
+        self.data.ctrl[self.ids.actuator] = out[_IO_SIZE + 12:]
         self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
         mujoco.mj_step(self.model, self.data)
-
-    def joint_state(self) -> tuple[np.ndarray, np.ndarray]:
-        """Joint angles and velocities (12,) each, motor order: what the motor drivers measure."""
-        return self.data.qpos[self.ids.joint_qpos].copy(), self.data.qvel[self.ids.joint_dof].copy()
+        return out[_IO_SIZE:_IO_SIZE + 12].astype(np.float64)
 
     def observation(self):
         """The controller-facing sensors (``cpg.Observation`` of NumPy arrays, SI units), the foot force as the
         physics profile's sensor reports it."""
-        self._io, obs = self._measure(self._io, np.asarray(self.data.qpos, np.float32),
-                                      np.asarray(self.data.qvel, np.float32),
-                                      np.asarray(self.data.sensordata, np.float32))
-        return type(obs)(*(np.asarray(x, np.float64) for x in obs))
+        x, nq, nv = self._sense_in, self.model.nq, self.model.nv
+        x[:_IO_SIZE] = self._io
+        x[_IO_SIZE:_IO_SIZE + nq] = self.data.qpos
+        x[_IO_SIZE + nq:_IO_SIZE + nq + nv] = self.data.qvel
+        x[_IO_SIZE + nq + nv:] = self.data.sensordata
+        out = np.asarray(self._sense(x))
+        self._io = out[:_IO_SIZE]
+        return cpg.Observation(*np.split(out[_IO_SIZE:].astype(np.float64), self._split))
 
     def trunk_height_m(self) -> float:
         return float(self.data.qpos[self.ids.root_qpos + 2])
@@ -240,7 +290,7 @@ class SimGo1Server:
             except proto.ProtocolError:
                 self.stats["bad_packets"] += 1
                 continue
-            self.command, self.client, n = cmd, addr, n + 1
+            self.command, self.client, n = command_vector(cmd), addr, n + 1
             s = self.stats
             s["commands"] += 1
             s["max_abs_tau_cmd_nm"] = max(s["max_abs_tau_cmd_nm"], float(np.max(np.abs(cmd.tau_nm))))
@@ -254,8 +304,7 @@ class SimGo1Server:
         """Motor law, one physics step, and (fault permitting) one LowState to the client."""
         faults = self.active_faults()
         if "freeze_tick" not in faults:
-            self.torque = motor_torque(self.command, *self.physics.joint_state())
-            self.physics.step(self.torque, float(faults.get("push_roll_nm", 0.0)))
+            self.torque = self.physics.step(self.command, float(faults.get("push_roll_nm", 0.0)))
             self.tick += 1
             self._last_state = robot_state(self.physics.observation(), self.torque, self.tick)
         else:
@@ -271,6 +320,12 @@ class SimGo1Server:
         self.stats["states_sent"] += 1
 
     def serve_forever(self) -> None:
+        """Serve until a quit request. The garbage collector is off meanwhile (a collection of the objects that the
+        imports and JAX leave behind took 1.1–1.8 ms, a stale-state trip on a loaded machine; a tick makes no
+        reference cycles, so nothing accumulates)."""
+        gc.collect()
+        gc.freeze()
+        gc.disable()
         next_deadline = None
         while self.running:
             timeout = None if next_deadline is None else max(0.0, next_deadline - time.perf_counter())
@@ -395,6 +450,7 @@ def main(argv=None) -> None:
                              "by other processes; on a shared machine its simulation can be)")
     parser.add_argument("--cpus", help="comma-separated CPUs to run on, when permitted (keep it off the loop's CPU)")
     args = parser.parse_args(argv)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C meant for the loop: it stops, then closes this process
     if args.cpus:
         try:
             os.sched_setaffinity(0, {int(c) for c in args.cpus.split(",")})  # before JAX starts its threads
@@ -405,6 +461,7 @@ def main(argv=None) -> None:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime_priority))
         except OSError as e:
             print(f"real-time priority not permitted ({e})", file=sys.stderr)
+    cpu_dispatch.request_inline()
     server = SimGo1Server(args.port, args.control_port, args.pacing, friction=args.friction,
                           slope_deg=args.slope_deg, payload_kg=args.payload_kg, physics=args.physics)
     server.physics.observation()  # compile the sensor model before announcing readiness

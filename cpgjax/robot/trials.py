@@ -20,6 +20,7 @@ import json
 import logging
 import multiprocessing
 import os
+import signal
 from pathlib import Path
 from typing import NamedTuple, Protocol
 
@@ -54,6 +55,10 @@ class OnlineOptimizer(Protocol):
     def observe(self, params: np.ndarray, context: np.ndarray, record, objective: float) -> None:
         """One finished trial."""
 
+    def warm_up(self, params: np.ndarray, context: np.ndarray, record, objective: float) -> None:
+        """Do once, before the robot walks, whatever the first ``observe`` and ``propose`` would do only once
+        (compilation), leaving the optimizer's state as it was."""
+
 
 class RandomSearch:
     """Uniform random proposals in the paper's box (σ_N at the midpoint when Tegotae is off)."""
@@ -69,6 +74,9 @@ class RandomSearch:
         return x
 
     def observe(self, params, context, record, objective) -> None:
+        pass
+
+    def warm_up(self, params, context, record, objective) -> None:
         pass
 
 
@@ -91,6 +99,13 @@ class BayesianOptimizer:
         self._state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
                                            jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32))
 
+    def warm_up(self, params, context, record, objective) -> None:
+        """Compile ``observe`` and ``propose`` on a throwaway state (13.4 s on a 2-core machine: done while the robot
+        walked, it left the robot on the old parameters and took the CPUs from the simulated robot)."""
+        state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
+                                     jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32))
+        jax.block_until_ready(self._opt.propose(state, jnp.asarray(context, jnp.float32), self._key))
+
 
 class OptimizerSpec(NamedTuple):
     """Everything the worker process needs (picklable)."""
@@ -103,6 +118,8 @@ class OptimizerSpec(NamedTuple):
     log_dir: str
     controller: str
     dt_s: float = 0.001
+    steady_steps: int = protocol.TrialConfig().steady_steps  # ticks of a trial's steady phase (its record's length)
+    cpus: tuple[int, ...] | None = None  # the CPUs the worker may use (None: any); keep it off the loop's CPU
 
 
 def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = 0.001) -> protocol.TrialRecord:
@@ -180,12 +197,30 @@ def load_params(path) -> np.ndarray:
     return param_space.validate(values, what=f"parameter file {path}")
 
 
+def _evaluate(signals: np.ndarray, spec: OptimizerSpec, observe, trial: int, x: np.ndarray | None = None):
+    """A trial's record, objective J, context and the optimizer's (clipped) context, given to ``observe``
+    (``OnlineOptimizer.observe``, or ``warm_up`` with trial −1 and the midpoint parameters)."""
+    record = trial_record(signals, spec.total_mass_kg, spec.dt_s)
+    j = float(objective.objective(record, spec.target_velocity_mps))
+    c = np.asarray(objective.context(record), np.float64)
+    c_gp, messages = optimizer_config.clip_context(CONTEXT_RANGES, c)  # docs/decisions.md §11: never silently
+    for message in messages if trial >= 0 else ():
+        log.warning("trial %d: %s", trial, message)
+    observe(param_space.midpoint() if x is None else x, c_gp, record, j)
+    return record, j, c, c_gp
+
+
 def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     """The optimizer's process: observe each finished trial, answer the next proposal at once, then log."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the loop, which then stops this process
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")  # a line per trial
     os.nice(10)  # the robot's loop (and, on one machine, the simulated robot) come first
+    if spec.cpus:
+        os.sched_setaffinity(0, spec.cpus)  # before JAX starts its threads (they inherit it)
     jax.config.update("jax_platforms", "cpu")  # before this process's first JAX computation
     optimizer = (BayesianOptimizer(spec.seed, spec.tegotae) if spec.kind == "bo"
                  else RandomSearch(spec.seed, spec.tegotae))
+    _evaluate(np.zeros((spec.steady_steps, len(_SIGNALS)), np.float32), spec, optimizer.warm_up, -1)
     trial_log = _TrialLog(Path(spec.log_dir))
     best = -np.inf
     conn.send(("ready",))
@@ -194,13 +229,7 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
         if message[0] == "stop":
             break
         _, trial, x, signals, wait_ticks = message
-        record = trial_record(signals, spec.total_mass_kg, spec.dt_s)
-        j = float(objective.objective(record, spec.target_velocity_mps))
-        c = np.asarray(objective.context(record), np.float64)
-        c_gp, messages = optimizer_config.clip_context(CONTEXT_RANGES, c)  # docs/decisions.md §11: never silently
-        for message in messages:
-            log.warning("trial %d: %s", trial, message)
-        optimizer.observe(x, c_gp, record, j)
+        record, j, c, c_gp = _evaluate(signals, spec, optimizer.observe, trial, x)
         conn.send(("params", optimizer.propose(c_gp)))
         row = {"trial": trial, "objective": j, "cost_of_transport": float(objective.cost_of_transport(record)),
                "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
@@ -210,6 +239,9 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
                "saturation_fraction": float(record.saturation_fraction), "wait_s": wait_ticks * spec.dt_s,
                **param_space.as_dict(x)}
         trial_log.append(row)
+        log.info("trial %d: J = %.3f, v_x = %.2f m/s, CoT = %.2f, context (%.1f N, %.3f rad); its parameters came "
+                 "%.2f s after the previous trial", trial, j, row["velocity_x_mps"], row["cost_of_transport"], c[0],
+                 c[1], row["wait_s"])
         if j > best:
             best = j
             save_params(Path(spec.log_dir) / "best_params.json", x, objective=j, trial=trial,
@@ -235,6 +267,7 @@ class TrialRunner:
         self._previous = self._current = np.asarray(initial_params, np.float32)
         self._num_trials = num_trials
         self.trials_done = 0
+        self.trial = 0  # the trial whose parameters the robot walks with (logged per tick)
         self._tick_in_trial = 0
         self._waiting_since = None  # run tick at which the last trial was handed to the optimizer
         self._wait_ticks = 0  # ticks spent waiting for the current trial's parameters
@@ -254,6 +287,7 @@ class TrialRunner:
                 self._previous, self._current = self._current, np.asarray(proposal, np.float32)
                 self._wait_ticks = run_tick - self._waiting_since
                 self._waiting_since, self._tick_in_trial = None, 0
+                self.trial = self.trials_done
             return
         steady = self._tick_in_trial - self._timing.transition_steps
         if steady >= 0:
@@ -269,23 +303,29 @@ class TrialRunner:
 
 def online_optimization(transport, controller, calibration, gates, spec: OptimizerSpec, initial_params: np.ndarray,
                         num_trials: int, timing: protocol.TrialConfig = protocol.TrialConfig(), loop=None,
-                        safety=None):
-    """Algorithm 1 on the robot: ``num_trials`` trials back to back, the optimizer in its own process.
+                        safety=None, sink=None, stale_hint: str = ""):
+    """Algorithm 1 on the robot: ``num_trials`` trials back to back, the optimizer in its own process (its
+    compilation done before the robot walks, off the loop's CPU when the loop has one). ``sink`` and
+    ``stale_hint``: as for ``hardware_io.run_loop``.
 
     Returns (LoopResult, per-trial rows). The log files are in ``spec.log_dir``.
     """
     Path(spec.log_dir).mkdir(parents=True, exist_ok=True)
+    loop = loop or hio.LoopConfig()
+    others = set(os.sched_getaffinity(0)) - {loop.cpu}
+    spec = spec._replace(steady_steps=timing.steady_steps,
+                         cpus=tuple(sorted(others)) if loop.cpu is not None and others else None)
     context = multiprocessing.get_context("spawn")  # never fork a process that has started JAX
     conn, worker_conn = context.Pipe()
     worker = context.Process(target=_optimizer_worker, args=(worker_conn, spec), daemon=True)
     worker.start()
     try:
-        if not conn.poll(120.0):
+        if not conn.poll(600.0):
             raise RuntimeError("the optimizer process did not start")
-        conn.recv()  # ready: its imports are done before the loop starts
+        conn.recv()  # ready: its imports and compilation are done before the robot walks
         runner = TrialRunner(conn, initial_params, num_trials, timing)
-        result = hio.run_loop(transport, controller, runner, calibration, gates, loop or hio.LoopConfig(),
-                              safety or go1_safety.SafetyConfig())
+        result = hio.run_loop(transport, controller, runner, calibration, gates, loop,
+                              safety or go1_safety.SafetyConfig(), sink, stale_hint)
         conn.send(("stop",))
         rows = []
         while conn.poll(120.0):

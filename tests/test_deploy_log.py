@@ -1,0 +1,98 @@
+"""The deploy run's per-tick log (``cpgjax.robot.tick_log``) survives trips, Ctrl-C and kills; Ctrl-C is a stop.
+
+Against the loopback simulated Go1 in lockstep pacing (127.0.0.1 only), so the outcome does not depend on the load.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from cpgjax import cpg
+from cpgjax import hardware_io as hio
+from cpgjax.robot import controller as compiled_controller
+from cpgjax.robot import deploy, tick_log
+from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import sim_server as sim
+from cpgjax.robot import transport as go1_transport
+from cpgjax.trial import params
+
+LOOP = hio.LoopConfig(hold_s=0.1, ramp_s=0.2, end_damping_s=0.05, realtime_priority=None, flush_ticks=250,
+                      log_ticks=1000)
+
+
+def test_a_trip_keeps_every_tick_up_to_it(tmp_path):
+    """A motor over its temperature limit trips the loop; the log read back holds every tick, the trip tick and the
+    damping after it, with the same observations and commands as the loop's own record (a ring buffer smaller than
+    the run: the file has the ticks the ring no longer holds)."""
+    controller = compiled_controller.CompiledController(warmup_calls=10)
+    with sim.SimGo1Client(pacing="lockstep") as robot:
+        robot.inject("temperature_c", 80, after_ticks=1200)
+        transport = go1_transport.LockstepTransport(robot.address)
+        with tick_log.TickLogWriter(tmp_path / tick_log.FILE_NAME) as sink:
+            result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 5000),
+                                  deploy.sim_calibration(), cpg.controller_gates("vmc_tegotae"), LOOP,
+                                  go1_safety.SafetyConfig(), sink)
+        transport.close()
+    assert result.trip is not None and "motor temperature" in result.trip
+    table, complete = tick_log.read_tick_log(tmp_path / tick_log.FILE_NAME)
+    assert complete and table.num_rows == result.ticks > 1200
+    np.testing.assert_array_equal(table["tick"].to_numpy(), np.arange(result.ticks))
+    phase = table["phase"].to_numpy()
+    trip_tick = next(t for t, name, message in result.events if "motor temperature" in message)
+    assert phase[trip_tick] == hio.DAMP and np.all(phase[trip_tick:] == hio.DAMP)
+    assert np.any(phase[:trip_tick] == hio.RUN)
+    tail = slice(result.ticks - result.log.phase.shape[0], result.ticks)  # what the ring buffer still holds
+    np.testing.assert_array_equal(np.stack(table["q_rad"].to_numpy(zero_copy_only=False))[tail], result.log.q_rad)
+    np.testing.assert_array_equal(np.stack(table["torque_nm"].to_numpy(zero_copy_only=False))[tail],
+                                  result.log.torque_nm)
+    damping = np.stack(table["torque_nm"].to_numpy(zero_copy_only=False))[phase == hio.DAMP]
+    assert np.all(damping == 0.0) and np.all(table["command_kd"].to_numpy()[phase == hio.DAMP] > 0)
+
+
+def _start_deploy(log_dir):
+    """``cpgjax deploy`` replaying for a minute against a lockstep simulated Go1, in a session of its own (a
+    signal to its process group reaches every process, like a terminal's Ctrl-C); returns once a batch is logged."""
+    proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", "deploy", "--robot", "sim", "--sim-pacing",
+                             "lockstep", "--duration-s", "60", "--log-dir", str(log_dir)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                            env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    path, give_up = log_dir / tick_log.FILE_NAME, time.monotonic() + 240
+    while not (path.exists() and tick_log.read_tick_log(path)[0].num_rows >= 2000):
+        if proc.poll() is not None or time.monotonic() > give_up:
+            proc.kill()
+            pytest.fail(f"deploy did not log 2000 ticks: {proc.communicate()[0][-2000:]}")
+        time.sleep(0.2)
+    return proc
+
+
+def test_ctrl_c_in_deploy_is_a_stop_with_the_log_flushed(tmp_path):
+    proc = _start_deploy(tmp_path)
+    os.killpg(proc.pid, signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130, out[-2000:]
+    assert "stopped by Ctrl-C" in out and "Traceback" not in out and "safety trip" not in out
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["trip"] is None and run["stopped"] and run["events"][-1][2] == "stopped (Ctrl-C)"
+    table, complete = tick_log.read_tick_log(tmp_path / tick_log.FILE_NAME)
+    assert complete and table.num_rows == run["timing"]["ticks"]
+    assert table["phase"].to_numpy()[-1] == hio.DAMP
+    summary = tick_log.summarize_run(tmp_path)
+    assert "ended: stopped by Ctrl-C" in summary
+
+
+def test_a_killed_deploy_keeps_its_logged_batches(tmp_path):
+    proc = _start_deploy(tmp_path)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=60)
+    table, _ = tick_log.read_tick_log(tmp_path / tick_log.FILE_NAME)
+    assert table.num_rows >= 2000 and table.num_rows % hio.LoopConfig().flush_ticks == 0
+    np.testing.assert_array_equal(table["tick"].to_numpy(), np.arange(table.num_rows))
+    assert not (tmp_path / "run.json").exists()
+    summary = tick_log.summarize_run(tmp_path)
+    assert "ended: unknown: no run.json" in summary and f"{table.num_rows} ticks" in summary
