@@ -378,6 +378,25 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     assert replay.trip is None
 
 
+def test_deploy_optimize_starts_from_the_optimizers_random_proposal(tmp_path):
+    """docs/decisions.md §16 on the robot: without --params, trial 0 walks the contextual BO's first proposal (random,
+    nothing stored yet), not the box's midpoint; the command finishes cleanly and its best_params.json replays."""
+    import pyarrow.parquet as pq
+
+    run = tmp_path / "run"
+    code = cli.main(["deploy", "--robot", "sim", "--sim-pacing", "lockstep", "--no-realtime", "--optimize",
+                     "--trials", "2", "--transition-s", "0.1", "--steady-s", "0.2", "--seed", "3",
+                     "--log-dir", str(run)])
+    assert code == 0
+    table = pq.read_table(run / "trials.parquet").to_pydict()
+    first = np.array([table[name][0] for name in params.PARAM_NAMES])
+    reference = robot_trials.BayesianOptimizer(3, True).propose(np.zeros(2))  # a fresh optimizer's first draw
+    np.testing.assert_allclose(first, reference, rtol=1e-6)
+    assert not np.allclose(first, params.midpoint())
+    assert np.all((first >= params.PARAM_LOWER) & (first <= params.PARAM_UPPER))
+    assert robot_trials.load_params(run / "best_params.json").shape == (8,)
+
+
 # ------------------------------------------------------------------------------------- foot-force calibration
 
 def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robot, tmp_path):

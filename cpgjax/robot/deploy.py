@@ -81,7 +81,9 @@ def run(args) -> int:
     end, 2 after a safety trip."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     gates = cpg.controller_gates(args.controller)
-    params = param_space.midpoint() if args.params is None else args.params
+    # Replay: --params or the middle of the box. Optimizing: --params as trial 0, else the optimizer's first random
+    # proposal (docs/decisions.md §16).
+    params = args.params if args.params is not None or args.optimize else param_space.midpoint()
     loop, safety = loop_and_safety(args)
     args.log_dir.mkdir(parents=True, exist_ok=True)
     calibration = sim_calibration() if args.calibration is None else foot_force.check_calibration(args.calibration)

@@ -220,10 +220,12 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     jax.config.update("jax_platforms", "cpu")  # before this process's first JAX computation
     optimizer = (BayesianOptimizer(spec.seed, spec.tegotae) if spec.kind == "bo"
                  else RandomSearch(spec.seed, spec.tegotae))
-    _evaluate(np.zeros((spec.steady_steps, len(_SIGNALS)), np.float32), spec, optimizer.warm_up, -1)
+    _, _, _, c_gp = _evaluate(np.zeros((spec.steady_steps, len(_SIGNALS)), np.float32), spec, optimizer.warm_up, -1)
     trial_log = _TrialLog(Path(spec.log_dir))
     best = -np.inf
-    conn.send(("ready",))
+    # Trial 0's parameters: the optimizer's first proposal, uniform random with nothing stored (docs/decisions.md
+    # §16: trials 0 and 1 random); the context does not enter a random proposal.
+    conn.send(("ready", optimizer.propose(c_gp)))
     while True:
         message = conn.recv()
         if message[0] == "stop":
@@ -301,12 +303,14 @@ class TrialRunner:
             self._waiting_since = run_tick
 
 
-def online_optimization(transport, controller, calibration, gates, spec: OptimizerSpec, initial_params: np.ndarray,
-                        num_trials: int, timing: protocol.TrialConfig = protocol.TrialConfig(), loop=None,
-                        safety=None, sink=None, stale_hint: str = ""):
+def online_optimization(transport, controller, calibration, gates, spec: OptimizerSpec,
+                        initial_params: np.ndarray | None, num_trials: int,
+                        timing: protocol.TrialConfig = protocol.TrialConfig(), loop=None, safety=None, sink=None,
+                        stale_hint: str = ""):
     """Algorithm 1 on the robot: ``num_trials`` trials back to back, the optimizer in its own process (its
-    compilation done before the robot walks, off the loop's CPU when the loop has one). ``sink`` and
-    ``stale_hint``: as for ``hardware_io.run_loop``.
+    compilation done before the robot walks, off the loop's CPU when the loop has one). Trial 0 walks with
+    ``initial_params``, or with None with the optimizer's first (random) proposal, as in simulation
+    (docs/decisions.md §16). ``sink`` and ``stale_hint``: as for ``hardware_io.run_loop``.
 
     Returns (LoopResult, per-trial rows). The log files are in ``spec.log_dir``.
     """
@@ -322,7 +326,10 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
     try:
         if not conn.poll(600.0):
             raise RuntimeError("the optimizer process did not start")
-        conn.recv()  # ready: its imports and compilation are done before the robot walks
+        _, first = conn.recv()  # ready: its imports and compilation are done before the robot walks
+        initial_params = first if initial_params is None else initial_params
+        log.info("trial 0 walks with %s parameters", "the given" if initial_params is not first else
+                 "the optimizer's first (random, docs/decisions.md §16)")
         runner = TrialRunner(conn, initial_params, num_trials, timing)
         result = hio.run_loop(transport, controller, runner, calibration, gates, loop,
                               safety or go1_safety.SafetyConfig(), sink, stale_hint)
