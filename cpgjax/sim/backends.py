@@ -36,8 +36,11 @@ def resolve_backend(backend: str = "auto") -> str:
 def make_backend(scenario: go1_model.Scenario, backend: str = "auto", cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
                  trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, devices=None):
     """A batch simulator (``MJXBackend`` or ``NativeBackend``) for ``scenario``; its ``.name`` says which one.
-    ``devices``: what MJX shards the batch over (default: all that divide it); the native backend's physics runs on
-    host threads and ignores it."""
+    ``devices``: what MJX shards the batch over (default: all of this process's that divide it: a simulator never
+    spans processes); the native backend's physics runs on host threads and ignores it."""
+    if devices is None and jax.process_count() > 1:
+        local = jax.local_devices()
+        devices = local if scenario.batch_size % len(local) == 0 else local[:1]
     if resolve_backend(backend) == "mjx":
         return mjx_go1.MJXBackend(scenario, cpg_config=cpg_config, trial_config=trial_config, devices=devices)
     return native_go1.NativeBackend(scenario, cpg_config=cpg_config, trial_config=trial_config)

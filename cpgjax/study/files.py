@@ -2,7 +2,9 @@
 
 * ``checkpoint.npz`` — the whole engine state after trial t (optimizer and simulator leaves, last context, every
   trial's log, wall time), written to a temporary file and renamed (atomic: a kill leaves the previous one). It
-  carries the study's fingerprint; resuming a different study from it is refused.
+  carries the study's fingerprint; resuming a different study from it is refused. With N processes each writes the
+  rows of its own instances, ``checkpoint.<rank>of<N>.t<trial>.npz``, and keeps its previous trial's file until
+  every process has written the next one; reading merges the newest trial all N wrote (docs/scaling.md).
 * ``trials.parquet`` — one row per (instance, trial): instance labels, conditions, the 8 parameters, context, J,
   velocity, CoT, falls. ``pandas.read_parquet(path)`` or ``polars.read_parquet(path)``.
 * ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and
@@ -16,6 +18,7 @@ import json
 import os
 import pathlib
 import platform
+import re
 import sys
 from typing import Any, NamedTuple
 
@@ -26,6 +29,7 @@ from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 
 CHECKPOINT = "checkpoint.npz"
+_SHARD = re.compile(r"checkpoint\.(\d+)of(\d+)\.t(\d+)\.npz")
 
 
 class TrialLog(NamedTuple):
@@ -51,12 +55,35 @@ class TrialLog(NamedTuple):
 
 class Checkpoint(NamedTuple):
     trial: int  # trials completed
-    opt_leaves: list  # optimizer-state leaves (padded batch first)
-    sim_leaves: list  # simulator-state leaves
+    opt_leaves: list  # optimizer-state leaves (instances first)
+    sim_leaves: list  # simulator-state leaves (instances first)
     context: np.ndarray  # (B, 2) last measured context
     logs: list  # a TrialLog per completed trial
     wall_s: float
     timing: dict
+
+
+class Shard(NamedTuple):
+    """Which file a process checkpoints to and which instances it holds: rows ``first_row`` … of the study's."""
+
+    rank: int = 0
+    num_processes: int = 1
+    first_row: int = 0
+
+
+def shard_path(out_dir, shard: Shard, trial: int) -> pathlib.Path:
+    """``checkpoint.npz`` for one process, else ``checkpoint.<rank>of<N>.t<trial>.npz``."""
+    if shard.num_processes == 1:
+        return pathlib.Path(out_dir) / CHECKPOINT
+    return pathlib.Path(out_dir) / f"checkpoint.{shard.rank}of{shard.num_processes}.t{trial:06d}.npz"
+
+
+def checkpoint_files(out_dir) -> list[pathlib.Path]:
+    """Every checkpoint file in ``out_dir`` (one process's and N processes' shards)."""
+    out = pathlib.Path(out_dir)
+    if not out.is_dir():
+        return []
+    return sorted(p for p in out.iterdir() if p.name == CHECKPOINT or _SHARD.fullmatch(p.name))
 
 
 def fingerprint(spec) -> str:
@@ -64,8 +91,8 @@ def fingerprint(spec) -> str:
     return repr(spec)
 
 
-def save_checkpoint(out_dir, spec, ckpt: Checkpoint) -> None:
-    """Write ``out_dir/checkpoint.npz`` atomically (temporary file, fsync, rename)."""
+def save_checkpoint(out_dir, spec, ckpt: Checkpoint, shard: Shard = Shard()) -> pathlib.Path:
+    """Write ``shard``'s checkpoint file atomically (temporary file, fsync, rename); returns its path."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     arrays = {f"opt_{i}": np.asarray(a) for i, a in enumerate(ckpt.opt_leaves)}
@@ -74,35 +101,80 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint) -> None:
     for name in TrialLog._fields:
         arrays[f"log_{name}"] = np.stack([np.asarray(getattr(lg, name)) for lg in ckpt.logs])
     meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), wall_s=ckpt.wall_s, timing=ckpt.timing,
-                num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves))
+                num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves), **shard._asdict())
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    tmp = out / (CHECKPOINT + ".tmp")
+    path = shard_path(out, shard, ckpt.trial)
+    tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         np.savez(f, **arrays)
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, out / CHECKPOINT)
+    os.replace(tmp, path)
+    return path
 
 
-def load_checkpoint(out_dir, spec) -> Checkpoint | None:
-    """The checkpoint in ``out_dir`` (None if there is none).
+def prune_checkpoints(out_dir, shard: Shard, complete_trial: int) -> None:
+    """Once every process has written trial ``complete_trial``: delete this process's older files and (rank 0)
+    checkpoints of another process count, which a resume no longer needs."""
+    for path in checkpoint_files(out_dir):
+        m = _SHARD.fullmatch(path.name)
+        layout = (int(m[2]) if m else 1)
+        if layout != shard.num_processes:
+            if shard.rank == 0:
+                path.unlink(missing_ok=True)
+        elif m and int(m[1]) == shard.rank and int(m[3]) < complete_trial:
+            path.unlink(missing_ok=True)
+
+
+def _generations(out_dir) -> list[tuple[int, list[pathlib.Path]]]:
+    """(trial, files) of every complete checkpoint: the one-process file, and each trial all N processes wrote."""
+    found: dict[tuple[int, int], dict[int, pathlib.Path]] = {}
+    complete = []
+    for path in checkpoint_files(out_dir):
+        m = _SHARD.fullmatch(path.name)
+        if m is None:
+            with np.load(path) as z:
+                complete.append((json.loads(bytes(z["meta"]).decode())["trial"], [path]))
+        else:
+            found.setdefault((int(m[2]), int(m[3])), {})[int(m[1])] = path
+    complete += [(trial, [ranks[r] for r in range(n)]) for (n, trial), ranks in found.items() if len(ranks) == n]
+    return sorted(complete, key=lambda g: g[0])
+
+
+def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Checkpoint | None:
+    """The newest complete checkpoint in ``out_dir`` (None if there is none), its shards merged: the optimizer and
+    simulator leaves and the context of instance rows ``rows`` = [first, stop) (default all), every instance's logs.
 
     Raises:
-      ValueError: the checkpoint belongs to a different study definition.
+      StudyError: the checkpoint belongs to a different study definition.
     """
-    path = pathlib.Path(out_dir) / CHECKPOINT
-    if not path.exists():
+    generations = _generations(out_dir)
+    if not generations:
         return None
-    with np.load(path) as z:
-        meta = json.loads(bytes(z["meta"]).decode())
-        if meta["fingerprint"] != fingerprint(spec):
-            raise StudyError(f"{path} was written by a different study definition; use another --out or delete it "
-                             f"(checkpoint: {meta['fingerprint'][:200]}...)")
-        opt = [z[f"opt_{i}"] for i in range(meta["num_opt"])]
-        sim = [z[f"sim_{i}"] for i in range(meta["num_sim"])]
-        stacked = {name: z[f"log_{name}"] for name in TrialLog._fields}
-        logs = [TrialLog(*(stacked[name][t] for name in TrialLog._fields)) for t in range(meta["trial"])]
-        return Checkpoint(meta["trial"], opt, sim, z["context"], logs, meta["wall_s"], meta["timing"])
+    parts = []
+    for path in generations[-1][1]:
+        with np.load(path) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+            if meta["fingerprint"] != fingerprint(spec):
+                raise StudyError(f"{path} was written by a different study definition; use another --out or delete "
+                                 f"it (checkpoint: {meta['fingerprint'][:200]}...)")
+            first = meta.get("first_row", 0)
+            count = z["context"].shape[0]
+            lo, hi = (first, first + count) if rows is None else (max(rows[0], first), min(rows[1], first + count))
+            take = slice(lo - first, max(hi - first, lo - first))
+            opt = [z[f"opt_{i}"][take] for i in range(meta["num_opt"])]
+            sim = [z[f"sim_{i}"][take] for i in range(meta["num_sim"])]
+            stacked = [z[f"log_{name}"] for name in TrialLog._fields]
+            parts.append((first, meta, opt, sim, z["context"][take], stacked))
+    parts.sort(key=lambda p: p[0])
+    first_meta = parts[0][1]
+
+    def joined(k, axis=0):
+        return [np.concatenate(leaves, axis=axis) for leaves in zip(*(p[k] for p in parts))]
+    stacked = joined(5, axis=1)
+    logs = [TrialLog(*(field[t] for field in stacked)) for t in range(first_meta["trial"])]
+    return Checkpoint(first_meta["trial"], joined(2), joined(3), np.concatenate([p[4] for p in parts]), logs,
+                      first_meta["wall_s"], first_meta["timing"])
 
 
 # ----------------------------------------------------------------------------------------------- trial table
@@ -188,7 +260,8 @@ def run_figures(result) -> dict[str, float]:
                 env_steps_per_s=round(env_steps / wall, 1), real_time_factor=round(robot_s / wall, 2),
                 simulation_s=round(result.timing.simulation_s, 2), optimizer_s=round(result.timing.optimizer_s, 2),
                 propose_s=round(result.timing.propose_s, 2), observe_s=round(result.timing.observe_s, 2),
-                transfer_s=round(result.timing.transfer_s, 2), checkpoint_s=round(result.timing.checkpoint_s, 2))
+                transfer_s=round(result.timing.transfer_s, 2), exchange_s=round(result.timing.exchange_s, 2),
+                checkpoint_s=round(result.timing.checkpoint_s, 2))
 
 
 def write_metadata(result, path, extra: dict | None = None) -> dict:
