@@ -86,11 +86,12 @@ _exchanges = [0]  # exchanges made by this process; every process makes the same
 
 def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
     """Every process's ``local`` pytree of NumPy arrays, in rank order (an all-gather through the JAX
-    coordinator's key-value store, so that a missing process shows as a timeout naming its rank, not a hang).
+    coordinator's key-value store, so that a process that does not answer shows as a timeout naming its rank, not a
+    hang). A process that dies is noticed sooner by the coordinator, which then stops every process (its message
+    names the lost task); ``cpgjax study --processes`` names the rank that died first.
 
     Raises:
-      ProcessLost: a process did not deliver within ``timeout_s`` (default :func:`exchange_timeout_s`), or is no
-        longer connected to the coordinator.
+      ProcessLost: a process did not deliver within ``timeout_s`` (default :func:`exchange_timeout_s`).
     """
     import io
 
@@ -121,9 +122,6 @@ def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
             except Exception as err:  # the coordinator's DEADLINE_EXCEEDED; anything else is fatal
                 if "DEADLINE_EXCEEDED" not in str(err):
                     raise ProcessLost(f"process {rank}: exchange {n} with process {other} failed: {err}") from err
-            if other not in client.get_live_nodes(list(range(count))):
-                raise ProcessLost(f"process {rank}: process {other} of {count} stopped (no longer connected to the "
-                                  "coordinator); see its output")
             if time.monotonic() > deadline:
                 raise ProcessLost(f"process {rank}: no trial data from process {other} of {count} within "
                                   f"{timeout_s:g} s ({EXCHANGE_TIMEOUT_ENV}); is it hung?")

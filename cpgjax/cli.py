@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import os
 import pathlib
 import shutil
 import subprocess
@@ -17,6 +18,7 @@ from cpgjax.robot import calibrate, cpu_dispatch, deploy
 from cpgjax.robot import transport as go1_transport
 from cpgjax.sim import backends, walk
 from cpgjax.study import files as study_io
+from cpgjax.study import launch as study_launch
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
 from cpgjax.study import transfer
@@ -67,11 +69,45 @@ def _run_study(name: str, **options) -> int:
     return 0
 
 
+def _without_processes(argv: list[str]) -> list[str]:
+    """``argv`` without ``--processes N`` (or ``--processes=N``, or an abbreviation of it)."""
+    out, skip = [], False
+    for token in argv:
+        head = token.split("=", 1)[0]
+        if skip:
+            skip = False
+        elif len(head) >= 4 and "--processes".startswith(head):
+            skip = "=" not in token
+        else:
+            out.append(token)
+    return out
+
+
 def _study(args) -> int:
+    if args.processes is not None or args.distributed:
+        problem = ("--processes and --distributed exclude each other (--processes starts --distributed processes)"
+                   if args.processes is not None and args.distributed else
+                   f"--processes {args.processes}: need at least 1" if args.processes is not None and args.processes < 1
+                   else f"{transfer.NAME} runs its arms one after another in one process: drop --processes / "
+                   "--distributed" if args.name == transfer.NAME else None)
+        if problem:
+            print(f"cpgjax study: {problem}", file=sys.stderr)
+            return 2
+    if args.processes is not None and args.processes > 1:
+        command = [sys.executable, "-m", "cpgjax.cli", *_without_processes(args.argv), "--distributed"]
+        outcome = study_launch.run(command, args.processes)
+        if outcome.returncode:
+            print(f"cpgjax study: {outcome.message}; `--resume` continues from the last checkpoint", file=sys.stderr)
+        return outcome.returncode
     if args.distributed:
         ablation.initialize_distributed()
-    return _run_study(args.name, seeds=args.seeds, trials=args.trials, quick=args.quick, out=args.out,
-                      resume=args.resume, backend=args.backend, physics=args.physics)
+    try:
+        return _run_study(args.name, seeds=args.seeds, trials=args.trials, quick=args.quick, out=args.out,
+                          resume=args.resume, backend=args.backend, physics=args.physics)
+    except ablation.ProcessLost as err:
+        print(f"cpgjax study: {err}", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(3)  # not through jax.distributed's shutdown barrier, which would wait for the lost process
 
 
 def _demo(args) -> int:
@@ -236,7 +272,11 @@ def _add_study(sub) -> None:
     s.add_argument("--trials", type=int, default=None, help="trials per run (condition changes scale with it)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
     _add_output_args(s, None, "results/<study>")
-    s.add_argument("--distributed", action="store_true", help="multi-host: jax.distributed.initialize() first")
+    s.add_argument("--distributed", action="store_true", help="one of several cooperating processes: "
+                   "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "
+                   "docs/scaling.md)")
+    s.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes (coordinator "
+                   "on 127.0.0.1), e.g. to check a multi-process run before a cluster")
     _add_physics_arg(s, None)
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
@@ -318,7 +358,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.argv = argv  # `study --processes N` starts the same command line N times
     # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline.
     cpu_dispatch.request_inline()
     return args.func(args)

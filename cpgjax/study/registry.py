@@ -377,8 +377,10 @@ def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=Fal
     profile every instance simulates (default: the study's own)."""
     spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics)
     out = pathlib.Path(out or pathlib.Path("results") / name)
-    if not resume and (out / study_io.CHECKPOINT).exists():
+    if not resume and study_io.checkpoint_files(out):
         raise study_spec.StudyError(f"{out} already holds a checkpoint: pass --resume to continue it, or another --out")
     engine = ablation.Engine(spec, backend=backend)
     result = engine.run(out, resume=resume, progress=progress)
+    if jax.process_index() > 0:  # one process writes the study's files (docs/scaling.md)
+        return f"process {jax.process_index()}: instances {result.rows[0]}–{result.rows[1] - 1} done", out
     return write_outputs(result, out, engine.backend_name, name), out
