@@ -22,7 +22,8 @@ data of the report (:func:`exchange`). Keys are
 ``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on the batch it is in or on the
 devices; its numbers agree to float rounding only (XLA vectorizes differently for another batch size or shard), and
 a walking robot amplifies a rounding difference within a trial or two, so one seed in two different batches gives
-statistically equivalent, not identical, runs. The state is checkpointed after every trial (``cpgjax.study.files``) and
+statistically equivalent, not identical, runs. How the instances are split over processes does not matter, only the
+optimizer's batch per device: 2 processes × 1 CPU device give the bits of 1 process × 2 CPU devices. The state is checkpointed after every trial (``cpgjax.study.files``) and
 :meth:`Engine.run` with ``resume=True`` continues from the last checkpoint to exactly (bit for bit) the results of
 an uninterrupted run.
 """
