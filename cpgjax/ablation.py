@@ -14,18 +14,17 @@ A :class:`Schedule` changes an instance's conditions from a given trial on (payl
 records (paper Sec. III-A-2: ``set_target`` recomputes every stored J) or restarts the optimizer, per instance.
 The proposal of trial t uses the context measured in trial t − 1 (Algorithm 1: context, then argmax).
 
-The optimizer's arrays are sharded along the batch axis over every device (``jax.sharding``), the simulator's over
-this process's devices. With several processes (``jax.distributed``, :func:`initialize_distributed`, docs/scaling.md)
-each owns a contiguous block of instances, the rows of its devices' shards (:attr:`Placement.rows`): it simulates only
-those, computes only their optimizer shards, and per trial sends the other processes only their trial logs, the
-data of the report (:func:`exchange`). Keys are
-``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on the batch it is in or on the
-devices; its numbers agree to float rounding only (XLA vectorizes differently for another batch size or shard), and
-a walking robot amplifies a rounding difference within a trial or two, so one seed in two different batches gives
-statistically equivalent, not identical, runs. How the instances are split over processes does not matter, only the
-optimizer's batch per device: 2 processes × 1 CPU device give the bits of 1 process × 2 CPU devices. The state is checkpointed after every trial (``cpgjax.study.files``) and
-:meth:`Engine.run` with ``resume=True`` continues from the last checkpoint to exactly (bit for bit) the results of
-an uninterrupted run.
+The optimizer's arrays are sharded along the batch axis over every device (``jax.sharding``), the simulator's over this
+process's devices. With several processes (``jax.distributed``, :func:`initialize_distributed`, docs/scaling.md) each
+owns a contiguous block of instances, the rows of its devices' shards (:attr:`Placement.rows`): it simulates only those,
+computes only their optimizer shards, and per trial sends the other processes only their trial logs, the data of the
+report (:func:`exchange`). Keys are ``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on
+the batch it is in or on the devices; its numbers agree to float rounding only (XLA vectorizes differently for another
+batch size or shard), and a walking robot amplifies a rounding difference within a trial or two, so one seed in two
+different batches gives statistically equivalent, not identical, runs. How the instances are split over processes does
+not matter, only the optimizer's batch per device: 2 processes × 1 CPU device give the bits of 1 process × 2 CPU
+devices. The state is checkpointed after every trial (``cpgjax.study.files``) and :meth:`Engine.run` with
+``resume=True`` continues from the last checkpoint to exactly (bit for bit) the results of an uninterrupted run.
 """
 
 from __future__ import annotations
@@ -46,6 +45,7 @@ from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import backends
 from cpgjax.study import files as study_io
+from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import Conditions, StudySpec, instances, validate
 from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
@@ -298,6 +298,12 @@ class Engine:
         self.backend_name = backends.resolve_backend(backend)
         self.batch_size = len(self.labels)
         self.placement = make_placement(self.batch_size, devices)
+        if self.backend_name == "mjx":  # before any compute
+            local = self.placement.local_devices
+            try:
+                backends.check_mjx_layout((self.placement.rows[1] - self.placement.rows[0]) // len(local), local)
+            except ValueError as err:
+                raise study_spec.StudyError(f"study {spec.name!r}: {err}") from None
         size = self.placement.padded_size
         self.padded = Conditions(*(_pad(c, size) for c in self.conditions))
         controllers = _pad(np.array([lab["controller"] for lab in self.labels]), size)

@@ -189,3 +189,21 @@ def test_launched_command_line_drops_processes_and_keeps_the_rest():
     keep = ["study", "friction", "--seeds", "2", "--out", "x"]
     for extra in (["--processes", "3"], ["--processes=3"], ["--proc", "3"]):
         assert cli._without_processes(keep[:2] + extra + keep[2:]) == keep
+
+
+def test_mjx_refuses_the_cpu_layout_that_deadlocks(monkeypatch):
+    """More than 64 instances on each of as many CPU devices as cores: jaxlib's batched Cholesky deadlocks (gdb on
+    benchmarks/cpu_devices_hang.py); refused with the cause and the workarounds, before any compute."""
+    import jax
+
+    from cpgjax.sim import backends
+    from cpgjax.sim import native as native_go1
+    cpu = jax.devices("cpu")[0]
+    monkeypatch.setattr(native_go1, "available_cores", lambda: 2)
+    with pytest.raises(ValueError, match="128 instances on each of 2 CPU devices .2 cores. never finishes") as err:
+        backends.check_mjx_layout(128, [cpu, cpu])
+    assert "--processes 2" in str(err.value) and "native backend" in str(err.value)
+    backends.check_mjx_layout(64, [cpu, cpu])  # measured to complete
+    backends.check_mjx_layout(128, [cpu])  # one device: a free thread runs the pieces
+    monkeypatch.setattr(native_go1, "available_cores", lambda: 4)
+    backends.check_mjx_layout(128, [cpu, cpu])
