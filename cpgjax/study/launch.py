@@ -77,9 +77,13 @@ def run(command: list[str], num_processes: int, *, env: dict | None = None, out=
     blocks = core_blocks(num_processes)
     procs, threads = [], []
     for rank in range(num_processes):
-        pin = None if blocks is None else (lambda cores=blocks[rank]: os.sched_setaffinity(0, cores))
         proc = subprocess.Popen(command, env=process_env(rank, num_processes, port, env), stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, preexec_fn=pin)
+                                stderr=subprocess.STDOUT)
+        if blocks is not None:  # pinned long before its interpreter has imported JAX and started threads
+            try:
+                os.sched_setaffinity(proc.pid, blocks[rank])
+            except ProcessLookupError:  # it has already exited: the watch below reports it
+                pass
         thread = threading.Thread(target=_forward, args=(rank, proc.stdout, out), daemon=True)
         thread.start()
         procs.append(proc)
