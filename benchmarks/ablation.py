@@ -6,10 +6,13 @@ baseline (1×: Gazebo / the robot run in real time, ≈ 1 hour for this study).
     python benchmarks/ablation.py --quick           # 4 controllers × 5 seeds × 4 trials (< 2 min on 2 CPU cores)
     python benchmarks/ablation.py --sweep 1000      # ≥ 1,000 instances × 40 trials (GPU: --backend mjx)
     python benchmarks/ablation.py --physics soft,paper,go1   # the study once per physics profile (ratios vs first)
+    python benchmarks/ablation.py --processes 2     # as 2 cooperating local processes (docs/scaling.md)
+    srun python benchmarks/ablation.py --distributed --sweep 10000 --backend mjx   # one process per Slurm task
 
 Target (issue 4): full study ≤ 5 minutes on 2 CPU cores, i.e. a real-time factor ≥ 12×. Reports env-steps/s, the
 real-time factor and where the time goes (simulation, optimizer = propose + observe incl. GP refits, host
-transfers, checkpoints). The last line of the output is a JSON object of the figures.
+transfers, checkpoints, and with several processes the per-trial exchange of trial logs). The last line of the
+output is a JSON object of the figures (process 0's).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import jax  # noqa: E402
 from cpgjax import ablation, cpg
 from cpgjax.sim import backends
 from cpgjax.study import files as study_io
+from cpgjax.study import launch as study_launch
 from cpgjax.study import registry as studies  # noqa: E402
 
 
@@ -43,8 +47,22 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=None)
     parser.add_argument("--physics", default=None, help="comma list of physics profiles, one run each, wall-time "
                         "ratios against the first (default: the study's own, paper)")
+    parser.add_argument("--distributed", action="store_true", help="one of several processes: jax.distributed."
+                        "initialize() first (coordinator, count and rank from the environment or Slurm)")
+    parser.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes")
     backends.add_backend_argument(parser)
     args = parser.parse_args()
+    if args.processes is not None:
+        if args.processes < 1 or args.distributed:
+            parser.error(f"--processes {args.processes}: need at least 1, and no --distributed")
+        argv = [a for i, a in enumerate(sys.argv[1:]) if not a.startswith("--processes")
+                and sys.argv[i] != "--processes"]  # sys.argv[i]: the token before a
+        outcome = study_launch.run([sys.executable, os.path.abspath(__file__), *argv, "--distributed"], args.processes)
+        if outcome.returncode:
+            print(f"benchmarks/ablation.py: {outcome.message}", file=sys.stderr)
+        sys.exit(outcome.returncode)
+    if args.distributed:
+        ablation.initialize_distributed()
     if args.physics:
         walls = {}
         for name in args.physics.split(","):
@@ -83,6 +101,8 @@ def run_once(args, physics: str | None) -> float:
     with tempfile.TemporaryDirectory() as out:
         result = engine.run(out, progress=progress)
     total_s = time.perf_counter() - t0
+    if jax.process_index() > 0:
+        return result.wall_s
     fig = study_io.run_figures(result)
     env = study_io.environment()
     summary = dict(
@@ -92,8 +112,10 @@ def run_once(args, physics: str | None) -> float:
         wall_with_setup_s=round(total_s, 2), env_steps_per_s=fig["env_steps_per_s"],
         real_time_factor=fig["real_time_factor"], paper_baseline_real_time_factor=1.0,
         simulation_s=fig["simulation_s"], optimizer_s=fig["optimizer_s"], propose_s=fig["propose_s"],
-        observe_s=fig["observe_s"], transfer_s=fig["transfer_s"],
-        checkpoint_s=fig["checkpoint_s"], physics=spec.physics[0],
+        observe_s=fig["observe_s"], transfer_s=fig["transfer_s"], checkpoint_s=fig["checkpoint_s"],
+        processes=jax.process_count(), exchange_s=fig["exchange_s"],
+        exchange_ms_per_trial=round(1e3 * fig["exchange_s"] / max(len(result.trials.objective), 1), 1),
+        physics=spec.physics[0],
         load_avg_1min_end=round(os.getloadavg()[0], 2), jax=jax.__version__)
     print(json.dumps(summary))
     return fig["wall_s"]

@@ -1,10 +1,16 @@
-"""Reproducer of a hang: an MJX reset of the Go1 batch sharded over two CPU host devices never completes at 128
-instances per device (jax 0.10.2, mujoco 4.0.0; 64 per device complete). Each batch size runs in a subprocess with a
-time limit, so this script always ends.
+"""Reproducer of a deadlock that cpgjax refuses to run into: an MJX reset of the Go1 batch sharded over two CPU host
+devices on two cores never completes at 128 instances per device (jax 0.10.2, mujoco 4.0.0; 64 per device complete).
 
-    python benchmarks/cpu_devices_hang.py [--batch-sizes 64,128,256] [--timeout-s 120]
+Cause (gdb on the stuck process): both of XLA's intra-op CPU threads, one per device program, wait in
+``BlockingCounter::Wait`` under ``jax::ParallelBatchMap`` in ``lapack_spotrf_ffi``: jaxlib's batched Cholesky (in
+MJX's solver) splits a large batch into pieces for the same thread pool and waits for them, and no thread is free to
+run them. ``cpgjax.sim.backends.check_mjx_layout`` refuses that layout (with the workarounds); this script calls
+``MJXBackend`` directly, so it tells whether a newer jaxlib lifts ``MAX_MJX_INSTANCES_PER_CPU_DEVICE``. Each batch size
+runs in a subprocess with a time limit, so this script always ends.
 
-The last line is a JSON object: batch size → completed (true/false).
+    python benchmarks/cpu_devices_hang.py [--batch-sizes 128,256] [--timeout-s 120]
+
+The batch is split over the 2 devices. The last line is a JSON object: batch size → completed (true/false).
 """
 
 from __future__ import annotations

@@ -35,6 +35,7 @@ from mujoco import mjx
 
 from cpgjax import mjx_go1
 from cpgjax.go1 import model as go1_model
+from cpgjax.sim import backends
 from cpgjax.sim import native as native_go1
 from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
@@ -152,9 +153,9 @@ def c_mujoco(steps: int) -> float:
     return steps / (time.perf_counter() - t0)
 
 
-# Known issue (jax 0.10.2 CPU): an MJX reset with 128 instances on each of two host devices never completes (all XLA
-# threads idle; 64 per device run). benchmarks/cpu_devices_hang.py reproduces it; larger batches run on one device.
-MAX_INSTANCES_PER_CPU_DEVICE = 64
+# Larger batches run on one CPU device: above this many per device, MJX on as many CPU devices as cores deadlocks
+# (jaxlib's batched Cholesky, see cpgjax/sim/backends.py).
+MAX_INSTANCES_PER_CPU_DEVICE = backends.MAX_MJX_INSTANCES_PER_CPU_DEVICE
 
 
 def layouts(batch: int, quick: bool) -> list[list]:

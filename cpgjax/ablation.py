@@ -14,14 +14,17 @@ A :class:`Schedule` changes an instance's conditions from a given trial on (payl
 records (paper Sec. III-A-2: ``set_target`` recomputes every stored J) or restarts the optimizer, per instance.
 The proposal of trial t uses the context measured in trial t − 1 (Algorithm 1: context, then argmax).
 
-The optimizer's arrays (and, with the MJX backend, the simulator's) are sharded along the batch axis over every
-device (``jax.sharding``; several hosts through ``jax.distributed``, see :func:`initialize_distributed`). Keys are
-``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on the batch it is in or on the
-devices; its numbers agree to float rounding only (XLA vectorizes differently for another batch size or shard), and
-a walking robot amplifies a rounding difference within a trial or two, so one seed in two different batches gives
-statistically equivalent, not identical, runs. The state is checkpointed after every trial (``cpgjax.study.files``) and
-:meth:`Engine.run` with ``resume=True`` continues from the last checkpoint to exactly (bit for bit) the results of
-an uninterrupted run.
+The optimizer's arrays are sharded along the batch axis over every device (``jax.sharding``), the simulator's over this
+process's devices. With several processes (``jax.distributed``, :func:`initialize_distributed`, docs/scaling.md) each
+owns a contiguous block of instances, the rows of its devices' shards (:attr:`Placement.rows`): it simulates only those,
+computes only their optimizer shards, and per trial sends the other processes only their trial logs, the data of the
+report (:func:`exchange`). Keys are ``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on
+the batch it is in or on the devices; its numbers agree to float rounding only (XLA vectorizes differently for another
+batch size or shard), and a walking robot amplifies a rounding difference within a trial or two, so one seed in two
+different batches gives statistically equivalent, not identical, runs. How the instances are split over processes does
+not matter, only the optimizer's batch per device: 2 processes × 1 CPU device give the bits of 1 process × 2 CPU
+devices. The state is checkpointed after every trial (``cpgjax.study.files``) and :meth:`Engine.run` with
+``resume=True`` continues from the last checkpoint to exactly (bit for bit) the results of an uninterrupted run.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import backends
 from cpgjax.study import files as study_io
+from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import Conditions, StudySpec, instances, validate
 from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
@@ -49,27 +53,105 @@ from cpgjax.trial import params as param_space
 log = logging.getLogger(__name__)
 
 
-# ----------------------------------------------------------------------------------------------- devices
+# ----------------------------------------------------------------------------------------------- processes
+
+EXCHANGE_TIMEOUT_ENV = "CPGJAX_EXCHANGE_TIMEOUT_S"  # how long a process waits for another's trial logs
+DEFAULT_EXCHANGE_TIMEOUT_S = 600.0  # generous: the first trial compiles, unevenly on a shared machine
+
+
+class ProcessLost(RuntimeError):
+    """Another process of a multi-process run stopped or did not answer in time (the message names its rank)."""
+
 
 def initialize_distributed() -> None:
-    """Join a multi-host run (``jax.distributed.initialize()`` reads the coordinator from the environment or the
-    cluster). Every process runs the same study; the batch is sharded over all processes' devices."""
-    jax.distributed.initialize()
+    """Join a multi-process run before any JAX computation: ``jax.distributed.initialize()`` with the coordinator
+    from ``JAX_COORDINATOR_ADDRESS``, the count and rank from ``JAX_NUM_PROCESSES`` / ``JAX_PROCESS_ID`` when set,
+    else from JAX's cluster detection (Slurm, Open MPI, ...). CPU collectives go through gloo. A coordinator on
+    127.0.0.1 or localhost listens on that address only (JAX's default binds every interface)."""
+    import os
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    address = os.environ.get("JAX_COORDINATOR_ADDRESS")
+    count, rank = os.environ.get("JAX_NUM_PROCESSES"), os.environ.get("JAX_PROCESS_ID")
+    loopback = address is not None and address.rsplit(":", 1)[0] in ("127.0.0.1", "localhost")
+    jax.distributed.initialize(address, None if count is None else int(count), None if rank is None else int(rank),
+                               coordinator_bind_address=address if loopback else None)
+
+
+def exchange_timeout_s() -> float:
+    import os
+    return float(os.environ.get(EXCHANGE_TIMEOUT_ENV, DEFAULT_EXCHANGE_TIMEOUT_S))
+
+
+_exchanges = [0]  # exchanges made by this process; every process makes the same sequence
+
+
+def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
+    """Every process's ``local`` pytree of NumPy arrays, in rank order (an all-gather through the JAX
+    coordinator's key-value store, so that a process that does not answer shows as a timeout naming its rank, not a
+    hang). A process that dies is noticed sooner by the coordinator, which then stops every process (its message
+    names the lost task); ``cpgjax study --processes`` names the rank that died first.
+
+    Raises:
+      ProcessLost: a process did not deliver within ``timeout_s`` (default :func:`exchange_timeout_s`).
+    """
+    import io
+
+    from jax._src import distributed  # the coordinator's client: no public API exposes its key-value store
+    rank, count = jax.process_index(), jax.process_count()
+    if count == 1:
+        return [local]
+    client = distributed.global_state.client
+    timeout_s = exchange_timeout_s() if timeout_s is None else timeout_s
+    n = _exchanges[0]
+    _exchanges[0] += 1
+    leaves, treedef = jax.tree.flatten(local)
+    buf = io.BytesIO()
+    np.savez(buf, *leaves)
+    client.key_value_set_bytes(f"cpgjax/exchange/{n}/{rank}", buf.getvalue())
+    if n > 1:  # every process has read it: each set its exchange n − 1 after finishing n − 2
+        client.key_value_delete(f"cpgjax/exchange/{n - 2}/{rank}")
+    out = []
+    for other in range(count):
+        if other == rank:
+            out.append(local)
+            continue
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                data = client.blocking_key_value_get_bytes(f"cpgjax/exchange/{n}/{other}", 1000)
+                break
+            except Exception as err:  # the coordinator's DEADLINE_EXCEEDED; anything else is fatal
+                if "DEADLINE_EXCEEDED" not in str(err):
+                    raise ProcessLost(f"process {rank}: exchange {n} with process {other} failed: {err}") from err
+            if time.monotonic() > deadline:
+                raise ProcessLost(f"process {rank}: no trial data from process {other} of {count} within "
+                                  f"{timeout_s:g} s ({EXCHANGE_TIMEOUT_ENV}); is it hung?")
+        with np.load(io.BytesIO(data)) as z:
+            out.append(jax.tree.unflatten(treedef, [z[f"arr_{i}"] for i in range(len(leaves))]))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- devices
 
 
 class Placement(NamedTuple):
-    """How the batch sits on the devices: a 1-D mesh over axis ``batch``; the batch is padded to a multiple of the
-    device count with copies of the last instance (their results are dropped)."""
+    """How the batch sits on the devices: a 1-D mesh over axis ``batch``, devices ordered by process; the batch is
+    padded to a multiple of the device count with copies of the last instance (their results are dropped)."""
 
     mesh: Mesh
     padded_size: int
+    rows: tuple[int, int]  # [first, stop): the padded batch's rows on this process's devices
 
     @property
     def sharding(self) -> NamedSharding:
         return NamedSharding(self.mesh, PartitionSpec("batch"))
 
+    @property
+    def local_devices(self) -> list:
+        return [d for d in self.mesh.devices.flat if d.process_index == jax.process_index()]
+
     def put(self, tree):
-        """Host or device arrays with a leading (padded) batch axis → arrays sharded along it."""
+        """Host arrays of the whole (padded) batch → arrays sharded along it (each process places its own rows)."""
         sharding = self.sharding
 
         def one(x):
@@ -77,19 +159,49 @@ class Placement(NamedTuple):
             return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
         return jax.tree.map(one, tree)
 
+    def put_local(self, tree):
+        """Host arrays of this process's rows → arrays of the whole batch sharded along it."""
+        def one(x):
+            x = np.asarray(x)
+            return jax.make_array_from_process_local_data(self.sharding, x, (self.padded_size,) + x.shape[1:])
+        return jax.tree.map(one, tree)
+
+    def local(self, tree):
+        """Arrays of the whole batch → NumPy of this process's rows (no communication)."""
+        first, stop = self.rows
+
+        def one(x):
+            if not isinstance(x, jax.Array) or x.is_fully_addressable:
+                return np.asarray(x)[first:stop]
+            out = np.empty((stop - first,) + x.shape[1:], x.dtype)
+            for shard in x.addressable_shards:
+                lo, hi, _ = shard.index[0].indices(x.shape[0]) if shard.index else (0, x.shape[0], 1)
+                a, b = max(lo, first), min(hi, stop)
+                if a < b:
+                    out[a - first:b - first] = np.asarray(shard.data)[a - lo:b - lo]
+            return out
+        return jax.tree.map(one, tree)
+
 
 def make_placement(batch_size: int, devices=None) -> Placement:
-    devices = jax.devices() if devices is None else list(devices)
+    devices = sorted(jax.devices() if devices is None else devices, key=lambda d: (d.process_index, d.id))
     padded = -(-batch_size // len(devices)) * len(devices)
-    return Placement(Mesh(np.array(devices), ("batch",)), padded)
+    per_device = padded // len(devices)
+    mine = [i for i, d in enumerate(devices) if d.process_index == jax.process_index()]
+    if not mine:
+        raise ValueError(f"process {jax.process_index()} has no device among {devices}")
+    return Placement(Mesh(np.array(devices), ("batch",)), padded, (mine[0] * per_device, (mine[-1] + 1) * per_device))
 
 
 def fetch(tree):
-    """Sharded (possibly multi-host) arrays → NumPy on this host."""
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-        tree = multihost_utils.process_allgather(tree, tiled=True)
-    return jax.tree.map(np.asarray, tree)
+    """Arrays → NumPy on this host; arrays sharded over several processes are gathered (every process must call)."""
+    from jax.experimental import multihost_utils
+
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return np.asarray(x)
+    return jax.tree.map(one, tree)
 
 
 def _pad(array: np.ndarray, size: int) -> np.ndarray:
@@ -107,6 +219,7 @@ class Timing(NamedTuple):
     propose_s: float  # β, keys, target changes, the UCB argmax (eq. 8)
     observe_s: float  # storing the observation and refitting the GP
     transfer_s: float  # device → host → device of the records
+    exchange_s: float  # several processes: sending and awaiting the trial logs (includes waiting for the slowest)
     checkpoint_s: float
 
 
@@ -125,11 +238,12 @@ class StudyResult(NamedTuple):
     labels: list[dict[str, Any]]
     conditions: Conditions
     trials: study_io.TrialLog  # every field (num_trials, B, ...)
-    opt_state: bo.OptimizerState  # final, host arrays (B, ...)
+    opt_state: bo.OptimizerState  # final, host arrays: instances rows[0] … rows[1] − 1 (all with one process)
     wall_s: float  # compute wall time, summed over resumed segments
     timing: Timing
     backend: str
     devices: list[str]
+    rows: tuple[int, int]  # the instances this process simulated: [first, stop)
 
 
 def _record_template(trial: protocol.TrialConfig) -> protocol.TrialRecord:
@@ -152,8 +266,8 @@ class _Run(NamedTuple):
     start: int  # the first trial of this segment (> 0 after a resume)
     opt_state: Any  # optimizer state, sharded
     sim_state: Any  # backend state (None before the first trial)
-    context: np.ndarray  # (B, 2) context measured in the last trial
-    logs: list  # a study_io.TrialLog per completed trial
+    context: np.ndarray  # (local rows, 2) context measured in the last trial
+    logs: list  # a study_io.TrialLog (every instance) per completed trial
     wall_before: float  # compute wall time of earlier segments [s]
     timing: dict[str, float]  # Timing's fields, summed
 
@@ -174,7 +288,7 @@ class Engine:
     Args:
       spec: the study (validated here; a bad option raises :class:`StudyError` before any compute).
       backend: "auto" (native C MuJoCo on CPU-only machines, MJX with an accelerator), "mjx" or "native".
-      devices: devices to shard the batch over (default: all, on every host).
+      devices: devices to shard the batch over (default: all, on every host); every process needs one among them.
     """
 
     def __init__(self, spec: StudySpec, *, backend: str = "auto", devices=None):
@@ -184,10 +298,18 @@ class Engine:
         self.backend_name = backends.resolve_backend(backend)
         self.batch_size = len(self.labels)
         self.placement = make_placement(self.batch_size, devices)
+        if self.backend_name == "mjx":  # before any compute
+            local = self.placement.local_devices
+            try:
+                backends.check_mjx_layout((self.placement.rows[1] - self.placement.rows[0]) // len(local), local)
+            except ValueError as err:
+                raise study_spec.StudyError(f"study {spec.name!r}: {err}") from None
         size = self.placement.padded_size
         self.padded = Conditions(*(_pad(c, size) for c in self.conditions))
         controllers = _pad(np.array([lab["controller"] for lab in self.labels]), size)
         self.gates = protocol.batch_gates(controllers.tolist())
+        first, stop = self.placement.rows
+        self.local_gates = jax.tree.map(lambda g: g[first:stop], self.gates)
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
         self.physics = _pad(np.array([lab["physics"] for lab in self.labels]), size)
         self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
@@ -222,12 +344,13 @@ class Engine:
                                         c.noise_scale[:, trial], self.seeds)  # one noise stream per seed
 
     def simulator(self, trial: int):
-        """The backend for trial ``trial``'s scenario; rebuilt (reusing its compiled code where the backend
-        allows) only when some instance's friction, slope or payload changes."""
-        scenario = self.scenario(trial)
+        """The backend of this process's instances for trial ``trial``'s scenario, on this process's devices; rebuilt
+        (reusing its compiled code where the backend allows) only when one of its instances' conditions change."""
+        first, stop = self.placement.rows
+        scenario = go1_model.Scenario(*(field[first:stop] for field in self.scenario(trial)))
         if self._sim is None:
             self._sim = backends.make_backend(scenario, self.backend_name, trial_config=self.spec.trial,
-                                              devices=self.placement.mesh.devices.tolist())
+                                              devices=self.placement.local_devices)
         elif any(not np.array_equal(a, b) for a, b in zip(scenario, self._sim.scenario)):
             self._sim = self._sim.with_scenario(scenario)
         return self._sim
@@ -237,9 +360,11 @@ class Engine:
         return self._init(self.placement.put(self.active), self.placement.put(targets))
 
     def initial_context(self) -> np.ndarray:
+        """(local rows, 2): the middle of the optimizer's context ranges."""
         config = self.optimizer_config
         mid = 0.5 * (np.asarray(config.context_lower) + np.asarray(config.context_upper))
-        return np.tile(mid, (self.placement.padded_size, 1)).astype(np.float32)
+        first, stop = self.placement.rows
+        return np.tile(mid, (stop - first, 1)).astype(np.float32)
 
     def _change_targets(self, opt_state, trial: int):
         """Data reuse (``set_target``) or a fresh optimizer for instances whose target changes at ``trial``."""
@@ -259,7 +384,8 @@ class Engine:
             progress: Callable[[Progress], None] | None = None) -> StudyResult:
         """Run (or, with ``resume``, continue from ``out_dir``'s checkpoint) every trial of the study.
 
-        With ``out_dir`` the state is checkpointed atomically after every trial.
+        With ``out_dir`` the state is checkpointed atomically after every trial (each process its own instances).
+        ``progress`` is called on process 0 only.
         """
         spec, n = self.spec, self.spec.num_trials
         run = self._start(out_dir, resume)
@@ -273,7 +399,7 @@ class Engine:
                     self._checkpoint(out_dir, run, t, wall)
             if t == run.start:
                 t_first = time.perf_counter()  # the first trial compiles: the pace is that of the later ones
-            if progress is not None:
+            if progress is not None and jax.process_index() == 0:
                 paced = t - run.start
                 if paced:
                     per_trial = max(time.perf_counter() - t_first, 1e-9) / paced
@@ -282,80 +408,107 @@ class Engine:
                     figures = env_steps / max(time.perf_counter() - t_begin, 1e-9), None
                 progress(Progress(t + 1, n, self.best_by_group(run.logs), *figures))
         wall_s = run.wall_before + time.perf_counter() - t_begin
+        first, stop = self.placement.rows
+        rows = (min(first, self.batch_size), min(stop, self.batch_size))
         return StudyResult(
             spec=spec, labels=self.labels, conditions=self.conditions, trials=self.stack(run.logs),
-            opt_state=jax.tree.map(lambda a: a[:self.batch_size], fetch(run.opt_state)), wall_s=wall_s,
-            timing=Timing(**run.timing), backend=self.backend_name,
-            devices=[str(d) for d in self.placement.mesh.devices])
+            opt_state=jax.tree.map(lambda a: a[:rows[1] - rows[0]], self.placement.local(run.opt_state)),
+            wall_s=wall_s, timing=Timing(**run.timing), backend=self.backend_name,
+            devices=[str(d) for d in self.placement.mesh.devices.flat], rows=rows)
 
     def _start(self, out_dir, resume: bool) -> _Run:
         """The run's state before its first trial: fresh, or restored from ``out_dir``'s checkpoint."""
         run = _Run(start=0, opt_state=self.initial_opt_state(), sim_state=None, context=self.initial_context(),
                    logs=[], wall_before=0.0, timing={name: 0.0 for name in Timing._fields})
-        ckpt = study_io.load_checkpoint(out_dir, self.spec) if resume else None
+        # This process's rows; a padding row is a copy of the last instance (another process may hold it).
+        first, stop, last = *self.placement.rows, self.batch_size - 1
+        ckpt = study_io.load_checkpoint(out_dir, self.spec, (min(first, last), min(stop, last + 1))) if resume else None
         if ckpt is None:
             return run
-        opt_state = self.placement.put(jax.tree.unflatten(jax.tree.structure(run.opt_state), ckpt.opt_leaves))
-        sim_state = self._restore_sim(ckpt.trial, ckpt.sim_leaves) if ckpt.trial < self.spec.num_trials else None
+        index = np.minimum(np.arange(first, stop), last) - min(first, last)
+        opt_state = self.placement.put_local(jax.tree.unflatten(jax.tree.structure(run.opt_state),
+                                                                [leaf[index] for leaf in ckpt.opt_leaves]))
+        sim_state = (self._restore_sim(ckpt.trial, [leaf[index] for leaf in ckpt.sim_leaves])
+                     if ckpt.trial < self.spec.num_trials else None)
+        size = self.placement.padded_size
+        logs = [study_io.TrialLog(*(_pad(np.asarray(f)[:self.batch_size], size) for f in lg)) for lg in ckpt.logs]
         log.info("resumed %s at trial %d", self.spec.name, ckpt.trial)
-        return _Run(start=ckpt.trial, opt_state=opt_state, sim_state=sim_state, context=ckpt.context,
-                    logs=list(ckpt.logs), wall_before=ckpt.wall_s, timing={**run.timing, **ckpt.timing})
+        return _Run(start=ckpt.trial, opt_state=opt_state, sim_state=sim_state, context=ckpt.context[index],
+                    logs=logs, wall_before=ckpt.wall_s, timing={**run.timing, **ckpt.timing})
 
     def _trial(self, run: _Run, t: int) -> _Run:
-        """Trial ``t`` for the whole batch: propose (eq. 8), simulate, summarize (eqs. 9-11), observe."""
-        put, timing = self.placement.put, run.timing
+        """Trial ``t`` for this process's instances: propose (eq. 8), simulate, summarize (eqs. 9-11), observe; then
+        every process's trial logs."""
+        put, put_local, local, timing = self.placement.put, self.placement.put_local, self.placement.local, run.timing
+        first, stop = self.placement.rows
         with _timed(timing, "propose_s", "optimizer_s"):
             opt_state = self._change_targets(run.opt_state, t)
             opt_state = opt_state._replace(inference_mode=put(self.padded.inference[:, t]))
             keys = self._keys(put(self.seeds.astype(np.uint32)), t)
-            ctx = put(run.context)
+            ctx = put_local(run.context)
             beta = self._beta(opt_state, ctx)
-            x = fetch(self._propose(opt_state, ctx, keys)).astype(np.float64)
+            x = local(self._propose(opt_state, ctx, keys)).astype(np.float64)
             # The proposal is in the box up to float32 rounding; the simulator validates strictly.
             x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
         with _timed(timing, "simulation_s"):
             sim = self.simulator(t)
             sim_state = sim.reset(x) if run.sim_state is None else run.sim_state
-            sim_state, record = sim.trial(sim_state, x, self.gates)
+            sim_state, record = sim.trial(sim_state, x, self.local_gates)
             record = jax.block_until_ready(record)
         with _timed(timing, "transfer_s"):
             rec = fetch(record)
-            target = self.padded.target_velocity_mps[:, t].astype(np.float32)
+            target = self.padded.target_velocity_mps[first:stop, t].astype(np.float32)
             j, new_context, velocity, cot = fetch(self._summary(rec, target))
             gp_context = self._clip_context(t, new_context)
-            record_d, x_d = put(rec), put(x.astype(np.float32))
+            record_d, x_d = put_local(rec), put_local(x.astype(np.float32))
         with _timed(timing, "observe_s", "optimizer_s"):
-            observation = record_d if self.uses_records else put(j)
-            opt_state, accepted = self._observe(opt_state, x_d, put(gp_context), observation)
+            observation = record_d if self.uses_records else put_local(j)
+            opt_state, accepted = self._observe(opt_state, x_d, put_local(gp_context), observation)
             accepted = jax.block_until_ready(accepted)
         trial_log = study_io.TrialLog(
-            params=x, context=new_context, objective=j, velocity_xy_mps=velocity, cot=cot, beta=fetch(beta.beta),
-            context_changed=fetch(beta.context_changed), accepted=fetch(accepted),
+            params=x, context=new_context, objective=j, velocity_xy_mps=velocity, cot=cot, beta=local(beta.beta),
+            context_changed=local(beta.context_changed), accepted=local(accepted),
             roll_std_rad=rec.roll_std_rad, pitch_std_rad=rec.pitch_std_rad,
             saturation_fraction=rec.saturation_fraction, energy_j=rec.energy_j, distance_m=rec.distance_m,
             total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed)
+        with _timed(timing, "exchange_s"):
+            parts = exchange(trial_log)
+            trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts)))
         return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(gp_context, np.float32),
                             logs=run.logs + [trial_log])
 
     def _clip_context(self, trial: int, context: np.ndarray) -> np.ndarray:
         """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
         when any is; the trial log keeps the measured values."""
-        clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:self.batch_size])
+        real = max(0, min(self.placement.rows[1], self.batch_size) - self.placement.rows[0])  # rows before padding
+        clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real])
         if messages:
             log.warning("trial %d: %d context value(s) outside the GP's range, clipped; first: %s", trial,
                         len(messages), messages[0])
-        return np.concatenate([clipped, np.clip(context[self.batch_size:], self.optimizer_config.context_lower,
+        return np.concatenate([clipped, np.clip(context[real:], self.optimizer_config.context_lower,
                                                 self.optimizer_config.context_upper)]).astype(np.float32)
 
     def _checkpoint(self, out_dir, run: _Run, t: int, wall_s: float) -> None:
+        """This process's instances (not their padding copies) after trial ``t``; once every process has written
+        trial t, the files a resume no longer needs are deleted (``study_io.prune_checkpoints``)."""
+        first, stop = self.placement.rows
+        keep = max(0, min(stop, self.batch_size) - first)
+        shard = study_io.Shard(jax.process_index(), jax.process_count(), first)
         study_io.save_checkpoint(out_dir, self.spec, study_io.Checkpoint(
-            trial=t + 1, opt_leaves=fetch(jax.tree.leaves(run.opt_state)),
-            sim_leaves=fetch(jax.tree.leaves(run.sim_state)), context=run.context, logs=run.logs, wall_s=wall_s,
-            timing=dict(run.timing)), self.backend_name)
+            trial=t + 1, opt_leaves=[leaf[:keep] for leaf in self.placement.local(jax.tree.leaves(run.opt_state))],
+            sim_leaves=[np.asarray(leaf)[:keep] for leaf in jax.tree.leaves(run.sim_state)],
+            context=run.context[:keep], logs=[study_io.TrialLog(*(np.asarray(f)[first:first + keep] for f in lg))
+                                              for lg in run.logs], wall_s=wall_s, timing=dict(run.timing)),
+            self.backend_name, shard)
+        # Trial t's logs came from every process, so each has written trial t − 1 (one process: t itself).
+        complete = t + 1 if shard.num_processes == 1 else t
+        if complete > run.start:
+            study_io.prune_checkpoints(out_dir, shard, complete)
 
     def _restore_sim(self, trial: int, leaves):
         sim = self.simulator(max(trial - 1, 0))
-        template = sim.reset(np.tile(param_space.midpoint(), (self.placement.padded_size, 1)))
+        first, stop = self.placement.rows
+        template = sim.reset(np.tile(param_space.midpoint(), (stop - first, 1)))
         treedef = jax.tree.structure(template)
         kinds = [type(x) for x in jax.tree.leaves(template)]
         restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds)]

@@ -39,6 +39,7 @@ from cpgjax.robot import safety as go1_safety  # noqa: E402
 from cpgjax.robot import transport as go1_transport  # noqa: E402
 from cpgjax.sim import backends, walk  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
+from cpgjax.study import launch as study_launch  # noqa: E402
 from cpgjax.study import registry as studies  # noqa: E402
 from cpgjax.study import spec as study_spec  # noqa: E402
 from cpgjax.study import transfer  # noqa: E402
@@ -175,7 +176,36 @@ def _interrupted(command: str, args, out: pathlib.Path | None) -> int:
     return INTERRUPTED
 
 
+def _without_processes(argv: list[str]) -> list[str]:
+    """``argv`` without ``--processes N`` (or ``--processes=N``, or an abbreviation of it)."""
+    out, skip = [], False
+    for token in argv:
+        head = token.split("=", 1)[0]
+        if skip:
+            skip = False
+        elif len(head) >= 4 and "--processes".startswith(head):
+            skip = "=" not in token
+        else:
+            out.append(token)
+    return out
+
+
 def _study(args) -> int:
+    if args.processes is not None or args.distributed:
+        problem = ("--processes and --distributed exclude each other (--processes starts --distributed processes)"
+                   if args.processes is not None and args.distributed else
+                   f"--processes {args.processes}: need at least 1" if args.processes is not None and args.processes < 1
+                   else f"{transfer.NAME} runs its arms one after another in one process: drop --processes / "
+                   "--distributed" if args.name == transfer.NAME else None)
+        if problem:
+            print(f"cpgjax study: {problem}", file=sys.stderr)
+            return 2
+    if args.processes is not None and args.processes > 1:
+        command = [sys.executable, "-m", "cpgjax.cli", *_without_processes(args.argv), "--distributed"]
+        outcome = study_launch.run(command, args.processes)
+        if outcome.returncode:
+            print(f"cpgjax study: {outcome.message}; `--resume` continues from the last checkpoint", file=sys.stderr)
+        return outcome.returncode
     if args.distributed:
         ablation.initialize_distributed()
     name = args.name
@@ -188,9 +218,13 @@ def _study(args) -> int:
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
+    except ablation.ProcessLost as err:
+        print(f"cpgjax study: {err}", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(3)  # not through jax.distributed's shutdown barrier, which would wait for the lost process
     except KeyboardInterrupt:
         arm = next((out / s.name for s in reversed(transfer.specs(args.seeds, args.trials, args.quick))
-                    if (out / s.name / study_io.CHECKPOINT).exists()), None) if name == transfer.NAME else out
+                    if study_io.checkpoint_files(out / s.name)), None) if name == transfer.NAME else out
         return _interrupted(args.command_line, args, arm)
     print(text)
     print(f"outputs in {out}/")
@@ -502,7 +536,11 @@ def _add_study(sub) -> None:
                    help="trials per run; condition changes scale with it (default: the study's)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
     _add_output_args(s, None, "results/<study>")
-    s.add_argument("--distributed", action="store_true", help="multi-host: jax.distributed.initialize() first")
+    s.add_argument("--distributed", action="store_true", help="one of several cooperating processes: "
+                   "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "
+                   "docs/scaling.md)")
+    s.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes (coordinator "
+                   "on 127.0.0.1), e.g. to check a multi-process run before a cluster")
     _add_physics_arg(s, None)
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
@@ -598,6 +636,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
     args.command_line = "cpgjax " + shlex.join(argv)  # metadata.json and the resume hint
+    args.argv = argv  # `study --processes N` starts the same command line N times
     # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline.
     cpu_dispatch.request_inline()
     return args.func(args)

@@ -3,7 +3,9 @@
 * ``checkpoint.npz`` — the whole engine state after trial t (optimizer and simulator leaves, last context, every
   trial's log, wall time), written to a temporary file and renamed (atomic: a kill leaves the previous one). It
   carries the study's fingerprint and backend; resuming a different study from it, or on another backend, is refused,
-  and a damaged one is reported as corrupt with its path (it is read without pickles).
+  and a damaged one is reported as corrupt with its path (it is read without pickles). With N processes each writes
+  the rows of its own instances, ``checkpoint.<rank>of<N>.t<trial>.npz``, and keeps its previous trial's file until
+  every process has written the next one; reading merges the newest trial all N wrote (docs/scaling.md).
 * ``trials.parquet`` — one row per (instance, trial): instance labels, conditions, the 8 parameters, context, J,
   velocity, CoT, falls. ``pandas.read_parquet(path)`` or ``polars.read_parquet(path)``.
 * ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and
@@ -21,6 +23,7 @@ import json
 import os
 import pathlib
 import platform
+import re
 import subprocess
 import sys
 import zipfile
@@ -34,6 +37,7 @@ from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 
 CHECKPOINT = "checkpoint.npz"
+_SHARD = re.compile(r"checkpoint\.(\d+)of(\d+)\.t(\d+)\.npz")
 
 
 class TrialLog(NamedTuple):
@@ -59,12 +63,35 @@ class TrialLog(NamedTuple):
 
 class Checkpoint(NamedTuple):
     trial: int  # trials completed
-    opt_leaves: list  # optimizer-state leaves (padded batch first)
-    sim_leaves: list  # simulator-state leaves
+    opt_leaves: list  # optimizer-state leaves (instances first)
+    sim_leaves: list  # simulator-state leaves (instances first)
     context: np.ndarray  # (B, 2) last measured context
     logs: list  # a TrialLog per completed trial
     wall_s: float
     timing: dict
+
+
+class Shard(NamedTuple):
+    """Which file a process checkpoints to and which instances it holds: rows ``first_row`` … of the study's."""
+
+    rank: int = 0
+    num_processes: int = 1
+    first_row: int = 0
+
+
+def shard_path(out_dir, shard: Shard, trial: int) -> pathlib.Path:
+    """``checkpoint.npz`` for one process, else ``checkpoint.<rank>of<N>.t<trial>.npz``."""
+    if shard.num_processes == 1:
+        return pathlib.Path(out_dir) / CHECKPOINT
+    return pathlib.Path(out_dir) / f"checkpoint.{shard.rank}of{shard.num_processes}.t{trial:06d}.npz"
+
+
+def checkpoint_files(out_dir) -> list[pathlib.Path]:
+    """Every checkpoint file in ``out_dir`` (one process's and N processes' shards)."""
+    out = pathlib.Path(out_dir)
+    if not out.is_dir():
+        return []
+    return sorted(p for p in out.iterdir() if p.name == CHECKPOINT or _SHARD.fullmatch(p.name))
 
 
 def fingerprint(spec) -> str:
@@ -72,8 +99,9 @@ def fingerprint(spec) -> str:
     return repr(spec)
 
 
-def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str) -> None:
-    """Write ``out_dir/checkpoint.npz`` atomically (temporary file, fsync, rename); ``backend``: the simulator's."""
+def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard = Shard()) -> pathlib.Path:
+    """Write ``shard``'s checkpoint file atomically (temporary file, fsync, rename); returns its path. ``backend``:
+    the simulator's."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     arrays = {f"opt_{i}": np.asarray(a) for i, a in enumerate(ckpt.opt_leaves)}
@@ -82,14 +110,16 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str) -> None:
     for name in TrialLog._fields:
         arrays[f"log_{name}"] = np.stack([np.asarray(getattr(lg, name)) for lg in ckpt.logs])
     meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), backend=backend, wall_s=ckpt.wall_s,
-                timing=ckpt.timing, num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves))
+                timing=ckpt.timing, num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves), **shard._asdict())
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    tmp = out / (CHECKPOINT + ".tmp")
+    path = shard_path(out, shard, ckpt.trial)
+    tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         np.savez(f, **arrays)
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, out / CHECKPOINT)
+    os.replace(tmp, path)
+    return path
 
 
 _DAMAGE = (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile, UnicodeDecodeError)
@@ -100,15 +130,12 @@ def _corrupt(path, err) -> StudyError:
     return StudyError(f"checkpoint {path} is corrupt ({type(err).__name__}); delete it, or use another --out")
 
 
-def checkpoint_meta(out_dir) -> dict | None:
-    """The metadata (trial, fingerprint, backend, ...) of ``out_dir``'s checkpoint, None if there is none.
+def _read_meta(path: pathlib.Path) -> dict:
+    """One checkpoint file's metadata.
 
     Raises:
-      StudyError: the checkpoint is corrupt (unreadable, truncated, not an archive of ours); the message names it.
+      StudyError: the file is corrupt (unreadable, truncated, not an archive of ours); the message names it.
     """
-    path = pathlib.Path(out_dir) / CHECKPOINT
-    if not path.exists():
-        return None
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(bytes(z["meta"]).decode())
@@ -117,6 +144,48 @@ def checkpoint_meta(out_dir) -> dict | None:
         return meta
     except _DAMAGE as err:
         raise _corrupt(path, err) from None
+
+
+def prune_checkpoints(out_dir, shard: Shard, complete_trial: int) -> None:
+    """Once every process has written trial ``complete_trial``: delete this process's older files and (rank 0)
+    checkpoints of another process count, which a resume no longer needs."""
+    for path in checkpoint_files(out_dir):
+        m = _SHARD.fullmatch(path.name)
+        layout = (int(m[2]) if m else 1)
+        if layout != shard.num_processes:
+            if shard.rank == 0:
+                path.unlink(missing_ok=True)
+        elif m and int(m[1]) == shard.rank and int(m[3]) < complete_trial:
+            path.unlink(missing_ok=True)
+
+
+def _generations(out_dir) -> list[tuple[int, list[pathlib.Path]]]:
+    """(trial, files) of every complete checkpoint: the one-process file, and each trial all N processes wrote.
+
+    Raises:
+      StudyError: the one-process checkpoint is corrupt.
+    """
+    found: dict[tuple[int, int], dict[int, pathlib.Path]] = {}
+    complete = []
+    for path in checkpoint_files(out_dir):
+        m = _SHARD.fullmatch(path.name)
+        if m is None:
+            complete.append((_read_meta(path)["trial"], [path]))
+        else:
+            found.setdefault((int(m[2]), int(m[3])), {})[int(m[1])] = path
+    complete += [(trial, [ranks[r] for r in range(n)]) for (n, trial), ranks in found.items() if len(ranks) == n]
+    return sorted(complete, key=lambda g: g[0])
+
+
+def checkpoint_meta(out_dir) -> dict | None:
+    """The metadata (trial, fingerprint, backend, ...) of ``out_dir``'s newest complete checkpoint, None if there is
+    none.
+
+    Raises:
+      StudyError: the checkpoint is corrupt; the message names it.
+    """
+    generations = _generations(out_dir)
+    return _read_meta(generations[-1][1][0]) if generations else None
 
 
 def resume_point(out_dir, spec, backend: str) -> int:
@@ -128,7 +197,7 @@ def resume_point(out_dir, spec, backend: str) -> int:
     path = pathlib.Path(out_dir) / CHECKPOINT
     meta = checkpoint_meta(out_dir)
     if meta is None:
-        raise StudyError(f"--resume: there is no checkpoint {path}; run without --resume to start afresh")
+        raise StudyError(f"--resume: there is no checkpoint in {out_dir}; run without --resume to start afresh")
     if meta.get("fingerprint") != fingerprint(spec):
         raise StudyError(f"{path} was written by a different study definition; use another --out or delete it "
                          f"(checkpoint: {str(meta.get('fingerprint'))[:200]}...)")
@@ -146,28 +215,44 @@ def open_run(out_dir, spec, backend: str, *, resume: bool = False, overwrite: bo
     return start
 
 
-def load_checkpoint(out_dir, spec) -> Checkpoint | None:
-    """The checkpoint in ``out_dir`` (None if there is none).
+def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Checkpoint | None:
+    """The newest complete checkpoint in ``out_dir`` (None if there is none), its shards merged: the optimizer and
+    simulator leaves and the context of instance rows ``rows`` = [first, stop) (default all), every instance's logs.
 
     Raises:
       StudyError: the checkpoint belongs to a different study definition, or is corrupt.
     """
-    path = pathlib.Path(out_dir) / CHECKPOINT
-    meta = checkpoint_meta(out_dir)
-    if meta is None:
+    generations = _generations(out_dir)
+    if not generations:
         return None
-    if meta["fingerprint"] != fingerprint(spec):
-        raise StudyError(f"{path} was written by a different study definition; use another --out or delete it "
-                         f"(checkpoint: {meta['fingerprint'][:200]}...)")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            opt = [z[f"opt_{i}"] for i in range(meta["num_opt"])]
-            sim = [z[f"sim_{i}"] for i in range(meta["num_sim"])]
-            stacked = {name: z[f"log_{name}"] for name in TrialLog._fields}
-            logs = [TrialLog(*(stacked[name][t] for name in TrialLog._fields)) for t in range(meta["trial"])]
-            return Checkpoint(meta["trial"], opt, sim, z["context"], logs, meta["wall_s"], meta["timing"])
-    except _DAMAGE as err:
-        raise _corrupt(path, err) from None
+    parts = []
+    for path in generations[-1][1]:
+        meta = _read_meta(path)
+        if meta["fingerprint"] != fingerprint(spec):
+            raise StudyError(f"{path} was written by a different study definition; use another --out or delete "
+                             f"it (checkpoint: {meta['fingerprint'][:200]}...)")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                first = meta.get("first_row", 0)
+                count = z["context"].shape[0]
+                lo, hi = ((first, first + count) if rows is None
+                          else (max(rows[0], first), min(rows[1], first + count)))
+                take = slice(lo - first, max(hi - first, lo - first))
+                opt = [z[f"opt_{i}"][take] for i in range(meta["num_opt"])]
+                sim = [z[f"sim_{i}"][take] for i in range(meta["num_sim"])]
+                stacked = [z[f"log_{name}"] for name in TrialLog._fields]
+                parts.append((first, meta, opt, sim, z["context"][take], stacked))
+        except _DAMAGE as err:
+            raise _corrupt(path, err) from None
+    parts.sort(key=lambda p: p[0])
+    first_meta = parts[0][1]
+
+    def joined(k, axis=0):
+        return [np.concatenate(leaves, axis=axis) for leaves in zip(*(p[k] for p in parts))]
+    stacked = joined(5, axis=1)
+    logs = [TrialLog(*(field[t] for field in stacked)) for t in range(first_meta["trial"])]
+    return Checkpoint(first_meta["trial"], joined(2), joined(3), np.concatenate([p[4] for p in parts]), logs,
+                      first_meta["wall_s"], first_meta["timing"])
 
 
 # ----------------------------------------------------------------------------------------------- output paths
@@ -192,12 +277,13 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pa
     if folder.is_dir() and not resume:
         entries = _entries(folder)
         if entries and not overwrite:
-            hint = " --resume to continue its checkpoint," if CHECKPOINT in entries else ""
+            hint = " --resume to continue its checkpoint," if checkpoint_files(folder) else ""
             shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
             raise StudyError(f"{folder} is not empty ({shown}): pass{hint} --overwrite to replace its files, or "
                              f"write somewhere else")
         if overwrite:
-            (folder / CHECKPOINT).unlink(missing_ok=True)
+            for path in checkpoint_files(folder):
+                path.unlink(missing_ok=True)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -309,7 +395,8 @@ def run_figures(result) -> dict[str, float]:
                 env_steps_per_s=round(env_steps / wall, 1), real_time_factor=round(robot_s / wall, 2),
                 simulation_s=round(result.timing.simulation_s, 2), optimizer_s=round(result.timing.optimizer_s, 2),
                 propose_s=round(result.timing.propose_s, 2), observe_s=round(result.timing.observe_s, 2),
-                transfer_s=round(result.timing.transfer_s, 2), checkpoint_s=round(result.timing.checkpoint_s, 2))
+                transfer_s=round(result.timing.transfer_s, 2), exchange_s=round(result.timing.exchange_s, 2),
+                checkpoint_s=round(result.timing.checkpoint_s, 2))
 
 
 def git_commit() -> str | None:

@@ -391,8 +391,10 @@ def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=Fal
     spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics)
     out = output_folder(name, out)
     start = study_io.open_run(out, spec, backends.resolve_backend(backend), resume=resume, overwrite=overwrite)
-    if start and notify is not None:
+    if start and notify is not None and jax.process_index() == 0:
         notify(resume_notice(out, start, spec.num_trials))
     engine = ablation.Engine(spec, backend=backend)
     result = engine.run(out, resume=resume, progress=progress)
+    if jax.process_index() > 0:  # one process writes the study's files (docs/scaling.md)
+        return f"process {jax.process_index()}: instances {result.rows[0]}–{result.rows[1] - 1} done", out
     return write_outputs(result, out, engine.backend_name, name, command), out
