@@ -540,7 +540,7 @@ def _add_study(sub) -> None:
                    "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "
                    "docs/scaling.md)")
     s.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes (coordinator "
-                   "on 127.0.0.1), e.g. to check a multi-process run before a cluster")
+                   "on 127.0.0.1), e.g. to check a multi-process run before a cluster (default: one process)")
     _add_physics_arg(s, None)
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
