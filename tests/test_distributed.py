@@ -18,6 +18,7 @@ import pytest
 from cpgjax import cli
 from cpgjax.study import files as study_io
 from cpgjax.study import launch
+from cpgjax.study import spec as study_spec
 from tests.test_ablation import SPEC_SOURCE, TRIALS, tiny_spec
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -142,7 +143,7 @@ def _shard(out, spec, rank, n, first, trial, rows):
     log = study_io.TrialLog(*(values for _ in study_io.TrialLog._fields))
     study_io.save_checkpoint(out, spec, study_io.Checkpoint(trial, [values[:, None] * 10], [values], values[:, None],
                                                             [log] * trial, 1.0 * rank, {}),
-                             study_io.Shard(rank, n, first))
+                             "native", study_io.Shard(rank, n, first))
 
 
 def test_shards_merge_on_read_from_the_newest_complete_trial(tmp_path):
@@ -207,3 +208,17 @@ def test_mjx_refuses_the_cpu_layout_that_deadlocks(monkeypatch):
     backends.check_mjx_layout(128, [cpu])  # one device: a free thread runs the pieces
     monkeypatch.setattr(native_go1, "available_cores", lambda: 4)
     backends.check_mjx_layout(128, [cpu, cpu])
+
+
+def test_a_corrupt_shard_is_named_and_the_backend_is_kept(tmp_path):
+    spec = tiny_spec()
+    for rank in (0, 1):
+        _shard(tmp_path, spec, rank, 2, 2 * rank, 3, 2)
+    assert study_io.checkpoint_meta(tmp_path)["backend"] == "native"
+    with pytest.raises(study_spec.StudyError, match="on the native backend"):
+        study_io.resume_point(tmp_path, spec, "mjx")
+    damaged = study_io.shard_path(tmp_path, study_io.Shard(1, 2, 2), 3)
+    damaged.write_bytes(b"not a checkpoint")
+    with pytest.raises(study_spec.StudyError, match=f"checkpoint {damaged} is corrupt") as err:
+        study_io.load_checkpoint(tmp_path, spec)
+    assert "pickle" not in str(err.value).lower()
