@@ -484,7 +484,11 @@ def test_ctrl_c_in_a_real_optimization_saves_and_says_how_to_resume(tmp_path):
     out = tmp_path / "opt"
     env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
     argv = ["optimize", "--trials", "12", "--out", str(out), "--backend", "native"]
-    proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", *argv], env=env, cwd=REPO, text=True,
+    # Python keeps SIGINT ignored in a child whose parent ignores it (a test run started in the background of a
+    # non-interactive shell): give the command Python's own Ctrl-C handler, as a terminal would.
+    start = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+             "sys.argv = ['cpgjax', *sys.argv[1:]]; runpy.run_module('cpgjax.cli', run_name='__main__')")
+    proc = subprocess.Popen([sys.executable, "-c", start, *argv], env=env, cwd=REPO, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         deadline = time.time() + 240
