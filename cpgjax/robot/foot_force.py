@@ -9,6 +9,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax.go1 import constants
+from cpgjax.trial import limits
 
 # A plausible newton-per-count scale: three decades around the simulated sensor's 0.5 N/count. Outside it a reading
 # of the int16 sensor would be a sub-gram or a many-tonne force, and the loop's load context and foot-force
@@ -40,12 +41,7 @@ class FootForceCalibration(NamedTuple):
           ValueError: unreadable or invalid JSON, a missing key, or values :func:`check_calibration` refuses; the
             message names the file and the key.
         """
-        try:
-            d = json.loads(Path(path).read_text())
-        except (OSError, UnicodeDecodeError) as err:
-            raise ValueError(f"calibration {path}: cannot read it ({err})") from None
-        except json.JSONDecodeError as err:
-            raise ValueError(f"calibration {path}: not valid JSON ({err})") from None
+        d = limits.read_json(path, "calibration")
         if not isinstance(d, dict):
             raise ValueError(f"calibration {path}: expected a JSON object with offset_counts and newton_per_count")
         values = {}

@@ -34,7 +34,7 @@ from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import safety as go1_safety
-from cpgjax.trial import objective, protocol
+from cpgjax.trial import limits, objective, protocol
 from cpgjax.trial import params as param_space
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
@@ -177,12 +177,7 @@ def load_params(path) -> np.ndarray:
       ValueError: unreadable or invalid JSON, a missing key, or a value outside the paper's range; the message names
         the file and the key.
     """
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError) as err:
-        raise ValueError(f"parameter file {path}: cannot read it ({err})") from None
-    except json.JSONDecodeError as err:
-        raise ValueError(f"parameter file {path}: not valid JSON ({err})") from None
+    data = limits.read_json(path, "parameter file")
     if isinstance(data, dict):
         if not isinstance(data.get("params"), dict):
             raise ValueError(f"parameter file {path}: missing key 'params' (an object of {param_space.PARAM_NAMES})")

@@ -6,8 +6,10 @@ ones to a study's grid, so a value means the same and is refused the same way in
 
 from __future__ import annotations
 
+import json
 import math
-from typing import NamedTuple
+from pathlib import Path
+from typing import Any, NamedTuple
 
 from cpgjax.go1.model import MAX_ABS_SLOPE_DEG
 
@@ -75,3 +77,17 @@ def check_count(value: int, name: str | None = None, minimum: int = MIN_TRIALS, 
         shown = f"{name} = {value!r}" if name else repr(value)
         raise ValueError(f"{shown}: need an integer >= {minimum}{why}")
     return value
+
+
+def read_json(path, what: str) -> Any:
+    """The JSON value in the file ``path``, a user's input file (``what`` names it in the message).
+
+    Raises:
+      ValueError: "<what> <path>: cannot read it (...)" or "<what> <path>: not valid JSON (...)".
+    """
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"{what} {path}: cannot read it ({err})") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{what} {path}: not valid JSON ({err})") from None
