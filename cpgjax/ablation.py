@@ -30,7 +30,9 @@ devices. The state is checkpointed after every trial (``cpgjax.study.files``) an
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
+import os
 import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -38,6 +40,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax._src import distributed  # the coordinator's client: no public API exposes its key-value store
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cpgjax.go1 import model as go1_model
@@ -68,7 +72,6 @@ def initialize_distributed() -> None:
     from ``JAX_COORDINATOR_ADDRESS``, the count and rank from ``JAX_NUM_PROCESSES`` / ``JAX_PROCESS_ID`` when set,
     else from JAX's cluster detection (Slurm, Open MPI, ...). CPU collectives go through gloo. A coordinator on
     127.0.0.1 or localhost listens on that address only (JAX's default binds every interface)."""
-    import os
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     address = os.environ.get("JAX_COORDINATOR_ADDRESS")
     count, rank = os.environ.get("JAX_NUM_PROCESSES"), os.environ.get("JAX_PROCESS_ID")
@@ -78,7 +81,6 @@ def initialize_distributed() -> None:
 
 
 def exchange_timeout_s() -> float:
-    import os
     return float(os.environ.get(EXCHANGE_TIMEOUT_ENV, DEFAULT_EXCHANGE_TIMEOUT_S))
 
 
@@ -94,9 +96,6 @@ def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
     Raises:
       ProcessLost: a process did not deliver within ``timeout_s`` (default :func:`exchange_timeout_s`).
     """
-    import io
-
-    from jax._src import distributed  # the coordinator's client: no public API exposes its key-value store
     rank, count = jax.process_index(), jax.process_count()
     if count == 1:
         return [local]
@@ -195,7 +194,6 @@ def make_placement(batch_size: int, devices=None) -> Placement:
 
 def fetch(tree):
     """Arrays → NumPy on this host; arrays sharded over several processes are gathered (every process must call)."""
-    from jax.experimental import multihost_utils
 
     def one(x):
         if isinstance(x, jax.Array) and not x.is_fully_addressable:
