@@ -30,6 +30,7 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD
+from cpgjax.robot import memory_lock
 from cpgjax.robot import protocol as proto
 from cpgjax.robot.controller import (
     IN_SIZE,
@@ -115,6 +116,7 @@ class LoopConfig(NamedTuple):
     end_damping_s: float = 1.0  # damping sent after a trip, Ctrl-C or the end of the run, before returning
     realtime_priority: int | None = 80  # SCHED_FIFO priority when permitted (None: leave the scheduler alone)
     cpu: int | None = None  # pin the loop thread to this CPU when permitted
+    lock_memory: bool = True  # mlockall while the loop runs, when permitted: no page fault waits on a disk
     log_ticks: int = 120_000  # per-tick log ring buffer (the newest ticks are kept); a multiple of flush_ticks
     flush_ticks: int = 1000  # hand the per-tick log to the sink in batches of this many ticks
 
@@ -235,7 +237,7 @@ def timing_table(timing: dict, deadlines: bool = True) -> str:
 
 
 def _enter_realtime(loop: LoopConfig):
-    """Apply SCHED_FIFO and CPU affinity where permitted; return (description, restore function)."""
+    """Apply SCHED_FIFO, CPU affinity and memory locking where permitted; return (description, restore function)."""
     notes, restores = [], []
 
     def restore() -> None:
@@ -268,6 +270,11 @@ def _enter_realtime(loop: LoopConfig):
             notes.append(f"real-time priority not permitted ({e})")
     if loop.busy_wait:
         notes.append("busy-wait")
+    if loop.lock_memory:
+        note = memory_lock.lock()
+        notes.append(note)
+        if note == "memory locked":
+            restores.append(memory_lock.unlock)
     return ", ".join(notes) or "default scheduling", restore
 
 

@@ -16,11 +16,14 @@ The optimizer is anything with ``propose(context) -> params`` and ``observe(para
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing
 import os
+import queue
 import signal
+import threading
 from pathlib import Path
 from typing import NamedTuple, Protocol
 
@@ -33,6 +36,7 @@ from cpgjax.go1 import physics as physics_profiles
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
+from cpgjax.robot import memory_lock
 from cpgjax.robot import safety as go1_safety
 from cpgjax.trial import limits, objective, protocol
 from cpgjax.trial import params as param_space
@@ -216,6 +220,8 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     optimizer = (BayesianOptimizer(spec.seed, spec.tegotae) if spec.kind == "bo"
                  else RandomSearch(spec.seed, spec.tegotae))
     _, _, _, c_gp = _evaluate(np.zeros((spec.steady_steps, len(_SIGNALS)), np.float32), spec, optimizer.warm_up, -1)
+    # Idle while each trial walks: unlocked, its pages were evicted and the next proposal waited on the disk.
+    log.info("optimizer process: %s", memory_lock.lock())
     trial_log = _TrialLog(Path(spec.log_dir))
     best = -np.inf
     # Trial 0's parameters: the optimizer's first proposal, uniform random with nothing stored (docs/decisions.md
@@ -247,16 +253,47 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     conn.send(("done", trial_log.rows))
 
 
+class _Mailer:
+    """Sends messages on a connection from a thread of its own, so the loop never blocks on it: a finished trial's
+    signals (≈ 100 kB) exceed the connection's buffer, and the loop would wait until the optimizer's process has
+    read them (1.9 s once, its memory paged out after a trial of idling, while the robot walked on a stale
+    command). ``cpus``: where the thread runs (off the loop's CPU)."""
+
+    def __init__(self, conn, cpus: tuple[int, ...] | None):
+        self._conn, self._cpus = conn, cpus
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._drain, name="trial-mailer", daemon=True)
+        self._thread.start()
+
+    def send(self, message) -> None:
+        self._queue.put(message)
+
+    def _drain(self) -> None:
+        if self._cpus:
+            with contextlib.suppress(OSError):
+                os.sched_setaffinity(0, self._cpus)  # this thread only
+        while (message := self._queue.get()) is not None:
+            with contextlib.suppress(OSError):  # the optimizer's process is gone: the loop notices on its own
+                self._conn.send(message)
+
+    def close(self) -> None:
+        """Send what is queued, then stop."""
+        self._queue.put(None)
+        self._thread.join()
+
+
 class TrialRunner:
     """A :class:`~cpgjax.hardware_io.ParamSchedule` running Algorithm 1's trials inside the 1 kHz loop.
 
-    Cheap per tick: an interpolation, one row copy, and (only while waiting for a proposal) a pipe poll.
+    Cheap per tick: an interpolation, one row copy, and (only while waiting for a proposal) a pipe poll. A
+    finished trial is handed to ``mailer`` (a queue put).
     """
 
     def __init__(self, conn, initial_params: np.ndarray, num_trials: int,
-                 timing: protocol.TrialConfig = protocol.TrialConfig()):
+                 timing: protocol.TrialConfig = protocol.TrialConfig(), mailer: _Mailer | None = None):
         out = compiled_controller
         self._conn = conn
+        self._mailer = mailer or conn
         self._timing = timing
         self._columns = np.array([out.OUT_VELOCITY.start, out.OUT_VELOCITY.start + 1, out.OUT_POWER, out.OUT_LOAD,
                                   out.OUT_RPY.start, out.OUT_RPY.start + 1, out.OUT_SATURATED])
@@ -291,7 +328,7 @@ class TrialRunner:
             self._signals[steady] = out[self._columns]
         self._tick_in_trial += 1
         if steady + 1 == self._timing.steady_steps:
-            self._conn.send(("trial", self.trials_done, self._current.astype(np.float64), self._signals.copy(),
+            self._mailer.send(("trial", self.trials_done, self._current.astype(np.float64), self._signals.copy(),
                              self._wait_ticks))
             self.trials_done += 1
             self.finished = self.trials_done >= self._num_trials
@@ -325,9 +362,13 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
         initial_params = first if initial_params is None else initial_params
         log.info("trial 0 walks with %s parameters", "the given" if initial_params is not first else
                  "the optimizer's first (random, docs/decisions.md §16)")
-        runner = TrialRunner(conn, initial_params, num_trials, timing)
-        result = hio.run_loop(transport, controller, runner, calibration, gates, loop,
-                              safety or go1_safety.SafetyConfig(), sink, stale_hint)
+        mailer = _Mailer(conn, spec.cpus)
+        runner = TrialRunner(conn, initial_params, num_trials, timing, mailer)
+        try:
+            result = hio.run_loop(transport, controller, runner, calibration, gates, loop,
+                                  safety or go1_safety.SafetyConfig(), sink, stale_hint)
+        finally:
+            mailer.close()
         conn.send(("stop",))
         rows = []
         while conn.poll(120.0):
