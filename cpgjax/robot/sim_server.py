@@ -9,7 +9,8 @@ per-foot offset and a scale (:data:`FOOT_FORCE_OFFSET_COUNTS`, :data:`FOOT_FORCE
 calibration path is exercised (docs/decisions.md §3).
 
 Pacing: ``realtime`` steps at 1 kHz on absolute wall-clock deadlines once the first command has arrived (the
-physics is frozen until then, like a robot waiting for low-level control) and streams one state per tick;
+physics is frozen until then, like a robot waiting for low-level control), its clock's phase locked to the
+commands' (:func:`phase_correction`), and streams one state per tick;
 ``lockstep`` steps once per received command and answers at once (deterministic tests on a loaded machine; drive it
 with ``go1_transport.LockstepTransport``).
 
@@ -41,7 +42,7 @@ from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import GRAVITY_MPS2, TORQUE_LIMIT_NM
-from cpgjax.robot import cpu_dispatch
+from cpgjax.robot import cpu_dispatch, memory_lock
 from cpgjax.robot import protocol as proto
 
 LOOPBACK = "127.0.0.1"
@@ -71,7 +72,6 @@ def motor_torque(cmd: proto.MotorCommand, q_rad, dq_rad_s):
 
 _IO_COMMANDS = (physics_profiles.MAX_LATENCY_TICKS + 1) * 12
 _IO_SIZE = 4 + _IO_COMMANDS + 1  # the profile's sensor and motor state as one float32 vector: force held | queue | tick
-_OBS_SIZES = (12, 12, 4, 3, 4)  # cpg.Observation's fields: q, dq, quaternion, gyro, foot force
 
 
 def _io_vector(io: physics_profiles.ActuatorSensorState) -> jax.Array:
@@ -91,7 +91,7 @@ def command_vector(cmd: proto.MotorCommand) -> np.ndarray:
 class Go1Physics:
     """One C-MuJoCo Go1 (the scenario model of ``go1_model``), stepped 1 ms at a time with motor torques.
 
-    The single place where the simulated Go1 touches the physics: ``step`` and ``observation`` are what a shared
+    The single place where the simulated Go1 touches the physics: ``step`` and ``sense`` are what a shared
     C-MuJoCo backend would replace.
     """
 
@@ -115,18 +115,17 @@ class Go1Physics:
             io, applied = physics_profiles.actuate(profile, io, torque, dq)
             return jnp.concatenate([_io_vector(io), torque, applied])
 
-        def sense(x):  # io | qpos | qvel | sensordata → io | observation (35)
+        def sense(x):  # io | qpos | qvel | sensordata → io | the LowState's sensor fields (_REPORT_SIZES)
             io = _io_state(x[:_IO_SIZE])
             qpos, qvel = x[_IO_SIZE:_IO_SIZE + n_qpos], x[_IO_SIZE + n_qpos:_IO_SIZE + n_qpos + n_qvel]
             io, obs = sensors.measure(profile, io, qpos, qvel, x[_IO_SIZE + n_qpos + n_qvel:], gravity)
-            return jnp.concatenate([_io_vector(io), *obs])
+            return jnp.concatenate([_io_vector(io), *_report(obs)])
 
         compile_for = lambda f, n: jax.jit(f).lower(np.zeros(n, np.float32)).compile()  # noqa: E731
         self._drive = compile_for(drive, _IO_SIZE + 96)
         self._sense = compile_for(sense, _IO_SIZE + n_qpos + n_qvel + self.model.nsensordata)
         self._drive_in = np.zeros(_IO_SIZE + 96, np.float32)
         self._sense_in = np.zeros(_IO_SIZE + n_qpos + n_qvel + self.model.nsensordata, np.float32)
-        self._split = np.cumsum(_OBS_SIZES)[:-1]
         self.reset()
 
     def reset(self) -> None:
@@ -164,9 +163,9 @@ class Go1Physics:
         mujoco.mj_step(self.model, self.data)
         return out[_IO_SIZE:_IO_SIZE + 12].astype(np.float64)
 
-    def observation(self):
-        """The controller-facing sensors (``cpg.Observation`` of NumPy arrays, SI units), the foot force as the
-        physics profile's sensor reports it."""
+    def sense(self) -> np.ndarray:
+        """What the robot's sensors report now (the profile's sensor model: noise, the foot sensor's counting): its
+        LowState fields (:data:`_REPORT_SIZES`) as one float64 vector, for :func:`robot_state`."""
         x, nq, nv = self._sense_in, self.model.nq, self.model.nv
         x[:_IO_SIZE] = self._io
         x[_IO_SIZE:_IO_SIZE + nq] = self.data.qpos
@@ -174,24 +173,39 @@ class Go1Physics:
         x[_IO_SIZE + nq + nv:] = self.data.sensordata
         out = np.asarray(self._sense(x))
         self._io = out[:_IO_SIZE]
-        return cpg.Observation(*np.split(out[_IO_SIZE:].astype(np.float64), self._split))
+        return out[_IO_SIZE:].astype(np.float64)
 
     def trunk_height_m(self) -> float:
         return float(self.data.qpos[self.ids.root_qpos + 2])
 
 
-def robot_state(obs, torque_nm: np.ndarray, tick_ms: int, *, buttons: tuple[str, ...] = ()) -> proto.RobotState:
-    """Encode an observation as the Go1 reports it: IMU, joints, tauEst = applied torque, raw foot counts."""
+_REPORT_SIZES = (4, 3, 3, 3, 12, 12, 4)  # quaternion, gyro, accelerometer, rpy, q, dq, foot counts
+_REPORT_SPLIT = tuple(int(i) for i in np.cumsum(_REPORT_SIZES)[:-1])
+
+
+def _report(obs: cpg.Observation) -> tuple:
+    """The controller-facing sensors as the Go1 reports them (JAX, compiled into the sensor step): the IMU's
+    quaternion, gyro, specific force of a robot at rest (R^T ẑ g: linear acceleration not modelled) and roll, pitch,
+    yaw; the joints; the raw foot counts (offset + N / scale, rounded, int16 range)."""
     quat = obs.imu_quat_wxyz
-    gravity_body = GRAVITY_MPS2 * attitude.quat_to_matrix(quat)[2]  # R^T ẑ: the world's up in the trunk frame
-    counts = FOOT_FORCE_OFFSET_COUNTS + np.round(obs.foot_force_n / FOOT_FORCE_N_PER_COUNT)
+    gravity_body = GRAVITY_MPS2 * attitude.quat_to_matrix(quat)[2]
+    counts = FOOT_FORCE_OFFSET_COUNTS + jnp.round(obs.foot_force_n / FOOT_FORCE_N_PER_COUNT)
+    return (quat, obs.gyro_rad_s, gravity_body, attitude.quat_to_rpy(quat), obs.joint_pos_rad, obs.joint_vel_rad_s,
+            jnp.clip(counts, -32768, 32767))
+
+
+def robot_state(sensed: np.ndarray, torque_nm: np.ndarray, tick_ms: int, *,
+                buttons: tuple[str, ...] = ()) -> proto.RobotState:
+    """The LowState of the sensors' report (:meth:`Go1Physics.sense`), tauEst = the applied torque."""
+    quat, gyro, accel, rpy, q, dq, counts = np.split(sensed, _REPORT_SPLIT)
     return proto.RobotState(
-        tick_ms=tick_ms, quaternion_wxyz=quat, gyro_rad_s=obs.gyro_rad_s,
-        accel_mps2=gravity_body,  # specific force of a robot at rest (linear acceleration not modelled)
-        rpy_rad=attitude.quat_to_rpy(quat), motor_mode=np.full(12, proto.MODE_SERVO, np.uint8), q_rad=obs.joint_pos_rad,
-        dq_rad_s=obs.joint_vel_rad_s, tau_est_nm=torque_nm,
-        motor_temperature_c=np.full(12, MOTOR_TEMPERATURE_C), foot_force_raw=np.clip(counts, -32768, 32767),
-        wireless_remote=proto.remote_with_buttons(*buttons))
+        tick_ms=tick_ms, quaternion_wxyz=quat, gyro_rad_s=gyro, accel_mps2=accel, rpy_rad=rpy,
+        motor_mode=_SERVO_MODES, q_rad=q, dq_rad_s=dq, tau_est_nm=torque_nm, motor_temperature_c=_TEMPERATURES_C,
+        foot_force_raw=counts.astype(np.int16), wireless_remote=proto.remote_with_buttons(*buttons))
+
+
+_SERVO_MODES = np.full(12, proto.MODE_SERVO, np.uint8)
+_TEMPERATURES_C = np.full(12, MOTOR_TEMPERATURE_C)
 
 
 def apply_sensor_faults(state: proto.RobotState, faults: dict) -> proto.RobotState:
@@ -229,10 +243,12 @@ class SimGo1Server:
         self.tick = 0
         self.client = None
         self.command = None
+        self.command_time_s = 0.0  # perf_counter when the newest command arrived
+        self._pending: list = []  # datagrams received since the last tick: (bytes, address)
         self.torque = np.zeros(12)
         self.stats = {"commands": 0, "bad_packets": 0, "states_sent": 0, "max_abs_tau_cmd_nm": 0.0,
                       "min_kp_cmd": float("inf"), "max_kp_cmd": 0.0, "max_kd_cmd": 0.0, "damping_commands": 0}
-        self._last_state = robot_state(self.physics.observation(), self.torque, self.tick)
+        self._last_state = robot_state(self.physics.sense(), self.torque, self.tick)
 
     @property
     def ports(self) -> tuple[int, int]:
@@ -277,14 +293,20 @@ class SimGo1Server:
 
     # --------------------------------------------------------------------------------------------- robot port
 
-    def _receive_commands(self) -> int:
-        """Drain the robot socket; keep the newest valid command. Returns the number of valid commands."""
-        n = 0
+    def _receive_commands(self) -> None:
+        """Drain the robot socket into the pending datagrams (decoded at the next tick, :meth:`_take_commands`: a
+        command's arrival costs the sender's CPU no more than a receive) and note when the newest arrived."""
         while True:
             try:
-                data, addr = self.sock.recvfrom(2048)
+                self._pending.append(self.sock.recvfrom(2048))
             except BlockingIOError:
-                return n
+                return
+            self.command_time_s = time.perf_counter()
+
+    def _take_commands(self) -> int:
+        """Decode the pending datagrams; keep the newest valid command. Returns the number of valid commands."""
+        n = 0
+        for data, addr in self._pending:
             try:
                 cmd = proto.decode_low_cmd(data)
             except proto.ProtocolError:
@@ -299,6 +321,8 @@ class SimGo1Server:
             s["max_kd_cmd"] = max(s["max_kd_cmd"], float(np.max(cmd.kd_nm_s_rad)))
             if np.all(cmd.kp_nm_rad == 0) and np.all(cmd.tau_nm == 0) and np.all(cmd.kd_nm_s_rad > 0):
                 s["damping_commands"] += 1
+        self._pending.clear()
+        return n
 
     def _tick_once(self) -> None:
         """Motor law, one physics step, and (fault permitting) one LowState to the client."""
@@ -306,7 +330,7 @@ class SimGo1Server:
         if "freeze_tick" not in faults:
             self.torque = self.physics.step(self.command, float(faults.get("push_roll_nm", 0.0)))
             self.tick += 1
-            self._last_state = robot_state(self.physics.observation(), self.torque, self.tick)
+            self._last_state = robot_state(self.physics.sense(), self.torque, self.tick)
         else:
             self.tick += 1  # the server's clock runs on, the reported state (and its tick) does not
         if "silence" in faults or "drop" in faults or self.client is None:
@@ -332,23 +356,48 @@ class SimGo1Server:
             readable, _, _ = select.select([self.sock, self.ctrl], [], [], timeout)
             if self.ctrl in readable:
                 self._handle_control()
-            new_commands = self._receive_commands() if self.sock in readable else 0
-            if self.command is None:
-                next_deadline = None
-                continue
-            if self.pacing == "lockstep":
-                for _ in range(new_commands):
+            if self.sock in readable:
+                self._receive_commands()
+            if self.pacing == "lockstep":  # one step per command, at once
+                for _ in range(self._take_commands()):
                     self._tick_once()
                 continue
+            if self.command is None:  # frozen until the first valid command, which starts the clock
+                self._take_commands()
+                if self.command is None:
+                    next_deadline = None
+                    continue
             now = time.perf_counter()
             if next_deadline is None:
                 next_deadline = now
             if now >= next_deadline:
+                self._take_commands()
                 self._tick_once()
-                # Absolute deadlines; after a long stall the clock jumps ahead instead of bursting catch-up steps.
-                next_deadline = max(next_deadline + TICK_S, time.perf_counter() - TICK_S)
+                # Absolute deadlines, their phase locked to the commands'; after a stall the clock skips the missed
+                # periods (no burst of catch-up steps).
+                next_deadline += TICK_S + phase_correction(self.command_time_s, next_deadline + TICK_S)
+                late_s = time.perf_counter() - next_deadline
+                if late_s > 0.0:
+                    next_deadline += (late_s // TICK_S + 1) * TICK_S
         self.sock.close()
         self.ctrl.close()
+
+
+# The real-time clock's phase lock: each tick moves the next deadline a fraction of the way towards this long after
+# the newest command's arrival (modulo the period), at most PHASE_STEP_MAX_S per tick. Locked, the simulated Go1
+# ticks just after each command: sharing a CPU with the loop, its tick falls in the loop's idle time instead of
+# preempting it, and the state reaches the loop before its next tick (as a robot whose boards are synchronised to
+# the controller, like EtherCAT's distributed clocks). The rate stays 1 kHz: without commands the phase stays put.
+PHASE_AFTER_COMMAND_S = 100e-6
+PHASE_GAIN = 0.1
+PHASE_STEP_MAX_S = 20e-6
+
+
+def phase_correction(command_time_s: float, deadline_s: float) -> float:
+    """The shift [s] of the deadline ``deadline_s`` towards the phase PHASE_AFTER_COMMAND_S after a command that
+    arrived at ``command_time_s`` (same clock), bounded by PHASE_STEP_MAX_S."""
+    error = (command_time_s + PHASE_AFTER_COMMAND_S - deadline_s + TICK_S / 2) % TICK_S - TICK_S / 2
+    return min(max(PHASE_GAIN * error, -PHASE_STEP_MAX_S), PHASE_STEP_MAX_S)
 
 
 def cpus_besides(loop_cpu: int | None) -> set[int] | None:
@@ -464,7 +513,9 @@ def main(argv=None) -> None:
     cpu_dispatch.request_inline()
     server = SimGo1Server(args.port, args.control_port, args.pacing, friction=args.friction,
                           slope_deg=args.slope_deg, payload_kg=args.payload_kg, physics=args.physics)
-    server.physics.observation()  # compile the sensor model before announcing readiness
+    note = memory_lock.lock()  # a robot's motor boards never wait on a disk; nor may their stand-in
+    if note != "memory locked":
+        print(note, file=sys.stderr)
     print("READY", *server.ports, flush=True)
     server.serve_forever()
 
