@@ -500,8 +500,9 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
     p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
                    help="sim only: the simulated Go1's physics profile (docs/physics.md)")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
-    p.add_argument("--cpu", type=_cpu, help="pin the loop to this CPU (sim: the simulated Go1 to the others; "
-                   "default: not pinned)")
+    p.add_argument("--cpu", type=_cpu, help="pin the loop to this CPU (the optimizer and the log writer run on the "
+                   "others; a simulated Go1 in real time shares the loop's CPU; default: the last CPU with a "
+                   "simulated Go1 in real time, else not pinned)")
     p.add_argument("--busy-wait", action="store_true",
                    help="spin through each period instead of sleeping (with --cpu; with --no-realtime unless the "
                    "kernel's real-time throttling is off); fewer overruns on a VM (docs/hardware.md)")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import socket
 
 import numpy as np
@@ -30,9 +31,38 @@ log = logging.getLogger(__name__)
 def loop_and_safety(args):
     """(LoopConfig, SafetyConfig) of the command line's options, the safety limits checked
     (:func:`go1_safety.check_safety`)."""
-    return (hio.LoopConfig(realtime_priority=None if args.no_realtime else 80, cpu=args.cpu,
+    return (hio.LoopConfig(realtime_priority=None if args.no_realtime else LOOP_PRIORITY, cpu=loop_cpu(args),
                            busy_wait=args.busy_wait),
             go1_safety.check_safety(go1_safety.SafetyConfig(power_level=args.power_level)))
+
+
+LOOP_PRIORITY = 80  # SCHED_FIFO of the 1 kHz loop
+SIM_PRIORITY = 85  # the simulated Go1's, above the loop's: it stands in for the robot, whose clock nothing stops
+LOG_WRITER_PRIORITY = 75  # the per-tick log's writer thread, when the loop is real time (see tick_log)
+
+
+def loop_cpu(args) -> int | None:
+    """The CPU the loop is pinned to: ``--cpu``; else, with the simulated Go1 in real time, the machine's last CPU,
+    which the loop and the simulated Go1 then share (a stall of that virtual CPU stops the simulated robot's clock
+    with the loop's, docs/hardware.md); else None (not pinned)."""
+    if args.cpu is not None or args.robot != "sim" or args.sim_pacing != "realtime":
+        return args.cpu
+    cpus = sorted(os.sched_getaffinity(0))
+    return cpus[-1] if len(cpus) > 1 else None
+
+
+def other_cpus(loop: hio.LoopConfig) -> set[int] | None:
+    """The CPUs for everything but the loop (and the simulated Go1): the optimizer, the per-tick log's writer.
+    None: the loop is not pinned, or no other CPU is left."""
+    return None if loop.cpu is None else (set(os.sched_getaffinity(0)) - {loop.cpu}) or None
+
+
+def tick_log_writer(path, loop: hio.LoopConfig) -> tick_log.TickLogWriter:
+    """The per-tick log's writer for ``loop``: on the other CPUs, and at real-time priority below the loop's when
+    the loop has one (a writer thread that holds the GIL must not be preempted by the simulated Go1 while the loop
+    waits for it)."""
+    return tick_log.TickLogWriter(path, cpus=other_cpus(loop),
+                                  realtime_priority=None if loop.realtime_priority is None else LOG_WRITER_PRIORITY)
 
 
 def robot_mass_kg(payload_kg: float) -> float:
@@ -45,11 +75,15 @@ def connect(args):
     """(transport, simulated Go1 client or None) for the robot of the command line; both closed on exit."""
     server = None
     if args.robot == "sim":
-        # The simulated robot shares this machine's CPUs: real-time priority (below the loop's) keeps other
-        # processes, the optimizer included, from starving it. With --cpu it runs on the other CPUs.
+        # The simulated robot shares the loop's CPU (loop_cpu), at a real-time priority above the loop's: nothing on
+        # the machine delays its ticks, as nothing on the robot's computer delays the robot's, and a stall of that
+        # virtual CPU stops both. Its clock runs half a period out of phase with the loop's (sim_server), so in
+        # the steady state its tick falls between the loop's command and the loop's next tick.
+        cpu = loop_cpu(args)
         server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
-                                  payload_kg=args.payload_kg, realtime_priority=None if args.no_realtime else 70,
-                                  cpus=sim.cpus_besides(args.cpu), physics=args.physics)
+                                  payload_kg=args.payload_kg,
+                                  realtime_priority=None if args.no_realtime else SIM_PRIORITY,
+                                  cpus=None if cpu is None else {cpu}, physics=args.physics)
         ip, port, local_port = server.address[0], server.port, 0
     else:
         ip, port, local_port = args.robot_ip, args.robot_port, args.local_port
@@ -91,7 +125,7 @@ def run(args) -> int:
              calibration.newton_per_count)
     calibration.save(args.log_dir / "calibration.json")
     hint = stale_hint(args)
-    with connect(args) as (transport, _), tick_log.TickLogWriter(args.log_dir / tick_log.FILE_NAME) as ticks:
+    with connect(args) as (transport, _), tick_log_writer(args.log_dir / tick_log.FILE_NAME, loop) as ticks:
         controller = compiled_controller.CompiledController()
         if args.optimize:
             spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
