@@ -418,7 +418,8 @@ def fresh_run_folder(parent: pathlib.Path) -> pathlib.Path:
 
 def _calibrate(args) -> int:
     try:
-        study_io.claim_file(args.out, overwrite=args.overwrite)
+        for path in (args.out, *calibrate.tick_log_paths(args.out).values()):
+            study_io.claim_file(path, overwrite=args.overwrite)
     except study_spec.StudyError as err:
         print(f"cpgjax deploy calibrate: {err}", file=sys.stderr)
         return 2
@@ -610,7 +611,8 @@ def _add_deploy(sub) -> None:
         "calibration to raw counts → N.", formatter_class=_HelpFormatter)
     _add_robot_args(c)
     c.add_argument("--out", type=pathlib.Path, default=pathlib.Path("go1_calibration.json"),
-                   help="calibration JSON to write (an existing one needs --overwrite)")
+                   help="calibration JSON to write, each measuring stand's per-tick log next to it "
+                   "(NAME.air.ticks.arrows, NAME.standing.ticks.arrows; existing ones need --overwrite)")
     c.add_argument("--air-s", type=_in(limits.MEASURE_S), default=2.0,
                    help="measuring time with the feet in the air [s]")
     c.add_argument("--stand-s", type=_in(limits.MEASURE_S), default=3.0, help="measuring time standing still [s]")

@@ -22,8 +22,8 @@ import pytest
 from cpgjax import cli, cpg
 from cpgjax import hardware_io as hio
 from cpgjax.go1 import constants
+from cpgjax.robot import calibrate, deploy, foot_force, tick_log
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import deploy, foot_force
 from cpgjax.robot import protocol as proto
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
@@ -400,8 +400,6 @@ def test_deploy_optimize_starts_from_the_optimizers_random_proposal(tmp_path):
 # ------------------------------------------------------------------------------------- foot-force calibration
 
 def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robot, tmp_path):
-    from cpgjax.robot import calibrate
-
     def lifted(hung_up):
         if hung_up:
             robot.reset()
@@ -432,6 +430,20 @@ def test_deploy_calibrate_command_writes_the_file_the_loop_loads(tmp_path):
     np.testing.assert_allclose(cal.newton_per_count, deploy.sim_calibration().newton_per_count, rtol=0.02)
     info = json.loads(out.read_text())
     assert info["robot"] == "sim" and info["air_samples"] >= 250 and info["standing_samples"] >= 450
+    # Each stand's per-tick log, as a deploy run keeps one: the air stand's feet carry nothing, the standing
+    # stand's carry the robot (raw counts well above their offsets).
+    logs = calibrate.tick_log_paths(out)
+    feet = {}
+    for stand, path in logs.items():
+        table, complete = tick_log.read_tick_log(path)
+        phase = table["phase"].to_numpy()
+        assert complete and np.any(phase == hio.STAND) and phase[-1] == hio.DAMP
+        raw = np.stack(table["foot_force_raw"].to_numpy(zero_copy_only=False))[phase == hio.STAND]
+        feet[stand] = np.mean(raw, axis=0) - deploy.sim_calibration().offset_counts
+    assert np.all(np.abs(feet["air"]) < 2) and np.all(feet["standing"] > 20), feet
+    # A second calibration into the same name is refused before anything moves (its tick logs included).
+    out.unlink()
+    assert cli.main(["deploy", "calibrate", "--robot", "sim", "--sim-pacing", "lockstep", "--out", str(out)]) == 2
 
 
 def test_go1_profile_foot_sensor_is_recovered_by_deploy_calibrate(tmp_path):

@@ -8,19 +8,22 @@ on the ground (one scale makes the four feet carry the robot's weight), fitted b
 FILE`` loads it and the loop converts every reading to Newtons with it.
 
 On the robot an operator hangs it up and puts it down when asked; the simulated Go1 (``--robot sim``) is lifted
-and put down through its control port.
+and put down through its control port. Each stand keeps a per-tick log next to the calibration file
+(:func:`tick_log_paths`: ``<name>.air.ticks.arrows``, ``<name>.standing.ticks.arrows``), as a deploy run does.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
+from pathlib import Path
 from typing import Callable, NamedTuple
 
 import numpy as np
 
 from cpgjax import hardware_io as hio
-from cpgjax.robot import deploy, foot_force
+from cpgjax.robot import deploy, foot_force, tick_log
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
 
@@ -37,17 +40,29 @@ class Measurement(NamedTuple):
     standing_counts: np.ndarray  # (M, 4) raw counts, standing still
 
 
+STANDS = ("air", "standing")
+
+
+def tick_log_paths(out: Path) -> dict[str, Path]:
+    """The per-tick log of each measuring stand, next to the calibration file ``out``."""
+    out = Path(out)
+    return {stand: out.with_name(f"{out.stem}.{stand}.{tick_log.FILE_NAME}") for stand in STANDS}
+
+
 def measure_counts(transport: go1_transport.Transport, measure_s: float, settle_s: float, loop: hio.LoopConfig,
-                   safety: go1_safety.SafetyConfig) -> np.ndarray:
+                   safety: go1_safety.SafetyConfig, tick_log_path: Path | None = None) -> np.ndarray:
     """Raw foot counts (K, 4) of the robot states received while the loop holds the standing pose, after the first
-    ``settle_s`` of holding it.
+    ``settle_s`` of holding it. ``tick_log_path``: where the stand's per-tick log goes (None: not kept).
 
     Raises:
       CalibrationError: the stand ended with a safety trip, or no state arrived in the measuring window.
     """
-    result = hio.stand(transport, settle_s + measure_s, loop, safety)
+    with contextlib.ExitStack() as files:
+        sink = None if tick_log_path is None else files.enter_context(deploy.tick_log_writer(tick_log_path, loop))
+        result = hio.stand(transport, settle_s + measure_s, loop, safety, sink)
     if result.trip is not None:
-        raise CalibrationError(f"the measuring stand stopped: {result.trip}")
+        kept = "" if tick_log_path is None else f" (per-tick log {tick_log_path})"
+        raise CalibrationError(f"the measuring stand stopped: {result.trip}{kept}")
     ticks = result.log
     window = np.flatnonzero(ticks.phase == hio.STAND)[round(settle_s / loop.period_s):]
     counts = ticks.foot_force_raw[window[ticks.fresh[window]]]
@@ -58,13 +73,16 @@ def measure_counts(transport: go1_transport.Transport, measure_s: float, settle_
 
 def measure(transport: go1_transport.Transport, total_mass_kg: float, lifted: Callable[[bool], None],
             air_s: float = 2.0, stand_s: float = 3.0, settle_s: float = 1.0, loop: hio.LoopConfig = hio.LoopConfig(),
-            safety: go1_safety.SafetyConfig = go1_safety.SafetyConfig()) -> Measurement:
+            safety: go1_safety.SafetyConfig = go1_safety.SafetyConfig(),
+            tick_logs: dict[str, Path] | None = None) -> Measurement:
     """The two measuring stands and the fit. ``lifted(True)`` must leave the robot hung up with its feet in the air,
-    ``lifted(False)`` put it down on the ground (it stands up in the second stand)."""
+    ``lifted(False)`` put it down on the ground (it stands up in the second stand). ``tick_logs``: each stand's
+    per-tick log path (:func:`tick_log_paths`; None: not kept)."""
+    logs = tick_logs or {}
     lifted(True)
-    air = measure_counts(transport, air_s, settle_s, loop, safety)
+    air = measure_counts(transport, air_s, settle_s, loop, safety, logs.get("air"))
     lifted(False)
-    standing = measure_counts(transport, stand_s, settle_s, loop, safety)
+    standing = measure_counts(transport, stand_s, settle_s, loop, safety, logs.get("standing"))
     return Measurement(foot_force.calibrate_foot_force(air, standing, total_mass_kg), air, standing)
 
 
@@ -87,7 +105,8 @@ def run(args) -> int:
     with deploy.connect(args) as (transport, server):
         lifted = _ask_operator if server is None else _sim_lifter(server, args.lift_m)
         try:
-            m = measure(transport, mass_kg, lifted, args.air_s, args.stand_s, args.settle_s, loop, safety)
+            m = measure(transport, mass_kg, lifted, args.air_s, args.stand_s, args.settle_s, loop, safety,
+                        tick_log_paths(args.out))
         except (CalibrationError, ValueError) as e:
             print(f"cpgjax deploy calibrate: {e}", file=sys.stderr)
             return 2
@@ -99,5 +118,5 @@ def run(args) -> int:
                        standing_n=standing_n.round(2).tolist())
     print(f"offsets {m.calibration.offset_counts} counts, {m.calibration.newton_per_count[0]:.4f} N/count; "
           f"standing: {standing_n.round(1)} N per foot (sum {standing_n.sum():.1f} N = {mass_kg:.2f} kg · g); "
-          f"saved {args.out}")
+          f"saved {args.out} (per-tick logs: {', '.join(str(p) for p in tick_log_paths(args.out).values())})")
     return 0
