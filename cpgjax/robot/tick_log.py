@@ -73,6 +73,9 @@ class TickLogWriter:
         self.ticks = 0
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._error: BaseException | None = None
+        # Convert one tick of a log once, unwritten, before the loop runs: the first conversion's one-time work held
+        # the GIL for milliseconds while the loop waited for it (3-8 ms stalls of the loop after its first batch).
+        self._columns(hio.TickLog.allocate(1), slice(0, 1), range(0, 1), 0.0)
         # Started here, before the loop takes real-time priority; the thread sets its own CPUs and priority.
         self._thread = threading.Thread(target=self._drain, name="tick-log-writer", daemon=True)
         self._thread.start()
@@ -96,15 +99,18 @@ class TickLogWriter:
                 except BaseException as e:  # reported by close()
                     self._error = e
 
-    def _write_batch(self, log: hio.TickLog, rows: slice, ticks: range) -> None:
-        if self._t0 is None:
-            self._t0 = float(log.t_start_s[rows][0]) if len(ticks) else 0.0
-        columns = [pa.array(np.arange(ticks.start, ticks.stop)), pa.array(log.t_start_s[rows] - self._t0)]
+    def _columns(self, log: hio.TickLog, rows: slice, ticks: range, t0: float) -> pa.RecordBatch:
+        columns = [pa.array(np.arange(ticks.start, ticks.stop)), pa.array(log.t_start_s[rows] - t0)]
         columns += [pa.array(getattr(log, name)[rows], kind) for name, kind in _SCALARS.items()]
         for name, width in _VECTORS.items():
             values = getattr(log, name)[rows]
             columns.append(pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), width))
-        self._writer.write_batch(pa.RecordBatch.from_arrays(columns, schema=self._schema))
+        return pa.RecordBatch.from_arrays(columns, schema=self._schema)
+
+    def _write_batch(self, log: hio.TickLog, rows: slice, ticks: range) -> None:
+        if self._t0 is None:
+            self._t0 = float(log.t_start_s[rows][0]) if len(ticks) else 0.0
+        self._writer.write_batch(self._columns(log, rows, ticks, self._t0))
         self.ticks = ticks.stop
 
     def close(self) -> None:
