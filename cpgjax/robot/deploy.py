@@ -157,8 +157,11 @@ def report(args, result: hio.LoopResult) -> int:
     (args.log_dir / "run.json").write_text(json.dumps(summary, indent=1))
     ended = (f"safety trip: {result.trip}" if result.trip else "stopped by Ctrl-C (damped)" if result.stopped
              else "clean end")
-    log.info("%s; per-tick log %s\n%s", ended, args.log_dir / tick_log.FILE_NAME,
-             hio.timing_table(summary["timing"], deadlines=not lockstep))
+    shared = ("\nthe simulated Go1 shared the loop's CPU: its ticks are in these figures "
+              "(the loop on a CPU of its own: benchmarks/hardware_loop.py)"
+              if args.robot == "sim" and not lockstep and loop_cpu(args) is not None else "")
+    log.info("%s; per-tick log %s\n%s%s", ended, args.log_dir / tick_log.FILE_NAME,
+             hio.timing_table(summary["timing"], deadlines=not lockstep), shared)
     return 2 if result.trip else 130 if result.stopped else 0
 
 
