@@ -155,7 +155,7 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     the figures."""
     busy = mode == "busy-wait"
     cpu = args.cpu if args.cpu is not None or not busy else max(os.sched_getaffinity(0))
-    sim_cpus = sim.cpus_besides(cpu)
+    sim_cpus = hio.cpus_besides(cpu)
     loop_priority = None if args.no_realtime or busy else 80
     load_start = os.getloadavg()[0]
     # The simulated robot gets real-time priority too (just below the loop's): a real Go1 is not starved by this

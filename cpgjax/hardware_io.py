@@ -273,9 +273,17 @@ def _enter_realtime(loop: LoopConfig):
     if loop.lock_memory:
         note = memory_lock.lock()
         notes.append(note)
-        if note == "memory locked":
+        if note == memory_lock.LOCKED:
             restores.append(memory_lock.unlock)
     return ", ".join(notes) or "default scheduling", restore
+
+
+def cpus_besides(loop_cpu: int | None) -> set[int] | None:
+    """The CPUs this process may use other than the loop's (for the optimizer, the per-tick log's writer, or a
+    simulated Go1 kept apart), or None: no loop CPU given, or no other CPU left."""
+    if loop_cpu is None:
+        return None
+    return (set(os.sched_getaffinity(0)) - {loop_cpu}) or None
 
 
 def rt_throttling() -> tuple[int, int] | None:

@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 
+from cpgjax import hardware_io as hio
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1.constants import GRAVITY_MPS2
@@ -88,7 +89,7 @@ def test_deploy_puts_the_simulated_go1_on_the_loops_cpu_and_the_rest_elsewhere()
     assert deploy.loop_cpu(_deploy_args(cpu=cpus[0])) == cpus[0]
     loop, _ = deploy.loop_and_safety(_deploy_args())
     assert loop.cpu == realtime and loop.lock_memory
-    others = deploy.other_cpus(loop)
+    others = hio.cpus_besides(loop.cpu)
     if realtime is not None:
         assert others == set(cpus) - {realtime}
     assert deploy.SIM_PRIORITY > deploy.LOOP_PRIORITY > deploy.LOG_WRITER_PRIORITY

@@ -57,8 +57,8 @@ def measure_counts(transport: go1_transport.Transport, measure_s: float, settle_
     Raises:
       CalibrationError: the stand ended with a safety trip, or no state arrived in the measuring window.
     """
-    with contextlib.ExitStack() as files:
-        sink = None if tick_log_path is None else files.enter_context(deploy.tick_log_writer(tick_log_path, loop))
+    writer = contextlib.nullcontext() if tick_log_path is None else deploy.tick_log_writer(tick_log_path, loop)
+    with writer as sink:
         result = hio.stand(transport, settle_s + measure_s, loop, safety, sink)
     if result.trip is not None:
         kept = "" if tick_log_path is None else f" (per-tick log {tick_log_path})"
@@ -102,11 +102,12 @@ def run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     loop, safety = deploy.loop_and_safety(args)
     mass_kg = args.mass_kg if args.mass_kg is not None else deploy.robot_mass_kg(args.payload_kg)
+    tick_logs = tick_log_paths(args.out)
     with deploy.connect(args) as (transport, server):
         lifted = _ask_operator if server is None else _sim_lifter(server, args.lift_m)
         try:
             m = measure(transport, mass_kg, lifted, args.air_s, args.stand_s, args.settle_s, loop, safety,
-                        tick_log_paths(args.out))
+                        tick_logs)
         except (CalibrationError, ValueError) as e:
             print(f"cpgjax deploy calibrate: {e}", file=sys.stderr)
             return 2
@@ -118,5 +119,5 @@ def run(args) -> int:
                        standing_n=standing_n.round(2).tolist())
     print(f"offsets {m.calibration.offset_counts} counts, {m.calibration.newton_per_count[0]:.4f} N/count; "
           f"standing: {standing_n.round(1)} N per foot (sum {standing_n.sum():.1f} N = {mass_kg:.2f} kg · g); "
-          f"saved {args.out} (per-tick logs: {', '.join(str(p) for p in tick_log_paths(args.out).values())})")
+          f"saved {args.out} (per-tick logs: {', '.join(str(p) for p in tick_logs.values())})")
     return 0

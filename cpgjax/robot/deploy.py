@@ -51,17 +51,11 @@ def loop_cpu(args) -> int | None:
     return cpus[-1] if len(cpus) > 1 else None
 
 
-def other_cpus(loop: hio.LoopConfig) -> set[int] | None:
-    """The CPUs for everything but the loop (and the simulated Go1): the optimizer, the per-tick log's writer.
-    None: the loop is not pinned, or no other CPU is left."""
-    return None if loop.cpu is None else (set(os.sched_getaffinity(0)) - {loop.cpu}) or None
-
-
 def tick_log_writer(path, loop: hio.LoopConfig) -> tick_log.TickLogWriter:
     """The per-tick log's writer for ``loop``: on the other CPUs, and at real-time priority below the loop's when
     the loop has one (a writer thread that holds the GIL must not be preempted by the simulated Go1 while the loop
     waits for it)."""
-    return tick_log.TickLogWriter(path, cpus=other_cpus(loop),
+    return tick_log.TickLogWriter(path, cpus=hio.cpus_besides(loop.cpu),
                                   realtime_priority=None if loop.realtime_priority is None else LOG_WRITER_PRIORITY)
 
 
@@ -77,8 +71,8 @@ def connect(args):
     if args.robot == "sim":
         # The simulated robot shares the loop's CPU (loop_cpu), at a real-time priority above the loop's: nothing on
         # the machine delays its ticks, as nothing on the robot's computer delays the robot's, and a stall of that
-        # virtual CPU stops both. Its clock runs half a period out of phase with the loop's (sim_server), so in
-        # the steady state its tick falls between the loop's command and the loop's next tick.
+        # virtual CPU stops both. Its clock's phase is locked to the loop's commands (sim_server.phase_correction),
+        # so in the steady state its tick falls between the loop's command and the loop's next tick.
         cpu = loop_cpu(args)
         server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
                                   payload_kg=args.payload_kg,

@@ -18,6 +18,7 @@ import ctypes.util
 import os
 
 _MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4  # <sys/mman.h>, the same on every Linux architecture
+LOCKED = "memory locked"  # lock()'s note when it succeeded
 
 
 def _libc():
@@ -26,7 +27,7 @@ def _libc():
 
 def lock() -> str:
     """Keep every page of the process that is in memory, now or later, in memory; return what was done, as a note
-    ("memory locked", or why not). Pages are locked as they are touched (``MCL_ONFAULT``, Linux ≥ 4.4): the
+    (:data:`LOCKED`, or why not). Pages are locked as they are touched (``MCL_ONFAULT``, Linux ≥ 4.4): the
     address space that JAX and the allocators reserve but never use is not filled in (locking it all at once
     stalled a process for seconds)."""
     try:
@@ -35,7 +36,7 @@ def lock() -> str:
         return f"memory not locked (no C library: {e})"
     if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE | _MCL_ONFAULT) != 0:
         return f"memory not locked (mlockall: {os.strerror(ctypes.get_errno())})"
-    return "memory locked"
+    return LOCKED
 
 
 def unlock() -> None:

@@ -400,14 +400,6 @@ def phase_correction(command_time_s: float, deadline_s: float) -> float:
     return min(max(PHASE_GAIN * error, -PHASE_STEP_MAX_S), PHASE_STEP_MAX_S)
 
 
-def cpus_besides(loop_cpu: int | None) -> set[int] | None:
-    """The CPUs this process may use other than the loop's (for the simulated Go1), or None: no loop CPU given, or no
-    other CPU left."""
-    if loop_cpu is None:
-        return None
-    return (set(os.sched_getaffinity(0)) - {loop_cpu}) or None
-
-
 class SimGo1Client:
     """Start the simulated Go1 in a child process and talk to its control port.
 
@@ -514,7 +506,7 @@ def main(argv=None) -> None:
     server = SimGo1Server(args.port, args.control_port, args.pacing, friction=args.friction,
                           slope_deg=args.slope_deg, payload_kg=args.payload_kg, physics=args.physics)
     note = memory_lock.lock()  # a robot's motor boards never wait on a disk; nor may their stand-in
-    if note != "memory locked":
+    if note != memory_lock.LOCKED:
         print(note, file=sys.stderr)
     print("READY", *server.ports, flush=True)
     server.serve_forever()

@@ -348,9 +348,8 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
     """
     Path(spec.log_dir).mkdir(parents=True, exist_ok=True)
     loop = loop or hio.LoopConfig()
-    others = set(os.sched_getaffinity(0)) - {loop.cpu}
-    spec = spec._replace(steady_steps=timing.steady_steps,
-                         cpus=tuple(sorted(others)) if loop.cpu is not None and others else None)
+    others = hio.cpus_besides(loop.cpu)
+    spec = spec._replace(steady_steps=timing.steady_steps, cpus=tuple(sorted(others)) if others else None)
     context = multiprocessing.get_context("spawn")  # never fork a process that has started JAX
     conn, worker_conn = context.Pipe()
     worker = context.Process(target=_optimizer_worker, args=(worker_conn, spec), daemon=True)
