@@ -62,8 +62,8 @@ def check_calibration(cal: FootForceCalibration, what: str = "calibration") -> F
     Raises:
       ValueError: the message names the field, the foot, the value and the allowed range.
     """
-    low, high = N_PER_COUNT_RANGE
-    for key, (lo, hi), unit in (("offset_counts", COUNT_RANGE, "counts"), ("newton_per_count", (low, high), "N/count")):
+    for key, (lo, hi), unit in (("offset_counts", COUNT_RANGE, "counts"), ("newton_per_count", N_PER_COUNT_RANGE,
+                                                                            "N/count")):
         values = np.asarray(getattr(cal, key), np.float64)
         if values.shape != (NUM_FEET,):
             raise ValueError(f"{what}: {key} needs exactly {NUM_FEET} values (FR, FL, RR, RL), got {values.tolist()}")
