@@ -7,21 +7,23 @@ run. Targets (issue 5): step p99 ≤ 200 µs; period p99 within ±100 µs of 1 m
 
 An overrun is a tick whose work ended after the next deadline (``hardware_io.run_loop``); each is attributed to the
 largest share of its time (``hardware_io.overrun_causes``): a late start, the loop thread not running during the
-work, or the work's own CPU time. Before the loop, a probe busy-waits on the loop's CPU at the loop's priority and
-counts the stalls during which its thread did not run (on a VM: the hypervisor descheduling the virtual CPU, which
-no code in the guest can prevent); a stall of a millisecond makes one overrun wherever it falls in the tick.
+work, or the work's own CPU time. Before the loop, a probe measures this machine's floor: the same wait at the same
+scheduling with no work in the ticks (``hardware_io.idle_loop_lateness_s``). A wake-up later than the period minus
+the loop's median work is an overrun whatever the tick does (on a VM: the hypervisor stopping or waking the virtual
+CPU late, which no code in the guest can prevent); the probe counts those per 10k ticks next to the loop's overruns.
 
-Two ways to wait for the next deadline are measured, one after the other:
+In both modes the loop is pinned to the last CPU (or ``--cpu``), as ``cpgjax deploy`` pins it on the robot, and the
+simulated Go1, which stands in for the robot's own computer, runs on the others. Idle CPUs poll instead of halting
+(``LoopConfig.poll_idle``, as deploy; ``--idle-halt`` lets them halt). Two ways to wait for the next deadline are
+measured, one after the other:
 
 - ``sleep``: SCHED_FIFO 80 (when permitted), sleep until ``--spin-us`` before the deadline, then spin (the default
-  of ``cpgjax deploy``); ``--cpu N`` pins the loop to CPU N and the simulated Go1 to the others.
+  of ``cpgjax deploy``).
 - ``busy-wait``: spin through the whole period (``LoopConfig.busy_wait``), normal priority (the kernel's
-  real-time throttling would stop a SCHED_FIFO thread that never sleeps for 50 ms every second), the loop pinned to
-  the last CPU (or ``--cpu``), the simulated Go1 to the others. On a VM a sleeping virtual CPU is halted and handed
-  back to the host, and wakes up late or slow.
+  real-time throttling would stop a SCHED_FIFO thread that never sleeps for 50 ms every second).
 
-    python benchmarks/hardware_loop.py                     # 60 s of walking per mode (20 s probe)
-    python benchmarks/hardware_loop.py --quick             # 10 s per mode (5 s probe)
+    python benchmarks/hardware_loop.py                     # 60 s of walking per mode (20 s floor probe)
+    python benchmarks/hardware_loop.py --quick             # 10 s per mode (5 s floor probe)
     python benchmarks/hardware_loop.py --modes busy-wait   # one mode
 
 The last line of the output is one JSON object with the figures (units in the names, mode as a key prefix).
@@ -44,39 +46,6 @@ from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.study import files as study_io
 from cpgjax.trial import params
-
-
-def cpu_stalls_us(seconds: float, cpu: int | None, priority: int | None, min_gap_us: float = 200.0) -> np.ndarray:
-    """Stalls [µs] seen by a thread busy-waiting on ``cpu`` at SCHED_FIFO ``priority`` (when permitted): gaps of at
-    least ``min_gap_us`` between two wall-clock readings during which the thread's CPU time advanced by less than
-    half the gap (the thread was not running). Spins in 0.45 s bursts with 50 ms sleeps, below the kernel's
-    real-time throttling (95 % of each second)."""
-    old_affinity = os.sched_getaffinity(0)
-    old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
-    try:
-        if cpu is not None:
-            os.sched_setaffinity(0, {cpu})
-        if priority is not None:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError:
-        pass  # measured at whatever scheduling was permitted
-    stalls, wall, thread = [], time.perf_counter, time.thread_time
-    end = wall() + seconds
-    try:
-        while wall() < end:
-            burst_end = min(end, wall() + 0.45)
-            last, last_cpu = wall(), thread()
-            while last < burst_end:
-                now, now_cpu = wall(), thread()
-                gap = now - last
-                if gap * 1e6 >= min_gap_us and now_cpu - last_cpu < 0.5 * gap:
-                    stalls.append(gap * 1e6)
-                last, last_cpu = now, now_cpu
-            time.sleep(0.05)
-    finally:
-        os.sched_setscheduler(0, old_policy, old_param)
-        os.sched_setaffinity(0, old_affinity)
-    return np.asarray(stalls)
 
 
 def voluntary_waits() -> int:
@@ -154,7 +123,7 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     """Walk ``duration_s`` against a fresh real-time simulated Go1 with the loop waiting as ``mode``; print and return
     the figures."""
     busy = mode == "busy-wait"
-    cpu = args.cpu if args.cpu is not None or not busy else max(os.sched_getaffinity(0))
+    cpu = args.cpu if args.cpu is not None else max(os.sched_getaffinity(0))  # as deploy places it on the robot
     sim_cpus = hio.cpus_besides(cpu)
     loop_priority = None if args.no_realtime or busy else 80
     load_start = os.getloadavg()[0]
@@ -163,11 +132,11 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     with sim.SimGo1Client(pacing="realtime", realtime_priority=None if args.no_realtime else 70,
                           cpus=sim_cpus) as robot:
         controller = compiled_controller.CompiledController()
-        stalls = cpu_stalls_us(probe_s, cpu, loop_priority) if probe_s > 0 else np.zeros(0)
+        loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=cpu, busy_wait=busy,
+                              poll_idle=not args.idle_halt, log_ticks=round((duration_s + 5.0) * 1000))
+        floor_late_s = hio.idle_loop_lateness_s(probe_s, loop) if probe_s > 0 else np.zeros(0)
         transport = (go1_transport.SdkTransport("127.0.0.1", robot.port, deploy._free_port()) if args.transport == "sdk"
                      else go1_transport.UdpTransport(robot.address))
-        loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=cpu, busy_wait=busy,
-                              log_ticks=round((duration_s + 5.0) * 1000))
         stages = StageTimer(transport, controller, loop.log_ticks) if args.stages else None
         t0, waits0 = time.perf_counter(), voluntary_waits()
         try:
@@ -187,8 +156,19 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     print(f"scheduling: {result.realtime}; simulated Go1 on CPUs {sorted(sim_cpus) if sim_cpus else 'any'}; "
           f"spin {'the whole period' if busy else f'{args.spin_us:.0f} µs'}; load average at start {load_start:.2f}, "
           f"at end {os.getloadavg()[0]:.2f}")
-    print(f"CPU-stall probe  {probe_s:.0f} s on CPU {'any' if cpu is None else cpu}: {np.sum(stalls >= 500)} stalls "
-          f"≥ 500 µs ({np.sum(stalls >= 1000)} ≥ 1 ms), max {stalls.max() if stalls.size else 0:.0f} µs")
+    period_s, work_median_s = loop.period_s, timing["work_median_us"] * 1e-6
+    floor = {"floor_wakeups_later_than_period_per_10k": round(float(np.mean(floor_late_s > period_s)) * 1e4, 2)
+             if floor_late_s.size else None,
+             "floor_overruns_per_10k_ticks": round(float(np.mean(floor_late_s + work_median_s > period_s)) * 1e4, 2)
+             if floor_late_s.size else None,
+             "floor_late_p99_us": round(float(np.percentile(floor_late_s, 99)) * 1e6, 1) if floor_late_s.size else None,
+             "floor_late_max_us": round(float(floor_late_s.max()) * 1e6, 1) if floor_late_s.size else None}
+    if floor_late_s.size:
+        print(f"floor (probe)    {probe_s:.0f} s of the same wait with no work: wake-ups p99 "
+              f"{floor['floor_late_p99_us']:.0f} µs late, max {floor['floor_late_max_us']:.0f} µs; later than the "
+              f"period {floor['floor_wakeups_later_than_period_per_10k']:.2f} per 10k, later than the period less "
+              f"the loop's median work {floor['floor_overruns_per_10k_ticks']:.2f} per 10k (the overruns of a loop "
+              f"with that work from its wake-ups alone)")
     print(f"controller step  median {timing['step_median_us']:.1f} µs  p99 {timing['step_p99_us']:.1f} µs  "
           f"max {timing['step_max_us']:.1f} µs   (target p99 ≤ 200 µs)")
     print(f"loop period      median {timing['period_median_us']:.1f} µs  p1 {timing['period_p1_us']:.1f} µs  "
@@ -211,9 +191,7 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
         "scheduling": result.realtime, "sim_cpus": sorted(sim_cpus) if sim_cpus else None,
         "spin_us": duration_s * 1e6 if busy else args.spin_us, "wall_s": round(wall_s, 1),
         "walked_m": round(walked_m, 2), "trip": result.trip, "load_avg_1min_start": round(load_start, 2),
-        "load_avg_1min_end": round(os.getloadavg()[0], 2), "cpu_stalls_ge_500us": int(np.sum(stalls >= 500)),
-        "cpu_stalls_ge_1ms": int(np.sum(stalls >= 1000)),
-        "cpu_stall_max_us": round(float(stalls.max()), 1) if stalls.size else 0.0,
+        "load_avg_1min_end": round(os.getloadavg()[0], 2), **floor,
         **{k: round(v, 2) if isinstance(v, float) else v for k, v in timing.items()},
         "skipped_ticks": result.skipped_ticks, "inline_dispatch": controller.inline_dispatch,
         "blocking_waits_per_tick": round(waits / result.ticks, 3), **stage_figures,
@@ -226,10 +204,14 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="10 s instead of 60 s per mode")
     parser.add_argument("--duration-s", type=float, help="walking time per mode (default 60, --quick 10)")
     parser.add_argument("--probe-s", type=float,
-                        help="CPU-stall probe before each loop (default 20, --quick 5; 0: off)")
+                        help="floor probe (the same wait with no work) before each loop (default 20, --quick 5; "
+                        "0: off)")
+    parser.add_argument("--idle-halt", action="store_true",
+                        help="let idle CPUs halt (LoopConfig.poll_idle off; the default keeps them polling)")
     parser.add_argument("--modes", default="sleep,busy-wait", help="comma list of sleep, busy-wait")
     parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
-    parser.add_argument("--cpu", type=int, help="pin the loop to this CPU and the simulated Go1 to the others")
+    parser.add_argument("--cpu", type=int, help="pin the loop to this CPU (default: the last) and the simulated Go1 "
+                        "to the others")
     parser.add_argument("--spin-us", type=float, default=hio.LoopConfig().spin_s * 1e6,
                         help="sleep mode: spin this long before each deadline instead of sleeping")
     parser.add_argument("--transport", choices=("udp", "sdk"), default="udp")

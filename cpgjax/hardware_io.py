@@ -30,7 +30,7 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD
-from cpgjax.robot import memory_lock
+from cpgjax.robot import cpu_wakeup, memory_lock
 from cpgjax.robot import protocol as proto
 from cpgjax.robot.controller import (
     IN_SIZE,
@@ -117,6 +117,7 @@ class LoopConfig(NamedTuple):
     realtime_priority: int | None = 80  # SCHED_FIFO priority when permitted (None: leave the scheduler alone)
     cpu: int | None = None  # pin the loop thread to this CPU when permitted
     lock_memory: bool = True  # mlockall while the loop runs, when permitted: no page fault waits on a disk
+    poll_idle: bool = True  # idle CPUs poll instead of halting while the loop runs, when permitted (robot.cpu_wakeup)
     log_ticks: int = 120_000  # per-tick log ring buffer (the newest ticks are kept); a multiple of flush_ticks
     flush_ticks: int = 1000  # hand the per-tick log to the sink in batches of this many ticks
 
@@ -237,7 +238,8 @@ def timing_table(timing: dict, deadlines: bool = True) -> str:
 
 
 def _enter_realtime(loop: LoopConfig):
-    """Apply SCHED_FIFO, CPU affinity and memory locking where permitted; return (description, restore function)."""
+    """Apply SCHED_FIFO, CPU affinity, memory locking and polling idle CPUs where permitted; return (description,
+    restore function)."""
     notes, restores = [], []
 
     def restore() -> None:
@@ -275,6 +277,10 @@ def _enter_realtime(loop: LoopConfig):
         notes.append(note)
         if note == memory_lock.LOCKED:
             restores.append(memory_lock.unlock)
+    if loop.poll_idle:
+        note, release = cpu_wakeup.request_polling()
+        notes.append(note)
+        restores.append(release)
     return ", ".join(notes) or "default scheduling", restore
 
 
@@ -345,6 +351,28 @@ def _realtime_section(loop: LoopConfig) -> Iterator[str]:
         gc.enable()
         gc.unfreeze()
         restore()
+
+
+def idle_loop_lateness_s(seconds: float, loop: LoopConfig = LoopConfig()) -> np.ndarray:
+    """How late each wake-up of the loop's wait is [s] with no work in its ticks: ``loop``'s scheduling (priority,
+    CPU, locked memory, polling idle CPUs) and wait (sleep then spin, or busy-wait) for ``seconds``.
+
+    The floor under :func:`run_loop`'s timing on this machine: a wake-up later than the period minus a tick's work
+    is an overrun whatever the tick does, and one later than the period is an overrun even with no work at all. On a
+    VM these come from the host (a virtual CPU stopped or woken late), and no code in the guest removes them.
+    """
+    period_s, wait_spin_s = loop.period_s, loop.period_s if loop.busy_wait else loop.spin_s
+    late = np.full(max(1, round(seconds / period_s)), 0.0)  # every page written before the wait starts
+    with _realtime_section(loop):
+        deadline = time.perf_counter()
+        for k in range(late.shape[0]):
+            now = time.perf_counter()
+            late[k] = now - deadline
+            deadline += period_s
+            if now > deadline + period_s:  # as run_loop: drop the missed deadlines
+                deadline += int((now - deadline) / period_s) * period_s
+            _wait_until(deadline, wait_spin_s)
+    return late
 
 
 def _phase_ticks(loop: LoopConfig) -> tuple[int, ...]:

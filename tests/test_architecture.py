@@ -26,9 +26,9 @@ LAYERS = (
     ("simulation", ("mjx_go1", "sim.native", "sim.backends", "sim.walk")),
     ("studies", ("study.spec", "study.files", "study.figures", "ablation", "study.transfer", "study.registry",
                  "study.launch")),
-    ("robot", ("robot.protocol", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.foot_force",
-               "robot.safety", "robot.controller", "robot.sim_server", "hardware_io", "robot.tick_log", "robot.trials",
-               "robot.deploy", "robot.calibrate")),
+    ("robot", ("robot.protocol", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.cpu_wakeup",
+               "robot.foot_force", "robot.safety", "robot.controller", "robot.sim_server", "hardware_io",
+               "robot.tick_log", "robot.trials", "robot.deploy", "robot.calibrate")),
     ("command line", ("cli",)),
 )
 TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli"}  # the design's modules and the entry point

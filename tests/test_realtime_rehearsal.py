@@ -1,6 +1,6 @@
 """What keeps the real-time rehearsal (``cpgjax deploy --robot sim``) and the robot's loop from stalling: the simulated
 Go1's clock locked to the commands, its cheaper sensor report, where deploy places its processes, locked memory,
-and a finished trial handed to the optimizer without blocking the loop. The trip counts of the rehearsal itself are
+idle CPUs polling, the loop's timing floor, and a finished trial handed to the optimizer without blocking the loop. The trip counts of the rehearsal itself are
 measured by benchmarks/rehearsal.py (real time; not asserted in a test on a shared machine)."""
 
 import argparse
@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1.constants import GRAVITY_MPS2
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import deploy
+from cpgjax.robot import cpu_wakeup, deploy
 from cpgjax.robot import protocol as proto
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import trials as robot_trials
@@ -75,7 +76,8 @@ def test_the_simulated_go1_reports_its_imu_as_the_numpy_attitude_defines_it():
 
 
 def _deploy_args(**kw):
-    base = dict(cpu=None, robot="sim", sim_pacing="realtime", no_realtime=False, busy_wait=False, power_level=9)
+    base = dict(cpu=None, robot="sim", sim_pacing="realtime", no_realtime=False, busy_wait=False, power_level=9,
+                idle_halt=False)
     return argparse.Namespace(**{**base, **kw})
 
 
@@ -84,11 +86,12 @@ def test_deploy_puts_the_simulated_go1_on_the_loops_cpu_and_the_rest_elsewhere()
     realtime = deploy.loop_cpu(_deploy_args())
     assert realtime == (cpus[-1] if len(cpus) > 1 else None)
     assert deploy.loop_cpu(_deploy_args(sim_pacing="lockstep")) is None  # no deadlines: nothing to protect
-    assert deploy.loop_cpu(_deploy_args(robot="go1")) is None  # the robot: only --cpu pins
+    assert deploy.loop_cpu(_deploy_args(robot="go1")) == realtime  # the robot: the loop has the last CPU to itself
     assert deploy.loop_cpu(_deploy_args(robot="go1", cpu=cpus[0])) == cpus[0]
     assert deploy.loop_cpu(_deploy_args(cpu=cpus[0])) == cpus[0]
     loop, _ = deploy.loop_and_safety(_deploy_args())
-    assert loop.cpu == realtime and loop.lock_memory
+    assert loop.cpu == realtime and loop.lock_memory and loop.poll_idle
+    assert not deploy.loop_and_safety(_deploy_args(idle_halt=True))[0].poll_idle
     others = hio.cpus_besides(loop.cpu)
     if realtime is not None:
         assert others == set(cpus) - {realtime}
@@ -109,6 +112,71 @@ def test_memory_lock_keeps_the_process_pages_resident():
         assert note.startswith("memory not locked (")
         pytest.skip(note)
     assert int(locked_kb) > 8 * 1024, locked_kb  # at least the 8 MB array touched after the lock
+
+
+def _latency_target_us() -> int:
+    """The kernel's current CPU wake-up latency target (reading /dev/cpu_dma_latency gives it as an s32)."""
+    with open(cpu_wakeup.LATENCY_FILE, "rb") as f:
+        return int.from_bytes(f.read(4), sys.byteorder, signed=True)
+
+
+def _idle_entries() -> tuple[int, int]:
+    """Entries into the polling idle state and into every other idle state, summed over the CPUs (cpuidle's
+    counters)."""
+    poll = other = 0
+    for state in Path("/sys/devices/system/cpu").glob("cpu[0-9]*/cpuidle/state[0-9]*"):
+        usage = int((state / "usage").read_text())
+        if (state / "name").read_text().strip() == "POLL":
+            poll += usage
+        else:
+            other += usage
+    return poll, other
+
+
+def test_the_polling_request_keeps_idle_cpus_from_halting_until_released():
+    """While the request is held the kernel's latency target is 0 and the idle CPUs enter no halting state (its
+    own counters); released, the target is back. Skips where the request is not permitted."""
+    note, release = cpu_wakeup.request_polling()
+    if note != cpu_wakeup.REQUESTED:
+        assert note.startswith("idle CPUs may halt (")
+        pytest.skip(note)
+    try:
+        assert _latency_target_us() == 0
+        time.sleep(0.05)  # idle periods begun before the request end
+        poll_before, halts_before = _idle_entries()
+        time.sleep(0.5)  # this process asleep: the CPUs idle
+        poll_after, halts_after = _idle_entries()
+    finally:
+        release()
+    assert halts_after - halts_before <= 5, (halts_after - halts_before, poll_after - poll_before)
+    assert _latency_target_us() > 0  # no request of ours is left
+
+
+def test_the_polling_request_says_why_it_was_not_made(tmp_path):
+    note, release = cpu_wakeup.request_polling(str(tmp_path / "no_such_device"))
+    assert note.startswith("idle CPUs may halt (") and "No such file" in note
+    release()
+
+
+def test_the_idle_loop_measures_each_wake_up_and_drops_the_deadlines_a_stall_missed(monkeypatch):
+    """One 5 ms stall in the wait: the wake-up after it is ≈5 ms late, the missed deadlines are dropped (the next
+    wake-ups are on time again), and every other wake-up is within a period."""
+    loop = hio.LoopConfig(realtime_priority=None, lock_memory=False, poll_idle=False)
+    wait, calls = hio._wait_until, [0]
+
+    def stalled_wait(deadline, spin_s):
+        calls[0] += 1
+        if calls[0] == 100:
+            time.sleep(0.005)
+        wait(deadline, spin_s)
+
+    monkeypatch.setattr(hio, "_wait_until", stalled_wait)
+    late = hio.idle_loop_lateness_s(0.3, loop)
+    assert late.shape == (300,) and np.isfinite(late).all()
+    assert 0.0035 <= late[100] <= 0.05, late[100]
+    # Back on time at once: the stall's deadlines were dropped (kept, the next wake-ups would be ≈3, 2, 1 ms late).
+    assert min(late[101], late[102]) < 0.5 * loop.period_s, late[100:104]
+    assert np.median(late[:100]) < 0.2 * loop.period_s and np.median(late[101:]) < 0.2 * loop.period_s
 
 
 def test_a_finished_trial_never_blocks_the_loop_while_the_optimizer_is_not_reading():

@@ -32,7 +32,7 @@ def loop_and_safety(args):
     """(LoopConfig, SafetyConfig) of the command line's options, the safety limits checked
     (:func:`go1_safety.check_safety`)."""
     return (hio.LoopConfig(realtime_priority=None if args.no_realtime else LOOP_PRIORITY, cpu=loop_cpu(args),
-                           busy_wait=args.busy_wait),
+                           busy_wait=args.busy_wait, poll_idle=not args.idle_halt),
             go1_safety.check_safety(go1_safety.SafetyConfig(power_level=args.power_level)))
 
 
@@ -42,10 +42,11 @@ LOG_WRITER_PRIORITY = 75  # the per-tick log's writer thread, when the loop is r
 
 
 def loop_cpu(args) -> int | None:
-    """The CPU the loop is pinned to: ``--cpu``; else, with the simulated Go1 in real time, the machine's last CPU,
-    which the loop and the simulated Go1 then share (a stall of that virtual CPU stops the simulated robot's clock
-    with the loop's, docs/hardware.md); else None (not pinned)."""
-    if args.cpu is not None or args.robot != "sim" or args.sim_pacing != "realtime":
+    """The CPU the loop is pinned to: ``--cpu``; else the machine's last CPU, the loop's own on the robot (the
+    optimizer and the per-tick log's writer run on the others). A simulated Go1 in real time shares it with the loop
+    (a stall of that virtual CPU stops the simulated robot's clock with the loop's, docs/hardware.md). Not pinned
+    in lockstep (no deadlines) or on a machine with one CPU."""
+    if args.cpu is not None or (args.robot == "sim" and args.sim_pacing != "realtime"):
         return args.cpu
     cpus = sorted(os.sched_getaffinity(0))
     return cpus[-1] if len(cpus) > 1 else None
