@@ -1,9 +1,11 @@
 """What keeps the real-time rehearsal (``cpgjax deploy --robot sim``) and the robot's loop from stalling: the simulated
 Go1's clock locked to the commands, its cheaper sensor report, where deploy places its processes, locked memory,
-idle CPUs polling, the loop's timing floor, and a finished trial handed to the optimizer without blocking the loop. The trip counts of the rehearsal itself are
-measured by benchmarks/rehearsal.py (real time; not asserted in a test on a shared machine)."""
+idle CPUs polling, the loop's timing floor, the optimizer compiled before the robot walks, and a finished trial
+handed to the optimizer without blocking the loop. The trip counts of the rehearsal itself are measured by
+benchmarks/rehearsal.py (real time; not asserted in a test on a shared machine)."""
 
 import argparse
+import logging
 import multiprocessing
 import os
 import subprocess
@@ -12,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -177,6 +180,23 @@ def test_the_idle_loop_measures_each_wake_up_and_drops_the_deadlines_a_stall_mis
     # Back on time at once: the stall's deadlines were dropped (kept, the next wake-ups would be ≈3, 2, 1 ms late).
     assert min(late[101], late[102]) < 0.5 * loop.period_s, late[100:104]
     assert np.median(late[:100]) < 0.2 * loop.period_s and np.median(late[101:]) < 0.2 * loop.period_s
+
+
+def test_after_its_warm_up_the_optimizer_compiles_nothing_and_proposes_as_a_fresh_one(caplog):
+    """The robot's first proposal must not wait for a compiler: after ``warm_up``, one ``observe`` and one
+    ``propose`` compile nothing (JAX's own compile log), and the warm-up changed neither the state nor the key (the
+    proposal equals a fresh optimizer's after the same observation)."""
+    context, x = np.array([100.0, 0.05]), params.midpoint()
+    warmed = robot_trials.BayesianOptimizer(3, True)
+    warmed.warm_up(x, context, None, 0.7)
+    with caplog.at_level(logging.WARNING), jax.log_compiles(True):
+        warmed.observe(x, context, None, 1.0)
+        proposal = warmed.propose(context)
+    compiled = [r.getMessage()[:120] for r in caplog.records if r.getMessage().startswith("Compiling")]
+    assert not compiled, compiled
+    fresh = robot_trials.BayesianOptimizer(3, True)
+    fresh.observe(x, context, None, 1.0)
+    np.testing.assert_array_equal(proposal, fresh.propose(context))
 
 
 def test_a_finished_trial_never_blocks_the_loop_while_the_optimizer_is_not_reading():

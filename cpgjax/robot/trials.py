@@ -104,11 +104,13 @@ class BayesianOptimizer:
                                            jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32))
 
     def warm_up(self, params, context, record, objective) -> None:
-        """Compile ``observe`` and ``propose`` on a throwaway state (13.4 s on a 2-core machine: done while the robot
-        walked, it left the robot on the old parameters and took the CPUs from the simulated robot)."""
+        """Compile ``observe`` and ``propose`` on a throwaway state, and the key's split (13.4 s on a 2-core
+        machine: done while the robot walked, it left the robot on the old parameters and took the CPUs from the
+        simulated robot). The state and the key stay as they were."""
         state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
                                      jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32))
-        jax.block_until_ready(self._opt.propose(state, jnp.asarray(context, jnp.float32), self._key))
+        _, key = jax.random.split(self._key)  # as propose splits it (the split and the unpacking are compiled)
+        jax.block_until_ready(self._opt.propose(state, jnp.asarray(context, jnp.float32), key))
 
 
 class OptimizerSpec(NamedTuple):
