@@ -14,7 +14,9 @@ CPU late, which no code in the guest can prevent); the probe counts those per 10
 
 In both modes the loop is pinned to the last CPU (or ``--cpu``), as ``cpgjax deploy`` pins it on the robot, and the
 simulated Go1, which stands in for the robot's own computer, runs on the others. Idle CPUs poll instead of halting
-(``LoopConfig.poll_idle``, as deploy; ``--idle-halt`` lets them halt). Two ways to wait for the next deadline are
+(``LoopConfig.poll_idle``, as deploy; ``--idle-halt`` lets them halt). ``--poll-ab S`` compares the two within one
+run, under the same host: the polling request is made and released every S seconds by a thread of the loop's
+process, and the ticks of each kind are counted apart. Two ways to wait for the next deadline are
 measured, one after the other:
 
 - ``sleep``: SCHED_FIFO 80 (when permitted), sleep until ``--spin-us`` before the deadline, then spin (the default
@@ -30,8 +32,10 @@ The last line of the output is one JSON object with the figures (units in the na
 """
 
 import argparse
+import contextlib
 import json
 import os
+import threading
 import time
 
 import numpy as np
@@ -39,7 +43,7 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax import hardware_io as hio
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import cpu_dispatch, deploy
+from cpgjax.robot import cpu_dispatch, cpu_wakeup, deploy
 from cpgjax.robot import protocol as proto
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
@@ -56,6 +60,66 @@ def voluntary_waits() -> int:
             return int(next(line for line in f if line.startswith("voluntary_ctxt_switches")).split()[1])
     except OSError:
         return -1
+
+
+class PollingToggle:
+    """A thread that makes and releases the polling request (``robot.cpu_wakeup``) every ``period_s`` while the loop
+    runs, so that both kinds of ticks see the same host; ``kinds(t)`` says which kind each tick start ``t`` was."""
+
+    def __init__(self, period_s: float):
+        self.period_s, self.switches, self._stop = period_s, [], threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        release = None
+        while not self._stop.is_set():
+            if release is None:
+                _, release = cpu_wakeup.request_polling()
+            else:
+                release()
+                release = None
+            self.switches.append((time.perf_counter(), release is not None))
+            self._stop.wait(self.period_s)
+        if release is not None:
+            release()
+
+    def __enter__(self) -> "PollingToggle":
+        note, release = cpu_wakeup.request_polling()  # permitted here? (the thread's requests then are too)
+        release()
+        if note != cpu_wakeup.REQUESTED:
+            raise SystemExit(f"--poll-ab: {note}")
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def kinds(self, t_start_s: np.ndarray) -> np.ndarray:
+        """1 polling, 0 halting, −1 before the first switch."""
+        times = np.array([t for t, _ in self.switches])
+        polling = np.array([p for _, p in self.switches], int)
+        i = np.searchsorted(times, t_start_s, side="right") - 1
+        return np.where(i >= 0, polling[np.maximum(i, 0)], -1)
+
+
+def polling_ab_figures(log: hio.TickLog, kinds: np.ndarray) -> dict:
+    """The run phase's ticks of each kind of :class:`PollingToggle`: overruns (per 10k, by cause), wake-ups more
+    than a period late (per 10k), tick work median and p99."""
+    figures = {}
+    for name, kind in (("polling", 1), ("halting", 0)):
+        ticks = (log.phase == hio.RUN) & (kinds == kind)
+        part = hio.TickLog(*(a[ticks] for a in log))
+        n = max(int(ticks.sum()), 1)
+        causes = np.bincount(hio.overrun_causes(part), minlength=len(hio.OVERRUN_CAUSES))
+        figures.update({f"ab_{name}_ticks": int(ticks.sum()),
+                        f"ab_{name}_overruns_per_10k_ticks": round(float(part.overrun.sum()) / n * 1e4, 2),
+                        **{f"ab_{name}_overruns_{c}": int(k) for c, k in zip(hio.OVERRUN_CAUSES, causes)},
+                        f"ab_{name}_wakeups_later_than_period_per_10k": round(float(np.sum(part.late_s > 1e-3)) / n
+                                                                              * 1e4, 2),
+                        f"ab_{name}_work_median_us": round(float(np.median(part.work_s)) * 1e6, 1),
+                        f"ab_{name}_work_p99_us": round(float(np.percentile(part.work_s, 99)) * 1e6, 1)})
+    return figures
 
 
 STAGES = ("receive", "decode", "checks", "controller step", "guard", "encode", "send", "log")
@@ -133,16 +197,20 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
                           cpus=sim_cpus) as robot:
         controller = compiled_controller.CompiledController()
         loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=cpu, busy_wait=busy,
-                              poll_idle=not args.idle_halt, log_ticks=round((duration_s + 5.0) * 1000))
+                              poll_idle=not (args.idle_halt or args.poll_ab),  # --poll-ab: the toggle's
+                              log_ticks=round((duration_s + 5.0) * 1000))
         floor_late_s = hio.idle_loop_lateness_s(probe_s, loop) if probe_s > 0 else np.zeros(0)
         transport = (go1_transport.SdkTransport("127.0.0.1", robot.port, deploy._free_port()) if args.transport == "sdk"
                      else go1_transport.UdpTransport(robot.address))
         stages = StageTimer(transport, controller, loop.log_ticks) if args.stages else None
+        toggle = PollingToggle(args.poll_ab) if args.poll_ab else contextlib.nullcontext()
         t0, waits0 = time.perf_counter(), voluntary_waits()
         try:
-            result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), round(duration_s * 1000)),
-                                  deploy.sim_calibration(), cpg.controller_gates("vmc_tegotae"), loop,
-                                  go1_safety.SafetyConfig(watchdog_ticks=50))
+            with toggle:
+                schedule = hio.FixedParams(params.midpoint(), round(duration_s * 1000))
+                result = hio.run_loop(transport, controller, schedule, deploy.sim_calibration(),
+                                      cpg.controller_gates("vmc_tegotae"), loop,
+                                      go1_safety.SafetyConfig(watchdog_ticks=50))
         finally:
             if stages is not None:
                 stages.restore()
@@ -184,6 +252,14 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
         active = log.phase > hio.CONNECT
         text, stage_figures = stages.table(log.step_s[log.phase == hio.RUN], log.work_s[active])
         print(f"time per stage (wall, every tick after connecting; the stage timers add ≈ 0.3 µs per call)\n{text}")
+    ab_figures = polling_ab_figures(log, toggle.kinds(log.t_start_s)) if args.poll_ab else {}
+    for name in ("polling", "halting") if args.poll_ab else ():
+        print(f"{name:7s} ticks   {ab_figures[f'ab_{name}_ticks']} (idle CPUs {name}, every other {args.poll_ab:g} s): "
+              f"overruns {ab_figures[f'ab_{name}_overruns_per_10k_ticks']:.2f} per 10k ("
+              + ", ".join(f"{c} {ab_figures[f'ab_{name}_overruns_{c}']}" for c in hio.OVERRUN_CAUSES)
+              + f"), wake-ups later than the period {ab_figures[f'ab_{name}_wakeups_later_than_period_per_10k']:.2f} "
+              f"per 10k, tick work median {ab_figures[f'ab_{name}_work_median_us']:.1f} µs p99 "
+              f"{ab_figures[f'ab_{name}_work_p99_us']:.1f} µs")
     for k in np.flatnonzero(log.overrun)[:20]:
         print(f"  tick {k}: started {log.late_s[k] * 1e6:7.0f} µs late, work {log.work_s[k] * 1e6:6.0f} µs wall "
               f"/ {log.work_cpu_s[k] * 1e6:5.0f} µs CPU ({hio.PHASE_NAMES[log.phase[k]]})")
@@ -194,7 +270,7 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
         "load_avg_1min_end": round(os.getloadavg()[0], 2), **floor,
         **{k: round(v, 2) if isinstance(v, float) else v for k, v in timing.items()},
         "skipped_ticks": result.skipped_ticks, "inline_dispatch": controller.inline_dispatch,
-        "blocking_waits_per_tick": round(waits / result.ticks, 3), **stage_figures,
+        "blocking_waits_per_tick": round(waits / result.ticks, 3), **stage_figures, **ab_figures,
     }
 
 
@@ -207,7 +283,10 @@ def main() -> None:
                         help="floor probe (the same wait with no work) before each loop (default 20, --quick 5; "
                         "0: off)")
     parser.add_argument("--idle-halt", action="store_true",
-                        help="let idle CPUs halt (LoopConfig.poll_idle off; the default keeps them polling)")
+                        help="let idle CPUs halt while the loop runs (LoopConfig.poll_idle off; default: polling)")
+    parser.add_argument("--poll-ab", type=float, metavar="S",
+                        help="compare polling and halting idle CPUs within each run: the polling request is made and "
+                        "released every S seconds, and the ticks of each kind are reported apart")
     parser.add_argument("--modes", default="sleep,busy-wait", help="comma list of sleep, busy-wait")
     parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     parser.add_argument("--cpu", type=int, help="pin the loop to this CPU (default: the last) and the simulated Go1 "

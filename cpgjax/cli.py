@@ -505,11 +505,11 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
                    "others; a simulated Go1 in real time shares the loop's CPU; default: the last CPU, none in "
                    "lockstep)")
     p.add_argument("--busy-wait", action="store_true",
-                   help="spin through each period instead of sleeping (with --cpu; with --no-realtime unless the "
-                   "kernel's real-time throttling is off); fewer overruns on a VM (docs/hardware.md)")
+                   help="spin through each period instead of sleeping (on the loop's CPU; with --no-realtime unless "
+                   "the kernel's real-time throttling is off); fewer overruns on a VM (docs/hardware.md)")
     p.add_argument("--idle-halt", action="store_true",
-                   help="let idle CPUs halt between ticks: saves power (a robot's battery), but the loop then wakes up "
-                   "later and runs slower (default: idle CPUs poll while the loop runs, docs/hardware.md)")
+                   help="let idle CPUs halt between ticks: saves power (a robot's battery), but the loop's ticks run "
+                   "slower after each halt (default: idle CPUs poll while the loop runs, docs/hardware.md)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder or over an "
                    "existing file")
 

@@ -1,17 +1,17 @@
-"""Keep idle CPUs polling while the loop runs: a zero wake-up latency request to the kernel's PM QoS.
+"""Keep idle CPUs polling while the loop runs: a zero wake-up latency request to the kernel's PM QoS
+(``LoopConfig.poll_idle``, on by default; ``cpgjax deploy --idle-halt`` turns it off).
 
 Between two ticks the loop sleeps for most of a millisecond, and an idle CPU enters whichever idle state its governor
-picks. On our development VM that is ``haltpoll``'s halt, without polling first (the kernel's command line has
-``haltpoll.guest_halt_poll_ns=0``). A halt hands the virtual CPU back to the host, and it comes back later and slower:
-the loop's ticks took longer and overran more often when its CPUs could halt (benchmarks/RESULTS.md, "Issue 13,
-third session").
+picks: on a robot's computer a deep C-state, which takes time to wake from; on our development VM ``haltpoll``'s
+halt without polling first (the kernel's command line has ``haltpoll.guest_halt_poll_ns=0``), which hands the
+virtual CPU back to the host, and the tick after it runs slower.
 
 Writing a 32-bit 0 to ``/dev/cpu_dma_latency`` and keeping the file open asks every CPU to use only idle states that
 wake up with zero latency: the POLL state, in which the CPU spins in the kernel's idle loop and the loop's timer
 wakes it at once. The request lasts while the file is open and ends when it is closed, also when the process dies
 (the kernel's PM QoS interface, Documentation/power/pm_qos_interface.rst). rt-tests' ``cyclictest`` makes the same
 request unless it is told to save battery (``--laptop``). The cost is power: an idle CPU draws what a busy one draws,
-which on a robot's computer comes from its battery.
+which on a robot's computer comes from its battery. What it changed on our VM is in docs/hardware.md, "The floor".
 """
 
 from __future__ import annotations
