@@ -108,6 +108,7 @@ def _integer_in(allowed: range, what: str):
 
 _power_level = _integer_in(go1_safety.POWER_LEVELS, "the SDK's power protection trips above 100 W per level")
 _port = _integer_in(range(1, 65536), "a UDP port")
+_seed = _integer_in(range(2 ** 32), "a seed is a 32-bit unsigned integer")
 _params_file = _argument_type(trials.load_params)
 _calibration_file = _argument_type(foot_force.FootForceCalibration.load)
 
@@ -558,7 +559,7 @@ def _add_optimize(sub) -> None:
     _add_scenario_args(o)
     _add_target_arg(o)
     o.add_argument("--trials", type=_count(), default=40, help="trials of 1.5 s + 3 s")
-    o.add_argument("--seed", type=_count(0), default=0, help="the optimizer's random seed")
+    o.add_argument("--seed", type=_seed, default=0, help="the optimizer's random seed")
     _add_output_args(o, "results/optimize")
     _add_physics_arg(o, physics_profiles.PAPER_STUDIES_PROFILE)
     backends.add_backend_argument(o)
@@ -605,7 +606,8 @@ def _add_deploy(sub) -> None:
                    "; an existing non-empty one needs --overwrite)")
     d.add_argument("--calibration", type=_calibration_file, help="foot-force calibration JSON from `cpgjax deploy "
                    "calibrate` (required with --robot go1; default with sim: the simulated sensor's exact one)")
-    d.add_argument("--seed", type=_count(0), default=0, help="the optimizer's random seed")
+    d.add_argument("--seed", type=_seed, default=0,
+                   help="the optimizer's random seed, and with --robot sim the simulated sensors' noise stream")
     d.set_defaults(func=functools.partial(_deploy, d))
 
     c = d.add_subparsers(title="subcommands").add_parser(

@@ -105,6 +105,8 @@ REFUSED = [  # (extra arguments, what stderr must say)
     (["--payload-kg", "50"], "argument --payload-kg: 50.0 is outside the allowed range [0, 20]"),
     (["--cpu", "999"], "argument --cpu: 999 is outside this machine's CPUs"),
     (["--robot-port", "70000"], "argument --robot-port: 70000 is outside the allowed range 1 … 65535"),
+    (["--seed", "-1"], "argument --seed: -1 is outside the allowed range 0 … 4294967295"),
+    (["--seed", "4294967296"], "argument --seed: 4294967296 is outside the allowed range 0 … 4294967295"),
 ]
 
 

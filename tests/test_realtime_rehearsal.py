@@ -21,6 +21,7 @@ import pytest
 from cpgjax import hardware_io as hio
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import GRAVITY_MPS2
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import cpu_wakeup, deploy
@@ -82,6 +83,22 @@ def _deploy_args(**kw):
     base = dict(cpu=None, robot="sim", sim_pacing="realtime", no_realtime=False, busy_wait=False, power_level=9,
                 idle_halt=False)
     return argparse.Namespace(**{**base, **kw})
+
+
+def test_the_simulated_go1s_sensor_noise_follows_its_seed():
+    """``deploy --seed`` chooses the simulated sensors' noise stream (the go1 profile's noise): two seeds read the
+    joints differently, each within the noise amplitude of the true angles, and one seed repeats after a reset."""
+    amplitude = physics_profiles.get("go1").joint_pos_noise_rad
+    assert amplitude > 0
+    a, b = sim.Go1Physics(physics="go1", noise_seed=0), sim.Go1Physics(physics="go1", noise_seed=7)
+    q = slice(sum(sim._REPORT_SIZES[:4]), sum(sim._REPORT_SIZES[:5]))  # the report's joint angles
+    first, other = a.sense()[q], b.sense()[q]
+    a.reset()
+    np.testing.assert_array_equal(a.sense()[q], first)
+    assert np.all(first != other)
+    truth = a.data.qpos[a.ids.joint_qpos]
+    for reading in (first, other):
+        assert np.all(np.abs(reading - truth) <= amplitude * (1 + 1e-5) + 1e-6), (reading - truth, amplitude)
 
 
 def test_deploy_puts_the_simulated_go1_on_the_loops_cpu_and_the_rest_elsewhere():

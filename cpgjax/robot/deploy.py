@@ -78,7 +78,7 @@ def connect(args):
         server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
                                   payload_kg=args.payload_kg,
                                   realtime_priority=None if args.no_realtime else SIM_PRIORITY,
-                                  cpus=None if cpu is None else {cpu}, physics=args.physics)
+                                  cpus=None if cpu is None else {cpu}, physics=args.physics, noise_seed=args.seed)
         ip, port, local_port = server.address[0], server.port, 0
     else:
         ip, port, local_port = args.robot_ip, args.robot_port, args.local_port

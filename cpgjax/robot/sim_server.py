@@ -96,13 +96,16 @@ class Go1Physics:
     """
 
     def __init__(self, friction: float = 0.6, slope_deg: float = 0.0, payload_kg: float = 0.0,
-                 physics: str = physics_profiles.ROBOT_PROFILE):
-        self.model = go1_model.scenario_model(go1_model.make_scenarios(friction, slope_deg, payload_kg, physics), 0)
+                 physics: str = physics_profiles.ROBOT_PROFILE, noise_seed: int = 0):
+        scenario = go1_model.make_scenarios(friction, slope_deg, payload_kg, physics, noise_seed=noise_seed)
+        self.model = go1_model.scenario_model(scenario, 0)
         self.data = mujoco.MjData(self.model)
         self.ids = go1_model.indices()
         self._standing = go1_model.standing_qpos(self.model)
         gravity = jax.numpy.asarray(self.model.opt.gravity, jax.numpy.float32)
-        profile = jax.tree.map(jax.numpy.asarray, physics_profiles.arrays(physics_profiles.get(physics)))
+        profile = physics_profiles.arrays(physics_profiles.get(physics))._replace(  # the sensors' noise stream
+            noise_seed=np.uint32(scenario.noise_seed[0]))
+        profile = jax.tree.map(jax.numpy.asarray, profile)
         # The simulators' sensor model and the profile's foot sensor and motors, compiled ahead of time on one flat
         # float32 vector in and out (a compiled call costs per argument): one definition of what the robot senses and
         # how its motors respond.
@@ -410,10 +413,11 @@ class SimGo1Client:
 
     def __init__(self, pacing: str = "realtime", friction: float = 0.6, slope_deg: float = 0.0,
                  payload_kg: float = 0.0, realtime_priority: int | None = None, cpus: set[int] | None = None,
-                 startup_timeout_s: float = 60.0, physics: str = physics_profiles.ROBOT_PROFILE):
+                 startup_timeout_s: float = 60.0, physics: str = physics_profiles.ROBOT_PROFILE, noise_seed: int = 0):
         physics_profiles.get(physics)  # an unknown name fails here, not in the child process
         cmd = [sys.executable, "-m", "cpgjax.robot.sim_server", "--pacing", pacing, "--friction", str(friction),
-               "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg), "--physics", physics]
+               "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg), "--physics", physics,
+               "--noise-seed", str(noise_seed)]
         if realtime_priority is not None:
             cmd += ["--realtime-priority", str(realtime_priority)]
         if cpus:
@@ -486,6 +490,7 @@ def main(argv=None) -> None:
     parser.add_argument("--payload-kg", type=float, default=0.0)
     parser.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
                         help="physics profile (docs/physics.md)")
+    parser.add_argument("--noise-seed", type=int, default=0, help="the sensors' noise stream")
     parser.add_argument("--realtime-priority", type=int,
                         help="SCHED_FIFO priority for the physics loop, when permitted (a robot is not starved "
                              "by other processes; on a shared machine its simulation can be)")
@@ -504,7 +509,8 @@ def main(argv=None) -> None:
             print(f"real-time priority not permitted ({e})", file=sys.stderr)
     cpu_dispatch.request_inline()
     server = SimGo1Server(args.port, args.control_port, args.pacing, friction=args.friction,
-                          slope_deg=args.slope_deg, payload_kg=args.payload_kg, physics=args.physics)
+                          slope_deg=args.slope_deg, payload_kg=args.payload_kg, physics=args.physics,
+                          noise_seed=args.noise_seed)
     note = memory_lock.lock()  # a robot's motor boards never wait on a disk; nor may their stand-in
     if note != memory_lock.LOCKED:
         print(note, file=sys.stderr)
