@@ -79,11 +79,13 @@ def test_ctrl_c_in_deploy_is_a_stop_with_the_log_flushed(tmp_path):
     assert "stopped by Ctrl-C" in out and "Traceback" not in out and "safety trip" not in out
     run = json.loads((tmp_path / "run.json").read_text())
     assert run["trip"] is None and run["stopped"] and run["events"][-1][2] == "stopped (Ctrl-C)"
+    assert run["command"] == f"cpgjax deploy --robot sim --sim-pacing lockstep --duration-s 60 --log-dir {tmp_path}"
+    assert run["cpgjax_version"] and "git_commit" in run and run["environment"]["cpu_count"] >= 1
     table, complete = tick_log.read_tick_log(tmp_path / tick_log.FILE_NAME)
     assert complete and table.num_rows == run["timing"]["ticks"]
     assert table["phase"].to_numpy()[-1] == hio.DAMP
     summary = tick_log.summarize_run(tmp_path)
-    assert "ended: stopped by Ctrl-C" in summary
+    assert "ended: stopped by Ctrl-C" in summary and f"command: {run['command']} (cpgjax " in summary
 
 
 def test_a_killed_deploy_keeps_its_logged_batches(tmp_path):

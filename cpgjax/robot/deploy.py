@@ -13,6 +13,7 @@ import socket
 
 import numpy as np
 
+import cpgjax
 from cpgjax import cpg
 from cpgjax import hardware_io as hio
 from cpgjax.go1 import model as go1_model
@@ -22,6 +23,7 @@ from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.robot.trials import OptimizerSpec, online_optimization
+from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -143,13 +145,16 @@ def stale_hint(args) -> str:
 
 
 def report(args, result: hio.LoopResult) -> int:
-    """Write ``run.json`` and print how the run ended and its timing. Returns the exit status: 0 after a clean end,
+    """Write ``run.json`` (how the run ended, its timing, and what ran it: the command line, cpgjax's version and
+    commit, the machine) and print how the run ended and its timing. Returns the exit status: 0 after a clean end,
     130 after Ctrl-C (a stop), 2 after a safety trip."""
     lockstep = args.robot == "sim" and args.sim_pacing == "lockstep"
     summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events, "realtime": result.realtime,
                "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
-               "timing": result.timing()}
-    (args.log_dir / "run.json").write_text(json.dumps(summary, indent=1))
+               "timing": result.timing(), "command": getattr(args, "command_line", None),
+               "cpgjax_version": cpgjax.__version__, "git_commit": study_io.git_commit(),
+               "environment": study_io.environment()}
+    (args.log_dir / "run.json").write_text(json.dumps(summary, indent=1, default=str))
     ended = (f"safety trip: {result.trip}" if result.trip else "stopped by Ctrl-C (damped)" if result.stopped
              else "clean end")
     shared = ("\nthe simulated Go1 shared the loop's CPU: its ticks are in these figures "

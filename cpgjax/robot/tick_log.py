@@ -161,12 +161,15 @@ def end_reason(run: dict | None) -> str:
 
 
 def summarize_run(run_dir: Path) -> str:
-    """A few lines on a deploy run folder: how it ended, its per-tick log (ticks, phases, trials, timing, the
-    watchdog) and its per-trial rows."""
+    """A few lines on a deploy run folder: how it ended, what ran it, its per-tick log (ticks, phases, trials,
+    timing, the watchdog) and its per-trial rows."""
     run_dir = Path(run_dir)
     run_file = run_dir / "run.json"
     run = json.loads(run_file.read_text()) if run_file.exists() else None
     lines = [f"deploy run {run_dir}", f"ended: {end_reason(run)}"]
+    if run is not None and run.get("command"):
+        lines.append(f"command: {run['command']} (cpgjax {run.get('cpgjax_version')}, commit {run.get('git_commit')}, "
+                     f"scheduling: {run.get('realtime')})")
     if run is not None and run.get("events"):
         tick, phase, message = run["events"][-1]
         lines.append(f"last event: tick {tick}, {phase} ({message})")
