@@ -103,7 +103,7 @@ class PollingToggle:
         return np.where(i >= 0, polling[np.maximum(i, 0)], -1)
 
 
-def polling_ab_figures(log: hio.TickLog, kinds: np.ndarray) -> dict:
+def polling_ab_figures(log: hio.TickLog, kinds: np.ndarray, period_s: float) -> dict:
     """The run phase's ticks of each kind of :class:`PollingToggle`: overruns (per 10k, by cause), wake-ups more
     than a period late (per 10k), tick work median and p99."""
     figures = {}
@@ -115,7 +115,7 @@ def polling_ab_figures(log: hio.TickLog, kinds: np.ndarray) -> dict:
         figures.update({f"ab_{name}_ticks": int(ticks.sum()),
                         f"ab_{name}_overruns_per_10k_ticks": round(float(part.overrun.sum()) / n * 1e4, 2),
                         **{f"ab_{name}_overruns_{c}": int(k) for c, k in zip(hio.OVERRUN_CAUSES, causes)},
-                        f"ab_{name}_wakeups_later_than_period_per_10k": round(float(np.sum(part.late_s > 1e-3)) / n
+                        f"ab_{name}_wakeups_later_than_period_per_10k": round(float(np.sum(part.late_s > period_s)) / n
                                                                               * 1e4, 2),
                         f"ab_{name}_work_median_us": round(float(np.median(part.work_s)) * 1e6, 1),
                         f"ab_{name}_work_p99_us": round(float(np.percentile(part.work_s, 99)) * 1e6, 1)})
@@ -187,7 +187,7 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     """Walk ``duration_s`` against a fresh real-time simulated Go1 with the loop waiting as ``mode``; print and return
     the figures."""
     busy = mode == "busy-wait"
-    cpu = args.cpu if args.cpu is not None else max(os.sched_getaffinity(0))  # as deploy places it on the robot
+    cpu = args.cpu if args.cpu is not None else deploy.last_cpu()  # as deploy places it on the robot
     sim_cpus = hio.cpus_besides(cpu)
     loop_priority = None if args.no_realtime or busy else 80
     load_start = os.getloadavg()[0]
@@ -225,13 +225,14 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
           f"spin {'the whole period' if busy else f'{args.spin_us:.0f} µs'}; load average at start {load_start:.2f}, "
           f"at end {os.getloadavg()[0]:.2f}")
     period_s, work_median_s = loop.period_s, timing["work_median_us"] * 1e-6
-    floor = {"floor_wakeups_later_than_period_per_10k": round(float(np.mean(floor_late_s > period_s)) * 1e4, 2)
-             if floor_late_s.size else None,
-             "floor_overruns_per_10k_ticks": round(float(np.mean(floor_late_s + work_median_s > period_s)) * 1e4, 2)
-             if floor_late_s.size else None,
-             "floor_late_p99_us": round(float(np.percentile(floor_late_s, 99)) * 1e6, 1) if floor_late_s.size else None,
-             "floor_late_max_us": round(float(floor_late_s.max()) * 1e6, 1) if floor_late_s.size else None}
+    floor = dict.fromkeys(("floor_wakeups_later_than_period_per_10k", "floor_overruns_per_10k_ticks",
+                           "floor_late_p99_us", "floor_late_max_us"))  # None without a probe
     if floor_late_s.size:
+        floor.update(floor_wakeups_later_than_period_per_10k=round(float(np.mean(floor_late_s > period_s)) * 1e4, 2),
+                     floor_overruns_per_10k_ticks=round(float(np.mean(floor_late_s + work_median_s > period_s))
+                                                        * 1e4, 2),
+                     floor_late_p99_us=round(float(np.percentile(floor_late_s, 99)) * 1e6, 1),
+                     floor_late_max_us=round(float(floor_late_s.max()) * 1e6, 1))
         print(f"floor (probe)    {probe_s:.0f} s of the same wait with no work: wake-ups p99 "
               f"{floor['floor_late_p99_us']:.0f} µs late, max {floor['floor_late_max_us']:.0f} µs; later than the "
               f"period {floor['floor_wakeups_later_than_period_per_10k']:.2f} per 10k, later than the period less "
@@ -252,7 +253,7 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
         active = log.phase > hio.CONNECT
         text, stage_figures = stages.table(log.step_s[log.phase == hio.RUN], log.work_s[active])
         print(f"time per stage (wall, every tick after connecting; the stage timers add ≈ 0.3 µs per call)\n{text}")
-    ab_figures = polling_ab_figures(log, toggle.kinds(log.t_start_s)) if args.poll_ab else {}
+    ab_figures = polling_ab_figures(log, toggle.kinds(log.t_start_s), loop.period_s) if args.poll_ab else {}
     for name in ("polling", "halting") if args.poll_ab else ():
         print(f"{name:7s} ticks   {ab_figures[f'ab_{name}_ticks']} (idle CPUs {name}, every other {args.poll_ab:g} s): "
               f"overruns {ab_figures[f'ab_{name}_overruns_per_10k_ticks']:.2f} per 10k ("

@@ -325,6 +325,11 @@ class _StopRequest:
             signal.signal(signal.SIGINT, self._old)
 
 
+def _spin_s(loop: LoopConfig) -> float:
+    """How long before each deadline the wait spins instead of sleeping: the whole period when busy-waiting."""
+    return loop.period_s if loop.busy_wait else loop.spin_s
+
+
 def _wait_until(deadline: float, spin_s: float) -> None:
     remaining = deadline - time.perf_counter()
     if remaining > spin_s:
@@ -361,7 +366,7 @@ def idle_loop_lateness_s(seconds: float, loop: LoopConfig = LoopConfig()) -> np.
     is an overrun whatever the tick does, and one later than the period is an overrun even with no work at all. On a
     VM these come from the host (a virtual CPU stopped or woken late), and no code in the guest removes them.
     """
-    period_s, wait_spin_s = loop.period_s, loop.period_s if loop.busy_wait else loop.spin_s
+    period_s, wait_spin_s = loop.period_s, _spin_s(loop)
     late = np.full(max(1, round(seconds / period_s)), 0.0)  # every page written before the wait starts
     with _realtime_section(loop):
         deadline = time.perf_counter()
@@ -490,7 +495,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
     protection → send → wait for the next absolute deadline. A schedule finished from the start skips the run phase
     (``controller`` and ``calibration`` are then unused and may be None; see :func:`stand`).
     """
-    period_s, wait_spin_s = loop.period_s, loop.period_s if loop.busy_wait else loop.spin_s
+    period_s, wait_spin_s = loop.period_s, _spin_s(loop)
     stand_q_rad = go1_model.standing_qpos()[go1_model.indices().joint_qpos]
     stop_mask = sum(proto.REMOTE_BUTTON_BITS[b] for b in safety.stop_buttons)
     phase_ticks = _phase_ticks(loop)

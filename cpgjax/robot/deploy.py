@@ -50,6 +50,11 @@ def loop_cpu(args) -> int | None:
     in lockstep (no deadlines) or on a machine with one CPU."""
     if args.cpu is not None or (args.robot == "sim" and args.sim_pacing != "realtime"):
         return args.cpu
+    return last_cpu()
+
+
+def last_cpu() -> int | None:
+    """The last CPU this process may use, the loop's by default; None on a machine with one CPU."""
     cpus = sorted(os.sched_getaffinity(0))
     return cpus[-1] if len(cpus) > 1 else None
 
