@@ -7,7 +7,7 @@ then ``--measured`` trials back to back; the measured trials are reported. A var
 profile with one field replaced, registered under its own name for the run. Paired comparisons (the same sets under
 both settings): the mean difference with its 95 % interval and the Wilcoxon signed-rank p.
 
-    python studies/paper_misses.py [--sets 32] [--measured 3] [--only signal,contact,start,search,floor,imu]
+    python studies/paper_misses.py [--sets 32] [--measured 3] [--only signal,contact,start,search,floor,load,imu]
 
 Experiments:
   signal   the foot-force signal (c_load and the walk) as the unitree_ros plugin computes it (the mean over the update's
@@ -19,6 +19,8 @@ Experiments:
   search   how many of the box's parameter sets carry 15 kg / climb 10°, 12.5° (a walk: no fall, J ≥ 1.5):
            the probability with its exact interval, and the expected trials of a random search to find one
   floor    the share of 15 kg trials whose J is exactly the floor −1 without a fall, and the J they would have had
+  load     torque saturation and the trunk's height under 0 / 7.5 / 15 kg, and the joint PD's K_p × 1.5 as a
+           diagnostic (is the paper's K_p what lets the loaded legs sag?)
   imu      a slope as rotated gravity (ours) against an inclined floor under vertical gravity: the IMU pitch and
            the foot forces of the robot standing 1 s under joint PD
 """
@@ -33,7 +35,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from cpgjax import ablation
+from cpgjax import ablation, cpg
 from cpgjax.go1 import attitude, physics, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native
@@ -65,11 +67,12 @@ def population(sets: int) -> np.ndarray:
     return np.concatenate([params.midpoint()[None], draws])
 
 
-def walk(p: np.ndarray, profile: str, *, payload_kg=0.0, slope_deg=0.0, settle=1, measured=3) -> dict:
+def walk(p: np.ndarray, profile: str, *, payload_kg=0.0, slope_deg=0.0, settle=1, measured=3,
+         cpg_config: cpg.CPGConfig = cpg.CPGConfig()) -> dict:
     """Each set of ``p`` (S, 8) under one setting: ``settle`` trials from standing, then ``measured`` back-to-back
     trials. Returns arrays (measured, S): v_x, J, CoT, c_load, c_slope, saturation, fell, and the un-floored J."""
     scenario = go1_model.make_scenarios(payload_kg=[payload_kg] * len(p), slope_deg=slope_deg, physics=profile)
-    sim = native.NativeBackend(scenario)
+    sim = native.NativeBackend(scenario, cpg_config)
     gates = protocol.batch_gates(["vmc_tegotae"] * len(p))
     state = sim.reset(p)
     out = {k: [] for k in ("v", "j", "cot", "c_load", "c_slope", "saturation", "fell", "j_raw")}
@@ -92,7 +95,8 @@ def walk(p: np.ndarray, profile: str, *, payload_kg=0.0, slope_deg=0.0, settle=1
 def summary(name: str, w: dict) -> str:
     walking = (w["fell"] == 0) & (w["j"] >= WALK_J)
     return (f"| {name} | {int(w['fell'].sum())}/{w['fell'].size} | {stats.mean_ci(w['v'])} | {stats.mean_ci(w['j'])} | "
-            f"{stats.mean_ci(np.where(w['fell'] > 0, np.nan, w['cot']))} | {walking.mean():.2f} |")
+            f"{stats.mean_ci(np.where(w['fell'] > 0, np.nan, w['cot']))} | {walking.mean():.2f} | "
+            f"{100 * w['saturation'].mean():.2f} |")
 
 
 def paired_line(what: str, a: dict, b: dict) -> str:
@@ -102,8 +106,8 @@ def paired_line(what: str, a: dict, b: dict) -> str:
     return f"- {what}: J {cj}; v_x {cv}"
 
 
-HEADER = ("| setting | falls / trials | v_x [m/s] (95 % CI) | J | CoT (no fall) | share walking (J ≥ 1.5) |\n"
-          "|---|---|---|---|---|---|")
+HEADER = ("| setting | falls / trials | v_x [m/s] (95 % CI) | J | CoT (no fall) | share walking (J ≥ 1.5) | "
+          "torque saturation [% of joint-ticks] |\n|---|---|---|---|---|---|---|")
 
 
 def signal(p, measured) -> None:
@@ -192,6 +196,31 @@ def floor(p, measured) -> None:
         print(f"| {payload:g} kg, {slope:g}° | {w['j'].size} | {int(w['fell'].sum())} | {int(flat.sum())} | {text} |")
 
 
+def load(p, measured) -> None:
+    print("\n## load: saturation, trunk height and the joint PD gains\n")
+    print("The mid-range gait's trunk height over 3 s after a settling trial (the controller's nominal stance height is "
+          "0.30 m at the feet, the trunk origin 0.32 m standing):\n")
+    print("| payload [kg] | trunk height mean [m] | min [m] |\n|---|---|---|")
+    for payload in (0.0, 7.5, 15.0):
+        sim = native.NativeBackend(go1_model.make_scenarios(payload_kg=payload, physics="paper"))
+        mid, gates = params.midpoint()[None], protocol.batch_gates(["vmc_tegotae"])
+        state, _ = sim.trial(sim.reset(mid), mid, gates)
+        _, log = sim.rollout(state, mid, gates, 3000)
+        sim.physics.close()
+        z = np.asarray(log.qpos)[0, :, IDS.root_qpos + 2]
+        print(f"| {payload:g} | {z.mean():.3f} | {z.min():.3f} |")
+    stiff = cpg.CPGConfig(kp_nm_rad=1.5 * cpg.CPGConfig().kp_nm_rad)
+    for payload in (0.0, 7.5, 15.0):
+        print(f"\n{payload:g} kg (joint PD K_p {cpg.CPGConfig().kp_nm_rad:g}, the paper's, against "
+              f"{stiff.kp_nm_rad:g}: a diagnostic, not a model change):\n\n{HEADER}")
+        base = walk(p, "paper", payload_kg=payload, measured=measured)
+        firm = walk(p, "paper", payload_kg=payload, measured=measured, cpg_config=stiff)
+        print(summary(f"K_p {cpg.CPGConfig().kp_nm_rad:g}", base))
+        print(summary(f"K_p {stiff.kp_nm_rad:g}", firm))
+        print()
+        print(paired_line(f"K_p {stiff.kp_nm_rad:g} − K_p {cpg.CPGConfig().kp_nm_rad:g}", firm, base))
+
+
 def _standing_reading(slope_deg: float, inclined_floor: bool) -> tuple[float, np.ndarray]:
     """IMU pitch [rad] and foot normal forces [N] after 1 s standing under joint PD (Kp 70, Kd 1.3), on a slope made
     by rotating gravity (ours) or by inclining the floor under vertical gravity."""
@@ -237,7 +266,8 @@ def imu(p, measured) -> None:
             print(f"| {slope:g} | {label} | {pitch:+.5f} | {np.array2string(forces, precision=2)} |")
 
 
-EXPERIMENTS = {"signal": signal, "contact": contact, "start": start, "search": search, "floor": floor, "imu": imu}
+EXPERIMENTS = {"signal": signal, "contact": contact, "start": start, "search": search, "floor": floor, "load": load,
+               "imu": imu}
 
 
 def main(argv=None) -> None:

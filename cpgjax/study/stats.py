@@ -32,25 +32,28 @@ class Interval(NamedTuple):
 
 
 class Comparison(NamedTuple):
-    """a − b: the difference of means, its 95 % interval, and the tests' two-sided p-values."""
+    """a − b: the difference of means, its 95 % interval, and two tests' two-sided p-values: a t-test (Welch's, or
+    the paired one) and a rank test (Mann–Whitney's U, or Wilcoxon's signed rank for pairs)."""
 
     difference: float
     low: float
     high: float
-    welch_p: float
-    mann_whitney_p: float  # NaN where only summaries are known
+    t_p: float
+    rank_p: float  # NaN where only summaries are known
     n_a: int
     n_b: int
+    tests: tuple[str, str] = ("Welch", "Mann–Whitney")
 
     @property
     def differs(self) -> bool:
-        """Welch's test rejects equal means at the 5 % level."""
-        return bool(self.welch_p < ALPHA)
+        """The t-test rejects equal means at the 5 % level."""
+        return bool(self.t_p < ALPHA)
 
     def __str__(self) -> str:
-        mw = "" if np.isnan(self.mann_whitney_p) else f", Mann–Whitney p = {self.mann_whitney_p:.2g}"
-        return (f"Δ = {self.difference:+.3f} [{self.low:+.3f}, {self.high:+.3f}], Welch p = {self.welch_p:.2g}{mw} "
-                f"(n = {self.n_a}, {self.n_b})")
+        rank = "" if np.isnan(self.rank_p) else f", {self.tests[1]} p = {self.rank_p:.2g}"
+        n = f"n = {self.n_a}" if self.tests[0] == "paired t" else f"n = {self.n_a}, {self.n_b}"
+        return (f"Δ = {self.difference:+.3f} [{self.low:+.3f}, {self.high:+.3f}], {self.tests[0]} p = "
+                f"{self.t_p:.2g}{rank} ({n})")
 
 
 def _finite(values) -> np.ndarray:
@@ -104,9 +107,8 @@ def compare_to_summary(a, mean_b: float, std_b: float, n_b: int) -> Comparison:
 
 
 def paired(a, b) -> Comparison:
-    """The same instances under two settings: mean(a − b) with its t 95 % interval, the paired t-test's p (in
-    ``welch_p``) and the Wilcoxon signed-rank test's (in ``mann_whitney_p``); pairs with a non-finite value are
-    dropped."""
+    """The same instances under two settings: mean(a − b) with its t 95 % interval, the paired t-test's p and the
+    Wilcoxon signed-rank test's; pairs with a non-finite value are dropped."""
     a, b = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
     if a.shape != b.shape:
         raise ValueError(f"paired samples need the same length, got {a.size} and {b.size}")
@@ -115,11 +117,12 @@ def paired(a, b) -> Comparison:
     if d.size < 2:
         raise ValueError(f"paired needs at least 2 finite pairs, got {d.size}")
     ci = mean_ci(d)
+    pair_tests = ("paired t", "Wilcoxon")
     if np.all(d == 0.0):
-        return Comparison(0.0, 0.0, 0.0, 1.0, 1.0, int(d.size), int(d.size))
+        return Comparison(0.0, 0.0, 0.0, 1.0, 1.0, int(d.size), int(d.size), pair_tests)
     t_p = float(stats.ttest_1samp(d, 0.0).pvalue)
     w_p = float(stats.wilcoxon(d).pvalue)
-    return Comparison(ci.mean, ci.low, ci.high, t_p, w_p, int(d.size), int(d.size))
+    return Comparison(ci.mean, ci.low, ci.high, t_p, w_p, int(d.size), int(d.size), pair_tests)
 
 
 def proportion_ci(successes: int, trials: int) -> Interval:
