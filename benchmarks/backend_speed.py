@@ -40,11 +40,13 @@ def _make(backend: str, scenario, trial_config):
     return cls(scenario, trial_config=trial_config)
 
 
-def trial_speed(backend: str, batch: int, steps: int, repeats: int) -> dict:
-    """Closed-loop trial env-steps/s (best of ``repeats`` after a warm-up call that compiles) for one backend."""
+def trial_speed(backend: str, batch: int, steps: int, repeats: int, physics: str | None = None) -> dict:
+    """Closed-loop trial env-steps/s (best of ``repeats`` after a warm-up call that compiles) for one backend
+    (``physics``: the profile, default the Python API's)."""
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
-    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6)), config)
+    kwargs = {} if physics is None else {"physics": physics}
+    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6), **kwargs), config)
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     state = jax.block_until_ready(sim.reset(p))
