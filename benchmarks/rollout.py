@@ -28,6 +28,7 @@ output is a JSON object of the figures.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import time
@@ -149,24 +150,27 @@ def profile_costs(profiles: list[str], batch: int, steps: int, repeats: int) -> 
     return out
 
 
-def native_limit(batch: int, steps: int, repeats: int, physics: str) -> dict:
-    """The native backend's closed-loop trial against the replay of its torques (see the module docstring), timed in
-    interleaved rounds (best of each): env-steps/s of both, and the closed loop as a fraction of
-    ``available_cores()`` × the one-thread replay."""
+def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: list[str]) -> dict:
+    """The native backend's closed-loop trial with each of ``steppings`` (``native.STEPPINGS``) against the replay of
+    its torques (see the module docstring), timed in interleaved rounds (best of each): env-steps/s of each, and the
+    closed loops as fractions of ``available_cores()`` × the one-thread replay."""
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
-    sim = native_go1.NativeBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics),
-                                   trial_config=config)
+    scenario = go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics)
+    sims = {name: native_go1.NativeBackend(scenario, trial_config=config, stepping=name) for name in steppings}
+    sim = sims[steppings[0]]
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
 
-    def closed_loop():
+    def closed_loop(sim):
         state = sim.reset(p)
         t0 = time.perf_counter()
         jax.block_until_ready(sim.trial(state, p, gates)[1])
         return time.perf_counter() - t0
 
-    closed_loop()  # compiles
+    runs = {name: functools.partial(closed_loop, s) for name, s in sims.items()}
+    for run in runs.values():
+        run()  # compiles
     # The trial's parameters do not change (p → p), so a logged run with constant p applies the trial's torques.
     log = sim.rollout(sim.reset(p), p, gates, steps)[1]
     models, phys = sim.physics.models, sim.physics
@@ -182,16 +186,17 @@ def native_limit(batch: int, steps: int, repeats: int, physics: str) -> dict:
                      skip_checks=True, nstep=steps, state=replayed)
         return time.perf_counter() - t0
 
-    best = _interleaved_best({"closed_loop": closed_loop, "replay": replay}, repeats)
+    best = _interleaved_best({**runs, "replay": replay}, repeats)
     cores = native_go1.available_cores()
     rate = {k: batch * steps / v for k, v in best.items()}
     # The replay warm-starts with MuJoCo's own qacc, the backend with the same qacc recovered from the states: the
     # trajectories agree to the solver's sensitivity to that rounding.
     diff = float(np.max(np.abs(replayed[:, :, phys.layout.qpos] - np.asarray(log.qpos, np.float64))))
-    sim.physics.close()
-    return {"closed_loop_env_steps_per_s": rate["closed_loop"], "replay_one_thread_env_steps_per_s": rate["replay"],
-            "cores": cores, "fraction_of_limit": rate["closed_loop"] / (cores * rate["replay"]),
-            "replay_max_abs_qpos_diff": diff}
+    for s in sims.values():
+        s.physics.close()
+    return {"replay_one_thread_env_steps_per_s": rate["replay"], "cores": cores, "replay_max_abs_qpos_diff": diff,
+            **{f"closed_loop_env_steps_per_s_{name}": rate[name] for name in steppings},
+            **{f"fraction_of_limit_{name}": rate[name] / (cores * rate["replay"]) for name in steppings}}
 
 
 def c_mujoco(steps: int) -> float:
@@ -232,9 +237,15 @@ def main() -> None:
     parser.add_argument("--profiles", help="comma list of physics profiles: time only their closed loops (ratios "
                         "against the first)")
     parser.add_argument("--native-only", action="store_true", help="only the native closed loop against its limit")
+    parser.add_argument("--steppings", type=lambda s: s.split(","), default=[native_go1.DEFAULT_STEPPING],
+                        help="comma list of the native backend's steppings to time against the limit "
+                        f"(of {native_go1.STEPPINGS}; default {native_go1.DEFAULT_STEPPING})")
     parser.add_argument("--physics", default=physics_profiles.PAPER_STUDIES_PROFILE, choices=physics_profiles.PROFILES,
                         help="physics profile of the native closed loop and its limit (default: the studies')")
     args = parser.parse_args()
+    unknown = [name for name in args.steppings if name not in native_go1.STEPPINGS]
+    if unknown:
+        parser.error(f"--steppings {','.join(args.steppings)}: unknown {unknown}; allowed: {native_go1.STEPPINGS}")
     jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
     batches = args.batch_sizes or ([16] if args.quick else [1, 4, 16, 64, 256])
     steps = args.steps or (400 if args.quick else 2000)
@@ -254,22 +265,22 @@ def main() -> None:
         print(json.dumps(figures))
         return
 
-    native_rows = []
-    for b in batches:
-        r = native_limit(b, steps, repeats, args.physics)
-        native_rows.append((b, r))
     print(f"# native backend ({args.physics} physics, {study_io.machine()}, load average {os.getloadavg()[0]:.1f}): "
           "closed loop against the one-thread replay of its torques")
-    print("| batch | native closed loop [env-steps/s] | replay, 1 thread [env-steps/s] | cores | closed loop / "
-          "(cores × replay) | replay max |Δqpos| |\n|---|---|---|---|---|---|")
+    print("| batch | stepping | native closed loop [env-steps/s] | replay, 1 thread [env-steps/s] | cores "
+          "| closed loop / (cores × replay) | replay max abs Δqpos [m or rad] |\n|---|---|---|---|---|---|---|")
     native_figures = {}
-    for b, r in native_rows:
-        print(f"| {b} | {r['closed_loop_env_steps_per_s']:,.0f} | {r['replay_one_thread_env_steps_per_s']:,.0f} "
-              f"| {r['cores']} | {r['fraction_of_limit']:.2f} | {r['replay_max_abs_qpos_diff']:.1e} |", flush=True)
-        native_figures.update({f"native_closed_loop_env_steps_per_s_b{b}": round(r["closed_loop_env_steps_per_s"]),
-                               f"native_replay_one_thread_env_steps_per_s_b{b}":
-                                   round(r["replay_one_thread_env_steps_per_s"]),
-                               f"native_fraction_of_limit_b{b}": round(r["fraction_of_limit"], 3),
+    for b in batches:
+        r = native_limit(b, steps, repeats, args.physics, args.steppings)
+        for name in args.steppings:
+            print(f"| {b} | {name} | {r[f'closed_loop_env_steps_per_s_{name}']:,.0f} "
+                  f"| {r['replay_one_thread_env_steps_per_s']:,.0f} | {r['cores']} "
+                  f"| {r[f'fraction_of_limit_{name}']:.2f} | {r['replay_max_abs_qpos_diff']:.1e} |", flush=True)
+            native_figures.update({
+                f"native_{name}_closed_loop_env_steps_per_s_b{b}": round(r[f"closed_loop_env_steps_per_s_{name}"]),
+                f"native_{name}_fraction_of_limit_b{b}": round(r[f"fraction_of_limit_{name}"], 3)})
+        native_figures.update({f"native_replay_one_thread_env_steps_per_s_b{b}":
+                               round(r["replay_one_thread_env_steps_per_s"]),
                                f"native_replay_max_abs_qpos_diff_b{b}": r["replay_max_abs_qpos_diff"]})
     if args.native_only:
         print(json.dumps({"benchmark": "rollout_native", "machine": study_io.machine(), "physics": args.physics,
