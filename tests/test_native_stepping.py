@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from cpgjax import ablation, cpg, gp
+from cpgjax.go1 import model as go1_model
 from cpgjax.optim import acquisition
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import native as native_go1
@@ -65,3 +66,33 @@ def test_a_study_writes_the_same_bytes_with_either_stepping(study, batch, tmp_pa
     assert stepped == reference
     for a, b in zip(jax.tree.leaves(new.opt_state), jax.tree.leaves(ref.opt_state)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_both_steppings_step_and_reset_a_diverged_instance_alike():
+    """The physics alone, 200 PD-driven steps of three scenarios with instance 1 sent to an infinite velocity at
+    step 50: every array equal bit for bit after every step, and the diverged instance flagged once and back to
+    standing."""
+    scenario = go1_model.make_scenarios(friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0],
+                                        payload_kg=[0.0, 7.5, 15.0], physics="paper")
+    ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("rollout", "batch"))
+    ids = go1_model.indices()
+    q_stand = go1_model.standing_qpos()[ids.joint_qpos]
+    flagged = []
+    for k in range(200):
+        if k == 50:
+            for p in (ref, new):
+                p.physics[1, p.layout.qvel] = np.inf
+        q, dq = new.physics[:, new.layout.qpos][:, ids.joint_qpos], new.physics[:, new.layout.qvel][:, ids.joint_dof]
+        torque = (60.0 * (q_stand + 0.3 * np.sin(0.03 * k) - q) - np.nan_to_num(dq, posinf=0.0, neginf=0.0)).astype(np.float32)
+        failed_ref, failed_new = ref.step(torque), new.step(torque)
+        np.testing.assert_array_equal(failed_new, failed_ref)
+        for a, b in zip(new.get_state(), ref.get_state()):
+            np.testing.assert_array_equal(a, b)
+        flagged += [k] * int(failed_new[1])
+    assert flagged == [50]
+    ref.close()
+
+
+def test_an_unknown_stepping_is_refused_with_the_allowed_ones():
+    with pytest.raises(ValueError, match=r"stepping 'threads': allowed \('batch', 'rollout'\)"):
+        native_go1.BatchPhysics(go1_model.make_scenarios(friction=[0.6]), stepping="threads")

@@ -1,9 +1,10 @@
 """The Go1 in C MuJoCo on the CPU: the paper's trial (``cpgjax.trial.protocol``) with native physics.
 
-Physics: :class:`BatchPhysics` steps the whole batch one physics step per call through ``mujoco.rollout`` (a
-persistent C++ thread pool, one thread per core, one ``MjModel`` variant per instance from
-``go1_model.scenario_model``). Its host arrays are allocated once and reused; the solver is warm-started from the
-previous step's acceleration exactly as a persistent ``mj_step`` loop would be.
+Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, in place, with ``mujoco.batch``
+(MuJoCo's persistent thread pool, one thread per core, one ``MjModel`` variant per instance from
+``go1_model.scenario_model``); ``mujoco.rollout`` stepping stays as the reference it equals bit for bit. Its host
+arrays are allocated once and reused; the solver is warm-started from the previous step's acceleration as a
+persistent ``mj_step`` loop would be.
 
 Control: one jitted, vmapped call per control tick for the whole batch runs the shared sensor model
 (``cpgjax.go1.sensors.observe``) and controller (``cpg.controller_step``) and writes the tick's record into a device
@@ -15,7 +16,7 @@ Tick k is, as in the MJX backend (``cpgjax.mjx_go1``): observe S_k → controlle
 Here the record's pre-step half (power, load, attitude, saturation) is computed with the control and its
 post-step half (velocity, fall, failure) at the next call, which sees S_{k+1}:
 
-    host:    [jit: finish record k−1 from S_k; observe S_k; control k] → [rollout: S_k → S_{k+1}] → [jit: ...]
+    host:    [jit: finish record k−1 from S_k; observe S_k; control k] → [batch step: S_k → S_{k+1}] → [jit: ...]
 
 Non-finite states: C MuJoCo resets an instance itself (``mj_resetData``, time → 0) when it meets a NaN, Inf or
 huge value. The simulator clock therefore starts at ``CLOCK_START_S`` after every reset, a step that does not
