@@ -1,4 +1,4 @@
-"""Native (C MuJoCo + ``mujoco.rollout``) against MJX on the CPU, in the same run: env-steps/s of the closed-loop
+"""Native (C MuJoCo stepped by ``mujoco.batch``) against MJX on the CPU, in the same run: env-steps/s of the closed-loop
 trial (sensors, jitted controller, physics, trial bookkeeping) per batch size, and the wall time of the
 controller-ablation study's simulation with each backend.
 
@@ -103,7 +103,7 @@ def main() -> None:
 
     device = jax.devices()[0]
     print(f"# {study_io.machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the "
-          "rollout pool; "
+          "native physics threads; "
           f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
           f"load average {load_start:.1f}")
     print("| batch | native [env-steps/s] | MJX [env-steps/s] | native / MJX | native first call [s] "
