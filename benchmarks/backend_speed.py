@@ -1,4 +1,4 @@
-"""Native (C MuJoCo + ``mujoco.rollout``) against MJX on the CPU, in the same run: env-steps/s of the closed-loop
+"""Native (C MuJoCo stepped by ``mujoco.batch``) against MJX on the CPU, in the same run: env-steps/s of the closed-loop
 trial (sensors, jitted controller, physics, trial bookkeeping) per batch size, and the wall time of the
 controller-ablation study's simulation with each backend.
 
@@ -40,11 +40,13 @@ def _make(backend: str, scenario, trial_config):
     return cls(scenario, trial_config=trial_config)
 
 
-def trial_speed(backend: str, batch: int, steps: int, repeats: int) -> dict:
-    """Closed-loop trial env-steps/s (best of ``repeats`` after a warm-up call that compiles) for one backend."""
+def trial_speed(backend: str, batch: int, steps: int, repeats: int, physics: str | None = None) -> dict:
+    """Closed-loop trial env-steps/s (best of ``repeats`` after a warm-up call that compiles) for one backend
+    (``physics``: the profile, default the Python API's)."""
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
-    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6)), config)
+    kwargs = {} if physics is None else {"physics": physics}
+    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6), **kwargs), config)
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     state = jax.block_until_ready(sim.reset(p))
@@ -101,7 +103,7 @@ def main() -> None:
 
     device = jax.devices()[0]
     print(f"# {study_io.machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the "
-          "rollout pool; "
+          "native physics threads; "
           f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
           f"load average {load_start:.1f}")
     print("| batch | native [env-steps/s] | MJX [env-steps/s] | native / MJX | native first call [s] "

@@ -1,6 +1,11 @@
 """Environment steps per second of the batched closed-loop trial (CPG controller + MJX) against bare ``mjx.step``,
-against single-threaded C MuJoCo, and against the same trial on the native backend (C MuJoCo through
-``mujoco.rollout``, ``benchmarks/backend_speed.py``), measured in the same run.
+and of the same trial on the native backend (C MuJoCo, ``cpgjax.sim.native``) against its physics limit, measured
+in the same run.
+
+The native backend's limit (``native_limit``): the torques its closed loop applied, recorded, then replayed open
+loop on the same per-instance models from the same start, one thread, C MuJoCo's own ``mj_step`` loop
+(``mujoco.rollout`` with the whole control sequence, one instance after the other: no Python per step). The closed
+loop is reported as a fraction of cores × that rate, the most its physics could give on this machine's cores.
 
 Two bare baselines (``measure``): *replay*, ``mjx.step`` driven by the torques the closed loop applied, which is the
 same physics bit for bit and so isolates what the controller, the sensors and the bookkeeping add; and *constant
@@ -10,6 +15,7 @@ contacts. The three are timed in interleaved rounds (best of each).
     python benchmarks/rollout.py            # full: batch 1, 4, 16, 64, 256; one device and every core
     python benchmarks/rollout.py --quick    # under 2 minutes on a 2-core CPU
     python benchmarks/rollout.py --profiles soft,paper,go1 [--quick]   # only: each physics profile's cost
+    python benchmarks/rollout.py --quick --native-only --batch-sizes 16,64   # only: the native closed loop vs its limit
 
 ``--profiles`` times the closed-loop trial (MJX, batch 16 on every device, and the native backend) under each physics
 profile (docs/physics.md) in interleaved rounds, as ratios against the first profile of the list in the same run.
@@ -22,6 +28,7 @@ output is a JSON object of the figures.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import time
@@ -32,9 +39,11 @@ import mujoco
 import numpy as np
 from backend_speed import trial_speed  # benchmarks/ is the script's directory
 from mujoco import mjx
+from mujoco import rollout as mj_rollout
 
 from cpgjax import mjx_go1
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
 from cpgjax.sim import native as native_go1
 from cpgjax.study import files as study_io
@@ -141,8 +150,58 @@ def profile_costs(profiles: list[str], batch: int, steps: int, repeats: int) -> 
     return out
 
 
+def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: list[str]) -> dict:
+    """The native backend's closed-loop trial with each of ``steppings`` (``native.STEPPINGS``) against the replay of
+    its torques (see the module docstring), timed in interleaved rounds (best of each): env-steps/s of each, and the
+    closed loops as fractions of ``available_cores()`` × the one-thread replay."""
+    transition = steps // 4
+    config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
+    scenario = go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics)
+    sims = {name: native_go1.NativeBackend(scenario, trial_config=config, stepping=name) for name in steppings}
+    sim = sims[steppings[0]]
+    p = np.tile(param_space.midpoint(), (batch, 1))
+    gates = protocol.batch_gates(["vmc_tegotae"] * batch)
+
+    def closed_loop(sim):
+        state = sim.reset(p)
+        t0 = time.perf_counter()
+        jax.block_until_ready(sim.trial(state, p, gates)[1])
+        return time.perf_counter() - t0
+
+    runs = {name: functools.partial(closed_loop, s) for name, s in sims.items()}
+    for run in runs.values():
+        run()  # compiles
+    # The trial's parameters do not change (p → p), so a logged run with constant p applies the trial's torques.
+    log = sim.rollout(sim.reset(p), p, gates, steps)[1]
+    models, phys = sim.physics.models, sim.physics
+    control = np.zeros((batch, steps, models[0].nu))
+    control[..., go1_model.indices().actuator] = np.asarray(log.torque_nm)
+    replayed = np.empty((batch, steps, phys.layout.size))
+    pool = mj_rollout.Rollout(nthread=0)  # the calling thread only
+    data = mujoco.MjData(models[0])
+
+    def replay():
+        t0 = time.perf_counter()
+        pool.rollout(models, [data], phys.standing_physics, control, control_spec=mujoco.mjtState.mjSTATE_CTRL.value,
+                     skip_checks=True, nstep=steps, state=replayed)
+        return time.perf_counter() - t0
+
+    best = _interleaved_best({**runs, "replay": replay}, repeats)
+    cores = native_go1.available_cores()
+    rate = {k: batch * steps / v for k, v in best.items()}
+    # The replay warm-starts with MuJoCo's own qacc, the backend with the same qacc recovered from the states: the
+    # trajectories agree to the solver's sensitivity to that rounding.
+    diff = float(np.max(np.abs(replayed[:, :, phys.layout.qpos] - np.asarray(log.qpos, np.float64))))
+    for s in sims.values():
+        s.physics.close()
+    return {"replay_one_thread_env_steps_per_s": rate["replay"], "cores": cores, "replay_max_abs_qpos_diff": diff,
+            **{f"closed_loop_env_steps_per_s_{name}": rate[name] for name in steppings},
+            **{f"fraction_of_limit_{name}": rate[name] / (cores * rate["replay"]) for name in steppings}}
+
+
 def c_mujoco(steps: int) -> float:
-    """Single-threaded C MuJoCo, one instance, constant control: env-steps/s."""
+    """Single-threaded C MuJoCo, one instance of the default model standing under 1 N·m on every motor: env-steps/s.
+    Not the trial's physics (see ``native_limit`` for that)."""
     m = go1_model.load_model()
     d = mujoco.MjData(m)
     d.qpos[:] = go1_model.standing_qpos()
@@ -177,7 +236,16 @@ def main() -> None:
                         help="host devices on a CPU (default: one per core)")
     parser.add_argument("--profiles", help="comma list of physics profiles: time only their closed loops (ratios "
                         "against the first)")
+    parser.add_argument("--native-only", action="store_true", help="only the native closed loop against its limit")
+    parser.add_argument("--steppings", type=lambda s: s.split(","), default=[native_go1.DEFAULT_STEPPING],
+                        help="comma list of the native backend's steppings to time against the limit "
+                        f"(of {native_go1.STEPPINGS}; default {native_go1.DEFAULT_STEPPING})")
+    parser.add_argument("--physics", default=physics_profiles.PAPER_STUDIES_PROFILE, choices=physics_profiles.PROFILES,
+                        help="physics profile of the native closed loop and its limit (default: the studies')")
     args = parser.parse_args()
+    unknown = [name for name in args.steppings if name not in native_go1.STEPPINGS]
+    if unknown:
+        parser.error(f"--steppings {','.join(args.steppings)}: unknown {unknown}; allowed: {native_go1.STEPPINGS}")
     jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
     batches = args.batch_sizes or ([16] if args.quick else [1, 4, 16, 64, 256])
     steps = args.steps or (400 if args.quick else 2000)
@@ -197,18 +265,41 @@ def main() -> None:
         print(json.dumps(figures))
         return
 
+    print(f"# native backend ({args.physics} physics, {study_io.machine()}, load average {os.getloadavg()[0]:.1f}): "
+          "closed loop against the one-thread replay of its torques")
+    print("| batch | stepping | native closed loop [env-steps/s] | replay, 1 thread [env-steps/s] | cores "
+          "| closed loop / (cores × replay) | replay max abs Δqpos [m or rad] |\n|---|---|---|---|---|---|---|")
+    native_figures = {}
+    for b in batches:
+        r = native_limit(b, steps, repeats, args.physics, args.steppings)
+        for name in args.steppings:
+            print(f"| {b} | {name} | {r[f'closed_loop_env_steps_per_s_{name}']:,.0f} "
+                  f"| {r['replay_one_thread_env_steps_per_s']:,.0f} | {r['cores']} "
+                  f"| {r[f'fraction_of_limit_{name}']:.2f} | {r['replay_max_abs_qpos_diff']:.1e} |", flush=True)
+            native_figures.update({
+                f"native_{name}_closed_loop_env_steps_per_s_b{b}": round(r[f"closed_loop_env_steps_per_s_{name}"]),
+                f"native_{name}_fraction_of_limit_b{b}": round(r[f"fraction_of_limit_{name}"], 3)})
+        native_figures.update({f"native_replay_one_thread_env_steps_per_s_b{b}":
+                               round(r["replay_one_thread_env_steps_per_s"]),
+                               f"native_replay_max_abs_qpos_diff_b{b}": r["replay_max_abs_qpos_diff"]})
+    if args.native_only:
+        print(json.dumps({"benchmark": "rollout_native", "machine": study_io.machine(), "physics": args.physics,
+                          "steps_per_instance": steps, "repeats": repeats, "cores": native_go1.available_cores(),
+                          **native_figures, "load_avg_1min_end": round(os.getloadavg()[0], 2)}))
+        return
+
     device = jax.devices()[0]
     print(f"# devices: {len(jax.devices())} x {device.platform} {device.device_kind}; host: {study_io.machine()}; "
           f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance")
     print("| batch | devices | closed loop [env-steps/s] | bare replay [env-steps/s] | controller overhead (vs replay) "
           "| bare constant control [env-steps/s] | overhead vs constant control | first call (compile) [s] "
-          "| native closed loop (C MuJoCo) [env-steps/s] |")
+          "| native closed loop (C MuJoCo, the same profile as MJX) [env-steps/s] |")
     print("|---|---|---|---|---|---|---|---|---|")
     figures: dict = {"device": f"{device.platform}:{device.device_kind}", "num_devices": len(jax.devices()),
-                     "machine": study_io.machine(), "steps_per_instance": steps, "repeats": repeats}
+                     "machine": study_io.machine(), "steps_per_instance": steps, "repeats": repeats,
+                     "native_physics": args.physics, **native_figures}
     for b in batches:
-        native = trial_speed("native", b, steps, repeats)  # the same trial with the native backend
-        figures[f"native_closed_loop_env_steps_per_s_b{b}"] = round(native["env_steps_per_s"])
+        native = trial_speed("native", b, steps, repeats)  # the same trial as MJX's below (default profile)
         for devices in layouts(b, args.quick):
             r = measure(b, steps, repeats, devices)
             print(f"| {b} | {len(devices)} | {r['closed_loop_steps_per_s']:,.0f} | {r['replay_steps_per_s']:,.0f} "
@@ -225,8 +316,8 @@ def main() -> None:
             figures[f"closed_loop_first_call_s_{key}"] = round(r["first_call_s"], 2)
             figures[f"bare_compile_s_{key}"] = round(r["replay_compile_s"], 2)
     c_rate = c_mujoco(5 * steps)
-    print(f"C MuJoCo, single thread, batch 1: {c_rate:,.0f} env-steps/s")
-    figures["c_mujoco_single_thread_env_steps_per_s"] = round(c_rate)
+    print(f"C MuJoCo, single thread, one default-profile Go1 standing under 1 N·m per motor: {c_rate:,.0f} env-steps/s")
+    figures["c_mujoco_standing_single_thread_env_steps_per_s"] = round(c_rate)
     print(json.dumps(figures))
 
 

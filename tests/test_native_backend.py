@@ -46,11 +46,14 @@ def _figures(record) -> dict[str, np.ndarray]:
             "fell": np.asarray(record.fell)}
 
 
-def test_batched_rollout_steps_equal_a_persistent_mj_step_loop():
-    """BatchPhysics (one ``mujoco.rollout`` call per step, warm start rebuilt from the states) against a plain
-    ``mj_step`` loop on one persistent MjData, with the same PD torques: equal to float64 rounding."""
+@pytest.mark.parametrize("stepping", native_go1.STEPPINGS)
+def test_batched_steps_equal_a_persistent_mj_step_loop(stepping):
+    """BatchPhysics (``mujoco.batch`` in place, or one ``mujoco.rollout`` call per step; warm start rebuilt from the
+    states) against a plain ``mj_step`` loop on one persistent MjData, with the same PD torques: equal to float64
+    rounding (the loop warm-starts with MuJoCo's own acceleration, which differs in the last bits)."""
     scenario = go1_model.make_scenarios(friction=[0.6, 0.3], slope_deg=[0.0, 5.0], payload_kg=[0.0, 7.5])
-    batch = native_go1.BatchPhysics(scenario)
+    batch = native_go1.BatchPhysics(scenario, stepping=stepping)
+    assert batch.stepping == stepping
     ids = go1_model.indices()
     lay = batch.layout
     reference = [mujoco.MjData(batch.models[i]) for i in range(2)]

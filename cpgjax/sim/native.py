@@ -1,9 +1,10 @@
 """The Go1 in C MuJoCo on the CPU: the paper's trial (``cpgjax.trial.protocol``) with native physics.
 
-Physics: :class:`BatchPhysics` steps the whole batch one physics step per call through ``mujoco.rollout`` (a
-persistent C++ thread pool, one thread per core, one ``MjModel`` variant per instance from
-``go1_model.scenario_model``). Its host arrays are allocated once and reused; the solver is warm-started from the
-previous step's acceleration exactly as a persistent ``mj_step`` loop would be.
+Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, in place, with ``mujoco.batch``
+(MuJoCo's persistent thread pool, one thread per core, one ``MjModel`` variant per instance from
+``go1_model.scenario_model``); ``mujoco.rollout`` stepping stays as the reference it equals bit for bit. Its host
+arrays are allocated once and reused; the solver is warm-started from the previous step's acceleration as a
+persistent ``mj_step`` loop would be.
 
 Control: one jitted, vmapped call per control tick for the whole batch runs the shared sensor model
 (``cpgjax.go1.sensors.observe``) and controller (``cpg.controller_step``) and writes the tick's record into a device
@@ -15,7 +16,7 @@ Tick k is, as in the MJX backend (``cpgjax.mjx_go1``): observe S_k → controlle
 Here the record's pre-step half (power, load, attitude, saturation) is computed with the control and its
 post-step half (velocity, fall, failure) at the next call, which sees S_{k+1}:
 
-    host:    [jit: finish record k−1 from S_k; observe S_k; control k] → [rollout: S_k → S_{k+1}] → [jit: ...]
+    host:    [jit: finish record k−1 from S_k; observe S_k; control k] → [batch step: S_k → S_{k+1}] → [jit: ...]
 
 Non-finite states: C MuJoCo resets an instance itself (``mj_resetData``, time → 0) when it meets a NaN, Inf or
 huge value. The simulator clock therefore starts at ``CLOCK_START_S`` after every reset, a step that does not
@@ -34,6 +35,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
+from mujoco import batch as mj_batch
 from mujoco import rollout as mj_rollout
 
 from cpgjax import cpg
@@ -48,6 +50,8 @@ from cpgjax.trial import protocol
 CLOCK_START_S = 1.0
 _PHYSICS_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS.value  # time, qpos, qvel (the Go1 has no act, mocap, ...)
 _CTRL_SPEC = mujoco.mjtState.mjSTATE_CTRL.value
+STEPPINGS = ("batch", "rollout")  # how BatchPhysics steps (see there): mujoco.batch, or the mujoco.rollout reference
+DEFAULT_STEPPING = "batch"
 
 
 def available_cores() -> int:
@@ -87,12 +91,26 @@ class NativeState(NamedTuple):
 class BatchPhysics:
     """B C-MuJoCo Go1s (one scenario each) stepped together, one physics step per :meth:`step`.
 
-    The current state lives in reused host buffers: ``physics`` (B, nstate), ``sensordata`` (B, nsensordata) and
-    ``warmstart`` (B, nv). Used by the native backend only (the loopback simulated Go1 steps its own ``mj_step``).
+    The current state lives in host arrays allocated once: ``physics`` (B, nstate), ``sensordata`` (B, nsensordata)
+    and ``warmstart`` (B, nv). ``stepping`` chooses how a step runs (``STEPPINGS``):
+
+    - ``"batch"`` (default): ``mujoco.batch.Batch``, whose state rows (``mjSTATE_INTEGRATION``: clock, qpos, qvel,
+      warm start, controls, ...) *are* these arrays, stepped in place on a persistent pool of one thread per core
+      with one model variant per instance (``set_models``);
+    - ``"rollout"``: one ``mujoco.rollout`` call per step (``nstep=1``) into a second state buffer, the reference
+      that tests/test_native_backend.py checks the batch stepping against, byte for byte.
+
+    Both warm-start the solver with the step's acceleration recovered from the states, (q̇' − q̇)/h (see
+    :meth:`step`), so they run the same arithmetic. Used by the native backend only (the loopback simulated Go1
+    steps its own ``mj_step``).
     """
 
-    def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None):
+    def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None, stepping: str | None = None):
+        stepping = DEFAULT_STEPPING if stepping is None else stepping
+        if stepping not in STEPPINGS:
+            raise ValueError(f"stepping {stepping!r}: allowed {STEPPINGS}")
         self.scenario = scenario
+        self.stepping = stepping
         # Instances with the same scenario share one MjModel (read-only during a step): less memory traffic.
         keys = list(zip(*(field.tolist() for field in scenario)))  # (friction, slope, payload, physics) per instance
         unique = {key: go1_model.scenario_model(scenario, keys.index(key)) for key in dict.fromkeys(keys)}
@@ -102,10 +120,7 @@ class BatchPhysics:
         self.timestep_s = float(m.opt.timestep)
         self.actuator = go1_model.indices().actuator
         batch = scenario.batch_size
-        self.nthread = min(available_cores() if nthread is None else nthread, batch)
-        self._chunk = -(-batch // max(self.nthread, 1))  # one contiguous chunk per thread: least pool overhead
-        self._pool = mj_rollout.Rollout(nthread=self.nthread if self.nthread > 1 else 0)
-        self._data = [mujoco.MjData(m) for _ in range(max(self.nthread, 1))]
+        self.nthread = max(min(available_cores() if nthread is None else nthread, batch), 1)
 
         self.gravity_mps2 = np.stack([mi.opt.gravity for mi in self.models])  # (B, 3)
         self.total_mass_kg = np.array([mi.body_subtreemass[go1_model.indices().trunk_body] for mi in self.models])
@@ -119,11 +134,27 @@ class BatchPhysics:
             mujoco.mj_getState(mi, d, self.standing_physics[i], _PHYSICS_SPEC)
             self.standing_sensordata[i] = d.sensordata
 
-        self.physics = self.standing_physics.copy()
         self.sensordata = self.standing_sensordata.copy()
-        self.warmstart = np.zeros((batch, m.nv))
-        self._next = np.empty_like(self.physics)
-        self._ctrl = np.zeros((batch, m.nu))
+        if stepping == "batch":
+            self._batch = mj_batch.Batch(m, batch, nthread=self.nthread)
+            self._batch.set_models(self.models)
+            rows = _RowLayout.of(m, self._batch.nstate)
+            state = self._batch.state
+            self.physics = state[:, rows.physics]  # views of the batch's rows: the batch steps them in place
+            self.warmstart = state[:, rows.warmstart]
+            self._ctrl = state[:, rows.ctrl]
+            self._step_sensordata = self._batch.bind("sensordata")  # refreshed by every step
+            self._before = np.empty((batch, self.layout.size))  # the state before the step
+            np.copyto(self.physics, self.standing_physics)
+        else:
+            self._chunk = -(-batch // self.nthread)  # one contiguous chunk per thread: least pool overhead
+            self._pool = mj_rollout.Rollout(nthread=self.nthread if self.nthread > 1 else 0)
+            self._data = [mujoco.MjData(m) for _ in range(self.nthread)]
+            self.physics = self.standing_physics.copy()
+            self._next = np.empty_like(self.physics)
+            self._ctrl = np.zeros((batch, m.nu))
+            self.warmstart = np.zeros((batch, m.nv))
+        self.warmstart[:] = 0.0
 
     @property
     def batch_size(self) -> int:
@@ -152,24 +183,60 @@ class BatchPhysics:
         Returns the (B,) bool mask of instances that diverged during the step; they are already reset to standing.
         """
         self._ctrl[:, self.actuator] = torque_nm
-        self._pool.rollout(self.models, self._data, self.physics, self._ctrl, control_spec=_CTRL_SPEC,
-                           skip_checks=True, nstep=1, initial_warmstart=self.warmstart, state=self._next,
-                           sensordata=self.sensordata, chunk_size=self._chunk)
-        before, after, lay = self.physics, self._next, self.layout
+        if self.stepping == "batch":
+            before, after = self._before, self.physics
+            np.copyto(before, after)
+            self._batch.step()
+            np.copyto(self.sensordata, self._step_sensordata)
+        else:
+            before, after = self.physics, self._next
+            self._pool.rollout(self.models, self._data, before, self._ctrl, control_spec=_CTRL_SPEC,
+                               skip_checks=True, nstep=1, initial_warmstart=self.warmstart, state=after,
+                               sensordata=self.sensordata, chunk_size=self._chunk)
+            self.physics, self._next = after, before
+        lay = self.layout
         # MuJoCo checks positions, velocities and accelerations itself and resets a diverged instance (clock → 0)
         # before integrating, so the states it returns are finite and the clock tells which ones it reset.
         failed = np.abs(after[:, lay.time] - before[:, lay.time] - self.timestep_s) > 0.5 * self.timestep_s
-        # Euler without implicit damping: qvel' = qvel + h·qacc, so the step's qacc (MuJoCo's next warm start) is
-        # recovered exactly from the two states; mujoco.rollout does not return it.
+        # Euler without implicit damping: qvel' = qvel + h·qacc, so the step's qacc is recovered from the two states
+        # and warm-starts the next step. mujoco.rollout does not return MuJoCo's own (the batch's rows hold it
+        # here, and this replaces it): one formula for both steppings keeps their results equal bit for bit.
         np.subtract(after[:, lay.qvel], before[:, lay.qvel], out=self.warmstart)
         self.warmstart *= 1.0 / self.timestep_s
-        self.physics, self._next = after, before
         if failed.any():
             self.reset(failed)
         return failed
 
     def close(self) -> None:
-        self._pool.close()
+        """Release the thread pool (the batch's goes with the object)."""
+        if self.stepping == "rollout":
+            self._pool.close()
+
+
+class _RowLayout(NamedTuple):
+    """Where the physics state (``mjSTATE_FULLPHYSICS``), the warm start and the controls sit in a
+    ``mujoco.batch`` state row (``mjSTATE_INTEGRATION``; MuJoCo orders components by bit)."""
+
+    physics: slice
+    warmstart: slice
+    ctrl: slice
+
+    @staticmethod
+    def of(model: mujoco.MjModel, nstate: int) -> "_RowLayout":
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION.value
+        if mujoco.mj_stateSize(model, spec) != nstate:
+            raise ValueError(f"mujoco.batch rows of {nstate} numbers, expected mjSTATE_INTEGRATION's "
+                             f"{mujoco.mj_stateSize(model, spec)}")
+
+        def at(component: mujoco.mjtState) -> int:  # the size of every component ordered before it
+            return mujoco.mj_stateSize(model, spec & (component.value - 1))
+
+        warmstart_at, ctrl_at = at(mujoco.mjtState.mjSTATE_WARMSTART), at(mujoco.mjtState.mjSTATE_CTRL)
+        physics_size = mujoco.mj_stateSize(model, _PHYSICS_SPEC)
+        if warmstart_at != physics_size:  # e.g. plugin state, which FULLPHYSICS holds and the row keeps further on
+            raise ValueError("the model's mjSTATE_FULLPHYSICS is not the start of a mujoco.batch row")
+        return _RowLayout(physics=slice(0, physics_size), warmstart=slice(warmstart_at, warmstart_at + model.nv),
+                          ctrl=slice(ctrl_at, ctrl_at + model.nu))
 
 
 # ----------------------------------------------------------------------------------------------- per-tick logic
@@ -325,11 +392,12 @@ class NativeBackend:
     name = "native"
 
     def __init__(self, scenario: go1_model.Scenario, cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, nthread: int | None = None):
+                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, nthread: int | None = None,
+                 stepping: str | None = None):
         self.scenario = scenario
         self.cpg_config = cpg_config
         self.trial_config = trial_config
-        self.physics = BatchPhysics(scenario, nthread=nthread)
+        self.physics = BatchPhysics(scenario, nthread=nthread, stepping=stepping)
         self._gravity = jnp.asarray(self.physics.gravity_mps2, jnp.float32)
         self._total_mass = jnp.asarray(self.physics.total_mass_kg, jnp.float32)
         lay = self.physics.layout
@@ -350,7 +418,8 @@ class NativeBackend:
     def with_scenario(self, scenario: go1_model.Scenario) -> NativeBackend:
         """This backend for another batch of scenarios; the compiled tick is reused when the batch size is the same
         (scenario values reach it as data). This backend's thread pool is released."""
-        other = NativeBackend(scenario, self.cpg_config, self.trial_config, nthread=self.physics.nthread)
+        other = NativeBackend(scenario, self.cpg_config, self.trial_config, nthread=self.physics.nthread,
+                              stepping=self.physics.stepping)
         if scenario.batch_size == self.batch_size:
             other._compiled = self._compiled
         self.physics.close()

@@ -1,0 +1,120 @@
+"""Where a native-backend tick's time goes: the closed-loop trial split into the controller (the tick's one jitted
+JAX call, ``_advance``), the physics step (``BatchPhysics.step``: ``mujoco.batch`` plus its host arithmetic) and
+the rest (record completion, packing the host input, the loop), per batch size.
+
+Each part is timed on its own over as many calls as the trial has ticks, with the inputs the trial gives it (the
+controller with a standing robot's host input, the physics with the torques the closed loop applied), best of
+``--repeats``; the closed loop is timed as a whole, and "rest" is what the two parts leave of it.
+
+    JAX_PLATFORMS=cpu python benchmarks/native_tick.py [--batch-sizes 16,20,64] [--steps 400] [--repeats 3]
+
+The last line of the output is a JSON object of the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from cpgjax.robot import cpu_dispatch  # noqa: E402
+
+cpu_dispatch.request_inline()  # as every cpgjax command: the per-tick JAX call runs inline
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.flatten_util import ravel_pytree  # noqa: E402
+
+from cpgjax.go1 import model as go1_model  # noqa: E402
+from cpgjax.go1 import physics as physics_profiles  # noqa: E402
+from cpgjax.sim import native as native_go1  # noqa: E402
+from cpgjax.study import files as study_io  # noqa: E402
+from cpgjax.trial import params as param_space  # noqa: E402
+from cpgjax.trial import protocol  # noqa: E402
+
+
+def _best(run, repeats: int) -> float:
+    return min(run() for _ in range(repeats))
+
+
+def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
+    """µs per tick of the closed loop, its controller call and its physics step (see the module docstring)."""
+    transition = steps // 4
+    config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
+    sim = native_go1.NativeBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics),
+                                   trial_config=config)
+    p = np.tile(param_space.midpoint(), (batch, 1))
+    gates = protocol.batch_gates(["vmc_tegotae"] * batch)
+
+    def closed_loop():
+        state = sim.reset(p)
+        t0 = time.perf_counter()
+        jax.block_until_ready(sim.trial(state, p, gates)[1])
+        return time.perf_counter() - t0
+
+    closed_loop()  # compiles
+    program = sim._program(native_go1.TRIAL_RECORDER, config)
+    state = sim.reset(p)
+    consts = ravel_pytree(sim._constants(state.params, jnp.asarray(p, jnp.float32), gates))[0]
+    controller = ravel_pytree(native_go1._Controller(state.cpg, state.io))[0]
+    host_in = sim._pack_host_inputs(np.zeros(batch, bool)).copy()
+
+    def controller_calls():
+        carry = native_go1._Carry(controller=controller.copy(), pending=jnp.zeros(program.pending_size),
+                                  step=jnp.int32(0), rows=jnp.zeros((steps, program.row_size)))
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            carry, torque = program.advance(consts, carry, host_in)
+            np.asarray(torque)
+        return time.perf_counter() - t0
+
+    torques = np.asarray(sim.rollout(sim.reset(p), p, gates, steps)[1].torque_nm)  # (B, T, 12), as applied
+
+    def physics_steps():
+        sim.physics.set_state(state.physics, state.warmstart, state.sensordata)
+        t0 = time.perf_counter()
+        for k in range(steps):
+            sim.physics.step(torques[:, k])
+        return time.perf_counter() - t0
+
+    per_tick = {name: 1e6 * _best(run, repeats) / steps for name, run in
+                (("closed_loop", closed_loop), ("controller", controller_calls), ("physics", physics_steps))}
+    per_tick["rest"] = per_tick["closed_loop"] - per_tick["controller"] - per_tick["physics"]
+    sim.physics.close()
+    return {**{f"{k}_us": round(v, 1) for k, v in per_tick.items()},
+            "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]), "threads": sim.physics.nthread}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=[16, 20, 64])
+    parser.add_argument("--steps", type=int, default=400, help="ticks per timed run")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--physics", default=physics_profiles.PAPER_STUDIES_PROFILE, choices=physics_profiles.PROFILES)
+    args = parser.parse_args()
+    if min(args.batch_sizes) < 1 or args.steps < 4 or args.repeats < 1:
+        parser.error(f"--batch-sizes {args.batch_sizes}, --steps {args.steps}, --repeats {args.repeats}: need "
+                     "batch sizes ≥ 1, steps ≥ 4, repeats ≥ 1")
+    load_start = os.getloadavg()[0]
+    print(f"# {study_io.machine()}, {native_go1.available_cores()} cores, {args.physics} physics, {args.steps} ticks, "
+          f"best of {args.repeats}, load average {load_start:.1f}")
+    print("| batch | threads | closed loop [µs/tick] | controller call [µs] | physics step [µs] | rest [µs] "
+          "| env-steps/s |\n|---|---|---|---|---|---|---|")
+    figures = {"benchmark": "native_tick", "machine": study_io.machine(), "physics": args.physics,
+               "steps": args.steps, "repeats": args.repeats}
+    for b in args.batch_sizes:
+        r = breakdown(b, args.steps, args.repeats, args.physics)
+        print(f"| {b} | {r['threads']} | {r['closed_loop_us']:.0f} | {r['controller_us']:.0f} | {r['physics_us']:.0f} "
+              f"| {r['rest_us']:.0f} | {r['env_steps_per_s']:,} |", flush=True)
+        figures.update({f"{k}_b{b}": v for k, v in r.items()})
+    figures.update(load_avg_1min_start=round(load_start, 2), load_avg_1min_end=round(os.getloadavg()[0], 2))
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
