@@ -5,6 +5,7 @@ file of a tiny controller ablation (table, figures, parquet, rerun recording, me
 import dataclasses
 import json
 
+import imageio.v3 as iio
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -13,6 +14,7 @@ import cpgjax
 from cpgjax import ablation, cli, cpg
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
+from cpgjax.study import video as study_video
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 from tests.test_ablation import small_optimizer
@@ -120,6 +122,14 @@ def test_ablation_outputs(tiny_ablation):
     assert {"jax", "mujoco", "devices"} <= set(meta["environment"])
     assert meta["cpgjax_version"] == cpgjax.__version__ and meta["optimizer"]["num_random_proposals"] == 2
     assert meta["git_commit"] is None or len(meta["git_commit"].split("-")[0]) == 40
+    for c in cpg.CONTROLLERS:  # each group's best gait, and its video where this machine can render
+        (gait,) = [g for g in study_video.load_gaits(out) if g.group == c]
+        b = [i for i, lab in enumerate(result.labels) if lab["controller"] == c][0]
+        np.testing.assert_allclose(gait.params, result.trials.params[gait.trial, b])
+        assert gait.objective == pytest.approx(float(result.trials.objective[gait.trial, b]))
+        assert gait.objective == pytest.approx(float(result.trials.objective[:, b].max()))  # one phase: its best
+        if (out / f"best_{c}.mp4").exists():
+            assert len(iio.imread(out / f"best_{c}.mp4")) == 5  # the steady phase, 200 ticks at 25 frames/s
     schema = pq.read_schema(out / "trials.parquet")
     assert all(str(schema.field(name).type) == "bool" for name in ("fell", "failed", "accepted", "context_changed"))
 
