@@ -8,6 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from cpgjax import cli
 from cpgjax.go1 import model as go1_model
 from cpgjax.study import video
 from cpgjax.study.spec import StudyError
@@ -88,3 +89,30 @@ def test_gait_files_round_trip_and_refuse_damage(tmp_path):
     path.write_text("{")
     with pytest.raises(StudyError, match="best_friction0.3.json is unreadable"):
         video.load_gaits(tmp_path)
+
+
+def test_cli_show_video_films_the_gait_files(tmp_path, capsys):
+    gait = video.Gait("vmc_tegotae", param_space.midpoint(), "vmc_tegotae", 0.6, 4.0, 0.0, "soft", 100, 200)
+    video.save_gait(tmp_path, gait)
+    (tmp_path / "best_vmc_tegotae.mp4").write_bytes(b"an older video")
+    code = cli.main(["show", str(tmp_path), "--video", "--video-s", "0.08", "--backend", "native", "--no-viewer"])
+    err = capsys.readouterr().err
+    if "no video: " in err:
+        pytest.skip(f"no OpenGL backend: {err.strip()}")
+    assert code == 0 and "best_vmc_tegotae.mp4: 0.1 s of vmc_tegotae" in err, err
+    assert f"replacing {tmp_path / 'best_vmc_tegotae.mp4'}" in err
+    assert len(iio.imread(tmp_path / "best_vmc_tegotae.mp4")) == 2
+
+
+def test_cli_video_options_are_checked_before_compute(tmp_path, capsys):
+    assert cli.main(["show", str(tmp_path), "--video"]) == 2
+    assert "has no best_<group>.json to film" in capsys.readouterr().err
+    assert cli.main(["walk", "--controllers", "vmc,tegotae", "--video", str(tmp_path / "w.mp4")]) == 2
+    assert "--controllers has 2 values (give one)" in capsys.readouterr().err
+    (tmp_path / "w.mp4").write_bytes(b"keep")
+    assert cli.main(["walk", "--controllers", "vmc", "--video", str(tmp_path / "w.mp4")]) == 2
+    assert "w.mp4 exists: pass --overwrite" in capsys.readouterr().err
+    assert (tmp_path / "w.mp4").read_bytes() == b"keep"
+    with pytest.raises(SystemExit):
+        cli.main(["walk", "--video-s", "0", "--video", str(tmp_path / "v.mp4")])
+    assert "outside the allowed range [0.04, 120]" in capsys.readouterr().err

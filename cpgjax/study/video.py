@@ -25,10 +25,12 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax.study.spec import StudyError
+from cpgjax.trial import limits
 from cpgjax.trial import params as param_space
 
 FPS = 25  # frames per second of video; one frame every 1000 / FPS ticks of 1 ms, so the video plays in real time
 WIDTH, HEIGHT = 640, 480
+DURATION_S = limits.Range(0.04, 120.0, "at least one frame, at most two minutes of video")
 CAMERA_DISTANCE_M = 1.4
 CAMERA_AZIMUTH_DEG = 120.0  # from the robot's left and front, looking back at it
 CAMERA_ELEVATION_DEG = -18.0
