@@ -141,10 +141,25 @@ def test_cli_show_prints_the_table(tiny_ablation, capsys):
     assert text.splitlines()[2] in printed and "real-time factor" in printed
 
 
-def test_representative_rollout_is_the_best_runs_best_parameters(tiny_ablation):
+def test_best_gaits_are_each_groups_best_run_and_trial(tiny_ablation):
     result, _, _ = tiny_ablation
-    (label, log), = studies.representative_rollout(result, "native").items()
-    b = int(np.argmax(studies.last_mean(result.trials.objective, result.trials.objective.shape[0])))
-    t = int(np.argmax(result.trials.objective[:, b]))
-    assert label == f"best_{result.labels[b]['controller']}_run{b}_trial{t}"
-    assert log.qpos.shape[0] == 3000 and log.phase_rad.shape == (3000, 4) and np.all(np.isfinite(log.qpos))
+    gaits = studies.best_gaits(result)
+    assert [g.group for g in gaits] == list(cpg.CONTROLLERS)  # one per controller, the study's groups
+    n = result.trials.objective.shape[0]
+    for gait in gaits:
+        runs = [b for b, lab in enumerate(result.labels) if lab["controller"] == gait.group]
+        b = max(runs, key=lambda i: result.trials.objective[n - 5:, i].mean())
+        t = int(np.argmax(result.trials.objective[:, b]))
+        assert (gait.instance, gait.trial, gait.controller) == (b, t, gait.group)
+        np.testing.assert_array_equal(gait.params, result.trials.params[t, b])
+    (log,) = studies.gait_rollouts(gaits[:1], "native", steps=250)
+    assert log.qpos.shape[0] == 250 and log.phase_rad.shape == (250, 4) and np.all(np.isfinite(log.qpos))
+
+def test_group_names_are_file_names():
+    assert studies.group_name({"controller": "vmc_tegotae", "seed": 0}, ("controller",)) == "vmc_tegotae"
+    assert studies.group_name({"friction": 0.3}, ("friction",)) == "friction0.3"
+    assert studies.group_name({"schedule": "0→7.5→15 kg"}, ("schedule",)) == "schedule0-7.5-15kg"
+    assert studies.group_name({"schedule": "0→10→12.5° + inference 10…17.5°"}, ("schedule",)) == \
+        "schedule0-10-12.5inference1017.5"
+    assert studies.group_name({"data_reuse": True, "controller": "vmc"}, ("controller", "data_reuse")) == \
+        "vmc_data_reuseTrue"

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from cpgjax import cli
+from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
 from cpgjax.study import video
 from cpgjax.study.spec import StudyError
@@ -23,9 +24,9 @@ def test_frames_play_in_real_time():
 @pytest.mark.parametrize("slope_deg", [-12.0, 0.0, 10.0, 30.0])
 def test_the_slope_rotation_points_gravity_down(slope_deg):
     g = go1_model.gravity_vector(slope_deg)  # the floor frame's gravity
-    up = video._rotate(video.slope_quaternion(slope_deg), g)
+    up = attitude.quat_rotate(go1_model.slope_quaternion(slope_deg), g)
     np.testing.assert_allclose(up, [0.0, 0.0, -np.linalg.norm(g)], atol=1e-12)
-    uphill = video._rotate(video.slope_quaternion(slope_deg), np.array([1.0, 0.0, 0.0]))
+    uphill = attitude.quat_rotate(go1_model.slope_quaternion(slope_deg), np.array([1.0, 0.0, 0.0]))
     assert uphill[2] == pytest.approx(np.sin(np.deg2rad(slope_deg)))  # the floor's x climbs at the slope
 
 

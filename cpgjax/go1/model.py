@@ -185,6 +185,13 @@ def gravity_vector(slope_deg) -> np.ndarray:
     return constants.GRAVITY_MPS2 * np.stack([-np.sin(s), np.zeros_like(s), -np.cos(s)], axis=-1)
 
 
+def slope_quaternion(slope_deg) -> np.ndarray:
+    """(w, x, y, z) of the rotation from the floor frame to the frame whose z is against gravity: about y by −slope
+    (the floor's x climbs at the slope angle; it turns :func:`gravity_vector` into (0, 0, −g))."""
+    half = -np.deg2rad(float(slope_deg)) / 2.0
+    return np.array([np.cos(half), 0.0, np.sin(half), 0.0])
+
+
 def payload_inertia(payload_kg: float) -> np.ndarray:
     """Principal inertia (3,) [kg·m²] of the payload box (docs/decisions.md §6)."""
     a, b, c = PAYLOAD_BOX_M

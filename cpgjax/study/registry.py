@@ -11,7 +11,9 @@
 ======================  =======================================================================================
 
 Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures, ``trials.parquet``,
-``recording.rrd``, ``metadata.json`` and the engine's ``checkpoint.npz`` (``cpgjax.study.files``).
+``recording.rrd`` (with each group's best gait, full body), ``metadata.json`` and the engine's ``checkpoint.npz``
+(``cpgjax.study.files``), then each group's best gait, ``best_<group>.json``, and its video ``best_<group>.mp4``
+(``cpgjax.study.video``).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
 from cpgjax.study import figures as study_figures
 from cpgjax.study import files as study_io
+from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
 from cpgjax.study import video as study_video
 from cpgjax.study.spec import Change, Schedule, StudySpec
@@ -174,19 +177,6 @@ def _best_run(result, mask: np.ndarray) -> tuple[int, int]:
     return b, start + int(np.argmax(tr.objective[start:n, b]))
 
 
-def representative_rollout(result, backend: str) -> dict:
-    """The per-step log of the run with the best final objective (mean of its last trials): its best parameters
-    of the final condition phase, rolled out in the conditions of the last trial."""
-    tr, cond = result.trials, result.conditions
-    n = tr.objective.shape[0]
-    b, t = _best_run(result, np.ones(len(result.labels), bool))
-    scenario = go1_model.make_scenarios(cond.friction[b, n - 1], cond.slope_deg[b, n - 1], cond.payload_kg[b, n - 1],
-                                        result.labels[b]["physics"])
-    controller = result.labels[b]["controller"]
-    log = rollouts(tr.params[t, b][None], [controller], scenario, result.spec.trial, backend)[0]
-    return {f"best_{controller}_run{b}_trial{t}": log}
-
-
 def group_name(labels: dict, group_by) -> str:
     """A group's name in file names: its label values (a controller by name, other labels as label + value), joined
     by ``_``, arrows as ``-`` and anything else but letters, digits, ``.``, ``-`` and ``_`` dropped."""
@@ -262,7 +252,7 @@ def report_ablation(result, out: pathlib.Path, backend: str):
         text += "| controller | best J (instance) | roll std | pitch std |\n|---|---|---|---|\n"
         for (c, lg), (_, b, jb) in zip(logs.items(), best):
             text += f"| {c} | {jb:.3f} (#{b}) | {np.std(lg.rpy_rad[:, 0]):.4f} | {np.std(lg.rpy_rad[:, 1]):.4f} |\n"
-    return text, logs
+    return text
 
 
 def report_load(result, out: pathlib.Path, backend: str):
@@ -293,7 +283,7 @@ def report_load(result, out: pathlib.Path, backend: str):
             + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "load_adaptation.png", result, "schedule", changes=starts[1:-1],
                                   context_index=0)
-    return text, representative_rollout(result, backend)
+    return text
 
 
 def report_friction(result, out: pathlib.Path, backend: str):
@@ -312,7 +302,7 @@ def report_friction(result, out: pathlib.Path, backend: str):
             f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
             "(no table).\n\n" + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "friction.png", result, "friction")
-    return text, representative_rollout(result, backend)
+    return text
 
 
 def trials_to_track(velocity: np.ndarray, target: np.ndarray, fell: np.ndarray, start: int, stop: int) -> float:
@@ -345,7 +335,7 @@ def report_multi_velocity(result, out: pathlib.Path, backend: str):
             + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse", changes=starts[1:-1],
                                   target=cond.target_velocity_mps[0])
-    return text, representative_rollout(result, backend)
+    return text
 
 
 def report_slope(result, out: pathlib.Path, backend: str):
@@ -372,13 +362,13 @@ def report_slope(result, out: pathlib.Path, backend: str):
         text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{n - 1}:\n\n" + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "slope_adaptation.png", result, "schedule", changes=starts[1:],
                                   context_index=1)
-    return text, representative_rollout(result, backend)
+    return text
 
 
 class Study(NamedTuple):
     name: str
     make_spec: Callable[..., StudySpec]
-    report: Callable[..., tuple[str, dict]]
+    report: Callable[..., str]  # (result, out, backend) → the table text; writes the study's figures
     description: str
 
 
@@ -418,17 +408,20 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
     ``notify`` per video, or one saying why there is none."""
     out.mkdir(parents=True, exist_ok=True)
     report = STUDIES[name or result.spec.name].report
-    text, logs = report(result, out, backend)
+    text = report(result, out, backend)
     figures = study_io.run_figures(result)
     text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, figures)}\n"
     (out / "table.md").write_text(text)
     study_io.write_trials(result, out / "trials.parquet")
-    study_io.write_recording(result, out / "recording.rrd", logs)
-    study_io.write_metadata(result, out / "metadata.json", command=command)
     gaits = best_gaits(result)
+    logs = gait_rollouts(gaits, backend)
+    study_io.write_recording(result, out / "recording.rrd", [
+        study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction, g.slope_deg,
+                            g.payload_kg) for g, log in zip(gaits, logs)])
+    study_io.write_metadata(result, out / "metadata.json", command=command)
     for gait in gaits:
         study_video.save_gait(out, gait)
-    study_video.write_videos(out, gaits, gait_rollouts(gaits, backend), notify)
+    study_video.write_videos(out, gaits, logs, notify)
     return text
 
 

@@ -24,6 +24,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cpgjax.go1 import attitude
+from cpgjax.go1 import model as go1_model
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import limits
 from cpgjax.trial import params as param_space
@@ -122,29 +124,15 @@ def frame_ticks(num_ticks: int, fps: int = FPS) -> np.ndarray:
     return np.arange(0, num_ticks, stride)
 
 
-def slope_quaternion(slope_deg: float) -> np.ndarray:
-    """(w, x, y, z) of the rotation from the floor frame to the frame whose z is against gravity: about y by −slope
-    (the floor's x climbs at the slope angle; cf. go1_model.gravity_vector)."""
-    half = -np.deg2rad(slope_deg) / 2.0
-    return np.array([np.cos(half), 0.0, np.sin(half), 0.0])
-
-
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    w, u = q[0], q[1:]
-    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
-
-
 def render_frames(qpos: np.ndarray, slope_deg: float = 0.0, width: int = WIDTH, height: int = HEIGHT):
     """Frames (height, width, 3) uint8 of the visual model at each qpos row (T, nq), camera following the trunk.
     Needs a working OpenGL backend in this process (MUJOCO_GL)."""
     import mujoco
 
-    from cpgjax.go1 import model as go1_model
-
     m = go1_model.load_visual_model()
     d = mujoco.MjData(m)
     root = go1_model.indices().root_qpos
-    tilt = slope_quaternion(slope_deg)
+    tilt = go1_model.slope_quaternion(slope_deg)
     camera = mujoco.MjvCamera()
     camera.type = mujoco.mjtCamera.mjCAMERA_FREE
     camera.distance, camera.azimuth, camera.elevation = CAMERA_DISTANCE_M, CAMERA_AZIMUTH_DEG, CAMERA_ELEVATION_DEG
@@ -153,7 +141,7 @@ def render_frames(qpos: np.ndarray, slope_deg: float = 0.0, width: int = WIDTH, 
         for row in np.asarray(qpos, np.float64):
             d.qpos[:] = row
             mujoco.mj_kinematics(m, d)
-            camera.lookat[:] = _rotate(tilt, row[root:root + 3])
+            camera.lookat[:] = attitude.quat_rotate(tilt, row[root:root + 3])
             renderer.update_scene(d, camera)
             scene = renderer.scene
             scene.enabletransform = 1
