@@ -12,6 +12,7 @@ import os
 import pathlib
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -44,6 +45,7 @@ from cpgjax.study import registry as studies  # noqa: E402
 from cpgjax.study import spec as study_spec  # noqa: E402
 from cpgjax.study import transfer  # noqa: E402
 from cpgjax.study import video as study_video  # noqa: E402
+from cpgjax.study import viewer as study_viewer  # noqa: E402
 from cpgjax.trial import limits  # noqa: E402
 from cpgjax.trial import params as param_space  # noqa: E402
 
@@ -439,11 +441,40 @@ def _show_video(args) -> int:
     return 0 if study_video.write_videos(out, gaits, logs, _notice) else 1
 
 
+def _show_web(args) -> int:
+    """``cpgjax show DIR --web``: rerun's web viewer on the folder's recording, on 127.0.0.1, until Ctrl-C."""
+    recording = pathlib.Path(args.results) / "recording.rrd"
+    if not recording.is_file():
+        print(f"cpgjax show: {recording} does not exist (a study or `cpgjax optimize` writes it)", file=sys.stderr)
+        return 2
+    try:
+        proc = study_viewer.serve(recording, args.port)
+    except study_spec.StudyError as err:
+        print(f"cpgjax show: {err}", file=sys.stderr)
+        return 2
+    web, grpc = args.port, args.port + 1
+    print(f"serving {recording} in rerun's web viewer on 127.0.0.1 only (pid {proc.pid}); open\n"
+          f"  {study_viewer.url(web, grpc)}\n"
+          f"from another machine, tunnel both ports first:\n  {study_viewer.tunnel_line(web, grpc)}\n"
+          "Ctrl-C stops it.", flush=True)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill, like Ctrl-C, stops the viewer first
+    try:
+        return proc.wait()
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        study_viewer.stop(proc)
+
+
 def _show_command(args) -> int:
     if args.video:
         code = _show_video(args)
         if code:
             return code
+    if args.web:
+        args.no_viewer = True
+        code = _show(args)
+        return code or _show_web(args)
     return _show(args)
 
 
@@ -640,6 +671,11 @@ def _add_show(sub) -> None:
                    "best_<group>.json first, replacing them")
     _add_video_length_arg(v)
     backends.add_backend_argument(v)
+    v.add_argument("--web", action="store_true", help="serve the recording in rerun's web viewer on 127.0.0.1 (for "
+                   "a browser here or through an ssh tunnel) until Ctrl-C")
+    v.add_argument("--port", type=_integer_in(range(1024, 65535), "an unprivileged TCP port; the recording uses "
+                   "it + 1"), default=study_viewer.DEFAULT_WEB_PORT, help="--web: the viewer page's port (the "
+                   "recording's is the next one)")
     v.set_defaults(func=_show_command)
 
 

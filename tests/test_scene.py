@@ -107,6 +107,11 @@ def test_the_world_is_tilted_by_the_slope_and_the_arrows_are_the_forces(recorded
     (tilt,) = _first(_column(chunks, f"{base}/world", "Transform3D:quaternion"))
     down = attitude.quat_rotate(tilt[[3, 0, 1, 2]], go1_model.gravity_vector(rollout.slope_deg))
     np.testing.assert_allclose(down / np.linalg.norm(down), [0, 0, -1], atol=1e-6)
+    (center,) = _first(_column(chunks, f"{base}/world/floor", "Boxes3D:centers"))
+    (half,) = _first(_column(chunks, f"{base}/world/floor", "Boxes3D:half_sizes"))
+    assert center[2] + half[2] == pytest.approx(0.0, abs=1e-6)  # the floor's top is the floor frame's z = 0
+    trunk = log.qpos[:, go1_model.indices().root_qpos:go1_model.indices().root_qpos + 2]
+    assert np.all(np.abs(trunk - center[:2]) < half[:2])  # under the whole walk
     ticks = np.arange(0, TICKS, scene.TICK_STRIDE)
     for k, leg in enumerate(("FR", "FL", "RR", "RL")):
         entity = f"{base}/world/contact_force/{leg}"

@@ -26,7 +26,8 @@ from cpgjax.go1 import model as go1_model
 
 TICK_STRIDE = 10  # body transforms and arrows at 100 Hz (the scalars every tick)
 FORCE_ARROW_M_PER_N = 0.004  # a foot carrying a quarter of the robot's weight (31 N): a 12 cm arrow
-FLOOR_HALF_SIZE_M = (6.0, 1.5, 0.005)  # a floor slab around the walk (its top at z = 0)
+FLOOR_MARGIN_M = 0.6  # the floor slab spans the trunk's path and this much around it (its top at z = 0)
+FLOOR_THICKNESS_M = 0.01
 TICK_S = 0.001
 
 
@@ -117,11 +118,11 @@ def log_rollout(rec, rollout: Rollout) -> str:
 
     tilt = _xyzw(go1_model.slope_quaternion(rollout.slope_deg))
     rr.log(f"{base}/world", rr.Transform3D(quaternion=tilt), static=True, recording=rec)
-    start_x = float(qpos[0, go1_model.indices().root_qpos])
-    half = np.array(FLOOR_HALF_SIZE_M)
-    rr.log(f"{base}/world/floor", rr.Boxes3D(half_sizes=[half], centers=[[start_x + half[0] - 1.0, 0.0, -half[2]]],
-                                              colors=[[190, 190, 185, 255]], fill_mode="solid"),
-           static=True, recording=rec)
+    trunk_xy = qpos[:, go1_model.indices().root_qpos:go1_model.indices().root_qpos + 2]
+    low, high = trunk_xy.min(axis=0) - FLOOR_MARGIN_M, trunk_xy.max(axis=0) + FLOOR_MARGIN_M
+    floor = rr.Boxes3D(mins=[[*low, -FLOOR_THICKNESS_M]], sizes=[[*(high - low), FLOOR_THICKNESS_M]],
+                       colors=[[190, 190, 185, 255]], fill_mode="solid")
+    rr.log(f"{base}/world/floor", floor, static=True, recording=rec)
     pos, quat = body_poses(qpos[every])
     for body in range(1, m.nbody):
         if not np.any((m.geom_bodyid == body) & (m.geom_group == go1_model.VISUAL_GROUP)):
