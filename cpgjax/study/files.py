@@ -458,8 +458,8 @@ def write_recording(result, path, rollouts: list | None = None) -> pathlib.Path:
             rr.send_columns(f"optimization/{key}/{name}", indexes=[trial_index],
                             columns=rr.Scalars.columns(scalars=np.asarray(values[:, b], np.float64)),
                             recording=rec)
-    for rollout in rollouts or ():
-        study_scene.log_rollout(rec, rollout)
+    bases = [study_scene.log_rollout(rec, rollout) for rollout in rollouts or ()]
+    rec.send_blueprint(study_scene.blueprint(bases))
     rec.flush()
     rec.disconnect()
     return path

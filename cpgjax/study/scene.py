@@ -149,3 +149,19 @@ def log_rollout(rec, rollout: Rollout) -> str:
         rr.send_columns(f"{base}/attitude_rad/{axis}", indexes=index(ticks),
                         columns=rr.Scalars.columns(scalars=np.asarray(log.rpy_rad[:, k], np.float64)), recording=rec)
     return base
+
+
+def blueprint(bases: list[str]):
+    """The viewer's layout: a tab per rollout (its 3D scene beside its CPG phases and foot forces), then a tab of the
+    optimization's curves."""
+    import rerun.blueprint as rrb
+
+    tabs = [rrb.Horizontal(
+        rrb.Spatial3DView(origin=f"{base}/world", name=base.split("/")[1]),
+        rrb.Vertical(rrb.TimeSeriesView(origin=f"{base}/cpg/phase_rad", name="CPG phase [rad]"),
+                     rrb.TimeSeriesView(origin=f"{base}/foot_force_n", name="foot normal force [N]")),
+        column_shares=[2, 1], name=base.split("/")[1]) for base in bases]
+    tabs.append(rrb.Grid(*(rrb.TimeSeriesView(origin=f"/optimization/{key}", name=key) for key in
+                           ("objective", "velocity_x_mps", "cost_of_transport", "c_load_n", "c_slope_rad", "beta")),
+                         name="optimization"))
+    return rrb.Blueprint(rrb.Tabs(*tabs), collapse_panels=True)
