@@ -421,7 +421,10 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
     study_io.write_metadata(result, out / "metadata.json", command=command)
     for gait in gaits:
         study_video.save_gait(out, gait)
-    study_video.write_videos(out, gaits, logs, notify)
+    study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
+    filmed = study_video.write_videos(out, gaits, logs, notify)
+    strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed)}
+    study_figures.summary(out / "summary.png", result, text, gaits, strips)
     return text
 
 

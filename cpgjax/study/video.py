@@ -227,6 +227,14 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
     return infos
 
 
+def filmstrip(path, count: int = 4) -> list[np.ndarray]:
+    """``count`` frames spread over the MP4 ``path`` (for a figure)."""
+    import imageio.v3 as iio
+
+    frames = iio.imread(path)
+    return [frames[k] for k in np.linspace(0, len(frames) - 1, count).astype(int)]
+
+
 def _main(argv: list[str]) -> int:
     """The child: ``python -m cpgjax.study.video JOBS.npz``; one JSON line per finished video on stdout."""
     with np.load(argv[0]) as z:
