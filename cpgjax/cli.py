@@ -48,6 +48,7 @@ from cpgjax.study import video as study_video  # noqa: E402
 from cpgjax.study import viewer as study_viewer  # noqa: E402
 from cpgjax.trial import limits  # noqa: E402
 from cpgjax.trial import params as param_space  # noqa: E402
+from cpgjax.trial import protocol  # noqa: E402
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
@@ -153,9 +154,10 @@ def _walk_video(args) -> int:
         print(f"cpgjax walk: {err}", file=sys.stderr)
         return 2
     code = _walk(args)
+    trial = protocol.TrialConfig()  # the walk's trials, the paper's
     gait = study_video.Gait(path.stem, param_space.midpoint(), args.controllers[0], args.friction[0],
-                            args.slope_deg[0], args.payload_kg[0], args.physics[0], 1500, 3000,
-                            args.target_velocity_mps)
+                            args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
+                            trial.steady_steps, args.target_velocity_mps)
     (log,) = studies.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
     try:
         (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg)])
