@@ -617,7 +617,7 @@ def _add_walk(sub) -> None:
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
     backends.add_backend_argument(w)
     w.add_argument("--video", type=pathlib.Path, help="also film the walk (one combination, the paper's trial as "
-                   "settling, then --video-s) into this MP4 (docs/visualization.md)")
+                   "settling, then --video-s) into this MP4 (docs/visualization.md; default: no video)")
     _add_video_length_arg(w)
     w.add_argument("--overwrite", action="store_true", help="replace an existing --video file")
     w.set_defaults(func=lambda args: _walk_video(args) if args.video else _walk(args))
