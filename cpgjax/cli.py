@@ -12,6 +12,7 @@ import os
 import pathlib
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -43,8 +44,11 @@ from cpgjax.study import launch as study_launch  # noqa: E402
 from cpgjax.study import registry as studies  # noqa: E402
 from cpgjax.study import spec as study_spec  # noqa: E402
 from cpgjax.study import transfer  # noqa: E402
+from cpgjax.study import video as study_video  # noqa: E402
+from cpgjax.study import viewer as study_viewer  # noqa: E402
 from cpgjax.trial import limits  # noqa: E402
 from cpgjax.trial import params as param_space  # noqa: E402
+from cpgjax.trial import protocol  # noqa: E402
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
@@ -133,6 +137,36 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 def _notice(line: str) -> None:
     """A line for the person at the terminal (stderr: stdout holds a command's results)."""
     print(line, file=sys.stderr, flush=True)
+
+
+def _walk_video(args) -> int:
+    """``cpgjax walk --video FILE``: the walk's one combination, after a settling trial, filmed for --video-s."""
+    combos = [(name, len(v)) for name, v in (("--controllers", args.controllers), ("--friction", args.friction),
+                                             ("--slope-deg", args.slope_deg), ("--payload-kg", args.payload_kg),
+                                             ("--physics", args.physics)) if len(v) != 1]
+    if combos:
+        print(f"cpgjax walk: --video films one walk; {combos[0][0]} has {combos[0][1]} values (give one)",
+              file=sys.stderr)
+        return 2
+    try:
+        path = study_io.claim_file(args.video, overwrite=args.overwrite)
+    except study_spec.StudyError as err:
+        print(f"cpgjax walk: {err}", file=sys.stderr)
+        return 2
+    code = _walk(args)
+    trial = protocol.TrialConfig()  # the walk's trials, the paper's
+    gait = study_video.Gait(path.stem, param_space.midpoint(), args.controllers[0], args.friction[0],
+                            args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
+                            trial.steady_steps, args.target_velocity_mps)
+    (log,) = studies.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
+    try:
+        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg)])
+    except (study_video.RenderUnavailable, RuntimeError) as err:
+        print(f"cpgjax walk: {err}", file=sys.stderr)
+        return code or 1
+    _notice(f"{path}: {info['rollout_s']:.1f} s after a settling trial, {info['frames']} frames rendered in "
+            f"{info['render_s']:.1f} s ({info['backend']})")
+    return code
 
 
 def _walk(args) -> int:
@@ -391,6 +425,61 @@ def _show(args) -> int:
     return 0
 
 
+def _show_video(args) -> int:
+    """``cpgjax show DIR --video``: film each best_<group>.json of a study folder again."""
+    out = pathlib.Path(args.results)
+    try:
+        gaits = study_video.load_gaits(out) if out.is_dir() else None
+    except study_spec.StudyError as err:
+        print(f"cpgjax show: {err}", file=sys.stderr)
+        return 2
+    if not gaits:
+        print(f"cpgjax show: {out} has no best_<group>.json to film (a study writes them)", file=sys.stderr)
+        return 2
+    for gait in gaits:
+        if study_video.video_file(out, gait.group).exists():
+            _notice(f"replacing {study_video.video_file(out, gait.group)}")
+    logs = studies.gait_rollouts(gaits, args.backend, steps=int(round(args.video_s * 1000)))
+    return 0 if study_video.write_videos(out, gaits, logs, _notice) else 1
+
+
+def _show_web(args) -> int:
+    """``cpgjax show DIR --web``: rerun's web viewer on the folder's recording, on 127.0.0.1, until Ctrl-C."""
+    recording = pathlib.Path(args.results) / "recording.rrd"
+    if not recording.is_file():
+        print(f"cpgjax show: {recording} does not exist (a study or `cpgjax optimize` writes it)", file=sys.stderr)
+        return 2
+    try:
+        proc = study_viewer.serve(recording, args.port)
+    except study_spec.StudyError as err:
+        print(f"cpgjax show: {err}", file=sys.stderr)
+        return 2
+    web, grpc = args.port, args.port + 1
+    print(f"serving {recording} in rerun's web viewer on 127.0.0.1 only (pid {proc.pid}); open\n"
+          f"  {study_viewer.url(web, grpc)}\n"
+          f"from another machine, tunnel both ports first:\n  {study_viewer.tunnel_line(web, grpc)}\n"
+          "Ctrl-C stops it.", flush=True)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill, like Ctrl-C, stops the viewer first
+    try:
+        return proc.wait()
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        study_viewer.stop(proc)
+
+
+def _show_command(args) -> int:
+    if args.video:
+        code = _show_video(args)
+        if code:
+            return code
+    if args.web:
+        args.no_viewer = True
+        code = _show(args)
+        return code or _show_web(args)
+    return _show(args)
+
+
 def _deploy(parser: argparse.ArgumentParser, args) -> int:
     """``cpgjax deploy`` after the checks that span options (``parser.error`` exits with 2) and the choice of its
     folder: every option is checked at parsing and the folder here, before anything is sent to a robot."""
@@ -527,7 +616,11 @@ def _add_walk(sub) -> None:
     _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
     backends.add_backend_argument(w)
-    w.set_defaults(func=_walk)
+    w.add_argument("--video", type=pathlib.Path, help="also film the walk (one combination, the paper's trial as "
+                   "settling, then --video-s) into this MP4 (docs/visualization.md; default: no video)")
+    _add_video_length_arg(w)
+    w.add_argument("--overwrite", action="store_true", help="replace an existing --video file")
+    w.set_defaults(func=lambda args: _walk_video(args) if args.video else _walk(args))
 
 
 def _add_study(sub) -> None:
@@ -566,12 +659,26 @@ def _add_optimize(sub) -> None:
     o.set_defaults(func=_optimize)
 
 
+def _add_video_length_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--video-s", type=_in(study_video.DURATION_S), default=3.0,
+                   help=f"length of the filmed gait [s] after its settling trial, in {study_video.DURATION_S}")
+
+
 def _add_show(sub) -> None:
     v = sub.add_parser("show", help="print a results folder's tables and open its rerun recording",
                        formatter_class=_HelpFormatter)
     v.add_argument("results", help="e.g. results/controller_ablation")
     v.add_argument("--no-viewer", action="store_true", help="do not open the recording")
-    v.set_defaults(func=_show)
+    v.add_argument("--video", action="store_true", help="(re)render the study's best_<group>.mp4 from its "
+                   "best_<group>.json first, replacing them")
+    _add_video_length_arg(v)
+    backends.add_backend_argument(v)
+    v.add_argument("--web", action="store_true", help="serve the recording in rerun's web viewer on 127.0.0.1 (for "
+                   "a browser here or through an ssh tunnel) until Ctrl-C")
+    v.add_argument("--port", type=_integer_in(range(1024, 65535), "an unprivileged TCP port; the recording uses "
+                   "it + 1"), default=study_viewer.DEFAULT_WEB_PORT, help="--web: the viewer page's port (the "
+                   "recording's is the next one)")
+    v.set_defaults(func=_show_command)
 
 
 def _add_demo(sub) -> None:

@@ -5,6 +5,7 @@ file of a tiny controller ablation (table, figures, parquet, rerun recording, me
 import dataclasses
 import json
 
+import imageio.v3 as iio
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -13,6 +14,7 @@ import cpgjax
 from cpgjax import ablation, cli, cpg
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
+from cpgjax.study import video as study_video
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 from tests.test_ablation import small_optimizer
@@ -114,7 +116,7 @@ def test_ablation_outputs(tiny_ablation):
         j = result.trials.objective[:, [lab["controller"] == c for lab in result.labels]]
         assert f"{np.mean(j[-5:].mean(axis=0)):.3f} [" in row  # mean of the last 5, then over seeds, with its CI
     assert (out / "table.md").read_text().startswith("# controller_ablation")
-    for png in ("learning_curves.png", "attitude.png"):
+    for png in ("learning_curves.png", "attitude.png", "attitude_best_gaits.png", "summary.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     table = pq.read_table(out / "trials.parquet").to_pydict()
     assert len(table["objective"]) == 4 * 4
@@ -133,6 +135,14 @@ def test_ablation_outputs(tiny_ablation):
     assert {"jax", "mujoco", "devices"} <= set(meta["environment"])
     assert meta["cpgjax_version"] == cpgjax.__version__ and meta["optimizer"]["num_random_proposals"] == 2
     assert meta["git_commit"] is None or len(meta["git_commit"].split("-")[0]) == 40
+    for c in cpg.CONTROLLERS:  # each group's best gait, and its video where this machine can render
+        (gait,) = [g for g in study_video.load_gaits(out) if g.group == c]
+        b = [i for i, lab in enumerate(result.labels) if lab["controller"] == c][0]
+        np.testing.assert_allclose(gait.params, result.trials.params[gait.trial, b])
+        assert gait.objective == pytest.approx(float(result.trials.objective[gait.trial, b]))
+        assert gait.objective == pytest.approx(float(result.trials.objective[:, b].max()))  # one phase: its best
+        if (out / f"best_{c}.mp4").exists():
+            assert len(iio.imread(out / f"best_{c}.mp4")) == 5  # the steady phase, 200 ticks at 25 frames/s
     schema = pq.read_schema(out / "trials.parquet")
     assert all(str(schema.field(name).type) == "bool" for name in ("fell", "failed", "accepted", "context_changed"))
 
@@ -144,10 +154,25 @@ def test_cli_show_prints_the_table(tiny_ablation, capsys):
     assert text.splitlines()[2] in printed and "real-time factor" in printed
 
 
-def test_representative_rollout_is_the_best_runs_best_parameters(tiny_ablation):
+def test_best_gaits_are_each_groups_best_run_and_trial(tiny_ablation):
     result, _, _ = tiny_ablation
-    (label, log), = studies.representative_rollout(result, "native").items()
-    b = int(np.argmax(studies.last_mean(result.trials.objective, result.trials.objective.shape[0])))
-    t = int(np.argmax(result.trials.objective[:, b]))
-    assert label == f"best_{result.labels[b]['controller']}_run{b}_trial{t}"
-    assert log.qpos.shape[0] == 3000 and log.phase_rad.shape == (3000, 4) and np.all(np.isfinite(log.qpos))
+    gaits = studies.best_gaits(result)
+    assert [g.group for g in gaits] == list(cpg.CONTROLLERS)  # one per controller, the study's groups
+    n = result.trials.objective.shape[0]
+    for gait in gaits:
+        runs = [b for b, lab in enumerate(result.labels) if lab["controller"] == gait.group]
+        b = max(runs, key=lambda i: result.trials.objective[n - 5:, i].mean())
+        t = int(np.argmax(result.trials.objective[:, b]))
+        assert (gait.instance, gait.trial, gait.controller) == (b, t, gait.group)
+        np.testing.assert_array_equal(gait.params, result.trials.params[t, b])
+    (log,) = studies.gait_rollouts(gaits[:1], "native", steps=250)
+    assert log.qpos.shape[0] == 250 and log.phase_rad.shape == (250, 4) and np.all(np.isfinite(log.qpos))
+
+def test_group_names_are_file_names():
+    assert studies.group_name({"controller": "vmc_tegotae", "seed": 0}, ("controller",)) == "vmc_tegotae"
+    assert studies.group_name({"friction": 0.3}, ("friction",)) == "friction0.3"
+    assert studies.group_name({"schedule": "0→7.5→15 kg"}, ("schedule",)) == "schedule0-7.5-15kg"
+    assert studies.group_name({"schedule": "0→10→12.5° + inference 10…17.5°"}, ("schedule",)) == \
+        "schedule0-10-12.5inference1017.5"
+    assert studies.group_name({"data_reuse": True, "controller": "vmc"}, ("controller", "data_reuse")) == \
+        "vmc_data_reuseTrue"

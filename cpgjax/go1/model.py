@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import xml.etree.ElementTree as ElementTree
 from importlib import resources
 from typing import NamedTuple
 
@@ -27,13 +28,40 @@ PAYLOAD_BOX_M = (0.3, 0.2, 0.1)
 STAND_FOOT_X_M = -0.035
 STAND_FOOT_Z_M = -0.30
 FOOT_RADIUS_M = 0.02
+VISUAL_GROUP = 2  # the geom group of the geoms that are only seen (go1.xml's classes visual_*)
+COLLISION_GROUP = 3  # the geom group of the robot's collision geoms (hidden by MuJoCo's default visual options)
+
+
+def _model_xml() -> str:
+    return resources.files("cpgjax.go1.assets").joinpath(MODEL_FILE).read_text()
+
+
+def model_xml_without_visual_geoms() -> str:
+    """go1.xml with its visual geoms (classes ``visual_*``) removed: the physics alone."""
+    root = ElementTree.fromstring(_model_xml())
+    for parent in root.iter():
+        for geom in [g for g in parent.findall("geom") if g.get("class", "").startswith("visual")]:
+            parent.remove(geom)
+    return ElementTree.tostring(root, encoding="unicode")
 
 
 @functools.cache
 def load_model() -> mujoco.MjModel:
-    """The nominal Go1 MjModel (no payload, flat floor, friction 0.6). Cached: copy before editing."""
-    with resources.as_file(resources.files("cpgjax.go1.assets") / MODEL_FILE) as path:
-        return mujoco.MjModel.from_xml_path(str(path))
+    """The nominal Go1 MjModel that both simulators run (no payload, flat floor, friction 0.6): go1.xml without its
+    visual geoms. Cached: copy before editing.
+
+    The visual geoms are physically inert (no contact, no mass: C MuJoCo steps bit for bit the same with them,
+    tests/test_visual_model.py), but MJX compiles its kinematics over every geom, and with 29 more the compiled
+    program rounds differently in float32 (a short study's figures differ by ~1e-7 relative, then the optimizer
+    amplifies it). Leaving them out keeps every simulation independent of the model's looks."""
+    return mujoco.MjModel.from_xml_string(model_xml_without_visual_geoms())
+
+
+@functools.cache
+def load_visual_model() -> mujoco.MjModel:
+    """go1.xml as written, visual geoms included (group ``VISUAL_GROUP``): the model that videos and recordings
+    draw, with the same bodies, joints and qpos layout as :func:`load_model`. Cached: copy before editing."""
+    return mujoco.MjModel.from_xml_string(_model_xml())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,6 +183,13 @@ def gravity_vector(slope_deg) -> np.ndarray:
     """Gravity (..., 3) [m/s²] in the floor frame for a slope climbed along +x: g·(−sin s, 0, −cos s)."""
     s = np.deg2rad(np.asarray(slope_deg, np.float64))
     return constants.GRAVITY_MPS2 * np.stack([-np.sin(s), np.zeros_like(s), -np.cos(s)], axis=-1)
+
+
+def slope_quaternion(slope_deg) -> np.ndarray:
+    """(w, x, y, z) of the rotation from the floor frame to the frame whose z is against gravity: about y by −slope
+    (the floor's x climbs at the slope angle; it turns :func:`gravity_vector` into (0, 0, −g))."""
+    half = -np.deg2rad(float(slope_deg)) / 2.0
+    return np.array([np.cos(half), 0.0, np.sin(half), 0.0])
 
 
 def payload_inertia(payload_kg: float) -> np.ndarray:

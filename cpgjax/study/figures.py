@@ -93,3 +93,64 @@ def run_line(result, figures: dict) -> str:
             f"{figures['real_time_factor']:.1f}× (simulation {figures['simulation_s']:.0f} s, optimizer "
             f"{figures['optimizer_s']:.0f} s, transfers {figures['transfer_s']:.1f} s, checkpoints "
             f"{figures['checkpoint_s']:.1f} s).")
+
+
+def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
+    """One roll–pitch panel [deg] per group's best gait (``study.video.Gait`` and its log), on shared axes."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(gaits), figsize=(3.2 * len(gaits), 3.4), sharex=True, sharey=True, squeeze=False)
+    for ax, gait, lg in zip(axes[0], gaits, logs):
+        rpy = np.degrees(np.asarray(lg.rpy_rad))
+        ax.plot(rpy[:, 0], rpy[:, 1], lw=0.7)
+        ax.set_title(f"{gait.group}\nstd roll {rpy[:, 0].std():.2f}°, pitch {rpy[:, 1].std():.2f}°", fontsize=8)
+        ax.set_xlabel("roll [deg]")
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_ylabel("pitch [deg]")
+    fig.suptitle(f"roll–pitch of each group's best gait, {len(logs[0].rpy_rad) / 1000:g} s after a settling trial",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict) -> pathlib.Path:
+    """One page: the objective J per trial (mean ± std per group), the study's table, and a filmstrip of each group's
+    best gait (``frames``: group → a few video frames (H, W, 3); a group without them gets a line saying so)."""
+    plt = _plt()
+    group_key = result.spec.group_by[0]
+    tr = result.trials
+    rows = 2 + len(gaits)
+    fig = plt.figure(figsize=(8.3, 11.7))  # A4
+    grid = fig.add_gridspec(rows, 4, height_ratios=[2.2, 1.6] + [1.0] * len(gaits))
+    ax = fig.add_subplot(grid[0, :])
+    labels = np.array([str(lab[group_key]) for lab in result.labels])
+    trials = np.arange(tr.objective.shape[0])
+    for group in dict.fromkeys(labels):
+        v = np.asarray(tr.objective)[:, labels == group]
+        line, = ax.plot(trials, v.mean(axis=1), label=f"{group_key} = {group}", lw=1.4)
+        ax.fill_between(trials, v.mean(axis=1) - v.std(axis=1), v.mean(axis=1) + v.std(axis=1),
+                        color=line.get_color(), alpha=0.2, lw=0)
+    ax.set_xlabel("trial (from 0)")
+    ax.set_ylabel("objective J")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    ax.set_title(f"{result.spec.name}: {len(result.labels)} runs × {len(trials)} trials", fontsize=10)
+    text = fig.add_subplot(grid[1, :])
+    text.axis("off")
+    table = [line for line in table_text.splitlines() if line.startswith("|") and not line.startswith("|---")]
+    text.text(0, 1, "\n".join(table[:12]), family="monospace", fontsize=5.5, va="top")
+    for r, gait in enumerate(gaits):
+        strip = frames.get(gait.group, [])
+        for c in range(4):
+            ax = fig.add_subplot(grid[2 + r, c])
+            ax.axis("off")
+            if c < len(strip):
+                ax.imshow(strip[c])
+            if c == 0:
+                j = "" if gait.objective is None else f", J {gait.objective:.3f}"
+                ax.set_title(f"best_{gait.group}{j}" + ("" if strip else " (no video)"), fontsize=7, loc="left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -8,8 +8,9 @@
   every process has written the next one; reading merges the newest trial all N wrote (docs/scaling.md).
 * ``trials.parquet`` — one row per (instance, trial): instance labels, conditions, the 8 parameters, context, J,
   velocity, CoT, falls. ``pandas.read_parquet(path)`` or ``polars.read_parquet(path)``.
-* ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and
-  representative rollouts (trunk pose and feet per step, foot forces, CPG phases and amplitudes).
+* ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and each
+  group's best gait, full body (``cpgjax.study.scene``: every body and its geoms, the floor at the slope, contact
+  forces as arrows, CPG phases and amplitudes).
 * ``metadata.json`` — the command line, cpgjax's version and git commit, the optimizer's settings, versions,
   devices, backend, wall time, env-steps/s and real-time factor.
 
@@ -32,7 +33,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 import cpgjax
-from cpgjax.go1 import model as go1_model
+from cpgjax.study import scene as study_scene
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 
@@ -437,15 +438,15 @@ def instance_path(labels: list[dict[str, Any]], b: int) -> str:
     return "/".join(rr.escape_entity_path_part(f"{k}={labels[b][k]}") for k in keys) + f"/i{b}"
 
 
-def write_recording(result, path, rollouts: dict[str, Any] | None = None) -> pathlib.Path:
-    """A rerun ``.rrd``: per-instance trial curves on timeline ``trial``, and each rollout (a ``protocol.StepLog``
-    of one instance, arrays (T, ...)) on timeline ``step`` (1 ms ticks)."""
+def write_recording(result, path, rollouts: list | None = None) -> pathlib.Path:
+    """A rerun ``.rrd``: per-instance trial curves on timeline ``trial``, and each rollout (``study.scene.Rollout``)
+    full body on timelines ``step`` and ``sim_time`` (:func:`cpgjax.study.scene.log_rollout`)."""
     import rerun as rr
-
 
     path = pathlib.Path(path)
     rec = rr.RecordingStream(f"cpgjax_{result.spec.name}")
     rec.save(str(path))
+    rr.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True, recording=rec)
     tr = result.trials
     n = tr.objective.shape[0]
     trial_index = rr.TimeColumn("trial", sequence=np.arange(n))
@@ -457,31 +458,8 @@ def write_recording(result, path, rollouts: dict[str, Any] | None = None) -> pat
             rr.send_columns(f"optimization/{key}/{name}", indexes=[trial_index],
                             columns=rr.Scalars.columns(scalars=np.asarray(values[:, b], np.float64)),
                             recording=rec)
-    ids = go1_model.indices()
-    for label, step_log in (rollouts or {}).items():
-        qpos = np.asarray(step_log.qpos, np.float64)
-        steps = rr.TimeColumn("step", sequence=np.arange(qpos.shape[0]))
-        base = f"rollout/{label}"
-        r = ids.root_qpos
-        quat_xyzw = qpos[:, [r + 4, r + 5, r + 6, r + 3]]
-        rr.log(f"{base}/world/trunk", rr.Boxes3D(half_sizes=[[0.19, 0.05, 0.06]]), static=True, recording=rec)
-        rr.send_columns(f"{base}/world/trunk", indexes=[steps],
-                        columns=rr.Transform3D.columns(translation=qpos[:, r:r + 3], quaternion=quat_xyzw),
-                        recording=rec)
-        feet = np.asarray(step_log.foot_pos_m, np.float64)  # (T, 4, 3)
-        rr.send_columns(f"{base}/world/feet", indexes=[steps],
-                        columns=rr.Points3D.columns(positions=feet.reshape(-1, 3)).partition([4] * feet.shape[0]),
-                        recording=rec)
-        for k, leg in enumerate(("FR", "FL", "RR", "RL")):
-            for key, values in (("foot_force_n", step_log.foot_force_n), ("phase_rad", step_log.phase_rad),
-                                ("amplitude", step_log.amplitude)):
-                rr.send_columns(f"{base}/{key}/{leg}", indexes=[steps],
-                                columns=rr.Scalars.columns(scalars=np.asarray(values[:, k], np.float64)),
-                                recording=rec)
-        for k, axis in enumerate(("roll", "pitch", "yaw")):
-            rr.send_columns(f"{base}/attitude_rad/{axis}", indexes=[steps],
-                            columns=rr.Scalars.columns(scalars=np.asarray(step_log.rpy_rad[:, k], np.float64)),
-                            recording=rec)
+    bases = [study_scene.log_rollout(rec, rollout) for rollout in rollouts or ()]
+    rec.send_blueprint(study_scene.blueprint(bases))
     rec.flush()
     rec.disconnect()
     return path

@@ -17,13 +17,17 @@ The paper used 5 seeds; the studies default to 20 (``DEFAULT_SEEDS``), and every
 confidence interval over seeds (``cpgjax.study.stats``).
 
 Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures, ``trials.parquet``,
-``recording.rrd``, ``metadata.json`` and the engine's ``checkpoint.npz`` (``cpgjax.study.files``).
+``recording.rrd`` (with each group's best gait, full body), ``metadata.json`` and the engine's ``checkpoint.npz``
+(``cpgjax.study.files``), then each group's best gait, ``best_<group>.json``, and its video ``best_<group>.mp4``
+(``cpgjax.study.video``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import pathlib
+import re
+import sys
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -36,8 +40,10 @@ from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
 from cpgjax.study import figures as study_figures
 from cpgjax.study import files as study_io
+from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
 from cpgjax.study import stats
+from cpgjax.study import video as study_video
 from cpgjax.study.spec import Change, Schedule, StudySpec
 from cpgjax.trial import limits, objective, protocol
 
@@ -201,20 +207,53 @@ def best_params(result, mask: np.ndarray, stop: int | None = None) -> tuple[np.n
     return result.trials.params[t, b], int(b), float(j[t, b])
 
 
-def representative_rollout(result, backend: str) -> dict:
-    """The per-step log of the run with the best final objective (mean of its last trials): its best parameters
-    of the final condition phase, rolled out in the conditions of the last trial."""
+def _best_run(result, mask: np.ndarray) -> tuple[int, int]:
+    """(instance, trial): among the instances in ``mask``, the run with the best final objective (mean of its last
+    trials), and its best trial of the final condition phase."""
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
-    b = int(np.argmax(last_mean(tr.objective, n)))
+    b = int(np.argmax(np.where(mask, last_mean(tr.objective, n), -np.inf)))
     fields = (cond.friction[b], cond.slope_deg[b], cond.payload_kg[b], cond.target_velocity_mps[b])
     start = max(max(phase_starts(f[:n])) for f in fields)
-    t = start + int(np.argmax(tr.objective[start:n, b]))
-    scenario = go1_model.make_scenarios(cond.friction[b, n - 1], cond.slope_deg[b, n - 1], cond.payload_kg[b, n - 1],
-                                        result.labels[b]["physics"])
-    controller = result.labels[b]["controller"]
-    log = rollouts(tr.params[t, b][None], [controller], scenario, result.spec.trial, backend)[0]
-    return {f"best_{controller}_run{b}_trial{t}": log}
+    return b, start + int(np.argmax(tr.objective[start:n, b]))
+
+
+def group_name(labels: dict, group_by) -> str:
+    """A group's name in file names: its label values (a controller by name, other labels as label + value), joined
+    by ``_``, arrows as ``-`` and anything else but letters, digits, ``.``, ``-`` and ``_`` dropped."""
+    parts = [str(labels[k]) if k == "controller" else f"{k}{labels[k]}" for k in group_by]
+    return re.sub(r"[^A-Za-z0-9._-]", "", "_".join(parts).replace("→", "-"))
+
+
+def best_gaits(result) -> list[study_video.Gait]:
+    """Per group of the study (``spec.group_by``): the best parameters of :func:`_best_run` among its instances, in
+    the conditions of the last trial."""
+    tr, cond = result.trials, result.conditions
+    n = tr.objective.shape[0]
+    names = np.array([group_name(lab, result.spec.group_by) for lab in result.labels])
+    gaits = []
+    for name in dict.fromkeys(names):
+        b, t = _best_run(result, names == name)
+        gaits.append(study_video.Gait(
+            group=str(name), params=np.asarray(tr.params[t, b], np.float64), controller=result.labels[b]["controller"],
+            friction=float(cond.friction[b, n - 1]), slope_deg=float(cond.slope_deg[b, n - 1]),
+            payload_kg=float(cond.payload_kg[b, n - 1]), physics=str(result.labels[b]["physics"]),
+            transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
+            target_velocity_mps=float(cond.target_velocity_mps[b, n - 1]), objective=float(tr.objective[t, b]),
+            instance=b, trial=t))
+    return gaits
+
+
+def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None = None) -> list:
+    """The per-step logs of ``gaits`` (one batch): a settling trial of the gaits' lengths, then ``steps`` ticks
+    (default: the steady phase's length, 3 s in the paper's trial)."""
+    config = protocol.TrialConfig(transition_steps=gaits[0].transition_steps, steady_steps=gaits[0].steady_steps)
+    if any((g.transition_steps, g.steady_steps) != (config.transition_steps, config.steady_steps) for g in gaits):
+        raise study_spec.StudyError("the gaits were found with different trial lengths; film them one at a time")
+    scenario = go1_model.make_scenarios(friction=[g.friction for g in gaits], slope_deg=[g.slope_deg for g in gaits],
+                                        payload_kg=[g.payload_kg for g in gaits], physics=[g.physics for g in gaits])
+    return rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config, backend,
+                    config.steady_steps if steps is None else steps)
 
 
 # ----------------------------------------------------------------------------------------------- reports
@@ -255,7 +294,7 @@ def report_ablation(result, out: pathlib.Path, backend: str):
         text += "| controller | best J (instance) | roll std | pitch std |\n|---|---|---|---|\n"
         for (c, lg), (_, b, jb) in zip(logs.items(), best):
             text += f"| {c} | {jb:.3f} (#{b}) | {np.std(lg.rpy_rad[:, 0]):.4f} | {np.std(lg.rpy_rad[:, 1]):.4f} |\n"
-    return text, logs
+    return text
 
 
 def _final(result, metric: str, mask: np.ndarray) -> np.ndarray:
@@ -336,7 +375,7 @@ def report_load(result, out: pathlib.Path, backend: str):
             + "\n".join(phases) + "\n")
     study_figures.learning_curves(out / "load_adaptation.png", result, "schedule", changes=starts[1:-1],
                                   context_index=0)
-    return text, representative_rollout(result, backend)
+    return text
 
 
 def report_friction(result, out: pathlib.Path, backend: str):
@@ -355,7 +394,7 @@ def report_friction(result, out: pathlib.Path, backend: str):
             f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
             "(no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction"))
     study_figures.learning_curves(out / "friction.png", result, "friction")
-    return text, representative_rollout(result, backend)
+    return text
 
 
 def _versus(result, labels: np.ndarray, reference, name: str) -> str:
@@ -415,7 +454,7 @@ def report_multi_velocity(result, out: pathlib.Path, backend: str):
         text += "\n".join(lines) + "\n"
     study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse", changes=starts[1:-1],
                                   target=cond.target_velocity_mps[0])
-    return text, representative_rollout(result, backend)
+    return text
 
 
 def report_slope(result, out: pathlib.Path, backend: str):
@@ -442,7 +481,7 @@ def report_slope(result, out: pathlib.Path, backend: str):
         text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{n - 1}:\n\n" + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "slope_adaptation.png", result, "schedule", changes=starts[1:],
                                   context_index=1)
-    return text, representative_rollout(result, backend)
+    return text
 
 
 def report_hardware(result, out: pathlib.Path, backend: str):
@@ -479,13 +518,13 @@ def report_hardware(result, out: pathlib.Path, backend: str):
             f"{TAPED_FEET_FRICTION:g} (the paper gives none). The paper's figures are from one robot run each.\n\n"
             + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "paper_hardware.png", result, "schedule")
-    return text, representative_rollout(result, backend)
+    return text
 
 
 class Study(NamedTuple):
     name: str
     make_spec: Callable[..., StudySpec]
-    report: Callable[..., tuple[str, dict]]
+    report: Callable[..., str]  # (result, out, backend) → the table text; writes the study's figures
     description: str
 
 
@@ -516,17 +555,34 @@ def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str |
     return spec
 
 
-def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None, command: str | None = None) -> str:
-    """Every file of a finished study; returns the table text."""
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None, command: str | None = None,
+                  notify: Callable[[str], None] = _to_stderr) -> str:
+    """Every file of a finished study; returns the table text. Last, after the others: each group's best gait
+    (``best_<group>.json``) and its video (``best_<group>.mp4``, :mod:`cpgjax.study.video`), with a line to
+    ``notify`` per video, or one saying why there is none."""
     out.mkdir(parents=True, exist_ok=True)
     report = STUDIES[name or result.spec.name].report
-    text, logs = report(result, out, backend)
+    text = report(result, out, backend)
     figures = study_io.run_figures(result)
     text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, figures)}\n"
     (out / "table.md").write_text(text)
     study_io.write_trials(result, out / "trials.parquet")
-    study_io.write_recording(result, out / "recording.rrd", logs)
+    gaits = best_gaits(result)
+    logs = gait_rollouts(gaits, backend)
+    study_io.write_recording(result, out / "recording.rrd", [
+        study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction, g.slope_deg,
+                            g.payload_kg) for g, log in zip(gaits, logs)])
     study_io.write_metadata(result, out / "metadata.json", command=command)
+    for gait in gaits:
+        study_video.save_gait(out, gait)
+    study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
+    filmed = study_video.write_videos(out, gaits, logs, notify)
+    strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed)}
+    study_figures.summary(out / "summary.png", result, text, gaits, strips)
     return text
 
 
@@ -555,4 +611,4 @@ def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=Fal
     result = engine.run(out, resume=resume, progress=progress)
     if jax.process_index() > 0:  # one process writes the study's files (docs/scaling.md)
         return f"process {jax.process_index()}: instances {result.rows[0]}–{result.rows[1] - 1} done", out
-    return write_outputs(result, out, engine.backend_name, name, command), out
+    return write_outputs(result, out, engine.backend_name, name, command, notify or _to_stderr), out

@@ -1,0 +1,167 @@
+"""The Go1 in a rerun recording, full body: each rollout's bodies with their visual geoms (logged once), a transform
+per body every ``TICK_STRIDE`` ticks, the floor at the trial's slope, each foot's contact force as an arrow, and the
+CPG's phase and amplitude per leg; the rollout's labels (group, controller, seed, condition) form its entity path.
+
+Entities below ``rollout/best_<group>/<controller>/seed=<seed>/<condition>``:
+
+* ``world`` — the floor frame (the simulation's; x uphill, docs/decisions.md §4), rotated so that the viewer's z is
+  against gravity; below it ``floor`` (a grey slab whose top is the floor, tilted with the frame), ``robot/<body>``
+  (per-body transforms; the body's geoms as boxes, cylinders and spheres below) and ``contact_force/<leg>`` (arrows
+  from each foot centre along the floor normal, ``FORCE_ARROW_M_PER_N`` long per newton).
+* ``cpg/phase_rad/<leg>``, ``cpg/amplitude/<leg>``, ``foot_force_n/<leg>``, ``attitude_rad/<axis>`` — scalars every
+  tick.
+
+Timelines: ``step`` (the tick, 1 ms) and ``sim_time`` (the same as a duration, so the viewer plays in real time).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import mujoco
+import numpy as np
+
+from cpgjax.go1 import constants
+from cpgjax.go1 import model as go1_model
+
+TICK_STRIDE = 10  # body transforms and arrows at 100 Hz (the scalars every tick)
+FORCE_ARROW_M_PER_N = 0.004  # a foot carrying a quarter of the robot's weight (31 N): a 12 cm arrow
+FLOOR_MARGIN_M = 0.6  # the floor slab spans the trunk's path and this much around it (its top at z = 0)
+FLOOR_THICKNESS_M = 0.01
+TICK_S = 0.001
+
+
+class Rollout(NamedTuple):
+    """One rollout to record: its per-tick log (``protocol.StepLog`` of arrays (T, ...)) and its labels."""
+
+    log: Any
+    group: str
+    controller: str
+    seed: int
+    friction: float
+    slope_deg: float
+    payload_kg: float
+
+
+def entity_path(rollout: Rollout) -> str:
+    import rerun as rr
+
+    parts = (f"best_{rollout.group}", rollout.controller, f"seed={rollout.seed}",
+             f"friction={rollout.friction:g},slope_deg={rollout.slope_deg:g},payload_kg={rollout.payload_kg:g}")
+    return "rollout/" + "/".join(rr.escape_entity_path_part(p) for p in parts)
+
+
+def _xyzw(wxyz: np.ndarray) -> np.ndarray:
+    return np.asarray(wxyz)[..., [1, 2, 3, 0]]
+
+
+def body_poses(qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World (floor-frame) positions (T, nbody, 3) and quaternions (T, nbody, 4, wxyz) of every body of the visual
+    model at each qpos row, by MuJoCo's forward kinematics."""
+    m = go1_model.load_visual_model()
+    d = mujoco.MjData(m)
+    pos = np.empty((len(qpos), m.nbody, 3))
+    quat = np.empty((len(qpos), m.nbody, 4))
+    for k, row in enumerate(np.asarray(qpos, np.float64)):
+        d.qpos[:] = row
+        mujoco.mj_kinematics(m, d)
+        pos[k], quat[k] = d.xpos, d.xquat
+    return pos, quat
+
+
+def _rgba(m, g) -> list[int]:
+    return [int(round(255 * c)) for c in m.geom_rgba[g]]
+
+
+def _log_geoms(rec, base: str, m: mujoco.MjModel, body: int) -> None:
+    """The visual geoms of ``body`` in its frame, one entity per shape kind."""
+    import rerun as rr
+
+    geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body and m.geom_group[g] == go1_model.VISUAL_GROUP]
+    kinds = {int(mujoco.mjtGeom.mjGEOM_BOX): "boxes", int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinders",
+             int(mujoco.mjtGeom.mjGEOM_SPHERE): "spheres"}
+    for kind, name in kinds.items():
+        these = [g for g in geoms if int(m.geom_type[g]) == kind]
+        if not these:
+            continue
+        centers, quats = m.geom_pos[these], _xyzw(m.geom_quat[these])
+        colors = [_rgba(m, g) for g in these]
+        size = m.geom_size[these]
+        if name == "boxes":
+            shape = rr.Boxes3D(half_sizes=size, centers=centers, quaternions=quats, colors=colors, fill_mode="solid")
+        elif name == "cylinders":  # MuJoCo's and rerun's cylinders both lie along their z
+            shape = rr.Cylinders3D(radii=size[:, 0], lengths=2 * size[:, 1], centers=centers, quaternions=quats,
+                                   colors=colors, fill_mode="solid")
+        else:
+            shape = rr.Ellipsoids3D(half_sizes=np.repeat(size[:, :1], 3, axis=1), centers=centers, colors=colors,
+                                    fill_mode="solid")
+        rr.log(f"{base}/{name}", shape, static=True, recording=rec)
+    unknown = [g for g in geoms if int(m.geom_type[g]) not in kinds]
+    if unknown:
+        raise ValueError(f"visual geom {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, unknown[0])!r}: only boxes, "
+                         "cylinders and spheres are recorded")
+
+
+def log_rollout(rec, rollout: Rollout) -> str:
+    """Log one rollout (see the module's docstring) into the recording stream ``rec``; returns its entity path."""
+    import rerun as rr
+
+    log = rollout.log
+    base = entity_path(rollout)
+    m = go1_model.load_visual_model()
+    qpos = np.asarray(log.qpos, np.float64)
+    ticks = np.arange(qpos.shape[0])
+    every = ticks[::TICK_STRIDE]
+
+    def index(t):
+        return [rr.TimeColumn("step", sequence=t), rr.TimeColumn("sim_time", duration=t * TICK_S)]
+
+    tilt = _xyzw(go1_model.slope_quaternion(rollout.slope_deg))
+    rr.log(f"{base}/world", rr.Transform3D(quaternion=tilt), static=True, recording=rec)
+    trunk_xy = qpos[:, go1_model.indices().root_qpos:go1_model.indices().root_qpos + 2]
+    low, high = trunk_xy.min(axis=0) - FLOOR_MARGIN_M, trunk_xy.max(axis=0) + FLOOR_MARGIN_M
+    floor = rr.Boxes3D(mins=[[*low, -FLOOR_THICKNESS_M]], sizes=[[*(high - low), FLOOR_THICKNESS_M]],
+                       colors=[[190, 190, 185, 255]], fill_mode="solid")
+    rr.log(f"{base}/world/floor", floor, static=True, recording=rec)
+    pos, quat = body_poses(qpos[every])
+    for body in range(1, m.nbody):
+        if not np.any((m.geom_bodyid == body) & (m.geom_group == go1_model.VISUAL_GROUP)):
+            continue  # the payload carrier: nothing to see
+        path = f"{base}/world/robot/{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body)}"
+        _log_geoms(rec, path, m, body)
+        rr.send_columns(path, indexes=index(every),
+                        columns=rr.Transform3D.columns(translation=pos[:, body], quaternion=_xyzw(quat[:, body])),
+                        recording=rec)
+    feet = np.asarray(log.foot_pos_m, np.float64)[every]  # (T', 4, 3) floor frame
+    force = np.asarray(log.foot_force_n, np.float64)[every]  # (T', 4) normal force
+    for k, leg in enumerate(constants.LEG_NAMES):
+        vectors = np.zeros((len(every), 3))
+        vectors[:, 2] = force[:, k] * FORCE_ARROW_M_PER_N
+        rr.send_columns(f"{base}/world/contact_force/{leg}", indexes=index(every),
+                        columns=rr.Arrows3D.columns(origins=feet[:, k], vectors=vectors, colors=[[220, 60, 40, 255]] *
+                                                    len(every)), recording=rec)
+    for k, leg in enumerate(constants.LEG_NAMES):
+        for key, values in (("cpg/phase_rad", log.phase_rad), ("cpg/amplitude", log.amplitude),
+                            ("foot_force_n", log.foot_force_n)):
+            rr.send_columns(f"{base}/{key}/{leg}", indexes=index(ticks),
+                            columns=rr.Scalars.columns(scalars=np.asarray(values[:, k], np.float64)), recording=rec)
+    for k, axis in enumerate(("roll", "pitch", "yaw")):
+        rr.send_columns(f"{base}/attitude_rad/{axis}", indexes=index(ticks),
+                        columns=rr.Scalars.columns(scalars=np.asarray(log.rpy_rad[:, k], np.float64)), recording=rec)
+    return base
+
+
+def blueprint(bases: list[str]):
+    """The viewer's layout: a tab per rollout (its 3D scene beside its CPG phases and foot forces), then a tab of the
+    optimization's curves."""
+    import rerun.blueprint as rrb
+
+    tabs = [rrb.Horizontal(
+        rrb.Spatial3DView(origin=f"{base}/world", name=base.split("/")[1]),
+        rrb.Vertical(rrb.TimeSeriesView(origin=f"{base}/cpg/phase_rad", name="CPG phase [rad]"),
+                     rrb.TimeSeriesView(origin=f"{base}/foot_force_n", name="foot normal force [N]")),
+        column_shares=[2, 1], name=base.split("/")[1]) for base in bases]
+    tabs.append(rrb.Grid(*(rrb.TimeSeriesView(origin=f"/optimization/{key}", name=key) for key in
+                           ("objective", "velocity_x_mps", "cost_of_transport", "c_load_n", "c_slope_rad", "beta")),
+                         name="optimization"))
+    return rrb.Blueprint(rrb.Tabs(*tabs), collapse_panels=True)

@@ -1,0 +1,264 @@
+"""Videos of the simulated Go1: MuJoCo's offscreen renderer (``mujoco.Renderer``) draws the visual model
+(``go1_model.load_visual_model``) along a rollout's qpos, with a camera that follows the trunk, and imageio encodes
+the frames as H.264 MP4 with imageio-ffmpeg's packaged ffmpeg.
+
+Rendering runs in a child process (``python -m cpgjax.study.video``): MuJoCo chooses its OpenGL backend from
+``MUJOCO_GL`` once, when it is imported, which the parent did long before; the child gets EGL where an NVIDIA GPU is
+and OSMesa (software) otherwise, unless ``MUJOCO_GL`` is set. Where no backend works the child says so in one line
+(:class:`RenderUnavailable`, with the package to install) and nothing else of the caller is touched. A sloped trial
+is drawn with the floor tilted: the scene is rotated from the floor frame, in which the simulation runs with tilted
+gravity (docs/decisions.md §4), to one whose z is against gravity.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+
+from cpgjax.go1 import attitude
+from cpgjax.go1 import model as go1_model
+from cpgjax.study.spec import StudyError
+from cpgjax.trial import limits
+from cpgjax.trial import params as param_space
+
+FPS = 25  # frames per second of video; one frame every 1000 / FPS ticks of 1 ms, so the video plays in real time
+WIDTH, HEIGHT = 640, 480
+DURATION_S = limits.Range(0.04, 120.0, "at least one frame, at most two minutes of video")
+CAMERA_DISTANCE_M = 1.4
+CAMERA_AZIMUTH_DEG = 120.0  # from the robot's left and front, looking back at it
+CAMERA_ELEVATION_DEG = -18.0
+TICK_S = 0.001
+_OSMESA = "install OSMesa (Debian/Ubuntu: apt-get install libosmesa6 libgl1-mesa-dri)"
+# What a machine needs for each OpenGL backend (Debian package names).
+GL_HELP = {
+    "osmesa": _OSMESA,
+    "egl": "install EGL (an NVIDIA driver, or Debian/Ubuntu: apt-get install libegl1 libgl1-mesa-dri)",
+    "glx": f"it needs a display (DISPLAY); without one set MUJOCO_GL=osmesa and {_OSMESA}",
+    "glfw": f"it needs a display (DISPLAY); without one set MUJOCO_GL=osmesa and {_OSMESA}",
+}
+_UNAVAILABLE = 3  # the child's exit status when no OpenGL context can be made
+
+
+class RenderUnavailable(RuntimeError):
+    """No OpenGL backend works here; the message is one line naming the backend and what to install."""
+
+
+class Gait(NamedTuple):
+    """A gait to film: fixed parameters in one condition, rolled out after a settling trial of the given lengths.
+    A study writes one per group as ``best_<group>.json`` (its ``params`` object is what ``cpgjax deploy --params``
+    replays) and films it as ``best_<group>.mp4``."""
+
+    group: str  # the files' stem after best_
+    params: np.ndarray  # (8,) physical units
+    controller: str
+    friction: float
+    slope_deg: float
+    payload_kg: float
+    physics: str
+    transition_steps: int
+    steady_steps: int
+    target_velocity_mps: float = 0.5
+    objective: float | None = None  # J of the trial the parameters come from
+    instance: int | None = None
+    trial: int | None = None
+
+
+def gait_file(out, group: str) -> pathlib.Path:
+    return pathlib.Path(out) / f"best_{group}.json"
+
+
+def video_file(out, group: str) -> pathlib.Path:
+    return pathlib.Path(out) / f"best_{group}.mp4"
+
+
+def save_gait(out, gait: Gait) -> pathlib.Path:
+    info = {k: v for k, v in gait._asdict().items() if k != "params"}
+    path = gait_file(out, gait.group)
+    path.write_text(json.dumps({"params": param_space.as_dict(gait.params), **info}, indent=1))
+    return path
+
+
+def load_gaits(out) -> list[Gait]:
+    """Every ``best_<group>.json`` in the folder ``out``.
+
+    Raises:
+      StudyError: a file that is not such a gait (the message names it and the key).
+    """
+    gaits = []
+    for path in sorted(pathlib.Path(out).glob("best_*.json")):
+        try:
+            data = json.loads(path.read_text())
+            values = [data["params"][name] for name in param_space.PARAM_NAMES]
+            fields = {k: data[k] for k in Gait._fields if k != "params" and k in data}
+            gait = Gait(params=param_space.validate(np.asarray(values, np.float64), what=f"{path}"), **fields)
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise StudyError(f"{path} is unreadable ({type(err).__name__}); run the study again") from None
+        except (KeyError, TypeError) as err:
+            raise StudyError(f"{path} is not a gait file (missing or bad {err}); run the study again") from None
+        except ValueError as err:
+            raise StudyError(str(err)) from None
+        gaits.append(gait)
+    return gaits
+
+
+def gl_backend(environ=os.environ) -> str:
+    """The MUJOCO_GL the renderer uses: the environment's, else EGL with an NVIDIA GPU, else OSMesa."""
+    chosen = environ.get("MUJOCO_GL", "").strip().lower()
+    if chosen:
+        return chosen
+    return "egl" if pathlib.Path("/dev/nvidia0").exists() else "osmesa"
+
+
+def frame_ticks(num_ticks: int, fps: int = FPS) -> np.ndarray:
+    """The ticks drawn: every ``1 / (fps · TICK_S)``-th, from the first."""
+    stride = max(int(round(1.0 / (fps * TICK_S))), 1)
+    return np.arange(0, num_ticks, stride)
+
+
+def render_frames(qpos: np.ndarray, slope_deg: float = 0.0, width: int = WIDTH, height: int = HEIGHT):
+    """Frames (height, width, 3) uint8 of the visual model at each qpos row (T, nq), camera following the trunk.
+    Needs a working OpenGL backend in this process (MUJOCO_GL)."""
+    import mujoco
+
+    m = go1_model.load_visual_model()
+    d = mujoco.MjData(m)
+    root = go1_model.indices().root_qpos
+    tilt = go1_model.slope_quaternion(slope_deg)
+    camera = mujoco.MjvCamera()
+    camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+    camera.distance, camera.azimuth, camera.elevation = CAMERA_DISTANCE_M, CAMERA_AZIMUTH_DEG, CAMERA_ELEVATION_DEG
+    renderer = mujoco.Renderer(m, height, width)
+    try:
+        for row in np.asarray(qpos, np.float64):
+            d.qpos[:] = row
+            mujoco.mj_kinematics(m, d)
+            camera.lookat[:] = attitude.quat_rotate(tilt, row[root:root + 3])
+            renderer.update_scene(d, camera)
+            scene = renderer.scene
+            scene.enabletransform = 1
+            scene.rotate[:] = tilt
+            scene.translate[:] = 0.0
+            scene.scale = 1.0
+            yield renderer.render()
+    finally:
+        renderer.close()
+
+
+def _encode(path: pathlib.Path, frames, fps: int) -> int:
+    import imageio.v2 as imageio
+
+    count = 0
+    with imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7,
+                            pixelformat="yuv420p", macro_block_size=16) as writer:
+        for frame in frames:
+            writer.append_data(frame)
+            count += 1
+    return count
+
+
+class Job(NamedTuple):
+    """One video to make: the MP4 ``path`` of ``qpos`` (T, nq; 1 ms ticks) on a floor of ``slope_deg``."""
+
+    path: pathlib.Path
+    qpos: np.ndarray
+    slope_deg: float = 0.0
+
+
+def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height: int = HEIGHT) -> list[dict]:
+    """Render every ``frame_ticks`` row of each job's qpos to its MP4 in one child process (each written to a
+    temporary name, then renamed). Returns per job {path, frames, rollout_s, render_s (in the child, without its
+    start), backend}.
+
+    Raises:
+      RenderUnavailable: no OpenGL backend here (one line: the backend tried and what to install); nothing written.
+      RuntimeError: the child failed otherwise (its last error line); the videos it finished are kept.
+    """
+    backend = gl_backend()
+    env = dict(os.environ, MUJOCO_GL=backend, JAX_PLATFORMS="cpu")
+    if backend in ("osmesa", "egl"):
+        env["PYOPENGL_PLATFORM"] = backend
+    tmps = [str(pathlib.Path(j.path).with_name(f".{pathlib.Path(j.path).name}.tmp.mp4")) for j in jobs]
+    with tempfile.TemporaryDirectory() as folder:
+        frames_file = pathlib.Path(folder) / "jobs.npz"
+        arrays = {f"qpos_{k}": np.asarray(j.qpos, np.float64)[frame_ticks(len(j.qpos), fps)]
+                  for k, j in enumerate(jobs)}
+        np.savez(frames_file, slope_deg=np.array([float(j.slope_deg) for j in jobs]), fps=fps, width=width,
+                 height=height, paths=np.array(tmps), **arrays)
+        child = subprocess.run([sys.executable, "-m", "cpgjax.study.video", str(frames_file)], env=env,
+                               capture_output=True, text=True)
+    done = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
+    last = (child.stderr.strip().splitlines() or [""])[-1]
+    infos = []
+    for job, tmp, info in zip(jobs, tmps, done):
+        os.replace(tmp, job.path)
+        infos.append(dict(info, path=str(job.path), rollout_s=len(job.qpos) * TICK_S, backend=backend))
+    for tmp in tmps[len(done):]:
+        pathlib.Path(tmp).unlink(missing_ok=True)
+    if child.returncode == _UNAVAILABLE:
+        raise RenderUnavailable(last)
+    if child.returncode != 0:
+        raise RuntimeError(f"rendering failed (status {child.returncode}): {last}")
+    return infos
+
+
+def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], None]) -> list[dict]:
+    """``best_<group>.mp4`` of each gait from its rollout log (``protocol.StepLog``, arrays (T, ...)), a line to
+    ``notify`` for each. Where no OpenGL backend works, one line says so and no video is written; another rendering
+    failure is one line too. Either way the caller's other files are left as they are."""
+    jobs = [Job(video_file(out, g.group), log.qpos, g.slope_deg) for g, log in zip(gaits, logs)]
+    try:
+        infos = render_videos(jobs)
+    except (RenderUnavailable, RuntimeError) as err:
+        notify(str(err))
+        return []
+    for gait, info in zip(gaits, infos):
+        notify(f"{info['path']}: {info['rollout_s']:.1f} s of {gait.controller} at friction {gait.friction:g}, slope "
+               f"{gait.slope_deg:g}°, payload {gait.payload_kg:g} kg; {info['frames']} frames rendered in "
+               f"{info['render_s']:.1f} s ({info['backend']})")
+    return infos
+
+
+def filmstrip(path, count: int = 4) -> list[np.ndarray]:
+    """``count`` frames spread over the MP4 ``path`` (for a figure)."""
+    import imageio.v3 as iio
+
+    frames = iio.imread(path)
+    return [frames[k] for k in np.linspace(0, len(frames) - 1, count).astype(int)]
+
+
+def _main(argv: list[str]) -> int:
+    """The child: ``python -m cpgjax.study.video JOBS.npz``; one JSON line per finished video on stdout."""
+    with np.load(argv[0]) as z:
+        slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
+        paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
+    backend = gl_backend()
+    for k, path in enumerate(paths):
+        t0 = time.perf_counter()
+        frames = render_frames(qpos[k], float(slopes[k]), width, height)
+        try:
+            first = next(frames)
+        except Exception as err:  # the GL backends fail with many types (ImportError, OSError, GL errors...)
+            what = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+            print(f"no video: MuJoCo's {backend!r} OpenGL backend (MUJOCO_GL) does not work here ({what[:120]}); "
+                  f"{GL_HELP.get(backend, _OSMESA)}", file=sys.stderr)
+            return _UNAVAILABLE
+
+        def everything():
+            yield first
+            yield from frames
+        count = _encode(pathlib.Path(path), everything(), fps)
+        print(json.dumps(dict(frames=count, render_s=round(time.perf_counter() - t0, 3))), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))
