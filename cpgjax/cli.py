@@ -45,6 +45,7 @@ from cpgjax.study import spec as study_spec  # noqa: E402
 from cpgjax.study import transfer  # noqa: E402
 from cpgjax.trial import limits  # noqa: E402
 from cpgjax.trial import params as param_space  # noqa: E402
+from cpgjax.trial import tuned  # noqa: E402
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
@@ -109,7 +110,7 @@ def _integer_in(allowed: range, what: str):
 _power_level = _integer_in(go1_safety.POWER_LEVELS, "the SDK's power protection trips above 100 W per level")
 _port = _integer_in(range(1, 65536), "a UDP port")
 _seed = _integer_in(range(2 ** 32), "a seed is a 32-bit unsigned integer")
-_params_file = _argument_type(trials.load_params)
+_params_file = _argument_type(tuned.load)
 _calibration_file = _argument_type(foot_force.FootForceCalibration.load)
 
 
@@ -119,6 +120,15 @@ def _cpu(text: str) -> int:
     if not 0 <= value < (os.cpu_count() or 1):
         raise ValueError(f"{value} is outside this machine's CPUs 0 … {(os.cpu_count() or 1) - 1}")
     return value
+
+
+class _Given(argparse.Action):
+    """Stores an option's value as argparse's default action does, and adds its name to ``args.given``: the options
+    the command line gave, which a parameter file's tuned-for values do not replace (:func:`_use_tuned`)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        setattr(namespace, "given", {*getattr(namespace, "given", ()), self.dest})
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -135,9 +145,34 @@ def _notice(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
+def _use_tuned(args, many: bool = False) -> None:
+    """With ``--params FILE``: every option the file records a tuned-for value of (:data:`tuned.TUNED_FOR`) and the
+    command line did not give takes the file's value (``many``: as a one-value list, walk's grid); one line says
+    what the run was tuned for and which given options override it."""
+    if args.params is None:
+        return
+    given = getattr(args, "given", set())
+    overrides = []
+    for name, value in args.params.tuned_for.items():
+        dest = "controllers" if many and name == "controller" else name
+        wanted = (value,) if many and name != "target_velocity_mps" else value
+        if dest not in given:
+            setattr(args, dest, wanted)
+        elif getattr(args, dest) != wanted:
+            shown = getattr(args, dest)
+            shown = ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in shown) if isinstance(
+                shown, tuple) else f"{shown:g}" if isinstance(shown, float) else shown
+            overrides.append(f"--{dest.replace('_', '-')} {shown} overrides it")
+    recorded = (f"tuned for {tuned.describe(args.params.tuned_for)}" if args.params.tuned_for
+                else "records nothing it was tuned for")
+    _notice(f"cpgjax {args.command}: {args.params.path} {recorded}" + "".join(f"; {o}" for o in overrides))
+
+
 def _walk(args) -> int:
+    _use_tuned(args, many=True)
     rows, timing = walk.walk(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
                              payload_kg=args.payload_kg, num_trials=args.trials,
+                             params=None if args.params is None else args.params.params,
                              target_velocity_mps=args.target_velocity_mps, backend=args.backend, physics=args.physics,
                              progress=_notice)  # progress on stderr: stdout holds the table
     print(walk.markdown_table(rows))
@@ -219,6 +254,9 @@ def _study(args) -> int:
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
+    except study_io.OutputError as err:
+        print(f"cpgjax study: {err}", file=sys.stderr)
+        return 1
     except ablation.ProcessLost as err:
         print(f"cpgjax study: {err}", file=sys.stderr, flush=True)
         sys.stdout.flush()
@@ -264,13 +302,19 @@ def _trials_table(trial_log) -> str:
     return "\n".join(lines)
 
 
-def write_best_params(path: pathlib.Path, trial_log, controller: str, target_velocity_mps: float) -> int:
-    """``best_params.json`` of one optimization (instance 0) in the format ``cpgjax deploy --params`` replays;
-    returns the best trial."""
+def write_best_params(path: pathlib.Path, trial_log, tuned_for: dict) -> int:
+    """``best_params.json`` of one optimization (instance 0) in the format ``cpgjax deploy --params`` replays, with
+    what it was tuned for (:mod:`cpgjax.trial.tuned`); returns the best trial."""
     best = int(np.argmax(trial_log.objective[:, 0]))
-    trials.save_params(path, trial_log.params[best, 0], objective=float(trial_log.objective[best, 0]), trial=best,
-                       controller=controller, target_velocity_mps=target_velocity_mps)
+    tuned.save(path, trial_log.params[best, 0], tuned_for, objective=float(trial_log.objective[best, 0]), trial=best)
     return best
+
+
+def replay_hint(params_path: pathlib.Path) -> str:
+    """The commands that replay a ``best_params.json`` as it was tuned (the file carries the controller, the physics
+    profile, the scenario and the target, which both commands use)."""
+    return (f"replay the best: cpgjax deploy --robot sim --params {shlex.quote(str(params_path))}; "
+            f"check it in simulation: cpgjax walk --params {shlex.quote(str(params_path))}")
 
 
 def optimize_spec(args) -> study_spec.StudySpec:
@@ -299,12 +343,19 @@ def _optimize(args) -> int:
         return _interrupted(args.command_line, args, out)
     tr = result.trials
     print(_trials_table(tr))
-    best = write_best_params(out / "best_params.json", tr, args.controller, args.target_velocity_mps)
-    print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
-    study_io.write_trials(result, out / "trials.parquet")
-    study_io.write_recording(result, out / "recording.rrd")
-    study_io.write_metadata(result, out / "metadata.json", command=args.command_line)
-    print(f"outputs in {out}/ (replay the best: cpgjax deploy --robot sim --params {out / 'best_params.json'})")
+    try:
+        with study_io.writing(out, "trials.parquet, metadata.json and best_params.json"):
+            study_io.write_trials(result, out / "trials.parquet")
+            study_io.write_metadata(result, out / "metadata.json", command=args.command_line)
+            best = write_best_params(out / "best_params.json", tr,
+                                     {name: getattr(args, name) for name in tuned.TUNED_FOR})
+        print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
+        with study_io.writing(out, "recording.rrd"):
+            study_io.write_recording(result, out / "recording.rrd")
+    except study_io.OutputError as err:
+        print(f"cpgjax optimize: {err}", file=sys.stderr)
+        return 1
+    print(f"outputs in {out}/ ({replay_hint(out / 'best_params.json')})")
     return 0
 
 
@@ -403,6 +454,8 @@ def _deploy(parser: argparse.ArgumentParser, args) -> int:
     except study_spec.StudyError as err:
         print(f"cpgjax deploy: {err}", file=sys.stderr)
         return 2
+    _use_tuned(args)
+    args.params = None if args.params is None else args.params.params
     _notice(f"cpgjax deploy: writing to {args.log_dir}/")
     return deploy.run(args)
 
@@ -448,12 +501,12 @@ def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bo
             ("--slope-deg", limits.SLOPE_DEG, 0.0, "slope [deg], uphill along +x", "sim only: "),
             ("--payload-kg", limits.PAYLOAD_KG, 0.0, "payload [kg]", "counts in CoT; sim: simulated; ")):
         # a string default goes through the type like a typed value (and shows as typed in the help)
-        p.add_argument(name, type=kind(allowed), default=f"{default:g}" if many else default,
+        p.add_argument(name, type=kind(allowed), default=f"{default:g}" if many else default, action=_Given,
                        help=f"{on_robot if robot else ''}{what}{text} in {allowed}")
 
 
 def _add_target_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--target-velocity-mps", type=_in(limits.TARGET_VELOCITY_MPS), default=0.5,
+    p.add_argument("--target-velocity-mps", type=_in(limits.TARGET_VELOCITY_MPS), default=0.5, action=_Given,
                    help=f"target velocity v_x* [m/s] of the objective J, in {limits.TARGET_VELOCITY_MPS}")
 
 
@@ -478,10 +531,10 @@ def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool
     """``--physics``: the physics profile(s) of the simulated Go1 (docs/physics.md)."""
     allowed = ", ".join(physics_profiles.PROFILES)
     if many:
-        p.add_argument("--physics", type=_physics_names, default=default,
+        p.add_argument("--physics", type=_physics_names, default=default, action=_Given,
                        help=f"comma list of physics profiles ({allowed})")
     else:
-        p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=default,
+        p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=default, action=_Given,
                        help="physics profile" + ("" if default else " (default: the study's own)"))
 
 
@@ -500,6 +553,7 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
                    help="lockstep: one physics step per command, the loop waits for each answer (not real time)")
     _add_scenario_args(p, robot=True)
     p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
+                   action=_Given,
                    help="sim only: the simulated Go1's physics profile (docs/physics.md)")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     p.add_argument("--cpu", type=_cpu, help="pin the loop to this CPU (the optimizer and the log writer run on the "
@@ -520,12 +574,15 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
 def _add_walk(sub) -> None:
     w = sub.add_parser("walk", help="walk with fixed parameters and print the trial figures",
                        formatter_class=_HelpFormatter)
-    w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS),
+    w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS), action=_Given,
                    help="comma list of controllers")
     _add_scenario_args(w, many=True)
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
     _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
+    w.add_argument("--params", type=_params_file, help="walk with these parameters: a best_params.json (of optimize, "
+                   "deploy --optimize or a study), whose controller, physics, scenario and target are used unless "
+                   "given here, or a JSON list of 8 numbers (default: the middle of the paper's ranges)")
     backends.add_backend_argument(w)
     w.set_defaults(func=_walk)
 
@@ -588,13 +645,15 @@ def _add_deploy(sub) -> None:
                        "calibration.", formatter_class=_HelpFormatter)
     _add_robot_args(d, robot_required=False)  # _deploy requires it: argparse would ask for it before `calibrate` too
     what = d.add_mutually_exclusive_group()
-    what.add_argument("--params", type=_params_file, help="replay these parameters: JSON of `cpgjax optimize` or "
-                      "`deploy --optimize` (best_params.json), or a list of 8 numbers (default: the middle of the "
-                      "paper's ranges)")
+    what.add_argument("--params", type=_params_file, help="replay these parameters: a best_params.json (of "
+                      "optimize, deploy --optimize or a study), whose controller, physics, scenario and target are "
+                      "used unless given here, or a JSON list of 8 numbers (default: the middle of the paper's "
+                      "ranges)")
     what.add_argument("--optimize", action="store_true", help="online optimization (Algorithm 1)")
     d.add_argument("--trials", type=_count(), default=10, help="trials of online optimization")
     d.add_argument("--optimizer", choices=("bo", "random"), default="bo", help="the online optimizer")
-    d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", help="the CPG controller")
+    d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", action=_Given,
+                   help="the CPG controller (with --params: the file's)")
     _add_target_arg(d)
     d.add_argument("--duration-s", type=_in(limits.RUN_DURATION_S), default=10.0,
                    help=f"run time when replaying parameters [s], in {limits.RUN_DURATION_S}")

@@ -24,6 +24,7 @@ from cpgjax.study import files as study_io
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
+from cpgjax.trial import tuned
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
@@ -162,7 +163,7 @@ def test_accepted_files_parse_to_their_values(tmp_path):
                                           "--params", str(params), "--power-level", "10"])
     np.testing.assert_array_equal(args.calibration.offset_counts, [14, -6, 22, 9])
     np.testing.assert_array_equal(args.calibration.newton_per_count, [0.5] * 4)
-    np.testing.assert_allclose(args.params, 0.5 * (param_space.PARAM_LOWER + param_space.PARAM_UPPER))
+    np.testing.assert_allclose(args.params.params, 0.5 * (param_space.PARAM_LOWER + param_space.PARAM_UPPER))
     assert args.power_level == 10
 
 
@@ -190,16 +191,90 @@ class _Log(NamedTuple):
     params: np.ndarray
 
 
+TUNED = dict(controller="tegotae", physics="paper", friction=0.3, slope_deg=5.0, payload_kg=2.5,
+             target_velocity_mps=0.7)
+
+
 def test_optimize_best_params_replay_with_deploy(tmp_path):
-    """`optimize` writes best_params.json; `deploy --params` reads back the best trial's parameters."""
+    """`optimize` writes best_params.json with what it was tuned for; `deploy --params` reads back the best trial's
+    parameters and that record."""
     params = param_space.from_unit(np.array([[[0.1] * 8], [[0.7] * 8], [[0.4] * 8]]))  # (trials, B=1, 8)
     log = _Log(objective=np.array([[0.5], [1.9], [1.2]]), params=params)
     path = tmp_path / "best_params.json"
-    assert cli.write_best_params(path, log, "vmc", 0.6) == 1
+    assert cli.write_best_params(path, log, TUNED) == 1
     saved = json.loads(path.read_text())
-    assert saved["trial"] == 1 and saved["controller"] == "vmc" and saved["objective"] == 1.9
+    assert saved["trial"] == 1 and saved["objective"] == 1.9 and {k: saved[k] for k in TUNED} == TUNED
     args = cli.build_parser().parse_args(["deploy", "--robot", "sim", "--params", str(path)])
-    np.testing.assert_allclose(args.params, params[1, 0])
+    np.testing.assert_allclose(args.params.params, params[1, 0])
+    assert args.params.tuned_for == TUNED
+
+
+def _tuned_file(tmp_path: pathlib.Path, **changes) -> pathlib.Path:
+    path = tmp_path / "best_params.json"
+    tuned.save(path, param_space.from_unit(np.full(8, 0.3)), {**TUNED, **changes}, objective=1.5, trial=4)
+    return path
+
+
+def test_deploy_params_replays_what_was_tuned_unless_overridden(tmp_path, capsys, monkeypatch):
+    """Not deploy's own defaults (vmc_tegotae, go1 physics, friction 0.6, v* 0.5) but the file's; an option given on
+    the command line wins, and one line says so."""
+    ran = []
+    monkeypatch.setattr(deploy, "run", lambda args: ran.append(args) or 0)
+    path = _tuned_file(tmp_path)
+    assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--log-dir", str(tmp_path / "a")]) == 0
+    args = ran[-1]
+    assert {k: getattr(args, k) for k in TUNED} == TUNED
+    np.testing.assert_allclose(args.params, param_space.from_unit(np.full(8, 0.3)))
+    err = capsys.readouterr().err
+    assert f"{path} tuned for controller tegotae, physics paper, friction 0.3, slope 5°, payload 2.5 kg, v* 0.7 m/s" \
+        in err and "overrides" not in err
+    assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--friction", "0.9", "--controller",
+                     "tegotae", "--log-dir", str(tmp_path / "b")]) == 0
+    args = ran[-1]
+    assert args.friction == 0.9 and args.physics == "paper" and args.controller == "tegotae"
+    line, = [ln for ln in capsys.readouterr().err.splitlines() if "tuned for" in ln]
+    assert line.endswith("; --friction 0.9 overrides it")  # the same controller given again is no override
+
+
+def test_a_robot_tuned_file_keeps_the_replays_own_scenario(tmp_path, capsys, monkeypatch):
+    """A file tuned on the real robot records no physics, friction or slope (null): the replay keeps its own."""
+    ran = []
+    monkeypatch.setattr(deploy, "run", lambda args: ran.append(args) or 0)
+    path = _tuned_file(tmp_path, physics=None, friction=None, slope_deg=None)
+    assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--log-dir", str(tmp_path / "a")]) == 0
+    assert (ran[-1].physics, ran[-1].friction, ran[-1].slope_deg, ran[-1].controller) == ("go1", 0.6, 0.0, "tegotae")
+    assert "tuned for controller tegotae, payload 2.5 kg, v* 0.7 m/s" in capsys.readouterr().err
+
+
+def test_walk_params_walks_what_was_tuned(tmp_path, capsys, monkeypatch):
+    walks = []
+
+    def fake_walk(**kwargs):
+        walks.append(kwargs)
+        raise SystemExit(0)  # stop before the table: only what walk was asked for matters here
+    monkeypatch.setattr(walk, "walk", fake_walk)
+    path = _tuned_file(tmp_path)
+    with pytest.raises(SystemExit):
+        cli.main(["walk", "--params", str(path), "--payload-kg", "0,5"])
+    asked = walks[-1]
+    assert (asked["controllers"], asked["physics"], asked["friction"], asked["slope_deg"], asked["payload_kg"],
+            asked["target_velocity_mps"]) == (("tegotae",), ("paper",), (0.3,), (5.0,), (0.0, 5.0), 0.7)
+    np.testing.assert_allclose(asked["params"], param_space.from_unit(np.full(8, 0.3)))
+    assert "; --payload-kg 0,5 overrides it" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("controller", "cpg9", "controller 'cpg9' is not one of open_loop"),
+    ("physics", "moon", "physics 'moon' is not one of"),
+    ("friction", 7.0, "friction = 7.0 is outside the allowed range [0.1, 1.5]"),
+    ("target_velocity_mps", "fast", "target_velocity_mps 'fast' is not a number"),
+])
+def test_a_bad_tuned_for_field_is_refused_with_the_file_and_key(field, value, message, tmp_path, capsys, no_robot):
+    path = tmp_path / "best_params.json"
+    data = {"params": param_space.as_dict(param_space.midpoint()), **TUNED, field: value}
+    _write(path, data)
+    err = _refused(["deploy", "--robot", "sim", "--params", str(path)], capsys)
+    assert f"parameter file {path}: {message}" in err
 
 
 # ----------------------------------------------------------------------------------------------- output folders

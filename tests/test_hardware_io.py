@@ -29,7 +29,7 @@ from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.robot import trials as robot_trials
-from cpgjax.trial import params, protocol
+from cpgjax.trial import params, protocol, tuned
 
 GATES = cpg.controller_gates("vmc_tegotae")
 # Short soft start; a watchdog long enough for a loaded CI machine (the stale-state test shortens it).
@@ -357,7 +357,9 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     """Random search stands in for the contextual BO (cpgjax.optim.bo) until that lands."""
     robot.reset()
     transport = go1_transport.LockstepTransport(robot.address)
-    spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), "vmc_tegotae")
+    tuned_for = dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0, payload_kg=0.0,
+                     target_velocity_mps=0.5)
+    spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), tuned_for)
     try:
         result, rows = robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
                                                   params.midpoint(), 3, protocol.TrialConfig(300, 600), LOOP, SAFETY)
@@ -371,7 +373,8 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
 
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 3
     assert (tmp_path / "trials.rrd").stat().st_size > 0
-    best = robot_trials.load_params(tmp_path / "best_params.json")
+    best, recorded, _ = tuned.load(tmp_path / "best_params.json")
+    assert recorded == tuned_for
     best_row = rows[int(np.argmax([r["objective"] for r in rows]))]
     np.testing.assert_allclose(best, [best_row[name] for name in params.PARAM_NAMES])
     replay, _, _ = _run(robot, controller, run_ticks=300, schedule=hio.FixedParams(best, 300))
@@ -394,7 +397,10 @@ def test_deploy_optimize_starts_from_the_optimizers_random_proposal(tmp_path):
     np.testing.assert_allclose(first, reference, rtol=1e-6)
     assert not np.allclose(first, params.midpoint())
     assert np.all((first >= params.PARAM_LOWER) & (first <= params.PARAM_UPPER))
-    assert robot_trials.load_params(run / "best_params.json").shape == (8,)
+    replayed = tuned.load(run / "best_params.json")
+    assert replayed.params.shape == (8,)
+    assert replayed.tuned_for == dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0,
+                                      payload_kg=0.0, target_velocity_mps=0.5)  # deploy's defaults, all recorded
 
 
 # ------------------------------------------------------------------------------------- foot-force calibration

@@ -11,10 +11,12 @@ import pytest
 
 import cpgjax
 from cpgjax import ablation, cli, cpg
+from cpgjax.study import figures as study_figures
+from cpgjax.study import files as study_io
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
-from cpgjax.trial import protocol
+from cpgjax.trial import protocol, tuned
 from tests.test_ablation import small_optimizer
 
 # ----------------------------------------------------------------------------------------------- specifications
@@ -138,3 +140,34 @@ def test_representative_rollout_is_the_best_runs_best_parameters(tiny_ablation):
     t = int(np.argmax(result.trials.objective[:, b]))
     assert label == f"best_{result.labels[b]['controller']}_run{b}_trial{t}"
     assert log.qpos.shape[0] == 3000 and log.phase_rad.shape == (3000, 4) and np.all(np.isfinite(log.qpos))
+
+
+def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tiny_ablation):
+    """best_params/controller=<c>.json: the group's highest J over every instance and trial of trials.parquet, and
+    that instance's controller, physics and the trial's conditions; `deploy --params` reads it back."""
+    _, out, _ = tiny_ablation
+    table = pq.read_table(out / "trials.parquet").to_pandas()
+    for c in cpg.CONTROLLERS:
+        path = out / study_io.BEST_PARAMS / f"controller={c}.json"
+        saved = json.loads(path.read_text())
+        best = table[table.controller == c].sort_values("objective").iloc[-1]
+        assert (saved["trial"], saved["objective"]) == (best.trial, pytest.approx(best.objective))
+        assert {k: saved[k] for k in tuned.TUNED_FOR} == dict(
+            controller=c, physics=best.physics, friction=pytest.approx(best.friction), slope_deg=best.slope_deg,
+            payload_kg=best.payload_kg, target_velocity_mps=best.target_velocity_mps)
+        read = tuned.load(path)
+        np.testing.assert_allclose(read.params, [best[name] for name in param_space.PARAM_NAMES])
+
+
+def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp_path, monkeypatch):
+    """A figure that cannot be drawn (here: a raising learning_curves) stops the outputs with one message; the trial
+    table, the metadata and the best parameters are already written, and the message names them."""
+    result, _, _ = tiny_ablation
+
+    def broken(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(study_figures, "learning_curves", broken)
+    with pytest.raises(study_io.OutputError, match=r"writing table.md and the figures in .* failed \(OSError: "
+                       r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, trials.parquet"):
+        studies.write_outputs(result, tmp_path, "native")
+    assert pq.read_table(tmp_path / "trials.parquet").num_rows == 16 and (tmp_path / "metadata.json").exists()

@@ -131,7 +131,7 @@ def run(args) -> int:
         controller = compiled_controller.CompiledController()
         if args.optimize:
             spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
-                                 robot_mass_kg(args.payload_kg), str(args.log_dir), args.controller)
+                                 robot_mass_kg(args.payload_kg), str(args.log_dir), tuned_for(args))
             timing = protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
             result, _ = online_optimization(transport, controller, calibration, gates, spec, params,
                                             args.trials, timing, loop, safety, ticks, hint)
@@ -139,6 +139,14 @@ def run(args) -> int:
             result = hio.run_loop(transport, controller, hio.FixedParams(params, round(args.duration_s * 1000)),
                                   calibration, gates, loop, safety, ticks, hint)
     return report(args, result)
+
+
+def tuned_for(args) -> dict:
+    """What a run's ``best_params.json`` records it was tuned for (:mod:`cpgjax.trial.tuned`): on the simulated Go1
+    its physics profile and scenario; on the robot only the payload, the floor's friction and slope being unknown."""
+    sim_only = dict(physics=args.physics, friction=args.friction, slope_deg=args.slope_deg)
+    return dict(controller=args.controller, target_velocity_mps=args.target_velocity_mps, payload_kg=args.payload_kg,
+                **(sim_only if args.robot == "sim" else dict.fromkeys(sim_only)))
 
 
 def stale_hint(args) -> str:

@@ -7,7 +7,7 @@ context come from ``cpgjax.trial.objective`` as in simulation. The optimizer run
 (:func:`_optimizer_worker`), so the 1 kHz loop never waits for it: after a trial the robot keeps walking with the
 current parameters until the next proposal arrives (the wait is logged per trial). The worker writes the per-trial
 log (``trials.parquet``, ``trials.rrd`` for rerun) and the best parameters (``best_params.json``, which
-``cpgjax deploy --params`` replays).
+``cpgjax deploy --params`` replays, :mod:`cpgjax.trial.tuned`).
 
 The optimizer is anything with ``propose(context) -> params`` and ``observe(params, context, record, objective)``
 (:class:`OnlineOptimizer`): the contextual BO of ``cpgjax.optim.bo`` (:class:`BayesianOptimizer`, the default) or
@@ -17,7 +17,6 @@ The optimizer is anything with ``propose(context) -> params`` and ``observe(para
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import multiprocessing
 import os
@@ -38,7 +37,7 @@ from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import memory_lock
 from cpgjax.robot import safety as go1_safety
-from cpgjax.trial import limits, objective, protocol
+from cpgjax.trial import objective, protocol, tuned
 from cpgjax.trial import params as param_space
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
@@ -122,7 +121,7 @@ class OptimizerSpec(NamedTuple):
     tegotae: bool
     total_mass_kg: float
     log_dir: str
-    controller: str
+    tuned_for: dict  # what best_params.json records it was tuned for (cpgjax.trial.tuned.TUNED_FOR)
     dt_s: float = 0.001
     steady_steps: int = protocol.TrialConfig().steady_steps  # ticks of a trial's steady phase (its record's length)
     cpus: tuple[int, ...] | None = None  # the CPUs the worker may use (None: any); keep it off the loop's CPU
@@ -169,33 +168,6 @@ class _TrialLog:
 
     def close(self) -> None:
         self._rec.flush()
-
-
-def save_params(path, params: np.ndarray, **info) -> None:
-    """Parameters as JSON {names: values, ...info}; :func:`load_params` reads it back."""
-    Path(path).write_text(json.dumps({"params": param_space.as_dict(params), **info}, indent=1))
-
-
-def load_params(path) -> np.ndarray:
-    """Parameters (8,) from a :func:`save_params` file (or a JSON list of 8 numbers), validated.
-
-    Raises:
-      ValueError: unreadable or invalid JSON, a missing key, or a value outside the paper's range; the message names
-        the file and the key.
-    """
-    data = limits.read_json(path, "parameter file")
-    if isinstance(data, dict):
-        if not isinstance(data.get("params"), dict):
-            raise ValueError(f"parameter file {path}: missing key 'params' (an object of {param_space.PARAM_NAMES})")
-        missing = [name for name in param_space.PARAM_NAMES if name not in data["params"]]
-        if missing:
-            raise ValueError(f"parameter file {path}: missing key 'params.{missing[0]}'")
-        data = [data["params"][name] for name in param_space.PARAM_NAMES]
-    try:
-        values = np.asarray(data, np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"parameter file {path}: expected {param_space.NUM_PARAMS} numbers") from None
-    return param_space.validate(values, what=f"parameter file {path}")
 
 
 def _evaluate(signals: np.ndarray, spec: OptimizerSpec, observe, trial: int, x: np.ndarray | None = None):
@@ -249,8 +221,7 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
                  c[1], row["wait_s"])
         if j > best:
             best = j
-            save_params(Path(spec.log_dir) / "best_params.json", x, objective=j, trial=trial,
-                        controller=spec.controller, target_velocity_mps=spec.target_velocity_mps)
+            tuned.save(Path(spec.log_dir) / "best_params.json", x, spec.tuned_for, objective=j, trial=trial)
     trial_log.close()
     conn.send(("done", trial_log.rows))
 

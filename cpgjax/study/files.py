@@ -10,6 +10,9 @@
   velocity, CoT, falls. ``pandas.read_parquet(path)`` or ``polars.read_parquet(path)``.
 * ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and
   representative rollouts (trunk pose and feet per step, foot forces, CPG phases and amplitudes).
+* ``best_params/<group>.json`` — per group of the study (its ``group_by`` labels, e.g. ``controller=tegotae``) the
+  best observed trial's parameters with what they were tuned for (:mod:`cpgjax.trial.tuned`), which
+  ``cpgjax deploy --params`` and ``cpgjax walk --params`` replay.
 * ``metadata.json`` — the command line, cpgjax's version and git commit, the optimizer's settings, versions,
   devices, backend, wall time, env-steps/s and real-time factor.
 
@@ -18,6 +21,7 @@ No command writes into a non-empty folder or over a file unless told to (:func:`
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -35,6 +39,7 @@ import cpgjax
 from cpgjax.go1 import model as go1_model
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
+from cpgjax.trial import tuned
 
 CHECKPOINT = "checkpoint.npz"
 _SHARD = re.compile(r"checkpoint\.(\d+)of(\d+)\.t(\d+)\.npz")
@@ -354,6 +359,55 @@ def write_trials(result, path) -> pathlib.Path:
     path = pathlib.Path(path)
     pq.write_table(pa.table(trial_columns(result)), path)
     return path
+
+
+BEST_PARAMS = "best_params"
+
+
+def group_file_name(labels: dict[str, Any], group_by: tuple[str, ...]) -> str:
+    """'controller=tegotae' or 'schedule=load_change,controller=vmc': a group's best-parameter file, without .json."""
+    return ",".join(f"{g}={labels[g]}" for g in group_by).replace("/", "_")
+
+
+class OutputError(RuntimeError):
+    """Writing one of a finished run's files failed; the message says which, what was kept and how to write the rest."""
+
+
+@contextlib.contextmanager
+def writing(out_dir, what: str):
+    """Turn any failure while writing ``what`` into :class:`OutputError`: which file, why, the files already in
+    ``out_dir`` (the checkpoint holds every trial) and that ``--resume`` writes the outputs again."""
+    try:
+        yield
+    except Exception as err:  # an output's failure, whatever its kind, must not hide the results already kept
+        out = pathlib.Path(out_dir)
+        kept = ", ".join(_entries(out)) if out.is_dir() else "nothing"
+        raise OutputError(f"writing {what} in {out} failed ({type(err).__name__}: {err}); kept: {kept}. Every trial "
+                          f"is in its checkpoint: the same command with --resume writes the outputs again") from err
+
+
+def write_best_params(result, folder) -> list[pathlib.Path]:
+    """``folder/<group>.json`` for every group of the study (:func:`group_file_name`): the best observed trial of the
+    group's instances (highest J), its parameters, and what they were tuned for: the instance's controller and
+    physics profile and that trial's friction, slope, payload and target velocity."""
+    folder = pathlib.Path(folder)
+    folder.mkdir(exist_ok=True)
+    tr, cond = result.trials, result.conditions
+    groups: dict[str, list[int]] = {}
+    for b, lab in enumerate(result.labels):
+        groups.setdefault(group_file_name(lab, result.spec.group_by), []).append(b)
+    paths = []
+    for name, members in groups.items():
+        j = np.asarray(tr.objective, np.float64)[:, members]
+        t, k = np.unravel_index(np.argmax(np.where(np.isfinite(j), j, -np.inf)), j.shape)
+        b, lab = members[k], result.labels[members[k]]
+        tuned_for = dict(controller=lab["controller"], physics=lab["physics"],
+                         **{f: float(getattr(cond, f)[b, t]) for f in tuned.TUNED_FOR if hasattr(cond, f)})
+        path = folder / f"{name}.json"
+        tuned.save(path, tr.params[t, b], tuned_for, objective=float(j[t, k]), trial=int(t), instance=int(b),
+                   seed=int(lab["seed"]), study=result.spec.name)
+        paths.append(path)
+    return paths
 
 
 # ----------------------------------------------------------------------------------------------- metadata

@@ -359,16 +359,25 @@ def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str |
 
 
 def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None, command: str | None = None) -> str:
-    """Every file of a finished study; returns the table text."""
+    """Every file of a finished study, the trial table, the metadata and the best parameters first (they cannot fail
+    but for the disk), then the report (table.md, figures) and the recording; returns the table text.
+
+    Raises:
+      study_io.OutputError: a file could not be written; the message names it and what was kept.
+    """
     out.mkdir(parents=True, exist_ok=True)
-    report = STUDIES[name or result.spec.name].report
-    text, logs = report(result, out, backend)
-    figures = study_io.run_figures(result)
-    text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, figures)}\n"
-    (out / "table.md").write_text(text)
-    study_io.write_trials(result, out / "trials.parquet")
-    study_io.write_recording(result, out / "recording.rrd", logs)
-    study_io.write_metadata(result, out / "metadata.json", command=command)
+    with study_io.writing(out, "trials.parquet"):
+        study_io.write_trials(result, out / "trials.parquet")
+    with study_io.writing(out, "metadata.json"):
+        study_io.write_metadata(result, out / "metadata.json", command=command)
+    with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
+        study_io.write_best_params(result, out / study_io.BEST_PARAMS)
+    with study_io.writing(out, "table.md and the figures"):
+        text, logs = STUDIES[name or result.spec.name].report(result, out, backend)
+        text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
+        (out / "table.md").write_text(text)
+    with study_io.writing(out, "recording.rrd"):
+        study_io.write_recording(result, out / "recording.rrd", logs)
     return text
 
 
