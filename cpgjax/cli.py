@@ -115,6 +115,18 @@ _calibration_file = _argument_type(foot_force.FootForceCalibration.load)
 
 
 @_argument_type
+def _output_path(text: str) -> pathlib.Path:
+    """A path to write, named on the command line: not empty, and in a folder that exists (cpgjax creates the
+    default folders' parents, never a parent the user named)."""
+    if not text.strip():
+        raise ValueError("an empty path: name a folder or file to write")
+    path = pathlib.Path(text)
+    if not path.parent.is_dir():
+        raise ValueError(f"{text}: its folder {path.parent} does not exist (create it first, or write elsewhere)")
+    return path
+
+
+@_argument_type
 def _cpu(text: str) -> int:
     value = _integer(text)
     if not 0 <= value < (os.cpu_count() or 1):
@@ -129,6 +141,14 @@ class _Given(argparse.Action):
     def __call__(self, parser, namespace, values, option_string=None):
         setattr(namespace, self.dest, values)
         setattr(namespace, "given", {*getattr(namespace, "given", ()), self.dest})
+
+
+class _Parser(argparse.ArgumentParser):
+    """A parser whose errors are the one line ``cpgjax <command>: error: <why>`` (the usage is on ``--help``); every
+    subcommand's parser is one too."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -339,6 +359,9 @@ def _optimize(args) -> int:
     except study_spec.StudyError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 2
+    except study_io.OutputError as err:
+        print(f"cpgjax optimize: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return _interrupted(args.command_line, args, out)
     tr = result.trials
@@ -484,7 +507,8 @@ def _calibrate(args) -> int:
 
 def _add_output_args(p: argparse.ArgumentParser, default: str | None, shown: str | None = None) -> None:
     """``--out`` (the folder a study or an optimization writes, with its checkpoint), ``--resume``, ``--overwrite``."""
-    p.add_argument("--out", default=default, help=f"output folder{f' (default: {shown})' if shown else ''}")
+    p.add_argument("--out", type=_output_path, default=default and pathlib.Path(default),
+                   help=f"output folder{f' (default: {shown})' if shown else ''}")
     how = p.add_mutually_exclusive_group()
     how.add_argument("--resume", action="store_true", help="continue from the folder's checkpoint (an error without "
                      "one)")
@@ -661,7 +685,7 @@ def _add_deploy(sub) -> None:
                    help=f"each trial's parameter transition [s], in {limits.TRANSITION_S}")
     d.add_argument("--steady-s", type=_in(limits.STEADY_S), default=3.0,
                    help=f"each trial's steady phase T [s], in {limits.STEADY_S}")
-    d.add_argument("--log-dir", type=pathlib.Path, help=f"the run's folder (default: a new {DEPLOY_RUNS}/<date>-<time>"
+    d.add_argument("--log-dir", type=_output_path, help=f"the run's folder (default: a new {DEPLOY_RUNS}/<date>-<time>"
                    "; an existing non-empty one needs --overwrite)")
     d.add_argument("--calibration", type=_calibration_file, help="foot-force calibration JSON from `cpgjax deploy "
                    "calibrate` (required with --robot go1; default with sim: the simulated sensor's exact one)")
@@ -674,7 +698,7 @@ def _add_deploy(sub) -> None:
         description="Measure the Go1's foot-force sensors (feet in the air, then standing) and save their "
         "calibration to raw counts → N.", formatter_class=_HelpFormatter)
     _add_robot_args(c)
-    c.add_argument("--out", type=pathlib.Path, default=pathlib.Path("go1_calibration.json"),
+    c.add_argument("--out", type=_output_path, default=pathlib.Path("go1_calibration.json"),
                    help="calibration JSON to write, each measuring stand's per-tick log next to it "
                    "(NAME.air.ticks.arrows, NAME.standing.ticks.arrows; existing ones need --overwrite)")
     c.add_argument("--air-s", type=_in(limits.MEASURE_S), default=2.0,
@@ -691,7 +715,7 @@ def _add_deploy(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``cpgjax`` parser: every command, each with its function as ``func``."""
-    parser = argparse.ArgumentParser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1.")
+    parser = _Parser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1.")
     parser.add_argument("--version", action="version", version=f"cpgjax {cpgjax.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_add_walk, _add_study, _add_optimize, _add_show, _add_demo, _add_deploy):

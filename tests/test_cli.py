@@ -294,6 +294,40 @@ def test_out_pointing_at_a_file_fails_at_once(tmp_path, capsys, no_engine):
     assert "is a file" in capsys.readouterr().err
 
 
+OUTPUT_OPTIONS = (["optimize", "--trials", "2", "--out"], ["study", "friction", "--quick", "--out"],
+                  ["deploy", "--robot", "sim", "--log-dir"], ["deploy", "calibrate", "--robot", "sim", "--out"])
+
+
+@pytest.mark.parametrize("argv", OUTPUT_OPTIONS, ids=lambda a: a[0] + a[-1])
+def test_an_empty_path_or_a_missing_parent_is_refused_before_anything_runs(argv, tmp_path, capsys, no_engine,
+                                                                           no_robot):
+    err = _refused([*argv, ""], capsys)
+    assert err.count("\n") == 1 and "an empty path: name a folder or file to write" in err
+    target = tmp_path / "missing" / "x"
+    err = _refused([*argv, str(target)], capsys)
+    assert err.count("\n") == 1 and f"its folder {target.parent} does not exist" in err
+    assert not target.parent.exists()  # never created
+
+
+@pytest.mark.parametrize("argv", OUTPUT_OPTIONS, ids=lambda a: a[0] + a[-1])
+def test_an_unwritable_folder_is_refused_before_anything_runs(argv, tmp_path, capsys, no_engine, no_robot,
+                                                              monkeypatch):
+    """A read-only file system (simulated: writing the probe file raises EROFS, which root meets too) gives one line
+    and exit 2 before the engine or a robot starts."""
+    write_bytes = pathlib.Path.write_bytes
+
+    def read_only(self, data):
+        if self.name.startswith(".cpgjax-write-check"):
+            raise OSError(30, "Read-only file system")
+        return write_bytes(self, data)
+    monkeypatch.setattr(pathlib.Path, "write_bytes", read_only)
+    target = tmp_path / "out"
+    assert cli.main([*argv, str(target)]) == 2
+    written_in = tmp_path if "calibrate" in argv else target  # calibrate's --out is a file
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"cannot write in {written_in}: Read-only file system" in err
+
+
 def test_a_non_empty_folder_is_not_overwritten(tmp_path, capsys, no_engine):
     robot_run = tmp_path / "run"
     robot_run.mkdir()
@@ -360,6 +394,26 @@ def _fake_checkpoint(out: pathlib.Path, spec, trial: int, backend: str) -> None:
 def _truncated(path: pathlib.Path) -> None:
     np.savez(path, meta=np.zeros(1000, np.uint8), other=np.arange(10_000))
     path.write_bytes(path.read_bytes()[:3000])
+
+
+def test_a_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
+    """The checkpoint of trial 2 cannot be written (ENOSPC): the error says which trials are kept, the previous
+    checkpoint still loads with its trials, and no temporary file is left."""
+    spec = _optimize_spec(trials=4)
+    log = study_io.TrialLog(*(np.zeros(1) for _ in study_io.TrialLog._fields))
+    ckpt = study_io.Checkpoint(2, [np.zeros((1, 3))], [np.ones((1, 2))], np.zeros((1, 2)), [log, log], 1.0, {})
+    study_io.save_checkpoint(tmp_path, spec, ckpt, "native")
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(np, "savez", full)
+    with pytest.raises(study_io.OutputError, match=r"writing the checkpoint of trial 2 in .* failed \(No space left "
+                       r"on device\); trials 0…1 are kept in its checkpoint: free space, then the same command with "
+                       r"--resume continues"):
+        study_io.save_checkpoint(tmp_path, spec, ckpt._replace(trial=3, logs=[log] * 3), "native")
+    monkeypatch.undo()
+    assert study_io.load_checkpoint(tmp_path, spec).trial == 2 and sorted(os.listdir(tmp_path)) == [
+        study_io.CHECKPOINT]
 
 
 @pytest.mark.parametrize("damage", ["garbage", "empty", "truncated", "pickled"])

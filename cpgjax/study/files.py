@@ -41,6 +41,10 @@ from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 from cpgjax.trial import tuned
 
+class OutputError(RuntimeError):
+    """Writing one of a run's files failed; the message says which, what was kept and how to write the rest."""
+
+
 CHECKPOINT = "checkpoint.npz"
 _SHARD = re.compile(r"checkpoint\.(\d+)of(\d+)\.t(\d+)\.npz")
 
@@ -119,11 +123,17 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard 
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     path = shard_path(out, shard, ckpt.trial)
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as err:  # a full disk: the previous checkpoint is untouched
+        tmp.unlink(missing_ok=True)
+        kept = f"trials 0…{ckpt.trial - 2} are kept in its checkpoint" if ckpt.trial > 1 else "no trial is kept"
+        raise OutputError(f"writing the checkpoint of trial {ckpt.trial - 1} in {out} failed ({err.strerror}); "
+                          f"{kept}: free space, then the same command with --resume continues") from None
     return path
 
 
@@ -293,7 +303,23 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pa
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise StudyError(f"cannot create the folder {folder}: {err.strerror}") from None
+    check_writable(folder)
     return folder
+
+
+def check_writable(folder: pathlib.Path) -> None:
+    """Create and delete a file in ``folder``: a read-only folder or file system is found before any compute (a
+    permission check would pass for root on a read-only mount).
+
+    Raises:
+      StudyError: the file cannot be written; the message names the folder and the reason.
+    """
+    probe = pathlib.Path(folder) / f".cpgjax-write-check-{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise StudyError(f"cannot write in {folder}: {err.strerror}") from None
 
 
 def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
@@ -311,6 +337,7 @@ def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise StudyError(f"cannot create the folder {path.parent}: {err.strerror}") from None
+    check_writable(path.parent)
     return path
 
 
@@ -367,10 +394,6 @@ BEST_PARAMS = "best_params"
 def group_file_name(labels: dict[str, Any], group_by: tuple[str, ...]) -> str:
     """'controller=tegotae' or 'schedule=load_change,controller=vmc': a group's best-parameter file, without .json."""
     return ",".join(f"{g}={labels[g]}" for g in group_by).replace("/", "_")
-
-
-class OutputError(RuntimeError):
-    """Writing one of a finished run's files failed; the message says which, what was kept and how to write the rest."""
 
 
 @contextlib.contextmanager
