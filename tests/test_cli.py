@@ -17,7 +17,7 @@ import pytest
 
 import cpgjax
 from cpgjax import ablation, cli
-from cpgjax.robot import calibrate, deploy, foot_force, sim_server
+from cpgjax.robot import calibrate, deploy, foot_force, sim_server, tick_log
 from cpgjax.robot import safety as go1_safety
 from cpgjax.sim import walk
 from cpgjax.study import files as study_io
@@ -357,6 +357,44 @@ def test_overwrite_starts_afresh(tmp_path):
     with pytest.raises(study_spec.StudyError, match="--resume to continue its checkpoint, --overwrite"):
         study_io.claim_folder(out)
     assert study_io.claim_folder(out, overwrite=True) == out and not (out / study_io.CHECKPOINT).exists()
+
+
+def _old_optimize_folder(out: pathlib.Path) -> list[str]:
+    """What `optimize` and a study leave in their folder (names as they write them)."""
+    out.mkdir()
+    for name in (study_io.CHECKPOINT, "trials.parquet", "recording.rrd", "metadata.json", "best_params.json",
+                 "table.md", "learning_curves.png", "checkpoint.0of2.t000003.npz", "checkpoint.npz.tmp"):
+        _write(out / name, "old")
+    (out / study_io.BEST_PARAMS).mkdir()
+    _write(out / study_io.BEST_PARAMS / "controller=vmc.json", "old")
+    (out / "transfer_go1").mkdir()
+    _write(out / "transfer_go1" / "trials.parquet", "old")
+    return sorted(p.name for p in out.iterdir())
+
+
+def test_overwrite_replaces_the_whole_run(tmp_path, capsys, monkeypatch):
+    """A replay written over an old --optimize folder: none of the old rows, recordings or parameters stay, so `show`
+    cannot report them as the replay's."""
+    assert tick_log.FILE_NAME in study_io.OUTPUT_FILES  # the robot's per-tick log is named there too
+    monkeypatch.setattr(deploy, "run", lambda args: 0)
+    out = tmp_path / "old"
+    _old_optimize_folder(out)
+    _write(out / tick_log.FILE_NAME, "old ticks")
+    assert cli.main(["deploy", "--robot", "sim", "--log-dir", str(out), "--overwrite"]) == 0
+    assert list(out.iterdir()) == []
+
+
+def test_overwrite_refuses_what_cpgjax_did_not_write(tmp_path, capsys, no_engine):
+    out = tmp_path / "old"
+    before = _old_optimize_folder(out)
+    _write(out / "notes.txt", "mine")
+    (out / "data").mkdir()
+    assert cli.main(["optimize", "--trials", "2", "--out", str(out), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and (f"{out}: --overwrite replaces only what cpgjax wrote, and data, notes.txt are not "
+                                     "cpgjax's: move them, or write somewhere else") in err
+    assert sorted(p.name for p in out.iterdir()) == sorted([*before, "notes.txt", "data"])  # nothing deleted
+    assert (out / "trials.parquet").read_text() == "old"
 
 
 def test_deploy_and_calibrate_outputs(tmp_path, capsys, monkeypatch):

@@ -46,6 +46,7 @@ class OutputError(RuntimeError):
 
 
 CHECKPOINT = "checkpoint.npz"
+BEST_PARAMS = "best_params"  # a study's folder of best parameters per group
 _SHARD = re.compile(r"checkpoint\.(\d+)of(\d+)\.t(\d+)\.npz")
 
 
@@ -276,15 +277,49 @@ def _entries(folder: pathlib.Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir())
 
 
+# Every file name a cpgjax command writes into its output folder (studies, optimize, walk and, written by
+# cpgjax.robot, a deploy run: its per-tick log, run.json and calibration.json), beside the figures (*.png), the
+# checkpoint shards and the best_params/ folder; --overwrite deletes these and nothing else.
+OUTPUT_FILES = frozenset({CHECKPOINT, "trials.parquet", "recording.rrd", "trials.rrd", "metadata.json", "table.md",
+                          "best_params.json", "run.json", "ticks.arrows", "calibration.json"})
+
+
+def _is_output(path: pathlib.Path) -> bool:
+    """Whether ``path`` is a file or folder a cpgjax command wrote: a name of :data:`OUTPUT_FILES`, a figure, a
+    checkpoint shard or an unfinished checkpoint (``.tmp``), ``best_params/`` holding only JSON files, or a folder
+    holding only such files (an arm of the transfer study)."""
+    if path.is_symlink():
+        return False
+    if path.is_dir():
+        inside = list(path.iterdir())
+        if path.name == BEST_PARAMS:
+            return all(p.suffix == ".json" and p.is_file() for p in inside)
+        return bool(inside) and all(_is_output(p) for p in inside)
+    name = path.name.removesuffix(".tmp")
+    return name in OUTPUT_FILES or bool(_SHARD.fullmatch(name)) or path.suffix == ".png"
+
+
+def _remove_outputs(folder: pathlib.Path) -> None:
+    """Delete every entry of ``folder`` (each checked by :func:`_is_output`)."""
+    for path in folder.iterdir():
+        if path.is_dir():
+            _remove_outputs(path)
+            path.rmdir()
+        else:
+            path.unlink()
+
+
 def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pathlib.Path:
     """Make sure a command may write into ``folder`` before it computes anything, and create it.
 
     A missing or empty folder is fine; a non-empty one only with ``resume`` (its checkpoint is continued) or
-    ``overwrite`` (the command's files replace theirs; with a checkpoint there, it is deleted so that the run starts
-    afresh).
+    ``overwrite``: the files a cpgjax command wrote there (:func:`_is_output`) are deleted, so that the run starts
+    afresh and no old file is taken for the new run's; anything else in the folder is refused by name, and nothing is
+    deleted then.
 
     Raises:
-      StudyError: ``folder`` is a file, cannot be created, or holds files and neither flag is given.
+      StudyError: ``folder`` is a file, cannot be created, holds files and neither flag is given, or holds, with
+        ``overwrite``, files that no cpgjax command wrote.
     """
     folder = pathlib.Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -297,8 +332,13 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pa
             raise StudyError(f"{folder} is not empty ({shown}): pass{hint} --overwrite to replace its files, or "
                              f"write somewhere else")
         if overwrite:
-            for path in checkpoint_files(folder):
-                path.unlink(missing_ok=True)
+            foreign = [name for name in entries if not _is_output(folder / name)]
+            if foreign:
+                shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+                raise StudyError(f"{folder}: --overwrite replaces only what cpgjax wrote, and {shown} "
+                                 f"{'is' if len(foreign) == 1 else 'are'} not cpgjax's: move "
+                                 f"{'it' if len(foreign) == 1 else 'them'}, or write somewhere else")
+            _remove_outputs(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -386,9 +426,6 @@ def write_trials(result, path) -> pathlib.Path:
     path = pathlib.Path(path)
     pq.write_table(pa.table(trial_columns(result)), path)
     return path
-
-
-BEST_PARAMS = "best_params"
 
 
 def group_file_name(labels: dict[str, Any], group_by: tuple[str, ...]) -> str:
