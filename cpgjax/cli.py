@@ -7,6 +7,7 @@ import argparse
 import contextlib
 import functools
 import io
+import ipaddress
 import json
 import os
 import pathlib
@@ -93,9 +94,11 @@ def _list_in(allowed: limits.Range):
     return _argument_type(lambda text: tuple(allowed.check(_number(v)) for v in text.split(",")))
 
 
-def _count(minimum: int = limits.MIN_TRIALS, reason: str = ""):
-    """An integer of at least ``minimum``."""
-    return _argument_type(lambda text: limits.check_count(_integer(text), None, minimum, reason))
+def _count(minimum: int = limits.MIN_TRIALS, reason: str = "", maximum: int = limits.MAX_TRIALS,
+           maximum_reason: str = limits.MAX_TRIALS_REASON):
+    """An integer in ``minimum`` … ``maximum`` (default: a number of trials)."""
+    return _argument_type(lambda text: limits.check_count(_integer(text), None, minimum, reason, maximum,
+                                                          maximum_reason))
 
 
 def _integer_in(allowed: range, what: str):
@@ -124,6 +127,23 @@ def _output_path(text: str) -> pathlib.Path:
     if not path.parent.is_dir():
         raise ValueError(f"{text}: its folder {path.parent} does not exist (create it first, or write elsewhere)")
     return path
+
+
+@_argument_type
+def _ip_address(text: str) -> str:
+    try:
+        return str(ipaddress.ip_address(text))
+    except ValueError:
+        raise ValueError(f"{text!r} is not an IP address") from None
+
+
+@_argument_type
+def _processes(text: str) -> int:
+    value, cpus = _integer(text), os.cpu_count() or 1
+    if not 1 <= value <= cpus:
+        raise ValueError(f"{value} is outside the allowed range 1 … {cpus} (local processes, at most one per CPU of "
+                         "this machine; a cluster starts its processes itself: --distributed)")
+    return value
 
 
 @_argument_type
@@ -249,8 +269,7 @@ def _without_processes(argv: list[str]) -> list[str]:
 def _study(args) -> int:
     if args.processes is not None or args.distributed:
         problem = ("--processes and --distributed exclude each other (--processes starts --distributed processes)"
-                   if args.processes is not None and args.distributed else
-                   f"--processes {args.processes}: need at least 1" if args.processes is not None and args.processes < 1
+                   if args.processes is not None and args.distributed
                    else f"{transfer.NAME} runs its arms one after another in one process: drop --processes / "
                    "--distributed" if args.name == transfer.NAME else None)
         if problem:
@@ -465,6 +484,25 @@ def _show(args) -> int:
     return 0
 
 
+def _inapplicable(args, calibrating: bool = False) -> str | None:
+    """The given options that do not apply to this run of ``deploy`` (or ``deploy calibrate``), and why; None if
+    every given option applies."""
+    given = getattr(args, "given", set())
+    rules = [(("robot_ip", "robot_port", "local_port"), args.robot == "sim",
+              "to --robot go1 only (the simulated Go1 listens on 127.0.0.1 on a port of its own)"),
+             (("sim_pacing", "friction", "slope_deg", "physics", "lift_m"), args.robot == "go1",
+              "to --robot sim only")]
+    if not calibrating:
+        rules += [(("trials", "optimizer", "transition_s", "steady_s"), not args.optimize,
+                   "to --optimize only (a replay walks one set of parameters for --duration-s)"),
+                  (("duration_s",), args.optimize, "to a replay only (--optimize runs --trials trials)")]
+    for dests, refused, why in rules:
+        named = [f"--{d.replace('_', '-')}" for d in dests if d in given]
+        if refused and named:
+            return f"{', '.join(named)} {'applies' if len(named) == 1 else 'apply'} {why}"
+    return None
+
+
 def _deploy(parser: argparse.ArgumentParser, args) -> int:
     """``cpgjax deploy`` after the checks that span options (``parser.error`` exits with 2) and the choice of its
     folder: every option is checked at parsing and the folder here, before anything is sent to a robot."""
@@ -472,6 +510,8 @@ def _deploy(parser: argparse.ArgumentParser, args) -> int:
         parser.error("the following arguments are required: --robot")
     if args.robot == "go1" and args.calibration is None:
         parser.error("--robot go1 needs --calibration FILE (run `cpgjax deploy calibrate` first, see docs/hardware.md)")
+    if problem := _inapplicable(args):
+        parser.error(problem)
     try:
         args.log_dir = study_io.claim_folder(args.log_dir or fresh_run_folder(DEPLOY_RUNS), overwrite=args.overwrite)
     except study_spec.StudyError as err:
@@ -494,6 +534,9 @@ def fresh_run_folder(parent: pathlib.Path) -> pathlib.Path:
 
 
 def _calibrate(args) -> int:
+    if problem := _inapplicable(args, calibrating=True):
+        print(f"cpgjax deploy calibrate: error: {problem}", file=sys.stderr)
+        return 2
     try:
         for path in (args.out, *calibrate.tick_log_paths(args.out).values()):
             study_io.claim_file(path, overwrite=args.overwrite)
@@ -567,13 +610,13 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
     p.add_argument("--robot", choices=("sim", "go1"), required=robot_required,
                    help="required; sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
     p.add_argument("--transport", choices=("udp", "sdk"), help="(default: sdk for go1, udp for sim)")
-    p.add_argument("--robot-ip", default=go1_transport.GO1_ROBOT_IP, help="go1 only")
-    p.add_argument("--robot-port", type=_port, default=go1_transport.GO1_ROBOT_PORT, help="go1 only")
-    p.add_argument("--local-port", type=_port, default=go1_transport.GO1_LOCAL_PORT, help="go1 only")
+    p.add_argument("--robot-ip", type=_ip_address, default=go1_transport.GO1_ROBOT_IP, action=_Given, help="go1 only")
+    p.add_argument("--robot-port", type=_port, default=go1_transport.GO1_ROBOT_PORT, action=_Given, help="go1 only")
+    p.add_argument("--local-port", type=_port, default=go1_transport.GO1_LOCAL_PORT, action=_Given, help="go1 only")
     levels = go1_safety.POWER_LEVELS
     p.add_argument("--power-level", type=_power_level, default=9,
                    help=f"power protection level {levels.start}…{levels.stop - 1} (trips above 100 W each)")
-    p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime",
+    p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime", action=_Given,
                    help="lockstep: one physics step per command, the loop waits for each answer (not real time)")
     _add_scenario_args(p, robot=True)
     p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
@@ -617,7 +660,8 @@ def _add_study(sub) -> None:
     descriptions = {k: v.description for k, v in studies.STUDIES.items()}
     descriptions[transfer.NAME] = transfer.DESCRIPTION
     s.add_argument("name", choices=sorted(descriptions), help="; ".join(f"{k}: {v}" for k, v in descriptions.items()))
-    s.add_argument("--seeds", type=_count(), default=None, help=f"seeds per group (default: {studies.DEFAULT_SEEDS}, "
+    s.add_argument("--seeds", type=_count(1, maximum=limits.MAX_SEEDS, maximum_reason=limits.MAX_SEEDS_REASON),
+                   default=None, help=f"seeds per group (default: {studies.DEFAULT_SEEDS}, "
                    f"--quick {studies.QUICK_SEEDS})")
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help="trials per run; condition changes scale with it (default: the study's)")
@@ -626,7 +670,7 @@ def _add_study(sub) -> None:
     s.add_argument("--distributed", action="store_true", help="one of several cooperating processes: "
                    "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "
                    "docs/scaling.md)")
-    s.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes (coordinator "
+    s.add_argument("--processes", type=_processes, default=None, help="run as N cooperating local processes (coordinator "
                    "on 127.0.0.1), e.g. to check a multi-process run before a cluster (default: one process)")
     _add_physics_arg(s, None)
     backends.add_backend_argument(s)
@@ -674,17 +718,19 @@ def _add_deploy(sub) -> None:
                       "used unless given here, or a JSON list of 8 numbers (default: the middle of the paper's "
                       "ranges)")
     what.add_argument("--optimize", action="store_true", help="online optimization (Algorithm 1)")
-    d.add_argument("--trials", type=_count(), default=10, help="trials of online optimization")
-    d.add_argument("--optimizer", choices=("bo", "random"), default="bo", help="the online optimizer")
+    d.add_argument("--trials", type=_count(), default=10, action=_Given, help="--optimize only: trials of online "
+                   "optimization")
+    d.add_argument("--optimizer", choices=("bo", "random"), default="bo", action=_Given,
+                   help="--optimize only: the online optimizer")
     d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", action=_Given,
                    help="the CPG controller (with --params: the file's)")
     _add_target_arg(d)
-    d.add_argument("--duration-s", type=_in(limits.RUN_DURATION_S), default=10.0,
-                   help=f"run time when replaying parameters [s], in {limits.RUN_DURATION_S}")
-    d.add_argument("--transition-s", type=_in(limits.TRANSITION_S), default=1.5,
-                   help=f"each trial's parameter transition [s], in {limits.TRANSITION_S}")
-    d.add_argument("--steady-s", type=_in(limits.STEADY_S), default=3.0,
-                   help=f"each trial's steady phase T [s], in {limits.STEADY_S}")
+    d.add_argument("--duration-s", type=_in(limits.RUN_DURATION_S), default=10.0, action=_Given,
+                   help=f"replay only: run time [s], in {limits.RUN_DURATION_S}")
+    d.add_argument("--transition-s", type=_in(limits.TRANSITION_S), default=1.5, action=_Given,
+                   help=f"--optimize only: each trial's parameter transition [s], in {limits.TRANSITION_S}")
+    d.add_argument("--steady-s", type=_in(limits.STEADY_S), default=3.0, action=_Given,
+                   help=f"--optimize only: each trial's steady phase T [s], in {limits.STEADY_S}")
     d.add_argument("--log-dir", type=_output_path, help=f"the run's folder (default: a new {DEPLOY_RUNS}/<date>-<time>"
                    "; an existing non-empty one needs --overwrite)")
     d.add_argument("--calibration", type=_calibration_file, help="foot-force calibration JSON from `cpgjax deploy "
@@ -708,7 +754,7 @@ def _add_deploy(sub) -> None:
                    help="time holding the pose before each measurement [s]")
     c.add_argument("--mass-kg", type=_in(limits.ROBOT_MASS_KG), help=f"the robot's total mass [kg] in "
                    f"{limits.ROBOT_MASS_KG} (default: cpgjax's Go1 model + --payload-kg)")
-    c.add_argument("--lift-m", type=_in(limits.LIFT_M), default=0.3,
+    c.add_argument("--lift-m", type=_in(limits.LIFT_M), default=0.3, action=_Given,
                    help="sim only: how high the simulated Go1 is hung up [m]")
     c.set_defaults(func=_calibrate)
 

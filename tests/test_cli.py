@@ -108,6 +108,14 @@ REFUSED = [  # (extra arguments, what stderr must say)
     (["--robot-port", "70000"], "argument --robot-port: 70000 is outside the allowed range 1 … 65535"),
     (["--seed", "-1"], "argument --seed: -1 is outside the allowed range 0 … 4294967295"),
     (["--seed", "4294967296"], "argument --seed: 4294967296 is outside the allowed range 0 … 4294967295"),
+    (["--optimize", "--trials", "1001"], "argument --trials: 1001: need an integer <= 1000 (the GP keeps every trial"),
+    (["--robot-ip", "robot.local"], "argument --robot-ip: 'robot.local' is not an IP address"),
+    # options that do not apply to this run
+    (["--robot-ip", "127.0.0.1"], "--robot-ip applies to --robot go1 only (the simulated Go1 listens on 127.0.0.1"),
+    (["--robot-port", "9000", "--local-port", "9001"], "--robot-port, --local-port apply to --robot go1 only"),
+    (["--trials", "3"], "--trials applies to --optimize only (a replay walks one set of parameters for --duration-s)"),
+    (["--transition-s", "1", "--optimizer", "random"], "--optimizer, --transition-s apply to --optimize only"),
+    (["--optimize", "--duration-s", "5"], "--duration-s applies to a replay only (--optimize runs --trials trials)"),
 ]
 
 
@@ -116,8 +124,27 @@ def test_deploy_refuses_a_bad_input_before_any_robot(extra, message, tmp_path, c
     files = _bad_files(tmp_path)
     err = _refused(["deploy", "--robot", "sim", "--log-dir", str(tmp_path / "run")]
                    + [e.format(**files) for e in extra], capsys)
-    assert message in err and "Traceback" not in err
+    assert message in err and err.count("\n") == 1  # one line: no usage, no traceback
     assert no_robot == [] and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["deploy", "--robot", "go1", "--friction", "0.3", "--physics", "paper"],
+     "--friction, --physics apply to --robot sim only"),
+    (["deploy", "--robot", "go1", "--sim-pacing", "lockstep"], "--sim-pacing applies to --robot sim only"),
+    (["deploy", "calibrate", "--robot", "go1", "--lift-m", "0.5"], "--lift-m applies to --robot sim only"),
+    (["deploy", "calibrate", "--robot", "sim", "--robot-ip", "127.0.0.1"], "--robot-ip applies to --robot go1 only"),
+])
+def test_an_option_of_the_other_robot_is_refused(argv, message, tmp_path, capsys, no_robot):
+    calibration = _write(tmp_path / "cal.json", GOOD_CALIBRATION)
+    argv = [*argv, "--calibration", str(calibration)] if "calibrate" not in argv else [
+        *argv, "--out", str(tmp_path / "c.json")]
+    try:
+        code = cli.main(argv)
+    except SystemExit as exit_:
+        code = exit_.code
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and err.count("\n") == 1 and no_robot == []
 
 
 CALIBRATE_REFUSED = [
@@ -485,8 +512,23 @@ def test_resume_needs_a_checkpoint_of_the_same_backend(tmp_path, capsys, no_engi
     assert "written on the mjx backend, this run would use native: resume with --backend mjx" in \
         capsys.readouterr().err
     assert study_io.resume_point(out, spec, "mjx") == 1
-    with pytest.raises(study_spec.StudyError, match="different study definition"):
-        study_io.resume_point(out, _optimize_spec(trials=3), "mjx")
+    with pytest.raises(study_spec.StudyError, match="different study definition .it does not record its fields"):
+        study_io.resume_point(out, _optimize_spec(trials=3), "mjx")  # a checkpoint of an older cpgjax
+
+
+def test_a_different_definition_is_refused_naming_the_fields(tmp_path, capsys, no_engine):
+    out = tmp_path / "out"
+    spec = _optimize_spec(trials=12)
+    log = study_io.TrialLog(*(np.zeros(1) for _ in study_io.TrialLog._fields))
+    study_io.save_checkpoint(out, spec, study_io.Checkpoint(1, [], [], np.zeros((1, 2)), [log], 1.0, {}), "native")
+    assert cli.main(["optimize", "--trials", "12", "--friction", "0.9", "--controller", "vmc", "--out", str(out),
+                     "--resume", "--backend", "native"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and ("was written by a different study definition (controllers ('vmc_tegotae',) there, "
+                                     "('vmc',) here; friction (0.6,) there, (0.9,) here); use another --out") in err
+    assert cli.main(["optimize", "--trials", "20", "--out", str(out), "--resume", "--backend", "native"]) == 2
+    assert ("(num_trials 12 there, 20 here) (a finished study is not extended to more trials: the optimizer's arrays "
+            "and the schedules are sized for its trials)") in capsys.readouterr().err
 
 
 def test_resume_says_where_and_ctrl_c_says_how_to_resume(tmp_path, capsys, monkeypatch):

@@ -109,6 +109,30 @@ def fingerprint(spec) -> str:
     return repr(spec)
 
 
+def definition(spec) -> dict[str, str]:
+    """Each field of the study's definition, as its repr (a checkpoint records them to name what differs)."""
+    return {f.name: repr(getattr(spec, f.name)) for f in dataclasses.fields(spec)}
+
+
+def _shortened(text: str, size: int = 80) -> str:
+    return text if len(text) <= size else text[:size - 3] + "..."
+
+
+def different_definition(path, meta: dict, spec) -> StudyError:
+    """The refusal to continue ``path``, written by another study definition, naming the fields that differ."""
+    theirs, ours = meta.get("definition"), definition(spec)
+    if isinstance(theirs, dict):
+        fields = "; ".join(f"{name} {_shortened(str(theirs.get(name, '(not recorded)')))} there, "
+                           f"{_shortened(value)} here" for name, value in ours.items() if theirs.get(name) != value)
+    else:
+        fields = "it does not record its fields"
+    extend = (" (a finished study is not extended to more trials: the optimizer's arrays and the schedules are sized "
+              "for its trials)" if isinstance(theirs, dict) and [n for n in ours if theirs.get(n) != ours[n]] == [
+                  "num_trials"] else "")
+    return StudyError(f"{path} was written by a different study definition ({fields}){extend}; use another --out, "
+                      f"or --overwrite to start afresh")
+
+
 def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard = Shard()) -> pathlib.Path:
     """Write ``shard``'s checkpoint file atomically (temporary file, fsync, rename); returns its path. ``backend``:
     the simulator's."""
@@ -119,7 +143,8 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard 
     arrays["context"] = np.asarray(ckpt.context)
     for name in TrialLog._fields:
         arrays[f"log_{name}"] = np.stack([np.asarray(getattr(lg, name)) for lg in ckpt.logs])
-    meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), backend=backend, wall_s=ckpt.wall_s,
+    meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), definition=definition(spec), backend=backend,
+                wall_s=ckpt.wall_s,
                 timing=ckpt.timing, num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves), **shard._asdict())
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     path = shard_path(out, shard, ckpt.trial)
@@ -215,8 +240,7 @@ def resume_point(out_dir, spec, backend: str) -> int:
     if meta is None:
         raise StudyError(f"--resume: there is no checkpoint in {out_dir}; run without --resume to start afresh")
     if meta.get("fingerprint") != fingerprint(spec):
-        raise StudyError(f"{path} was written by a different study definition; use another --out or delete it "
-                         f"(checkpoint: {str(meta.get('fingerprint'))[:200]}...)")
+        raise different_definition(path, meta, spec)
     if meta.get("backend", backend) != backend:
         raise StudyError(f"{path} was written on the {meta['backend']} backend, this run would use {backend}: resume "
                          f"with --backend {meta['backend']} (one run, one simulator)")
@@ -245,8 +269,7 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
     for path in generations[-1][1]:
         meta = _read_meta(path)
         if meta["fingerprint"] != fingerprint(spec):
-            raise StudyError(f"{path} was written by a different study definition; use another --out or delete "
-                             f"it (checkpoint: {meta['fingerprint'][:200]}...)")
+            raise different_definition(path, meta, spec)
         try:
             with np.load(path, allow_pickle=False) as z:
                 first = meta.get("first_row", 0)
