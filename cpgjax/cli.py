@@ -414,6 +414,84 @@ def _viewer() -> str | None:
 
 
 RRD_MAGIC = b"RRF2"  # the first bytes of a rerun recording file
+RRD_FOOTER = b"RRF2FOOT"  # rerun's footer, 12 bytes before the end of a recording it finished writing
+
+# What each file cpgjax writes holds, as `cpgjax show` lists it (docs/outputs.md has every column).
+FILE_KINDS = {
+    "table.md": "the study's table, ours beside the paper's",
+    "trials.parquet": "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls",
+    "metadata.json": "how the run was made: command, version, commit, optimizer, machine, run figures",
+    study_io.CHECKPOINT: "the state after the last finished trial (--resume continues from it)",
+    "recording.rrd": "rerun recording: optimization curves and representative rollouts",
+    "trials.rrd": "rerun recording of the robot's trials",
+    "best_params.json": "the best trial's parameters and what they were tuned for (deploy / walk --params)",
+    study_io.BEST_PARAMS: "the best parameters of each group and what they were tuned for (deploy / walk --params)",
+    "run.json": "how the robot run ended, its timing and what ran it",
+    tick_log.FILE_NAME: "the 1 kHz loop's per-tick log",
+    "calibration.json": "the foot-force calibration the run used",
+}
+
+
+def _file_kind(path: pathlib.Path) -> str:
+    if path.name in FILE_KINDS:
+        return FILE_KINDS[path.name]
+    if path.suffix == ".png":
+        return "figure"
+    if path in study_io.checkpoint_files(path.parent):
+        return "one process's checkpoint shard (--processes)"
+    if path.name.endswith(".ticks.arrows"):
+        return "the per-tick log of a calibration stand"
+    if path.is_dir() and (path / "metadata.json").exists():
+        return f"an arm of the study (cpgjax show {path})"
+    return "not written by cpgjax"
+
+
+def _damage(path: pathlib.Path) -> str | None:
+    """What is wrong with a file cpgjax wrote (empty, truncated, corrupt), None if it reads back."""
+    import pyarrow.parquet as pq
+
+    try:
+        if path.is_dir():
+            return None
+        data_size = path.stat().st_size
+        if data_size == 0:
+            return "empty"
+        if path.suffix == ".json":
+            json.loads(path.read_text())
+        elif path.suffix == ".parquet":
+            pq.read_metadata(path)
+        elif path.suffix == ".rrd":
+            with open(path, "rb") as f:
+                if f.read(len(RRD_MAGIC)) != RRD_MAGIC:
+                    return "not a rerun recording"
+                f.seek(max(data_size - 12, 0))
+                if not f.read(12).startswith(RRD_FOOTER):
+                    return "truncated (no rerun footer: its writer stopped early; the viewer shows what it holds)"
+        elif path.suffix == ".arrows":
+            if not tick_log.read_tick_log(path)[1]:
+                return "truncated (its writer stopped mid-batch)"
+        elif path.suffix == ".npz":
+            study_io.checkpoint_meta(path.parent)
+        elif path.suffix == ".png":
+            if path.read_bytes()[:4] != b"\x89PNG":
+                return "not a PNG image"
+    except study_spec.StudyError as err:
+        return str(err)
+    except Exception as err:  # each reader raises its own kinds for a damaged file
+        return f"corrupt or truncated ({type(err).__name__}: {err})"
+    return None
+
+
+def _files_listing(out: pathlib.Path) -> tuple[list[str], int]:
+    """One line per entry of ``out``: its name, what it is, and what is wrong with it; and the count of damaged
+    ones."""
+    lines, damaged = [], 0
+    for path in sorted(out.iterdir()):
+        problem = _damage(path)
+        damaged += problem is not None
+        shown = path.name + ("/" if path.is_dir() else "")
+        lines.append(f"  {shown:<20} {_file_kind(path)}" + (f"  [{path.name}: {problem}]" if problem else ""))
+    return lines, damaged
 
 
 def _metadata_line(path: pathlib.Path) -> str:
@@ -432,37 +510,107 @@ def _metadata_line(path: pathlib.Path) -> str:
     return f"{m.get('study', '(no study name)')}: " + ", ".join(parts)
 
 
+def _read_json(path: pathlib.Path) -> dict | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _folder_kind(out: pathlib.Path) -> str | None:
+    """Which command wrote ``out``: "deploy", "optimize", "walk", "study", "calibrate", or None (not a result)."""
+    names = {p.name for p in out.iterdir()}
+    if names & {"run.json", tick_log.FILE_NAME}:
+        return "deploy"
+    study = (_read_json(out / "metadata.json") or {}).get("study")
+    if study in ("optimize", "walk"):
+        return study
+    if names & {"table.md", "trials.parquet", "metadata.json"} or study_io.checkpoint_files(out) or any(
+            (out / n / "metadata.json").exists() or study_io.checkpoint_files(out / n) for n in names):
+        return "optimize" if "best_params.json" in names else "study"
+    if any(n.endswith(".air.ticks.arrows") for n in names):
+        return "calibrate"
+    return None
+
+
+def _next_step(out: pathlib.Path, kind: str) -> str:
+    """What to run next with a result folder."""
+    meta = _read_json(out / "metadata.json")
+    if kind in ("study", "optimize") and meta is None and (out / "metadata.json").exists():
+        return "next: metadata.json is damaged: the command that wrote the folder, again with --resume, rewrites it"
+    if kind in ("study", "optimize") and meta is None and study_io.checkpoint_files(out):
+        try:
+            done = (study_io.checkpoint_meta(out) or {}).get("trial")
+        except study_spec.StudyError:
+            return "next: its checkpoint is damaged: start afresh with --overwrite"
+        return (f"next: unfinished ({done} trials done, no metadata.json yet): run the command that started it again "
+                f"with --resume")
+    if kind == "optimize" or (kind == "deploy" and (out / "best_params.json").exists()):
+        return f"next: {replay_hint(out / 'best_params.json')}"
+    groups = sorted((out / study_io.BEST_PARAMS).glob("*.json"))
+    if groups:
+        return f"next: {replay_hint(groups[0])} (one file per group in {out / study_io.BEST_PARAMS}/)"
+    if kind == "calibrate":
+        found = sorted(out.glob("*.air.ticks.arrows"))
+        name = found[0].name.removesuffix(".air.ticks.arrows") + ".json"
+        return f"next: cpgjax deploy --robot go1 --calibration {out / name}"
+    if kind == "deploy":
+        return (f"next: the per-tick log in Python: pyarrow.ipc.open_stream({str(out / tick_log.FILE_NAME)!r})"
+                ".read_all().to_pandas()")
+    return f"next: its trials in Python: pandas.read_parquet({str(out / 'trials.parquet')!r})"
+
+
+def _calibration_file_summary(path: pathlib.Path) -> int:
+    """``cpgjax show`` of a calibration file: its values and its stands' per-tick logs."""
+    try:
+        calibration = foot_force.FootForceCalibration.load(path)
+    except ValueError as err:
+        print(f"cpgjax show: {err}", file=sys.stderr)
+        return 2
+    print(f"foot-force calibration {path}: offsets {calibration.offset_counts.tolist()} counts, "
+          f"{calibration.newton_per_count.tolist()} N/count")
+    damaged = 0
+    for stand, log in calibrate.tick_log_paths(path).items():
+        problem = _damage(log) if log.exists() else "missing"
+        damaged += problem is not None
+        print(f"  {log.name:<20} the per-tick log of the {stand} stand" + (f"  [{problem}]" if problem else ""))
+    print(f"next: cpgjax deploy --robot go1 --calibration {path}")
+    return 1 if damaged else 0
+
+
 def _show(args) -> int:
     out = pathlib.Path(args.results)
+    if out.is_file() and out.suffix == ".json":
+        return _calibration_file_summary(out)
     if not out.is_dir():
-        print(f"cpgjax show: {out} is not a folder", file=sys.stderr)
+        print(f"cpgjax show: {out} is not a folder (or a calibration file)", file=sys.stderr)
         return 2
-    if (out / tick_log.FILE_NAME).exists() or (out / "run.json").exists():  # a `cpgjax deploy` run
+    kind = _folder_kind(out)
+    if kind is None:
+        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, checkpoint, "
+              f"run.json or {tick_log.FILE_NAME})", file=sys.stderr)
+        return 2
+    listing, damaged = _files_listing(out)
+    print(f"{out}: a `cpgjax {kind}` folder\n" + "\n".join(listing))
+    if kind == "deploy":
         print(tick_log.summarize_run(out))
-        return 0
     table = out / "table.md"
-    print(table.read_text() if table.exists() else f"(no table.md in {out})")
-    if (out / "metadata.json").exists():
+    if table.exists() and _damage(table) is None:
+        print(table.read_text())
+    if (out / "metadata.json").exists() and _damage(out / "metadata.json") is None:
         print(_metadata_line(out / "metadata.json"))
     data = out / "trials.parquet"
-    if data.exists():
+    if data.exists() and _damage(data) is None:
         import pyarrow.parquet as pq
 
-        try:
-            rows = pq.read_metadata(data).num_rows
-            print(f"trial data ({rows} rows): pandas.read_parquet({str(data)!r}) or pyarrow.parquet.read_table(...)")
-        except Exception as err:  # pyarrow raises several types for a damaged file
-            print(f"trial data: {data} is truncated or corrupt ({type(err).__name__}: {err})")
-    else:
-        print(f"(no trials.parquet in {out})")
+        rows = pq.read_metadata(data).num_rows
+        print(f"trial data ({rows} rows): pandas.read_parquet({str(data)!r}) or pyarrow.parquet.read_table(...)")
+    print(_next_step(out, kind))
+    status = 1 if damaged else 0
     recording = next((out / name for name in ("recording.rrd", "trials.rrd") if (out / name).exists()), None)
-    if recording is None:
-        print(f"(no rerun recording in {out})")
-        return 0
-    with open(recording, "rb") as f:
-        if f.read(len(RRD_MAGIC)) != RRD_MAGIC:
-            print(f"recording: {recording} is empty or not a rerun recording")
-            return 0
+    if recording is None or _damage(recording) in ("empty", "not a rerun recording"):
+        return status
     viewer = _viewer()
     elsewhere = f"copy it to a machine with a display and run `rerun {recording.name}` (pip install rerun-sdk)"
     if args.no_viewer:
@@ -478,10 +626,10 @@ def _show(args) -> int:
             code = proc.wait(VIEWER_START_S)
         except subprocess.TimeoutExpired:
             print(f"opened {recording} in the rerun viewer (pid {proc.pid}, serving on 127.0.0.1 only)")
-            return 0
+            return status
         print(f"recording: {recording}; the rerun viewer exited at once (status {code}): {elsewhere}")
         return 1
-    return 0
+    return status
 
 
 def _inapplicable(args, calibrating: bool = False) -> str | None:

@@ -628,24 +628,72 @@ def test_progress_lines_count_trials_done_and_wait_for_the_pace(capsys):
 
 # ----------------------------------------------------------------------------------------------- show
 
-RRD = b"RRF2" + bytes(100)
+RRD = b"RRF2" + bytes(100) + cli.RRD_FOOTER + bytes(4)  # a header, a body, rerun's footer
 
 
-def test_show_reports_missing_and_damaged_files(tmp_path, capsys):
+def test_show_lists_every_file_and_names_each_damaged_one(tmp_path, capsys):
     out = tmp_path / "run"
     out.mkdir()
     _write(out / "metadata.json", {"study": "optimize", "backend": "native"})  # no instances
+    _write(out / "best_params.json", {"params": param_space.as_dict(param_space.midpoint()), **TUNED})
     assert cli.main(["show", str(out), "--no-viewer"]) == 0
     printed = capsys.readouterr().out
-    assert "optimize: on native" in printed and "KeyError" not in printed and f"(no trials.parquet in {out})" in printed
-    assert "trials.parquet'" not in printed and "(no rerun recording" in printed
+    assert f"{out}: a `cpgjax optimize` folder" in printed and "optimize: on native" in printed
+    assert "best_params.json     the best trial's parameters and what they were tuned for" in printed
+    assert f"next: replay the best: cpgjax deploy --robot sim --params {out / 'best_params.json'}" in printed
+    assert "KeyError" not in printed and "(no rerun recording" not in printed
     _write(out / "metadata.json", '{"study": ')
     _write(out / "trials.parquet", "PAR1 truncated")
     _write(out / "recording.rrd", "")
-    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    (out / "learning_curves.png").write_bytes(b"GIF89a")
+    assert cli.main(["show", str(out), "--no-viewer"]) == 1  # damaged files: not a clean result
     printed = capsys.readouterr().out
-    assert "metadata.json: corrupt or truncated" in printed and "trials.parquet is truncated or corrupt" in printed
-    assert "recording.rrd is empty or not a rerun recording" in printed
+    for name, problem in (("metadata.json", "corrupt or truncated (JSONDecodeError"),
+                          ("trials.parquet", "corrupt or truncated"), ("recording.rrd", "empty"),
+                          ("learning_curves.png", "not a PNG image")):
+        line, = [ln for ln in printed.splitlines() if ln.startswith(f"  {name} ")]
+        assert f"[{name}: {problem}" in line
+    assert "Traceback" not in printed and "metadata.json is damaged" in printed
+
+
+def test_show_detects_a_truncated_recording_and_tick_log(tmp_path, capsys):
+    """A recording rerun finished ends with its footer; cut short it does not. A per-tick log cut mid-batch too."""
+    import rerun as rr
+
+    out = tmp_path / "run"
+    out.mkdir()
+    rec = rr.RecordingStream("cpgjax_test")
+    rec.save(str(out / "trials.rrd"))
+    rec.log("x", rr.Scalars(1.0))
+    rec.flush()
+    rec.disconnect()
+    assert cli.main(["show", str(out), "--no-viewer"]) == 2  # a recording alone is no result folder
+    assert "holds no cpgjax results" in capsys.readouterr().err
+    _write(out / "run.json", {"trip": None, "stopped": False})
+    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    assert "trials.rrd: truncated" not in capsys.readouterr().out
+    data = (out / "trials.rrd").read_bytes()
+    (out / "trials.rrd").write_bytes(data[:len(data) // 2])
+    _write(out / "run.json", '{"trip": nu')
+    assert cli.main(["show", str(out), "--no-viewer"]) == 1
+    printed = capsys.readouterr().out
+    assert "[trials.rrd: truncated (no rerun footer" in printed and "[run.json: corrupt or truncated" in printed
+    assert "Traceback" not in printed
+
+
+def test_show_refuses_a_folder_that_is_no_result(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("mine")
+    assert cli.main(["show", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"cpgjax show: {tmp_path} holds no cpgjax results" in err
+
+
+def test_show_a_calibration_file(tmp_path, capsys):
+    path = _write(tmp_path / "go1_calibration.json", GOOD_CALIBRATION)
+    assert cli.main(["show", str(path)]) == 1  # its stands' per-tick logs are missing
+    printed = capsys.readouterr().out
+    assert "offsets [14.0, -6.0, 22.0, 9.0] counts" in printed and "go1_calibration.air.ticks.arrows" in printed
+    assert f"next: cpgjax deploy --robot go1 --calibration {path}" in printed
 
 
 def _fake_viewer(tmp_path: pathlib.Path, seconds: float) -> pathlib.Path:
@@ -659,6 +707,7 @@ def test_show_opens_a_viewer_only_where_one_can_run(tmp_path, capsys, monkeypatc
     out = tmp_path / "run"
     out.mkdir()
     (out / "recording.rrd").write_bytes(RRD)
+    _write(out / "metadata.json", {"study": "friction"})
     monkeypatch.setattr(cli, "VIEWER_START_S", 0.5)
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

@@ -167,7 +167,10 @@ class _TrialLog:
             rec.log(f"params/{name}", rr.Scalars(row[name]))
 
     def close(self) -> None:
+        """Finish the recording (rerun writes its footer on disconnect; `cpgjax show` calls one without it
+        truncated)."""
         self._rec.flush()
+        self._rec.disconnect()
 
 
 def _evaluate(signals: np.ndarray, spec: OptimizerSpec, observe, trial: int, x: np.ndarray | None = None):
