@@ -209,16 +209,35 @@ def _use_tuned(args, many: bool = False) -> None:
 
 
 def _walk(args) -> int:
+    if args.out is not None:
+        try:
+            study_io.claim_folder(args.out, overwrite=args.overwrite)
+        except study_spec.StudyError as err:
+            print(f"cpgjax walk: {err}", file=sys.stderr)
+            return 2
+    elif args.overwrite:
+        print("cpgjax walk: error: --overwrite applies to --out only", file=sys.stderr)
+        return 2
     _use_tuned(args, many=True)
-    rows, timing = walk.walk(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
-                             payload_kg=args.payload_kg, num_trials=args.trials,
-                             params=None if args.params is None else args.params.params,
-                             target_velocity_mps=args.target_velocity_mps, backend=args.backend, physics=args.physics,
-                             progress=_notice)  # progress on stderr: stdout holds the table
-    print(walk.markdown_table(rows))
+    trials, timing = walk.walk_trials(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
+                                      payload_kg=args.payload_kg, num_trials=args.trials,
+                                      params=None if args.params is None else args.params.params,
+                                      target_velocity_mps=args.target_velocity_mps, backend=args.backend,
+                                      physics=args.physics, progress=_notice)  # progress on stderr: stdout holds the table
+    print(walk.trials_table(trials))
     pace = timing["env_steps_per_s"]
     print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
           + ("" if pace is None else f"; then {pace:,.0f} env-steps/s"))
+    if args.out is not None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
+        meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
+                    git_commit=study_io.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
+                    backend=backends.resolve_backend(args.backend), **timing, environment=study_io.environment())
+        (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
+        print(f"outputs in {args.out}/ (walk.parquet: every trial, docs/outputs.md)")
     return 0
 
 
@@ -420,6 +439,7 @@ RRD_FOOTER = b"RRF2FOOT"  # rerun's footer, 12 bytes before the end of a recordi
 FILE_KINDS = {
     "table.md": "the study's table, ours beside the paper's",
     "trials.parquet": "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls",
+    "walk.parquet": "one row per trial of each walk: conditions, parameters, J, velocity, CoT, falls",
     "metadata.json": "how the run was made: command, version, commit, optimizer, machine, run figures",
     study_io.CHECKPOINT: "the state after the last finished trial (--resume continues from it)",
     "recording.rrd": "rerun recording: optimization curves and representative rollouts",
@@ -558,7 +578,8 @@ def _next_step(out: pathlib.Path, kind: str) -> str:
     if kind == "deploy":
         return (f"next: the per-tick log in Python: pyarrow.ipc.open_stream({str(out / tick_log.FILE_NAME)!r})"
                 ".read_all().to_pandas()")
-    return f"next: its trials in Python: pandas.read_parquet({str(out / 'trials.parquet')!r})"
+    data = out / ("walk.parquet" if kind == "walk" else "trials.parquet")
+    return f"next: its trials in Python: pandas.read_parquet({str(data)!r})"
 
 
 def _calibration_file_summary(path: pathlib.Path) -> int:
@@ -795,6 +816,9 @@ def _add_walk(sub) -> None:
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
     _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
+    w.add_argument("--out", type=_output_path, help="write walk.parquet (every trial) and metadata.json into this "
+                   "folder (missing or empty)")
+    w.add_argument("--overwrite", action="store_true", help="replace the files of a previous walk in --out")
     w.add_argument("--params", type=_params_file, help="walk with these parameters: a best_params.json (of optimize, "
                    "deploy --optimize or a study), whose controller, physics, scenario and target are used unless "
                    "given here, or a JSON list of 8 numbers (default: the middle of the paper's ranges)")

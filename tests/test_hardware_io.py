@@ -30,6 +30,7 @@ from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.robot import trials as robot_trials
 from cpgjax.trial import params, protocol, tuned
+from tests.test_outputs_doc import undocumented
 
 GATES = cpg.controller_gates("vmc_tegotae")
 # Short soft start; a watchdog long enough for a loaded CI machine (the stale-state test shortens it).
@@ -371,7 +372,9 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     assert rows[0]["velocity_x_mps"] > 0.2  # the midpoint gait walks forward (leg odometry)
     import pyarrow.parquet as pq
 
-    assert pq.read_table(tmp_path / "trials.parquet").num_rows == 3
+    table = pq.read_table(tmp_path / "trials.parquet")
+    assert table.num_rows == 3 and undocumented("robot trials.parquet", table.schema.names) == []
+    assert table["controller"].to_pylist() == ["vmc_tegotae"] * 3 and table["fell"].to_pylist() == [False] * 3
     assert (tmp_path / "trials.rrd").stat().st_size > 0
     best, recorded, _ = tuned.load(tmp_path / "best_params.json")
     assert recorded == tuned_for

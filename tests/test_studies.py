@@ -6,6 +6,7 @@ import dataclasses
 import json
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -18,6 +19,7 @@ from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol, tuned
 from tests.test_ablation import small_optimizer
+from tests.test_outputs_doc import undocumented
 
 # ----------------------------------------------------------------------------------------------- specifications
 
@@ -124,6 +126,10 @@ def test_ablation_outputs(tiny_ablation):
     assert meta["git_commit"] is None or len(meta["git_commit"].split("-")[0]) == 40
     schema = pq.read_schema(out / "trials.parquet")
     assert all(str(schema.field(name).type) == "bool" for name in ("fell", "failed", "accepted", "context_changed"))
+    assert undocumented("study trials.parquet", schema.names) == []  # docs/outputs.md
+    assert undocumented("metadata.json", meta) == []
+    assert {str(f.type) for f in schema if pa.types.is_floating(f.type)} == {"double"}  # one float dtype
+    assert set(table["latency_ticks"]) == {0} and set(table["noise_scale"]) == {0.0}  # the paper profile's own
 
 
 def test_cli_show_prints_the_table(tiny_ablation, capsys):

@@ -211,13 +211,17 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
         _, trial, x, signals, wait_ticks = message
         record, j, c, c_gp = _evaluate(signals, spec, optimizer.observe, trial, x)
         conn.send(("params", optimizer.propose(c_gp)))
-        row = {"trial": trial, "objective": j, "cost_of_transport": float(objective.cost_of_transport(record)),
+        # the columns of a study's trials.parquet where they apply (docs/outputs.md), then the robot's own
+        row = {"trial": trial, "seed": spec.seed, **spec.tuned_for, **param_space.as_dict(x),
+               "c_load_n": float(c[0]), "c_slope_rad": float(c[1]), "objective": j,
                "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
-               "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])), "c_load_n": float(c[0]),
-               "c_slope_rad": float(c[1]), "roll_std_rad": float(record.roll_std_rad),
-               "pitch_std_rad": float(record.pitch_std_rad),
-               "saturation_fraction": float(record.saturation_fraction), "wait_s": wait_ticks * spec.dt_s,
-               **param_space.as_dict(x)}
+               "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])),
+               "cost_of_transport": float(objective.cost_of_transport(record)),
+               "roll_std_rad": float(record.roll_std_rad), "pitch_std_rad": float(record.pitch_std_rad),
+               "saturation_fraction": float(record.saturation_fraction), "energy_j": float(record.energy_j),
+               "distance_m": float(record.distance_m), "total_mass_kg": float(record.total_mass_kg),
+               "fell": False, "failed": False,  # a fall trips the safety layer before a trial completes
+               "optimizer": spec.kind, "wait_s": wait_ticks * spec.dt_s}
         trial_log.append(row)
         log.info("trial %d: J = %.3f, v_x = %.2f m/s, CoT = %.2f, context (%.1f N, %.3f rad); its parameters came "
                  "%.2f s after the previous trial", trial, j, row["velocity_x_mps"], row["cost_of_transport"], c[0],

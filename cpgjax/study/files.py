@@ -37,6 +37,7 @@ import numpy as np
 
 import cpgjax
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 from cpgjax.trial import tuned
@@ -304,7 +305,7 @@ def _entries(folder: pathlib.Path) -> list[str]:
 # cpgjax.robot, a deploy run: its per-tick log, run.json and calibration.json), beside the figures (*.png), the
 # checkpoint shards and the best_params/ folder; --overwrite deletes these and nothing else.
 OUTPUT_FILES = frozenset({CHECKPOINT, "trials.parquet", "recording.rrd", "trials.rrd", "metadata.json", "table.md",
-                          "best_params.json", "run.json", "ticks.arrows", "calibration.json"})
+                          "best_params.json", "walk.parquet", "run.json", "ticks.arrows", "calibration.json"})
 
 
 def _is_output(path: pathlib.Path) -> bool:
@@ -406,8 +407,30 @@ def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
 
 # ----------------------------------------------------------------------------------------------- trial table
 
+def profile_noise_scale(name: str) -> float:
+    """The sensor noise of physics profile ``name`` as a multiple of the robot's (the go1 profile's), NaN where it
+    is no multiple of it."""
+    noise = physics_profiles.arrays(physics_profiles.get(name)).noise.astype(np.float64)
+    robot = physics_profiles.arrays(physics_profiles.get(physics_profiles.ROBOT_PROFILE)).noise.astype(np.float64)
+    scale = float(np.dot(noise, robot) / np.dot(robot, robot))
+    return scale if np.allclose(noise, scale * robot, rtol=1e-6, atol=0.0) else float("nan")
+
+
+def _resolved(cond, labels: list[dict[str, Any]], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(latency_ticks, noise_scale), each (B, n): the conditions' values with −1 ("the profile's own") replaced by
+    the instance's profile's latency and noise scale (:func:`profile_noise_scale`)."""
+    profiles = [lab["physics"] for lab in labels]
+    own_latency = np.array([physics_profiles.get(p).latency_ticks for p in profiles], np.int64)[:, None]
+    own_noise = np.array([profile_noise_scale(p) for p in profiles])[:, None]
+    latency = np.asarray(cond.latency_ticks)[:, :n]
+    noise = np.asarray(cond.noise_scale, np.float64)[:, :n]
+    return np.where(latency >= 0, latency, own_latency).astype(np.int64), np.where(noise >= 0, noise, own_noise)
+
+
 def trial_columns(result) -> dict[str, np.ndarray]:
-    """One row per (instance, trial), instance-major: labels, conditions, parameters and trial figures."""
+    """One row per (instance, trial), instance-major: labels, conditions, parameters and trial figures. Every float
+    column is float64 (the engine's figures are float32, widened exactly), counts int64, flags bool; the latency and
+    the noise scale are resolved to the values simulated (docs/outputs.md)."""
 
     tr, cond = result.trials, result.conditions
     n, batch = tr.objective.shape
@@ -421,9 +444,10 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     cols: dict[str, np.ndarray] = {"instance": inst, "trial": trial}
     for label in ("controller", "seed", "schedule", "data_reuse", "physics"):
         cols[label] = np.array([lab[label] for lab in result.labels])[inst]
-    for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "mass_scale",
-                  "latency_ticks", "noise_scale"):
+    for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "mass_scale"):
         cols[field] = np.asarray(getattr(cond, field))[:, :n].reshape(-1)
+    latency, noise = _resolved(cond, result.labels, n)
+    cols["latency_ticks"], cols["noise_scale"] = latency.reshape(-1), noise.reshape(-1)
     params = per(tr.params)
     for i, name in enumerate(param_space.PARAM_NAMES):
         cols[name] = params[:, i]
@@ -438,7 +462,8 @@ def trial_columns(result) -> dict[str, np.ndarray]:
         cols[name] = per(getattr(tr, name))
     for name in ("context_changed", "accepted", "fell", "failed"):
         cols[name] = per(getattr(tr, name)) > 0
-    return cols
+    return {k: v.astype(np.float64) if np.issubdtype(v.dtype, np.floating) else
+            v.astype(np.int64) if np.issubdtype(v.dtype, np.integer) else v for k, v in cols.items()}
 
 
 def write_trials(result, path) -> pathlib.Path:
@@ -447,7 +472,10 @@ def write_trials(result, path) -> pathlib.Path:
     import pyarrow.parquet as pq
 
     path = pathlib.Path(path)
-    pq.write_table(pa.table(trial_columns(result)), path)
+    columns = trial_columns(result)
+    # a noise scale that is no multiple of the robot's is null (docs/outputs.md), not NaN
+    columns["noise_scale"] = pa.array(columns["noise_scale"], mask=np.isnan(columns["noise_scale"]))
+    pq.write_table(pa.table(columns), path)
     return path
 
 
