@@ -4,9 +4,7 @@ deploy calibrate); each command's function takes the parsed options."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
-import io
 import ipaddress
 import json
 import os
@@ -18,35 +16,23 @@ import sys
 import time
 
 
-def _import_mjx_without_its_warp_probe() -> None:
-    """Import ``mujoco.mjx`` with the two lines its import prints to stdout when NVIDIA Warp is absent ("Failed to
-    import warp…", always so on a CPU) dropped, so they cannot land in a redirected output; other output passes."""
-    probe = io.StringIO()
-    with contextlib.redirect_stdout(probe):
-        import mujoco.mjx  # noqa: F401
-    sys.stdout.write("".join(line for line in probe.getvalue().splitlines(keepends=True)
-                             if not line.startswith(("Failed to import warp:", "Failed to import mujoco_warp:"))))
+import numpy as np
 
-
-_import_mjx_without_its_warp_probe()
-
-import numpy as np  # noqa: E402
-
-import cpgjax  # noqa: E402
-from cpgjax import ablation, cpg  # noqa: E402
-from cpgjax.go1 import physics as physics_profiles  # noqa: E402
-from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, tick_log, trials  # noqa: E402
-from cpgjax.robot import safety as go1_safety  # noqa: E402
-from cpgjax.robot import transport as go1_transport  # noqa: E402
-from cpgjax.sim import backends, walk  # noqa: E402
-from cpgjax.study import files as study_io  # noqa: E402
-from cpgjax.study import launch as study_launch  # noqa: E402
-from cpgjax.study import registry as studies  # noqa: E402
-from cpgjax.study import spec as study_spec  # noqa: E402
-from cpgjax.study import transfer  # noqa: E402
-from cpgjax.trial import limits  # noqa: E402
-from cpgjax.trial import params as param_space  # noqa: E402
-from cpgjax.trial import tuned  # noqa: E402
+import cpgjax
+from cpgjax import ablation, cpg
+from cpgjax.go1 import physics as physics_profiles
+from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, tick_log
+from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import transport as go1_transport
+from cpgjax.sim import backends, walk
+from cpgjax.study import files as study_io
+from cpgjax.study import launch as study_launch
+from cpgjax.study import registry as studies
+from cpgjax.study import spec as study_spec
+from cpgjax.study import transfer
+from cpgjax.trial import limits
+from cpgjax.trial import params as param_space
+from cpgjax.trial import tuned
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default

@@ -279,7 +279,7 @@ def test_walk_params_walks_what_was_tuned(tmp_path, capsys, monkeypatch):
     def fake_walk(**kwargs):
         walks.append(kwargs)
         raise SystemExit(0)  # stop before the table: only what walk was asked for matters here
-    monkeypatch.setattr(walk, "walk", fake_walk)
+    monkeypatch.setattr(walk, "walk_trials", fake_walk)
     path = _tuned_file(tmp_path)
     with pytest.raises(SystemExit):
         cli.main(["walk", "--params", str(path), "--payload-kg", "0,5"])
