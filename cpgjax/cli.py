@@ -803,7 +803,7 @@ def _add_walk(sub) -> None:
     _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
     w.add_argument("--out", type=_output_path, help="write walk.parquet (every trial) and metadata.json into this "
-                   "folder (missing or empty)")
+                   "folder, missing or empty (default: print the table only)")
     w.add_argument("--overwrite", action="store_true", help="replace the files of a previous walk in --out")
     w.add_argument("--params", type=_params_file, help="walk with these parameters: a best_params.json (of optimize, "
                    "deploy --optimize or a study), whose controller, physics, scenario and target are used unless "

@@ -354,6 +354,23 @@ def test_the_official_sdk_drives_the_simulated_go1(robot, controller):
     assert stats["trunk_xy_m"][0] > 0.2 and stats["bad_packets"] == 0
 
 
+def test_a_replay_reports_how_the_robot_walked_in_each_trial(robot, controller):
+    """A replay cut into trials (0.3 s settling + 0.6 s measured): two complete trials in 2000 ticks, each with J,
+    velocity, distance and CoT from the robot's own sensors; the distance is the velocity times the measured time
+    (Σ v_x Δt = mean v_x · T)."""
+    replay = robot_trials.ReplayTrials(params.midpoint(), 2000, protocol.TrialConfig(300, 600))
+    result, _, _ = _run(robot, controller, schedule=replay)
+    assert result.trip is None, result.events
+    tuned_for = dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0, payload_kg=0.0,
+                     target_velocity_mps=0.5)
+    rows = replay.rows(12.74, 0.5, 0, tuned_for)
+    assert [r["trial"] for r in rows] == [0, 1]
+    for r in rows:
+        assert r["velocity_x_mps"] > 0.2 and r["cost_of_transport"] > 0.0 and np.isfinite(r["objective"])
+        assert r["distance_m"] == pytest.approx(r["velocity_x_mps"] * 0.6, rel=1e-4)
+        assert r["controller"] == "vmc_tegotae" and undocumented("robot trials.parquet", r) == []
+
+
 def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     """Random search stands in for the contextual BO (cpgjax.optim.bo) until that lands."""
     robot.reset()

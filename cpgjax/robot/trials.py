@@ -173,6 +173,74 @@ class _TrialLog:
         self._rec.disconnect()
 
 
+def trial_row(trial: int, x: np.ndarray, record: protocol.TrialRecord, j: float, c: np.ndarray, seed: int,
+              tuned_for: dict) -> dict:
+    """One trial on the robot as a row of its ``trials.parquet``: the columns of a study's where they apply
+    (docs/outputs.md)."""
+    return {"trial": trial, "seed": seed, **tuned_for, **param_space.as_dict(x),
+            "c_load_n": float(c[0]), "c_slope_rad": float(c[1]), "objective": float(j),
+            "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
+            "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])),
+            "cost_of_transport": float(objective.cost_of_transport(record)),
+            "roll_std_rad": float(record.roll_std_rad), "pitch_std_rad": float(record.pitch_std_rad),
+            "saturation_fraction": float(record.saturation_fraction), "energy_j": float(record.energy_j),
+            "distance_m": float(record.distance_m), "total_mass_kg": float(record.total_mass_kg),
+            "fell": False, "failed": False}  # a fall trips the safety layer before a trial completes
+
+
+def signal_columns() -> np.ndarray:
+    """The columns of the controller's flat output that make a trial's per-tick signals (:data:`_SIGNALS`)."""
+    out = compiled_controller
+    return np.array([out.OUT_VELOCITY.start, out.OUT_VELOCITY.start + 1, out.OUT_POWER, out.OUT_LOAD,
+                     out.OUT_RPY.start, out.OUT_RPY.start + 1, out.OUT_SATURATED])
+
+
+class ReplayTrials:
+    """A :class:`~cpgjax.hardware_io.ParamSchedule` replaying one parameter set for ``run_ticks`` ticks, cut into
+    back-to-back trials of ``timing`` (its transition, with nothing to blend, settles the gait; then the measured
+    steady phase), as ``cpgjax walk`` cuts a walk. Per tick it copies one row of signals into a buffer allocated
+    here; :meth:`rows` makes each complete trial's figures after the loop."""
+
+    def __init__(self, params: np.ndarray, run_ticks: int, timing: protocol.TrialConfig = protocol.TrialConfig()):
+        self._fixed = hio.FixedParams(params, run_ticks)
+        self._timing = timing
+        self._columns = signal_columns()
+        period = timing.transition_steps + timing.steady_steps
+        self._signals = np.zeros((run_ticks // period, timing.steady_steps, len(_SIGNALS)), np.float32)
+        self.trials_done = 0
+        self.trial = 0  # the trial being walked (logged per tick)
+
+    @property
+    def finished(self) -> bool:
+        return self._fixed.finished
+
+    def params(self, run_tick: int) -> np.ndarray:
+        return self._fixed.params(run_tick)
+
+    def record(self, run_tick: int, out: np.ndarray) -> None:
+        self._fixed.record(run_tick, out)
+        period = self._timing.transition_steps + self._timing.steady_steps
+        steady = run_tick % period - self._timing.transition_steps
+        if steady >= 0 and self.trials_done < self._signals.shape[0]:
+            self._signals[self.trials_done, steady] = out[self._columns]
+            if steady + 1 == self._timing.steady_steps:
+                self.trials_done += 1
+                self.trial = self.trials_done
+
+    def rows(self, total_mass_kg: float, target_velocity_mps: float, seed: int, tuned_for: dict,
+             dt_s: float = 0.001) -> list[dict]:
+        """Each complete trial's row (:func:`trial_row`): J, velocity, distance, CoT and the context from the
+        robot's own sensors, summarized as in simulation."""
+        rows = []
+        x = np.asarray(self._fixed.params(0), np.float64)
+        for trial in range(self.trials_done):
+            record = trial_record(self._signals[trial], total_mass_kg, dt_s)
+            j = float(objective.objective(record, target_velocity_mps))
+            rows.append(trial_row(trial, x, record, j, np.asarray(objective.context(record), np.float64), seed,
+                                  tuned_for))
+        return rows
+
+
 def _evaluate(signals: np.ndarray, spec: OptimizerSpec, observe, trial: int, x: np.ndarray | None = None):
     """A trial's record, objective J, context and the optimizer's (clipped) context, given to ``observe``
     (``OnlineOptimizer.observe``, or ``warm_up`` with trial −1 and the midpoint parameters)."""
@@ -211,17 +279,8 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
         _, trial, x, signals, wait_ticks = message
         record, j, c, c_gp = _evaluate(signals, spec, optimizer.observe, trial, x)
         conn.send(("params", optimizer.propose(c_gp)))
-        # the columns of a study's trials.parquet where they apply (docs/outputs.md), then the robot's own
-        row = {"trial": trial, "seed": spec.seed, **spec.tuned_for, **param_space.as_dict(x),
-               "c_load_n": float(c[0]), "c_slope_rad": float(c[1]), "objective": j,
-               "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
-               "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])),
-               "cost_of_transport": float(objective.cost_of_transport(record)),
-               "roll_std_rad": float(record.roll_std_rad), "pitch_std_rad": float(record.pitch_std_rad),
-               "saturation_fraction": float(record.saturation_fraction), "energy_j": float(record.energy_j),
-               "distance_m": float(record.distance_m), "total_mass_kg": float(record.total_mass_kg),
-               "fell": False, "failed": False,  # a fall trips the safety layer before a trial completes
-               "optimizer": spec.kind, "wait_s": wait_ticks * spec.dt_s}
+        row = {**trial_row(trial, x, record, j, c, spec.seed, spec.tuned_for), "optimizer": spec.kind,
+               "wait_s": wait_ticks * spec.dt_s}
         trial_log.append(row)
         log.info("trial %d: J = %.3f, v_x = %.2f m/s, CoT = %.2f, context (%.1f N, %.3f rad); its parameters came "
                  "%.2f s after the previous trial", trial, j, row["velocity_x_mps"], row["cost_of_transport"], c[0],
@@ -271,12 +330,10 @@ class TrialRunner:
 
     def __init__(self, conn, initial_params: np.ndarray, num_trials: int,
                  timing: protocol.TrialConfig = protocol.TrialConfig(), mailer: _Mailer | None = None):
-        out = compiled_controller
         self._conn = conn
         self._mailer = mailer or conn
         self._timing = timing
-        self._columns = np.array([out.OUT_VELOCITY.start, out.OUT_VELOCITY.start + 1, out.OUT_POWER, out.OUT_LOAD,
-                                  out.OUT_RPY.start, out.OUT_RPY.start + 1, out.OUT_SATURATED])
+        self._columns = signal_columns()
         self._signals = np.full((timing.steady_steps, len(_SIGNALS)), 0, np.float32)  # written now, not in the loop
         self._previous = self._current = np.asarray(initial_params, np.float32)
         self._num_trials = num_trials
