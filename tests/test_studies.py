@@ -105,7 +105,7 @@ def test_ablation_outputs(tiny_ablation):
         j = result.trials.objective[:, [lab["controller"] == c for lab in result.labels]]
         assert f"{np.mean(j[-5:].mean(axis=0)):.3f} ± " in row  # mean of the last 5, then over seeds
     assert (out / "table.md").read_text().startswith("# controller_ablation")
-    for png in ("learning_curves.png", "attitude.png"):
+    for png in ("learning_curves.png", "attitude.png", "optimization_progress.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     table = pq.read_table(out / "trials.parquet").to_pydict()
     assert len(table["objective"]) == 4 * 4

@@ -10,7 +10,8 @@
                         (Fig. sim_overview c)
 ======================  =======================================================================================
 
-Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures, ``trials.parquet``,
+Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures (the study's own and
+``optimization_progress.png``: the best J so far and the parameters per group), ``best_params/``, ``trials.parquet``,
 ``recording.rrd``, ``metadata.json`` and the engine's ``checkpoint.npz`` (``cpgjax.study.files``).
 """
 
@@ -374,6 +375,8 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
         study_io.write_best_params(result, out / study_io.BEST_PARAMS)
     with study_io.writing(out, "table.md and the figures"):
         text, logs = STUDIES[name or result.spec.name].report(result, out, backend)
+        study_figures.optimization_progress(out / "optimization_progress.png", result, [
+            study_io.group_file_name(lab, result.spec.group_by) for lab in result.labels])
         text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
         (out / "table.md").write_text(text)
     with study_io.writing(out, "recording.rrd"):
