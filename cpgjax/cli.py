@@ -11,6 +11,7 @@ import os
 import pathlib
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -227,9 +228,43 @@ def _walk(args) -> int:
     return 0
 
 
-def _progress_printer(stream=None):
+class _CtrlC:
+    """Ctrl-C that always stops a study: Python raises KeyboardInterrupt wherever the main thread is, and one raised
+    inside a callback whose exceptions Python ignores (JAX's garbage-collection callback: "Exception ignored in
+    _xla_gc_callback") is lost. This handler also keeps the request, and :meth:`check`, after every trial (its
+    checkpoint written), raises it again. It replaces only Python's own handler: a command started with Ctrl-C
+    ignored keeps ignoring it."""
+
+    def __init__(self):
+        self.requested = False
+        self._previous = None
+
+    def __enter__(self):
+        self._previous = signal.getsignal(signal.SIGINT)
+        if self._previous is signal.default_int_handler:
+            try:
+                signal.signal(signal.SIGINT, self._handler)
+            except ValueError:  # not the main thread: Python's handler stays
+                self._previous = None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is signal.default_int_handler:
+            signal.signal(signal.SIGINT, self._previous)
+
+    def _handler(self, signum, frame):
+        self.requested = True
+        raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+
+def _progress_printer(stream=None, ctrl_c: _CtrlC | None = None):
     """The live progress display: trials done, best J per group, env-steps/s, ETA (one rewritten line on a
-    terminal). The first trial of a run compiles, so the pace and the ETA come from the trials after it."""
+    terminal). The first trial of a run compiles, so the pace and the ETA come from the trials after it. After each
+    line, a Ctrl-C that was lost since (:class:`_CtrlC`) stops the run."""
     stream = stream or sys.stderr
     tty = stream.isatty()
 
@@ -239,6 +274,8 @@ def _progress_printer(stream=None):
         line = f"{p.trial}/{p.num_trials} trials done | best J: {best} | {p.env_steps_per_s:,.0f} env-steps/s | {eta}"
         stream.write(("\r\033[K" + line + ("\n" if p.trial == p.num_trials else "")) if tty else line + "\n")
         stream.flush()
+        if ctrl_c is not None:
+            ctrl_c.check()
     return show
 
 
@@ -294,7 +331,7 @@ def _study(args) -> int:
     try:
         text, out = run(seeds=args.seeds, trials=args.trials, quick=args.quick, out=out, resume=args.resume,
                         overwrite=args.overwrite, backend=args.backend, physics=args.physics,
-                        command=args.command_line, notify=_notice, progress=_progress_printer())
+                        command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -327,7 +364,7 @@ def _demo(args) -> int:
           f"trial compiles). Outputs replace those in {DEMO_OUT}/.", flush=True)
     try:
         text, out = studies.run("controller_ablation", quick=True, out=DEMO_OUT, overwrite=True,
-                                command=args.command_line, progress=_progress_printer())
+                                command=args.command_line, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except KeyboardInterrupt:
         print("\ncpgjax demo: interrupted", file=sys.stderr)
         return INTERRUPTED
@@ -379,7 +416,7 @@ def _optimize(args) -> int:
         if start:
             _notice(studies.resume_notice(out, start, spec.num_trials))
         engine = ablation.Engine(spec, backend=args.backend)
-        result = engine.run(out, resume=args.resume, progress=_progress_printer())
+        result = engine.run(out, resume=args.resume, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except study_spec.StudyError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 2
@@ -934,7 +971,8 @@ def main(argv=None) -> int:
     args.argv = argv  # `study --processes N` starts the same command line N times
     # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline.
     cpu_dispatch.request_inline()
-    return args.func(args)
+    with _CtrlC() as args.ctrl_c:  # study, optimize, demo: check it after every trial
+        return args.func(args)
 
 
 if __name__ == "__main__":

@@ -549,6 +549,41 @@ def test_resume_says_where_and_ctrl_c_says_how_to_resume(tmp_path, capsys, monke
     assert f"resume with: cpgjax optimize --trials 2 --out {out} --resume --backend native\n" in err
 
 
+def test_a_ctrl_c_lost_in_a_callback_still_stops_after_the_trial(tmp_path, capsys, monkeypatch):
+    """SIGINT while Python runs a callback whose exceptions it ignores (as JAX's garbage-collection callback): the
+    KeyboardInterrupt is lost there, and the run stops after the trial it was in, with its checkpoint and exit
+    130, instead of running to the end."""
+    out = tmp_path / "out"
+    spec = _optimize_spec(trials=6)
+    trials_run = []
+
+    class SwallowsOneInterrupt:
+        def __init__(self, spec, backend):
+            pass
+
+        def run(self, out_dir, resume, progress):
+            for t in range(spec.num_trials):
+                trials_run.append(t)
+                _fake_checkpoint(out_dir, spec, t + 1, "native")
+                if t == 1:
+                    try:  # what an ignored-exception callback does with the signal's KeyboardInterrupt
+                        os.kill(os.getpid(), signal.SIGINT)
+                        time.sleep(0.1)
+                    except KeyboardInterrupt:
+                        pass
+                progress(ablation.Progress(t + 1, spec.num_trials, {"vmc_tegotae": 1.0}, 1.0, None))
+            raise AssertionError("ran to the end")
+    monkeypatch.setattr(ablation, "Engine", SwallowsOneInterrupt)
+    argv = ["optimize", "--trials", "6", "--out", str(out), "--backend", "native"]
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # Python's own, as in a terminal
+    try:
+        assert cli.main(argv) == 130 and trials_run == [0, 1]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the command's handler is gone
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert f"trials 0…1 are saved in {out / study_io.CHECKPOINT}" in capsys.readouterr().err
+
+
 def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypatch):
     out = tmp_path / "study"
 
