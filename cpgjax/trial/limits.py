@@ -64,8 +64,9 @@ MIN_TRIALS = 1
 MAX_TRIALS = 1000
 MAX_TRIALS_REASON = ("the GP keeps every trial, its work per trial grows with the cube of their number; the paper's "
                      "runs have 40 to 100")
-MAX_SEEDS = 100
-MAX_SEEDS_REASON = "seeds per group, each one more simulated robot in the batch; the paper's studies use 5"
+MAX_SEEDS = 10_000
+MAX_SEEDS_REASON = ("seeds per group, each one more simulated robot in the batch; the paper's studies use 5, a "
+                    "cluster run of docs/scaling.md 250")
 MIN_STUDY_TRIALS = 8
 MIN_STUDY_TRIALS_REASON = ("a paper study changes its conditions at trials scaled to the run length and starts with "
                            "random trials; below 8 a phase has no optimized trial")
