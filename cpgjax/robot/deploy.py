@@ -127,8 +127,9 @@ def run(args) -> int:
              calibration.newton_per_count)
     calibration.save(args.log_dir / "calibration.json")
     hint = stale_hint(args)
-    with connect(args) as (transport, _), tick_log_writer(args.log_dir / tick_log.FILE_NAME, loop) as ticks:
+    with connect(args) as (transport, server), tick_log_writer(args.log_dir / tick_log.FILE_NAME, loop) as ticks:
         controller = compiled_controller.CompiledController()
+        start_xy = None if server is None else server.stats()["trunk_xy_m"]
         if args.optimize:
             spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
                                  robot_mass_kg(args.payload_kg), str(args.log_dir), tuned_for(args))
@@ -138,6 +139,8 @@ def run(args) -> int:
         else:
             replay = ReplayTrials(params, round(args.duration_s * 1000))
             result = hio.run_loop(transport, controller, replay, calibration, gates, loop, safety, ticks, hint)
+        truth = None if server is None else dict(trunk_start_xy_m=start_xy,
+                                                 trunk_end_xy_m=server.stats()["trunk_xy_m"])
     if not args.optimize:  # the figures after the loop: the robot is damped
         rows = replay.rows(robot_mass_kg(args.payload_kg), args.target_velocity_mps, args.seed, tuned_for(args))
         if rows:
@@ -145,7 +148,7 @@ def run(args) -> int:
             import pyarrow.parquet as pq
 
             pq.write_table(pa.Table.from_pylist(rows), args.log_dir / "trials.parquet")
-    return report(args, result, rows)
+    return report(args, result, rows, truth)
 
 
 def tuned_for(args) -> dict:
@@ -172,15 +175,16 @@ def walked_line(row: dict) -> str:
             f"{row['distance_m']:.2f} m in its steady phase, CoT {row['cost_of_transport']:.3f}")
 
 
-def report(args, result: hio.LoopResult, rows: list[dict] = ()) -> int:
+def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | None = None) -> int:
     """Write ``run.json`` (how the run ended, how the robot walked in each complete trial, its timing, and what ran
     it: the command line, cpgjax's version and commit, the machine) and print how the run ended, each trial's J,
     velocity, distance and CoT (from the robot's own sensors) and the timing. Returns the exit status: 0 after a
-    clean end, 130 after Ctrl-C (a stop), 2 after a safety trip."""
+    clean end, 130 after Ctrl-C (a stop), 2 after a safety trip. ``truth``: the simulated Go1's true trunk
+    position before and after the loop (its own state, beside the robot's estimate), None on the robot."""
     lockstep = args.robot == "sim" and args.sim_pacing == "lockstep"
     summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events, "realtime": result.realtime,
                "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
-               "trials": [{k: row[k] for k in WALKED} for row in rows],
+               "trials": [{k: row[k] for k in WALKED} for row in rows], "sim_truth": truth,
                "timing": result.timing(), "command": getattr(args, "command_line", None),
                "cpgjax_version": cpgjax.__version__, "git_commit": study_io.git_commit(),
                "environment": study_io.environment()}
@@ -190,12 +194,18 @@ def report(args, result: hio.LoopResult, rows: list[dict] = ()) -> int:
     shared = ("\nthe simulated Go1 shared the loop's CPU: its ticks are in these figures "
               "(the loop on a CPU of its own: benchmarks/hardware_loop.py)"
               if args.robot == "sim" and not lockstep and loop_cpu(args) is not None else "")
+    if truth is not None:
+        moved = np.subtract(truth["trunk_end_xy_m"], truth["trunk_start_xy_m"])
+        truth_line = (f"\nthe simulated Go1's true trunk moved {moved[0]:+.2f} m along x, {moved[1]:+.2f} m along y "
+                      f"over the whole run")
+    else:
+        truth_line = ""
     walked = ("\n".join(walked_line(row) for row in rows) if rows else
               "no trial completed (a trial is 1.5 s of settling then 3 s measured)" if not args.optimize else
               "no trial completed")
-    log.info("%s; per-tick log %s\nhow the robot walked (its own sensors):\n%s\n%s%s", ended,
-             args.log_dir / tick_log.FILE_NAME, walked, hio.timing_table(summary["timing"], deadlines=not lockstep),
-             shared)
+    log.info("%s; per-tick log %s\nhow the robot walked (its own sensors):\n%s%s\n%s%s", ended,
+             args.log_dir / tick_log.FILE_NAME, walked, truth_line,
+             hio.timing_table(summary["timing"], deadlines=not lockstep), shared)
     return 2 if result.trip else 130 if result.stopped else 0
 
 
