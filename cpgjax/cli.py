@@ -198,7 +198,7 @@ def _use_tuned(args, many: bool = False) -> None:
 def _walk(args) -> int:
     if args.out is not None:
         try:
-            study_io.claim_folder(args.out, overwrite=args.overwrite)
+            study_io.claim_folder(args.out, overwrite=args.overwrite, resumable=False)
         except study_spec.StudyError as err:
             print(f"cpgjax walk: {err}", file=sys.stderr)
             return 2
@@ -705,7 +705,8 @@ def _deploy(parser: argparse.ArgumentParser, args) -> int:
     if problem := _inapplicable(args):
         parser.error(problem)
     try:
-        args.log_dir = study_io.claim_folder(args.log_dir or fresh_run_folder(DEPLOY_RUNS), overwrite=args.overwrite)
+        args.log_dir = study_io.claim_folder(args.log_dir or fresh_run_folder(DEPLOY_RUNS), overwrite=args.overwrite,
+                                             resumable=False)
     except study_spec.StudyError as err:
         print(f"cpgjax deploy: {err}", file=sys.stderr)
         return 2

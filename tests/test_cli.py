@@ -407,6 +407,9 @@ def test_overwrite_replaces_the_whole_run(tmp_path, capsys, monkeypatch):
     out = tmp_path / "old"
     _old_optimize_folder(out)
     _write(out / tick_log.FILE_NAME, "old ticks")
+    assert cli.main(["deploy", "--robot", "sim", "--log-dir", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "pass --overwrite to replace its files" in err and "--resume" not in err  # deploy cannot resume
     assert cli.main(["deploy", "--robot", "sim", "--log-dir", str(out), "--overwrite"]) == 0
     assert list(out.iterdir()) == []
 

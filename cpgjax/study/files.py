@@ -333,13 +333,13 @@ def _remove_outputs(folder: pathlib.Path) -> None:
             path.unlink()
 
 
-def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pathlib.Path:
+def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resumable: bool = True) -> pathlib.Path:
     """Make sure a command may write into ``folder`` before it computes anything, and create it.
 
     A missing or empty folder is fine; a non-empty one only with ``resume`` (its checkpoint is continued) or
     ``overwrite``: the files a cpgjax command wrote there (:func:`_is_output`) are deleted, so that the run starts
     afresh and no old file is taken for the new run's; anything else in the folder is refused by name, and nothing is
-    deleted then.
+    deleted then. ``resumable``: whether the command has ``--resume`` (the refusal offers it where a checkpoint is).
 
     Raises:
       StudyError: ``folder`` is a file, cannot be created, holds files and neither flag is given, or holds, with
@@ -351,7 +351,7 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pa
     if folder.is_dir() and not resume:
         entries = _entries(folder)
         if entries and not overwrite:
-            hint = " --resume to continue its checkpoint," if checkpoint_files(folder) else ""
+            hint = " --resume to continue its checkpoint," if resumable and checkpoint_files(folder) else ""
             shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
             raise StudyError(f"{folder} is not empty ({shown}): pass{hint} --overwrite to replace its files, or "
                              f"write somewhere else")
