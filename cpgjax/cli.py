@@ -210,7 +210,7 @@ def _walk(args) -> int:
                                       payload_kg=args.payload_kg, num_trials=args.trials,
                                       params=None if args.params is None else args.params.params,
                                       target_velocity_mps=args.target_velocity_mps, backend=args.backend,
-                                      physics=args.physics, progress=_notice)  # progress on stderr: stdout holds the table
+                                      physics=args.physics, progress=_notice)  # stderr: stdout holds the table
     print(walk.trials_table(trials))
     pace = timing["env_steps_per_s"]
     print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
@@ -866,8 +866,9 @@ def _add_study(sub) -> None:
     s.add_argument("--distributed", action="store_true", help="one of several cooperating processes: "
                    "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "
                    "docs/scaling.md)")
-    s.add_argument("--processes", type=_processes, default=None, help="run as N cooperating local processes (coordinator "
-                   "on 127.0.0.1), e.g. to check a multi-process run before a cluster (default: one process)")
+    s.add_argument("--processes", type=_processes, default=None, help="run as N cooperating local processes "
+                   "(coordinator on 127.0.0.1), e.g. to check a multi-process run before a cluster (default: one "
+                   "process)")
     _add_physics_arg(s, None)
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
