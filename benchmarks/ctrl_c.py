@@ -2,8 +2,9 @@
 
 Each repeat starts `cpgjax optimize --trials N --backend native` in a fresh folder and sends SIGINT at a uniformly
 random moment between the first checkpoint and the expected end of the run (measured by one uninterrupted run
-first). A clean stop is exit status 130, a `resume with:` line, a checkpoint that reads back, and no traceback.
-Prints one JSON line with the counts.
+first). A clean stop is exit status 130, a checkpoint that reads back, no traceback, and either a `resume with:`
+line or, for a Ctrl-C after the last trial, every output written. A run that ended before its signal was due is
+counted apart. Prints one JSON line with the counts.
 
     JAX_PLATFORMS=cpu python benchmarks/ctrl_c.py --repeats 20
 """
@@ -15,6 +16,7 @@ import json
 import os
 import pathlib
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -64,7 +66,8 @@ def main() -> None:
         first = first_checkpoint_s(probe, work / "probe")
         probe.communicate(timeout=900)
         total = time.monotonic() - t0
-        counts = {"clean": 0, "ran_to_the_end": 0, "failed": 0}
+        counts = {"stopped_resumable": 0, "stopped_outputs_written": 0, "ended_before_the_signal": 0, "failed": 0,
+                  "lost_interrupt_messages": 0}
         failures = []
         for k in range(args.repeats):
             out = work / f"run{k}"
@@ -73,7 +76,7 @@ def main() -> None:
             delay = rng.uniform(0.0, max(total - wait, 0.1))
             time.sleep(delay)
             if proc.poll() is not None:
-                counts["ran_to_the_end"] += 1
+                counts["ended_before_the_signal"] += 1
                 continue
             proc.send_signal(signal.SIGINT)
             _, err = proc.communicate(timeout=300)
@@ -81,8 +84,13 @@ def main() -> None:
                 saved = study_io.checkpoint_meta(out)
             except StudyError:
                 saved = None
-            if proc.returncode == 130 and "resume with:" in err and saved and "Traceback" not in err:
-                counts["clean"] += 1
+            counts["lost_interrupt_messages"] += "Exception ignored" in err  # Python's own line, then stopped
+            # Python's report of the KeyboardInterrupt it ignored in a callback is not the command's traceback
+            traceback = "Traceback" in re.sub(r"Exception ignored in: .*?\nKeyboardInterrupt: ?\n", "", err, flags=re.S)
+            if proc.returncode == 130 and saved and "resume with:" in err and not traceback:
+                counts["stopped_resumable"] += 1
+            elif proc.returncode == 130 and saved and (out / "recording.rrd").exists() and not traceback:
+                counts["stopped_outputs_written"] += 1
             else:
                 counts["failed"] += 1
                 failures.append({"run": k, "status": proc.returncode, "stderr": err[-600:]})

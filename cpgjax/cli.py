@@ -260,6 +260,18 @@ class _CtrlC:
         if self.requested:
             raise KeyboardInterrupt
 
+    @property
+    def installed(self) -> bool:
+        return self._previous is signal.default_int_handler
+
+
+def _exit_interrupted(signum, frame):
+    """Ctrl-C while the `cpgjax` process exits after its command (its outputs written and flushed here): exit 130
+    at once instead of a KeyboardInterrupt in the interpreter's teardown (exit by signal, or an ignored exception)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(INTERRUPTED)
+
 
 def _progress_printer(stream=None, ctrl_c: _CtrlC | None = None):
     """The live progress display: trials done, best J per group, env-steps/s, ETA (one rewritten line on a
@@ -439,6 +451,8 @@ def _optimize(args) -> int:
     except study_io.OutputError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # every trial is in the checkpoint: --resume writes the outputs
+        return _interrupted(args.command_line, args, out)
     print(f"outputs in {out}/ ({replay_hint(out / 'best_params.json')})")
     return 0
 
@@ -967,6 +981,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    as_command = argv is None  # the `cpgjax` process itself, not a call from Python
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
     args.command_line = "cpgjax " + shlex.join(argv)  # metadata.json and the resume hint
@@ -974,7 +989,13 @@ def main(argv=None) -> int:
     # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline.
     cpu_dispatch.request_inline()
     with _CtrlC() as args.ctrl_c:  # study, optimize, demo: check it after every trial
-        return args.func(args)
+        code = args.func(args)
+    if args.ctrl_c.requested and code == 0:  # lost after the last trial's check: the outputs are written
+        _notice(f"cpgjax {args.command}: interrupted as it finished; its outputs are written")
+        code = INTERRUPTED
+    if as_command and args.ctrl_c.installed:
+        signal.signal(signal.SIGINT, _exit_interrupted)
+    return code
 
 
 if __name__ == "__main__":

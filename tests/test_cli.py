@@ -587,6 +587,25 @@ def test_a_ctrl_c_lost_in_a_callback_still_stops_after_the_trial(tmp_path, capsy
     assert f"trials 0…1 are saved in {out / study_io.CHECKPOINT}" in capsys.readouterr().err
 
 
+def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, monkeypatch):
+    """Lost after the last trial's check, the request still makes the exit status 130 once the outputs are
+    written (the run finished: nothing to resume)."""
+    def finishes_after_a_lost_interrupt(name, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.1)
+        except KeyboardInterrupt:
+            pass
+        return "the table", kwargs["out"]
+    monkeypatch.setattr(studies, "run", finishes_after_a_lost_interrupt)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert cli.main(["study", "friction", "--quick", "--out", str(tmp_path / "s")]) == 130
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert "cpgjax study: interrupted as it finished; its outputs are written" in capsys.readouterr().err
+
+
 def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypatch):
     out = tmp_path / "study"
 
