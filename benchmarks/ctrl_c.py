@@ -1,9 +1,9 @@
 """Ctrl-C at random moments: how often a `cpgjax optimize` stops cleanly.
 
 Each repeat starts `cpgjax optimize --trials N --backend native` in a fresh folder and sends SIGINT at a uniformly
-random moment after the first checkpoint, within 90 % of the time the remaining trials took in one uninterrupted
-run measured first. A clean stop is exit status 130, a checkpoint that reads back, no traceback, and either a `resume with:`
-line or, for a Ctrl-C after the last trial, every output written. A run that ended before its signal was due is
+random moment after the first checkpoint, within 90 % of the time the remaining trials took in one
+uninterrupted run measured first. A clean stop is exit status 130, a checkpoint that reads back, no traceback, and
+either a `resume with:` line or, for a Ctrl-C after the last trial, every output written. A run that ended before its signal was due is
 counted apart. Prints one JSON line with the counts.
 
     JAX_PLATFORMS=cpu python benchmarks/ctrl_c.py --repeats 20

@@ -76,7 +76,8 @@ class BatchModel(NamedTuple):
 def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     """Per-instance MJX model data for a whole batch of scenarios, in one call.
 
-    Floor friction → ``geom_friction[floor, 0]`` (the floor has priority, docs/decisions.md §5); slope →
+    Floor friction → ``geom_friction[floor, 0]`` (the floor has priority, docs/decisions.md §5; under the profile's
+    friction rule, ``physics.floor_friction``); slope →
     ``opt.gravity``; payload and physics profile → every field they change, recomputed by ``mj_setConst`` once per
     distinct (payload, profile).
     """
@@ -96,7 +97,8 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     # then walks 0.09 m/s instead of 0.53), so MJX carries a negligible bound where a profile has no joint friction.
     updates["dof_frictionloss"] = jnp.maximum(updates["dof_frictionloss"], MIN_FRICTIONLOSS_NM)
     friction = np.broadcast_to(np.asarray(base.geom_friction), (batch,) + base.geom_friction.shape).copy()
-    friction[:, ids.floor_geom, 0] = scenario.friction
+    friction[:, ids.floor_geom, 0] = [physics.floor_friction(physics.get(str(name)), mu)
+                                      for name, mu in zip(scenario.physics, scenario.friction)]
     updates["geom_friction"] = jnp.asarray(friction, getattr(mx, "geom_friction").dtype)
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})

@@ -1,5 +1,5 @@
 """Physics profiles (cpgjax.go1.physics) against independent references: C MuJoCo's own contact forces and body
-frames, the analytic DC-motor line, hand-written sample-and-hold and delay sequences, and the profiles' sources."""
+frames, the analytic DC-motor line, hand-written foot-sensor (the Gazebo plugin) and delay sequences, and the profiles' sources."""
 
 from __future__ import annotations
 
@@ -63,17 +63,72 @@ def test_calf_frame_force_is_the_contact_force_rotated_into_the_calf_body(profil
     np.testing.assert_array_equal(np.asarray(normal), d.sensordata[IDS.foot_force_sensor].astype(np.float32))
 
 
-def test_the_paper_signal_holds_each_sample_for_exactly_ten_ticks():
-    profile = physics.arrays(physics.get("paper"))
+def _sensor_sequence(profile_name: str, forces: np.ndarray, contact: np.ndarray) -> np.ndarray:
+    """The force the controller reads at each tick for per-tick forces (K, 4) and contact flags (K, 4)."""
+    profile = physics.arrays(physics.get(profile_name))
     state = physics.init_state(jnp.zeros(4))
-    forces = np.arange(35.0)[:, None] * np.array([1.0, 2.0, 3.0, 4.0])
     seen = []
-    for k in range(35):
-        state, held = physics.sample_and_hold(profile, state, jnp.asarray(forces[k], jnp.float32))
+    for k in range(len(forces)):
+        state, held = physics.foot_sensor_update(profile, state, jnp.asarray(forces[k], jnp.float32),
+                                                 jnp.asarray(contact[k]))
         state, _ = physics.actuate(profile, state, jnp.zeros(12), jnp.zeros(12))  # one tick passes
         seen.append(np.asarray(held))
-    expected = forces[(np.arange(35) // 10) * 10]
-    np.testing.assert_array_equal(np.array(seen), expected)
+    return np.array(seen)
+
+
+def test_the_paper_signal_is_the_plugins_mean_over_in_contact_ticks_held_for_ten_ticks():
+    # The unitree_ros foot contact plugin, written out by hand: at each 100 Hz update (ticks 0, 10, 20, ...) it
+    # publishes the mean force of the contact entries since the last update (that tick included), 0 with none.
+    rng = np.random.default_rng(3)
+    forces = rng.uniform(0.0, 60.0, (45, 4))
+    contact = rng.uniform(size=(45, 4)) < 0.6
+    contact[11:21, 2] = False  # a foot in the air for a whole update period: reads 0
+    forces[~contact] = 0.0
+    expected = np.zeros((45, 4))
+    for k in range(45):
+        update = (k // 10) * 10
+        window = range(max(update - 9, 0), update + 1)
+        for leg in range(4):
+            touching = [forces[t, leg] for t in window if contact[t, leg]]
+            expected[k, leg] = np.mean(touching) if touching else 0.0
+    seen = _sensor_sequence("paper", forces, contact)
+    np.testing.assert_allclose(seen, expected, rtol=1e-6, atol=1e-5)
+    assert np.all(seen[20:30, 2] == 0.0)
+
+
+def test_sampling_profiles_read_the_update_ticks_force_as_before():
+    # soft and go1 update every tick with the tick's own force, in contact or not (go1's noise reaches a foot in the
+    # air); a 10-tick sampling profile without the mean holds the update tick's force.
+    forces = np.arange(35.0)[:, None] * np.array([1.0, 2.0, 3.0, 4.0])
+    contact = np.zeros((35, 4), bool)
+    for name in ("soft", "go1"):
+        np.testing.assert_array_equal(_sensor_sequence(name, forces, contact), forces.astype(np.float32))
+    sampled = physics.get("paper")._replace(foot_force_contact_mean=False)
+    physics.PROFILES["paper_sampled_test"] = sampled
+    try:
+        seen = _sensor_sequence("paper_sampled_test", forces, contact)
+    finally:
+        del physics.PROFILES["paper_sampled_test"]
+    np.testing.assert_array_equal(seen, forces[(np.arange(35) // 10) * 10])
+
+
+def test_a_paper_foot_touches_within_gazebos_contact_surface_layer():
+    # unitree_gazebo earth.world: contact_surface_layer 0.001 m; the sampling profiles count penetration only.
+    clearance = jnp.asarray([-1e-4, 5e-4, 9.9e-4, 1.5e-3])
+    paper = physics.arrays(physics.get("paper"))
+    np.testing.assert_array_equal(np.asarray(physics.touching(paper, clearance)), [True, True, True, False])
+    soft = physics.arrays(physics.get("soft"))
+    np.testing.assert_array_equal(np.asarray(physics.touching(soft, clearance)), [True, False, False, False])
+
+
+def test_gazebo_friction_rule_caps_the_floor_at_the_feet_mu_under_paper_only():
+    # gazebo-classic ODEPhysics: μ = min(μ_floor, μ_foot), with unitree_ros' feet at 0.6; MuJoCo's floor priority
+    # elsewhere.
+    scenario = go1_model.make_scenarios(friction=[0.3, 0.6, 0.9, 0.9, 0.9], physics=["paper"] * 3 + ["soft", "go1"])
+    floor = [go1_model.scenario_model(scenario, i).geom_friction[IDS.floor_geom, 0] for i in range(5)]
+    np.testing.assert_array_equal(floor, [0.3, 0.6, 0.6, 0.9, 0.9])
+    batch = mjx_go1.make_batch_model(scenario)
+    np.testing.assert_allclose(np.asarray(batch.model.geom_friction[:, IDS.floor_geom, 0]), floor, rtol=1e-6)
 
 
 @pytest.mark.parametrize("speed_rad_s", [0.0, 5.0, 15.05, 29.0, 30.1, 45.0])
@@ -212,8 +267,9 @@ def test_transfer_evaluates_every_run_in_every_environment():
 
 
 def test_mjx_profile_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_tegotae_gates):
-    """``with_scenario`` to other physics profiles swaps model data and profile arrays, not the program; the paper
-    profile's calf-frame signal then reads below the soft contact normal (≈ 24 against ≈ 31 N per foot standing)."""
+    """``with_scenario`` to other physics profiles swaps model data and profile arrays, not the program: the paper
+    profile's foot signal (the plugin's calf-frame mean) then reads otherwise than the soft contact normal, and its
+    friction rule makes the μ 0.9 floor the μ 0.6 one."""
     state = short_sim.reset(mid_params)
     _, soft = short_sim.trial(state, mid_params, vmc_tegotae_gates)
     compiled = short_sim._trial._cache_size()
@@ -223,7 +279,9 @@ def test_mjx_profile_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_
     _, paper = switched.trial(switched.reset(mid_params), mid_params, vmc_tegotae_gates)
     assert switched._trial._cache_size() == compiled
     flat = (scenario.slope_deg == 0) & (scenario.payload_kg == 0) & (scenario.friction >= 0.6)
-    assert np.all(np.asarray(paper.c_load_n)[flat] < 0.9 * np.asarray(soft.c_load_n)[flat])
+    paper_load, soft_load = np.asarray(paper.c_load_n)[flat], np.asarray(soft.c_load_n)[flat]
+    assert np.all(np.abs(paper_load - soft_load) > 0.02 * soft_load)
+    assert len(set(scenario.friction[flat].tolist())) > 1 and np.all(paper_load == paper_load[0])
 
 
 def test_go1_sensor_noise_is_uniform_within_its_amplitudes_and_a_pure_function_of_seed_and_tick():

@@ -25,9 +25,9 @@ from tests.test_outputs_doc import undocumented
 
 def test_specs_follow_the_paper():
     spec = studies.make_spec("controller_ablation")
-    assert spec.controllers == cpg.CONTROLLERS and spec.seeds == tuple(range(5)) and spec.num_trials == 40
+    assert spec.controllers == cpg.CONTROLLERS and spec.seeds == tuple(range(20)) and spec.num_trials == 40
     assert spec.target_velocity_mps == (0.5,) and spec.trial == protocol.TrialConfig()  # 1.5 s + 3 s at 1 kHz
-    assert len(study_spec.instances(spec)) * spec.num_trials * 4.5 == 3600.0  # robot-seconds
+    assert len(study_spec.instances(spec)) * spec.num_trials * 4.5 == 14400.0  # robot-seconds: 20 seeds, not 5
     cond = study_spec.conditions(studies.make_spec("load_adaptation"))
     np.testing.assert_array_equal(studies.phase_starts(cond.payload_kg[0]), [0, 36, 58])  # paper: trials 36, 58
     np.testing.assert_array_equal(cond.payload_kg[0, [0, 36, 58]], [0.0, 7.5, 15.0])
@@ -40,6 +40,19 @@ def test_specs_follow_the_paper():
     assert [cond.slope_deg[0, t] for t in studies.phase_starts(cond.slope_deg[0, :learn])] == [0.0, 10.0, 12.5]
     assert sorted(set(cond.slope_deg[0, learn:])) == [10.0, 12.5, 15.0, 17.5] and cond.inference[0, learn:].all()
     assert studies.make_spec("friction").friction == (0.3, 0.6, 0.9)
+    spec = studies.make_spec("paper_hardware")  # the paper's hardware experiments under the go1 profile
+    cond = study_spec.conditions(spec)
+    labels = [lab["schedule"] for lab in study_spec.instances(spec)]
+    assert spec.physics == ("go1",) and len(set(labels)) == 5
+    by = {label: labels.index(label) for label in labels}
+    assert np.all(cond.target_velocity_mps[by["flat 0.4 m/s"]] == 0.4) and np.all(cond.friction[by["flat 0.4 m/s"]] == 0.6)
+    assert np.all(cond.friction[by["taped feet 0.4 m/s"]] == 0.3)
+    v = cond.target_velocity_mps[by["0.6→0.3→0.5→0.6 m/s"]]
+    assert [v[t] for t in studies.phase_starts(v)] == [0.6, 0.3, 0.5, 0.6]
+    slope = cond.slope_deg[by["flat → 10°"]]
+    assert studies.phase_starts(slope) == [0, 30] and slope[-1] == 10.0
+    load = cond.payload_kg[by["0→5→10→15 kg"]]
+    assert [load[t] for t in studies.phase_starts(load)] == [0.0, 5.0, 10.0, 15.0] and studies.phase_starts(load)[1] == 30
     for name in studies.STUDIES:  # every quick variant is a valid, smaller study
         quick = studies.make_spec(name, quick=True)
         assert quick.num_trials < studies.make_spec(name).num_trials and len(quick.seeds) == 2
@@ -103,7 +116,7 @@ def test_ablation_outputs(tiny_ablation):
         paper = studies.PAPER_CONTROLLER_TABLE[c]
         assert f"{paper[1][0]:.3f} ± {paper[1][1]:.3f}" in row
         j = result.trials.objective[:, [lab["controller"] == c for lab in result.labels]]
-        assert f"{np.mean(j[-5:].mean(axis=0)):.3f} ± " in row  # mean of the last 5, then over seeds
+        assert f"{np.mean(j[-5:].mean(axis=0)):.3f} [" in row  # mean of the last 5, then over seeds, with its CI
     assert (out / "table.md").read_text().startswith("# controller_ablation")
     for png in ("learning_curves.png", "attitude.png", "optimization_progress.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"

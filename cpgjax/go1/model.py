@@ -182,10 +182,12 @@ def model_with_payload(payload_kg: float, physics: str = physics_profiles.DEFAUL
 
 
 def scenario_model(scenario: Scenario, i: int) -> mujoco.MjModel:
-    """The C-MuJoCo model of instance i: profile, payload, floor friction and gravity applied (a fresh copy)."""
+    """The C-MuJoCo model of instance i: profile, payload, floor friction (under the profile's friction rule,
+    ``physics.floor_friction``) and gravity applied (a fresh copy)."""
     m = model_with_payload(float(scenario.payload_kg[i]), str(scenario.physics[i]),
                            float(scenario.mass_scale[i])).__copy__()
-    m.geom_friction[indices().floor_geom, 0] = scenario.friction[i]
+    m.geom_friction[indices().floor_geom, 0] = physics_profiles.floor_friction(
+        physics_profiles.get(str(scenario.physics[i])), scenario.friction[i])
     m.opt.gravity[:] = gravity_vector(scenario.slope_deg[i])
     return m
 

@@ -6,7 +6,8 @@ A profile is data, chosen per instance (docs/decisions.md §15; every constant a
   damping, no joint friction, the foot force as the world-frame contact normal force at 1 kHz. Kept for comparison.
 * ``paper`` — the paper's Gazebo Go1 as closely as MuJoCo allows: near-rigid foot contact, the unitree_ros Gazebo
   joint damping and Coulomb friction, no reflected rotor inertia, Gazebo's velocity limits, and the paper's foot-force
-  signal: the z component of the contact force in the calf frame, sampled at 100 Hz and held between samples.
+  signal: the z component of the contact force in the calf frame, published at 100 Hz as the mean over the update's
+  in-contact steps (the unitree_ros foot contact plugin), and Gazebo's friction rule (the smaller μ of floor and foot).
 * ``go1`` — the best estimate of the real robot: reflected rotor inertia, joint friction, the DC-motor torque-speed
   envelope, actuation latency, and the foot sensor's int16 counts of the contact normal force.
 
@@ -44,9 +45,19 @@ class PhysicsProfile(NamedTuple):
     no_load_speed_rad_s: tuple[float, float, float]  # DC-motor envelope: motoring |τ| ≤ τ_stall (1 − |q̇|/ω₀)
     latency_ticks: int  # the torque applied at tick k is the command of tick k − latency
     foot_force_frame: str  # "contact": world-frame contact normal; "calf": z of the contact force in the calf frame
-    foot_force_period_ticks: int  # sample-and-hold period of the foot force (1: every tick; 10: 100 Hz)
+    foot_force_period_ticks: int  # update period of the foot force (1: every tick; 10: 100 Hz), held between updates
+    # True: each update reports the mean over the ticks since the last update in which the foot touched the floor
+    # (0 with no contact), as the unitree_ros foot contact plugin does; False: the force of the update tick.
+    foot_force_contact_mean: bool
+    # A foot touches the floor (for that mean) while its sphere is less than this above it: ODE keeps a contact
+    # within its contact_surface_layer without correcting it, so a stance foot moving inside the layer stays in
+    # contact there (0: only a penetrating foot, MuJoCo's contact).
+    foot_contact_layer_m: float
     foot_force_n_per_count: float  # > 0: the force is reported in int16 counts of this size (0: continuous)
     context_load_range_n: tuple[float, float]  # the c_load normalization range of this signal (decisions §11)
+    # Gazebo's friction rule: a contact's μ is the smaller of the two surfaces' (gazebo-classic ODEPhysics::Collide), so
+    # the floor's μ counts up to the feet's own; inf: MuJoCo's rule, the floor's μ (it has priority).
+    foot_friction: float
     # Sensor noise, drawn every tick independently per reading, uniform in ± the amplitude (0: none).
     joint_pos_noise_rad: float = 0.0  # each encoder angle
     joint_vel_noise_rad_s: float = 0.0  # each joint velocity
@@ -63,8 +74,10 @@ PROFILES: dict[str, PhysicsProfile] = {
         floor_solimp=_MUJOCO_DEFAULT_SOLIMP,
         armature_kg_m2=(0.01, 0.01, 0.01), damping_nm_s_rad=(0.05, 0.05, 0.05), frictionloss_nm=(0.0, 0.0, 0.0),
         velocity_limit_rad_s=(np.inf,) * 3, no_load_speed_rad_s=(np.inf,) * 3, latency_ticks=0,
-        foot_force_frame="contact", foot_force_period_ticks=1, foot_force_n_per_count=0.0,
-        context_load_range_n=(15.0, 75.0)),  # the world-frame normal reads ≈ 31 N standing: the widened range
+        foot_force_frame="contact", foot_force_period_ticks=1, foot_force_contact_mean=False,
+        foot_contact_layer_m=0.0, foot_force_n_per_count=0.0,
+        context_load_range_n=(15.0, 75.0),  # the world-frame normal reads ≈ 31 N standing: the widened range
+        foot_friction=np.inf),
     "paper": PhysicsProfile(
         # The stiffest reference MuJoCo integrates stably: time constant 2 Δt (MuJoCo clamps smaller ones to 2 Δt,
         # XML reference, flag/refsafe), critically damped; impedance near 1 so the force follows it (near-rigid,
@@ -74,8 +87,11 @@ PROFILES: dict[str, PhysicsProfile] = {
         damping_nm_s_rad=(0.01, 0.01, 0.01), frictionloss_nm=(0.2, 0.2, 0.2),  # unitree_ros go1_description
         velocity_limit_rad_s=(30.1, 30.1, 20.06),  # URDF joint velocity limits, applied as Gazebo does
         no_load_speed_rad_s=(np.inf,) * 3, latency_ticks=0,
-        foot_force_frame="calf", foot_force_period_ticks=10,  # unitree_ros foot contact plugin at 100 Hz
-        foot_force_n_per_count=0.0, context_load_range_n=(15.0, 55.0)),  # the paper's range
+        # unitree_ros foot contact plugin: 100 Hz, the mean over the update's in-contact physics steps
+        foot_force_frame="calf", foot_force_period_ticks=10, foot_force_contact_mean=True,
+        foot_contact_layer_m=0.001,  # unitree_gazebo earth.world: contact_surface_layer 0.001
+        foot_force_n_per_count=0.0, context_load_range_n=(15.0, 55.0),  # the paper's range
+        foot_friction=0.6),  # unitree_ros go1_description gazebo.xacro: the feet's mu1 = mu2 = 0.6
     "go1": PhysicsProfile(
         floor_solref=(0.02, 1.0), floor_solimp=_MUJOCO_DEFAULT_SOLIMP,  # no measured foot contact: MuJoCo's default
         # Rotor inertia 0.000111842 kg·m² (unitree_ros go1.urdf) × gear ratio² (6 hip and thigh, 9 knee: mjlab's Go1).
@@ -86,9 +102,10 @@ PROFILES: dict[str, PhysicsProfile] = {
         latency_ticks=2,  # SDK UDP round trip + motor driver, 1-2 ms: the upper end
         # The foot pad's pressure sensor, calibrated on the robot so that the four feet carry its weight standing
         # (docs/decisions.md §3): the contact normal force, in counts of the loopback simulated Go1's scale.
-        foot_force_frame="contact", foot_force_period_ticks=1,
-        foot_force_n_per_count=0.5,  # cpgjax.robot.sim_server.FOOT_FORCE_N_PER_COUNT
+        foot_force_frame="contact", foot_force_period_ticks=1, foot_force_contact_mean=False,
+        foot_contact_layer_m=0.0, foot_force_n_per_count=0.5,  # cpgjax.robot.sim_server.FOOT_FORCE_N_PER_COUNT
         context_load_range_n=(15.0, 75.0),  # a weight-calibrated signal: ≈ 31 N standing, ≈ 68 N with 15 kg
+        foot_friction=np.inf,  # MuJoCo's rule: the floor's μ
         # legged_gym's LeggedRobotCfg.noise.noise_scales (dof_pos, dof_vel, ang_vel, gravity), the proprioceptive
         # noise walk-these-ways uses for the Go1; no public Go1 foot-sensor noise figure: ±1 count, ours
         # (docs/physics.md).
@@ -130,6 +147,11 @@ def model_fields(profile: PhysicsProfile, floor_geom: int, joint_dof: np.ndarray
     return fields
 
 
+def floor_friction(profile: PhysicsProfile, friction):
+    """The sliding μ of a foot-floor contact on a floor of μ ``friction`` under ``profile``'s friction rule."""
+    return np.minimum(np.asarray(friction, np.float64), profile.foot_friction)
+
+
 def apply_to_model(model: mujoco.MjModel, profile: PhysicsProfile, floor_geom: int, joint_dof: np.ndarray) -> None:
     """Write the profile's model fields into a C-MuJoCo model (in place)."""
     for name, value in model_fields(profile, floor_geom, joint_dof, model).items():
@@ -147,6 +169,8 @@ class ProfileArrays(NamedTuple):
     latency_ticks: jax.Array  # () int32
     calf_frame: jax.Array  # () bool: the calf-frame z signal, else the contact normal
     force_period_ticks: jax.Array  # () int32
+    force_contact_mean: jax.Array  # () bool: each update reports the mean over its in-contact ticks
+    contact_layer_m: jax.Array  # () float32: a foot touches the floor within this clearance
     force_n_per_count: jax.Array  # () float32, 0: continuous
     noise: jax.Array  # (5,) float32, the noise amplitudes (joint pos, joint vel, gyro, tilt, foot force)
     noise_seed: jax.Array  # () uint32, this instance's noise stream
@@ -167,6 +191,8 @@ def arrays(profile: PhysicsProfile) -> ProfileArrays:
         latency_ticks=np.int32(profile.latency_ticks),
         calf_frame=np.bool_(profile.foot_force_frame == "calf"),
         force_period_ticks=np.int32(profile.foot_force_period_ticks),
+        force_contact_mean=np.bool_(profile.foot_force_contact_mean),
+        contact_layer_m=np.float32(profile.foot_contact_layer_m),
         force_n_per_count=np.float32(profile.foot_force_n_per_count),
         noise=np.array([profile.joint_pos_noise_rad, profile.joint_vel_noise_rad_s, profile.gyro_noise_rad_s,
                         profile.tilt_noise_rad, profile.foot_force_noise_n], np.float32),
@@ -197,7 +223,9 @@ def batch_arrays(names, latency_ticks=None, noise_scale=None, noise_seed=None) -
 class ActuatorSensorState(NamedTuple):
     """What the profile's sensor and motors remember between ticks (per instance)."""
 
-    held_force_n: jax.Array  # (4,) the foot force last sampled
+    held_force_n: jax.Array  # (4,) the foot force of the last update
+    force_sum_n: jax.Array  # (4,) the sum of the in-contact ticks' forces since the last update
+    contact_ticks: jax.Array  # (4,) float32, the in-contact ticks since the last update
     commands_nm: jax.Array  # (MAX_LATENCY_TICKS + 1, 12) the last commands, newest first
     tick: jax.Array  # () int32 ticks since the reset
 
@@ -274,15 +302,34 @@ def noise_draws(profile: ProfileArrays, tick: jax.Array) -> jax.Array:
 def init_state(force_n: jax.Array) -> ActuatorSensorState:
     """At a reset: the sensor holds the force of the reset state, the command queue is empty."""
     return ActuatorSensorState(held_force_n=jnp.asarray(force_n, jnp.float32),
+                               force_sum_n=jnp.zeros(4, jnp.float32), contact_ticks=jnp.zeros(4, jnp.float32),
                                commands_nm=jnp.zeros((MAX_LATENCY_TICKS + 1, constants.NUM_JOINTS), jnp.float32),
                                tick=jnp.zeros((), jnp.int32))
 
 
-def sample_and_hold(profile: ProfileArrays, state: ActuatorSensorState,
-                    force_n: jax.Array) -> tuple[ActuatorSensorState, jax.Array]:
-    """The force the controller reads at this tick: sampled every ``force_period_ticks`` ticks, held between."""
-    held = jnp.where(state.tick % profile.force_period_ticks == 0, force_n, state.held_force_n)
-    return state._replace(held_force_n=held), held
+def touching(profile: ProfileArrays, foot_clearance_m: jax.Array) -> jax.Array:
+    """(4,) bool: each foot within the profile's contact layer of the floor (clearance of the foot sphere [m],
+    negative when it penetrates)."""
+    return foot_clearance_m < profile.contact_layer_m
+
+
+def foot_sensor_update(profile: ProfileArrays, state: ActuatorSensorState, force_n: jax.Array,
+                       contact: jax.Array) -> tuple[ActuatorSensorState, jax.Array]:
+    """The force the controller reads at this tick (4,) [N], updated every ``force_period_ticks`` ticks and held
+    between updates.
+
+    An update reports the force of its own tick, or, with ``force_contact_mean``, the mean over the ticks since the
+    previous update (this one included) in which the foot was in ``contact`` (:func:`touching`), and 0 when it never
+    was: the unitree_ros foot contact plugin averages the contact entries collected since its last 100 Hz update.
+    """
+    touching = contact.astype(jnp.float32)
+    sums = state.force_sum_n + touching * force_n
+    ticks = state.contact_ticks + touching
+    update = state.tick % profile.force_period_ticks == 0
+    mean = jnp.where(ticks > 0, sums / jnp.maximum(ticks, 1.0), 0.0)
+    held = jnp.where(update, jnp.where(profile.force_contact_mean, mean, force_n), state.held_force_n)
+    return state._replace(held_force_n=held, force_sum_n=jnp.where(update, 0.0, sums),
+                          contact_ticks=jnp.where(update, 0.0, ticks)), held
 
 
 def actuate(profile: ProfileArrays, state: ActuatorSensorState, command_nm: jax.Array,

@@ -37,14 +37,16 @@ def measure(profile: physics.ProfileArrays, io: physics.ActuatorSensorState, qpo
             sensordata: jax.Array, gravity: jax.Array) -> tuple[physics.ActuatorSensorState, cpg.Observation]:
     """The observation under a physics profile: :func:`observe` with the profile's foot-force signal (contact normal
     or calf-frame z), its sensor noise (uniform, drawn every tick), the force counted when the sensor counts, and
-    sampled and held at the profile's rate."""
+    updated and held at the profile's rate (``physics.foot_sensor_update``)."""
     ids = go1_model.indices()
     obs = observe(qpos, qvel, sensordata, gravity)
     u = physics.noise_draws(profile, io.tick)
     amplitude = profile.noise
-    signal = physics.foot_force_signal(profile, qpos, sensordata[ids.foot_contact_data], ids.root_qpos,
-                                       ids.joint_qpos)
-    io, held = physics.sample_and_hold(profile, io, physics.count(profile, signal + amplitude[4] * u[29:33]))
+    contact_data = sensordata[ids.foot_contact_data]
+    signal = physics.foot_force_signal(profile, qpos, contact_data, ids.root_qpos, ids.joint_qpos)
+    clearance = foot_positions(qpos)[:, 2] - go1_model.FOOT_RADIUS_M
+    io, held = physics.foot_sensor_update(profile, io, physics.count(profile, signal + amplitude[4] * u[29:33]),
+                                          physics.touching(profile, clearance))
     # The IMU's orientation turned in the trunk frame about x and y by the tilt noise (rotation vector → quaternion;
     # sin(θ/2)/θ = sinc(θ/2π)/2 is finite at θ = 0).
     turn = amplitude[3] * jnp.concatenate([u[27:29], jnp.zeros(1, u.dtype)])

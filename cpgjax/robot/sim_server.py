@@ -22,6 +22,7 @@ UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``p
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import json
 import os
@@ -36,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from cpgjax import cpg
 from cpgjax.go1 import attitude, sensors
@@ -70,17 +72,20 @@ def motor_torque(cmd: proto.MotorCommand, q_rad, dq_rad_s):
     return jnp.clip(tau, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM)
 
 
-_IO_COMMANDS = (physics_profiles.MAX_LATENCY_TICKS + 1) * 12
-_IO_SIZE = 4 + _IO_COMMANDS + 1  # the profile's sensor and motor state as one float32 vector: force held | queue | tick
+@functools.cache
+def _io_unravel():
+    """The profile's sensor and motor state travels through the compiled steps as one float32 vector: its size and
+    the function that turns such a vector back into the state."""
+    vector, unravel = ravel_pytree(physics_profiles.init_state(np.zeros(4, np.float32)))
+    return vector.size, unravel
 
 
 def _io_vector(io: physics_profiles.ActuatorSensorState) -> jax.Array:
-    return jnp.concatenate([io.held_force_n, io.commands_nm.ravel(), io.tick.astype(jnp.float32)[None]])
+    return ravel_pytree(io)[0]
 
 
 def _io_state(v: jax.Array) -> physics_profiles.ActuatorSensorState:
-    return physics_profiles.ActuatorSensorState(v[:4], v[4:4 + _IO_COMMANDS].reshape(-1, 12),
-                                                v[-1].astype(jnp.int32))
+    return _io_unravel()[1](v)
 
 
 def command_vector(cmd: proto.MotorCommand) -> np.ndarray:
@@ -110,25 +115,26 @@ class Go1Physics:
         # float32 vector in and out (a compiled call costs per argument): one definition of what the robot senses and
         # how its motors respond.
         n_qpos, n_qvel = self.model.nq, self.model.nv
+        io_size = self._io_size = _io_unravel()[0]
 
         def drive(x):  # io | command (72) | q | dq → io | the motor law's τ | applied τ
-            io, c = _io_state(x[:_IO_SIZE]), x[_IO_SIZE:_IO_SIZE + 72].reshape(6, 12)
-            dq = x[_IO_SIZE + 84:]
-            torque = motor_torque(proto.MotorCommand(*c), x[_IO_SIZE + 72:_IO_SIZE + 84], dq)
+            io, c = _io_state(x[:io_size]), x[io_size:io_size + 72].reshape(6, 12)
+            dq = x[io_size + 84:]
+            torque = motor_torque(proto.MotorCommand(*c), x[io_size + 72:io_size + 84], dq)
             io, applied = physics_profiles.actuate(profile, io, torque, dq)
             return jnp.concatenate([_io_vector(io), torque, applied])
 
         def sense(x):  # io | qpos | qvel | sensordata → io | the LowState's sensor fields (_REPORT_SIZES)
-            io = _io_state(x[:_IO_SIZE])
-            qpos, qvel = x[_IO_SIZE:_IO_SIZE + n_qpos], x[_IO_SIZE + n_qpos:_IO_SIZE + n_qpos + n_qvel]
-            io, obs = sensors.measure(profile, io, qpos, qvel, x[_IO_SIZE + n_qpos + n_qvel:], gravity)
+            io = _io_state(x[:io_size])
+            qpos, qvel = x[io_size:io_size + n_qpos], x[io_size + n_qpos:io_size + n_qpos + n_qvel]
+            io, obs = sensors.measure(profile, io, qpos, qvel, x[io_size + n_qpos + n_qvel:], gravity)
             return jnp.concatenate([_io_vector(io), *_report(obs)])
 
         compile_for = lambda f, n: jax.jit(f).lower(np.zeros(n, np.float32)).compile()  # noqa: E731
-        self._drive = compile_for(drive, _IO_SIZE + 96)
-        self._sense = compile_for(sense, _IO_SIZE + n_qpos + n_qvel + self.model.nsensordata)
-        self._drive_in = np.zeros(_IO_SIZE + 96, np.float32)
-        self._sense_in = np.zeros(_IO_SIZE + n_qpos + n_qvel + self.model.nsensordata, np.float32)
+        self._drive = compile_for(drive, io_size + 96)
+        self._sense = compile_for(sense, io_size + n_qpos + n_qvel + self.model.nsensordata)
+        self._drive_in = np.zeros(io_size + 96, np.float32)
+        self._sense_in = np.zeros(io_size + n_qpos + n_qvel + self.model.nsensordata, np.float32)
         self.reset()
 
     def reset(self) -> None:
@@ -155,28 +161,28 @@ class Go1Physics:
             self.data.qpos[root:root + 7] = self.held_root_qpos
             self.data.qvel[dof:dof + 6] = 0.0
         x = self._drive_in
-        x[:_IO_SIZE] = self._io
-        x[_IO_SIZE:_IO_SIZE + 72] = cmd
-        x[_IO_SIZE + 72:_IO_SIZE + 84] = self.data.qpos[self.ids.joint_qpos]
-        x[_IO_SIZE + 84:] = self.data.qvel[self.ids.joint_dof]
+        x[:self._io_size] = self._io
+        x[self._io_size:self._io_size + 72] = cmd
+        x[self._io_size + 72:self._io_size + 84] = self.data.qpos[self.ids.joint_qpos]
+        x[self._io_size + 84:] = self.data.qvel[self.ids.joint_dof]
         out = np.asarray(self._drive(x))
-        self._io = out[:_IO_SIZE]
-        self.data.ctrl[self.ids.actuator] = out[_IO_SIZE + 12:]
+        self._io = out[:self._io_size]
+        self.data.ctrl[self.ids.actuator] = out[self._io_size + 12:]
         self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
         mujoco.mj_step(self.model, self.data)
-        return out[_IO_SIZE:_IO_SIZE + 12].astype(np.float64)
+        return out[self._io_size:self._io_size + 12].astype(np.float64)
 
     def sense(self) -> np.ndarray:
         """What the robot's sensors report now (the profile's sensor model: noise, the foot sensor's counting): its
         LowState fields (:data:`_REPORT_SIZES`) as one float64 vector, for :func:`robot_state`."""
         x, nq, nv = self._sense_in, self.model.nq, self.model.nv
-        x[:_IO_SIZE] = self._io
-        x[_IO_SIZE:_IO_SIZE + nq] = self.data.qpos
-        x[_IO_SIZE + nq:_IO_SIZE + nq + nv] = self.data.qvel
-        x[_IO_SIZE + nq + nv:] = self.data.sensordata
+        x[:self._io_size] = self._io
+        x[self._io_size:self._io_size + nq] = self.data.qpos
+        x[self._io_size + nq:self._io_size + nq + nv] = self.data.qvel
+        x[self._io_size + nq + nv:] = self.data.sensordata
         out = np.asarray(self._sense(x))
-        self._io = out[:_IO_SIZE]
-        return out[_IO_SIZE:].astype(np.float64)
+        self._io = out[:self._io_size]
+        return out[self._io_size:].astype(np.float64)
 
     def trunk_height_m(self) -> float:
         return float(self.data.qpos[self.ids.root_qpos + 2])

@@ -1,14 +1,20 @@
 """The paper's simulation results as studies of the lockstep engine (``cpgjax.ablation``): one entry per result.
 
 ======================  =======================================================================================
-``controller_ablation`` 4 controllers × 5 seeds × 40 trials at v* = 0.5 m/s: the controller table (mean of the
-                        last 5 trials, mean ± std over seeds) and the roll–pitch figure of the best parameters
+``controller_ablation`` 4 controllers × 20 seeds × 40 trials at v* = 0.5 m/s: the controller table (mean of the
+                        last 5 trials, mean and 95 % CI over seeds, tests against the paper's table and between
+                        controllers) and the roll–pitch figure of the best parameters
 ``load_adaptation``     payload 0 → 7.5 kg (trial 36) → 15 kg (trial 58): the load table, before/after adaptation
 ``friction``            friction 0.3 / 0.6 / 0.9 learning curves (paper Fig. sim_overview a)
 ``multi_velocity``      target 0.8 → 0.3 → 0.6 m/s with and without data reuse (Fig. sim_overview b)
 ``slope_adaptation``    slope 0° → 10° → 12.5° with contextual BO, then inference mode (β = 1e-6) on 10°…17.5°
                         (Fig. sim_overview c)
+``paper_hardware``      the paper's hardware experiments predicted under the ``go1`` profile: v* = 0.4 m/s on flat
+                        and on slippery ground (taped feet), 0.6 → 0.3 → 0.5 → 0.6 m/s, a 10° slope, 5 / 10 / 15 kg
 ======================  =======================================================================================
+
+The paper used 5 seeds; the studies default to 20 (``DEFAULT_SEEDS``), and every figure is a mean with its 95 %
+confidence interval over seeds (``cpgjax.study.stats``).
 
 Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures (the study's own and
 ``optimization_progress.png``: the best J so far and the parameters per group), ``best_params/``, ``trials.parquet``,
@@ -32,10 +38,12 @@ from cpgjax.sim import backends
 from cpgjax.study import figures as study_figures
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
+from cpgjax.study import stats
 from cpgjax.study.spec import Change, Schedule, StudySpec
 from cpgjax.trial import limits, objective, protocol
 
-DEFAULT_SEEDS = 5
+DEFAULT_SEEDS = 20  # the paper used 5 (its tables' std is over 5 seeds: PAPER_SEEDS)
+PAPER_SEEDS = 5
 QUICK_SEEDS = 2
 LAST_TRIALS = 5  # "averaging the outcomes of the last five trials"
 TRACKING_TOLERANCE_MPS = 0.05  # a target counts as tracked from the first trial with |v_x − v*| ≤ this, no fall
@@ -109,6 +117,38 @@ def slope_spec(seeds=None, trials=None, quick=False) -> StudySpec:
                      physics=PHYSICS)
 
 
+HARDWARE_TARGET_MPS = 0.4  # the paper's hardware experiments track 0.4 m/s (except the velocity schedule)
+# The paper's "slippery terrain (i.e. taped feet)" gives no μ: ours is the paper's slippery floor in simulation (0.3).
+TAPED_FEET_FRICTION = 0.3
+HARDWARE_VELOCITIES_MPS = (0.6, 0.3, 0.5, 0.6)
+HARDWARE_LOADS_KG = (0.0, 5.0, 10.0, 15.0)
+PAPER_HARDWARE_COT = {  # paper Sec. "Hardware Experiments": CoT ≈ these once tracked
+    "flat 0.4 m/s": 0.8, "taped feet 0.4 m/s": 0.95,
+    "0.6→0.3→0.5→0.6 m/s": {0.6: 0.95, 0.3: 0.70, 0.5: 0.90},
+}
+PAPER_HARDWARE_SLOPE_TRIALS = 20  # "stabilizes around this target once more within approximately 20 trials"
+
+
+def hardware_spec(seeds=None, trials=None, quick=False) -> StudySpec:
+    """The paper's hardware experiments as one study under the ``go1`` profile: a prediction of the robot. Flat
+    ground and taped feet at 0.4 m/s; 0.6 → 0.3 → 0.5 → 0.6 m/s in equal phases; flat, then 10° from the middle on
+    (the robot learned flat ground first); flat, then 5, 10 and 15 kg added in equal phases over the second half."""
+    n = trials or (24 if quick else 60)
+    quarter, half = n // 4, n // 2
+    loads = [Change(half + k * (n - half) // 3, "payload_kg", kg) for k, kg in enumerate(HARDWARE_LOADS_KG[1:])]
+    schedules = (
+        Schedule("flat 0.4 m/s"),
+        Schedule("taped feet 0.4 m/s", (Change(0, "friction", TAPED_FEET_FRICTION),)),
+        Schedule("0.6→0.3→0.5→0.6 m/s", tuple(Change(k * quarter, "target_velocity_mps", v)
+                                              for k, v in enumerate(HARDWARE_VELOCITIES_MPS))),
+        Schedule("flat → 10°", (Change(half, "slope_deg", 10.0),)),
+        Schedule("0→5→10→15 kg", tuple(loads)),
+    )
+    return StudySpec("paper_hardware", num_trials=n, seeds=_seeds(seeds, quick),
+                     target_velocity_mps=(HARDWARE_TARGET_MPS,), schedules=schedules, group_by=("schedule",),
+                     physics=(physics_profiles.ROBOT_PROFILE,))
+
+
 # ----------------------------------------------------------------------------------------------- analysis helpers
 
 def last_mean(values: np.ndarray, stop: int, k: int = LAST_TRIALS) -> np.ndarray:
@@ -116,8 +156,9 @@ def last_mean(values: np.ndarray, stop: int, k: int = LAST_TRIALS) -> np.ndarray
     return np.asarray(values)[max(stop - k, 0):stop].mean(axis=0)
 
 
-def mean_std(values: np.ndarray) -> str:
-    return f"{np.mean(values):.3f} ± {np.std(values):.3f}"
+def mean_ci(values: np.ndarray) -> str:
+    """Mean over seeds with its 95 % confidence interval, as "mean [low, high]"."""
+    return str(stats.mean_ci(values))
 
 
 def phase_starts(values: np.ndarray) -> list[int]:
@@ -194,11 +235,12 @@ def report_ablation(result, out: pathlib.Path, backend: str):
             continue
         v, cot, j = (last_mean(x[:, m], n) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
         p = PAPER_CONTROLLER_TABLE[c]
-        rows.append(f"| {c} | {mean_std(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {mean_std(cot)} | "
-                    f"{p[1][0]:.3f} ± {p[1][1]:.3f} | {mean_std(j)} | {p[2][0]:.3f} ± {p[2][1]:.3f} | "
+        rows.append(f"| {c} | {mean_ci(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {mean_ci(cot)} | "
+                    f"{p[1][0]:.3f} ± {p[1][1]:.3f} | {mean_ci(j)} | {p[2][0]:.3f} ± {p[2][1]:.3f} | "
                     f"{int(tr.fell[:, m].sum())}/{tr.fell[:, m].size} |")
-    text = (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then mean ± "
-            f"std over {len(result.spec.seeds)} seeds.\n\n" + "\n".join(rows) + "\n")
+    text = (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then mean "
+            f"[95 % CI] over {len(result.spec.seeds)} seeds; the paper's mean ± std over {PAPER_SEEDS} seeds.\n\n"
+            + "\n".join(rows) + "\n" + ablation_verdicts(result))
     study_figures.learning_curves(out / "learning_curves.png", result, "controller")
     picks = [c for c in ("open_loop", "vmc_tegotae") if (controllers == c).any()]
     logs = {}
@@ -217,6 +259,50 @@ def report_ablation(result, out: pathlib.Path, backend: str):
     return text, logs
 
 
+def _final(result, metric: str, mask: np.ndarray) -> np.ndarray:
+    """Per-run mean of the last LAST_TRIALS trials of a metric (velocity, cot, objective) for the runs in mask."""
+    tr, n = result.trials, result.trials.objective.shape[0]
+    values = {"velocity": tr.velocity_xy_mps[..., 0], "cot": tr.cot, "objective": tr.objective}[metric]
+    return last_mean(values[:, mask], n)
+
+
+def ablation_verdicts(result) -> str:
+    """Ours against the paper's table (Welch's test from its mean ± std over 5 seeds), and the controllers against
+    each other (Welch and Mann–Whitney on our seeds): the effect, its 95 % interval and the p-values."""
+    controllers = _labels(result, "controller")
+    present = [c for c in cpg.CONTROLLERS if (controllers == c).sum() >= 2]
+    lines = ["", "Ours − paper (Welch's test from the paper's mean ± std, n = 5):", "",
+             "| controller | CoT | J |", "|---|---|---|"]
+    for c in present:
+        p = PAPER_CONTROLLER_TABLE[c]
+        cells = [stats.compare_to_summary(_final(result, m, controllers == c), *p[k], PAPER_SEEDS)
+                 for k, m in ((1, "cot"), (2, "objective"))]
+        lines.append(f"| {c} | {cells[0]} | {cells[1]} |")
+    pairs = [(a, b) for a, b in (("tegotae", "open_loop"), ("vmc_tegotae", "vmc"), ("vmc", "open_loop"),
+                                 ("vmc_tegotae", "tegotae")) if a in present and b in present]
+    if pairs:
+        lines += ["", "Between controllers (ours; Welch's t and Mann–Whitney U, two-sided):", "",
+                  "| comparison | CoT | J |", "|---|---|---|"]
+        for a, b in pairs:
+            cells = [stats.compare(_final(result, m, controllers == a), _final(result, m, controllers == b))
+                     for m in ("cot", "objective")]
+            lines.append(f"| {a} − {b} | {cells[0]} | {cells[1]} |")
+    return "\n".join(lines) + "\n"
+
+
+def phase_diagnostics(result, start: int, stop: int) -> str:
+    """One phase's falls, the spread of c_load over its trials (std per run, mean over runs) against the same-context
+    tolerance t_load·r_load, the trials that used β_init,c and the range of β."""
+    tr = result.trials
+    steady = tr.fell[start:stop] == 0
+    c_load = np.where(steady, tr.context[start:stop, :, 0], np.nan)
+    spread = np.nanmean(np.nanstd(c_load, axis=0)) if steady.any() else np.nan
+    beta = tr.beta[start:stop]
+    return (f"{int(tr.fell[start:stop].sum())}/{tr.fell[start:stop].size} | {np.nanmean(c_load):.1f} | {spread:.1f} | "
+            f"{int(tr.context_changed[start:stop].sum())}/{tr.context_changed[start:stop].size} | "
+            f"{beta.min():.2g} – {beta.max():.2g}")
+
+
 def report_load(result, out: pathlib.Path, backend: str):
     tr, cond = result.trials, result.conditions
     starts = phase_starts(cond.payload_kg[0]) + [tr.objective.shape[0]]
@@ -225,7 +311,11 @@ def report_load(result, out: pathlib.Path, backend: str):
                      for b in range(len(result.labels))])
     rows = ["| load [kg] | velocity ours (flat optimum) | paper | CoT ours (flat optimum) | paper | "
             "J ours (flat optimum) | paper |", "|---|---|---|---|---|---|---|"]
-    for load, stop in zip(loads, starts[1:]):
+    config = result.spec.optimizer_config()
+    tolerance = config.context_thresholds[0] * (config.context_upper[0] - config.context_lower[0])  # eq. (14)
+    phases = ["| load [kg] (trials) | falls | c_load [N] | c_load spread within a run [N] (same-context tolerance "
+              f"t_load·r_load = {tolerance:g} N) | trials with β_init,c | β |", "|---|---|---|---|---|---|"]
+    for load, start, stop in zip(loads, starts[:-1], starts[1:]):
         after = [last_mean(x, stop) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective)]
         before = None
         if load > 0:
@@ -234,15 +324,17 @@ def report_load(result, out: pathlib.Path, backend: str):
         paper_after, paper_before = PAPER_LOAD_TABLE.get(load, (None, None))
         cells = []
         for k in range(3):
-            ours = f"{np.mean(after[k]):.3f}" + (f" ({np.mean(before[k]):.3f})" if before is not None else " (-)")
+            ours = mean_ci(after[k]) + (f" ({mean_ci(before[k])})" if before is not None else " (-)")
             paper = "" if paper_after is None else f"{paper_after[k]:.3f}" + (
                 f" ({paper_before[k]:.3f})" if paper_before else " (-)")
             cells += [ours, paper]
         rows.append(f"| {load:g} | " + " | ".join(cells) + " |")
-    text = (f"Load adaptation, v* = 0.5 m/s, payload changes at trials {starts[1:-1]} of {starts[-1]}; after: mean of "
-            f"the last {LAST_TRIALS} trials of each phase over {len(result.spec.seeds)} seeds; in parentheses: the "
-            "best parameters found before the first payload change, re-run on the loaded robot.\n\n"
-            + "\n".join(rows) + "\n")
+        phases.append(f"| {load:g} ({start}–{stop - 1}) | {phase_diagnostics(result, start, stop)} |")
+    text = (f"Load adaptation, v* = 0.5 m/s, payload changes at trials {starts[1:-1]} of {starts[-1]}; after: mean "
+            f"[95 % CI] of the last {LAST_TRIALS} trials of each phase over {len(result.spec.seeds)} seeds; in "
+            "parentheses: the best parameters found before the first payload change, re-run on the loaded robot. The "
+            "paper gives no spread for this table.\n\n" + "\n".join(rows) + "\n\nPer phase:\n\n"
+            + "\n".join(phases) + "\n")
     study_figures.learning_curves(out / "load_adaptation.png", result, "schedule", changes=starts[1:-1],
                                   context_index=0)
     return text, representative_rollout(result, backend)
@@ -257,14 +349,28 @@ def report_friction(result, out: pathlib.Path, backend: str):
         m = friction == f
         j = tr.objective[:, m]
         first = [int(np.argmax(j[:, b] >= 0.9 * j[:, b].max())) + 1 for b in range(j.shape[1])]
-        rows.append(f"| {f} | " + " | ".join(mean_std(last_mean(x[:, m], n)) for x in
+        rows.append(f"| {f} | " + " | ".join(mean_ci(last_mean(x[:, m], n)) for x in
                                             (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
-                    + f" | {mean_std(first)} |")
-    text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, mean ± std over "
+                    + f" | {mean_ci(first)} |")
+    text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, mean [95 % CI] over "
             f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
-            "(no table).\n\n" + "\n".join(rows) + "\n")
+            "(no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction"))
     study_figures.learning_curves(out / "friction.png", result, "friction")
     return text, representative_rollout(result, backend)
+
+
+def _versus(result, labels: np.ndarray, reference, name: str) -> str:
+    """Each group's final CoT and J against the reference group's (Welch's t and Mann–Whitney U on the seeds)."""
+    ref = labels == reference
+    others = [g for g in dict.fromkeys(labels.tolist()) if g != reference and (labels == g).sum() >= 2]
+    if ref.sum() < 2 or not others:
+        return ""
+    lines = ["", f"Against {name} = {reference} (Welch's t and Mann–Whitney U, two-sided):", "",
+             f"| {name} | CoT | J |", "|---|---|---|"]
+    for g in others:
+        cells = [stats.compare(_final(result, m, labels == g), _final(result, m, ref)) for m in ("cot", "objective")]
+        lines.append(f"| {g} − {reference} | {cells[0]} | {cells[1]} |")
+    return "\n".join(lines) + "\n"
 
 
 def trials_to_track(velocity: np.ndarray, target: np.ndarray, fell: np.ndarray, start: int, stop: int) -> float:
@@ -273,13 +379,18 @@ def trials_to_track(velocity: np.ndarray, target: np.ndarray, fell: np.ndarray, 
     return float(np.argmax(ok) + 1) if ok.any() else np.nan
 
 
+def _finite_counts(counts: np.ndarray) -> np.ndarray:
+    return counts[np.isfinite(counts)]
+
+
 def report_multi_velocity(result, out: pathlib.Path, backend: str):
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
     starts = phase_starts(cond.target_velocity_mps[0]) + [n]
     reuse = _labels(result, "data_reuse")
-    rows = ["| target [m/s] (trials) | data reuse | trials to track (mean, never-tracked runs) | final velocity | "
-            "final CoT |", "|---|---|---|---|---|"]
+    rows = ["| target [m/s] (trials) | data reuse | trials to track (mean [95 % CI] of the runs that track, "
+            "never-tracked runs) | final velocity | final CoT |", "|---|---|---|---|---|"]
+    tracked = {}
     for s, e in zip(starts[:-1], starts[1:]):
         target = float(cond.target_velocity_mps[0, s])
         for flag in result.spec.data_reuse:
@@ -287,14 +398,22 @@ def report_multi_velocity(result, out: pathlib.Path, backend: str):
             counts = np.array([trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b],
                                                s, e) for b in bs])
             never = int(np.isnan(counts).sum())
-            mean = np.nanmean(counts) if never < len(counts) else np.nan
-            rows.append(f"| {target:g} ({s}–{e - 1}) | {'yes' if flag else 'no (restart)'} | {mean:.1f} ({never}) | "
-                        f"{mean_std(last_mean(tr.velocity_xy_mps[:, bs, 0], e))} | "
-                        f"{mean_std(last_mean(tr.cot[:, bs], e))} |")
+            tracked[(s, flag)] = counts
+            rows.append(f"| {target:g} ({s}–{e - 1}) | {'yes' if flag else 'no (restart)'} | "
+                        f"{stats.mean_ci(counts)} ({never}) | "
+                        f"{mean_ci(last_mean(tr.velocity_xy_mps[:, bs, 0], e))} | "
+                        f"{mean_ci(last_mean(tr.cot[:, bs], e))} |")
     text = (f"Multi-velocity tracking: a target counts as tracked from the first trial with |v_x − v*| ≤ "
             f"{TRACKING_TOLERANCE_MPS} m/s and no fall; final = mean of the last {LAST_TRIALS} trials of the phase; "
             f"{len(result.spec.seeds)} seeds. Paper: fewer trials after each change with data reuse (figure only).\n\n"
             + "\n".join(rows) + "\n")
+    if set(result.spec.data_reuse) == {True, False}:
+        lines = ["", "Trials to track, reuse − restart (runs that track; Welch's t and Mann–Whitney U):", ""]
+        for s in starts[1:-1]:
+            a, b = _finite_counts(tracked[(s, True)]), _finite_counts(tracked[(s, False)])
+            verdict = stats.compare(a, b) if min(a.size, b.size) >= 2 else "too few tracking runs"
+            lines.append(f"- {float(cond.target_velocity_mps[0, s]):g} m/s (from trial {s}): {verdict}")
+        text += "\n".join(lines) + "\n"
     study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse", changes=starts[1:-1],
                                   target=cond.target_velocity_mps[0])
     return text, representative_rollout(result, backend)
@@ -308,7 +427,7 @@ def report_slope(result, out: pathlib.Path, backend: str):
     rows = ["| slope [deg] (trials) | velocity | CoT | J | c_slope [rad] | falls |", "|---|---|---|---|---|---|"]
     for s, e in zip(starts[:-1], starts[1:]):
         rows.append(f"| {cond.slope_deg[0, s]:g} ({s}–{e - 1}) | " + " | ".join(
-            mean_std(last_mean(x, e)) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective, tr.context[..., 1]))
+            mean_ci(last_mean(x, e)) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective, tr.context[..., 1]))
             + f" | {int(tr.fell[s:e].sum())} |")
     text = (f"Slope adaptation, v* = 0.5 m/s, contextual BO; last {LAST_TRIALS} trials of each phase, "
             f"{len(result.spec.seeds)} seeds.\n\n" + "\n".join(rows) + "\n")
@@ -319,11 +438,48 @@ def report_slope(result, out: pathlib.Path, backend: str):
         for s, e in zip(bounds[:-1], bounds[1:]):
             slope = float(cond.slope_deg[0, s])
             paper = "walks" if slope <= 15.0 else "not reported as walking"
-            rows.append(f"| {slope:g} | {mean_std(tr.velocity_xy_mps[s:e, :, 0])} | {mean_std(tr.objective[s:e])} | "
+            rows.append(f"| {slope:g} | {mean_ci(tr.velocity_xy_mps[s:e, :, 0])} | {mean_ci(tr.objective[s:e])} | "
                         f"{int(tr.fell[s:e].sum())}/{tr.fell[s:e].size} | {paper} |")
         text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{n - 1}:\n\n" + "\n".join(rows) + "\n")
     study_figures.learning_curves(out / "slope_adaptation.png", result, "schedule", changes=starts[1:],
                                   context_index=1)
+    return text, representative_rollout(result, backend)
+
+
+def report_hardware(result, out: pathlib.Path, backend: str):
+    tr, cond = result.trials, result.conditions
+    n = tr.objective.shape[0]
+    schedules = _labels(result, "schedule")
+    rows = ["| schedule | phase (trials) | v* [m/s] | v_x [m/s] | CoT | J | falls | trials to track after the change "
+            "(runs never tracking) | paper |", "|---|---|---|---|---|---|---|---|---|"]
+    for label in dict.fromkeys(schedules):
+        bs = np.flatnonzero(schedules == label)
+        b0 = bs[0]
+        fields = np.stack([cond.friction[b0], cond.slope_deg[b0], cond.payload_kg[b0], cond.target_velocity_mps[b0]])
+        starts = [0] + [t for t in range(1, n) if np.any(fields[:, t] != fields[:, t - 1])] + [n]
+        for s, e in zip(starts[:-1], starts[1:]):
+            target = float(cond.target_velocity_mps[b0, s])
+            phase = (f"μ {cond.friction[b0, s]:g}, {cond.slope_deg[b0, s]:g}°, {cond.payload_kg[b0, s]:g} kg "
+                     f"({s}–{e - 1})")
+            counts = np.array([trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b],
+                                               s, e) for b in bs])
+            never = int(np.isnan(counts).sum())
+            track = f"{stats.mean_ci(counts)} ({never})" if never < len(counts) else f"— ({never})"
+            paper = PAPER_HARDWARE_COT.get(label)
+            if isinstance(paper, dict):
+                paper = paper.get(target)
+            paper_text = f"CoT ≈ {paper:g}" if isinstance(paper, float) else ""
+            if label == "flat → 10°" and s > 0:
+                paper_text = f"tracked again within ≈ {PAPER_HARDWARE_SLOPE_TRIALS} trials"
+            rows.append(f"| {label} | {phase} | {target:g} | " + " | ".join(
+                mean_ci(last_mean(x[:, bs], e)) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
+                + f" | {int(tr.fell[s:e, bs].sum())}/{tr.fell[s:e, bs].size} | {track} | {paper_text} |")
+    text = (f"The paper's hardware experiments predicted under the `{result.labels[0]['physics']}` profile; per phase: "
+            f"mean [95 % CI] of its last {LAST_TRIALS} trials over {len(result.spec.seeds)} seeds; tracked: the first "
+            f"trial with |v_x − v*| ≤ {TRACKING_TOLERANCE_MPS} m/s and no fall. Taped feet: floor μ "
+            f"{TAPED_FEET_FRICTION:g} (the paper gives none). The paper's figures are from one robot run each.\n\n"
+            + "\n".join(rows) + "\n")
+    study_figures.learning_curves(out / "paper_hardware.png", result, "schedule")
     return text, representative_rollout(result, backend)
 
 
@@ -340,6 +496,8 @@ STUDIES = {s.name: s for s in (
     Study("friction", friction_spec, report_friction, "friction 0.3 / 0.6 / 0.9 learning curves"),
     Study("multi_velocity", multi_velocity_spec, report_multi_velocity, "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
     Study("slope_adaptation", slope_spec, report_slope, "0° → 10° → 12.5°, then inference mode on 10°…17.5°"),
+    Study("paper_hardware", hardware_spec, report_hardware,
+          "the hardware experiments under go1: flat, taped feet, 0.6→0.3→0.5→0.6 m/s, 10°, 5/10/15 kg"),
 
 )}
 

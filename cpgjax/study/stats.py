@@ -1,0 +1,133 @@
+"""The statistics behind every "agrees" and "differs" of a study: means with 95 % confidence intervals, and two-sample
+comparisons with an effect size, its confidence interval and a test (SciPy's).
+
+* :func:`mean_ci` — the mean over seeds with the Student-t 95 % interval.
+* :func:`compare` — two independent groups (e.g. two controllers, or ours against the paper's summary): the difference
+  of means with the Welch–Satterthwaite 95 % interval, Welch's t-test and, on raw samples, Mann–Whitney's U test.
+* :func:`compare_to_summary` — our seeds against a published mean ± std over n seeds (the paper gives no raw data):
+  Welch's test from the two summaries.
+* :func:`paired` — one change on the same instances (e.g. one physics component swapped): the mean paired difference
+  with its t interval and the Wilcoxon signed-rank test.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from scipy import stats
+
+CONFIDENCE = 0.95
+ALPHA = 1.0 - CONFIDENCE
+
+
+class Interval(NamedTuple):
+    mean: float
+    low: float
+    high: float
+    n: int
+
+    def __str__(self) -> str:
+        return f"{self.mean:.3f} [{self.low:.3f}, {self.high:.3f}]"
+
+
+class Comparison(NamedTuple):
+    """a − b: the difference of means, its 95 % interval, and two tests' two-sided p-values: a t-test (Welch's, or
+    the paired one) and a rank test (Mann–Whitney's U, or Wilcoxon's signed rank for pairs)."""
+
+    difference: float
+    low: float
+    high: float
+    t_p: float
+    rank_p: float  # NaN where only summaries are known
+    n_a: int
+    n_b: int
+    tests: tuple[str, str] = ("Welch", "Mann–Whitney")
+
+    @property
+    def differs(self) -> bool:
+        """The t-test rejects equal means at the 5 % level."""
+        return bool(self.t_p < ALPHA)
+
+    def __str__(self) -> str:
+        rank = "" if np.isnan(self.rank_p) else f", {self.tests[1]} p = {self.rank_p:.2g}"
+        n = f"n = {self.n_a}" if self.tests[0] == "paired t" else f"n = {self.n_a}, {self.n_b}"
+        return (f"Δ = {self.difference:+.3f} [{self.low:+.3f}, {self.high:+.3f}], {self.tests[0]} p = "
+                f"{self.t_p:.2g}{rank} ({n})")
+
+
+def _finite(values) -> np.ndarray:
+    x = np.asarray(values, np.float64).ravel()
+    return x[np.isfinite(x)]
+
+
+def mean_ci(values) -> Interval:
+    """Mean and Student-t 95 % interval of the finite values (the interval is the mean itself for one value)."""
+    x = _finite(values)
+    if x.size == 0:
+        return Interval(np.nan, np.nan, np.nan, 0)
+    m = float(np.mean(x))
+    if x.size < 2:
+        return Interval(m, m, m, 1)
+    half = float(stats.t.ppf(1.0 - ALPHA / 2, x.size - 1) * np.std(x, ddof=1) / np.sqrt(x.size))
+    return Interval(m, m - half, m + half, int(x.size))
+
+
+def _welch(mean_a, var_a, n_a, mean_b, var_b, n_b) -> tuple[float, float, float, float]:
+    """(difference, low, high, p) of Welch's test from the groups' means, sample variances and sizes."""
+    se2 = var_a / n_a + var_b / n_b
+    diff = mean_a - mean_b
+    if se2 == 0.0:
+        return diff, diff, diff, (1.0 if diff == 0.0 else 0.0)
+    dof = se2 ** 2 / ((var_a / n_a) ** 2 / (n_a - 1) + (var_b / n_b) ** 2 / (n_b - 1))
+    half = float(stats.t.ppf(1.0 - ALPHA / 2, dof) * np.sqrt(se2))
+    p = float(2.0 * stats.t.sf(abs(diff) / np.sqrt(se2), dof))
+    return diff, diff - half, diff + half, p
+
+
+def compare(a, b) -> Comparison:
+    """Two independent samples (e.g. two controllers' final J over seeds): mean(a) − mean(b) with its Welch 95 %
+    interval, Welch's t-test and Mann–Whitney's U test (both two-sided)."""
+    x, y = _finite(a), _finite(b)
+    if x.size < 2 or y.size < 2:
+        raise ValueError(f"compare needs at least 2 finite values per group, got {x.size} and {y.size}")
+    diff, low, high, p = _welch(x.mean(), x.var(ddof=1), x.size, y.mean(), y.var(ddof=1), y.size)
+    mw = float(stats.mannwhitneyu(x, y, alternative="two-sided").pvalue)
+    return Comparison(diff, low, high, p, mw, int(x.size), int(y.size))
+
+
+def compare_to_summary(a, mean_b: float, std_b: float, n_b: int) -> Comparison:
+    """Our samples ``a`` against a published mean ± std over ``n_b`` seeds: Welch's test from the summaries (the
+    published std is taken as the sample std)."""
+    x = _finite(a)
+    if x.size < 2 or n_b < 2:
+        raise ValueError(f"compare_to_summary needs at least 2 values per group, got {x.size} and {n_b}")
+    diff, low, high, p = _welch(x.mean(), x.var(ddof=1), x.size, mean_b, std_b ** 2, n_b)
+    return Comparison(diff, low, high, p, np.nan, int(x.size), int(n_b))
+
+
+def paired(a, b) -> Comparison:
+    """The same instances under two settings: mean(a − b) with its t 95 % interval, the paired t-test's p and the
+    Wilcoxon signed-rank test's; pairs with a non-finite value are dropped."""
+    a, b = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"paired samples need the same length, got {a.size} and {b.size}")
+    keep = np.isfinite(a) & np.isfinite(b)
+    d = a[keep] - b[keep]
+    if d.size < 2:
+        raise ValueError(f"paired needs at least 2 finite pairs, got {d.size}")
+    ci = mean_ci(d)
+    pair_tests = ("paired t", "Wilcoxon")
+    if np.all(d == 0.0):
+        return Comparison(0.0, 0.0, 0.0, 1.0, 1.0, int(d.size), int(d.size), pair_tests)
+    t_p = float(stats.ttest_1samp(d, 0.0).pvalue)
+    w_p = float(stats.wilcoxon(d).pvalue)
+    return Comparison(ci.mean, ci.low, ci.high, t_p, w_p, int(d.size), int(d.size), pair_tests)
+
+
+def proportion_ci(successes: int, trials: int) -> Interval:
+    """A proportion with its Clopper–Pearson (exact) 95 % interval."""
+    if trials <= 0:
+        return Interval(np.nan, np.nan, np.nan, 0)
+    ci = stats.binomtest(int(successes), int(trials)).proportion_ci(CONFIDENCE, method="exact")
+    return Interval(successes / trials, float(ci.low), float(ci.high), int(trials))
