@@ -3,7 +3,8 @@
 Each repeat starts `cpgjax optimize --trials N --backend native` in a fresh folder and sends SIGINT at a uniformly
 random moment after the first checkpoint, within 90 % of the time the remaining trials took in one
 uninterrupted run measured first. A clean stop is exit status 130, a checkpoint that reads back, no traceback, and
-either a `resume with:` line or, for a Ctrl-C after the last trial, every output written. A run that ended before its signal was due is
+either a `resume with:` line or, for a Ctrl-C after the last trial, every output written. A run that ended before its signal was due, and one
+whose signal came as the finished process exited (exit 0, every output written: the teardown ignores Ctrl-C), are
 counted apart. Prints one JSON line with the counts.
 
     JAX_PLATFORMS=cpu python benchmarks/ctrl_c.py --repeats 20
@@ -66,8 +67,8 @@ def main() -> None:
         first = first_checkpoint_s(probe, work / "probe")
         probe.communicate(timeout=900)
         total = time.monotonic() - t0
-        counts = {"stopped_resumable": 0, "stopped_outputs_written": 0, "ended_before_the_signal": 0, "failed": 0,
-                  "lost_interrupt_messages": 0}
+        counts = {"stopped_resumable": 0, "stopped_outputs_written": 0, "exited_0_outputs_written": 0,
+                  "ended_before_the_signal": 0, "failed": 0, "lost_interrupt_messages": 0}
         failures = []
         for k in range(args.repeats):
             out = work / f"run{k}"
@@ -91,6 +92,8 @@ def main() -> None:
                 counts["stopped_resumable"] += 1
             elif proc.returncode == 130 and saved and (out / "recording.rrd").exists() and not traceback:
                 counts["stopped_outputs_written"] += 1
+            elif proc.returncode == 0 and (out / "recording.rrd").exists() and not traceback:
+                counts["exited_0_outputs_written"] += 1  # the signal came as the finished process exited
             else:
                 counts["failed"] += 1
                 failures.append({"run": k, "status": proc.returncode, "stderr": err[-600:]})

@@ -265,14 +265,6 @@ class _CtrlC:
         return self._previous is signal.default_int_handler
 
 
-def _exit_interrupted(signum, frame):
-    """Ctrl-C while the `cpgjax` process exits after its command (its outputs written and flushed here): exit 130
-    at once instead of a KeyboardInterrupt in the interpreter's teardown (exit by signal, or an ignored exception)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(INTERRUPTED)
-
-
 def _progress_printer(stream=None, ctrl_c: _CtrlC | None = None):
     """The live progress display: trials done, best J per group, env-steps/s, ETA (one rewritten line on a
     terminal). The first trial of a run compiles, so the pace and the ETA come from the trials after it. After each
@@ -994,7 +986,10 @@ def main(argv=None) -> int:
         _notice(f"cpgjax {args.command}: interrupted as it finished; its outputs are written")
         code = INTERRUPTED
     if as_command and args.ctrl_c.installed:
-        signal.signal(signal.SIGINT, _exit_interrupted)
+        # The command is done and its outputs written. Python's teardown resets a Python-level handler to the
+        # default, and a Ctrl-C then kills the exiting process by the signal; ignored, the exit status stays the
+        # command's.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     return code
 
 
