@@ -4,9 +4,8 @@ deploy calibrate); each command's function takes the parsed options."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
-import io
+import ipaddress
 import json
 import os
 import pathlib
@@ -17,38 +16,26 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 
-def _import_mjx_without_its_warp_probe() -> None:
-    """Import ``mujoco.mjx`` with the two lines its import prints to stdout when NVIDIA Warp is absent ("Failed to
-    import warp…", always so on a CPU) dropped, so they cannot land in a redirected output; other output passes."""
-    probe = io.StringIO()
-    with contextlib.redirect_stdout(probe):
-        import mujoco.mjx  # noqa: F401
-    sys.stdout.write("".join(line for line in probe.getvalue().splitlines(keepends=True)
-                             if not line.startswith(("Failed to import warp:", "Failed to import mujoco_warp:"))))
-
-
-_import_mjx_without_its_warp_probe()
-
-import numpy as np  # noqa: E402
-
-import cpgjax  # noqa: E402
-from cpgjax import ablation, cpg  # noqa: E402
-from cpgjax.go1 import physics as physics_profiles  # noqa: E402
-from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, tick_log, trials  # noqa: E402
-from cpgjax.robot import safety as go1_safety  # noqa: E402
-from cpgjax.robot import transport as go1_transport  # noqa: E402
-from cpgjax.sim import backends, walk  # noqa: E402
-from cpgjax.study import files as study_io  # noqa: E402
-from cpgjax.study import launch as study_launch  # noqa: E402
-from cpgjax.study import registry as studies  # noqa: E402
-from cpgjax.study import spec as study_spec  # noqa: E402
-from cpgjax.study import transfer  # noqa: E402
-from cpgjax.study import video as study_video  # noqa: E402
-from cpgjax.study import viewer as study_viewer  # noqa: E402
-from cpgjax.trial import limits  # noqa: E402
-from cpgjax.trial import params as param_space  # noqa: E402
-from cpgjax.trial import protocol  # noqa: E402
+import cpgjax
+from cpgjax import ablation, cpg
+from cpgjax.go1 import physics as physics_profiles
+from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, tick_log
+from cpgjax.robot import safety as go1_safety
+from cpgjax.robot import transport as go1_transport
+from cpgjax.sim import backends, walk
+from cpgjax.study import files as study_io
+from cpgjax.study import launch as study_launch
+from cpgjax.study import registry as studies
+from cpgjax.study import spec as study_spec
+from cpgjax.study import transfer
+from cpgjax.study import video as study_video
+from cpgjax.study import viewer as study_viewer
+from cpgjax.trial import limits
+from cpgjax.trial import params as param_space
+from cpgjax.trial import protocol
+from cpgjax.trial import tuned
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
@@ -96,9 +83,11 @@ def _list_in(allowed: limits.Range):
     return _argument_type(lambda text: tuple(allowed.check(_number(v)) for v in text.split(",")))
 
 
-def _count(minimum: int = limits.MIN_TRIALS, reason: str = ""):
-    """An integer of at least ``minimum``."""
-    return _argument_type(lambda text: limits.check_count(_integer(text), None, minimum, reason))
+def _count(minimum: int = limits.MIN_TRIALS, reason: str = "", maximum: int = limits.MAX_TRIALS,
+           maximum_reason: str = limits.MAX_TRIALS_REASON):
+    """An integer in ``minimum`` … ``maximum`` (default: a number of trials)."""
+    return _argument_type(lambda text: limits.check_count(_integer(text), None, minimum, reason, maximum,
+                                                          maximum_reason))
 
 
 def _integer_in(allowed: range, what: str):
@@ -113,8 +102,37 @@ def _integer_in(allowed: range, what: str):
 _power_level = _integer_in(go1_safety.POWER_LEVELS, "the SDK's power protection trips above 100 W per level")
 _port = _integer_in(range(1, 65536), "a UDP port")
 _seed = _integer_in(range(2 ** 32), "a seed is a 32-bit unsigned integer")
-_params_file = _argument_type(trials.load_params)
+_params_file = _argument_type(tuned.load)
 _calibration_file = _argument_type(foot_force.FootForceCalibration.load)
+
+
+@_argument_type
+def _output_path(text: str) -> pathlib.Path:
+    """A path to write, named on the command line: not empty, and in a folder that exists (cpgjax creates the
+    default folders' parents, never a parent the user named)."""
+    if not text.strip():
+        raise ValueError("an empty path: name a folder or file to write")
+    path = pathlib.Path(text)
+    if not path.parent.is_dir():
+        raise ValueError(f"{text}: its folder {path.parent} does not exist (create it first, or write elsewhere)")
+    return path
+
+
+@_argument_type
+def _ip_address(text: str) -> str:
+    try:
+        return str(ipaddress.ip_address(text))
+    except ValueError:
+        raise ValueError(f"{text!r} is not an IP address") from None
+
+
+@_argument_type
+def _processes(text: str) -> int:
+    value, cpus = _integer(text), os.cpu_count() or 1
+    if not 1 <= value <= cpus:
+        raise ValueError(f"{value} is outside the allowed range 1 … {cpus} (local processes, at most one per CPU of "
+                         "this machine; a cluster starts its processes itself: --distributed)")
+    return value
 
 
 @_argument_type
@@ -123,6 +141,23 @@ def _cpu(text: str) -> int:
     if not 0 <= value < (os.cpu_count() or 1):
         raise ValueError(f"{value} is outside this machine's CPUs 0 … {(os.cpu_count() or 1) - 1}")
     return value
+
+
+class _Given(argparse.Action):
+    """Stores an option's value as argparse's default action does, and adds its name to ``args.given``: the options
+    the command line gave, which a parameter file's tuned-for values do not replace (:func:`_use_tuned`)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        setattr(namespace, "given", {*getattr(namespace, "given", ()), self.dest})
+
+
+class _Parser(argparse.ArgumentParser):
+    """A parser whose errors are the one line ``cpgjax <command>: error: <why>`` (the usage is on ``--help``); every
+    subcommand's parser is one too."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -137,6 +172,29 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 def _notice(line: str) -> None:
     """A line for the person at the terminal (stderr: stdout holds a command's results)."""
     print(line, file=sys.stderr, flush=True)
+
+
+def _use_tuned(args, many: bool = False) -> None:
+    """With ``--params FILE``: every option the file records a tuned-for value of (:data:`tuned.TUNED_FOR`) and the
+    command line did not give takes the file's value (``many``: as a one-value list, walk's grid); one line says
+    what the run was tuned for and which given options override it."""
+    if args.params is None:
+        return
+    given = getattr(args, "given", set())
+    overrides = []
+    for name, value in args.params.tuned_for.items():
+        dest = "controllers" if many and name == "controller" else name
+        wanted = (value,) if many and name != "target_velocity_mps" else value
+        if dest not in given:
+            setattr(args, dest, wanted)
+        elif getattr(args, dest) != wanted:
+            shown = getattr(args, dest)
+            shown = ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in shown) if isinstance(
+                shown, tuple) else f"{shown:g}" if isinstance(shown, float) else shown
+            overrides.append(f"--{dest.replace('_', '-')} {shown} overrides it")
+    recorded = (f"tuned for {tuned.describe(args.params.tuned_for)}" if args.params.tuned_for
+                else "records nothing it was tuned for")
+    _notice(f"cpgjax {args.command}: {args.params.path} {recorded}" + "".join(f"; {o}" for o in overrides))
 
 
 def _walk_video(args) -> int:
@@ -155,7 +213,8 @@ def _walk_video(args) -> int:
         return 2
     code = _walk(args)
     trial = protocol.TrialConfig()  # the walk's trials, the paper's
-    gait = study_video.Gait(path.stem, param_space.midpoint(), args.controllers[0], args.friction[0],
+    params = param_space.midpoint() if args.params is None else np.asarray(args.params.params)
+    gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
                             args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
                             trial.steady_steps, args.target_velocity_mps)
     (log,) = studies.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
@@ -170,20 +229,79 @@ def _walk_video(args) -> int:
 
 
 def _walk(args) -> int:
-    rows, timing = walk.walk(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
-                             payload_kg=args.payload_kg, num_trials=args.trials,
-                             target_velocity_mps=args.target_velocity_mps, backend=args.backend, physics=args.physics,
-                             progress=_notice)  # progress on stderr: stdout holds the table
-    print(walk.markdown_table(rows))
+    if args.out is not None:
+        try:
+            study_io.claim_folder(args.out, overwrite=args.overwrite, resumable=False)
+        except study_spec.StudyError as err:
+            print(f"cpgjax walk: {err}", file=sys.stderr)
+            return 2
+    elif args.overwrite:
+        print("cpgjax walk: error: --overwrite applies to --out only", file=sys.stderr)
+        return 2
+    _use_tuned(args, many=True)
+    trials, timing = walk.walk_trials(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
+                                      payload_kg=args.payload_kg, num_trials=args.trials,
+                                      params=None if args.params is None else args.params.params,
+                                      target_velocity_mps=args.target_velocity_mps, backend=args.backend,
+                                      physics=args.physics, progress=_notice)  # stderr: stdout holds the table
+    print(walk.trials_table(trials))
     pace = timing["env_steps_per_s"]
     print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
           + ("" if pace is None else f"; then {pace:,.0f} env-steps/s"))
+    if args.out is not None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
+        meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
+                    git_commit=study_io.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
+                    backend=backends.resolve_backend(args.backend), **timing, environment=study_io.environment())
+        (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
+        print(f"outputs in {args.out}/ (walk.parquet: every trial, docs/outputs.md)")
     return 0
 
 
-def _progress_printer(stream=None):
+class _CtrlC:
+    """Ctrl-C that always stops a study: Python raises KeyboardInterrupt wherever the main thread is, and one raised
+    inside a callback whose exceptions Python ignores (JAX's garbage-collection callback: "Exception ignored in
+    _xla_gc_callback") is lost. This handler also keeps the request, and :meth:`check`, after every trial (its
+    checkpoint written), raises it again. It replaces only Python's own handler: a command started with Ctrl-C
+    ignored keeps ignoring it."""
+
+    def __init__(self):
+        self.requested = False
+        self._previous = None
+
+    def __enter__(self):
+        self._previous = signal.getsignal(signal.SIGINT)
+        if self._previous is signal.default_int_handler:
+            try:
+                signal.signal(signal.SIGINT, self._handler)
+            except ValueError:  # not the main thread: Python's handler stays
+                self._previous = None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is signal.default_int_handler:
+            signal.signal(signal.SIGINT, self._previous)
+
+    def _handler(self, signum, frame):
+        self.requested = True
+        raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    @property
+    def installed(self) -> bool:
+        return self._previous is signal.default_int_handler
+
+
+def _progress_printer(stream=None, ctrl_c: _CtrlC | None = None):
     """The live progress display: trials done, best J per group, env-steps/s, ETA (one rewritten line on a
-    terminal). The first trial of a run compiles, so the pace and the ETA come from the trials after it."""
+    terminal). The first trial of a run compiles, so the pace and the ETA come from the trials after it. After each
+    line, a Ctrl-C that was lost since (:class:`_CtrlC`) stops the run."""
     stream = stream or sys.stderr
     tty = stream.isatty()
 
@@ -193,6 +311,8 @@ def _progress_printer(stream=None):
         line = f"{p.trial}/{p.num_trials} trials done | best J: {best} | {p.env_steps_per_s:,.0f} env-steps/s | {eta}"
         stream.write(("\r\033[K" + line + ("\n" if p.trial == p.num_trials else "")) if tty else line + "\n")
         stream.flush()
+        if ctrl_c is not None:
+            ctrl_c.check()
     return show
 
 
@@ -228,8 +348,7 @@ def _without_processes(argv: list[str]) -> list[str]:
 def _study(args) -> int:
     if args.processes is not None or args.distributed:
         problem = ("--processes and --distributed exclude each other (--processes starts --distributed processes)"
-                   if args.processes is not None and args.distributed else
-                   f"--processes {args.processes}: need at least 1" if args.processes is not None and args.processes < 1
+                   if args.processes is not None and args.distributed
                    else f"{transfer.NAME} runs its arms one after another in one process: drop --processes / "
                    "--distributed" if args.name == transfer.NAME else None)
         if problem:
@@ -249,10 +368,13 @@ def _study(args) -> int:
     try:
         text, out = run(seeds=args.seeds, trials=args.trials, quick=args.quick, out=out, resume=args.resume,
                         overwrite=args.overwrite, backend=args.backend, physics=args.physics,
-                        command=args.command_line, notify=_notice, progress=_progress_printer())
+                        command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
+    except study_io.OutputError as err:
+        print(f"cpgjax study: {err}", file=sys.stderr)
+        return 1
     except ablation.ProcessLost as err:
         print(f"cpgjax study: {err}", file=sys.stderr, flush=True)
         sys.stdout.flush()
@@ -279,7 +401,7 @@ def _demo(args) -> int:
           f"trial compiles). Outputs replace those in {DEMO_OUT}/.", flush=True)
     try:
         text, out = studies.run("controller_ablation", quick=True, out=DEMO_OUT, overwrite=True,
-                                command=args.command_line, progress=_progress_printer())
+                                command=args.command_line, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except KeyboardInterrupt:
         print("\ncpgjax demo: interrupted", file=sys.stderr)
         return INTERRUPTED
@@ -298,13 +420,19 @@ def _trials_table(trial_log) -> str:
     return "\n".join(lines)
 
 
-def write_best_params(path: pathlib.Path, trial_log, controller: str, target_velocity_mps: float) -> int:
-    """``best_params.json`` of one optimization (instance 0) in the format ``cpgjax deploy --params`` replays;
-    returns the best trial."""
+def write_best_params(path: pathlib.Path, trial_log, tuned_for: dict) -> int:
+    """``best_params.json`` of one optimization (instance 0) in the format ``cpgjax deploy --params`` replays, with
+    what it was tuned for (:mod:`cpgjax.trial.tuned`); returns the best trial."""
     best = int(np.argmax(trial_log.objective[:, 0]))
-    trials.save_params(path, trial_log.params[best, 0], objective=float(trial_log.objective[best, 0]), trial=best,
-                       controller=controller, target_velocity_mps=target_velocity_mps)
+    tuned.save(path, trial_log.params[best, 0], tuned_for, objective=float(trial_log.objective[best, 0]), trial=best)
     return best
+
+
+def replay_hint(params_path: pathlib.Path) -> str:
+    """The commands that replay a ``best_params.json`` as it was tuned (the file carries the controller, the physics
+    profile, the scenario and the target, which both commands use)."""
+    return (f"replay the best: cpgjax deploy --robot sim --params {shlex.quote(str(params_path))}; "
+            f"check it in simulation: cpgjax walk --params {shlex.quote(str(params_path))}")
 
 
 def optimize_spec(args) -> study_spec.StudySpec:
@@ -325,20 +453,32 @@ def _optimize(args) -> int:
         if start:
             _notice(studies.resume_notice(out, start, spec.num_trials))
         engine = ablation.Engine(spec, backend=args.backend)
-        result = engine.run(out, resume=args.resume, progress=_progress_printer())
+        result = engine.run(out, resume=args.resume, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except study_spec.StudyError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 2
+    except study_io.OutputError as err:
+        print(f"cpgjax optimize: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return _interrupted(args.command_line, args, out)
     tr = result.trials
     print(_trials_table(tr))
-    best = write_best_params(out / "best_params.json", tr, args.controller, args.target_velocity_mps)
-    print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
-    study_io.write_trials(result, out / "trials.parquet")
-    study_io.write_recording(result, out / "recording.rrd")
-    study_io.write_metadata(result, out / "metadata.json", command=args.command_line)
-    print(f"outputs in {out}/ (replay the best: cpgjax deploy --robot sim --params {out / 'best_params.json'})")
+    try:
+        with study_io.writing(out, "trials.parquet, metadata.json and best_params.json"):
+            study_io.write_trials(result, out / "trials.parquet")
+            study_io.write_metadata(result, out / "metadata.json", command=args.command_line)
+            best = write_best_params(out / "best_params.json", tr,
+                                     {name: getattr(args, name) for name in tuned.TUNED_FOR})
+        print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
+        with study_io.writing(out, "recording.rrd"):
+            study_io.write_recording(result, out / "recording.rrd")
+    except study_io.OutputError as err:
+        print(f"cpgjax optimize: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:  # every trial is in the checkpoint: --resume writes the outputs
+        return _interrupted(args.command_line, args, out)
+    print(f"outputs in {out}/ ({replay_hint(out / 'best_params.json')})")
     return 0
 
 
@@ -355,6 +495,85 @@ def _viewer() -> str | None:
 
 
 RRD_MAGIC = b"RRF2"  # the first bytes of a rerun recording file
+RRD_FOOTER = b"RRF2FOOT"  # rerun's footer, 12 bytes before the end of a recording it finished writing
+
+# What each file cpgjax writes holds, as `cpgjax show` lists it (docs/outputs.md has every column).
+FILE_KINDS = {
+    "table.md": "the study's table, ours beside the paper's",
+    "trials.parquet": "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls",
+    "walk.parquet": "one row per trial of each walk: conditions, parameters, J, velocity, CoT, falls",
+    "metadata.json": "how the run was made: command, version, commit, optimizer, machine, run figures",
+    study_io.CHECKPOINT: "the state after the last finished trial (--resume continues from it)",
+    "recording.rrd": "rerun recording: optimization curves and representative rollouts",
+    "trials.rrd": "rerun recording of the robot's trials",
+    "best_params.json": "the best trial's parameters and what they were tuned for (deploy / walk --params)",
+    study_io.BEST_PARAMS: "the best parameters of each group and what they were tuned for (deploy / walk --params)",
+    "run.json": "how the robot run ended, its timing and what ran it",
+    tick_log.FILE_NAME: "the 1 kHz loop's per-tick log",
+    "calibration.json": "the foot-force calibration the run used",
+}
+
+
+def _file_kind(path: pathlib.Path) -> str:
+    if path.name in FILE_KINDS:
+        return FILE_KINDS[path.name]
+    if path.suffix == ".png":
+        return "figure"
+    if path in study_io.checkpoint_files(path.parent):
+        return "one process's checkpoint shard (--processes)"
+    if path.name.endswith(".ticks.arrows"):
+        return "the per-tick log of a calibration stand"
+    if path.is_dir() and (path / "metadata.json").exists():
+        return f"an arm of the study (cpgjax show {path})"
+    return "not written by cpgjax"
+
+
+def _damage(path: pathlib.Path) -> str | None:
+    """What is wrong with a file cpgjax wrote (empty, truncated, corrupt), None if it reads back."""
+    import pyarrow.parquet as pq
+
+    try:
+        if path.is_dir():
+            return None
+        data_size = path.stat().st_size
+        if data_size == 0:
+            return "empty"
+        if path.suffix == ".json":
+            json.loads(path.read_text())
+        elif path.suffix == ".parquet":
+            pq.read_metadata(path)
+        elif path.suffix == ".rrd":
+            with open(path, "rb") as f:
+                if f.read(len(RRD_MAGIC)) != RRD_MAGIC:
+                    return "not a rerun recording"
+                f.seek(max(data_size - 12, 0))
+                if not f.read(12).startswith(RRD_FOOTER):
+                    return "truncated (no rerun footer: its writer stopped early; the viewer shows what it holds)"
+        elif path.suffix == ".arrows":
+            if not tick_log.read_tick_log(path)[1]:
+                return "truncated (its writer stopped mid-batch)"
+        elif path.suffix == ".npz":
+            study_io.checkpoint_meta(path.parent)
+        elif path.suffix == ".png":
+            if path.read_bytes()[:4] != b"\x89PNG":
+                return "not a PNG image"
+    except study_spec.StudyError as err:
+        return str(err)
+    except Exception as err:  # each reader raises its own kinds for a damaged file
+        return f"corrupt or truncated ({type(err).__name__}: {err})"
+    return None
+
+
+def _files_listing(out: pathlib.Path) -> tuple[list[str], int]:
+    """One line per entry of ``out``: its name, what it is, and what is wrong with it; and the count of damaged
+    ones."""
+    lines, damaged = [], 0
+    for path in sorted(out.iterdir()):
+        problem = _damage(path)
+        damaged += problem is not None
+        shown = path.name + ("/" if path.is_dir() else "")
+        lines.append(f"  {shown:<20} {_file_kind(path)}" + (f"  [{path.name}: {problem}]" if problem else ""))
+    return lines, damaged
 
 
 def _metadata_line(path: pathlib.Path) -> str:
@@ -373,37 +592,108 @@ def _metadata_line(path: pathlib.Path) -> str:
     return f"{m.get('study', '(no study name)')}: " + ", ".join(parts)
 
 
+def _read_json(path: pathlib.Path) -> dict | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _folder_kind(out: pathlib.Path) -> str | None:
+    """Which command wrote ``out``: "deploy", "optimize", "walk", "study", "calibrate", or None (not a result)."""
+    names = {p.name for p in out.iterdir()}
+    if names & {"run.json", tick_log.FILE_NAME}:
+        return "deploy"
+    study = (_read_json(out / "metadata.json") or {}).get("study")
+    if study in ("optimize", "walk"):
+        return study
+    if names & {"table.md", "trials.parquet", "metadata.json"} or study_io.checkpoint_files(out) or any(
+            (out / n / "metadata.json").exists() or study_io.checkpoint_files(out / n) for n in names):
+        return "optimize" if "best_params.json" in names else "study"
+    if any(n.endswith(".air.ticks.arrows") for n in names):
+        return "calibrate"
+    return None
+
+
+def _next_step(out: pathlib.Path, kind: str) -> str:
+    """What to run next with a result folder."""
+    meta = _read_json(out / "metadata.json")
+    if kind in ("study", "optimize") and meta is None and (out / "metadata.json").exists():
+        return "next: metadata.json is damaged: the command that wrote the folder, again with --resume, rewrites it"
+    if kind in ("study", "optimize") and meta is None and study_io.checkpoint_files(out):
+        try:
+            done = (study_io.checkpoint_meta(out) or {}).get("trial")
+        except study_spec.StudyError:
+            return "next: its checkpoint is damaged: start afresh with --overwrite"
+        return (f"next: unfinished ({done} trials done, no metadata.json yet): run the command that started it again "
+                f"with --resume")
+    if kind == "optimize" or (kind == "deploy" and (out / "best_params.json").exists()):
+        return f"next: {replay_hint(out / 'best_params.json')}"
+    groups = sorted((out / study_io.BEST_PARAMS).glob("*.json"))
+    if groups:
+        return f"next: {replay_hint(groups[0])} (one file per group in {out / study_io.BEST_PARAMS}/)"
+    if kind == "calibrate":
+        found = sorted(out.glob("*.air.ticks.arrows"))
+        name = found[0].name.removesuffix(".air.ticks.arrows") + ".json"
+        return f"next: cpgjax deploy --robot go1 --calibration {out / name}"
+    if kind == "deploy":
+        return (f"next: the per-tick log in Python: pyarrow.ipc.open_stream({str(out / tick_log.FILE_NAME)!r})"
+                ".read_all().to_pandas()")
+    data = out / ("walk.parquet" if kind == "walk" else "trials.parquet")
+    return f"next: its trials in Python: pandas.read_parquet({str(data)!r})"
+
+
+def _calibration_file_summary(path: pathlib.Path) -> int:
+    """``cpgjax show`` of a calibration file: its values and its stands' per-tick logs."""
+    try:
+        calibration = foot_force.FootForceCalibration.load(path)
+    except ValueError as err:
+        print(f"cpgjax show: {err}", file=sys.stderr)
+        return 2
+    print(f"foot-force calibration {path}: offsets {calibration.offset_counts.tolist()} counts, "
+          f"{calibration.newton_per_count.tolist()} N/count")
+    damaged = 0
+    for stand, log in calibrate.tick_log_paths(path).items():
+        problem = _damage(log) if log.exists() else "missing"
+        damaged += problem is not None
+        print(f"  {log.name:<20} the per-tick log of the {stand} stand" + (f"  [{problem}]" if problem else ""))
+    print(f"next: cpgjax deploy --robot go1 --calibration {path}")
+    return 1 if damaged else 0
+
+
 def _show(args) -> int:
     out = pathlib.Path(args.results)
+    if out.is_file() and out.suffix == ".json":
+        return _calibration_file_summary(out)
     if not out.is_dir():
-        print(f"cpgjax show: {out} is not a folder", file=sys.stderr)
+        print(f"cpgjax show: {out} is not a folder (or a calibration file)", file=sys.stderr)
         return 2
-    if (out / tick_log.FILE_NAME).exists() or (out / "run.json").exists():  # a `cpgjax deploy` run
+    kind = _folder_kind(out)
+    if kind is None:
+        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, checkpoint, "
+              f"run.json or {tick_log.FILE_NAME})", file=sys.stderr)
+        return 2
+    listing, damaged = _files_listing(out)
+    print(f"{out}: a `cpgjax {kind}` folder\n" + "\n".join(listing))
+    if kind == "deploy":
         print(tick_log.summarize_run(out))
-        return 0
     table = out / "table.md"
-    print(table.read_text() if table.exists() else f"(no table.md in {out})")
-    if (out / "metadata.json").exists():
+    if table.exists() and _damage(table) is None:
+        print(table.read_text())
+    if (out / "metadata.json").exists() and _damage(out / "metadata.json") is None:
         print(_metadata_line(out / "metadata.json"))
     data = out / "trials.parquet"
-    if data.exists():
+    if data.exists() and _damage(data) is None:
         import pyarrow.parquet as pq
 
-        try:
-            rows = pq.read_metadata(data).num_rows
-            print(f"trial data ({rows} rows): pandas.read_parquet({str(data)!r}) or pyarrow.parquet.read_table(...)")
-        except Exception as err:  # pyarrow raises several types for a damaged file
-            print(f"trial data: {data} is truncated or corrupt ({type(err).__name__}: {err})")
-    else:
-        print(f"(no trials.parquet in {out})")
+        rows = pq.read_metadata(data).num_rows
+        print(f"trial data ({rows} rows): pandas.read_parquet({str(data)!r}) or pyarrow.parquet.read_table(...)")
+    print(_next_step(out, kind))
+    status = 1 if damaged else 0
     recording = next((out / name for name in ("recording.rrd", "trials.rrd") if (out / name).exists()), None)
-    if recording is None:
-        print(f"(no rerun recording in {out})")
-        return 0
-    with open(recording, "rb") as f:
-        if f.read(len(RRD_MAGIC)) != RRD_MAGIC:
-            print(f"recording: {recording} is empty or not a rerun recording")
-            return 0
+    if recording is None or _damage(recording) in ("empty", "not a rerun recording"):
+        return status
     viewer = _viewer()
     elsewhere = f"copy it to a machine with a display and run `rerun {recording.name}` (pip install rerun-sdk)"
     if args.no_viewer:
@@ -419,10 +709,29 @@ def _show(args) -> int:
             code = proc.wait(VIEWER_START_S)
         except subprocess.TimeoutExpired:
             print(f"opened {recording} in the rerun viewer (pid {proc.pid}, serving on 127.0.0.1 only)")
-            return 0
+            return status
         print(f"recording: {recording}; the rerun viewer exited at once (status {code}): {elsewhere}")
         return 1
-    return 0
+    return status
+
+
+def _inapplicable(args, calibrating: bool = False) -> str | None:
+    """The given options that do not apply to this run of ``deploy`` (or ``deploy calibrate``), and why; None if
+    every given option applies."""
+    given = getattr(args, "given", set())
+    rules = [(("robot_ip", "robot_port", "local_port"), args.robot == "sim",
+              "to --robot go1 only (the simulated Go1 listens on 127.0.0.1 on a port of its own)"),
+             (("sim_pacing", "friction", "slope_deg", "physics", "lift_m"), args.robot == "go1",
+              "to --robot sim only")]
+    if not calibrating:
+        rules += [(("trials", "optimizer", "transition_s", "steady_s"), not args.optimize,
+                   "to --optimize only (a replay walks one set of parameters for --duration-s)"),
+                  (("duration_s",), args.optimize, "to a replay only (--optimize runs --trials trials)")]
+    for dests, refused, why in rules:
+        named = [f"--{d.replace('_', '-')}" for d in dests if d in given]
+        if refused and named:
+            return f"{', '.join(named)} {'applies' if len(named) == 1 else 'apply'} {why}"
+    return None
 
 
 def _show_video(args) -> int:
@@ -487,11 +796,16 @@ def _deploy(parser: argparse.ArgumentParser, args) -> int:
         parser.error("the following arguments are required: --robot")
     if args.robot == "go1" and args.calibration is None:
         parser.error("--robot go1 needs --calibration FILE (run `cpgjax deploy calibrate` first, see docs/hardware.md)")
+    if problem := _inapplicable(args):
+        parser.error(problem)
     try:
-        args.log_dir = study_io.claim_folder(args.log_dir or fresh_run_folder(DEPLOY_RUNS), overwrite=args.overwrite)
+        args.log_dir = study_io.claim_folder(args.log_dir or fresh_run_folder(DEPLOY_RUNS), overwrite=args.overwrite,
+                                             resumable=False)
     except study_spec.StudyError as err:
         print(f"cpgjax deploy: {err}", file=sys.stderr)
         return 2
+    _use_tuned(args)
+    args.params = None if args.params is None else args.params.params
     _notice(f"cpgjax deploy: writing to {args.log_dir}/")
     return deploy.run(args)
 
@@ -507,6 +821,9 @@ def fresh_run_folder(parent: pathlib.Path) -> pathlib.Path:
 
 
 def _calibrate(args) -> int:
+    if problem := _inapplicable(args, calibrating=True):
+        print(f"cpgjax deploy calibrate: error: {problem}", file=sys.stderr)
+        return 2
     try:
         for path in (args.out, *calibrate.tick_log_paths(args.out).values()):
             study_io.claim_file(path, overwrite=args.overwrite)
@@ -520,7 +837,8 @@ def _calibrate(args) -> int:
 
 def _add_output_args(p: argparse.ArgumentParser, default: str | None, shown: str | None = None) -> None:
     """``--out`` (the folder a study or an optimization writes, with its checkpoint), ``--resume``, ``--overwrite``."""
-    p.add_argument("--out", default=default, help=f"output folder{f' (default: {shown})' if shown else ''}")
+    p.add_argument("--out", type=_output_path, default=default and pathlib.Path(default),
+                   help=f"output folder{f' (default: {shown})' if shown else ''}")
     how = p.add_mutually_exclusive_group()
     how.add_argument("--resume", action="store_true", help="continue from the folder's checkpoint (an error without "
                      "one)")
@@ -537,12 +855,12 @@ def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bo
             ("--slope-deg", limits.SLOPE_DEG, 0.0, "slope [deg], uphill along +x", "sim only: "),
             ("--payload-kg", limits.PAYLOAD_KG, 0.0, "payload [kg]", "counts in CoT; sim: simulated; ")):
         # a string default goes through the type like a typed value (and shows as typed in the help)
-        p.add_argument(name, type=kind(allowed), default=f"{default:g}" if many else default,
+        p.add_argument(name, type=kind(allowed), default=f"{default:g}" if many else default, action=_Given,
                        help=f"{on_robot if robot else ''}{what}{text} in {allowed}")
 
 
 def _add_target_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--target-velocity-mps", type=_in(limits.TARGET_VELOCITY_MPS), default=0.5,
+    p.add_argument("--target-velocity-mps", type=_in(limits.TARGET_VELOCITY_MPS), default=0.5, action=_Given,
                    help=f"target velocity v_x* [m/s] of the objective J, in {limits.TARGET_VELOCITY_MPS}")
 
 
@@ -567,10 +885,10 @@ def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool
     """``--physics``: the physics profile(s) of the simulated Go1 (docs/physics.md)."""
     allowed = ", ".join(physics_profiles.PROFILES)
     if many:
-        p.add_argument("--physics", type=_physics_names, default=default,
+        p.add_argument("--physics", type=_physics_names, default=default, action=_Given,
                        help=f"comma list of physics profiles ({allowed})")
     else:
-        p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=default,
+        p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=default, action=_Given,
                        help="physics profile" + ("" if default else " (default: the study's own)"))
 
 
@@ -579,16 +897,17 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
     p.add_argument("--robot", choices=("sim", "go1"), required=robot_required,
                    help="required; sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
     p.add_argument("--transport", choices=("udp", "sdk"), help="(default: sdk for go1, udp for sim)")
-    p.add_argument("--robot-ip", default=go1_transport.GO1_ROBOT_IP, help="go1 only")
-    p.add_argument("--robot-port", type=_port, default=go1_transport.GO1_ROBOT_PORT, help="go1 only")
-    p.add_argument("--local-port", type=_port, default=go1_transport.GO1_LOCAL_PORT, help="go1 only")
+    p.add_argument("--robot-ip", type=_ip_address, default=go1_transport.GO1_ROBOT_IP, action=_Given, help="go1 only")
+    p.add_argument("--robot-port", type=_port, default=go1_transport.GO1_ROBOT_PORT, action=_Given, help="go1 only")
+    p.add_argument("--local-port", type=_port, default=go1_transport.GO1_LOCAL_PORT, action=_Given, help="go1 only")
     levels = go1_safety.POWER_LEVELS
     p.add_argument("--power-level", type=_power_level, default=9,
                    help=f"power protection level {levels.start}…{levels.stop - 1} (trips above 100 W each)")
-    p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime",
+    p.add_argument("--sim-pacing", choices=("realtime", "lockstep"), default="realtime", action=_Given,
                    help="lockstep: one physics step per command, the loop waits for each answer (not real time)")
     _add_scenario_args(p, robot=True)
     p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
+                   action=_Given,
                    help="sim only: the simulated Go1's physics profile (docs/physics.md)")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     p.add_argument("--cpu", type=_cpu, help="pin the loop to this CPU (the optimizer and the log writer run on the "
@@ -609,12 +928,18 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
 def _add_walk(sub) -> None:
     w = sub.add_parser("walk", help="walk with fixed parameters and print the trial figures",
                        formatter_class=_HelpFormatter)
-    w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS),
+    w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS), action=_Given,
                    help="comma list of controllers")
     _add_scenario_args(w, many=True)
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
     _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
+    w.add_argument("--out", type=_output_path, help="write walk.parquet (every trial) and metadata.json into this "
+                   "folder, missing or empty (default: print the table only)")
+    w.add_argument("--overwrite", action="store_true", help="replace the files of a previous walk in --out")
+    w.add_argument("--params", type=_params_file, help="walk with these parameters: a best_params.json (of optimize, "
+                   "deploy --optimize or a study), whose controller, physics, scenario and target are used unless "
+                   "given here, or a JSON list of 8 numbers (default: the middle of the paper's ranges)")
     backends.add_backend_argument(w)
     w.add_argument("--video", type=pathlib.Path, help="also film the walk (one combination, the paper's trial as "
                    "settling, then --video-s) into this MP4 (docs/visualization.md; default: no video)")
@@ -629,7 +954,8 @@ def _add_study(sub) -> None:
     descriptions = {k: v.description for k, v in studies.STUDIES.items()}
     descriptions[transfer.NAME] = transfer.DESCRIPTION
     s.add_argument("name", choices=sorted(descriptions), help="; ".join(f"{k}: {v}" for k, v in descriptions.items()))
-    s.add_argument("--seeds", type=_count(), default=None, help=f"seeds per group (default: {studies.DEFAULT_SEEDS}, "
+    s.add_argument("--seeds", type=_count(1, maximum=limits.MAX_SEEDS, maximum_reason=limits.MAX_SEEDS_REASON),
+                   default=None, help=f"seeds per group (default: {studies.DEFAULT_SEEDS}, "
                    f"--quick {studies.QUICK_SEEDS})")
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help="trials per run; condition changes scale with it (default: the study's)")
@@ -638,8 +964,9 @@ def _add_study(sub) -> None:
     s.add_argument("--distributed", action="store_true", help="one of several cooperating processes: "
                    "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "
                    "docs/scaling.md)")
-    s.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes (coordinator "
-                   "on 127.0.0.1), e.g. to check a multi-process run before a cluster (default: one process)")
+    s.add_argument("--processes", type=_processes, default=None, help="run as N cooperating local processes "
+                   "(coordinator on 127.0.0.1), e.g. to check a multi-process run before a cluster (default: one "
+                   "process)")
     _add_physics_arg(s, None)
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
@@ -695,21 +1022,25 @@ def _add_deploy(sub) -> None:
                        "calibration.", formatter_class=_HelpFormatter)
     _add_robot_args(d, robot_required=False)  # _deploy requires it: argparse would ask for it before `calibrate` too
     what = d.add_mutually_exclusive_group()
-    what.add_argument("--params", type=_params_file, help="replay these parameters: JSON of `cpgjax optimize` or "
-                      "`deploy --optimize` (best_params.json), or a list of 8 numbers (default: the middle of the "
-                      "paper's ranges)")
+    what.add_argument("--params", type=_params_file, help="replay these parameters: a best_params.json (of "
+                      "optimize, deploy --optimize or a study), whose controller, physics, scenario and target are "
+                      "used unless given here, or a JSON list of 8 numbers (default: the middle of the paper's "
+                      "ranges)")
     what.add_argument("--optimize", action="store_true", help="online optimization (Algorithm 1)")
-    d.add_argument("--trials", type=_count(), default=10, help="trials of online optimization")
-    d.add_argument("--optimizer", choices=("bo", "random"), default="bo", help="the online optimizer")
-    d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", help="the CPG controller")
+    d.add_argument("--trials", type=_count(), default=10, action=_Given, help="--optimize only: trials of online "
+                   "optimization")
+    d.add_argument("--optimizer", choices=("bo", "random"), default="bo", action=_Given,
+                   help="--optimize only: the online optimizer")
+    d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", action=_Given,
+                   help="the CPG controller (with --params: the file's)")
     _add_target_arg(d)
-    d.add_argument("--duration-s", type=_in(limits.RUN_DURATION_S), default=10.0,
-                   help=f"run time when replaying parameters [s], in {limits.RUN_DURATION_S}")
-    d.add_argument("--transition-s", type=_in(limits.TRANSITION_S), default=1.5,
-                   help=f"each trial's parameter transition [s], in {limits.TRANSITION_S}")
-    d.add_argument("--steady-s", type=_in(limits.STEADY_S), default=3.0,
-                   help=f"each trial's steady phase T [s], in {limits.STEADY_S}")
-    d.add_argument("--log-dir", type=pathlib.Path, help=f"the run's folder (default: a new {DEPLOY_RUNS}/<date>-<time>"
+    d.add_argument("--duration-s", type=_in(limits.RUN_DURATION_S), default=10.0, action=_Given,
+                   help=f"replay only: run time [s], in {limits.RUN_DURATION_S}")
+    d.add_argument("--transition-s", type=_in(limits.TRANSITION_S), default=1.5, action=_Given,
+                   help=f"--optimize only: each trial's parameter transition [s], in {limits.TRANSITION_S}")
+    d.add_argument("--steady-s", type=_in(limits.STEADY_S), default=3.0, action=_Given,
+                   help=f"--optimize only: each trial's steady phase T [s], in {limits.STEADY_S}")
+    d.add_argument("--log-dir", type=_output_path, help=f"the run's folder (default: a new {DEPLOY_RUNS}/<date>-<time>"
                    "; an existing non-empty one needs --overwrite)")
     d.add_argument("--calibration", type=_calibration_file, help="foot-force calibration JSON from `cpgjax deploy "
                    "calibrate` (required with --robot go1; default with sim: the simulated sensor's exact one)")
@@ -722,7 +1053,7 @@ def _add_deploy(sub) -> None:
         description="Measure the Go1's foot-force sensors (feet in the air, then standing) and save their "
         "calibration to raw counts → N.", formatter_class=_HelpFormatter)
     _add_robot_args(c)
-    c.add_argument("--out", type=pathlib.Path, default=pathlib.Path("go1_calibration.json"),
+    c.add_argument("--out", type=_output_path, default=pathlib.Path("go1_calibration.json"),
                    help="calibration JSON to write, each measuring stand's per-tick log next to it "
                    "(NAME.air.ticks.arrows, NAME.standing.ticks.arrows; existing ones need --overwrite)")
     c.add_argument("--air-s", type=_in(limits.MEASURE_S), default=2.0,
@@ -732,14 +1063,14 @@ def _add_deploy(sub) -> None:
                    help="time holding the pose before each measurement [s]")
     c.add_argument("--mass-kg", type=_in(limits.ROBOT_MASS_KG), help=f"the robot's total mass [kg] in "
                    f"{limits.ROBOT_MASS_KG} (default: cpgjax's Go1 model + --payload-kg)")
-    c.add_argument("--lift-m", type=_in(limits.LIFT_M), default=0.3,
+    c.add_argument("--lift-m", type=_in(limits.LIFT_M), default=0.3, action=_Given,
                    help="sim only: how high the simulated Go1 is hung up [m]")
     c.set_defaults(func=_calibrate)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``cpgjax`` parser: every command, each with its function as ``func``."""
-    parser = argparse.ArgumentParser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1.")
+    parser = _Parser(prog="cpgjax", description="cpgjax: online-optimized CPG control for the Go1.")
     parser.add_argument("--version", action="version", version=f"cpgjax {cpgjax.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_add_walk, _add_study, _add_optimize, _add_show, _add_demo, _add_deploy):
@@ -748,13 +1079,24 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    as_command = argv is None  # the `cpgjax` process itself, not a call from Python
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
     args.command_line = "cpgjax " + shlex.join(argv)  # metadata.json and the resume hint
     args.argv = argv  # `study --processes N` starts the same command line N times
     # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline.
     cpu_dispatch.request_inline()
-    return args.func(args)
+    with _CtrlC() as args.ctrl_c:  # study, optimize, demo: check it after every trial
+        code = args.func(args)
+    if args.ctrl_c.requested and code == 0:  # lost after the last trial's check: the outputs are written
+        _notice(f"cpgjax {args.command}: interrupted as it finished; its outputs are written")
+        code = INTERRUPTED
+    if as_command and args.ctrl_c.installed:
+        # The command is done and its outputs written. Python's teardown resets a Python-level handler to the
+        # default, and a Ctrl-C then kills the exiting process by the signal; ignored, the exit status stays the
+        # command's.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return code
 
 
 if __name__ == "__main__":

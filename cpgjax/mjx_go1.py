@@ -14,16 +14,33 @@ program on one thread). An instance whose state becomes non-finite is reset and 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
+import io
 import logging
+import sys
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from mujoco import mjx
+
+
+def _import_mjx_without_its_warp_probe():
+    """``mujoco.mjx``, imported with the two lines its import prints to stdout when NVIDIA Warp is absent ("Failed to
+    import warp…", always so on a CPU) dropped, so that importing cpgjax prints nothing and they cannot land in a
+    redirected output; other output passes."""
+    probe = io.StringIO()
+    with contextlib.redirect_stdout(probe):
+        from mujoco import mjx
+    sys.stdout.write("".join(line for line in probe.getvalue().splitlines(keepends=True)
+                             if not line.startswith(("Failed to import warp:", "Failed to import mujoco_warp:"))))
+    return mjx
+
+
+mjx = _import_mjx_without_its_warp_probe()
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model

@@ -21,7 +21,7 @@ LAYERS = (
     ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.model")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
-    ("sensors and trial", ("go1.sensors", "trial.limits", "trial.protocol", "trial.objective")),
+    ("sensors and trial", ("go1.sensors", "trial.limits", "trial.protocol", "trial.objective", "trial.tuned")),
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
     ("simulation", ("mjx_go1", "sim.native", "sim.backends", "sim.walk")),
     ("studies", ("study.spec", "study.stats", "study.video", "study.scene", "study.viewer", "study.files",

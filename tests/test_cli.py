@@ -17,13 +17,14 @@ import pytest
 
 import cpgjax
 from cpgjax import ablation, cli
-from cpgjax.robot import calibrate, deploy, foot_force, sim_server
+from cpgjax.robot import calibrate, deploy, foot_force, sim_server, tick_log
 from cpgjax.robot import safety as go1_safety
 from cpgjax.sim import walk
 from cpgjax.study import files as study_io
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
+from cpgjax.trial import tuned
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
@@ -107,6 +108,14 @@ REFUSED = [  # (extra arguments, what stderr must say)
     (["--robot-port", "70000"], "argument --robot-port: 70000 is outside the allowed range 1 … 65535"),
     (["--seed", "-1"], "argument --seed: -1 is outside the allowed range 0 … 4294967295"),
     (["--seed", "4294967296"], "argument --seed: 4294967296 is outside the allowed range 0 … 4294967295"),
+    (["--optimize", "--trials", "1001"], "argument --trials: 1001: need an integer <= 1000 (the GP keeps every trial"),
+    (["--robot-ip", "robot.local"], "argument --robot-ip: 'robot.local' is not an IP address"),
+    # options that do not apply to this run
+    (["--robot-ip", "127.0.0.1"], "--robot-ip applies to --robot go1 only (the simulated Go1 listens on 127.0.0.1"),
+    (["--robot-port", "9000", "--local-port", "9001"], "--robot-port, --local-port apply to --robot go1 only"),
+    (["--trials", "3"], "--trials applies to --optimize only (a replay walks one set of parameters for --duration-s)"),
+    (["--transition-s", "1", "--optimizer", "random"], "--optimizer, --transition-s apply to --optimize only"),
+    (["--optimize", "--duration-s", "5"], "--duration-s applies to a replay only (--optimize runs --trials trials)"),
 ]
 
 
@@ -115,8 +124,27 @@ def test_deploy_refuses_a_bad_input_before_any_robot(extra, message, tmp_path, c
     files = _bad_files(tmp_path)
     err = _refused(["deploy", "--robot", "sim", "--log-dir", str(tmp_path / "run")]
                    + [e.format(**files) for e in extra], capsys)
-    assert message in err and "Traceback" not in err
+    assert message in err and err.count("\n") == 1  # one line: no usage, no traceback
     assert no_robot == [] and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["deploy", "--robot", "go1", "--friction", "0.3", "--physics", "paper"],
+     "--friction, --physics apply to --robot sim only"),
+    (["deploy", "--robot", "go1", "--sim-pacing", "lockstep"], "--sim-pacing applies to --robot sim only"),
+    (["deploy", "calibrate", "--robot", "go1", "--lift-m", "0.5"], "--lift-m applies to --robot sim only"),
+    (["deploy", "calibrate", "--robot", "sim", "--robot-ip", "127.0.0.1"], "--robot-ip applies to --robot go1 only"),
+])
+def test_an_option_of_the_other_robot_is_refused(argv, message, tmp_path, capsys, no_robot):
+    calibration = _write(tmp_path / "cal.json", GOOD_CALIBRATION)
+    argv = [*argv, "--calibration", str(calibration)] if "calibrate" not in argv else [
+        *argv, "--out", str(tmp_path / "c.json")]
+    try:
+        code = cli.main(argv)
+    except SystemExit as exit_:
+        code = exit_.code
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and err.count("\n") == 1 and no_robot == []
 
 
 CALIBRATE_REFUSED = [
@@ -162,7 +190,7 @@ def test_accepted_files_parse_to_their_values(tmp_path):
                                           "--params", str(params), "--power-level", "10"])
     np.testing.assert_array_equal(args.calibration.offset_counts, [14, -6, 22, 9])
     np.testing.assert_array_equal(args.calibration.newton_per_count, [0.5] * 4)
-    np.testing.assert_allclose(args.params, 0.5 * (param_space.PARAM_LOWER + param_space.PARAM_UPPER))
+    np.testing.assert_allclose(args.params.params, 0.5 * (param_space.PARAM_LOWER + param_space.PARAM_UPPER))
     assert args.power_level == 10
 
 
@@ -190,16 +218,90 @@ class _Log(NamedTuple):
     params: np.ndarray
 
 
+TUNED = dict(controller="tegotae", physics="paper", friction=0.3, slope_deg=5.0, payload_kg=2.5,
+             target_velocity_mps=0.7)
+
+
 def test_optimize_best_params_replay_with_deploy(tmp_path):
-    """`optimize` writes best_params.json; `deploy --params` reads back the best trial's parameters."""
+    """`optimize` writes best_params.json with what it was tuned for; `deploy --params` reads back the best trial's
+    parameters and that record."""
     params = param_space.from_unit(np.array([[[0.1] * 8], [[0.7] * 8], [[0.4] * 8]]))  # (trials, B=1, 8)
     log = _Log(objective=np.array([[0.5], [1.9], [1.2]]), params=params)
     path = tmp_path / "best_params.json"
-    assert cli.write_best_params(path, log, "vmc", 0.6) == 1
+    assert cli.write_best_params(path, log, TUNED) == 1
     saved = json.loads(path.read_text())
-    assert saved["trial"] == 1 and saved["controller"] == "vmc" and saved["objective"] == 1.9
+    assert saved["trial"] == 1 and saved["objective"] == 1.9 and {k: saved[k] for k in TUNED} == TUNED
     args = cli.build_parser().parse_args(["deploy", "--robot", "sim", "--params", str(path)])
-    np.testing.assert_allclose(args.params, params[1, 0])
+    np.testing.assert_allclose(args.params.params, params[1, 0])
+    assert args.params.tuned_for == TUNED
+
+
+def _tuned_file(tmp_path: pathlib.Path, **changes) -> pathlib.Path:
+    path = tmp_path / "best_params.json"
+    tuned.save(path, param_space.from_unit(np.full(8, 0.3)), {**TUNED, **changes}, objective=1.5, trial=4)
+    return path
+
+
+def test_deploy_params_replays_what_was_tuned_unless_overridden(tmp_path, capsys, monkeypatch):
+    """Not deploy's own defaults (vmc_tegotae, go1 physics, friction 0.6, v* 0.5) but the file's; an option given on
+    the command line wins, and one line says so."""
+    ran = []
+    monkeypatch.setattr(deploy, "run", lambda args: ran.append(args) or 0)
+    path = _tuned_file(tmp_path)
+    assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--log-dir", str(tmp_path / "a")]) == 0
+    args = ran[-1]
+    assert {k: getattr(args, k) for k in TUNED} == TUNED
+    np.testing.assert_allclose(args.params, param_space.from_unit(np.full(8, 0.3)))
+    err = capsys.readouterr().err
+    assert f"{path} tuned for controller tegotae, physics paper, friction 0.3, slope 5°, payload 2.5 kg, v* 0.7 m/s" \
+        in err and "overrides" not in err
+    assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--friction", "0.9", "--controller",
+                     "tegotae", "--log-dir", str(tmp_path / "b")]) == 0
+    args = ran[-1]
+    assert args.friction == 0.9 and args.physics == "paper" and args.controller == "tegotae"
+    line, = [ln for ln in capsys.readouterr().err.splitlines() if "tuned for" in ln]
+    assert line.endswith("; --friction 0.9 overrides it")  # the same controller given again is no override
+
+
+def test_a_robot_tuned_file_keeps_the_replays_own_scenario(tmp_path, capsys, monkeypatch):
+    """A file tuned on the real robot records no physics, friction or slope (null): the replay keeps its own."""
+    ran = []
+    monkeypatch.setattr(deploy, "run", lambda args: ran.append(args) or 0)
+    path = _tuned_file(tmp_path, physics=None, friction=None, slope_deg=None)
+    assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--log-dir", str(tmp_path / "a")]) == 0
+    assert (ran[-1].physics, ran[-1].friction, ran[-1].slope_deg, ran[-1].controller) == ("go1", 0.6, 0.0, "tegotae")
+    assert "tuned for controller tegotae, payload 2.5 kg, v* 0.7 m/s" in capsys.readouterr().err
+
+
+def test_walk_params_walks_what_was_tuned(tmp_path, capsys, monkeypatch):
+    walks = []
+
+    def fake_walk(**kwargs):
+        walks.append(kwargs)
+        raise SystemExit(0)  # stop before the table: only what walk was asked for matters here
+    monkeypatch.setattr(walk, "walk_trials", fake_walk)
+    path = _tuned_file(tmp_path)
+    with pytest.raises(SystemExit):
+        cli.main(["walk", "--params", str(path), "--payload-kg", "0,5"])
+    asked = walks[-1]
+    assert (asked["controllers"], asked["physics"], asked["friction"], asked["slope_deg"], asked["payload_kg"],
+            asked["target_velocity_mps"]) == (("tegotae",), ("paper",), (0.3,), (5.0,), (0.0, 5.0), 0.7)
+    np.testing.assert_allclose(asked["params"], param_space.from_unit(np.full(8, 0.3)))
+    assert "; --payload-kg 0,5 overrides it" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("controller", "cpg9", "controller 'cpg9' is not one of open_loop"),
+    ("physics", "moon", "physics 'moon' is not one of"),
+    ("friction", 7.0, "friction = 7.0 is outside the allowed range [0.1, 1.5]"),
+    ("target_velocity_mps", "fast", "target_velocity_mps 'fast' is not a number"),
+])
+def test_a_bad_tuned_for_field_is_refused_with_the_file_and_key(field, value, message, tmp_path, capsys, no_robot):
+    path = tmp_path / "best_params.json"
+    data = {"params": param_space.as_dict(param_space.midpoint()), **TUNED, field: value}
+    _write(path, data)
+    err = _refused(["deploy", "--robot", "sim", "--params", str(path)], capsys)
+    assert f"parameter file {path}: {message}" in err
 
 
 # ----------------------------------------------------------------------------------------------- output folders
@@ -217,6 +319,40 @@ def test_out_pointing_at_a_file_fails_at_once(tmp_path, capsys, no_engine):
     assert f"{target} is a file, not a folder" in capsys.readouterr().err and target.read_text() == "keep"
     assert cli.main(["study", "friction", "--quick", "--out", str(target)]) == 2
     assert "is a file" in capsys.readouterr().err
+
+
+OUTPUT_OPTIONS = (["optimize", "--trials", "2", "--out"], ["study", "friction", "--quick", "--out"],
+                  ["deploy", "--robot", "sim", "--log-dir"], ["deploy", "calibrate", "--robot", "sim", "--out"])
+
+
+@pytest.mark.parametrize("argv", OUTPUT_OPTIONS, ids=lambda a: a[0] + a[-1])
+def test_an_empty_path_or_a_missing_parent_is_refused_before_anything_runs(argv, tmp_path, capsys, no_engine,
+                                                                           no_robot):
+    err = _refused([*argv, ""], capsys)
+    assert err.count("\n") == 1 and "an empty path: name a folder or file to write" in err
+    target = tmp_path / "missing" / "x"
+    err = _refused([*argv, str(target)], capsys)
+    assert err.count("\n") == 1 and f"its folder {target.parent} does not exist" in err
+    assert not target.parent.exists()  # never created
+
+
+@pytest.mark.parametrize("argv", OUTPUT_OPTIONS, ids=lambda a: a[0] + a[-1])
+def test_an_unwritable_folder_is_refused_before_anything_runs(argv, tmp_path, capsys, no_engine, no_robot,
+                                                              monkeypatch):
+    """A read-only file system (simulated: writing the probe file raises EROFS, which root meets too) gives one line
+    and exit 2 before the engine or a robot starts."""
+    write_bytes = pathlib.Path.write_bytes
+
+    def read_only(self, data):
+        if self.name.startswith(".cpgjax-write-check"):
+            raise OSError(30, "Read-only file system")
+        return write_bytes(self, data)
+    monkeypatch.setattr(pathlib.Path, "write_bytes", read_only)
+    target = tmp_path / "out"
+    assert cli.main([*argv, str(target)]) == 2
+    written_in = tmp_path if "calibrate" in argv else target  # calibrate's --out is a file
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"cannot write in {written_in}: Read-only file system" in err
 
 
 def test_a_non_empty_folder_is_not_overwritten(tmp_path, capsys, no_engine):
@@ -248,6 +384,47 @@ def test_overwrite_starts_afresh(tmp_path):
     with pytest.raises(study_spec.StudyError, match="--resume to continue its checkpoint, --overwrite"):
         study_io.claim_folder(out)
     assert study_io.claim_folder(out, overwrite=True) == out and not (out / study_io.CHECKPOINT).exists()
+
+
+def _old_optimize_folder(out: pathlib.Path) -> list[str]:
+    """What `optimize` and a study leave in their folder (names as they write them)."""
+    out.mkdir()
+    for name in (study_io.CHECKPOINT, "trials.parquet", "recording.rrd", "metadata.json", "best_params.json",
+                 "table.md", "learning_curves.png", "checkpoint.0of2.t000003.npz", "checkpoint.npz.tmp"):
+        _write(out / name, "old")
+    (out / study_io.BEST_PARAMS).mkdir()
+    _write(out / study_io.BEST_PARAMS / "controller=vmc.json", "old")
+    (out / "transfer_go1").mkdir()
+    _write(out / "transfer_go1" / "trials.parquet", "old")
+    return sorted(p.name for p in out.iterdir())
+
+
+def test_overwrite_replaces_the_whole_run(tmp_path, capsys, monkeypatch):
+    """A replay written over an old --optimize folder: none of the old rows, recordings or parameters stay, so `show`
+    cannot report them as the replay's."""
+    assert tick_log.FILE_NAME in study_io.OUTPUT_FILES  # the robot's per-tick log is named there too
+    monkeypatch.setattr(deploy, "run", lambda args: 0)
+    out = tmp_path / "old"
+    _old_optimize_folder(out)
+    _write(out / tick_log.FILE_NAME, "old ticks")
+    assert cli.main(["deploy", "--robot", "sim", "--log-dir", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "pass --overwrite to replace its files" in err and "--resume" not in err  # deploy cannot resume
+    assert cli.main(["deploy", "--robot", "sim", "--log-dir", str(out), "--overwrite"]) == 0
+    assert list(out.iterdir()) == []
+
+
+def test_overwrite_refuses_what_cpgjax_did_not_write(tmp_path, capsys, no_engine):
+    out = tmp_path / "old"
+    before = _old_optimize_folder(out)
+    _write(out / "notes.txt", "mine")
+    (out / "data").mkdir()
+    assert cli.main(["optimize", "--trials", "2", "--out", str(out), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and (f"{out}: --overwrite replaces only what cpgjax wrote, and data, notes.txt are not "
+                                     "cpgjax's: move them, or write somewhere else") in err
+    assert sorted(p.name for p in out.iterdir()) == sorted([*before, "notes.txt", "data"])  # nothing deleted
+    assert (out / "trials.parquet").read_text() == "old"
 
 
 def test_deploy_and_calibrate_outputs(tmp_path, capsys, monkeypatch):
@@ -287,6 +464,26 @@ def _truncated(path: pathlib.Path) -> None:
     path.write_bytes(path.read_bytes()[:3000])
 
 
+def test_a_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
+    """The checkpoint of trial 2 cannot be written (ENOSPC): the error says which trials are kept, the previous
+    checkpoint still loads with its trials, and no temporary file is left."""
+    spec = _optimize_spec(trials=4)
+    log = study_io.TrialLog(*(np.zeros(1) for _ in study_io.TrialLog._fields))
+    ckpt = study_io.Checkpoint(2, [np.zeros((1, 3))], [np.ones((1, 2))], np.zeros((1, 2)), [log, log], 1.0, {})
+    study_io.save_checkpoint(tmp_path, spec, ckpt, "native")
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(np, "savez", full)
+    with pytest.raises(study_io.OutputError, match=r"writing the checkpoint of trial 2 in .* failed \(No space left "
+                       r"on device\); trials 0…1 are kept in its checkpoint: free space, then the same command with "
+                       r"--resume continues"):
+        study_io.save_checkpoint(tmp_path, spec, ckpt._replace(trial=3, logs=[log] * 3), "native")
+    monkeypatch.undo()
+    assert study_io.load_checkpoint(tmp_path, spec).trial == 2 and sorted(os.listdir(tmp_path)) == [
+        study_io.CHECKPOINT]
+
+
 @pytest.mark.parametrize("damage", ["garbage", "empty", "truncated", "pickled"])
 def test_a_corrupt_checkpoint_is_named(damage, tmp_path, capsys, no_engine):
     out = tmp_path / "out"
@@ -318,8 +515,23 @@ def test_resume_needs_a_checkpoint_of_the_same_backend(tmp_path, capsys, no_engi
     assert "written on the mjx backend, this run would use native: resume with --backend mjx" in \
         capsys.readouterr().err
     assert study_io.resume_point(out, spec, "mjx") == 1
-    with pytest.raises(study_spec.StudyError, match="different study definition"):
-        study_io.resume_point(out, _optimize_spec(trials=3), "mjx")
+    with pytest.raises(study_spec.StudyError, match="different study definition .it does not record its fields"):
+        study_io.resume_point(out, _optimize_spec(trials=3), "mjx")  # a checkpoint of an older cpgjax
+
+
+def test_a_different_definition_is_refused_naming_the_fields(tmp_path, capsys, no_engine):
+    out = tmp_path / "out"
+    spec = _optimize_spec(trials=12)
+    log = study_io.TrialLog(*(np.zeros(1) for _ in study_io.TrialLog._fields))
+    study_io.save_checkpoint(out, spec, study_io.Checkpoint(1, [], [], np.zeros((1, 2)), [log], 1.0, {}), "native")
+    assert cli.main(["optimize", "--trials", "12", "--friction", "0.9", "--controller", "vmc", "--out", str(out),
+                     "--resume", "--backend", "native"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and ("was written by a different study definition (controllers ('vmc_tegotae',) there, "
+                                     "('vmc',) here; friction (0.6,) there, (0.9,) here); use another --out") in err
+    assert cli.main(["optimize", "--trials", "20", "--out", str(out), "--resume", "--backend", "native"]) == 2
+    assert ("(num_trials 12 there, 20 here) (a finished study is not extended to more trials: the optimizer's arrays "
+            "and the schedules are sized for its trials)") in capsys.readouterr().err
 
 
 def test_resume_says_where_and_ctrl_c_says_how_to_resume(tmp_path, capsys, monkeypatch):
@@ -338,6 +550,60 @@ def test_resume_says_where_and_ctrl_c_says_how_to_resume(tmp_path, capsys, monke
     err = capsys.readouterr().err
     assert f"resuming {out} at trial 1 (trials are numbered from 0; 1 of 2 are done)" in err
     assert f"resume with: cpgjax optimize --trials 2 --out {out} --resume --backend native\n" in err
+
+
+def test_a_ctrl_c_lost_in_a_callback_still_stops_after_the_trial(tmp_path, capsys, monkeypatch):
+    """SIGINT while Python runs a callback whose exceptions it ignores (as JAX's garbage-collection callback): the
+    KeyboardInterrupt is lost there, and the run stops after the trial it was in, with its checkpoint and exit
+    130, instead of running to the end."""
+    out = tmp_path / "out"
+    spec = _optimize_spec(trials=6)
+    trials_run = []
+
+    class SwallowsOneInterrupt:
+        def __init__(self, spec, backend):
+            pass
+
+        def run(self, out_dir, resume, progress):
+            for t in range(spec.num_trials):
+                trials_run.append(t)
+                _fake_checkpoint(out_dir, spec, t + 1, "native")
+                if t == 1:
+                    try:  # what an ignored-exception callback does with the signal's KeyboardInterrupt
+                        os.kill(os.getpid(), signal.SIGINT)
+                        time.sleep(0.1)
+                    except KeyboardInterrupt:
+                        pass
+                progress(ablation.Progress(t + 1, spec.num_trials, {"vmc_tegotae": 1.0}, 1.0, None))
+            raise AssertionError("ran to the end")
+    monkeypatch.setattr(ablation, "Engine", SwallowsOneInterrupt)
+    argv = ["optimize", "--trials", "6", "--out", str(out), "--backend", "native"]
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # Python's own, as in a terminal
+    try:
+        assert cli.main(argv) == 130 and trials_run == [0, 1]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the command's handler is gone
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert f"trials 0…1 are saved in {out / study_io.CHECKPOINT}" in capsys.readouterr().err
+
+
+def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, monkeypatch):
+    """Lost after the last trial's check, the request still makes the exit status 130 once the outputs are
+    written (the run finished: nothing to resume)."""
+    def finishes_after_a_lost_interrupt(name, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.1)
+        except KeyboardInterrupt:
+            pass
+        return "the table", kwargs["out"]
+    monkeypatch.setattr(studies, "run", finishes_after_a_lost_interrupt)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert cli.main(["study", "friction", "--quick", "--out", str(tmp_path / "s")]) == 130
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert "cpgjax study: interrupted as it finished; its outputs are written" in capsys.readouterr().err
 
 
 def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypatch):
@@ -419,24 +685,72 @@ def test_progress_lines_count_trials_done_and_wait_for_the_pace(capsys):
 
 # ----------------------------------------------------------------------------------------------- show
 
-RRD = b"RRF2" + bytes(100)
+RRD = b"RRF2" + bytes(100) + cli.RRD_FOOTER + bytes(4)  # a header, a body, rerun's footer
 
 
-def test_show_reports_missing_and_damaged_files(tmp_path, capsys):
+def test_show_lists_every_file_and_names_each_damaged_one(tmp_path, capsys):
     out = tmp_path / "run"
     out.mkdir()
     _write(out / "metadata.json", {"study": "optimize", "backend": "native"})  # no instances
+    _write(out / "best_params.json", {"params": param_space.as_dict(param_space.midpoint()), **TUNED})
     assert cli.main(["show", str(out), "--no-viewer"]) == 0
     printed = capsys.readouterr().out
-    assert "optimize: on native" in printed and "KeyError" not in printed and f"(no trials.parquet in {out})" in printed
-    assert "trials.parquet'" not in printed and "(no rerun recording" in printed
+    assert f"{out}: a `cpgjax optimize` folder" in printed and "optimize: on native" in printed
+    assert "best_params.json     the best trial's parameters and what they were tuned for" in printed
+    assert f"next: replay the best: cpgjax deploy --robot sim --params {out / 'best_params.json'}" in printed
+    assert "KeyError" not in printed and "(no rerun recording" not in printed
     _write(out / "metadata.json", '{"study": ')
     _write(out / "trials.parquet", "PAR1 truncated")
     _write(out / "recording.rrd", "")
-    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    (out / "learning_curves.png").write_bytes(b"GIF89a")
+    assert cli.main(["show", str(out), "--no-viewer"]) == 1  # damaged files: not a clean result
     printed = capsys.readouterr().out
-    assert "metadata.json: corrupt or truncated" in printed and "trials.parquet is truncated or corrupt" in printed
-    assert "recording.rrd is empty or not a rerun recording" in printed
+    for name, problem in (("metadata.json", "corrupt or truncated (JSONDecodeError"),
+                          ("trials.parquet", "corrupt or truncated"), ("recording.rrd", "empty"),
+                          ("learning_curves.png", "not a PNG image")):
+        line, = [ln for ln in printed.splitlines() if ln.startswith(f"  {name} ")]
+        assert f"[{name}: {problem}" in line
+    assert "Traceback" not in printed and "metadata.json is damaged" in printed
+
+
+def test_show_detects_a_truncated_recording_and_tick_log(tmp_path, capsys):
+    """A recording rerun finished ends with its footer; cut short it does not. A per-tick log cut mid-batch too."""
+    import rerun as rr
+
+    out = tmp_path / "run"
+    out.mkdir()
+    rec = rr.RecordingStream("cpgjax_test")
+    rec.save(str(out / "trials.rrd"))
+    rec.log("x", rr.Scalars(1.0))
+    rec.flush()
+    rec.disconnect()
+    assert cli.main(["show", str(out), "--no-viewer"]) == 2  # a recording alone is no result folder
+    assert "holds no cpgjax results" in capsys.readouterr().err
+    _write(out / "run.json", {"trip": None, "stopped": False})
+    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    assert "trials.rrd: truncated" not in capsys.readouterr().out
+    data = (out / "trials.rrd").read_bytes()
+    (out / "trials.rrd").write_bytes(data[:len(data) // 2])
+    _write(out / "run.json", '{"trip": nu')
+    assert cli.main(["show", str(out), "--no-viewer"]) == 1
+    printed = capsys.readouterr().out
+    assert "[trials.rrd: truncated (no rerun footer" in printed and "[run.json: corrupt or truncated" in printed
+    assert "Traceback" not in printed
+
+
+def test_show_refuses_a_folder_that_is_no_result(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("mine")
+    assert cli.main(["show", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"cpgjax show: {tmp_path} holds no cpgjax results" in err
+
+
+def test_show_a_calibration_file(tmp_path, capsys):
+    path = _write(tmp_path / "go1_calibration.json", GOOD_CALIBRATION)
+    assert cli.main(["show", str(path)]) == 1  # its stands' per-tick logs are missing
+    printed = capsys.readouterr().out
+    assert "offsets [14.0, -6.0, 22.0, 9.0] counts" in printed and "go1_calibration.air.ticks.arrows" in printed
+    assert f"next: cpgjax deploy --robot go1 --calibration {path}" in printed
 
 
 def _fake_viewer(tmp_path: pathlib.Path, seconds: float) -> pathlib.Path:
@@ -450,6 +764,7 @@ def test_show_opens_a_viewer_only_where_one_can_run(tmp_path, capsys, monkeypatc
     out = tmp_path / "run"
     out.mkdir()
     (out / "recording.rrd").write_bytes(RRD)
+    _write(out / "metadata.json", {"study": "friction"})
     monkeypatch.setattr(cli, "VIEWER_START_S", 0.5)
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

@@ -21,6 +21,7 @@ from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.trial import params
+from tests.test_outputs_doc import undocumented
 
 LOOP = hio.LoopConfig(hold_s=0.1, ramp_s=0.2, end_damping_s=0.05, realtime_priority=None, flush_ticks=250,
                       log_ticks=1000)
@@ -81,6 +82,7 @@ def test_ctrl_c_in_deploy_is_a_stop_with_the_log_flushed(tmp_path):
     assert run["trip"] is None and run["stopped"] and run["events"][-1][2] == "stopped (Ctrl-C)"
     assert run["command"] == f"cpgjax deploy --robot sim --sim-pacing lockstep --duration-s 60 --log-dir {tmp_path}"
     assert run["cpgjax_version"] and "git_commit" in run and run["environment"]["cpu_count"] >= 1
+    assert undocumented("run.json", run) == []  # docs/outputs.md
     table, complete = tick_log.read_tick_log(tmp_path / tick_log.FILE_NAME)
     assert complete and table.num_rows == run["timing"]["ticks"]
     assert table["phase"].to_numpy()[-1] == hio.DAMP

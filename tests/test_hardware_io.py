@@ -29,7 +29,8 @@ from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.robot import trials as robot_trials
-from cpgjax.trial import params, protocol
+from cpgjax.trial import params, protocol, tuned
+from tests.test_outputs_doc import undocumented
 
 GATES = cpg.controller_gates("vmc_tegotae")
 # Short soft start; a watchdog long enough for a loaded CI machine (the stale-state test shortens it).
@@ -353,11 +354,30 @@ def test_the_official_sdk_drives_the_simulated_go1(robot, controller):
     assert stats["trunk_xy_m"][0] > 0.2 and stats["bad_packets"] == 0
 
 
+def test_a_replay_reports_how_the_robot_walked_in_each_trial(robot, controller):
+    """A replay cut into trials (0.3 s settling + 0.6 s measured): two complete trials in 2000 ticks, each with J,
+    velocity, distance and CoT from the robot's own sensors; the distance is the velocity times the measured time
+    (Σ v_x Δt = mean v_x · T)."""
+    replay = robot_trials.ReplayTrials(params.midpoint(), 2000, protocol.TrialConfig(300, 600))
+    result, _, _ = _run(robot, controller, schedule=replay)
+    assert result.trip is None, result.events
+    tuned_for = dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0, payload_kg=0.0,
+                     target_velocity_mps=0.5)
+    rows = replay.rows(12.74, 0.5, 0, tuned_for)
+    assert [r["trial"] for r in rows] == [0, 1]
+    for r in rows:
+        assert r["velocity_x_mps"] > 0.2 and r["cost_of_transport"] > 0.0 and np.isfinite(r["objective"])
+        assert r["distance_m"] == pytest.approx(r["velocity_x_mps"] * 0.6, rel=1e-4)
+        assert r["controller"] == "vmc_tegotae" and undocumented("robot trials.parquet", r) == []
+
+
 def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     """Random search stands in for the contextual BO (cpgjax.optim.bo) until that lands."""
     robot.reset()
     transport = go1_transport.LockstepTransport(robot.address)
-    spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), "vmc_tegotae")
+    tuned_for = dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0, payload_kg=0.0,
+                     target_velocity_mps=0.5)
+    spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), tuned_for)
     try:
         result, rows = robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
                                                   params.midpoint(), 3, protocol.TrialConfig(300, 600), LOOP, SAFETY)
@@ -369,9 +389,12 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     assert rows[0]["velocity_x_mps"] > 0.2  # the midpoint gait walks forward (leg odometry)
     import pyarrow.parquet as pq
 
-    assert pq.read_table(tmp_path / "trials.parquet").num_rows == 3
+    table = pq.read_table(tmp_path / "trials.parquet")
+    assert table.num_rows == 3 and undocumented("robot trials.parquet", table.schema.names) == []
+    assert table["controller"].to_pylist() == ["vmc_tegotae"] * 3 and table["fell"].to_pylist() == [False] * 3
     assert (tmp_path / "trials.rrd").stat().st_size > 0
-    best = robot_trials.load_params(tmp_path / "best_params.json")
+    best, recorded, _ = tuned.load(tmp_path / "best_params.json")
+    assert recorded == tuned_for
     best_row = rows[int(np.argmax([r["objective"] for r in rows]))]
     np.testing.assert_allclose(best, [best_row[name] for name in params.PARAM_NAMES])
     replay, _, _ = _run(robot, controller, run_ticks=300, schedule=hio.FixedParams(best, 300))
@@ -394,7 +417,10 @@ def test_deploy_optimize_starts_from_the_optimizers_random_proposal(tmp_path):
     np.testing.assert_allclose(first, reference, rtol=1e-6)
     assert not np.allclose(first, params.midpoint())
     assert np.all((first >= params.PARAM_LOWER) & (first <= params.PARAM_UPPER))
-    assert robot_trials.load_params(run / "best_params.json").shape == (8,)
+    replayed = tuned.load(run / "best_params.json")
+    assert replayed.params.shape == (8,)
+    assert replayed.tuned_for == dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0,
+                                      payload_kg=0.0, target_velocity_mps=0.5)  # deploy's defaults, all recorded
 
 
 # ------------------------------------------------------------------------------------- foot-force calibration

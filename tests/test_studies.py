@@ -7,17 +7,21 @@ import json
 
 import imageio.v3 as iio
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 import cpgjax
 from cpgjax import ablation, cli, cpg
+from cpgjax.study import figures as study_figures
+from cpgjax.study import files as study_io
 from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
 from cpgjax.study import video as study_video
 from cpgjax.trial import params as param_space
-from cpgjax.trial import protocol
+from cpgjax.trial import protocol, tuned
 from tests.test_ablation import small_optimizer
+from tests.test_outputs_doc import undocumented
 
 # ----------------------------------------------------------------------------------------------- specifications
 
@@ -116,7 +120,8 @@ def test_ablation_outputs(tiny_ablation):
         j = result.trials.objective[:, [lab["controller"] == c for lab in result.labels]]
         assert f"{np.mean(j[-5:].mean(axis=0)):.3f} [" in row  # mean of the last 5, then over seeds, with its CI
     assert (out / "table.md").read_text().startswith("# controller_ablation")
-    for png in ("learning_curves.png", "attitude.png", "attitude_best_gaits.png", "summary.png"):
+    for png in ("learning_curves.png", "attitude.png", "attitude_best_gaits.png", "summary.png",
+                "optimization_progress.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     table = pq.read_table(out / "trials.parquet").to_pydict()
     assert len(table["objective"]) == 4 * 4
@@ -145,6 +150,10 @@ def test_ablation_outputs(tiny_ablation):
             assert len(iio.imread(out / f"best_{c}.mp4")) == 5  # the steady phase, 200 ticks at 25 frames/s
     schema = pq.read_schema(out / "trials.parquet")
     assert all(str(schema.field(name).type) == "bool" for name in ("fell", "failed", "accepted", "context_changed"))
+    assert undocumented("study trials.parquet", schema.names) == []  # docs/outputs.md
+    assert undocumented("metadata.json", meta) == []
+    assert {str(f.type) for f in schema if pa.types.is_floating(f.type)} == {"double"}  # one float dtype
+    assert set(table["latency_ticks"]) == {0} and set(table["noise_scale"]) == {0.0}  # the paper profile's own
 
 
 def test_cli_show_prints_the_table(tiny_ablation, capsys):
@@ -168,6 +177,7 @@ def test_best_gaits_are_each_groups_best_run_and_trial(tiny_ablation):
     (log,) = studies.gait_rollouts(gaits[:1], "native", steps=250)
     assert log.qpos.shape[0] == 250 and log.phase_rad.shape == (250, 4) and np.all(np.isfinite(log.qpos))
 
+
 def test_group_names_are_file_names():
     assert studies.group_name({"controller": "vmc_tegotae", "seed": 0}, ("controller",)) == "vmc_tegotae"
     assert studies.group_name({"friction": 0.3}, ("friction",)) == "friction0.3"
@@ -176,3 +186,35 @@ def test_group_names_are_file_names():
         "schedule0-10-12.5inference1017.5"
     assert studies.group_name({"data_reuse": True, "controller": "vmc"}, ("controller", "data_reuse")) == \
         "vmc_data_reuseTrue"
+
+
+def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tiny_ablation):
+    """best_params/controller=<c>.json: the group's highest J over every instance and trial of trials.parquet, and
+    that instance's controller, physics and the trial's conditions; `deploy --params` reads it back."""
+    _, out, _ = tiny_ablation
+    table = pq.read_table(out / "trials.parquet").to_pandas()
+    for c in cpg.CONTROLLERS:
+        path = out / study_io.BEST_PARAMS / f"controller={c}.json"
+        saved = json.loads(path.read_text())
+        best = table[table.controller == c].sort_values("objective").iloc[-1]
+        assert (saved["trial"], saved["objective"]) == (best.trial, pytest.approx(best.objective))
+        assert {k: saved[k] for k in tuned.TUNED_FOR} == dict(
+            controller=c, physics=best.physics, friction=pytest.approx(best.friction), slope_deg=best.slope_deg,
+            payload_kg=best.payload_kg, target_velocity_mps=best.target_velocity_mps)
+        read = tuned.load(path)
+        np.testing.assert_allclose(read.params, [best[name] for name in param_space.PARAM_NAMES])
+
+
+def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp_path, monkeypatch):
+    """A figure that cannot be drawn (here: a raising learning_curves) stops the outputs with one message; the trial
+    table, the metadata and the best parameters are already written, and the message names them."""
+    result, _, _ = tiny_ablation
+
+    def broken(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(study_figures, "learning_curves", broken)
+    with pytest.raises(study_io.OutputError, match=r"writing table.md and the figures in .* failed \(OSError: "
+                       r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, trials.parquet"):
+        studies.write_outputs(result, tmp_path, "native")
+    assert pq.read_table(tmp_path / "trials.parquet").num_rows == 16 and (tmp_path / "metadata.json").exists()
+

@@ -22,7 +22,7 @@ from cpgjax.robot import foot_force, tick_log
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
-from cpgjax.robot.trials import OptimizerSpec, online_optimization
+from cpgjax.robot.trials import OptimizerSpec, ReplayTrials, online_optimization
 from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
@@ -127,18 +127,36 @@ def run(args) -> int:
              calibration.newton_per_count)
     calibration.save(args.log_dir / "calibration.json")
     hint = stale_hint(args)
-    with connect(args) as (transport, _), tick_log_writer(args.log_dir / tick_log.FILE_NAME, loop) as ticks:
+    with connect(args) as (transport, server), tick_log_writer(args.log_dir / tick_log.FILE_NAME, loop) as ticks:
         controller = compiled_controller.CompiledController()
+        start_xy = None if server is None else server.stats()["trunk_xy_m"]
         if args.optimize:
             spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
-                                 robot_mass_kg(args.payload_kg), str(args.log_dir), args.controller)
+                                 robot_mass_kg(args.payload_kg), str(args.log_dir), tuned_for(args))
             timing = protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
-            result, _ = online_optimization(transport, controller, calibration, gates, spec, params,
-                                            args.trials, timing, loop, safety, ticks, hint)
+            result, rows = online_optimization(transport, controller, calibration, gates, spec, params,
+                                               args.trials, timing, loop, safety, ticks, hint)
         else:
-            result = hio.run_loop(transport, controller, hio.FixedParams(params, round(args.duration_s * 1000)),
-                                  calibration, gates, loop, safety, ticks, hint)
-    return report(args, result)
+            replay = ReplayTrials(params, round(args.duration_s * 1000))
+            result = hio.run_loop(transport, controller, replay, calibration, gates, loop, safety, ticks, hint)
+        truth = None if server is None else dict(trunk_start_xy_m=start_xy,
+                                                 trunk_end_xy_m=server.stats()["trunk_xy_m"])
+    if not args.optimize:  # the figures after the loop: the robot is damped
+        rows = replay.rows(robot_mass_kg(args.payload_kg), args.target_velocity_mps, args.seed, tuned_for(args))
+        if rows:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+
+            pq.write_table(pa.Table.from_pylist(rows), args.log_dir / "trials.parquet")
+    return report(args, result, rows, truth)
+
+
+def tuned_for(args) -> dict:
+    """What a run's ``best_params.json`` records it was tuned for (:mod:`cpgjax.trial.tuned`): on the simulated Go1
+    its physics profile and scenario; on the robot only the payload, the floor's friction and slope being unknown."""
+    sim_only = dict(physics=args.physics, friction=args.friction, slope_deg=args.slope_deg)
+    return dict(controller=args.controller, target_velocity_mps=args.target_velocity_mps, payload_kg=args.payload_kg,
+                **(sim_only if args.robot == "sim" else dict.fromkeys(sim_only)))
 
 
 def stale_hint(args) -> str:
@@ -149,13 +167,24 @@ def stale_hint(args) -> str:
             "without deadlines, docs/hardware.md)")
 
 
-def report(args, result: hio.LoopResult) -> int:
-    """Write ``run.json`` (how the run ended, its timing, and what ran it: the command line, cpgjax's version and
-    commit, the machine) and print how the run ended and its timing. Returns the exit status: 0 after a clean end,
-    130 after Ctrl-C (a stop), 2 after a safety trip."""
+WALKED = ("trial", "objective", "velocity_x_mps", "distance_m", "cost_of_transport", "c_load_n", "c_slope_rad")
+
+
+def walked_line(row: dict) -> str:
+    return (f"trial {row['trial']}: J {row['objective']:.3f}, v_x {row['velocity_x_mps']:.3f} m/s, "
+            f"{row['distance_m']:.2f} m in its steady phase, CoT {row['cost_of_transport']:.3f}")
+
+
+def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | None = None) -> int:
+    """Write ``run.json`` (how the run ended, how the robot walked in each complete trial, its timing, and what ran
+    it: the command line, cpgjax's version and commit, the machine) and print how the run ended, each trial's J,
+    velocity, distance and CoT (from the robot's own sensors) and the timing. Returns the exit status: 0 after a
+    clean end, 130 after Ctrl-C (a stop), 2 after a safety trip. ``truth``: the simulated Go1's true trunk
+    position before and after the loop (its own state, beside the robot's estimate), None on the robot."""
     lockstep = args.robot == "sim" and args.sim_pacing == "lockstep"
     summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events, "realtime": result.realtime,
                "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
+               "trials": [{k: row[k] for k in WALKED} for row in rows], "sim_truth": truth,
                "timing": result.timing(), "command": getattr(args, "command_line", None),
                "cpgjax_version": cpgjax.__version__, "git_commit": study_io.git_commit(),
                "environment": study_io.environment()}
@@ -165,7 +194,17 @@ def report(args, result: hio.LoopResult) -> int:
     shared = ("\nthe simulated Go1 shared the loop's CPU: its ticks are in these figures "
               "(the loop on a CPU of its own: benchmarks/hardware_loop.py)"
               if args.robot == "sim" and not lockstep and loop_cpu(args) is not None else "")
-    log.info("%s; per-tick log %s\n%s%s", ended, args.log_dir / tick_log.FILE_NAME,
+    if truth is not None:
+        moved = np.subtract(truth["trunk_end_xy_m"], truth["trunk_start_xy_m"])
+        truth_line = (f"\nthe simulated Go1's true trunk moved {moved[0]:+.2f} m along x, {moved[1]:+.2f} m along y "
+                      f"over the whole run")
+    else:
+        truth_line = ""
+    walked = ("\n".join(walked_line(row) for row in rows) if rows else
+              "no trial completed (a trial is 1.5 s of settling then 3 s measured)" if not args.optimize else
+              "no trial completed")
+    log.info("%s; per-tick log %s\nhow the robot walked (its own sensors):\n%s%s\n%s%s", ended,
+             args.log_dir / tick_log.FILE_NAME, walked, truth_line,
              hio.timing_table(summary["timing"], deadlines=not lockstep), shared)
     return 2 if result.trip else 130 if result.stopped else 0
 

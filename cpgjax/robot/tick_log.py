@@ -165,8 +165,15 @@ def summarize_run(run_dir: Path) -> str:
     timing, the watchdog) and its per-trial rows."""
     run_dir = Path(run_dir)
     run_file = run_dir / "run.json"
-    run = json.loads(run_file.read_text()) if run_file.exists() else None
-    lines = [f"deploy run {run_dir}", f"ended: {end_reason(run)}"]
+    try:
+        run = json.loads(run_file.read_text()) if run_file.exists() else None
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        run, damaged = None, f"{run_file} is corrupt or truncated ({type(err).__name__})"
+    else:
+        damaged = None
+    if not isinstance(run, dict):
+        run = None
+    lines = [f"deploy run {run_dir}", f"ended: {damaged or end_reason(run)}"]
     if run is not None and run.get("command"):
         lines.append(f"command: {run['command']} (cpgjax {run.get('cpgjax_version')}, commit {run.get('git_commit')}, "
                      f"scheduling: {run.get('realtime')})")

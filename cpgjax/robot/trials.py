@@ -7,7 +7,7 @@ context come from ``cpgjax.trial.objective`` as in simulation. The optimizer run
 (:func:`_optimizer_worker`), so the 1 kHz loop never waits for it: after a trial the robot keeps walking with the
 current parameters until the next proposal arrives (the wait is logged per trial). The worker writes the per-trial
 log (``trials.parquet``, ``trials.rrd`` for rerun) and the best parameters (``best_params.json``, which
-``cpgjax deploy --params`` replays).
+``cpgjax deploy --params`` replays, :mod:`cpgjax.trial.tuned`).
 
 The optimizer is anything with ``propose(context) -> params`` and ``observe(params, context, record, objective)``
 (:class:`OnlineOptimizer`): the contextual BO of ``cpgjax.optim.bo`` (:class:`BayesianOptimizer`, the default) or
@@ -17,7 +17,6 @@ The optimizer is anything with ``propose(context) -> params`` and ``observe(para
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import multiprocessing
 import os
@@ -38,7 +37,7 @@ from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import memory_lock
 from cpgjax.robot import safety as go1_safety
-from cpgjax.trial import limits, objective, protocol
+from cpgjax.trial import objective, protocol, tuned
 from cpgjax.trial import params as param_space
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
@@ -122,7 +121,7 @@ class OptimizerSpec(NamedTuple):
     tegotae: bool
     total_mass_kg: float
     log_dir: str
-    controller: str
+    tuned_for: dict  # what best_params.json records it was tuned for (cpgjax.trial.tuned.TUNED_FOR)
     dt_s: float = 0.001
     steady_steps: int = protocol.TrialConfig().steady_steps  # ticks of a trial's steady phase (its record's length)
     cpus: tuple[int, ...] | None = None  # the CPUs the worker may use (None: any); keep it off the loop's CPU
@@ -168,34 +167,78 @@ class _TrialLog:
             rec.log(f"params/{name}", rr.Scalars(row[name]))
 
     def close(self) -> None:
+        """Finish the recording (rerun writes its footer on disconnect; `cpgjax show` calls one without it
+        truncated)."""
         self._rec.flush()
+        self._rec.disconnect()
 
 
-def save_params(path, params: np.ndarray, **info) -> None:
-    """Parameters as JSON {names: values, ...info}; :func:`load_params` reads it back."""
-    Path(path).write_text(json.dumps({"params": param_space.as_dict(params), **info}, indent=1))
+def trial_row(trial: int, x: np.ndarray, record: protocol.TrialRecord, j: float, c: np.ndarray, seed: int,
+              tuned_for: dict) -> dict:
+    """One trial on the robot as a row of its ``trials.parquet``: the columns of a study's where they apply
+    (docs/outputs.md)."""
+    return {"trial": trial, "seed": seed, **tuned_for, **param_space.as_dict(x),
+            "c_load_n": float(c[0]), "c_slope_rad": float(c[1]), "objective": float(j),
+            "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
+            "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])),
+            "cost_of_transport": float(objective.cost_of_transport(record)),
+            "roll_std_rad": float(record.roll_std_rad), "pitch_std_rad": float(record.pitch_std_rad),
+            "saturation_fraction": float(record.saturation_fraction), "energy_j": float(record.energy_j),
+            "distance_m": float(record.distance_m), "total_mass_kg": float(record.total_mass_kg),
+            "fell": False, "failed": False}  # a fall trips the safety layer before a trial completes
 
 
-def load_params(path) -> np.ndarray:
-    """Parameters (8,) from a :func:`save_params` file (or a JSON list of 8 numbers), validated.
+def signal_columns() -> np.ndarray:
+    """The columns of the controller's flat output that make a trial's per-tick signals (:data:`_SIGNALS`)."""
+    out = compiled_controller
+    return np.array([out.OUT_VELOCITY.start, out.OUT_VELOCITY.start + 1, out.OUT_POWER, out.OUT_LOAD,
+                     out.OUT_RPY.start, out.OUT_RPY.start + 1, out.OUT_SATURATED])
 
-    Raises:
-      ValueError: unreadable or invalid JSON, a missing key, or a value outside the paper's range; the message names
-        the file and the key.
-    """
-    data = limits.read_json(path, "parameter file")
-    if isinstance(data, dict):
-        if not isinstance(data.get("params"), dict):
-            raise ValueError(f"parameter file {path}: missing key 'params' (an object of {param_space.PARAM_NAMES})")
-        missing = [name for name in param_space.PARAM_NAMES if name not in data["params"]]
-        if missing:
-            raise ValueError(f"parameter file {path}: missing key 'params.{missing[0]}'")
-        data = [data["params"][name] for name in param_space.PARAM_NAMES]
-    try:
-        values = np.asarray(data, np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"parameter file {path}: expected {param_space.NUM_PARAMS} numbers") from None
-    return param_space.validate(values, what=f"parameter file {path}")
+
+class ReplayTrials:
+    """A :class:`~cpgjax.hardware_io.ParamSchedule` replaying one parameter set for ``run_ticks`` ticks, cut into
+    back-to-back trials of ``timing`` (its transition, with nothing to blend, settles the gait; then the measured
+    steady phase), as ``cpgjax walk`` cuts a walk. Per tick it copies one row of signals into a buffer allocated
+    here; :meth:`rows` makes each complete trial's figures after the loop."""
+
+    def __init__(self, params: np.ndarray, run_ticks: int, timing: protocol.TrialConfig = protocol.TrialConfig()):
+        self._fixed = hio.FixedParams(params, run_ticks)
+        self._timing = timing
+        self._columns = signal_columns()
+        period = timing.transition_steps + timing.steady_steps
+        self._signals = np.zeros((run_ticks // period, timing.steady_steps, len(_SIGNALS)), np.float32)
+        self.trials_done = 0
+        self.trial = 0  # the trial being walked (logged per tick)
+
+    @property
+    def finished(self) -> bool:
+        return self._fixed.finished
+
+    def params(self, run_tick: int) -> np.ndarray:
+        return self._fixed.params(run_tick)
+
+    def record(self, run_tick: int, out: np.ndarray) -> None:
+        self._fixed.record(run_tick, out)
+        period = self._timing.transition_steps + self._timing.steady_steps
+        steady = run_tick % period - self._timing.transition_steps
+        if steady >= 0 and self.trials_done < self._signals.shape[0]:
+            self._signals[self.trials_done, steady] = out[self._columns]
+            if steady + 1 == self._timing.steady_steps:
+                self.trials_done += 1
+                self.trial = self.trials_done
+
+    def rows(self, total_mass_kg: float, target_velocity_mps: float, seed: int, tuned_for: dict,
+             dt_s: float = 0.001) -> list[dict]:
+        """Each complete trial's row (:func:`trial_row`): J, velocity, distance, CoT and the context from the
+        robot's own sensors, summarized as in simulation."""
+        rows = []
+        x = np.asarray(self._fixed.params(0), np.float64)
+        for trial in range(self.trials_done):
+            record = trial_record(self._signals[trial], total_mass_kg, dt_s)
+            j = float(objective.objective(record, target_velocity_mps))
+            rows.append(trial_row(trial, x, record, j, np.asarray(objective.context(record), np.float64), seed,
+                                  tuned_for))
+        return rows
 
 
 def _evaluate(signals: np.ndarray, spec: OptimizerSpec, observe, trial: int, x: np.ndarray | None = None):
@@ -236,21 +279,15 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
         _, trial, x, signals, wait_ticks = message
         record, j, c, c_gp = _evaluate(signals, spec, optimizer.observe, trial, x)
         conn.send(("params", optimizer.propose(c_gp)))
-        row = {"trial": trial, "objective": j, "cost_of_transport": float(objective.cost_of_transport(record)),
-               "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
-               "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])), "c_load_n": float(c[0]),
-               "c_slope_rad": float(c[1]), "roll_std_rad": float(record.roll_std_rad),
-               "pitch_std_rad": float(record.pitch_std_rad),
-               "saturation_fraction": float(record.saturation_fraction), "wait_s": wait_ticks * spec.dt_s,
-               **param_space.as_dict(x)}
+        row = {**trial_row(trial, x, record, j, c, spec.seed, spec.tuned_for), "optimizer": spec.kind,
+               "wait_s": wait_ticks * spec.dt_s}
         trial_log.append(row)
         log.info("trial %d: J = %.3f, v_x = %.2f m/s, CoT = %.2f, context (%.1f N, %.3f rad); its parameters came "
                  "%.2f s after the previous trial", trial, j, row["velocity_x_mps"], row["cost_of_transport"], c[0],
                  c[1], row["wait_s"])
         if j > best:
             best = j
-            save_params(Path(spec.log_dir) / "best_params.json", x, objective=j, trial=trial,
-                        controller=spec.controller, target_velocity_mps=spec.target_velocity_mps)
+            tuned.save(Path(spec.log_dir) / "best_params.json", x, spec.tuned_for, objective=j, trial=trial)
     trial_log.close()
     conn.send(("done", trial_log.rows))
 
@@ -293,12 +330,10 @@ class TrialRunner:
 
     def __init__(self, conn, initial_params: np.ndarray, num_trials: int,
                  timing: protocol.TrialConfig = protocol.TrialConfig(), mailer: _Mailer | None = None):
-        out = compiled_controller
         self._conn = conn
         self._mailer = mailer or conn
         self._timing = timing
-        self._columns = np.array([out.OUT_VELOCITY.start, out.OUT_VELOCITY.start + 1, out.OUT_POWER, out.OUT_LOAD,
-                                  out.OUT_RPY.start, out.OUT_RPY.start + 1, out.OUT_SATURATED])
+        self._columns = signal_columns()
         self._signals = np.full((timing.steady_steps, len(_SIGNALS)), 0, np.float32)  # written now, not in the loop
         self._previous = self._current = np.asarray(initial_params, np.float32)
         self._num_trials = num_trials

@@ -1,6 +1,7 @@
 """Walk the simulated Go1 with fixed CPG parameters for a few back-to-back trials and report the paper's trial figures.
 
-Used by ``cpgjax walk`` and studies/walk_evidence.py.
+Used by ``cpgjax walk`` (every trial: :func:`walk_trials`, :func:`trials_table`, ``walk.parquet`` of
+:func:`trial_columns`) and studies/walk_evidence.py (each walk's last trial: :func:`walk`, :func:`markdown_table`).
 """
 
 from __future__ import annotations
@@ -38,14 +39,31 @@ class WalkRow(NamedTuple):
     falls: int  # trials (of all run) in which the robot fell
 
 
-def walk(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload_kg=(0.0,), params=None,
-         num_trials: int = 2, target_velocity_mps: float = 0.5,
-         trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
-         physics=(physics_profiles.DEFAULT_PROFILE,), progress=print) -> tuple[list[WalkRow], dict]:
+class WalkTrial(NamedTuple):
+    """One trial of one walk (one combination of the grid): its conditions, parameters and trial figures."""
+
+    walk: int  # the walk's row in the grid
+    trial: int
+    controller: str
+    friction: float
+    slope_deg: float
+    payload_kg: float
+    physics: str
+    target_velocity_mps: float
+    params: np.ndarray  # (8,)
+    record: protocol.TrialRecord  # of this trial (one instance's fields)
+    objective: float
+    velocity_xy_mps: np.ndarray  # (2,) steady-phase mean
+    cot: float
+
+
+def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload_kg=(0.0,), params=None,
+                num_trials: int = 2, target_velocity_mps: float = 0.5,
+                trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
+                physics=(physics_profiles.DEFAULT_PROFILE,), progress=print) -> tuple[list[WalkTrial], dict]:
     """Every combination of controller × friction × slope × payload × physics profile, ``num_trials`` trials back to
     back with the same parameters (default: the middle of the paper's ranges) on ``backend``
-    (:func:`backends.make_backend`). Figures are those of the last trial; ``falls`` counts trials with a fall over the
-    whole walk.
+    (:func:`backends.make_backend`); returns every trial of every walk, walk-major, and the timing.
 
     Raises:
       ValueError: ``num_trials`` < 1 or a target velocity outside ``limits.TARGET_VELOCITY_MPS``, before any compute.
@@ -58,28 +76,86 @@ def walk(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload
     p = np.tile(param_space.midpoint() if params is None else params, (len(grid), 1))
     gates = protocol.batch_gates([g[0] for g in grid])
     sim = backends.make_backend(scenario, backend, trial_config=trial_config)
+    figures = jax.vmap(lambda r: (objective.objective(r, target_velocity_mps), objective.mean_velocity(r),
+                                  objective.cost_of_transport(r)))
     t0 = time.perf_counter()
     state = sim.reset(p)
-    falls = np.zeros(len(grid), int)
+    records = []
     compile_s = None
     for k in range(num_trials):
         state, record = sim.trial(state, p, gates)
-        falls += np.asarray(record.fell > 0)
+        records.append(jax.tree.map(np.asarray, (record, *figures(record))))
         if compile_s is None:
             compile_s = time.perf_counter() - t0
             t1 = time.perf_counter()
         progress(f"{k + 1}/{num_trials} trials done ({time.perf_counter() - t0:.1f} s)")
     run_s = time.perf_counter() - t1
     steps = len(grid) * (num_trials - 1) * (trial_config.transition_steps + trial_config.steady_steps)
-    j = jax.vmap(objective.objective, in_axes=(0, None))(record, target_velocity_mps)
-    cot = objective.cost_of_transport(record)
-    v = objective.mean_velocity(record)
-    rows = [WalkRow(c, f, s, m, ph, float(v[i, 0]), float(v[i, 1]), float(cot[i]), float(j[i]), target_velocity_mps,
-                    float(record.c_load_n[i]), float(record.c_slope_rad[i]), float(record.roll_std_rad[i]),
-                    float(record.pitch_std_rad[i]), int(falls[i]))
-            for i, (c, f, s, m, ph) in enumerate(grid)]
+    trials = [WalkTrial(i, k, c, float(f), float(s), float(m), ph, float(target_velocity_mps), p[i],
+                        protocol.TrialRecord(*(field[i] for field in record)), float(j[i]), v[i], float(cot[i]))
+              for i, (c, f, s, m, ph) in enumerate(grid) for k, (record, j, v, cot) in enumerate(records)]
     timing = {"compile_and_first_trial_s": compile_s, "env_steps_per_s": steps / run_s if num_trials > 1 else None}
+    return trials, timing
+
+
+def walk(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload_kg=(0.0,), params=None,
+         num_trials: int = 2, target_velocity_mps: float = 0.5,
+         trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
+         physics=(physics_profiles.DEFAULT_PROFILE,), progress=print) -> tuple[list[WalkRow], dict]:
+    """:func:`walk_trials`, one row per walk: the figures of its last trial; ``falls`` counts trials with a fall over
+    the whole walk.
+
+    Raises:
+      ValueError: as :func:`walk_trials`, before any compute.
+    """
+    trials, timing = walk_trials(controllers=controllers, friction=friction, slope_deg=slope_deg,
+                                 payload_kg=payload_kg, params=params, num_trials=num_trials,
+                                 target_velocity_mps=target_velocity_mps, trial_config=trial_config, backend=backend,
+                                 physics=physics, progress=progress)
+    last = [t for t in trials if t.trial == num_trials - 1]
+    falls = [sum(int(u.record.fell > 0) for u in trials if u.walk == t.walk) for t in last]
+    rows = [WalkRow(t.controller, t.friction, t.slope_deg, t.payload_kg, t.physics, float(t.velocity_xy_mps[0]),
+                    float(t.velocity_xy_mps[1]), t.cot, t.objective, t.target_velocity_mps, float(t.record.c_load_n),
+                    float(t.record.c_slope_rad), float(t.record.roll_std_rad), float(t.record.pitch_std_rad), n)
+            for t, n in zip(last, falls)]
     return rows, timing
+
+
+def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
+    """``walk.parquet``'s columns (docs/outputs.md): one row per (walk, trial); floats float64."""
+    cols: dict[str, np.ndarray] = {
+        "walk": np.array([t.walk for t in trials], np.int64), "trial": np.array([t.trial for t in trials], np.int64)}
+    for name in ("controller", "physics"):
+        cols[name] = np.array([getattr(t, name) for t in trials])
+    for name in ("friction", "slope_deg", "payload_kg", "target_velocity_mps"):
+        cols[name] = np.array([getattr(t, name) for t in trials], np.float64)
+    params = np.array([t.params for t in trials], np.float64).reshape(len(trials), param_space.NUM_PARAMS)
+    for i, name in enumerate(param_space.PARAM_NAMES):
+        cols[name] = params[:, i]
+    record = {name: np.array([getattr(t.record, name) for t in trials], np.float64)
+              for name in ("c_load_n", "c_slope_rad", "roll_std_rad", "pitch_std_rad", "saturation_fraction",
+                           "energy_j", "distance_m", "total_mass_kg")}
+    cols.update(c_load_n=record.pop("c_load_n"), c_slope_rad=record.pop("c_slope_rad"),
+                objective=np.array([t.objective for t in trials], np.float64),
+                velocity_x_mps=np.array([t.velocity_xy_mps[0] for t in trials], np.float64),
+                velocity_y_mps=np.array([t.velocity_xy_mps[1] for t in trials], np.float64),
+                cost_of_transport=np.array([t.cot for t in trials], np.float64), **record)
+    cols["fell"] = np.array([t.record.fell > 0 for t in trials], bool)
+    cols["failed"] = np.array([t.record.failed > 0 for t in trials], bool)
+    return cols
+
+
+def trials_table(trials: list[WalkTrial]) -> str:
+    """Every trial of every walk as a markdown table, labeled by walk and trial (numbered from 0)."""
+    head = ("| walk | trial | controller | friction | slope [°] | payload [kg] | physics | v_x [m/s] | CoT "
+            f"| J (v*={trials[0].target_velocity_mps:g} m/s) | c_load [N] | c_slope [rad] | fell |")
+    lines = [head, "|" + "---|" * 13]
+    for t in trials:
+        lines.append(f"| {t.walk} | {t.trial} | {t.controller} | {t.friction:.1f} | {t.slope_deg:.1f} "
+                     f"| {t.payload_kg:.1f} | {t.physics} | {t.velocity_xy_mps[0]:.3f} | {t.cot:.3f} "
+                     f"| {t.objective:.3f} | {float(t.record.c_load_n):.1f} | {float(t.record.c_slope_rad):.3f} "
+                     f"| {bool(t.record.fell > 0)} |")
+    return "\n".join(lines)
 
 
 def markdown_table(rows: list[WalkRow]) -> str:

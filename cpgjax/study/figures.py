@@ -2,6 +2,8 @@
 
 * :func:`learning_curves` — Fig. "sim_overview": rows mean forward velocity, CoT, objective value and context per
   trial; one line per group (mean over seeds) with a ±1 std band; condition changes marked by red arrows.
+* :func:`optimization_progress` — Fig. "slope_adapt_exp" (b) style: the best J so far and the 8 parameters per trial,
+  per group.
 * :func:`attitude` — Fig. "att_comp": roll–pitch trajectories of the best parameters of two controllers.
 """
 
@@ -10,6 +12,8 @@ from __future__ import annotations
 import pathlib
 
 import numpy as np
+
+from cpgjax.trial import params as param_space
 
 CONTEXT_LABELS = ("$c_{load}$ [N]", "$c_{slope}$ [rad]")
 
@@ -21,6 +25,13 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def _runs_per_curve(labels: np.ndarray) -> str:
+    """'2 runs per curve' (or '2–3 runs per curve'): how many instances each drawn mean averages."""
+    counts = [int(np.sum(labels == g)) for g in dict.fromkeys(labels)]
+    low, high = min(counts), max(counts)
+    return f"{low}{'' if low == high else f'–{high}'} run{'s' if high > 1 else ''} per curve"
 
 
 def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), target=None,
@@ -59,7 +70,46 @@ def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), t
             ax.axvline(c - 0.5, color="red", lw=0.6, alpha=0.5)
     axes[0].legend(fontsize=7, loc="lower right")
     axes[-1].set_xlabel("trial (from 0)")
-    fig.suptitle(f"{result.spec.name}: {len(result.labels)} runs, mean ± std", fontsize=10)
+    fig.suptitle(f"{result.spec.name}: {_runs_per_curve(labels)}, mean ± std", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def optimization_progress(path: pathlib.Path, result, groups: list[str]) -> pathlib.Path:
+    """The paper's Fig. "slope_adapt_exp" (b) style, per group (``groups``: each instance's group name): the best J
+    found so far (running maximum over the trials, mean ± std over the group's runs), and each of the 8 parameters
+    per trial, normalized to the paper's box [0, 1] (mean over the group's runs)."""
+    plt = _plt()
+    tr = result.trials
+    n = tr.objective.shape[0]
+    trials = np.arange(n)
+    names = np.array(groups)
+    unit = (np.asarray(tr.params, np.float64) - param_space.PARAM_LOWER) / (param_space.PARAM_UPPER
+                                                                          - param_space.PARAM_LOWER)
+    order = list(dict.fromkeys(groups))
+    fig, axes = plt.subplots(1 + len(order), 1, figsize=(6.5, 2.2 * (1 + len(order))), sharex=True, squeeze=False)
+    axes = axes[:, 0]
+    best = np.maximum.accumulate(np.asarray(tr.objective, np.float64), axis=0)
+    for group in order:
+        b = best[:, names == group]
+        line, = axes[0].plot(trials, b.mean(axis=1), lw=1.4, label=group)
+        axes[0].fill_between(trials, b.mean(axis=1) - b.std(axis=1), b.mean(axis=1) + b.std(axis=1),
+                             color=line.get_color(), alpha=0.2, lw=0)
+    axes[0].set_ylabel("best J so far")
+    axes[0].legend(fontsize=7, loc="lower right")
+    for ax, group in zip(axes[1:], order):
+        x = unit[:, names == group].mean(axis=1)  # (n, 8)
+        for i, name in enumerate(param_space.PARAM_NAMES):
+            ax.plot(trials, x[:, i], lw=1.0, label=name)
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_ylabel(f"{group}\nparameter (box → [0, 1])", fontsize=8)
+    axes[1].legend(fontsize=6, ncol=4, loc="upper right")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("trial (from 0)")
+    fig.suptitle(f"{result.spec.name}: best-so-far J and the parameters ({_runs_per_curve(names)})", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -11,6 +11,9 @@
 * ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and each
   group's best gait, full body (``cpgjax.study.scene``: every body and its geoms, the floor at the slope, contact
   forces as arrows, CPG phases and amplitudes).
+* ``best_params/<group>.json`` — per group of the study (its ``group_by`` labels, e.g. ``controller=tegotae``) the
+  best observed trial's parameters with what they were tuned for (:mod:`cpgjax.trial.tuned`), which
+  ``cpgjax deploy --params`` and ``cpgjax walk --params`` replay.
 * ``metadata.json`` — the command line, cpgjax's version and git commit, the optimizer's settings, versions,
   devices, backend, wall time, env-steps/s and real-time factor.
 
@@ -19,6 +22,7 @@ No command writes into a non-empty folder or over a file unless told to (:func:`
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -33,11 +37,18 @@ from typing import Any, NamedTuple
 import numpy as np
 
 import cpgjax
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.study import scene as study_scene
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
+from cpgjax.trial import tuned
+
+class OutputError(RuntimeError):
+    """Writing one of a run's files failed; the message says which, what was kept and how to write the rest."""
+
 
 CHECKPOINT = "checkpoint.npz"
+BEST_PARAMS = "best_params"  # a study's folder of best parameters per group
 _SHARD = re.compile(r"checkpoint\.(\d+)of(\d+)\.t(\d+)\.npz")
 
 
@@ -100,6 +111,30 @@ def fingerprint(spec) -> str:
     return repr(spec)
 
 
+def definition(spec) -> dict[str, str]:
+    """Each field of the study's definition, as its repr (a checkpoint records them to name what differs)."""
+    return {f.name: repr(getattr(spec, f.name)) for f in dataclasses.fields(spec)}
+
+
+def _shortened(text: str, size: int = 80) -> str:
+    return text if len(text) <= size else text[:size - 3] + "..."
+
+
+def different_definition(path, meta: dict, spec) -> StudyError:
+    """The refusal to continue ``path``, written by another study definition, naming the fields that differ."""
+    theirs, ours = meta.get("definition"), definition(spec)
+    if isinstance(theirs, dict):
+        fields = "; ".join(f"{name} {_shortened(str(theirs.get(name, '(not recorded)')))} there, "
+                           f"{_shortened(value)} here" for name, value in ours.items() if theirs.get(name) != value)
+    else:
+        fields = "it does not record its fields"
+    extend = (" (a finished study is not extended to more trials: the optimizer's arrays and the schedules are sized "
+              "for its trials)" if isinstance(theirs, dict) and [n for n in ours if theirs.get(n) != ours[n]] == [
+                  "num_trials"] else "")
+    return StudyError(f"{path} was written by a different study definition ({fields}){extend}; use another --out, "
+                      f"or --overwrite to start afresh")
+
+
 def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard = Shard()) -> pathlib.Path:
     """Write ``shard``'s checkpoint file atomically (temporary file, fsync, rename); returns its path. ``backend``:
     the simulator's."""
@@ -110,16 +145,23 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard 
     arrays["context"] = np.asarray(ckpt.context)
     for name in TrialLog._fields:
         arrays[f"log_{name}"] = np.stack([np.asarray(getattr(lg, name)) for lg in ckpt.logs])
-    meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), backend=backend, wall_s=ckpt.wall_s,
+    meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), definition=definition(spec), backend=backend,
+                wall_s=ckpt.wall_s,
                 timing=ckpt.timing, num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves), **shard._asdict())
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     path = shard_path(out, shard, ckpt.trial)
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as err:  # a full disk: the previous checkpoint is untouched
+        tmp.unlink(missing_ok=True)
+        kept = f"trials 0…{ckpt.trial - 2} are kept in its checkpoint" if ckpt.trial > 1 else "no trial is kept"
+        raise OutputError(f"writing the checkpoint of trial {ckpt.trial - 1} in {out} failed ({err.strerror}); "
+                          f"{kept}: free space, then the same command with --resume continues") from None
     return path
 
 
@@ -200,8 +242,7 @@ def resume_point(out_dir, spec, backend: str) -> int:
     if meta is None:
         raise StudyError(f"--resume: there is no checkpoint in {out_dir}; run without --resume to start afresh")
     if meta.get("fingerprint") != fingerprint(spec):
-        raise StudyError(f"{path} was written by a different study definition; use another --out or delete it "
-                         f"(checkpoint: {str(meta.get('fingerprint'))[:200]}...)")
+        raise different_definition(path, meta, spec)
     if meta.get("backend", backend) != backend:
         raise StudyError(f"{path} was written on the {meta['backend']} backend, this run would use {backend}: resume "
                          f"with --backend {meta['backend']} (one run, one simulator)")
@@ -230,8 +271,7 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
     for path in generations[-1][1]:
         meta = _read_meta(path)
         if meta["fingerprint"] != fingerprint(spec):
-            raise StudyError(f"{path} was written by a different study definition; use another --out or delete "
-                             f"it (checkpoint: {meta['fingerprint'][:200]}...)")
+            raise different_definition(path, meta, spec)
         try:
             with np.load(path, allow_pickle=False) as z:
                 first = meta.get("first_row", 0)
@@ -262,15 +302,49 @@ def _entries(folder: pathlib.Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir())
 
 
-def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pathlib.Path:
+# Every file name a cpgjax command writes into its output folder (studies, optimize, walk and, written by
+# cpgjax.robot, a deploy run: its per-tick log, run.json and calibration.json), beside the figures (*.png), the
+# checkpoint shards and the best_params/ folder; --overwrite deletes these and nothing else.
+OUTPUT_FILES = frozenset({CHECKPOINT, "trials.parquet", "recording.rrd", "trials.rrd", "metadata.json", "table.md",
+                          "best_params.json", "walk.parquet", "run.json", "ticks.arrows", "calibration.json"})
+
+
+def _is_output(path: pathlib.Path) -> bool:
+    """Whether ``path`` is a file or folder a cpgjax command wrote: a name of :data:`OUTPUT_FILES`, a figure, a
+    checkpoint shard or an unfinished checkpoint (``.tmp``), ``best_params/`` holding only JSON files, or a folder
+    holding only such files (an arm of the transfer study)."""
+    if path.is_symlink():
+        return False
+    if path.is_dir():
+        inside = list(path.iterdir())
+        if path.name == BEST_PARAMS:
+            return all(p.suffix == ".json" and p.is_file() for p in inside)
+        return bool(inside) and all(_is_output(p) for p in inside)
+    name = path.name.removesuffix(".tmp")
+    return name in OUTPUT_FILES or bool(_SHARD.fullmatch(name)) or path.suffix == ".png"
+
+
+def _remove_outputs(folder: pathlib.Path) -> None:
+    """Delete every entry of ``folder`` (each checked by :func:`_is_output`)."""
+    for path in folder.iterdir():
+        if path.is_dir():
+            _remove_outputs(path)
+            path.rmdir()
+        else:
+            path.unlink()
+
+
+def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resumable: bool = True) -> pathlib.Path:
     """Make sure a command may write into ``folder`` before it computes anything, and create it.
 
     A missing or empty folder is fine; a non-empty one only with ``resume`` (its checkpoint is continued) or
-    ``overwrite`` (the command's files replace theirs; with a checkpoint there, it is deleted so that the run starts
-    afresh).
+    ``overwrite``: the files a cpgjax command wrote there (:func:`_is_output`) are deleted, so that the run starts
+    afresh and no old file is taken for the new run's; anything else in the folder is refused by name, and nothing is
+    deleted then. ``resumable``: whether the command has ``--resume`` (the refusal offers it where a checkpoint is).
 
     Raises:
-      StudyError: ``folder`` is a file, cannot be created, or holds files and neither flag is given.
+      StudyError: ``folder`` is a file, cannot be created, holds files and neither flag is given, or holds, with
+        ``overwrite``, files that no cpgjax command wrote.
     """
     folder = pathlib.Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -278,18 +352,39 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False) -> pa
     if folder.is_dir() and not resume:
         entries = _entries(folder)
         if entries and not overwrite:
-            hint = " --resume to continue its checkpoint," if checkpoint_files(folder) else ""
+            hint = " --resume to continue its checkpoint," if resumable and checkpoint_files(folder) else ""
             shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
             raise StudyError(f"{folder} is not empty ({shown}): pass{hint} --overwrite to replace its files, or "
                              f"write somewhere else")
         if overwrite:
-            for path in checkpoint_files(folder):
-                path.unlink(missing_ok=True)
+            foreign = [name for name in entries if not _is_output(folder / name)]
+            if foreign:
+                shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+                raise StudyError(f"{folder}: --overwrite replaces only what cpgjax wrote, and {shown} "
+                                 f"{'is' if len(foreign) == 1 else 'are'} not cpgjax's: move "
+                                 f"{'it' if len(foreign) == 1 else 'them'}, or write somewhere else")
+            _remove_outputs(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise StudyError(f"cannot create the folder {folder}: {err.strerror}") from None
+    check_writable(folder)
     return folder
+
+
+def check_writable(folder: pathlib.Path) -> None:
+    """Create and delete a file in ``folder``: a read-only folder or file system is found before any compute (a
+    permission check would pass for root on a read-only mount).
+
+    Raises:
+      StudyError: the file cannot be written; the message names the folder and the reason.
+    """
+    probe = pathlib.Path(folder) / f".cpgjax-write-check-{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise StudyError(f"cannot write in {folder}: {err.strerror}") from None
 
 
 def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
@@ -307,13 +402,36 @@ def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise StudyError(f"cannot create the folder {path.parent}: {err.strerror}") from None
+    check_writable(path.parent)
     return path
 
 
 # ----------------------------------------------------------------------------------------------- trial table
 
+def profile_noise_scale(name: str) -> float:
+    """The sensor noise of physics profile ``name`` as a multiple of the robot's (the go1 profile's), NaN where it
+    is no multiple of it."""
+    noise = physics_profiles.arrays(physics_profiles.get(name)).noise.astype(np.float64)
+    robot = physics_profiles.arrays(physics_profiles.get(physics_profiles.ROBOT_PROFILE)).noise.astype(np.float64)
+    scale = float(np.dot(noise, robot) / np.dot(robot, robot))
+    return scale if np.allclose(noise, scale * robot, rtol=1e-6, atol=0.0) else float("nan")
+
+
+def _resolved(cond, labels: list[dict[str, Any]], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(latency_ticks, noise_scale), each (B, n): the conditions' values with −1 ("the profile's own") replaced by
+    the instance's profile's latency and noise scale (:func:`profile_noise_scale`)."""
+    profiles = [lab["physics"] for lab in labels]
+    own_latency = np.array([physics_profiles.get(p).latency_ticks for p in profiles], np.int64)[:, None]
+    own_noise = np.array([profile_noise_scale(p) for p in profiles])[:, None]
+    latency = np.asarray(cond.latency_ticks)[:, :n]
+    noise = np.asarray(cond.noise_scale, np.float64)[:, :n]
+    return np.where(latency >= 0, latency, own_latency).astype(np.int64), np.where(noise >= 0, noise, own_noise)
+
+
 def trial_columns(result) -> dict[str, np.ndarray]:
-    """One row per (instance, trial), instance-major: labels, conditions, parameters and trial figures."""
+    """One row per (instance, trial), instance-major: labels, conditions, parameters and trial figures. Every float
+    column is float64 (the engine's figures are float32, widened exactly), counts int64, flags bool; the latency and
+    the noise scale are resolved to the values simulated (docs/outputs.md)."""
 
     tr, cond = result.trials, result.conditions
     n, batch = tr.objective.shape
@@ -327,9 +445,10 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     cols: dict[str, np.ndarray] = {"instance": inst, "trial": trial}
     for label in ("controller", "seed", "schedule", "data_reuse", "physics"):
         cols[label] = np.array([lab[label] for lab in result.labels])[inst]
-    for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "mass_scale",
-                  "latency_ticks", "noise_scale"):
+    for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "mass_scale"):
         cols[field] = np.asarray(getattr(cond, field))[:, :n].reshape(-1)
+    latency, noise = _resolved(cond, result.labels, n)
+    cols["latency_ticks"], cols["noise_scale"] = latency.reshape(-1), noise.reshape(-1)
     params = per(tr.params)
     for i, name in enumerate(param_space.PARAM_NAMES):
         cols[name] = params[:, i]
@@ -344,7 +463,8 @@ def trial_columns(result) -> dict[str, np.ndarray]:
         cols[name] = per(getattr(tr, name))
     for name in ("context_changed", "accepted", "fell", "failed"):
         cols[name] = per(getattr(tr, name)) > 0
-    return cols
+    return {k: v.astype(np.float64) if np.issubdtype(v.dtype, np.floating) else
+            v.astype(np.int64) if np.issubdtype(v.dtype, np.integer) else v for k, v in cols.items()}
 
 
 def write_trials(result, path) -> pathlib.Path:
@@ -353,8 +473,53 @@ def write_trials(result, path) -> pathlib.Path:
     import pyarrow.parquet as pq
 
     path = pathlib.Path(path)
-    pq.write_table(pa.table(trial_columns(result)), path)
+    columns = trial_columns(result)
+    # a noise scale that is no multiple of the robot's is null (docs/outputs.md), not NaN
+    columns["noise_scale"] = pa.array(columns["noise_scale"], mask=np.isnan(columns["noise_scale"]))
+    pq.write_table(pa.table(columns), path)
     return path
+
+
+def group_file_name(labels: dict[str, Any], group_by: tuple[str, ...]) -> str:
+    """'controller=tegotae' or 'schedule=load_change,controller=vmc': a group's best-parameter file, without .json."""
+    return ",".join(f"{g}={labels[g]}" for g in group_by).replace("/", "_")
+
+
+@contextlib.contextmanager
+def writing(out_dir, what: str):
+    """Turn any failure while writing ``what`` into :class:`OutputError`: which file, why, the files already in
+    ``out_dir`` (the checkpoint holds every trial) and that ``--resume`` writes the outputs again."""
+    try:
+        yield
+    except Exception as err:  # an output's failure, whatever its kind, must not hide the results already kept
+        out = pathlib.Path(out_dir)
+        kept = ", ".join(_entries(out)) if out.is_dir() else "nothing"
+        raise OutputError(f"writing {what} in {out} failed ({type(err).__name__}: {err}); kept: {kept}. Every trial "
+                          f"is in its checkpoint: the same command with --resume writes the outputs again") from err
+
+
+def write_best_params(result, folder) -> list[pathlib.Path]:
+    """``folder/<group>.json`` for every group of the study (:func:`group_file_name`): the best observed trial of the
+    group's instances (highest J), its parameters, and what they were tuned for: the instance's controller and
+    physics profile and that trial's friction, slope, payload and target velocity."""
+    folder = pathlib.Path(folder)
+    folder.mkdir(exist_ok=True)
+    tr, cond = result.trials, result.conditions
+    groups: dict[str, list[int]] = {}
+    for b, lab in enumerate(result.labels):
+        groups.setdefault(group_file_name(lab, result.spec.group_by), []).append(b)
+    paths = []
+    for name, members in groups.items():
+        j = np.asarray(tr.objective, np.float64)[:, members]
+        t, k = np.unravel_index(np.argmax(np.where(np.isfinite(j), j, -np.inf)), j.shape)
+        b, lab = members[k], result.labels[members[k]]
+        tuned_for = dict(controller=lab["controller"], physics=lab["physics"],
+                         **{f: float(getattr(cond, f)[b, t]) for f in tuned.TUNED_FOR if hasattr(cond, f)})
+        path = folder / f"{name}.json"
+        tuned.save(path, tr.params[t, b], tuned_for, objective=float(j[t, k]), trial=int(t), instance=int(b),
+                   seed=int(lab["seed"]), study=result.spec.name)
+        paths.append(path)
+    return paths
 
 
 # ----------------------------------------------------------------------------------------------- metadata

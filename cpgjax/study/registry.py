@@ -16,10 +16,11 @@
 The paper used 5 seeds; the studies default to 20 (``DEFAULT_SEEDS``), and every figure is a mean with its 95 %
 confidence interval over seeds (``cpgjax.study.stats``).
 
-Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures, ``trials.parquet``,
+Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures (the study's own and
+``optimization_progress.png``: the best J so far and the parameters per group), ``best_params/``, ``trials.parquet``,
 ``recording.rrd`` (with each group's best gait, full body), ``metadata.json`` and the engine's ``checkpoint.npz``
-(``cpgjax.study.files``), then each group's best gait, ``best_<group>.json``, and its video ``best_<group>.mp4``
-(``cpgjax.study.video``).
+(``cpgjax.study.files``), then each group's best gait of its final phase, ``best_<group>.json``, and its video
+``best_<group>.mp4`` (``cpgjax.study.video``).
 """
 
 from __future__ import annotations
@@ -561,28 +562,40 @@ def _to_stderr(line: str) -> None:
 
 def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None, command: str | None = None,
                   notify: Callable[[str], None] = _to_stderr) -> str:
-    """Every file of a finished study; returns the table text. Last, after the others: each group's best gait
-    (``best_<group>.json``) and its video (``best_<group>.mp4``, :mod:`cpgjax.study.video`), with a line to
-    ``notify`` per video, or one saying why there is none."""
+    """Every file of a finished study; returns the table text. The trial table, the metadata and the best parameters
+    first (they cannot fail but for the disk), then the report (table.md, figures), the recording, and last each
+    group's best gait (``best_<group>.json``) and its video (``best_<group>.mp4``, :mod:`cpgjax.study.video`), with a
+    line to ``notify`` per video, or one saying why there is none.
+
+    Raises:
+      study_io.OutputError: a file could not be written; the message names it and what was kept.
+    """
     out.mkdir(parents=True, exist_ok=True)
-    report = STUDIES[name or result.spec.name].report
-    text = report(result, out, backend)
-    figures = study_io.run_figures(result)
-    text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, figures)}\n"
-    (out / "table.md").write_text(text)
-    study_io.write_trials(result, out / "trials.parquet")
+    with study_io.writing(out, "trials.parquet"):
+        study_io.write_trials(result, out / "trials.parquet")
+    with study_io.writing(out, "metadata.json"):
+        study_io.write_metadata(result, out / "metadata.json", command=command)
+    with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
+        study_io.write_best_params(result, out / study_io.BEST_PARAMS)
+    with study_io.writing(out, "table.md and the figures"):
+        text = STUDIES[name or result.spec.name].report(result, out, backend)
+        study_figures.optimization_progress(out / "optimization_progress.png", result, [
+            study_io.group_file_name(lab, result.spec.group_by) for lab in result.labels])
+        text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
+        (out / "table.md").write_text(text)
     gaits = best_gaits(result)
     logs = gait_rollouts(gaits, backend)
-    study_io.write_recording(result, out / "recording.rrd", [
-        study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction, g.slope_deg,
-                            g.payload_kg) for g, log in zip(gaits, logs)])
-    study_io.write_metadata(result, out / "metadata.json", command=command)
-    for gait in gaits:
-        study_video.save_gait(out, gait)
-    study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
-    filmed = study_video.write_videos(out, gaits, logs, notify)
-    strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed)}
-    study_figures.summary(out / "summary.png", result, text, gaits, strips)
+    with study_io.writing(out, "recording.rrd"):
+        study_io.write_recording(result, out / "recording.rrd", [
+            study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction,
+                                g.slope_deg, g.payload_kg) for g, log in zip(gaits, logs)])
+    with study_io.writing(out, "the best gaits, their figures and videos"):
+        for gait in gaits:
+            study_video.save_gait(out, gait)
+        study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
+        filmed = study_video.write_videos(out, gaits, logs, notify)
+        strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed)}
+        study_figures.summary(out / "summary.png", result, text, gaits, strips)
     return text
 
 

@@ -149,8 +149,10 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
     for (arm, home, _), spec in zip(ARMS, arm_specs):
         engine = ablation.Engine(spec, backend=backend)
         result = engine.run(out / spec.name, resume=spec.name in resumed, progress=progress)
-        study_io.write_trials(result, out / spec.name / "trials.parquet")
-        study_io.write_metadata(result, out / spec.name / "metadata.json", command=command)
+        with study_io.writing(out / spec.name, "trials.parquet, metadata.json and best_params/"):
+            study_io.write_trials(result, out / spec.name / "trials.parquet")
+            study_io.write_metadata(result, out / spec.name / "metadata.json", command=command)
+            study_io.write_best_params(result, out / spec.name / study_io.BEST_PARAMS)
         arm_results[arm] = result
         evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels],
                                     Environments(home), spec.trial, engine.backend_name)

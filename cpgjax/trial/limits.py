@@ -61,21 +61,30 @@ SETTLE_S = Range(0.0, 60.0, "holding the pose before measuring")
 LIFT_M = Range(0.0, 1.0, "how high the simulated Go1 is hung up", low_open=True)
 
 MIN_TRIALS = 1
+MAX_TRIALS = 1000
+MAX_TRIALS_REASON = ("the GP keeps every trial, its work per trial grows with the cube of their number; the paper's "
+                     "runs have 40 to 100")
+MAX_SEEDS = 10_000
+MAX_SEEDS_REASON = ("seeds per group, each one more simulated robot in the batch; the paper's studies use 5, a "
+                    "cluster run of docs/scaling.md 250")
 MIN_STUDY_TRIALS = 8
 MIN_STUDY_TRIALS_REASON = ("a paper study changes its conditions at trials scaled to the run length and starts with "
                            "random trials; below 8 a phase has no optimized trial")
 
 
-def check_count(value: int, name: str | None = None, minimum: int = MIN_TRIALS, reason: str = "") -> int:
-    """An integer count of at least ``minimum``.
+def check_count(value: int, name: str | None = None, minimum: int = MIN_TRIALS, reason: str = "",
+                maximum: int = MAX_TRIALS, maximum_reason: str = MAX_TRIALS_REASON) -> int:
+    """An integer count in ``minimum`` … ``maximum``.
 
     Raises:
-      ValueError: not an integer, or below ``minimum`` (the message gives ``reason`` when there is one).
+      ValueError: not an integer, or outside the range (the message gives the reason of the bound it passes).
     """
+    shown = f"{name} = {value!r}" if name else repr(value)
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         why = f" ({reason})" if reason else ""
-        shown = f"{name} = {value!r}" if name else repr(value)
         raise ValueError(f"{shown}: need an integer >= {minimum}{why}")
+    if value > maximum:
+        raise ValueError(f"{shown}: need an integer <= {maximum} ({maximum_reason})")
     return value
 
 
