@@ -235,8 +235,8 @@ def _walk(args) -> int:
         except study_spec.StudyError as err:
             print(f"cpgjax walk: {err}", file=sys.stderr)
             return 2
-    elif args.overwrite:
-        print("cpgjax walk: error: --overwrite applies to --out only", file=sys.stderr)
+    elif args.overwrite and args.video is None:
+        print("cpgjax walk: error: --overwrite applies to --out and --video only", file=sys.stderr)
         return 2
     _use_tuned(args, many=True)
     trials, timing = walk.walk_trials(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
@@ -936,7 +936,8 @@ def _add_walk(sub) -> None:
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
     w.add_argument("--out", type=_output_path, help="write walk.parquet (every trial) and metadata.json into this "
                    "folder, missing or empty (default: print the table only)")
-    w.add_argument("--overwrite", action="store_true", help="replace the files of a previous walk in --out")
+    w.add_argument("--overwrite", action="store_true", help="replace the files of a previous walk in --out and an "
+                   "existing --video file")
     w.add_argument("--params", type=_params_file, help="walk with these parameters: a best_params.json (of optimize, "
                    "deploy --optimize or a study), whose controller, physics, scenario and target are used unless "
                    "given here, or a JSON list of 8 numbers (default: the middle of the paper's ranges)")
@@ -944,7 +945,6 @@ def _add_walk(sub) -> None:
     w.add_argument("--video", type=pathlib.Path, help="also film the walk (one combination, the paper's trial as "
                    "settling, then --video-s) into this MP4 (docs/visualization.md; default: no video)")
     _add_video_length_arg(w)
-    w.add_argument("--overwrite", action="store_true", help="replace an existing --video file")
     w.set_defaults(func=lambda args: _walk_video(args) if args.video else _walk(args))
 
 
