@@ -608,8 +608,9 @@ def _folder_kind(out: pathlib.Path) -> str | None:
     study = (_read_json(out / "metadata.json") or {}).get("study")
     if study in ("optimize", "walk"):
         return study
-    if names & {"table.md", "trials.parquet", "metadata.json"} or study_io.checkpoint_files(out) or any(
-            (out / n / "metadata.json").exists() or study_io.checkpoint_files(out / n) for n in names):
+    gaits = any(n.startswith("best_") and n.endswith((".json", ".mp4")) for n in names)  # a study's best gaits
+    if names & {"table.md", "trials.parquet", "metadata.json", "recording.rrd"} or gaits or study_io.checkpoint_files(
+            out) or any((out / n / "metadata.json").exists() or study_io.checkpoint_files(out / n) for n in names):
         return "optimize" if "best_params.json" in names else "study"
     if any(n.endswith(".air.ticks.arrows") for n in names):
         return "calibrate"
@@ -671,7 +672,7 @@ def _show(args) -> int:
         return 2
     kind = _folder_kind(out)
     if kind is None:
-        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, checkpoint, "
+        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, recording, best gait, checkpoint, "
               f"run.json or {tick_log.FILE_NAME})", file=sys.stderr)
         return 2
     listing, damaged = _files_listing(out)
