@@ -186,10 +186,10 @@ def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict) ->
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     ax.set_title(f"{result.spec.name}: {len(result.labels)} runs × {len(trials)} trials", fontsize=10)
-    text = fig.add_subplot(grid[1, :])
-    text.axis("off")
+    panel = fig.add_subplot(grid[1, :])
+    panel.axis("off")
     table = [line for line in table_text.splitlines() if line.startswith("|") and not line.startswith("|---")]
-    text.text(0, 1, "\n".join(table[:12]), family="monospace", fontsize=5.5, va="top")
+    panel.text(0, 1, "\n".join(table[:12]), family="monospace", fontsize=5.5, va="top")
     for r, gait in enumerate(gaits):
         strip = frames.get(gait.group, [])
         for c in range(4):
