@@ -70,6 +70,7 @@ import jax
 import jax.numpy as jnp
 import jax.scipy as jsp
 import optax
+from jax import custom_batching
 
 JITTER_RATIO = 1e-4
 """Diagonal jitter relative to the output scale: noise floor of ``1e-4 * s**2``."""
@@ -79,6 +80,38 @@ MIN_VARIANCE_RATIO = 1e-10
 
 _TRIANGULAR_LEAF = 32
 """Largest triangular block :func:`_cholesky_inverse` solves directly."""
+
+
+def _one_matrix_per_lapack_call(fn):
+    """``fn``, with a batching rule that loops over the batch (:func:`jax.lax.map`) instead of
+    handing the whole batch to one LAPACK call.
+
+    jaxlib's CPU LAPACK kernels split a large batch into pieces on XLA's intra-op thread pool
+    and block until the pieces are done. When every pool thread is itself inside such a call
+    (two independent batched factorizations of one program, on a two-thread pool), nobody is
+    left to run the pieces and the program never ends (docs/backends.md, "LAPACK calls, one
+    matrix at a time"). A call on one matrix runs on the calling thread, so looping keeps every GP
+    factorization and solve deadlock-free at any batch size, at the same arithmetic per matrix.
+    """
+    @custom_batching.custom_vmap
+    def unbatched(*args):
+        return fn(*args)
+
+    @unbatched.def_vmap
+    def loop_over_batch(axis_size, in_batched, *args):
+        args = tuple(arg if batched else jnp.broadcast_to(arg, (axis_size, *jnp.shape(arg)))
+                     for arg, batched in zip(args, in_batched))
+        return jax.lax.map(lambda one: unbatched(*one), args), True
+
+    return unbatched
+
+
+_lower_cholesky = _one_matrix_per_lapack_call(
+    lambda matrix: jax.lax.linalg.cholesky(matrix, symmetrize_input=False))
+_solve_lower = _one_matrix_per_lapack_call(
+    lambda lower, rhs: jsp.linalg.solve_triangular(lower, rhs, lower=True))
+_cholesky_solve = _one_matrix_per_lapack_call(
+    lambda lower, rhs: jsp.linalg.cho_solve((lower, True), rhs))
 
 LENGTHSCALE_PRIOR = (3.0, 6.0)
 """Gamma(concentration, rate) on every active lengthscale (normalized input units)."""
@@ -322,8 +355,8 @@ def _factor(params, prepared, active, context_dims) -> _Factored:
     # The kernel is symmetric by construction ((a - b)² = (b - a)² exactly), and the
     # factorization reads one triangle: no symmetrizing pass (a 160 x 160 transpose and
     # average cost a quarter of a fit step).
-    cholesky = jax.lax.linalg.cholesky(kernel, symmetrize_input=False)
-    weights = jsp.linalg.cho_solve((cholesky, True), residual)
+    cholesky = _lower_cholesky(kernel)
+    weights = _cholesky_solve(cholesky, residual)
     return _Factored(corr_x, corr_c, derivative_x, derivative_c, residual, cholesky, weights)
 
 
@@ -341,8 +374,7 @@ def _cholesky_inverse(cholesky: jax.Array) -> jax.Array:
     """
     size = cholesky.shape[0]
     if size <= _TRIANGULAR_LEAF:
-        return jsp.linalg.solve_triangular(cholesky, jnp.eye(size, dtype=cholesky.dtype),
-                                           lower=True)
+        return _solve_lower(cholesky, jnp.eye(size, dtype=cholesky.dtype))
     half = size // 2
     upper_inverse = _cholesky_inverse(cholesky[:half, :half])
     lower_inverse = _cholesky_inverse(cholesky[half:, half:])

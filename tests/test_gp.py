@@ -4,6 +4,10 @@ The reference is a dense float64 NumPy GP written from the textbook formulas (Ra
 Williams, Alg. 2.1) with the model of cpgjax.gp's docstring; cpgjax runs in float32.
 """
 
+import os
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -354,3 +358,35 @@ def test_ucb_forms():
     assert acquisition.ucb_multiplier(beta, "botorch") == 2.0
     with pytest.raises(ValueError, match="ucb_form"):
         acquisition.ucb_multiplier(beta, "sqrt")
+
+
+_CONCURRENT_FITS = """
+import jax, jax.numpy as jnp
+from cpgjax import gp
+batch, capacity, d = 64, 160, 10
+inputs = jax.random.uniform(jax.random.key(0), (2, batch, capacity, d))
+targets, valid, active = jnp.sin(inputs.sum(-1)), jnp.ones((2, batch, capacity), bool), jnp.ones(d, bool)
+def one(x, y, v):
+    data = gp.Dataset(x, y, v)
+    return gp.posterior(gp.fit(data, active, gp.default_params(d), 2), data, active, 2).weights.sum()
+two = jax.jit(lambda x, y, v: jax.vmap(one)(x[0], y[0], v[0]) + jax.vmap(one)(x[1], y[1], v[1]))
+for _ in range(3):
+    two(inputs, targets, valid).block_until_ready()
+print("done")
+"""
+
+
+def test_two_concurrent_batched_fits_complete_on_a_two_thread_pool():
+    """Two independent batched fits in one program finish (docs/backends.md, "LAPACK calls, one
+    matrix at a time"): with whole batches handed to jaxlib's LAPACK kernels, both of XLA's
+    intra-op threads wait in the kernels for pieces no thread is left to run, at the first call
+    on this 2-core machine. The child runs with two CPUs, whatever the machine has."""
+    cpus = sorted(os.sched_getaffinity(0))[:2]
+    if len(cpus) < 2:
+        pytest.skip("needs two CPUs: the stall needs a thread pool of two")
+    child = subprocess.run(
+        [sys.executable, "-c", _CONCURRENT_FITS], env={**os.environ, "JAX_PLATFORMS": "cpu"},
+        preexec_fn=lambda: os.sched_setaffinity(0, cpus), capture_output=True, text=True,
+        timeout=300)
+    assert child.returncode == 0, child.stderr[-2000:]
+    assert child.stdout.strip().endswith("done")
