@@ -322,8 +322,9 @@ class Engine:
         init = (lambda a, t: opt.init(active_dims=a, target_velocity=t)) if self.uses_records else \
             (lambda a, t: opt.init(active_dims=a))
         self._init = jax.jit(jax.vmap(init))
-        self._propose = jax.jit(jax.vmap(opt.propose))
-        self._observe = jax.jit(jax.vmap(opt.observe))
+        self._propose = jax.jit(jax.vmap(opt.propose_with_fallback))
+        self._observe = jax.jit(jax.vmap(opt.observe if config.safe else
+                                         lambda state, x, c, observation, margin: opt.observe(state, x, c, observation)))
         self._beta = jax.jit(jax.vmap(opt.beta))
         self._set_target = jax.jit(jax.vmap(opt.set_target)) if self.uses_records else None
         self._keys = jax.jit(jax.vmap(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
@@ -445,7 +446,11 @@ class Engine:
             keys = self._keys(put(self.seeds.astype(np.uint32)), t)
             ctx = put_local(run.context)
             beta = self._beta(opt_state, ctx)
-            x = local(self._propose(opt_state, ctx, keys)).astype(np.float64)
+            x, fell_back = self._propose(opt_state, ctx, keys)
+            x, fell_back = local(x).astype(np.float64), local(fell_back)
+            if fell_back.any():
+                log.info("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
+                         "their best safe trial (docs/decisions.md §17)", t, int(fell_back[:max(0, min(stop, self.batch_size) - first)].sum()))
             # The proposal is in the box up to float32 rounding; the simulator validates strictly.
             x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
         with _timed(timing, "simulation_s"):
@@ -461,14 +466,16 @@ class Engine:
             record_d, x_d = put_local(rec), put_local(x.astype(np.float32))
         with _timed(timing, "observe_s", "optimizer_s"):
             observation = record_d if self.uses_records else put_local(j)
-            opt_state, accepted = self._observe(opt_state, x_d, put_local(gp_context), observation)
+            opt_state, accepted = self._observe(opt_state, x_d, put_local(gp_context), observation,
+                                                put_local(rec.safety_margin))
             accepted = jax.block_until_ready(accepted)
         trial_log = study_io.TrialLog(
             params=x, context=new_context, objective=j, velocity_xy_mps=velocity, cot=cot, beta=local(beta.beta),
             context_changed=local(beta.context_changed), accepted=local(accepted),
             roll_std_rad=rec.roll_std_rad, pitch_std_rad=rec.pitch_std_rad,
             saturation_fraction=rec.saturation_fraction, energy_j=rec.energy_j, distance_m=rec.distance_m,
-            total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed)
+            total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed, safety_margin=rec.safety_margin,
+            safe_fallback=fell_back)
         with _timed(timing, "exchange_s"):
             parts = exchange(trial_log)
             trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts)))

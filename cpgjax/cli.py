@@ -368,7 +368,8 @@ def _study(args) -> int:
     try:
         text, out = run(seeds=args.seeds, trials=args.trials, quick=args.quick, out=out, resume=args.resume,
                         overwrite=args.overwrite, backend=args.backend, physics=args.physics,
-                        command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c))
+                        command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c),
+                        safe=args.safe)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -440,7 +441,7 @@ def optimize_spec(args) -> study_spec.StudySpec:
     return study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,),
                                 seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
                                 payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
-                                physics=(args.physics,))
+                                physics=(args.physics,), safe=args.safe)
 
 
 def _optimize(args) -> int:
@@ -732,6 +733,8 @@ def _inapplicable(args, calibrating: bool = False) -> str | None:
         named = [f"--{d.replace('_', '-')}" for d in dests if d in given]
         if refused and named:
             return f"{', '.join(named)} {'applies' if len(named) == 1 else 'apply'} {why}"
+    if not calibrating and getattr(args, "safe", False) and not (args.optimize and args.optimizer == "bo"):
+        return "--safe applies to --optimize with --optimizer bo only (it constrains the contextual BO's proposals)"
     return None
 
 
@@ -949,6 +952,10 @@ def _add_walk(sub) -> None:
     w.set_defaults(func=lambda args: _walk_video(args) if args.video else _walk(args))
 
 
+SAFE_HELP = ("safe optimization: a second GP learns each trial's safety margin (trunk height and tilt against the fall "
+             "and tilt-stop thresholds) and proposals stay where it is certified >= 0 (docs/decisions.md §17)")
+
+
 def _add_study(sub) -> None:
     s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/",
                        formatter_class=_HelpFormatter)
@@ -961,6 +968,7 @@ def _add_study(sub) -> None:
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help="trials per run; condition changes scale with it (default: the study's)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
+    s.add_argument("--safe", action="store_true", help=SAFE_HELP)
     _add_output_args(s, None, "results/<study>")
     s.add_argument("--distributed", action="store_true", help="one of several cooperating processes: "
                    "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "
@@ -981,6 +989,7 @@ def _add_optimize(sub) -> None:
     _add_target_arg(o)
     o.add_argument("--trials", type=_count(), default=40, help="trials of 1.5 s + 3 s")
     o.add_argument("--seed", type=_seed, default=0, help="the optimizer's random seed")
+    o.add_argument("--safe", action="store_true", help=SAFE_HELP)
     _add_output_args(o, "results/optimize")
     _add_physics_arg(o, physics_profiles.PAPER_STUDIES_PROFILE)
     backends.add_backend_argument(o)
@@ -1032,6 +1041,8 @@ def _add_deploy(sub) -> None:
                    "optimization")
     d.add_argument("--optimizer", choices=("bo", "random"), default="bo", action=_Given,
                    help="--optimize only: the online optimizer")
+    d.add_argument("--safe", action="store_true", help=f"--optimize with bo only: {SAFE_HELP}; on the robot the "
+                   "margin is the tilt stop's, from the IMU")
     d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", action=_Given,
                    help="the CPG controller (with --params: the file's)")
     _add_target_arg(d)

@@ -163,21 +163,20 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model:
     n_transition = trial_config.transition_steps
 
     def transition_body(carry, k):
-        s, fell, failed = carry
+        s, worst = carry
         fraction = protocol.transition_fraction(k, n_transition)
         s, t = tick(s, protocol.transition_params(state.params, new_params, fraction))
-        return (s, jnp.maximum(fell, t.fell), jnp.maximum(failed, t.failed)), None
+        return (s, worst.add(t)), None
 
     def steady_body(s, _):
         return tick(s, new_params)
 
-    zero = jnp.float32(0.0)
-    (s, fell_tr, failed_tr), _ = jax.lax.scan(transition_body, (state, zero, zero),
-                                              jnp.arange(n_transition, dtype=jnp.float32))
+    (s, transition), _ = jax.lax.scan(transition_body, (state, protocol.TransitionSummary.nothing()),
+                                      jnp.arange(n_transition, dtype=jnp.float32))
     s, ticks = jax.lax.scan(steady_body, s, None, length=trial_config.steady_steps)
 
     total_mass = model.body_subtreemass[go1_model.indices().trunk_body]
-    record = protocol.summarize(ticks, total_mass, cpg_config.dt_s, fell_tr, failed_tr)
+    record = protocol.summarize(ticks, total_mass, cpg_config.dt_s, transition)
     end = s._replace(params=new_params)
     return protocol.where_batch((record.fell > 0) | (record.failed > 0), reset, end), record
 

@@ -1,4 +1,5 @@
-"""Independent float64 NumPy transcriptions of the paper's equations, written from the paper (not from cpgjax)."""
+"""Independent float64 NumPy transcriptions of the paper's equations and of a textbook GP, written from the paper and
+the textbook (not from cpgjax)."""
 
 import numpy as np
 
@@ -45,3 +46,54 @@ def foot_position(r, theta, params, d_step=0.05, h=0.30, foot_y=0.08):
         out[i, 2] = -h + gain * np.sin(theta[i])
         out[i, 1] = (1 if i in (1, 3) else -1) * foot_y
     return out
+
+
+# ---- a dense float64 GP (Rasmussen & Williams, Alg. 2.1) with cpgjax.gp's model -----------------
+
+def ref_matern52(distance):
+    return (1 + np.sqrt(5) * distance + 5 / 3 * distance**2) * np.exp(-np.sqrt(5) * distance)
+
+
+def ref_kernel(a, b, lengthscales, outputscale, active, context_dims):
+    d = a.shape[1]
+    blocks = [range(d - context_dims), range(d - context_dims, d)]
+    k = outputscale * np.ones((len(a), len(b)))
+    for block in blocks:
+        cols = [c for c in block if active[c]]
+        diff = (a[:, None, cols] - b[None, :, cols]) / lengthscales[cols]
+        k = k * ref_matern52(np.sqrt(np.sum(diff**2, axis=-1)))
+    return k
+
+
+class RefGP:
+    """float64 GP with the same model: standardized y, constant mean, relative jitter."""
+
+    def __init__(self, params, inputs, targets, active, context_dims, jitter_ratio):
+        self.ls = np.exp(np.asarray(params.log_lengthscales, np.float64))
+        self.s2 = float(np.exp(params.log_outputscale))
+        self.noise = float(np.exp(params.log_noise))
+        self.mean = float(params.mean)
+        self.active, self.context_dims = np.asarray(active), context_dims
+        self.x = np.asarray(inputs, np.float64)
+        y = np.asarray(targets, np.float64)
+        self.y_mean = y.mean()
+        self.y_std = y.std(ddof=1) if len(y) > 1 and y.std(ddof=1) >= 1e-8 else 1.0
+        self.residual = (y - self.y_mean) / self.y_std - self.mean
+        n = len(y)
+        self.kernel = self.k(self.x, self.x) + (jitter_ratio * self.s2 + self.noise) * np.eye(n)
+
+    def k(self, a, b):
+        return ref_kernel(a, b, self.ls, self.s2, self.active, self.context_dims)
+
+    def log_marginal_likelihood(self):
+        _, logdet = np.linalg.slogdet(self.kernel)
+        n = len(self.residual)
+        quad = self.residual @ np.linalg.solve(self.kernel, self.residual)
+        return -0.5 * quad - 0.5 * logdet - 0.5 * n * np.log(2 * np.pi)
+
+    def predict(self, queries):
+        queries = np.asarray(queries, np.float64)
+        cross = self.k(queries, self.x)
+        mean_z = self.mean + cross @ np.linalg.solve(self.kernel, self.residual)
+        var_z = self.s2 - np.einsum("ij,ji->i", cross, np.linalg.solve(self.kernel, cross.T))
+        return self.y_mean + self.y_std * mean_z, self.y_std**2 * var_z

@@ -305,3 +305,18 @@ def test_mjx_scenario_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc
                                go1_model.make_scenarios().payload_kg[0] + np.asarray(before.total_mass_kg)
                                - short_sim.scenario.payload_kg + 7.5, rtol=1e-5)
     assert short_sim.scenario.payload_kg.max() == 15.0  # the original backend is unchanged
+
+
+def test_safe_study_stores_each_trials_margin_and_shares_the_random_start(uninterrupted):
+    """``StudySpec.safe``: every instance's optimizer stores the trial's safety margin as the trial log records it,
+    and trial 0, random in both, is the unconstrained run's (docs/decisions.md §17)."""
+    safe = ablation.Engine(tiny_spec(safe=True), backend="native")
+    assert safe.optimizer_config.safe and not uninterrupted.spec.safe
+    result = safe.run()
+    tr = result.trials
+    np.testing.assert_array_equal(tr.params[0], uninterrupted.trials.params[0])
+    stored = result.opt_state.margins[:, :TRIALS].T  # (trials, instances)
+    np.testing.assert_array_equal(stored[tr.accepted > 0], tr.safety_margin[tr.accepted > 0].astype(np.float32))
+    assert np.all(np.isfinite(tr.safety_margin)) and np.all(tr.safety_margin <= 1.0 + 1e-6)
+    assert tr.safe_fallback.shape == tr.fell.shape
+    np.testing.assert_array_equal(tr.fell > 0, (tr.fell > 0) & (tr.safety_margin < 0))  # a fall is unsafe

@@ -15,59 +15,9 @@ import pytest
 
 from cpgjax import gp
 from cpgjax.optim import acquisition
+from tests.numpy_reference import RefGP, ref_kernel
 
 CONTEXT_DIMS = 2
-
-
-# ---- dense float64 NumPy reference ----------------------------------------------------------
-
-def ref_matern52(distance):
-    return (1 + np.sqrt(5) * distance + 5 / 3 * distance**2) * np.exp(-np.sqrt(5) * distance)
-
-
-def ref_kernel(a, b, lengthscales, outputscale, active, context_dims):
-    d = a.shape[1]
-    blocks = [range(d - context_dims), range(d - context_dims, d)]
-    k = outputscale * np.ones((len(a), len(b)))
-    for block in blocks:
-        cols = [c for c in block if active[c]]
-        diff = (a[:, None, cols] - b[None, :, cols]) / lengthscales[cols]
-        k = k * ref_matern52(np.sqrt(np.sum(diff**2, axis=-1)))
-    return k
-
-
-class RefGP:
-    """float64 GP with the same model: standardized y, constant mean, relative jitter."""
-
-    def __init__(self, params, inputs, targets, active, context_dims):
-        self.ls = np.exp(np.asarray(params.log_lengthscales, np.float64))
-        self.s2 = float(np.exp(params.log_outputscale))
-        self.noise = float(np.exp(params.log_noise))
-        self.mean = float(params.mean)
-        self.active, self.context_dims = np.asarray(active), context_dims
-        self.x = np.asarray(inputs, np.float64)
-        y = np.asarray(targets, np.float64)
-        self.y_mean = y.mean()
-        self.y_std = y.std(ddof=1) if len(y) > 1 and y.std(ddof=1) >= 1e-8 else 1.0
-        self.residual = (y - self.y_mean) / self.y_std - self.mean
-        n = len(y)
-        self.kernel = self.k(self.x, self.x) + (gp.JITTER_RATIO * self.s2 + self.noise) * np.eye(n)
-
-    def k(self, a, b):
-        return ref_kernel(a, b, self.ls, self.s2, self.active, self.context_dims)
-
-    def log_marginal_likelihood(self):
-        _, logdet = np.linalg.slogdet(self.kernel)
-        n = len(self.residual)
-        quad = self.residual @ np.linalg.solve(self.kernel, self.residual)
-        return -0.5 * quad - 0.5 * logdet - 0.5 * n * np.log(2 * np.pi)
-
-    def predict(self, queries):
-        queries = np.asarray(queries, np.float64)
-        cross = self.k(queries, self.x)
-        mean_z = self.mean + cross @ np.linalg.solve(self.kernel, self.residual)
-        var_z = self.s2 - np.einsum("ij,ji->i", cross, np.linalg.solve(self.kernel, cross.T))
-        return self.y_mean + self.y_std * mean_z, self.y_std**2 * var_z
 
 
 def ref_log_prior(params, active):
@@ -135,7 +85,7 @@ def dataset_of(inputs, targets, valid=None):
 
 def test_posterior_matches_dense_numpy_reference(compiled, problem):
     p = problem
-    ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS)
+    ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS, gp.JITTER_RATIO)
     mean, var = compiled["predict"](p["params"], dataset_of(p["inputs"], p["targets"]),
                                     jnp.asarray(p["active"]), jnp.asarray(p["queries"], jnp.float32))
     ref_mean, ref_var = ref.predict(p["queries"])
@@ -151,7 +101,7 @@ def test_log_marginal_likelihood_and_gradient_match_reference(compiled, problem)
     p = problem
     active = jnp.asarray(p["active"])
     data = dataset_of(p["inputs"], p["targets"])
-    ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS)
+    ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS, gp.JITTER_RATIO)
     lml = compiled["lml"](p["params"], data, active, CONTEXT_DIMS)
     np.testing.assert_allclose(lml, ref.log_marginal_likelihood(), rtol=1e-5, atol=1e-3)
     np.testing.assert_allclose(gp.log_prior(p["params"], active),
@@ -160,7 +110,7 @@ def test_log_marginal_likelihood_and_gradient_match_reference(compiled, problem)
     # The fit's analytic gradient against central differences of the float64 reference.
     def ref_objective(flat):
         params = gp.GPParams(flat[:6], flat[6], flat[7], flat[8])
-        ref_gp = RefGP(params, p["inputs"], p["targets"], p["active"], CONTEXT_DIMS)
+        ref_gp = RefGP(params, p["inputs"], p["targets"], p["active"], CONTEXT_DIMS, gp.JITTER_RATIO)
         return ref_gp.log_marginal_likelihood() + ref_log_prior(params, p["active"])
 
     flat = np.concatenate([np.asarray(leaf, np.float64).ravel() for leaf in p["params"]])
@@ -274,7 +224,7 @@ def test_fit_reaches_a_stationary_point_and_finds_relevant_inputs(compiled):
 
     def ref_objective(flat):
         params = gp.GPParams(flat[:4], flat[4], flat[5], flat[6])
-        return RefGP(params, x, y, active, 0).log_marginal_likelihood() + ref_log_prior(
+        return RefGP(params, x, y, active, 0, gp.JITTER_RATIO).log_marginal_likelihood() + ref_log_prior(
             params, active)
 
     def ref_gradient(params):
@@ -308,7 +258,7 @@ def test_float32_robust_with_duplicates_and_near_duplicates(compiled, targets_ki
     mean, var = compiled["predict"](fitted, data, active, jnp.asarray(queries, jnp.float32))
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var > 0)
     ref = RefGP(fitted, np.asarray(x, np.float32), np.asarray(y, np.float32), np.ones(6, bool),
-                CONTEXT_DIMS)
+                CONTEXT_DIMS, gp.JITTER_RATIO)
     ref_mean, ref_var = ref.predict(np.asarray(queries, np.float32))
     np.testing.assert_allclose(mean, ref_mean, atol=2e-3 * ref.y_std + 1e-3 * abs(ref.y_mean))
     np.testing.assert_allclose(var, ref_var, atol=2e-3 * ref.y_std**2)

@@ -125,7 +125,8 @@ def test_degenerate_trials_get_a_finite_floor():
         velocity_xy_mps=np.tile([0.5, 0.0], (steps, 1)), energy_j=np.float32(2.0), distance_m=np.float32(0.05),
         total_mass_kg=np.float32(12.74), c_load_n=np.float32(31.0), c_slope_rad=np.float32(0.0),
         roll_mean_rad=np.float32(0), roll_std_rad=np.float32(0), pitch_std_rad=np.float32(0),
-        saturation_fraction=np.float32(0), fell=np.float32(0), failed=np.float32(0))
+        saturation_fraction=np.float32(0), fell=np.float32(0), failed=np.float32(0),
+        safety_margin=np.float32(1.0))
     backwards = base._replace(velocity_xy_mps=np.tile([-0.5, 0.0], (steps, 1)), distance_m=np.float32(-0.05))
     nan = base._replace(energy_j=np.float32(np.nan))
     fell = base._replace(fell=np.float32(1.0))

@@ -18,3 +18,7 @@ JOINT_LOWER_RAD = np.tile(np.array([-1.047, -0.663, -2.721]), 4)
 JOINT_UPPER_RAD = np.tile(np.array([1.047, 2.966, -0.837]), 4)
 
 GRAVITY_MPS2 = 9.81
+
+# The deployment's tilt stop: IMU |roll| or |pitch| beyond this damps the motors (cpgjax.robot.safety), and a trial's
+# safety margin reaches 0 there (cpgjax.trial.protocol.safety_margin).
+TILT_STOP_RAD = 0.7

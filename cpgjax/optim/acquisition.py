@@ -15,6 +15,13 @@ refined by projected Adam for ``num_steps`` steps (clip to the cube, inactive in
 0.5 after every step). Adam is per-coordinate, so ascending the sum of the restarts'
 acquisitions is exactly independent ascent per restart. The best of the refined points and
 the best candidate is returned; every point it can return is inside the box.
+
+With a ``constraint`` (the safe optimizer's lower confidence bound of the safety margin,
+:mod:`cpgjax.optim.bo`), only points where it is ≥ 0 count: the candidates are ranked among the
+feasible ones, the refinement ascends the acquisition minus ``CONSTRAINT_PENALTY`` times the
+constraint's shortfall below ``CONSTRAINT_CUSHION`` (so a start outside the feasible set is pushed
+into it), and the returned value is −inf when no finalist is feasible. The constraint is expected
+in standardized units, as the acquisition.
 """
 
 from collections.abc import Callable
@@ -31,6 +38,13 @@ UCB_FORMS = ("paper", "botorch")
 
 INACTIVE_VALUE = 0.5
 """Unit-cube value of inactive inputs in every proposal (the box midpoint)."""
+
+CONSTRAINT_PENALTY = 100.0
+"""Weight of a constraint's violation in the refinement's objective (acquisition units per constraint unit)."""
+
+CONSTRAINT_CUSHION = 0.01
+"""The refinement penalizes constraint values below this (not below 0), so that its last steps, which straddle the
+feasible set's edge by about a step, end inside it."""
 
 
 class AcquisitionConfig(NamedTuple):
@@ -71,6 +85,16 @@ def upper_confidence_bound(
     return (mean - post.target_mean + multiplier * jnp.sqrt(variance)) / post.target_std
 
 
+def lower_confidence_bound(
+    post: gp.Posterior, query_inputs: jax.Array, multiplier: jax.Array, context_dims: int
+) -> jax.Array:
+    """``(mu - multiplier * sigma) / target_std`` at (q, d) normalized inputs, shape (q,): the
+    lower bound in units of the outcome's standard deviation, with the sign of the bound in the
+    outcome's own units (the safe optimizer compares it with 0)."""
+    mean, variance = gp.predict(post, query_inputs, context_dims)
+    return (mean - multiplier * jnp.sqrt(variance)) / post.target_std
+
+
 def _rd_sequence(num_points: int, dims: int) -> np.ndarray:
     """First ``num_points`` points of the R_d sequence in [0, 1)^dims (float64, static)."""
     phi = 2.0
@@ -96,6 +120,7 @@ def maximize_acquisition(
     key: jax.Array,
     active: jax.Array,
     config: AcquisitionConfig = AcquisitionConfig(),
+    constraint: Callable[[jax.Array], jax.Array] | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Maximize a batched acquisition over the unit cube (inactive inputs fixed at 0.5).
 
@@ -104,20 +129,33 @@ def maximize_acquisition(
       key: PRNG key for the random shift of the candidates.
       active: (d,) bool active-input mask.
       config: static maximizer settings.
+      constraint: optional; maps (q, d) points to (q,) values, feasible where ≥ 0.
 
     Returns:
-      (best point (d,) in the unit cube, its acquisition value ()).
+      (best point (d,) in the unit cube, its acquisition value ()); with a constraint, the best
+      feasible point, and a value of −inf when no finalist is feasible.
     """
     dims = active.shape[0]
     finite_or_worst = lambda v: jnp.where(jnp.isfinite(v), v, -jnp.inf)  # noqa: E731
+
+    def feasible_values(points):
+        values = finite_or_worst(acquisition(points))
+        return values if constraint is None else jnp.where(constraint(points) >= 0.0, values, -jnp.inf)
+
+    def refined_objective(points):
+        values = acquisition(points)
+        if constraint is not None:
+            values = values - CONSTRAINT_PENALTY * jax.nn.relu(CONSTRAINT_CUSHION - constraint(points))
+        return -jnp.sum(values)
+
     candidates = _project(quasi_random_points(key, config.num_candidates, dims), active)
-    candidate_values = finite_or_worst(acquisition(candidates))
+    candidate_values = feasible_values(candidates)
     _, start_index = jax.lax.top_k(candidate_values, config.num_restarts)
     starts = candidates[start_index]
 
     schedule = optax.cosine_decay_schedule(config.learning_rate, config.num_steps, alpha=0.1)
     optimizer = optax.adam(schedule)
-    negative_sum = jax.grad(lambda points: -jnp.sum(acquisition(points)))
+    negative_sum = jax.grad(refined_objective)
 
     def step(carry, _):
         points, opt_state = carry
@@ -130,6 +168,6 @@ def maximize_acquisition(
         step, (starts, optimizer.init(starts)), None, length=config.num_steps
     )
     finalists = jnp.concatenate([refined, candidates[start_index[:1]]])
-    finalist_values = finite_or_worst(acquisition(finalists))
+    finalist_values = feasible_values(finalists)
     best = jnp.argmax(finalist_values)
     return finalists[best], finalist_values[best]

@@ -32,6 +32,18 @@ Algorithm 1, step by step:
 Inactive parameters (``active_dims`` False, e.g. :math:`\sigma_N` without Tegotae) are excluded
 from the kernel and are set to the box midpoint in every proposal.
 
+Safe optimization (``OptimizerConfig.safe``, docs/decisions.md §17): every observation also
+carries a safety margin :math:`g` (< 0: the trial was unsafe), and a second GP over the same
+(parameters, context) inputs, with its own hyperparameters, models it. The random phase ends at
+the first safe observation (margin ≥ 0); from then on a proposal maximizes eq. (8) over the safe set :math:`\{x : \mu_g(x, c) - \beta_s\,
+\sigma_g(x, c) \ge 0\}`, the safe set of SafeOpt (Sui et al., ICML 2015) without its Lipschitz
+constant, as in Berkenkamp et al.'s SafeOpt-MC (2016, arXiv:1602.04450, used on a quadrotor and a
+quadruped). When no point of the box is certified safe, the proposal repeats the best safe
+observation among those in the current context (eq. 14's thresholds), else the one in the
+nearest context; with no safe observation at all, it is uniform random. :meth:`propose_with_fallback`
+says which. Context changes, inference mode and data reuse act on the objective as without
+``safe``; the margins do not depend on the target velocity.
+
 Bad calls raise ``ValueError`` in the Python wrappers, before anything is compiled: wrong
 shapes always; non-finite values, parameters outside the box and a full buffer whenever the
 values are concrete (not traced). Under ``jit``/``vmap`` the same checks run on device: a bad
@@ -49,6 +61,7 @@ import numpy as np
 from cpgjax import gp
 from cpgjax.optim.acquisition import (
     INACTIVE_VALUE,
+    lower_confidence_bound,
     maximize_acquisition,
     ucb_multiplier,
     upper_confidence_bound,
@@ -94,6 +107,8 @@ class OptimizerState(NamedTuple):
       schedule: the :class:`BetaSchedule`.
       inference_mode: () bool; beta = ``inference_beta`` and no random phase.
       gp_params: the last fitted GP hyperparameters (warm start of the next fit).
+      margins: (capacity,) safety margins of the observations (``()`` without ``safe``).
+      margin_gp_params: the margin GP's last hyperparameters (``()`` without ``safe``).
     """
 
     parameters: jax.Array
@@ -107,6 +122,8 @@ class OptimizerState(NamedTuple):
     schedule: BetaSchedule
     inference_mode: jax.Array
     gp_params: gp.GPParams
+    margins: Any
+    margin_gp_params: Any
 
 
 class ContextualBO(NamedTuple):
@@ -114,8 +131,11 @@ class ContextualBO(NamedTuple):
 
     * ``init(active_dims=None, schedule=None, target_velocity=None) -> OptimizerState``
     * ``propose(state, context, key) -> x`` (P,), physical units
-    * ``observe(state, x, context, observation) -> (state, accepted)``; ``observation`` is a
-      scalar objective, or a trial record when built with ``objective_fn``
+    * ``propose_with_fallback(state, context, key) -> (x, fell_back)``: ``fell_back`` is True when
+      a safe optimizer certified no point safe (always False without ``safe``)
+    * ``observe(state, x, context, observation, margin=None) -> (state, accepted)``;
+      ``observation`` is a scalar objective, or a trial record when built with ``objective_fn``;
+      ``margin`` the trial's safety margin, required with ``safe`` and refused without
     * ``set_target(state, target_velocity) -> state`` (data reuse)
     * ``set_inference_mode(state, enabled) -> state``
     * ``beta(state, context) -> BetaInfo``
@@ -125,6 +145,7 @@ class ContextualBO(NamedTuple):
 
     init: Callable[..., OptimizerState]
     propose: Callable[..., jax.Array]
+    propose_with_fallback: Callable[..., tuple[jax.Array, jax.Array]]
     observe: Callable[..., tuple[OptimizerState, jax.Array]]
     set_target: Callable[..., OptimizerState]
     set_inference_mode: Callable[..., OptimizerState]
@@ -191,21 +212,38 @@ def _static(config: OptimizerConfig, objective_fn, record_template) -> _Static:
 
 # ----------------------------------------------------------------------------------------------- pure cores (jitted)
 
+def _inputs(s: _Static, state: OptimizerState) -> jax.Array:
+    return jnp.concatenate([(state.parameters - s.lower) / s.width, (state.contexts - s.context_lower) /
+                            s.context_width], axis=-1)
+
+
 def _dataset(s: _Static, state: OptimizerState) -> gp.Dataset:
-    inputs = jnp.concatenate([(state.parameters - s.lower) / s.width, (state.contexts - s.context_lower) /
-                              s.context_width], axis=-1)
     valid = state.stored & jnp.isfinite(state.objectives)
-    return gp.Dataset(inputs, state.objectives, valid)
+    return gp.Dataset(_inputs(s, state), state.objectives, valid)
+
+
+def _margin_dataset(s: _Static, state: OptimizerState) -> gp.Dataset:
+    return gp.Dataset(_inputs(s, state), state.margins, state.stored & jnp.isfinite(state.margins))
 
 
 def _kernel_active(s: _Static, state: OptimizerState) -> jax.Array:
     return jnp.concatenate([state.active_dims, jnp.ones((s.config.num_contexts,), bool)])
 
 
-def _refit(s: _Static, state: OptimizerState) -> OptimizerState:
+def _refit_objective(s: _Static, state: OptimizerState) -> OptimizerState:
     params = gp.fit(_dataset(s, state), _kernel_active(s, state), state.gp_params, s.config.num_contexts,
                     s.config.fit)
     return state._replace(gp_params=params)
+
+
+def _refit(s: _Static, state: OptimizerState) -> OptimizerState:
+    """Both GPs with ``safe``, else the objective's."""
+    state = _refit_objective(s, state)
+    if not s.config.safe:
+        return state
+    params = gp.fit(_margin_dataset(s, state), _kernel_active(s, state), state.margin_gp_params,
+                    s.config.num_contexts, s.config.fit)
+    return state._replace(margin_gp_params=params)
 
 
 def _beta(s: _Static, state: OptimizerState, context) -> BetaInfo:
@@ -221,24 +259,55 @@ def _condition(s: _Static, state: OptimizerState) -> gp.Posterior:
     return gp.posterior(state.gp_params, _dataset(s, state), _kernel_active(s, state), s.config.num_contexts)
 
 
-def _maximize_ucb(s: _Static, post, state: OptimizerState, context, key, multiplier):
-    """The UCB maximizer (eq. 8) over the unit box of the active parameters, the context held fixed."""
-    num_contexts = s.config.num_contexts
+def _condition_margin(s: _Static, state: OptimizerState) -> gp.Posterior:
+    return gp.posterior(state.margin_gp_params, _margin_dataset(s, state), _kernel_active(s, state),
+                        s.config.num_contexts)
+
+
+def _queries(s: _Static, context, unit_points) -> jax.Array:
+    """(q, P + C) GP inputs: unit-cube parameters with the context held fixed."""
     unit_context = (context - s.context_lower) / s.context_width
+    contexts = jnp.broadcast_to(unit_context, (unit_points.shape[0], s.config.num_contexts))
+    return jnp.concatenate([unit_points, contexts], axis=-1)
+
+
+def _maximize_ucb(s: _Static, post, state: OptimizerState, context, key, multiplier, margin_post=None):
+    """The UCB maximizer (eq. 8) over the unit box of the active parameters, the context held fixed; with the margin
+    GP's posterior, over the points whose margin LCB (β_s) is ≥ 0 (value −inf when none is found)."""
+    num_contexts = s.config.num_contexts
 
     def acquisition(unit_points):
-        contexts = jnp.broadcast_to(unit_context, (unit_points.shape[0], num_contexts))
-        queries = jnp.concatenate([unit_points, contexts], axis=-1)
-        return upper_confidence_bound(post, queries, multiplier, num_contexts)
+        return upper_confidence_bound(post, _queries(s, context, unit_points), multiplier, num_contexts)
 
-    return maximize_acquisition(acquisition, key, state.active_dims, s.config.acquisition)
+    def margin_lower_bound(unit_points):
+        return lower_confidence_bound(margin_post, _queries(s, context, unit_points), s.config.safe_beta,
+                                      num_contexts)
+
+    return maximize_acquisition(acquisition, key, state.active_dims, s.config.acquisition,
+                                None if margin_post is None else margin_lower_bound)
 
 
-def _propose(s: _Static, state: OptimizerState, context, key) -> jax.Array:
-    """Random in the box for the first ``num_random_proposals`` trials (not in inference mode), then the UCB argmax."""
+def _best_safe_observed(s: _Static, state: OptimizerState, context):
+    """Unit-cube parameters of the best safe observation (margin ≥ 0) in the current context (eq. 14's thresholds),
+    else of the safe one in the nearest context (best J among equals), and whether any safe observation exists."""
+    safe = state.stored & (state.margins >= 0.0) & jnp.isfinite(state.objectives)
+    within = jnp.all(jnp.abs(state.contexts - context) <= s.context_tolerance, axis=-1)
+    distance = jnp.sqrt(jnp.sum(((state.contexts - context) / s.context_width) ** 2, axis=-1))
+    nearest = jnp.min(jnp.where(safe, distance, jnp.inf))
+    candidates = safe & jnp.where(jnp.any(safe & within), within, distance <= nearest)
+    best = jnp.argmax(jnp.where(candidates, state.objectives, -jnp.inf))
+    return (state.parameters[best] - s.lower) / s.width, jnp.any(safe)
+
+
+def _propose(s: _Static, state: OptimizerState, context, key) -> tuple[jax.Array, jax.Array]:
+    """Random in the box for the first ``num_random_proposals`` trials (not in inference mode; with ``safe`` only until
+    a trial is safe), then the UCB argmax (over the safe set with ``safe``); and whether a safe optimizer fell back
+    (module docstring)."""
     config = s.config
     random_key, acquisition_key = jax.random.split(key)
     use_random = (state.num_stored < config.num_random_proposals) & ~state.inference_mode
+    if config.safe:  # a safe trial seeds the safe set: no more random proposals
+        use_random = use_random & ~jnp.any(state.stored & (state.margins >= 0.0))
 
     def random_point():
         uniform = jax.random.uniform(random_key, (config.num_parameters,), jnp.float32)
@@ -246,13 +315,22 @@ def _propose(s: _Static, state: OptimizerState, context, key) -> jax.Array:
 
     def ucb_point():
         multiplier = ucb_multiplier(_beta(s, state, context).beta, config.ucb_form)
-        return _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier)[0]
+        if not config.safe:
+            point, _ = _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier)
+            return point, jnp.zeros((), bool)
+        point, value = _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier,
+                                     _condition_margin(s, state))
+        found = jnp.isfinite(value)
+        repeat, any_safe = _best_safe_observed(s, state, context)
+        fallback = jnp.where(any_safe, repeat, random_point())
+        return jnp.where(found, point, fallback), ~found
 
-    return _to_physical(s, jax.lax.cond(use_random, random_point, ucb_point))
+    point, fell_back = jax.lax.cond(use_random, lambda: (random_point(), jnp.zeros((), bool)), ucb_point)
+    return _to_physical(s, point), fell_back
 
 
-def _observe(s: _Static, state: OptimizerState, x, context, observation) -> tuple[OptimizerState, jax.Array]:
-    """Store one observation (if finite, in the box and within capacity) and refit the GP."""
+def _observe(s: _Static, state: OptimizerState, x, context, observation, margin) -> tuple[OptimizerState, jax.Array]:
+    """Store one observation (if finite, in the box and within capacity) and refit the GP(s)."""
     capacity = s.config.capacity
     if s.reuses_data:
         objective = jnp.asarray(s.objective_fn(observation, state.target_velocity), jnp.float32)
@@ -262,6 +340,8 @@ def _observe(s: _Static, state: OptimizerState, x, context, observation) -> tupl
     in_box = jnp.where(state.active_dims, (x >= s.lower - slack) & (x <= s.lower + s.width + slack), True)
     accepted = (jnp.isfinite(objective) & jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(context))
                 & jnp.all(in_box) & (state.num_stored < capacity))
+    if s.config.safe:
+        accepted = accepted & jnp.isfinite(margin)
     row = jnp.minimum(state.num_stored, capacity - 1)
     written = state._replace(
         parameters=state.parameters.at[row].set(x),
@@ -271,16 +351,18 @@ def _observe(s: _Static, state: OptimizerState, x, context, observation) -> tupl
         records=(jax.tree.map(lambda buf, r: buf.at[row].set(r), state.records, observation)
                  if s.reuses_data else state.records),
         num_stored=state.num_stored + 1,
+        margins=(state.margins.at[row].set(jnp.asarray(margin, jnp.float32)) if s.config.safe else state.margins),
     )
     new_state = jax.lax.cond(accepted, lambda: _refit(s, written), lambda: state)
     return new_state, accepted
 
 
 def _set_target(s: _Static, state: OptimizerState, target_velocity) -> OptimizerState:
-    """Data reuse: every stored J recomputed for a new target from the stored records, then a refit."""
+    """Data reuse: every stored J recomputed for a new target from the stored records, then a refit of the
+    objective's GP (the margins do not depend on the target)."""
     recomputed = jax.vmap(s.objective_fn, in_axes=(0, None))(state.records, target_velocity)
     objectives = jnp.where(state.stored, jnp.asarray(recomputed, jnp.float32), 0.0)
-    return _refit(s, state._replace(objectives=objectives, target_velocity=target_velocity))
+    return _refit_objective(s, state._replace(objectives=objectives, target_velocity=target_velocity))
 
 
 def _best_observed(state: OptimizerState):
@@ -355,13 +437,19 @@ def _init(s: _Static, active_dims=None, schedule=None, target_velocity=None) -> 
         schedule=paper_schedule() if schedule is None else schedule,
         inference_mode=jnp.zeros((), bool),
         gp_params=gp.default_params(num_params + num_contexts),
+        margins=jnp.zeros((config.capacity,), jnp.float32) if config.safe else (),
+        margin_gp_params=gp.default_params(num_params + num_contexts) if config.safe else (),
     )
 
 
-def _propose_checked(s: _Static, jitted: _Compiled, state, context, key):
+def _propose_with_fallback_checked(s: _Static, jitted: _Compiled, state, context, key):
     _check_state(s, state)
     _check_context(s, context)
     return jitted.propose(state, jnp.asarray(context, jnp.float32), key)
+
+
+def _propose_checked(s: _Static, jitted: _Compiled, state, context, key):
+    return _propose_with_fallback_checked(s, jitted, state, context, key)[0]
 
 
 def _check_observation(s: _Static, state, x, context, observation) -> None:
@@ -392,12 +480,26 @@ def _check_observation(s: _Static, state, x, context, observation) -> None:
             _check_finite("objective value", observation)
 
 
-def _observe_checked(s: _Static, jitted: _Compiled, state, x, context, observation):
+def _check_margin(s: _Static, margin) -> None:
+    if not s.config.safe:
+        if margin is not None:
+            raise ValueError("a safety margin needs a safe optimizer (OptimizerConfig(safe=True))")
+        return
+    if margin is None:
+        raise ValueError("a safe optimizer needs each observation's safety margin (observe(..., margin=m))")
+    _check_shape("margin", margin, ())
+    if _is_concrete(margin):
+        _check_finite("margin", margin)
+
+
+def _observe_checked(s: _Static, jitted: _Compiled, state, x, context, observation, margin=None):
     _check_state(s, state)
     _check_context(s, context)
     _check_observation(s, state, x, context, observation)
+    _check_margin(s, margin)
     new_state, accepted = jitted.observe(state, jnp.asarray(x, jnp.float32), jnp.asarray(context, jnp.float32),
-                                         observation)
+                                         observation, jnp.zeros((), jnp.float32) if margin is None else
+                                         jnp.asarray(margin, jnp.float32))
     if _is_concrete(accepted) and not bool(accepted):
         raise ValueError("observation rejected: objective_fn returned a non-finite objective for this trial "
                          "record; the state is unchanged")
@@ -467,6 +569,7 @@ def make_optimizer(
     return ContextualBO(
         init=functools.partial(_init, s),
         propose=functools.partial(_propose_checked, s, jitted),
+        propose_with_fallback=functools.partial(_propose_with_fallback_checked, s, jitted),
         observe=functools.partial(_observe_checked, s, jitted),
         set_target=functools.partial(_set_target_checked, s, jitted),
         set_inference_mode=functools.partial(_set_inference_mode, s),

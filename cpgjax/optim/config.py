@@ -40,8 +40,13 @@ class OptimizerConfig:
       num_random_proposals: proposals drawn uniformly at random before the GP is used.
       ucb_form: "paper" (mu + beta*sigma, eq. (8)) or "botorch" (mu + sqrt(beta)*sigma).
       inference_beta: beta in inference mode.
-      fit: settings of the hyperparameter fit.
+      fit: settings of the hyperparameter fit (of both GPs when ``safe``).
       acquisition: settings of the acquisition maximizer.
+      safe: safe optimization (docs/decisions.md §17): a second GP models each observation's
+        safety margin, and proposals maximize the UCB of the objective where the margin's lower
+        confidence bound is ≥ 0.
+      safe_beta: β_s, the multiplier on the margin GP's σ in that lower bound (2: a one-sided
+        97.7 % bound under a Gaussian posterior).
     """
 
     parameter_lower: tuple[float, ...]
@@ -55,6 +60,8 @@ class OptimizerConfig:
     inference_beta: float = 1e-6
     fit: gp.FitConfig = gp.FitConfig()
     acquisition: AcquisitionConfig = AcquisitionConfig()
+    safe: bool = False
+    safe_beta: float = 2.0
 
     def __post_init__(self):
         _check_box("parameter", self.parameter_lower, self.parameter_upper)
@@ -76,6 +83,8 @@ class OptimizerConfig:
             raise ValueError(f"ucb_form must be one of {UCB_FORMS}, got {self.ucb_form!r}")
         if self.acquisition.num_restarts > self.acquisition.num_candidates:
             raise ValueError("acquisition.num_restarts must not exceed num_candidates")
+        if not (np.isfinite(self.safe_beta) and self.safe_beta >= 0.0):
+            raise ValueError(f"safe_beta must be finite and >= 0, got {self.safe_beta}")
 
     @property
     def num_parameters(self) -> int:

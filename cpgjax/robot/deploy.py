@@ -132,7 +132,8 @@ def run(args) -> int:
         start_xy = None if server is None else server.stats()["trunk_xy_m"]
         if args.optimize:
             spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
-                                 robot_mass_kg(args.payload_kg), str(args.log_dir), tuned_for(args))
+                                 robot_mass_kg(args.payload_kg), str(args.log_dir), tuned_for(args),
+                                 safe=args.safe)
             timing = protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
             result, rows = online_optimization(transport, controller, calibration, gates, spec, params,
                                                args.trials, timing, loop, safety, ticks, hint)

@@ -11,14 +11,14 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax.go1 import attitude
-from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD, TORQUE_LIMIT_NM
+from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD, TILT_STOP_RAD, TORQUE_LIMIT_NM
 from cpgjax.robot import protocol as proto
 
 
 class SafetyConfig(NamedTuple):
     """Limits of the safety layer. Each trip latches damping and is logged with its reason."""
 
-    max_tilt_rad: float = 0.7  # |roll| or |pitch| (from the IMU quaternion) beyond this → damping
+    max_tilt_rad: float = TILT_STOP_RAD  # |roll| or |pitch| (from the IMU quaternion) beyond this → damping
     watchdog_ticks: int = 5  # this many consecutive ticks without a new robot tick → damping
     stop_buttons: tuple[str, ...] = ("L2", "B")  # all pressed on the remote → damping (Unitree's damping combo)
     max_motor_temperature_c: int = 70

@@ -17,6 +17,7 @@ The optimizer is anything with ``propose(context) -> params`` and ``observe(para
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -85,31 +86,42 @@ class RandomSearch:
 
 class BayesianOptimizer:
     """Adapter from ``cpgjax.optim.bo``'s pure functions (``init`` / ``propose`` / ``observe``, scalar objectives) to
-    :class:`OnlineOptimizer`. σ_N is an inactive input when Tegotae is off (docs/decisions.md §13)."""
+    :class:`OnlineOptimizer`. σ_N is an inactive input when Tegotae is off (docs/decisions.md §13). ``safe``: the safe
+    optimizer, learning each trial's safety margin (the tilt stop's, from the IMU; docs/decisions.md §17)."""
 
-    def __init__(self, seed: int, tegotae: bool):
+    def __init__(self, seed: int, tegotae: bool, safe: bool = False):
         active = np.ones(param_space.NUM_PARAMS, bool)
         active[param_space.SIGMA_N_INDEX] = tegotae
         self._key = jax.random.PRNGKey(seed)
-        self._opt = bo.make_optimizer(CONTEXT_RANGES)
+        self._safe = safe
+        self._opt = bo.make_optimizer(dataclasses.replace(CONTEXT_RANGES, safe=safe))
         self._state = self._opt.init(active_dims=jnp.asarray(active))
 
     def propose(self, context: np.ndarray) -> np.ndarray:
         self._key, key = jax.random.split(self._key)
-        return np.asarray(self._opt.propose(self._state, jnp.asarray(context, jnp.float32), key), np.float64)
+        x, fell_back = self._opt.propose_with_fallback(self._state, jnp.asarray(context, jnp.float32), key)
+        if bool(fell_back):
+            log.info("no parameters certified safe for context (%.1f N, %.3f rad): the best safe trial is repeated",
+                     *np.asarray(context, np.float64))
+        return np.asarray(x, np.float64)
+
+    def _margin(self, record):
+        return jnp.asarray(record.safety_margin, jnp.float32) if self._safe else None
 
     def observe(self, params, context, record, objective) -> None:
         self._state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
-                                           jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32))
+                                           jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32),
+                                           self._margin(record))
 
     def warm_up(self, params, context, record, objective) -> None:
         """Compile ``observe`` and ``propose`` on a throwaway state, and the key's split (13.4 s on a 2-core
         machine: done while the robot walked, it left the robot on the old parameters and took the CPUs from the
         simulated robot). The state and the key stay as they were."""
         state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
-                                     jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32))
+                                     jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32),
+                                     self._margin(record))
         _, key = jax.random.split(self._key)  # as propose splits it (the split and the unpacking are compiled)
-        jax.block_until_ready(self._opt.propose(state, jnp.asarray(context, jnp.float32), key))
+        jax.block_until_ready(self._opt.propose_with_fallback(state, jnp.asarray(context, jnp.float32), key))
 
 
 class OptimizerSpec(NamedTuple):
@@ -125,20 +137,24 @@ class OptimizerSpec(NamedTuple):
     dt_s: float = 0.001
     steady_steps: int = protocol.TrialConfig().steady_steps  # ticks of a trial's steady phase (its record's length)
     cpus: tuple[int, ...] | None = None  # the CPUs the worker may use (None: any); keep it off the loop's CPU
+    safe: bool = False  # the safe BO (kind "bo" only; docs/decisions.md §17)
 
 
-def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = 0.001) -> protocol.TrialRecord:
+def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = 0.001,
+                 timing: protocol.TrialConfig = protocol.TrialConfig()) -> protocol.TrialRecord:
     """The trial record of the steady phase's per-tick robot signals (T, len(_SIGNALS)), summarized by
     ``protocol.summarize`` exactly as in simulation.
 
     A fall ends the run through the safety layer (tilt stop) before a trial completes, so ``fell`` and ``failed``
-    are 0 for every completed trial.
+    are 0 for every completed trial. The safety margin is the tilt stop's, from the IMU's roll and pitch
+    (``protocol.safety_margin``: the robot measures neither its trunk's height nor the floor).
     """
     s = jnp.asarray(signals, jnp.float32)
     zero = jnp.zeros(s.shape[0], jnp.float32)
+    margin = protocol.safety_margin(timing, s[:, 4], s[:, 5])
     ticks = protocol.Tick(velocity_xy_mps=s[:, 0:2], power_w=s[:, 2], load_n=s[:, 3], roll_rad=s[:, 4],
-                          pitch_rad=s[:, 5], saturated=s[:, 6], fell=zero, failed=zero)
-    return protocol.summarize(ticks, jnp.float32(total_mass_kg), dt_s, jnp.float32(0.0), jnp.float32(0.0))
+                          pitch_rad=s[:, 5], saturated=s[:, 6], fell=zero, failed=zero, margin=margin)
+    return protocol.summarize(ticks, jnp.float32(total_mass_kg), dt_s, protocol.TransitionSummary.nothing())
 
 
 class _TrialLog:
@@ -185,6 +201,7 @@ def trial_row(trial: int, x: np.ndarray, record: protocol.TrialRecord, j: float,
             "roll_std_rad": float(record.roll_std_rad), "pitch_std_rad": float(record.pitch_std_rad),
             "saturation_fraction": float(record.saturation_fraction), "energy_j": float(record.energy_j),
             "distance_m": float(record.distance_m), "total_mass_kg": float(record.total_mass_kg),
+            "safety_margin": float(record.safety_margin),
             "fell": False, "failed": False}  # a fall trips the safety layer before a trial completes
 
 
@@ -262,7 +279,7 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     if spec.cpus:
         os.sched_setaffinity(0, spec.cpus)  # before JAX starts its threads (they inherit it)
     jax.config.update("jax_platforms", "cpu")  # before this process's first JAX computation
-    optimizer = (BayesianOptimizer(spec.seed, spec.tegotae) if spec.kind == "bo"
+    optimizer = (BayesianOptimizer(spec.seed, spec.tegotae, spec.safe) if spec.kind == "bo"
                  else RandomSearch(spec.seed, spec.tegotae))
     _, _, _, c_gp = _evaluate(np.zeros((spec.steady_steps, len(_SIGNALS)), np.float32), spec, optimizer.warm_up, -1)
     # Idle while each trial walks: unlocked, its pages were evicted and the next proposal waited on the disk.

@@ -370,13 +370,12 @@ def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, c
 def _summarize(trial_config: protocol.TrialConfig, dt_s: float, unravel_row: Callable, rows,
                total_mass_kg) -> protocol.TrialRecord:
     """Trial records (B, ...) from the flat rows (N, R) with ``protocol.summarize`` (steady phase, plus the
-    transition's falls and failures)."""
+    transition's falls, failures and worst margin)."""
     ticks = jax.vmap(unravel_row)(rows)  # Tick of (N, B, ...)
     n_transition = trial_config.transition_steps
     steady = jax.tree.map(lambda x: x[n_transition:], ticks)
-    fell_tr = jnp.max(ticks.fell[:n_transition], axis=0, initial=0.0)
-    failed_tr = jnp.max(ticks.failed[:n_transition], axis=0, initial=0.0)
-    return jax.vmap(protocol.summarize, in_axes=(1, 0, None, 0, 0))(steady, total_mass_kg, dt_s, fell_tr, failed_tr)
+    transition = protocol.TransitionSummary.of(jax.tree.map(lambda x: x[:n_transition], ticks))
+    return jax.vmap(protocol.summarize, in_axes=(1, 0, None, 0))(steady, total_mass_kg, dt_s, transition)
 
 
 # ----------------------------------------------------------------------------------------------- batch interface

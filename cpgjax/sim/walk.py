@@ -134,7 +134,7 @@ def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
         cols[name] = params[:, i]
     record = {name: np.array([getattr(t.record, name) for t in trials], np.float64)
               for name in ("c_load_n", "c_slope_rad", "roll_std_rad", "pitch_std_rad", "saturation_fraction",
-                           "energy_j", "distance_m", "total_mass_kg")}
+                           "energy_j", "distance_m", "total_mass_kg", "safety_margin")}
     cols.update(c_load_n=record.pop("c_load_n"), c_slope_rad=record.pop("c_slope_rad"),
                 objective=np.array([t.objective for t in trials], np.float64),
                 velocity_x_mps=np.array([t.velocity_xy_mps[0] for t in trials], np.float64),

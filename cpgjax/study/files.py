@@ -71,6 +71,8 @@ class TrialLog(NamedTuple):
     total_mass_kg: np.ndarray
     fell: np.ndarray
     failed: np.ndarray
+    safety_margin: np.ndarray  # (B,) the trial's worst safety margin (< 0: unsafe; docs/decisions.md §17)
+    safe_fallback: np.ndarray  # (B,) --safe: no proposal was certified safe, the best safe trial seen was repeated
 
 
 class Checkpoint(NamedTuple):
@@ -459,9 +461,9 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     cols["velocity_x_mps"], cols["velocity_y_mps"] = vel[:, 0], vel[:, 1]
     cols["cost_of_transport"] = per(tr.cot)
     for name in ("beta", "roll_std_rad", "pitch_std_rad", "saturation_fraction", "energy_j", "distance_m",
-                 "total_mass_kg"):
+                 "total_mass_kg", "safety_margin"):
         cols[name] = per(getattr(tr, name))
-    for name in ("context_changed", "accepted", "fell", "failed"):
+    for name in ("context_changed", "accepted", "fell", "failed", "safe_fallback"):
         cols[name] = per(getattr(tr, name)) > 0
     return {k: v.astype(np.float64) if np.issubdtype(v.dtype, np.floating) else
             v.astype(np.int64) if np.issubdtype(v.dtype, np.integer) else v for k, v in cols.items()}

@@ -522,6 +522,28 @@ def report_hardware(result, out: pathlib.Path, backend: str):
     return text
 
 
+def safety_summary(result) -> str:
+    """Per group: falls during optimization (the trials not in inference mode) with the fall rate's 95 % interval,
+    the runs' worst safety margin, and with ``--safe`` the proposals that fell back to a safe trial seen before."""
+    tr, cond = result.trials, result.conditions
+    n = tr.objective.shape[0]
+    optimizing = cond.inference[:, :n].T == 0  # (n, B)
+    names = np.array([", ".join(str(lab[g]) for g in result.spec.group_by) for lab in result.labels])
+    safe = result.spec.safe
+    rows = [f"| {', '.join(result.spec.group_by)} | falls during optimization / trials | fall rate [95 % CI] | "
+            "runs' worst margin (median) |" + (" fallbacks |" if safe else ""),
+            "|---|---|---|---|" + ("---|" if safe else "")]
+    for name in dict.fromkeys(names):
+        m = names == name
+        falls, trials = int(((tr.fell[:, m] > 0) & optimizing[:, m]).sum()), int(optimizing[:, m].sum())
+        worst = np.min(np.where(optimizing[:, m], tr.safety_margin[:, m], np.inf), axis=0)
+        rate = stats.proportion_ci(falls, trials)
+        rows.append(f"| {name} | {falls}/{trials} | {rate.mean:.3f} [{rate.low:.3f}, {rate.high:.3f}] | "
+                    f"{np.median(worst):.2f} |" + (f" {int(tr.safe_fallback[:, m].sum())} |" if safe else ""))
+    return ("\nSafety during optimization (" + ("safe optimization, --safe" if safe else "unconstrained optimization")
+            + "; margin < 0: a fall or a tilt stop, docs/decisions.md §17):\n\n" + "\n".join(rows) + "\n")
+
+
 class Study(NamedTuple):
     name: str
     make_spec: Callable[..., StudySpec]
@@ -541,7 +563,8 @@ STUDIES = {s.name: s for s in (
 )}
 
 
-def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str | None = None) -> StudySpec:
+def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str | None = None,
+              safe: bool = False) -> StudySpec:
     if name not in STUDIES:
         raise study_spec.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
     if seeds is not None and seeds < 1:
@@ -552,6 +575,8 @@ def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str |
     spec = STUDIES[name].make_spec(seeds=seeds, trials=trials, quick=quick)
     if physics is not None:
         spec = dataclasses.replace(spec, physics=(physics,))
+    if safe:
+        spec = dataclasses.replace(spec, safe=True)
     study_spec.validate(spec)
     return spec
 
@@ -578,7 +603,7 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
     with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
         study_io.write_best_params(result, out / study_io.BEST_PARAMS)
     with study_io.writing(out, "table.md and the figures"):
-        text = STUDIES[name or result.spec.name].report(result, out, backend)
+        text = STUDIES[name or result.spec.name].report(result, out, backend) + safety_summary(result)
         study_figures.optimization_progress(out / "optimization_progress.png", result, [
             study_io.group_file_name(lab, result.spec.group_by) for lab in result.labels])
         text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
@@ -610,12 +635,13 @@ def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
 
 def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
         progress=None, physics: str | None = None, command: str | None = None,
-        notify: Callable[[str], None] | None = None) -> tuple[str, pathlib.Path]:
+        notify: Callable[[str], None] | None = None, safe: bool = False) -> tuple[str, pathlib.Path]:
     """Run (or resume) a study and write its outputs; returns (table text, output folder). ``physics``: the
-    profile every instance simulates (default: the study's own). The output folder is checked first
+    profile every instance simulates (default: the study's own); ``safe``: safe optimization (docs/decisions.md §17).
+    The output folder is checked first
     (:func:`study_io.open_run`: a non-empty one needs ``resume`` or ``overwrite``); ``notify`` gets the line that
     says where a resume starts; ``command`` goes into ``metadata.json``."""
-    spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics)
+    spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics, safe=safe)
     out = output_folder(name, out)
     start = study_io.open_run(out, spec, backends.resolve_backend(backend), resume=resume, overwrite=overwrite)
     if start and notify is not None and jax.process_index() == 0:

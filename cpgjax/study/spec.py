@@ -72,6 +72,8 @@ class StudySpec:
       trial: trial timing (static).
       optimizer: the optimizer's static structure; ``None`` = :func:`optimizer_config.paper_config` with capacity
         ``num_trials``.
+      safe: safe optimization (docs/decisions.md §17): each instance's optimizer also models the trials' safety
+        margins and proposes only where they are certified ≥ 0 (``OptimizerConfig.safe``).
     """
 
     name: str
@@ -89,13 +91,15 @@ class StudySpec:
     group_by: tuple[str, ...] = ("controller",)
     trial: protocol.TrialConfig = protocol.TrialConfig()
     optimizer: optimizer_config.OptimizerConfig | None = None
+    safe: bool = False
 
     def optimizer_config(self) -> optimizer_config.OptimizerConfig:
         """``optimizer``, or the paper's setting with capacity ``num_trials`` and the c_load range of the physics
-        profiles' foot-force signal (docs/decisions.md §11; :func:`validate` checks the profiles agree)."""
-        if self.optimizer is not None:
-            return self.optimizer
-        return optimizer_config.profile_config(self.physics[0], capacity=self.num_trials)
+        profiles' foot-force signal (docs/decisions.md §11; :func:`validate` checks the profiles agree); safe with
+        ``safe``."""
+        config = (self.optimizer if self.optimizer is not None
+                  else optimizer_config.profile_config(self.physics[0], capacity=self.num_trials))
+        return dataclasses.replace(config, safe=True) if self.safe and not config.safe else config
 
 
 LABELS = ("controller", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",

@@ -41,13 +41,13 @@ EVALUATION_DRAWS = 8
 DEFAULT_SEEDS, QUICK_SEEDS = 5, 2
 
 
-def specs(seeds=None, trials=None, quick=False) -> list[study_spec.StudySpec]:
-    """One study spec per arm."""
+def specs(seeds=None, trials=None, quick=False, safe=False) -> list[study_spec.StudySpec]:
+    """One study spec per arm (``safe``: safe optimization in every arm)."""
     n = trials or (12 if quick else 40)
     seeds = tuple(range(seeds if seeds is not None else (QUICK_SEEDS if quick else DEFAULT_SEEDS)))
     return [study_spec.StudySpec(f"transfer_{name}", num_trials=n, controllers=cpg.CONTROLLERS, seeds=seeds,
                                  target_velocity_mps=(TARGET_MPS,), physics=(home,),
-                                 randomize=TRAINING_RANDOMIZATION if randomized else None)
+                                 randomize=TRAINING_RANDOMIZATION if randomized else None, safe=safe)
             for name, home, randomized in ARMS]
 
 
@@ -118,7 +118,7 @@ def table(arm_results: dict, evaluations: dict) -> str:
 
 def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
         progress=None, physics=None, command: str | None = None,
-        notify: Callable[[str], None] | None = None) -> tuple[str, pathlib.Path]:
+        notify: Callable[[str], None] | None = None, safe: bool = False) -> tuple[str, pathlib.Path]:
     """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder).
     Output folders, ``resume``, ``overwrite``, ``command`` and ``notify`` as in :func:`registry.run`; a resume
     continues the arms that have a checkpoint and starts the others."""
@@ -130,7 +130,7 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         raise study_spec.StudyError(f"{NAME}: --trials {trials}: need at least {limits.MIN_STUDY_TRIALS} "
                                     f"({limits.MIN_STUDY_TRIALS_REASON})")
     out = registry.output_folder(NAME, out)
-    arm_specs = specs(seeds, trials, quick)
+    arm_specs = specs(seeds, trials, quick, safe)
     for spec in arm_specs:
         study_spec.validate(spec)
     resumed = {}

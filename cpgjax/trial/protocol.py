@@ -26,16 +26,20 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import attitude, physics, sensors
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1.constants import TILT_STOP_RAD
 from cpgjax.trial import params as param_space
 
 
 class TrialConfig(NamedTuple):
-    """Trial timing and fall detection. Static: changing one recompiles."""
+    """Trial timing, fall detection and the safety margin's scales (:func:`safety_margin`). Static: changing one
+    recompiles."""
 
     transition_steps: int = 1500  # 1.5 s at 1 kHz
     steady_steps: int = 3000  # T
     fall_height_m: float = 0.12  # trunk origin below this height above the floor = fall
     fall_tilt_rad: float = 0.8  # |roll| or |pitch| relative to the floor beyond this = fall
+    stop_tilt_rad: float = TILT_STOP_RAD  # the robot's tilt stop: IMU |roll| or |pitch| beyond this damps the motors
+    standing_height_m: float = cpg.CPGConfig().body_height_m  # the trunk height the controller holds (h of eq. 5)
 
 
 class TrialRecord(NamedTuple):
@@ -56,6 +60,7 @@ class TrialRecord(NamedTuple):
     saturation_fraction: jax.Array  # share of (tick, joint) torque commands clipped to the motor limit
     fell: jax.Array  # 1.0 if the trunk fell during the trial (height or tilt threshold)
     failed: jax.Array  # 1.0 if the simulation became non-finite (the instance was reset)
+    safety_margin: jax.Array  # worst :func:`safety_margin` of the trial (transition and steady phase); < 0: unsafe
 
 
 class Tick(NamedTuple):
@@ -69,6 +74,7 @@ class Tick(NamedTuple):
     saturated: jax.Array  # number of clipped joint torques
     fell: jax.Array
     failed: jax.Array
+    margin: jax.Array  # :func:`safety_margin` after the step; FAILED_MARGIN if the step failed
 
 
 class PreStep(NamedTuple):
@@ -91,16 +97,49 @@ def pre_step(obs: cpg.Observation, torque: jax.Array, diag: cpg.Diagnostics, joi
                    saturated=jnp.sum(diag.saturated))
 
 
+FAILED_MARGIN = -1.0
+"""The safety margin of a tick whose simulation became non-finite (it is reset, so nothing else is known)."""
+
+
+def safety_margin(trial_config: TrialConfig, imu_roll_rad, imu_pitch_rad, trunk_height_m=None, floor_roll_rad=None,
+                  floor_pitch_rad=None):
+    r"""How far one state is from unsafe, signed and continuous (docs/decisions.md §17): the worst of
+
+    * the tilt stop's margin :math:`1 - \max(|\phi|, |\theta|) / \theta_{stop}` with the IMU's roll and pitch (gravity
+      frame, what the robot's safety layer reads);
+    * the fall tilt's margin :math:`1 - \max(|\phi_f|, |\theta_f|) / \theta_{fall}` with the floor-frame roll and
+      pitch (the fall rule of :func:`tick_row`);
+    * the height margin :math:`(z - z_{fall}) / (h - z_{fall})` of the trunk origin above the floor, 1 at the height
+      the controller holds.
+
+    1 is standing level at the held height, 0 is a threshold, < 0 a fall or a tilt stop. The robot measures neither
+    the trunk's height nor the floor: it passes the IMU's angles only. NumPy or JAX.
+    """
+    tilt = jnp.maximum(jnp.abs(imu_roll_rad), jnp.abs(imu_pitch_rad))
+    margin = 1.0 - tilt / trial_config.stop_tilt_rad
+    if floor_roll_rad is not None:
+        floor_tilt = jnp.maximum(jnp.abs(floor_roll_rad), jnp.abs(floor_pitch_rad))
+        margin = jnp.minimum(margin, 1.0 - floor_tilt / trial_config.fall_tilt_rad)
+    if trunk_height_m is not None:
+        clearance = trial_config.standing_height_m - trial_config.fall_height_m
+        margin = jnp.minimum(margin, (trunk_height_m - trial_config.fall_height_m) / clearance)
+    return margin
+
+
 def tick_row(trial_config: TrialConfig, pre: PreStep, qpos: jax.Array, qvel: jax.Array, failed: jax.Array) -> Tick:
     """A tick's record from its pre-step half and the state after the step (and after a reset, if ``failed``).
 
     Fall: trunk origin below ``fall_height_m`` or floor-frame |roll| or |pitch| above ``fall_tilt_rad``. A failed
-    tick contributes nothing to the sums (velocity, power, load, attitude are zeroed)."""
+    tick contributes nothing to the sums (velocity, power, load, attitude are zeroed). The margin takes the IMU's
+    angles of the state the controller saw (the pre-step half) and the trunk's height and floor-frame tilt after the
+    step."""
     ids = go1_model.indices()
     floor_rpy = attitude.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])
-    fell = ((qpos[ids.root_qpos + 2] < trial_config.fall_height_m)
+    height_m = qpos[ids.root_qpos + 2]
+    fell = ((height_m < trial_config.fall_height_m)
             | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
             | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))
+    margin = safety_margin(trial_config, pre.roll_rad, pre.pitch_rad, height_m, floor_rpy[0], floor_rpy[1])
     finite = jnp.where(failed, 0.0, 1.0)
     return Tick(
         velocity_xy_mps=finite * sensors.heading_velocity(qpos, qvel),
@@ -111,13 +150,39 @@ def tick_row(trial_config: TrialConfig, pre: PreStep, qpos: jax.Array, qvel: jax
         saturated=pre.saturated,
         fell=fell.astype(jnp.float32),
         failed=failed.astype(jnp.float32),
+        margin=jnp.where(failed, FAILED_MARGIN, margin).astype(jnp.float32),
     )
 
 
-def summarize(steady: Tick, total_mass_kg: jax.Array, dt_s: float, transition_fell: jax.Array,
-              transition_failed: jax.Array) -> TrialRecord:
-    """The trial record (eqs. 10-11 inputs, attitude statistics, flags) from the steady phase's ticks (T, ...);
-    a fall or failure during the transition counts for the trial too. Shared by every backend."""
+class TransitionSummary(NamedTuple):
+    """What the transition phase adds to a trial's record: its worst moments (scalars, or batched)."""
+
+    fell: jax.Array  # 1.0 if any transition tick fell
+    failed: jax.Array  # 1.0 if any transition tick failed
+    margin: jax.Array  # the smallest tick margin
+
+    @classmethod
+    def of(cls, ticks: Tick, axis: int = 0) -> TransitionSummary:
+        """The summary of transition ticks stacked along ``axis`` (none: nothing to add)."""
+        return cls(fell=jnp.max(ticks.fell, axis=axis, initial=0.0),
+                   failed=jnp.max(ticks.failed, axis=axis, initial=0.0),
+                   margin=jnp.min(ticks.margin, axis=axis, initial=jnp.inf))
+
+    @classmethod
+    def nothing(cls) -> TransitionSummary:
+        """No transition ticks recorded (the robot's steady phase alone)."""
+        return cls(fell=jnp.float32(0.0), failed=jnp.float32(0.0), margin=jnp.float32(jnp.inf))
+
+    def add(self, tick: Tick) -> TransitionSummary:
+        """The summary with one more transition tick (a scan's carry)."""
+        return TransitionSummary(fell=jnp.maximum(self.fell, tick.fell), failed=jnp.maximum(self.failed, tick.failed),
+                                 margin=jnp.minimum(self.margin, tick.margin))
+
+
+def summarize(steady: Tick, total_mass_kg: jax.Array, dt_s: float, transition: TransitionSummary) -> TrialRecord:
+    """The trial record (eqs. 10-11 inputs, attitude statistics, flags, the worst safety margin) from the steady
+    phase's ticks (T, ...); a fall, failure or low margin during the transition counts for the trial too. Shared by
+    every backend."""
     steps = steady.power_w.shape[0]
     return TrialRecord(
         velocity_xy_mps=steady.velocity_xy_mps,
@@ -130,8 +195,9 @@ def summarize(steady: Tick, total_mass_kg: jax.Array, dt_s: float, transition_fe
         roll_std_rad=jnp.std(steady.roll_rad),
         pitch_std_rad=jnp.std(steady.pitch_rad),
         saturation_fraction=jnp.sum(steady.saturated) / (12.0 * steps),
-        fell=jnp.maximum(jnp.max(steady.fell), transition_fell),
-        failed=jnp.maximum(jnp.max(steady.failed), transition_failed),
+        fell=jnp.maximum(jnp.max(steady.fell), transition.fell),
+        failed=jnp.maximum(jnp.max(steady.failed), transition.failed),
+        safety_margin=jnp.minimum(jnp.min(steady.margin), transition.margin),
     )
 
 

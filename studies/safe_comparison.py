@@ -1,0 +1,113 @@
+"""A study run with ``--safe`` against the same study without it (same seeds): falls during adaptation, final J and
+velocity, trials to recover after each condition change, and safety's cost, per group (docs/decisions.md §17).
+
+    python studies/safe_comparison.py results/load_adaptation results/load_adaptation_safe
+
+Reads each folder's ``trials.parquet``. Per phase of the conditions (payload, slope, friction, target; inference-mode
+trials are their own phase): falls during the phase's optimized trials, the final J and velocity (mean of the phase's
+last 5 trials per run; mean [95 % CI] over seeds), and the trials from the phase's start to its first prospective
+trial (no fall, J ≥ 90 % of the run's best in the phase). Safe against unconstrained: the falls' ratio with a paired
+Wilcoxon test over seeds; final J paired over seeds (the same seed in both runs: paired t and Wilcoxon).
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from cpgjax.study import stats
+
+LAST_TRIALS = 5
+CONDITIONS = ("payload_kg", "slope_deg", "friction", "target_velocity_mps", "inference")
+
+
+def load(folder: pathlib.Path) -> dict[str, np.ndarray]:
+    table = pq.read_table(folder / "trials.parquet").to_pydict()
+    return {k: np.asarray(v) for k, v in table.items()}
+
+
+def by_instance(columns: dict[str, np.ndarray], name: str) -> np.ndarray:
+    """(trials, instances) of one column."""
+    n_inst, n_trial = columns["instance"].max() + 1, columns["trial"].max() + 1
+    out = np.empty((n_trial, n_inst), columns[name].dtype)
+    out[columns["trial"], columns["instance"]] = columns[name]
+    return out
+
+
+def phases(columns, instance: int) -> list[tuple[int, int]]:
+    fields = np.stack([by_instance(columns, c)[:, instance] for c in CONDITIONS])
+    n = fields.shape[1]
+    starts = [0] + [t for t in range(1, n) if np.any(fields[:, t] != fields[:, t - 1])] + [n]
+    return list(zip(starts[:-1], starts[1:]))
+
+
+def recover(j: np.ndarray, fell: np.ndarray) -> float:
+    ok = (fell == 0) & (j >= 0.9 * j.max())
+    return float(np.argmax(ok) + 1) if ok.any() else np.nan
+
+
+def group_keys(columns) -> np.ndarray:
+    labels = [c for c in ("controller", "schedule") if c in columns]
+    per_instance = {}
+    for row in range(len(columns["instance"])):
+        per_instance[columns["instance"][row]] = ", ".join(str(columns[c][row]) for c in labels)
+    return np.array([per_instance[i] for i in range(len(per_instance))])
+
+
+def compare(unsafe_dir: pathlib.Path, safe_dir: pathlib.Path) -> str:
+    runs = {"unconstrained": load(unsafe_dir), "safe": load(safe_dir)}
+    base = runs["unconstrained"]
+    groups = group_keys(base)
+    lines = [f"Safe (`--safe`, {safe_dir}) against unconstrained ({unsafe_dir}), the same seeds. Per phase: falls in "
+             "its optimized trials (total over seeds), final J and v_x (mean of its last "
+             f"{LAST_TRIALS} trials per run, mean [95 % CI] over seeds), trials to a prospective solution (no fall, "
+             "J ≥ 90 % of the run's best in the phase; runs that never reach one in parentheses); tests paired over "
+             "seeds.", ""]
+    lines += ["| group | phase (trials) | falls unconstrained | falls safe | final J unconstrained | final J safe | "
+              "J safe − unconstrained (paired t, Wilcoxon) | v_x unconstrained | v_x safe | to recover unconstrained | "
+              "to recover safe |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    totals = {"unconstrained": [], "safe": []}
+    for group in dict.fromkeys(groups):
+        members = np.flatnonzero(groups == group)
+        for start, stop in phases(base, members[0]):
+            cells = {}
+            for arm, columns in runs.items():
+                j, fell = by_instance(columns, "objective")[:, members], by_instance(columns, "fell")[:, members]
+                v = by_instance(columns, "velocity_x_mps")[:, members]
+                inference = by_instance(columns, "inference")[start, members[0]] > 0
+                falls = fell[start:stop].sum(axis=0)
+                if not inference:
+                    totals[arm].append(falls)
+                final = slice(max(stop - LAST_TRIALS, start), stop)
+                to_recover = np.array([recover(j[start:stop, b], fell[start:stop, b]) for b in range(len(members))])
+                cells[arm] = dict(falls=int(falls.sum()), j=j[final].mean(axis=0), v=v[final].mean(axis=0),
+                                  recover=to_recover, inference=inference)
+            u, s = cells["unconstrained"], cells["safe"]
+            never = lambda r: int(np.isnan(r).sum())  # noqa: E731
+            label = f"{start}–{stop - 1}" + (" inference" if u["inference"] else "")
+            lines.append(f"| {group} | {label} | {u['falls']} | {s['falls']} | {stats.mean_ci(u['j'])} | "
+                         f"{stats.mean_ci(s['j'])} | {stats.paired(s['j'], u['j'])} | {stats.mean_ci(u['v'])} | "
+                         f"{stats.mean_ci(s['v'])} | {stats.mean_ci(u['recover'])} ({never(u['recover'])}) | "
+                         f"{stats.mean_ci(s['recover'])} ({never(s['recover'])}) |")
+    falls_u = np.sum(totals["unconstrained"], axis=0) if totals["unconstrained"] else np.zeros(1)
+    falls_s = np.sum(totals["safe"], axis=0) if totals["safe"] else np.zeros(1)
+    ratio = falls_u.sum() / max(falls_s.sum(), 1)
+    lines += ["", f"Falls during optimization, all phases: {int(falls_u.sum())} unconstrained, {int(falls_s.sum())} "
+              f"safe ({ratio:.1f}× fewer{'' if falls_s.sum() else ', safe had none: a lower bound'}); per run, safe − "
+              f"unconstrained: {stats.paired(falls_s, falls_u)}."]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("unconstrained", type=pathlib.Path, help="the study folder without --safe")
+    parser.add_argument("safe", type=pathlib.Path, help="the same study with --safe")
+    args = parser.parse_args()
+    print(compare(args.unconstrained, args.safe))
+
+
+if __name__ == "__main__":
+    main()
