@@ -72,8 +72,8 @@ from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from gpytorch.priors import GammaPrior  # noqa: E402
 from scipy.stats import mannwhitneyu  # noqa: E402
 
-from cpgjax.optim import bo
-from cpgjax.optim import config as optimizer_config
+from cpgjax.optim import bo  # noqa: E402
+from cpgjax.optim import config as optimizer_config  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
 
 torch.set_num_threads(1)

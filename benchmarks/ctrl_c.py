@@ -3,9 +3,9 @@
 Each repeat starts `cpgjax optimize --trials N --backend native` in a fresh folder and sends SIGINT at a uniformly
 random moment after the first checkpoint, within 90 % of the time the remaining trials took in one
 uninterrupted run measured first. A clean stop is exit status 130, a checkpoint that reads back, no traceback, and
-either a `resume with:` line or, for a Ctrl-C after the last trial, every output written. A run that ended before its signal was due, and one
-whose signal came as the finished process exited (exit 0, every output written: the teardown ignores Ctrl-C), are
-counted apart. Prints one JSON line with the counts.
+either a `resume with:` line or, for a Ctrl-C after the last trial, every output written. A run that ended before
+its signal was due, and one whose signal came as the finished process exited (exit 0, every output written: the
+teardown ignores Ctrl-C), are counted apart. Prints one JSON line with the counts.
 
     JAX_PLATFORMS=cpu python benchmarks/ctrl_c.py --repeats 20
 """

@@ -114,7 +114,7 @@ def polling_ab_figures(log: hio.TickLog, kinds: np.ndarray, period_s: float) -> 
         causes = np.bincount(hio.overrun_causes(part), minlength=len(hio.OVERRUN_CAUSES))
         figures.update({f"ab_{name}_ticks": int(ticks.sum()),
                         f"ab_{name}_overruns_per_10k_ticks": round(float(part.overrun.sum()) / n * 1e4, 2),
-                        **{f"ab_{name}_overruns_{c}": int(k) for c, k in zip(hio.OVERRUN_CAUSES, causes)},
+                        **{f"ab_{name}_overruns_{c}": int(k) for c, k in zip(hio.OVERRUN_CAUSES, causes, strict=True)},
                         f"ab_{name}_wakeups_later_than_period_per_10k": round(float(np.sum(part.late_s > period_s)) / n
                                                                               * 1e4, 2),
                         f"ab_{name}_work_median_us": round(float(np.median(part.work_s)) * 1e6, 1),

@@ -349,7 +349,7 @@ class Engine:
         if self._sim is None:
             self._sim = backends.make_backend(scenario, self.backend_name, trial_config=self.spec.trial,
                                               devices=self.placement.local_devices)
-        elif any(not np.array_equal(a, b) for a, b in zip(scenario, self._sim.scenario)):
+        elif any(not np.array_equal(a, b) for a, b in zip(scenario, self._sim.scenario, strict=True)):
             self._sim = self._sim.with_scenario(scenario)
         return self._sim
 
@@ -471,7 +471,7 @@ class Engine:
             total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed)
         with _timed(timing, "exchange_s"):
             parts = exchange(trial_log)
-            trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts)))
+            trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts, strict=True)))
         return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(gp_context, np.float32),
                             logs=run.logs + [trial_log])
 
@@ -509,14 +509,15 @@ class Engine:
         template = sim.reset(np.tile(param_space.midpoint(), (stop - first, 1)))
         treedef = jax.tree.structure(template)
         kinds = [type(x) for x in jax.tree.leaves(template)]
-        restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds)]
+        restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds, strict=True)]
         return jax.tree.unflatten(treedef, restored)  # the backend places it on its devices
 
     def stack(self, logs: list[study_io.TrialLog]) -> study_io.TrialLog:
         """Per-trial logs → one study_io.TrialLog of (num_trials, B, ...) arrays without the padding instances."""
         if not logs:
             return study_io.TrialLog(*(np.zeros((0, self.batch_size)) for _ in study_io.TrialLog._fields))
-        return study_io.TrialLog(*(np.stack([np.asarray(f)[:self.batch_size] for f in field]) for field in zip(*logs)))
+        return study_io.TrialLog(*(np.stack([np.asarray(f)[:self.batch_size] for f in field])
+                                   for field in zip(*logs, strict=True)))
 
     def group_names(self) -> list[str]:
         return [", ".join(str(lab[g]) for g in self.spec.group_by) for lab in self.labels]

@@ -32,10 +32,8 @@ from cpgjax.study import spec as study_spec
 from cpgjax.study import transfer
 from cpgjax.study import video as study_video
 from cpgjax.study import viewer as study_viewer
-from cpgjax.trial import limits
+from cpgjax.trial import limits, protocol, tuned
 from cpgjax.trial import params as param_space
-from cpgjax.trial import protocol
-from cpgjax.trial import tuned
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
@@ -149,7 +147,7 @@ class _Given(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None):
         setattr(namespace, self.dest, values)
-        setattr(namespace, "given", {*getattr(namespace, "given", ()), self.dest})
+        namespace.given = {*getattr(namespace, "given", ()), self.dest}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -672,8 +670,8 @@ def _show(args) -> int:
         return 2
     kind = _folder_kind(out)
     if kind is None:
-        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, recording, best gait, checkpoint, "
-              f"run.json or {tick_log.FILE_NAME})", file=sys.stderr)
+        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, recording, "
+              f"best gait, checkpoint, run.json or {tick_log.FILE_NAME})", file=sys.stderr)
         return 2
     listing, damaged = _files_listing(out)
     print(f"{out}: a `cpgjax {kind}` folder\n" + "\n".join(listing))

@@ -135,7 +135,7 @@ def test_lower_layers_never_import_higher_ones():
 
 def test_every_module_imports_in_a_fresh_interpreter():
     names = [f"cpgjax.{m}" if m else "cpgjax" for m in module_files()]
-    code = "import importlib\nfor n in %r:\n    importlib.import_module(n)\nprint('ok')" % names
+    code = f"import importlib\nfor n in {names!r}:\n    importlib.import_module(n)\nprint('ok')"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT,
                          env={"JAX_PLATFORMS": "cpu", "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]

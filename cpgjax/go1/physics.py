@@ -205,7 +205,7 @@ def batch_arrays(names, latency_ticks=None, noise_scale=None, noise_seed=None) -
     the profile's own) replaces its sensor noise by that multiple of the robot's (ROBOT_PROFILE's), and
     ``noise_seed`` chooses the instance's noise stream."""
     rows = [arrays(get(str(n))) for n in names]
-    batch = ProfileArrays(*(np.stack(field) for field in zip(*rows)))
+    batch = ProfileArrays(*(np.stack(field) for field in zip(*rows, strict=True)))
     if latency_ticks is not None:
         override = np.asarray(latency_ticks, np.int32)
         batch = batch._replace(latency_ticks=np.where(override >= 0, override, batch.latency_ticks).astype(np.int32))

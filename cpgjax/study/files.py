@@ -43,6 +43,7 @@ from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 from cpgjax.trial import tuned
 
+
 class OutputError(RuntimeError):
     """Writing one of a run's files failed; the message says which, what was kept and how to write the rest."""
 
@@ -289,7 +290,7 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
     first_meta = parts[0][1]
 
     def joined(k, axis=0):
-        return [np.concatenate(leaves, axis=axis) for leaves in zip(*(p[k] for p in parts))]
+        return [np.concatenate(leaves, axis=axis) for leaves in zip(*(p[k] for p in parts), strict=True)]
     stacked = joined(5, axis=1)
     logs = [TrialLog(*(field[t] for field in stacked)) for t in range(first_meta["trial"])]
     return Checkpoint(first_meta["trial"], joined(2), joined(3), np.concatenate([p[4] for p in parts]), logs,
