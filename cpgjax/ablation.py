@@ -1,7 +1,7 @@
 r"""The lockstep engine: Algorithm 1 for a whole batch of instances at once.
 
 A study is a grid of instances — controller × seed × friction × slope × payload × target velocity × condition
-schedule × data reuse (:class:`StudySpec`, defined in :mod:`cpgjax.study.spec` and re-exported here) — each running
+schedule × data reuse (:class:`cpgjax.study.spec.StudySpec`) — each running
 its own online optimization. Every trial is one lockstep
 round for the whole batch::
 
@@ -528,9 +528,3 @@ class Engine:
         for b, name in enumerate(self.group_names()):
             best[name] = max(best.get(name, -np.inf), float(j[:, b].max()))
         return best
-
-
-def run_study(spec: StudySpec, out_dir=None, *, resume: bool = False, backend: str = "auto", devices=None,
-              progress=None) -> StudyResult:
-    """Validate, build and run a study (see :class:`Engine`)."""
-    return Engine(spec, backend=backend, devices=devices).run(out_dir, resume=resume, progress=progress)

@@ -107,7 +107,6 @@ def multi_velocity_spec(seeds=None, trials=None, quick=False) -> StudySpec:
                      schedules=(schedule,), data_reuse=(True, False), group_by=("data_reuse",), physics=PHYSICS)
 
 
-SLOPE_PHASES_DEG = (0.0, 10.0, 12.5)
 INFERENCE_SLOPES_DEG = (10.0, 12.5, 15.0, 17.5)
 
 
