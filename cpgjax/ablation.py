@@ -40,7 +40,13 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax._src import distributed  # the coordinator's client: no public API exposes its key-value store
+
+# The coordinator's client, for its key-value store (exchange). No public API exposes the store, and the public
+# all-gathers (jax.experimental.multihost_utils.process_allgather, broadcast_one_to_all) are collectives: a process
+# that is alive but never joins holds every other one inside the collective for as long as it stays away (jax 0.10.2,
+# CPU: rank 0 waited the 20 s that rank 1 slept before joining), and nothing says which rank is missing. One key per
+# rank and a bounded wait for each name the rank that did not deliver (ProcessLost).
+from jax._src import distributed
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -84,14 +90,14 @@ def exchange_timeout_s() -> float:
     return float(os.environ.get(EXCHANGE_TIMEOUT_ENV, DEFAULT_EXCHANGE_TIMEOUT_S))
 
 
-_exchanges = [0]  # exchanges made by this process; every process makes the same sequence
-
-
 def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
     """Every process's ``local`` pytree of NumPy arrays, in rank order (an all-gather through the JAX
     coordinator's key-value store, so that a process that does not answer shows as a timeout naming its rank, not a
     hang). A process that dies is noticed sooner by the coordinator, which then stops every process (its message
     names the lost task); ``cpgjax study --processes`` names the rank that died first.
+
+    Every process makes the same sequence of exchanges: the n-th exchange of each process (counted in the
+    coordinator's store, so the count lasts as long as the distributed run) meets the n-th of every other.
 
     Raises:
       ProcessLost: a process did not deliver within ``timeout_s`` (default :func:`exchange_timeout_s`).
@@ -101,8 +107,7 @@ def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
         return [local]
     client = distributed.global_state.client
     timeout_s = exchange_timeout_s() if timeout_s is None else timeout_s
-    n = _exchanges[0]
-    _exchanges[0] += 1
+    n = client.key_value_increment(f"cpgjax/exchanges/{rank}", 1) - 1
     leaves, treedef = jax.tree.flatten(local)
     buf = io.BytesIO()
     np.savez(buf, *leaves)
