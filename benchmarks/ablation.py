@@ -33,7 +33,7 @@ cpu_dispatch.request_inline()  # before any JAX computation
 
 import jax  # noqa: E402
 
-from cpgjax import ablation, cpg  # noqa: E402
+from cpgjax import ablation, cpg, provenance  # noqa: E402
 from cpgjax.sim import backends  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
 from cpgjax.study import launch as study_launch  # noqa: E402
@@ -107,7 +107,7 @@ def run_once(args, physics: str | None) -> float:
     if jax.process_index() > 0:
         return result.wall_s
     fig = study_io.run_figures(result)
-    env = study_io.environment()
+    env = provenance.environment()
     summary = dict(
         benchmark="ablation", mode=mode, machine=f"{env['cpu']}, {env['cpu_count']} CPUs",
         device=env["devices"][0], backend=result.backend, instances=len(result.labels),

@@ -28,6 +28,7 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from cpgjax import provenance  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
 from cpgjax.study.spec import StudyError  # noqa: E402
 
@@ -97,7 +98,7 @@ def main() -> None:
             else:
                 counts["failed"] += 1
                 failures.append({"run": k, "status": proc.returncode, "stderr": err[-600:]})
-        print(json.dumps({"benchmark": "ctrl_c", "machine": study_io.machine(), "load_avg": os.getloadavg(),
+        print(json.dumps({"benchmark": "ctrl_c", "machine": provenance.machine(), "load_avg": os.getloadavg(),
                           "repeats": args.repeats, "trials": args.trials, "first_checkpoint_s": round(first, 1),
                           "run_s": round(total, 1), **counts, "failures": failures}))
     finally:

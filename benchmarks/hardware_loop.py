@@ -40,7 +40,7 @@ import time
 
 import numpy as np
 
-from cpgjax import cpg
+from cpgjax import cpg, provenance
 from cpgjax import hardware_io as hio
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import cpu_dispatch, cpu_wakeup, deploy
@@ -48,7 +48,6 @@ from cpgjax.robot import protocol as proto
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
-from cpgjax.study import files as study_io
 from cpgjax.trial import params
 
 
@@ -303,7 +302,7 @@ def main() -> None:
         parser.error(f"--modes {args.modes!r}: each of sleep, busy-wait")
     duration_s = args.duration_s or (10.0 if args.quick else 60.0)
     probe_s = args.probe_s if args.probe_s is not None else (5.0 if args.quick else 20.0)
-    figures = {"benchmark": "hardware_loop", "machine": study_io.machine(), "transport": args.transport,
+    figures = {"benchmark": "hardware_loop", "machine": provenance.machine(), "transport": args.transport,
                "walk_s": duration_s, "probe_s": probe_s}
     for mode in modes:
         mode_figures = run_mode(mode, duration_s, probe_s, args)

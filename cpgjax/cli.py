@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 import cpgjax
-from cpgjax import ablation, cpg
+from cpgjax import ablation, cpg, provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, tick_log
 from cpgjax.robot import safety as go1_safety
@@ -252,8 +252,8 @@ def _walk(args) -> int:
 
         pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
         meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
-                    git_commit=study_io.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
-                    backend=backends.resolve_backend(args.backend), **timing, environment=study_io.environment())
+                    git_commit=provenance.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
+                    backend=backends.resolve_backend(args.backend), **timing, environment=provenance.environment())
         (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
         print(f"outputs in {args.out}/ (walk.parquet: every trial, docs/outputs.md)")
     return 0
