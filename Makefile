@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench bench-deps clean
+.PHONY: demo test lint bench bench-deps clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -18,6 +18,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q
 
+# Ruff over the repository, with the rules of pyproject.toml's [tool.ruff].
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
 bench: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) benchmarks/rollout.py --quick
 
@@ -26,4 +30,4 @@ bench-deps: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
 
 clean:
-	rm -rf $(VENV) .pytest_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -33,10 +33,10 @@ cpu_dispatch.request_inline()  # before any JAX computation
 
 import jax  # noqa: E402
 
-from cpgjax import ablation, cpg
-from cpgjax.sim import backends
-from cpgjax.study import files as study_io
-from cpgjax.study import launch as study_launch
+from cpgjax import ablation, cpg, provenance  # noqa: E402
+from cpgjax.sim import backends  # noqa: E402
+from cpgjax.study import files as study_io  # noqa: E402
+from cpgjax.study import launch as study_launch  # noqa: E402
 from cpgjax.study import registry as studies  # noqa: E402
 
 PAPER_SEEDS = 5  # the paper's controller table: 4 controllers × 5 seeds = 20 instances
@@ -83,7 +83,8 @@ def run_once(args, physics: str | None) -> float:
         spec = studies.ablation_spec(seeds=seeds, trials=args.trials or 40)
         mode = "sweep"
     elif args.quick:
-        spec = studies.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials or 4)  # the full batch (20 instances), 4 trials
+        # the full batch (20 instances), 4 trials
+        spec = studies.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials or 4)
         mode = "quick"
     else:
         spec = studies.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials)
@@ -106,7 +107,7 @@ def run_once(args, physics: str | None) -> float:
     if jax.process_index() > 0:
         return result.wall_s
     fig = study_io.run_figures(result)
-    env = study_io.environment()
+    env = provenance.environment()
     summary = dict(
         benchmark="ablation", mode=mode, machine=f"{env['cpu']}, {env['cpu_count']} CPUs",
         device=env["devices"][0], backend=result.backend, instances=len(result.labels),

@@ -24,10 +24,9 @@ import time
 import jax
 import numpy as np
 
-from cpgjax import cpg, mjx_go1
+from cpgjax import cpg, mjx_go1, provenance
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native as native_go1
-from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -102,14 +101,14 @@ def main() -> None:
     load_start = os.getloadavg()[0]
 
     device = jax.devices()[0]
-    print(f"# {study_io.machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the "
+    print(f"# {provenance.machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the "
           "native physics threads; "
           f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
           f"load average {load_start:.1f}")
     print("| batch | native [env-steps/s] | MJX [env-steps/s] | native / MJX | native first call [s] "
           "| MJX first call (compile) [s] |")
     print("|---|---|---|---|---|---|")
-    figures: dict = {"benchmark": "backend_speed", "machine": study_io.machine(), "jax_device": device.platform,
+    figures: dict = {"benchmark": "backend_speed", "machine": provenance.machine(), "jax_device": device.platform,
                      "steps_per_instance": steps, "async_dispatch": not args.sync_dispatch,
                      "rollout_threads": native_go1.available_cores()}
     missing = {"env_steps_per_s": float("nan"), "first_call_s": float("nan")}

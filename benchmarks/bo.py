@@ -72,9 +72,9 @@ from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from gpytorch.priors import GammaPrior  # noqa: E402
 from scipy.stats import mannwhitneyu  # noqa: E402
 
-from cpgjax.optim import bo
-from cpgjax.optim import config as optimizer_config
-from cpgjax.study import files as study_io  # noqa: E402
+from cpgjax import provenance  # noqa: E402
+from cpgjax.optim import bo  # noqa: E402
+from cpgjax.optim import config as optimizer_config  # noqa: E402
 
 torch.set_num_threads(1)
 warnings.filterwarnings("ignore")  # BoTorch's input-scaling and numerical notices
@@ -262,7 +262,7 @@ def main():
     quick = ARGS.quick
     repeats = 3 if quick else 10
     rng = np.random.default_rng(0)
-    figures = {"benchmark": "bo", "machine": study_io.machine(), "pinned_cpu": ARGS.cpu,
+    figures = {"benchmark": "bo", "machine": provenance.machine(), "pinned_cpu": ARGS.cpu,
                "quick": quick, "load_avg_1min_start": round(os.getloadavg()[0], 2)}
     t_start = time.time()
 

@@ -18,10 +18,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from cpgjax import cpg
+from cpgjax import cpg, provenance
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics, sensors
-from cpgjax.study import files as study_io
 from cpgjax.trial import params, protocol
 
 
@@ -75,10 +74,10 @@ def main() -> None:
             physics.noise_draws = draws  # the tick looks the function up when it is traced
             results[name] = min(results.get(name, np.inf), time_tick(args, a.calls, a.repeats))
     physics.noise_draws = splitmix_draws
-    print(f"control tick, batch {a.batch}, {study_io.machine()}:")
+    print(f"control tick, batch {a.batch}, {provenance.machine()}:")
     for name, us in results.items():
         print(f"  noise by {name}: {us:.1f} µs per tick ({us / results['splitmix']:.2f}× splitmix)")
-    print(json.dumps({"benchmark": "control_tick", "machine": study_io.machine(), "batch": a.batch,
+    print(json.dumps({"benchmark": "control_tick", "machine": provenance.machine(), "batch": a.batch,
                       **{f"{k}_us_per_tick": round(v, 1) for k, v in results.items()},
                       "threefry_vs_splitmix": round(results["threefry"] / results["splitmix"], 2)}))
 

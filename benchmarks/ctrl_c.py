@@ -3,9 +3,9 @@
 Each repeat starts `cpgjax optimize --trials N --backend native` in a fresh folder and sends SIGINT at a uniformly
 random moment after the first checkpoint, within 90 % of the time the remaining trials took in one
 uninterrupted run measured first. A clean stop is exit status 130, a checkpoint that reads back, no traceback, and
-either a `resume with:` line or, for a Ctrl-C after the last trial, every output written. A run that ended before its signal was due, and one
-whose signal came as the finished process exited (exit 0, every output written: the teardown ignores Ctrl-C), are
-counted apart. Prints one JSON line with the counts.
+either a `resume with:` line or, for a Ctrl-C after the last trial, every output written. A run that ended before
+its signal was due, and one whose signal came as the finished process exited (exit 0, every output written: the
+teardown ignores Ctrl-C), are counted apart. Prints one JSON line with the counts.
 
     JAX_PLATFORMS=cpu python benchmarks/ctrl_c.py --repeats 20
 """
@@ -28,6 +28,7 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from cpgjax import provenance  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
 from cpgjax.study.spec import StudyError  # noqa: E402
 
@@ -97,7 +98,7 @@ def main() -> None:
             else:
                 counts["failed"] += 1
                 failures.append({"run": k, "status": proc.returncode, "stderr": err[-600:]})
-        print(json.dumps({"benchmark": "ctrl_c", "machine": study_io.machine(), "load_avg": os.getloadavg(),
+        print(json.dumps({"benchmark": "ctrl_c", "machine": provenance.machine(), "load_avg": os.getloadavg(),
                           "repeats": args.repeats, "trials": args.trials, "first_checkpoint_s": round(first, 1),
                           "run_s": round(total, 1), **counts, "failures": failures}))
     finally:

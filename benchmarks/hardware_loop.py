@@ -40,7 +40,7 @@ import time
 
 import numpy as np
 
-from cpgjax import cpg
+from cpgjax import cpg, provenance
 from cpgjax import hardware_io as hio
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import cpu_dispatch, cpu_wakeup, deploy
@@ -48,7 +48,6 @@ from cpgjax.robot import protocol as proto
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
-from cpgjax.study import files as study_io
 from cpgjax.trial import params
 
 
@@ -114,7 +113,7 @@ def polling_ab_figures(log: hio.TickLog, kinds: np.ndarray, period_s: float) -> 
         causes = np.bincount(hio.overrun_causes(part), minlength=len(hio.OVERRUN_CAUSES))
         figures.update({f"ab_{name}_ticks": int(ticks.sum()),
                         f"ab_{name}_overruns_per_10k_ticks": round(float(part.overrun.sum()) / n * 1e4, 2),
-                        **{f"ab_{name}_overruns_{c}": int(k) for c, k in zip(hio.OVERRUN_CAUSES, causes)},
+                        **{f"ab_{name}_overruns_{c}": int(k) for c, k in zip(hio.OVERRUN_CAUSES, causes, strict=True)},
                         f"ab_{name}_wakeups_later_than_period_per_10k": round(float(np.sum(part.late_s > period_s)) / n
                                                                               * 1e4, 2),
                         f"ab_{name}_work_median_us": round(float(np.median(part.work_s)) * 1e6, 1),
@@ -303,7 +302,7 @@ def main() -> None:
         parser.error(f"--modes {args.modes!r}: each of sleep, busy-wait")
     duration_s = args.duration_s or (10.0 if args.quick else 60.0)
     probe_s = args.probe_s if args.probe_s is not None else (5.0 if args.quick else 20.0)
-    figures = {"benchmark": "hardware_loop", "machine": study_io.machine(), "transport": args.transport,
+    figures = {"benchmark": "hardware_loop", "machine": provenance.machine(), "transport": args.transport,
                "walk_s": duration_s, "probe_s": probe_s}
     for mode in modes:
         mode_figures = run_mode(mode, duration_s, probe_s, args)

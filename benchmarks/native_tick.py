@@ -30,10 +30,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
 
+from cpgjax import provenance  # noqa: E402
 from cpgjax.go1 import model as go1_model  # noqa: E402
 from cpgjax.go1 import physics as physics_profiles  # noqa: E402
 from cpgjax.sim import native as native_go1  # noqa: E402
-from cpgjax.study import files as study_io  # noqa: E402
 from cpgjax.trial import params as param_space  # noqa: E402
 from cpgjax.trial import protocol  # noqa: E402
 
@@ -101,11 +101,11 @@ def main() -> None:
         parser.error(f"--batch-sizes {args.batch_sizes}, --steps {args.steps}, --repeats {args.repeats}: need "
                      "batch sizes ≥ 1, steps ≥ 4, repeats ≥ 1")
     load_start = os.getloadavg()[0]
-    print(f"# {study_io.machine()}, {native_go1.available_cores()} cores, {args.physics} physics, {args.steps} ticks, "
-          f"best of {args.repeats}, load average {load_start:.1f}")
+    print(f"# {provenance.machine()}, {native_go1.available_cores()} cores, {args.physics} physics, {args.steps} "
+          f"ticks, best of {args.repeats}, load average {load_start:.1f}")
     print("| batch | threads | closed loop [µs/tick] | controller call [µs] | physics step [µs] | rest [µs] "
           "| env-steps/s |\n|---|---|---|---|---|---|---|")
-    figures = {"benchmark": "native_tick", "machine": study_io.machine(), "physics": args.physics,
+    figures = {"benchmark": "native_tick", "machine": provenance.machine(), "physics": args.physics,
                "steps": args.steps, "repeats": args.repeats}
     for b in args.batch_sizes:
         r = breakdown(b, args.steps, args.repeats, args.physics)

@@ -23,7 +23,7 @@ import sys
 import tempfile
 import time
 
-from cpgjax.study import files as study_io
+from cpgjax import provenance
 
 EXAMPLES = {  # name: the command's arguments after `cpgjax` (docs/hardware.md); {out} is a fresh folder
     "replay": ["deploy", "--robot", "sim", "--duration-s", "10", "--log-dir", "{out}/run"],
@@ -73,7 +73,7 @@ def main() -> None:
             kept = f" (kept {r['kept']})" if r["kept"] else ""
             print(f"{name:9s} run {i + 1}/{args.repeats}: exit {r['exit']}, {r['wall_s']:5.1f} s, load "
                   f"{r['load_avg_1min']:.2f}: {r['trip'] or 'clean end'}{kept}", flush=True)
-    figures = {"benchmark": "rehearsal", "machine": study_io.machine(), "repeats": args.repeats}
+    figures = {"benchmark": "rehearsal", "machine": provenance.machine(), "repeats": args.repeats}
     print("\n| example | runs | clean | tripped | stale-state trips | load avg (min–max) |\n|---|---|---|---|---|---|")
     for name in names:
         mine = [r for r in runs if r["example"] == name]

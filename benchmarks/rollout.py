@@ -41,12 +41,11 @@ from backend_speed import trial_speed  # benchmarks/ is the script's directory
 from mujoco import mjx
 from mujoco import rollout as mj_rollout
 
-from cpgjax import mjx_go1
+from cpgjax import mjx_go1, provenance
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
 from cpgjax.sim import native as native_go1
-from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -252,7 +251,7 @@ def main() -> None:
     repeats = 2 if args.quick else 3
     if args.profiles:
         profiles = args.profiles.split(",")
-        figures = {"benchmark": "rollout_profiles", "machine": study_io.machine(), "batch": batches[0],
+        figures = {"benchmark": "rollout_profiles", "machine": provenance.machine(), "batch": batches[0],
                    "steps_per_instance": steps, "repeats": repeats, "num_devices": len(jax.devices()),
                    **profile_costs(profiles, batches[0], steps, repeats)}
         print("| profile | MJX closed loop [env-steps/s] | time vs " + profiles[0] + " | native closed loop "
@@ -265,7 +264,7 @@ def main() -> None:
         print(json.dumps(figures))
         return
 
-    print(f"# native backend ({args.physics} physics, {study_io.machine()}, load average {os.getloadavg()[0]:.1f}): "
+    print(f"# native backend ({args.physics} physics, {provenance.machine()}, load average {os.getloadavg()[0]:.1f}): "
           "closed loop against the one-thread replay of its torques")
     print("| batch | stepping | native closed loop [env-steps/s] | replay, 1 thread [env-steps/s] | cores "
           "| closed loop / (cores × replay) | replay max abs Δqpos [m or rad] |\n|---|---|---|---|---|---|---|")
@@ -283,20 +282,20 @@ def main() -> None:
                                round(r["replay_one_thread_env_steps_per_s"]),
                                f"native_replay_max_abs_qpos_diff_b{b}": r["replay_max_abs_qpos_diff"]})
     if args.native_only:
-        print(json.dumps({"benchmark": "rollout_native", "machine": study_io.machine(), "physics": args.physics,
+        print(json.dumps({"benchmark": "rollout_native", "machine": provenance.machine(), "physics": args.physics,
                           "steps_per_instance": steps, "repeats": repeats, "cores": native_go1.available_cores(),
                           **native_figures, "load_avg_1min_end": round(os.getloadavg()[0], 2)}))
         return
 
     device = jax.devices()[0]
-    print(f"# devices: {len(jax.devices())} x {device.platform} {device.device_kind}; host: {study_io.machine()}; "
+    print(f"# devices: {len(jax.devices())} x {device.platform} {device.device_kind}; host: {provenance.machine()}; "
           f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance")
     print("| batch | devices | closed loop [env-steps/s] | bare replay [env-steps/s] | controller overhead (vs replay) "
           "| bare constant control [env-steps/s] | overhead vs constant control | first call (compile) [s] "
           "| native closed loop (C MuJoCo, the same profile as MJX) [env-steps/s] |")
     print("|---|---|---|---|---|---|---|---|---|")
     figures: dict = {"device": f"{device.platform}:{device.device_kind}", "num_devices": len(jax.devices()),
-                     "machine": study_io.machine(), "steps_per_instance": steps, "repeats": repeats,
+                     "machine": provenance.machine(), "steps_per_instance": steps, "repeats": repeats,
                      "native_physics": args.physics, **native_figures}
     for b in batches:
         native = trial_speed("native", b, steps, repeats)  # the same trial as MJX's below (default profile)

@@ -17,9 +17,8 @@ import time
 import jax
 import numpy as np
 
-from cpgjax import mjx_go1
+from cpgjax import mjx_go1, provenance
 from cpgjax.go1 import model as go1_model
-from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -65,7 +64,7 @@ def main() -> None:
     figures = {name: dict(ngeom=r["ngeom"], compile_and_first_trial_s=round(r["compile_s"], 2),
                           trial_s=round(r["best_s"], 4)) for name, r in runs.items()}
     figures["visual_over_physics"] = round(runs["visual"]["best_s"] / runs["physics"]["best_s"], 3)
-    figures.update(machine=study_io.machine(), load_avg=os.getloadavg(), batch=BATCH,
+    figures.update(machine=provenance.machine(), load_avg=os.getloadavg(), batch=BATCH,
                    steps=TRIAL.transition_steps + TRIAL.steady_steps, rounds=args.rounds)
     for name in ("physics", "visual"):
         f = figures[name]

@@ -1,7 +1,7 @@
 r"""The lockstep engine: Algorithm 1 for a whole batch of instances at once.
 
 A study is a grid of instances — controller × seed × friction × slope × payload × target velocity × condition
-schedule × data reuse (:class:`StudySpec`, defined in :mod:`cpgjax.study.spec` and re-exported here) — each running
+schedule × data reuse (:class:`cpgjax.study.spec.StudySpec`) — each running
 its own online optimization. Every trial is one lockstep
 round for the whole batch::
 
@@ -40,7 +40,13 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax._src import distributed  # the coordinator's client: no public API exposes its key-value store
+
+# The coordinator's client, for its key-value store (exchange). No public API exposes the store, and the public
+# all-gathers (jax.experimental.multihost_utils.process_allgather, broadcast_one_to_all) are collectives: a process
+# that is alive but never joins holds every other one inside the collective for as long as it stays away (jax 0.10.2,
+# CPU: rank 0 waited the 20 s that rank 1 slept before joining), and nothing says which rank is missing. One key per
+# rank and a bounded wait for each name the rank that did not deliver (ProcessLost).
+from jax._src import distributed
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -84,14 +90,14 @@ def exchange_timeout_s() -> float:
     return float(os.environ.get(EXCHANGE_TIMEOUT_ENV, DEFAULT_EXCHANGE_TIMEOUT_S))
 
 
-_exchanges = [0]  # exchanges made by this process; every process makes the same sequence
-
-
 def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
     """Every process's ``local`` pytree of NumPy arrays, in rank order (an all-gather through the JAX
     coordinator's key-value store, so that a process that does not answer shows as a timeout naming its rank, not a
     hang). A process that dies is noticed sooner by the coordinator, which then stops every process (its message
     names the lost task); ``cpgjax study --processes`` names the rank that died first.
+
+    Every process makes the same sequence of exchanges: the n-th exchange of each process (counted in the
+    coordinator's store, so the count lasts as long as the distributed run) meets the n-th of every other.
 
     Raises:
       ProcessLost: a process did not deliver within ``timeout_s`` (default :func:`exchange_timeout_s`).
@@ -101,8 +107,7 @@ def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
         return [local]
     client = distributed.global_state.client
     timeout_s = exchange_timeout_s() if timeout_s is None else timeout_s
-    n = _exchanges[0]
-    _exchanges[0] += 1
+    n = client.key_value_increment(f"cpgjax/exchanges/{rank}", 1) - 1
     leaves, treedef = jax.tree.flatten(local)
     buf = io.BytesIO()
     np.savez(buf, *leaves)
@@ -350,7 +355,7 @@ class Engine:
         if self._sim is None:
             self._sim = backends.make_backend(scenario, self.backend_name, trial_config=self.spec.trial,
                                               devices=self.placement.local_devices)
-        elif any(not np.array_equal(a, b) for a, b in zip(scenario, self._sim.scenario)):
+        elif any(not np.array_equal(a, b) for a, b in zip(scenario, self._sim.scenario, strict=True)):
             self._sim = self._sim.with_scenario(scenario)
         return self._sim
 
@@ -478,7 +483,7 @@ class Engine:
             safe_fallback=fell_back)
         with _timed(timing, "exchange_s"):
             parts = exchange(trial_log)
-            trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts)))
+            trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts, strict=True)))
         return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(gp_context, np.float32),
                             logs=run.logs + [trial_log])
 
@@ -516,14 +521,15 @@ class Engine:
         template = sim.reset(np.tile(param_space.midpoint(), (stop - first, 1)))
         treedef = jax.tree.structure(template)
         kinds = [type(x) for x in jax.tree.leaves(template)]
-        restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds)]
+        restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds, strict=True)]
         return jax.tree.unflatten(treedef, restored)  # the backend places it on its devices
 
     def stack(self, logs: list[study_io.TrialLog]) -> study_io.TrialLog:
         """Per-trial logs → one study_io.TrialLog of (num_trials, B, ...) arrays without the padding instances."""
         if not logs:
             return study_io.TrialLog(*(np.zeros((0, self.batch_size)) for _ in study_io.TrialLog._fields))
-        return study_io.TrialLog(*(np.stack([np.asarray(f)[:self.batch_size] for f in field]) for field in zip(*logs)))
+        return study_io.TrialLog(*(np.stack([np.asarray(f)[:self.batch_size] for f in field])
+                                   for field in zip(*logs, strict=True)))
 
     def group_names(self) -> list[str]:
         return [", ".join(str(lab[g]) for g in self.spec.group_by) for lab in self.labels]
@@ -534,9 +540,3 @@ class Engine:
         for b, name in enumerate(self.group_names()):
             best[name] = max(best.get(name, -np.inf), float(j[:, b].max()))
         return best
-
-
-def run_study(spec: StudySpec, out_dir=None, *, resume: bool = False, backend: str = "auto", devices=None,
-              progress=None) -> StudyResult:
-    """Validate, build and run a study (see :class:`Engine`)."""
-    return Engine(spec, backend=backend, devices=devices).run(out_dir, resume=resume, progress=progress)

@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 import cpgjax
-from cpgjax import ablation, cpg
+from cpgjax import ablation, cpg, provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, tick_log
 from cpgjax.robot import safety as go1_safety
@@ -32,10 +32,8 @@ from cpgjax.study import spec as study_spec
 from cpgjax.study import transfer
 from cpgjax.study import video as study_video
 from cpgjax.study import viewer as study_viewer
-from cpgjax.trial import limits
+from cpgjax.trial import limits, protocol, tuned
 from cpgjax.trial import params as param_space
-from cpgjax.trial import protocol
-from cpgjax.trial import tuned
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
@@ -149,7 +147,7 @@ class _Given(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None):
         setattr(namespace, self.dest, values)
-        setattr(namespace, "given", {*getattr(namespace, "given", ()), self.dest})
+        namespace.given = {*getattr(namespace, "given", ()), self.dest}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -254,8 +252,8 @@ def _walk(args) -> int:
 
         pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
         meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
-                    git_commit=study_io.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
-                    backend=backends.resolve_backend(args.backend), **timing, environment=study_io.environment())
+                    git_commit=provenance.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
+                    backend=backends.resolve_backend(args.backend), **timing, environment=provenance.environment())
         (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
         print(f"outputs in {args.out}/ (walk.parquet: every trial, docs/outputs.md)")
     return 0
@@ -392,10 +390,10 @@ def _study(args) -> int:
 def _demo(args) -> int:
     """``make demo``: the paper's controller ablation — online optimization of the four CPG controllers.
 
-    Runs the ``--quick`` variant (4 controllers × 2 seeds × 12 trials of 1.5 s + 3 s: 41 s on the shared 2-core
-    development machine) because the full study (5 seeds × 40 trials, ``cpgjax study controller_ablation``) took 3.7
-    to 7.7 minutes there depending on the other jobs' load (docs/REPRODUCTION.md). Prints its table beside the
-    paper's; outputs go to ``results/demo_controller_ablation/``, replaced every time.
+    Runs the ``--quick`` variant (4 controllers × 2 seeds × 12 trials of 1.5 s + 3 s, about a minute on 2 CPU cores)
+    because the full study (20 seeds × 40 trials, ``cpgjax study controller_ablation``) takes about ten minutes there
+    (docs/REPRODUCTION.md). Prints its table beside the paper's; outputs go to ``results/demo_controller_ablation/``,
+    replaced every time.
     """
     print("cpgjax demo: online optimization (contextual GP-UCB, Algorithm 1) of the four CPG controllers at "
           "v* = 0.5 m/s, all runs batched in lockstep on the CPU (quick variant: 2 seeds × 12 trials; the first "
@@ -673,8 +671,8 @@ def _show(args) -> int:
         return 2
     kind = _folder_kind(out)
     if kind is None:
-        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, recording, best gait, checkpoint, "
-              f"run.json or {tick_log.FILE_NAME})", file=sys.stderr)
+        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, recording, "
+              f"best gait, checkpoint, run.json or {tick_log.FILE_NAME})", file=sys.stderr)
         return 2
     listing, damaged = _files_listing(out)
     print(f"{out}: a `cpgjax {kind}` folder\n" + "\n".join(listing))

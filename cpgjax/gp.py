@@ -1,6 +1,6 @@
 r"""Gaussian-process regression for contextual Bayesian optimization (paper Secs. II-C, II-D).
 
-This module is the entry point of cpgjax's optimizer. It holds the GP surrogate
+This module is the surrogate model of cpgjax's optimizer, the GP
 :math:`\hat f(\mathbf{x}, \mathbf{c})` of eq. (7); the acquisition of eq. (8) lives in
 :mod:`cpgjax.optim.acquisition`, the optimizer of Algorithm 1 in :mod:`cpgjax.optim.bo` (its static
 configuration in :mod:`cpgjax.optim.config`, the exploration factor of eqs. (12)-(14) in

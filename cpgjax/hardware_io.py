@@ -207,7 +207,7 @@ def timing_stats(log: TickLog, overruns: int, ticks: int) -> dict:
     causes = np.bincount(overrun_causes(log), minlength=len(OVERRUN_CAUSES))
     return {
         "ticks": int(ticks), "overruns": int(overruns), "overruns_per_10k_ticks": 1e4 * overruns / max(ticks, 1),
-        **{f"overruns_{name}": int(n) for name, n in zip(OVERRUN_CAUSES, causes)},
+        **{f"overruns_{name}": int(n) for name, n in zip(OVERRUN_CAUSES, causes, strict=True)},
         "step_median_us": pct(step_us, 50), "step_p99_us": pct(step_us, 99),
         "step_max_us": float(step_us.max()) if step_us.size else float("nan"),
         "period_median_us": pct(period_us, 50), "period_p1_us": pct(period_us, 1),

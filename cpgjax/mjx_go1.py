@@ -27,6 +27,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from cpgjax import cpg
+from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics, sensors
+from cpgjax.trial import protocol
+
 
 def _import_mjx_without_its_warp_probe():
     """``mujoco.mjx``, imported with the two lines its import prints to stdout when NVIDIA Warp is absent ("Failed to
@@ -41,11 +46,6 @@ def _import_mjx_without_its_warp_probe():
 
 
 mjx = _import_mjx_without_its_warp_probe()
-
-from cpgjax import cpg
-from cpgjax.go1 import model as go1_model
-from cpgjax.go1 import physics, sensors
-from cpgjax.trial import protocol
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     mx = mjx.put_model(base)
     batch = scenario.batch_size
     fields = [f for f in go1_model.scenario_dependent_fields() if hasattr(mx, f)]
-    keys = list(zip(scenario.payload_kg.tolist(), scenario.physics.tolist(), scenario.mass_scale.tolist()))
+    keys = list(zip(scenario.payload_kg.tolist(), scenario.physics.tolist(), scenario.mass_scale.tolist(), strict=True))
     per_key = {k: go1_model.model_with_payload(*k) for k in dict.fromkeys(keys)}
     updates = {f: jnp.asarray(np.stack([getattr(per_key[k], f) for k in keys]), dtype=getattr(mx, f).dtype)
                for f in fields}
@@ -98,8 +98,8 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     updates["dof_frictionloss"] = jnp.maximum(updates["dof_frictionloss"], MIN_FRICTIONLOSS_NM)
     friction = np.broadcast_to(np.asarray(base.geom_friction), (batch,) + base.geom_friction.shape).copy()
     friction[:, ids.floor_geom, 0] = [physics.floor_friction(physics.get(str(name)), mu)
-                                      for name, mu in zip(scenario.physics, scenario.friction)]
-    updates["geom_friction"] = jnp.asarray(friction, getattr(mx, "geom_friction").dtype)
+                                      for name, mu in zip(scenario.physics, scenario.friction, strict=True)]
+    updates["geom_friction"] = jnp.asarray(friction, mx.geom_friction.dtype)
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})
     return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario,
@@ -281,7 +281,7 @@ class MJXBackend:
                            self._put(protocol.check_params(new_params, self.batch_size)),
                            self._put(protocol.check_gates(gates, self.batch_size)))
 
-    def with_scenario(self, scenario: go1_model.Scenario) -> "MJXBackend":
+    def with_scenario(self, scenario: go1_model.Scenario) -> MJXBackend:
         """This backend for another batch of scenarios of the same size, sharing the compiled trial and rollout
         (the scenario enters them as model data, so nothing recompiles). Simulator states carry over unchanged:
         the lockstep engine (``cpgjax.ablation``) uses it when a payload, slope or friction schedule changes."""

@@ -181,13 +181,15 @@ def search(p, measured) -> None:
         w = walk(p, "paper", payload_kg=payload, slope_deg=slope, measured=measured)
         ok = ((w["fell"] == 0) & (w["j"] >= WALK_J)).all(axis=0)
         ci = stats.proportion_ci(int(ok.sum()), ok.size)
-        expected = "never seen" if ci.mean == 0 else f"{1 / ci.mean:.1f} ({1 / ci.high:.1f} – {1 / max(ci.low, 1e-9):.0f})"
+        expected = ("never seen" if ci.mean == 0
+                    else f"{1 / ci.mean:.1f} ({1 / ci.high:.1f} – {1 / max(ci.low, 1e-9):.0f})")
         print(f"| {payload:g} kg, {slope:g}° | {int(ok.sum())}/{ok.size} | {ci} | {expected} |")
 
 
 def floor(p, measured) -> None:
     print("\n## floor: J at exactly −1 without a fall\n")
-    print("| condition | trials | fell | J = −1 without a fall | un-floored J of those (median, min) |\n|---|---|---|---|---|")
+    print("| condition | trials | fell | J = −1 without a fall | un-floored J of those (median, min) |\n"
+          "|---|---|---|---|---|")
     for payload, slope in ((0.0, 0.0), (15.0, 0.0), (0.0, 10.0)):
         w = walk(p, "paper", payload_kg=payload, slope_deg=slope, measured=measured)
         flat = (w["fell"] == 0) & (w["j"] <= objective.MIN_OBJECTIVE)
@@ -198,8 +200,8 @@ def floor(p, measured) -> None:
 
 def load(p, measured) -> None:
     print("\n## load: saturation, trunk height and the joint PD gains\n")
-    print("The mid-range gait's trunk height over 3 s after a settling trial (the controller's nominal stance height is "
-          "0.30 m at the feet, the trunk origin 0.32 m standing):\n")
+    print("The mid-range gait's trunk height over 3 s after a settling trial (the controller's nominal stance height "
+          "is 0.30 m at the feet, the trunk origin 0.32 m standing):\n")
     print("| payload [kg] | trunk height mean [m] | min [m] |\n|---|---|---|")
     for payload in (0.0, 7.5, 15.0):
         sim = native.NativeBackend(go1_model.make_scenarios(payload_kg=payload, physics="paper"))

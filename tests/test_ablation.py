@@ -284,7 +284,7 @@ ablation.Engine(spec, backend="native").run({str(out)!r})
     resumed = ablation.Engine(tiny_spec(), backend="native").run(out, resume=True)
     for name in study_io.TrialLog._fields:
         np.testing.assert_array_equal(getattr(resumed.trials, name), getattr(uninterrupted.trials, name), name)
-    for a, b in zip(jax.tree.leaves(resumed.opt_state), jax.tree.leaves(uninterrupted.opt_state)):
+    for a, b in zip(jax.tree.leaves(resumed.opt_state), jax.tree.leaves(uninterrupted.opt_state), strict=True):
         np.testing.assert_array_equal(a, b)
     # resuming a different study from this folder is refused
     with pytest.raises(StudyError, match="different study"):

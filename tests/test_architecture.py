@@ -18,6 +18,7 @@ PACKAGE = ROOT / "cpgjax"
 
 # docs/architecture.md: the layers, lowest first. A module may import modules of its own layer or of lower ones.
 LAYERS = (
+    ("run provenance", ("provenance",)),
     ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.model")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
@@ -31,7 +32,10 @@ LAYERS = (
                "robot.tick_log", "robot.trials", "robot.deploy", "robot.calibrate")),
     ("command line", ("cli",)),
 )
-TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli"}  # the design's modules and the entry point
+# The design's modules, the entry point, and what a run records about its code and machine (below every layer)
+TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli", "provenance"}
+# docs/architecture.md: these layers sit side by side, neither imports the other (whatever their order in LAYERS).
+SIDE_BY_SIDE = ("studies", "robot")
 
 
 def module_files() -> dict[str, pathlib.Path]:
@@ -133,9 +137,17 @@ def test_lower_layers_never_import_higher_ones():
     assert upward == []
 
 
+def test_the_robot_and_the_studies_never_import_each_other():
+    members = dict(LAYERS)
+    one, other = (set(members[name]) for name in SIDE_BY_SIDE)
+    crossing = [f"{a} imports {b}" for a, targets in import_graph().items() for b in sorted(targets)
+                if (a in one and b in other) or (a in other and b in one)]
+    assert crossing == []
+
+
 def test_every_module_imports_in_a_fresh_interpreter():
     names = [f"cpgjax.{m}" if m else "cpgjax" for m in module_files()]
-    code = "import importlib\nfor n in %r:\n    importlib.import_module(n)\nprint('ok')" % names
+    code = f"import importlib\nfor n in {names!r}:\n    importlib.import_module(n)\nprint('ok')"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT,
                          env={"JAX_PLATFORMS": "cpu", "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]

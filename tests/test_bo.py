@@ -1,6 +1,7 @@
 """The optimizer of Algorithm 1 (cpgjax.optim.bo): beta schedule and context counting on hand-built
 histories, data reuse, validation, batching, and optimization of standard test functions."""
 
+import operator
 from typing import NamedTuple
 
 import jax
@@ -180,7 +181,7 @@ def test_data_reuse_equals_recomputation_from_scratch(reuse_opt):
 
     def run(target):
         state = reuse_opt.init(target_velocity=jnp.float32(target))
-        for x, record in zip(xs, records):
+        for x, record in zip(xs, records, strict=True):
             state, _ = reuse_opt.observe(state, x, NOMINAL, record)
         return state
 
@@ -264,7 +265,7 @@ def test_vmapped_instances_equal_unbatched_runs(opt):
     propose_b, observe_b = jax.jit(jax.vmap(opt.propose)), jax.jit(jax.vmap(opt.observe))
     single = list(inits)
     for trial in range(4):
-        trial_keys = jax.vmap(lambda k: jax.random.fold_in(k, trial))(keys)
+        trial_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, trial)
         xs = propose_b(batched, contexts, trial_keys)
         ys = jax.vmap(toy_objective)(xs, contexts)
         batched, accepted = observe_b(batched, xs, contexts, ys)
@@ -275,11 +276,11 @@ def test_vmapped_instances_equal_unbatched_runs(opt):
             np.testing.assert_allclose((xs[i] - x) / (UPPER - LOWER), 0.0, atol=tolerance)
             single[i], _ = opt.observe(single[i], xs[i], contexts[i], ys[i])
     for i in range(3):
-        instance = jax.tree.map(lambda leaf: leaf[i], batched)
+        instance = jax.tree.map(operator.itemgetter(i), batched)
         for a, b in zip(jax.tree.leaves(instance._replace(gp_params=())),
-                        jax.tree.leaves(single[i]._replace(gp_params=()))):
+                        jax.tree.leaves(single[i]._replace(gp_params=())), strict=True):
             np.testing.assert_array_equal(a, b)
-        for a, b in zip(instance.gp_params, single[i].gp_params):
+        for a, b in zip(instance.gp_params, single[i].gp_params, strict=True):
             np.testing.assert_allclose(a, b, atol=0.05)
     assert float(batched.parameters[1, 0, 7]) == pytest.approx(MIDPOINT[7], abs=1e-7)
 

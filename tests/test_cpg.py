@@ -17,7 +17,7 @@ def random_params(n, rng=RNG):
     return param_space.from_unit(rng.uniform(size=(n, param_space.NUM_PARAMS)))
 
 
-def observation(force_n=np.zeros(4), quat=(1.0, 0.0, 0.0, 0.0), q=None):
+def observation(force_n=(0.0, 0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0), q=None):
     q = np.tile([0.0, 0.85, -1.57], 4) if q is None else q
     return cpg.Observation(joint_pos_rad=jnp.asarray(q, jnp.float32), joint_vel_rad_s=jnp.zeros(12),
                            imu_quat_wxyz=jnp.asarray(quat, jnp.float32), gyro_rad_s=jnp.zeros(3),

@@ -85,7 +85,7 @@ def test_two_processes_equal_one_process(two_processes, tmp_path):
     assert one.returncode == 0, one.stderr[-3000:]
     reference = study_io.load_checkpoint(tmp_path, tiny_spec())
     assert len(reference.logs) == len(ckpt.logs) == TRIALS
-    for a, b in zip(ckpt.logs, reference.logs):
+    for a, b in zip(ckpt.logs, reference.logs, strict=True):
         for name in study_io.TrialLog._fields:
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), name)
     for a, b in zip(ckpt.opt_leaves + ckpt.sim_leaves, reference.opt_leaves + reference.sim_leaves, strict=True):

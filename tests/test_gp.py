@@ -28,7 +28,7 @@ def ref_log_prior(params, active):
 
     ls = np.exp(np.asarray(params.log_lengthscales, np.float64))
     return (
-        sum(gamma_logpdf(v, 3.0, 6.0) for v, on in zip(ls, active) if on)
+        sum(gamma_logpdf(v, 3.0, 6.0) for v, on in zip(ls, active, strict=True) if on)
         + gamma_logpdf(float(np.exp(params.log_outputscale)), 2.0, 0.15)
         + gamma_logpdf(float(np.exp(params.log_noise)), 1.1, 0.05)
     )
@@ -192,7 +192,7 @@ def test_padded_rows_have_no_influence(compiled, problem):
                                compiled["lml"](p["params"], plain, active, CONTEXT_DIMS),
                                rtol=1e-6)
     for g_pad, g_plain in zip(compiled["grad"](p["params"], padded, active, CONTEXT_DIMS),
-                              compiled["grad"](p["params"], plain, active, CONTEXT_DIMS)):
+                              compiled["grad"](p["params"], plain, active, CONTEXT_DIMS), strict=True):
         np.testing.assert_allclose(g_pad, g_plain, rtol=1e-4, atol=1e-4)
     queries = jnp.asarray(p["queries"], jnp.float32)
     scale = np.std(p["targets"], ddof=1)
@@ -203,7 +203,7 @@ def test_padded_rows_have_no_influence(compiled, problem):
     start = gp.default_params(6)
     fit_pad = compiled["fit"](padded, active, start, CONTEXT_DIMS, gp.FitConfig())
     fit_plain = compiled["fit"](plain, active, start, CONTEXT_DIMS, gp.FitConfig())
-    for a, b in zip(fit_pad, fit_plain):
+    for a, b in zip(fit_pad, fit_plain, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-3)
 
 

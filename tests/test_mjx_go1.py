@@ -167,7 +167,7 @@ def test_one_exploding_instance_leaves_the_others_unchanged(short_sim, mid_param
     assert float(objective.objective(jax.tree.map(lambda x: x[2], broken), 0.5)) == objective.MIN_OBJECTIVE
     assert np.all(np.isfinite(np.asarray(end.data.qpos)))
     others = np.arange(short_sim.batch_size) != 2
-    for a, b in zip(jax.tree.leaves(clean), jax.tree.leaves(broken)):
+    for a, b in zip(jax.tree.leaves(clean), jax.tree.leaves(broken), strict=True):
         np.testing.assert_array_equal(np.asarray(a)[others], np.asarray(b)[others])
 
 

@@ -104,7 +104,7 @@ def test_trajectories_agree_with_mjx_over_a_short_horizon(short_sim, native_sim,
 def test_trial_records_have_the_mjx_definitions(native_two_trials, two_trials):
     _, native = native_two_trials
     _, mjx = two_trials
-    for a, b, name in zip(native, mjx, protocol.TrialRecord._fields):
+    for a, b, name in zip(native, mjx, protocol.TrialRecord._fields, strict=True):
         assert np.shape(a) == np.shape(b) and np.asarray(a).dtype == np.asarray(b).dtype, name
     n, m = _figures(native), _figures(mjx)
     # Tolerance on the well-conditioned instances: 0.02 m/s, 5 % CoT, 2 % c_load, 0.01 rad c_slope.
@@ -178,7 +178,7 @@ def test_one_exploding_instance_leaves_the_others_unchanged(native_sim, mid_para
     assert float(objective.objective(jax.tree.map(lambda x: x[2], broken), 0.5)) == objective.MIN_OBJECTIVE
     assert np.all(np.isfinite(end.physics))
     others = np.arange(native_sim.batch_size) != 2
-    for a, b in zip(clean, broken):
+    for a, b in zip(clean, broken, strict=True):
         np.testing.assert_array_equal(np.asarray(a)[others], np.asarray(b)[others])
 
 

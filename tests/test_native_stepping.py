@@ -64,7 +64,7 @@ def test_a_study_writes_the_same_bytes_with_either_stepping(study, batch, tmp_pa
     if study == "load_adaptation":
         np.testing.assert_array_equal(ref.conditions.payload_kg[0], [0.0, 0.0, 7.5, 15.0])
     assert stepped == reference
-    for a, b in zip(jax.tree.leaves(new.opt_state), jax.tree.leaves(ref.opt_state)):
+    for a, b in zip(jax.tree.leaves(new.opt_state), jax.tree.leaves(ref.opt_state), strict=True):
         np.testing.assert_array_equal(a, b)
 
 
@@ -84,10 +84,11 @@ def test_both_steppings_step_and_reset_a_diverged_instance_alike(tmp_path, monke
             for p in (ref, new):
                 p.physics[1, p.layout.qvel] = np.inf
         q, dq = new.physics[:, new.layout.qpos][:, ids.joint_qpos], new.physics[:, new.layout.qvel][:, ids.joint_dof]
-        torque = (60.0 * (q_stand + 0.3 * np.sin(0.03 * k) - q) - np.nan_to_num(dq, posinf=0.0, neginf=0.0)).astype(np.float32)
+        torque = (60.0 * (q_stand + 0.3 * np.sin(0.03 * k) - q)
+                  - np.nan_to_num(dq, posinf=0.0, neginf=0.0)).astype(np.float32)
         failed_ref, failed_new = ref.step(torque), new.step(torque)
         np.testing.assert_array_equal(failed_new, failed_ref)
-        for a, b in zip(new.get_state(), ref.get_state()):
+        for a, b in zip(new.get_state(), ref.get_state(), strict=True):
             np.testing.assert_array_equal(a, b)
         flagged += [k] * int(failed_new[1])
     assert flagged == [50]

@@ -1,5 +1,6 @@
 """Physics profiles (cpgjax.go1.physics) against independent references: C MuJoCo's own contact forces and body
-frames, the analytic DC-motor line, hand-written foot-sensor (the Gazebo plugin) and delay sequences, and the profiles' sources."""
+frames, the analytic DC-motor line, hand-written foot-sensor (the Gazebo plugin) and delay sequences, and the profiles'
+sources."""
 
 from __future__ import annotations
 
@@ -138,12 +139,12 @@ def test_the_torque_speed_envelope_is_the_dc_motor_line(speed_rad_s):
     no_load = np.tile([30.1, 30.1, 20.06], 4)
     state = physics.init_state(jnp.zeros(4))
     dq = np.full(12, speed_rad_s, np.float32)
-    for k in range(profile.latency_ticks + 1):  # let the full-torque command through the latency
+    for _ in range(profile.latency_ticks + 1):  # let the full-torque command through the latency
         state, motoring = physics.actuate(profile, state, jnp.asarray(stall, jnp.float32), dq)
     line = stall * np.clip(1.0 - speed_rad_s / no_load, 0.0, 1.0)
     np.testing.assert_allclose(np.asarray(motoring), line, rtol=1e-6, atol=1e-5)
     state = physics.init_state(jnp.zeros(4))
-    for k in range(profile.latency_ticks + 1):
+    for _ in range(profile.latency_ticks + 1):
         state, braking = physics.actuate(profile, state, jnp.asarray(-stall, jnp.float32), dq)
     np.testing.assert_allclose(np.asarray(braking), -stall if speed_rad_s > 0 else -line, rtol=1e-6)
 

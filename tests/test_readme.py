@@ -27,7 +27,7 @@ def test_the_readme_python_example_prints_j_velocity_and_cot(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     lines = done.stdout.splitlines()
     assert len(lines) == 3, done.stdout
-    for line, friction in zip(lines, ("0.3", "0.6", "0.9")):
+    for line, friction in zip(lines, ("0.3", "0.6", "0.9"), strict=True):
         m = re.fullmatch(rf"friction {friction}: J (\S+), v_x (\S+) m/s, CoT (\S+)", line)
         assert m, line
         j, v, cot = map(float, m.groups())

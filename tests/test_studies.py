@@ -47,14 +47,16 @@ def test_specs_follow_the_paper():
     labels = [lab["schedule"] for lab in study_spec.instances(spec)]
     assert spec.physics == ("go1",) and len(set(labels)) == 5
     by = {label: labels.index(label) for label in labels}
-    assert np.all(cond.target_velocity_mps[by["flat 0.4 m/s"]] == 0.4) and np.all(cond.friction[by["flat 0.4 m/s"]] == 0.6)
+    assert np.all(cond.target_velocity_mps[by["flat 0.4 m/s"]] == 0.4)
+    assert np.all(cond.friction[by["flat 0.4 m/s"]] == 0.6)
     assert np.all(cond.friction[by["taped feet 0.4 m/s"]] == 0.3)
     v = cond.target_velocity_mps[by["0.6→0.3→0.5→0.6 m/s"]]
     assert [v[t] for t in studies.phase_starts(v)] == [0.6, 0.3, 0.5, 0.6]
     slope = cond.slope_deg[by["flat → 10°"]]
     assert studies.phase_starts(slope) == [0, 30] and slope[-1] == 10.0
     load = cond.payload_kg[by["0→5→10→15 kg"]]
-    assert [load[t] for t in studies.phase_starts(load)] == [0.0, 5.0, 10.0, 15.0] and studies.phase_starts(load)[1] == 30
+    assert [load[t] for t in studies.phase_starts(load)] == [0.0, 5.0, 10.0, 15.0]
+    assert studies.phase_starts(load)[1] == 30
     for name in studies.STUDIES:  # every quick variant is a valid, smaller study
         quick = studies.make_spec(name, quick=True)
         assert quick.num_trials < studies.make_spec(name).num_trials and len(quick.seeds) == 2

@@ -100,7 +100,8 @@ def served(tmp_path):
 def test_show_web_serves_the_recording_on_loopback_only(served, tmp_path):
     port, proc, printed, base = served
     url = viewer.url(port, port + 1)
-    assert f"  {url}\n" in printed and f"ssh -N -L {port}:127.0.0.1:{port} -L {port + 1}:127.0.0.1:{port + 1}" in printed
+    assert f"  {url}\n" in printed
+    assert f"ssh -N -L {port}:127.0.0.1:{port} -L {port + 1}:127.0.0.1:{port + 1}" in printed
     # what listens, and where: every socket of the command's processes is on 127.0.0.1, both ports among them
     ours = _descendants(proc.pid)
     listening = [line for line in subprocess.run(["ss", "-Hltnup"], capture_output=True, text=True).stdout.splitlines()

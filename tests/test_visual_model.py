@@ -13,7 +13,6 @@ from cpgjax.go1 import model as go1_model
 from cpgjax.study import files as study_io
 from cpgjax.study.spec import StudySpec
 from cpgjax.trial import protocol
-
 from tests.test_ablation import small_optimizer
 
 # unitree_ros robots/go1_description/xacro/const.xacro (commit ca57a18): the "simplified collision value" link
@@ -94,7 +93,7 @@ def test_visual_geoms_neither_collide_nor_weigh():
         for _ in range(300):
             mujoco.mj_step(model, d)
         states.append((d.qpos.copy(), d.qvel.copy(), d.sensordata.copy(), d.ncon))
-    for a, b in zip(*states):
+    for a, b in zip(*states, strict=True):
         np.testing.assert_array_equal(a, b)
     assert states[0][3] > 0  # the feet touch the floor
 

@@ -2,8 +2,9 @@
 
 A profile is data, chosen per instance (docs/decisions.md §15; every constant and its source in docs/physics.md):
 
-* ``soft`` — the model cpgjax used before profiles existed: MuJoCo's default soft contact, armature 0.01, light
-  damping, no joint friction, the foot force as the world-frame contact normal force at 1 kHz. Kept for comparison.
+* ``soft`` — MuJoCo's default soft contact, armature 0.01, light damping, no joint friction, the foot force as the
+  world-frame contact normal force at 1 kHz; the Python API's default, measured beside the other two in
+  docs/physics.md.
 * ``paper`` — the paper's Gazebo Go1 as closely as MuJoCo allows: near-rigid foot contact, the unitree_ros Gazebo
   joint damping and Coulomb friction, no reflected rotor inertia, Gazebo's velocity limits, and the paper's foot-force
   signal: the z component of the contact force in the calf frame, published at 100 Hz as the mean over the update's
@@ -112,7 +113,7 @@ PROFILES: dict[str, PhysicsProfile] = {
         joint_pos_noise_rad=0.01, joint_vel_noise_rad_s=1.5, gyro_noise_rad_s=0.2, tilt_noise_rad=0.05,
         foot_force_noise_n=0.5),
 }
-DEFAULT_PROFILE = "soft"  # the Python API's default: scripts written before profiles keep their numbers
+DEFAULT_PROFILE = "soft"  # what the Python API simulates when a call names no profile
 PAPER_STUDIES_PROFILE = "paper"  # the five paper studies, cpgjax walk and cpgjax optimize
 ROBOT_PROFILE = "go1"  # the loopback simulated Go1 (cpgjax deploy --robot sim)
 
@@ -205,7 +206,7 @@ def batch_arrays(names, latency_ticks=None, noise_scale=None, noise_seed=None) -
     the profile's own) replaces its sensor noise by that multiple of the robot's (ROBOT_PROFILE's), and
     ``noise_seed`` chooses the instance's noise stream."""
     rows = [arrays(get(str(n))) for n in names]
-    batch = ProfileArrays(*(np.stack(field) for field in zip(*rows)))
+    batch = ProfileArrays(*(np.stack(field) for field in zip(*rows, strict=True)))
     if latency_ticks is not None:
         override = np.asarray(latency_ticks, np.int32)
         batch = batch._replace(latency_ticks=np.where(override >= 0, override, batch.latency_ticks).astype(np.int32))

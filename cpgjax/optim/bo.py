@@ -472,7 +472,7 @@ def _check_observation(s: _Static, state, x, context, observation) -> None:
         leaves, tree = jax.tree.flatten(observation)
         if tree != s.template_tree:
             raise ValueError(f"trial record structure {tree} differs from the template {s.template_tree}")
-        for i, (leaf, (shape, _)) in enumerate(zip(leaves, s.template_specs)):
+        for i, (leaf, (shape, _)) in enumerate(zip(leaves, s.template_specs, strict=True)):
             _check_shape(f"trial record leaf {i}", leaf, shape)
     else:
         _check_shape("objective value (this optimizer has no objective_fn)", observation, ())

@@ -98,7 +98,7 @@ class OptimizerConfig:
 def _check_box(name, lower, upper):
     if len(lower) != len(upper):
         raise ValueError(f"{name} bounds differ in length: {len(lower)} vs {len(upper)}")
-    for i, (lo, hi) in enumerate(zip(lower, upper)):
+    for i, (lo, hi) in enumerate(zip(lower, upper, strict=True)):
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise ValueError(f"{name} bounds [{i}] must be finite with lower < upper, got"
                              f" [{lo}, {hi}]")
@@ -113,7 +113,7 @@ def clip_context(config: OptimizerConfig, context: np.ndarray) -> tuple[np.ndarr
     names, units = ("c_load", "c_slope"), ("N", "rad")
     messages = [f"instance {idx[0] if len(idx) > 1 else 0}: {names[idx[-1]]} = {context[idx]:.4g} "
                 f"{units[idx[-1]]} outside [{lower[idx[-1]]:g}, {upper[idx[-1]]:g}], clipped for the GP"
-                for idx in zip(*np.nonzero(clipped != context))] if len(lower) == 2 else []
+                for idx in zip(*np.nonzero(clipped != context), strict=True)] if len(lower) == 2 else []
     return clipped.astype(context.dtype), messages
 
 

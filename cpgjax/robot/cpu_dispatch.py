@@ -19,9 +19,11 @@ def request_inline() -> bool:
     start. Called after JAX has computed anything it returns False (unless the setting was already off): the client
     keeps dispatching asynchronously. Process-wide.
     """
-    from jax._src import (
-        xla_bridge,  # no public API tells whether the CPU client exists yet
-    )
+    # Whether JAX's CPU client exists yet: no public API tells without creating it. jax.devices() and
+    # jax.extend.backend.backends() create the client, which must not happen here (jax.distributed.initialize, for
+    # `cpgjax study --distributed`, has to come before it); jax.extend.backend.clear_backends() would recreate it but
+    # drops every array and compiled program; jax.config holds only the flag, which the client reads when created.
+    from jax._src import xla_bridge
 
     was_inline = not jax.config.read("jax_cpu_enable_async_dispatch")
     jax.config.update("jax_cpu_enable_async_dispatch", False)

@@ -14,7 +14,7 @@ import socket
 import numpy as np
 
 import cpgjax
-from cpgjax import cpg
+from cpgjax import cpg, provenance
 from cpgjax import hardware_io as hio
 from cpgjax.go1 import model as go1_model
 from cpgjax.robot import controller as compiled_controller
@@ -23,7 +23,6 @@ from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.robot.trials import OptimizerSpec, ReplayTrials, online_optimization
-from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -187,8 +186,8 @@ def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | No
                "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
                "trials": [{k: row[k] for k in WALKED} for row in rows], "sim_truth": truth,
                "timing": result.timing(), "command": getattr(args, "command_line", None),
-               "cpgjax_version": cpgjax.__version__, "git_commit": study_io.git_commit(),
-               "environment": study_io.environment()}
+               "cpgjax_version": cpgjax.__version__, "git_commit": provenance.git_commit(),
+               "environment": provenance.environment()}
     (args.log_dir / "run.json").write_text(json.dumps(summary, indent=1, default=str))
     ended = (f"safety trip: {result.trip}" if result.trip else "stopped by Ctrl-C (damped)" if result.stopped
              else "clean end")

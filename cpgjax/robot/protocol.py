@@ -28,7 +28,6 @@ POS_STOP_F = 2.146e9  # q = PosStopF disables the motor's position term ("stop p
 VEL_STOP_F = 16000.0  # dq = VelStopF disables the velocity term
 MODE_SERVO = 0x0A
 MODE_DAMPING = 0x00
-MODE_OVERHEAT = 0x08
 
 # Representable ranges of the fixed-point fields (half-open: trunc(x · scale) must fit the integer type).
 TAU_SCALE = 256.0  # int16 → [−128, 128) N·m

@@ -131,7 +131,7 @@ def guard_command(cmd: proto.MotorCommand, safety: SafetyConfig) -> tuple[proto.
     q_active = np.where(position_active, cmd.q_rad, 0.0)
     fields = (cmd.tau_nm, cmd.kp_nm_rad, cmd.kd_nm_s_rad, q_active, cmd.dq_rad_s)
     if not np.isfinite(np.concatenate(fields)).all():
-        bad = [n for n, f in zip(("tau", "kp", "kd", "q", "dq"), fields) if not np.isfinite(f).all()]
+        bad = [n for n, f in zip(("tau", "kp", "kd", "q", "dq"), fields, strict=True) if not np.isfinite(f).all()]
         return cmd, f"non-finite command ({', '.join(bad)})"
     q = cmd.q_rad
     if position_active.any():

@@ -412,8 +412,9 @@ def phase_correction(command_time_s: float, deadline_s: float) -> float:
 class SimGo1Client:
     """Start the simulated Go1 in a child process and talk to its control port.
 
+    >>> from cpgjax.robot import transport
     >>> with SimGo1Client(pacing="lockstep") as sim:
-    ...     transport = hardware_io.UdpTransport(("127.0.0.1", sim.port))
+    ...     go1 = transport.LockstepTransport(sim.address)
     ...     sim.inject("corrupt_crc", ticks=5)
     """
 

@@ -75,7 +75,7 @@ class TickLogWriter:
         self._error: BaseException | None = None
         # Convert one tick of a log once, unwritten, before the loop runs: the first conversion's one-time work held
         # the GIL for milliseconds while the loop waited for it (3-8 ms stalls of the loop after its first batch).
-        self._columns(hio.TickLog.allocate(1), slice(0, 1), range(0, 1), 0.0)
+        self._columns(hio.TickLog.allocate(1), slice(0, 1), range(1), 0.0)
         # Started here, before the loop takes real-time priority; the thread sets its own CPUs and priority.
         self._thread = threading.Thread(target=self._drain, name="tick-log-writer", daemon=True)
         self._thread.start()

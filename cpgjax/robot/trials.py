@@ -115,8 +115,9 @@ class BayesianOptimizer:
 
     def warm_up(self, params, context, record, objective) -> None:
         """Compile ``observe`` and ``propose`` on a throwaway state, and the key's split (13.4 s on a 2-core
-        machine: done while the robot walked, it left the robot on the old parameters and took the CPUs from the
-        simulated robot). The state and the key stay as they were."""
+        machine), before the robot walks: compiled during a trial, they would hold the robot on its old parameters
+        and take the CPUs from the loop (and from a simulated robot on the same machine). The state and the key stay
+        as they were."""
         state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
                                      jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32),
                                      self._margin(record))

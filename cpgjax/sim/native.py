@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import functools
 import os
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -112,7 +113,8 @@ class BatchPhysics:
         self.scenario = scenario
         self.stepping = stepping
         # Instances with the same scenario share one MjModel (read-only during a step): less memory traffic.
-        keys = list(zip(*(field.tolist() for field in scenario)))  # (friction, slope, payload, physics) per instance
+        # (friction, slope, payload, physics) per instance
+        keys = list(zip(*(field.tolist() for field in scenario), strict=True))
         unique = {key: go1_model.scenario_model(scenario, keys.index(key)) for key in dict.fromkeys(keys)}
         self.models = [unique[key] for key in keys]
         m = self.models[0]
@@ -222,7 +224,7 @@ class _RowLayout(NamedTuple):
     ctrl: slice
 
     @staticmethod
-    def of(model: mujoco.MjModel, nstate: int) -> "_RowLayout":
+    def of(model: mujoco.MjModel, nstate: int) -> _RowLayout:
         spec = mujoco.mjtState.mjSTATE_INTEGRATION.value
         if mujoco.mj_stateSize(model, spec) != nstate:
             raise ValueError(f"mujoco.batch rows of {nstate} numbers, expected mjSTATE_INTEGRATION's "
@@ -314,7 +316,7 @@ def _control(cpg_config: cpg.CPGConfig, recorder: _Recorder, n_transition: int, 
 class _Program(NamedTuple):
     """A run's compiled pieces for one recorder and trial timing (:meth:`NativeBackend._program`)."""
 
-    packing: "_Packing"
+    packing: _Packing
     pending_size: int  # length of the flat pre-step half of a row
     row_size: int  # length of a flat row
     advance: Callable  # jitted _advance: finish row k−1, control tick k

@@ -117,7 +117,7 @@ def walk(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload
     rows = [WalkRow(t.controller, t.friction, t.slope_deg, t.payload_kg, t.physics, float(t.velocity_xy_mps[0]),
                     float(t.velocity_xy_mps[1]), t.cot, t.objective, t.target_velocity_mps, float(t.record.c_load_n),
                     float(t.record.c_slope_rad), float(t.record.roll_std_rad), float(t.record.pitch_std_rad), n)
-            for t, n in zip(last, falls)]
+            for t, n in zip(last, falls, strict=True)]
     return rows, timing
 
 

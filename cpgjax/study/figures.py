@@ -52,7 +52,7 @@ def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), t
             (CONTEXT_LABELS[context_index], tr.context[..., context_index]))
     labels = np.array([str(lab[group_key]) for lab in result.labels])
     fig, axes = plt.subplots(len(rows), 1, figsize=(6.5, 8.0), sharex=True)
-    for ax, (name, values) in zip(axes, rows):
+    for ax, (name, values) in zip(axes, rows, strict=True):
         for group in dict.fromkeys(labels):
             v = np.asarray(values)[:, labels == group]
             mean, std = v.mean(axis=1), v.std(axis=1)
@@ -99,7 +99,7 @@ def optimization_progress(path: pathlib.Path, result, groups: list[str]) -> path
                              color=line.get_color(), alpha=0.2, lw=0)
     axes[0].set_ylabel("best J so far")
     axes[0].legend(fontsize=7, loc="lower right")
-    for ax, group in zip(axes[1:], order):
+    for ax, group in zip(axes[1:], order, strict=True):
         x = unit[:, names == group].mean(axis=1)  # (n, 8)
         for i, name in enumerate(param_space.PARAM_NAMES):
             ax.plot(trials, x[:, i], lw=1.0, label=name)
@@ -149,7 +149,7 @@ def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
     """One roll–pitch panel [deg] per group's best gait (``study.video.Gait`` and its log), on shared axes."""
     plt = _plt()
     fig, axes = plt.subplots(1, len(gaits), figsize=(3.2 * len(gaits), 3.4), sharex=True, sharey=True, squeeze=False)
-    for ax, gait, lg in zip(axes[0], gaits, logs):
+    for ax, gait, lg in zip(axes[0], gaits, logs, strict=True):
         rpy = np.degrees(np.asarray(lg.rpy_rad))
         ax.plot(rpy[:, 0], rpy[:, 1], lw=0.7)
         ax.set_title(f"{gait.group}\nstd roll {rpy[:, 0].std():.2f}°, pitch {rpy[:, 1].std():.2f}°", fontsize=8)

@@ -27,21 +27,20 @@ import dataclasses
 import json
 import os
 import pathlib
-import platform
 import re
-import subprocess
-import sys
 import zipfile
 from typing import Any, NamedTuple
 
 import numpy as np
 
 import cpgjax
+from cpgjax import provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.study import scene as study_scene
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 from cpgjax.trial import tuned
+
 
 class OutputError(RuntimeError):
     """Writing one of a run's files failed; the message says which, what was kept and how to write the rest."""
@@ -291,7 +290,7 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
     first_meta = parts[0][1]
 
     def joined(k, axis=0):
-        return [np.concatenate(leaves, axis=axis) for leaves in zip(*(p[k] for p in parts))]
+        return [np.concatenate(leaves, axis=axis) for leaves in zip(*(p[k] for p in parts), strict=True)]
     stacked = joined(5, axis=1)
     logs = [TrialLog(*(field[t] for field in stacked)) for t in range(first_meta["trial"])]
     return Checkpoint(first_meta["trial"], joined(2), joined(3), np.concatenate([p[4] for p in parts]), logs,
@@ -526,32 +525,6 @@ def write_best_params(result, folder) -> list[pathlib.Path]:
 
 # ----------------------------------------------------------------------------------------------- metadata
 
-def cpu_model() -> str:
-    """The CPU's model name (what lscpu reports), or the platform's processor string where it cannot be read."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or "unknown CPU"
-
-
-def machine() -> str:
-    """'<CPU model>, <n> CPUs': how benchmarks and study metadata name the machine."""
-    return f"{cpu_model()}, {os.cpu_count()} CPUs"
-
-
-def environment() -> dict[str, Any]:
-    import jax
-    import mujoco
-
-    cpu = cpu_model()
-    return dict(python=sys.version.split()[0], jax=jax.__version__, mujoco=mujoco.__version__,
-                numpy=np.__version__, platform=platform.platform(), cpu=cpu, cpu_count=os.cpu_count(),
-                load_avg=os.getloadavg() if hasattr(os, "getloadavg") else None,
-                jax_backend=jax.default_backend(), devices=[str(d) for d in jax.devices()],
-                xla_flags=os.environ.get("XLA_FLAGS", ""))
-
-
 def run_figures(result) -> dict[str, float]:
     """Wall time, env-steps/s and real-time factor (simulated robot-seconds per wall-second) of a study."""
     spec = result.spec
@@ -567,28 +540,14 @@ def run_figures(result) -> dict[str, float]:
                 checkpoint_s=round(result.timing.checkpoint_s, 2))
 
 
-def git_commit() -> str | None:
-    """The commit of the cpgjax checkout that runs ("<hash>-dirty" with uncommitted changes), None outside git."""
-    root = pathlib.Path(cpgjax.__file__).resolve().parent.parent
-    try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=10)
-        if commit.returncode != 0:
-            return None
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return commit.stdout.strip() + ("-dirty" if dirty else "")
-
-
 def write_metadata(result, path, extra: dict | None = None, command: str | None = None) -> dict:
     """``metadata.json``: the study, how it was run (``command``: the exact command line) and its run figures."""
-    meta = dict(study=result.spec.name, command=command, cpgjax_version=cpgjax.__version__, git_commit=git_commit(),
+    meta = dict(study=result.spec.name, command=command, cpgjax_version=cpgjax.__version__,
+                git_commit=provenance.git_commit(),
                 instances=len(result.labels), trials=int(result.trials.objective.shape[0]),
                 backend=result.backend, sharded_over=result.devices, spec=repr(result.spec),
                 optimizer=dataclasses.asdict(result.spec.optimizer_config()),
-                **run_figures(result), environment=environment(), **(extra or {}))
+                **run_figures(result), environment=provenance.environment(), **(extra or {}))
     pathlib.Path(path).write_text(json.dumps(meta, indent=2, default=str))
     return meta
 

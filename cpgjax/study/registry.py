@@ -107,7 +107,6 @@ def multi_velocity_spec(seeds=None, trials=None, quick=False) -> StudySpec:
                      schedules=(schedule,), data_reuse=(True, False), group_by=("data_reuse",), physics=PHYSICS)
 
 
-SLOPE_PHASES_DEG = (0.0, 10.0, 12.5)
 INFERENCE_SLOPES_DEG = (10.0, 12.5, 15.0, 17.5)
 
 
@@ -288,12 +287,12 @@ def report_ablation(result, out: pathlib.Path, backend: str):
         params = np.stack([b[0] for b in best])
         scenario = go1_model.make_scenarios(friction=[result.spec.friction[0]] * len(picks),
                                             physics=[result.labels[b]["physics"] for _, b, _ in best])
-        for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend)):
+        for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend), strict=True):
             logs[f"best_{c}"] = lg
         study_figures.attitude(out / "attitude.png", logs)
         text += "\nRoll–pitch of the best parameters (3 s after a settling trial), std [rad]:\n\n"
         text += "| controller | best J (instance) | roll std | pitch std |\n|---|---|---|---|\n"
-        for (c, lg), (_, b, jb) in zip(logs.items(), best):
+        for (c, lg), (_, b, jb) in zip(logs.items(), best, strict=True):
             text += f"| {c} | {jb:.3f} (#{b}) | {np.std(lg.rpy_rad[:, 0]):.4f} | {np.std(lg.rpy_rad[:, 1]):.4f} |\n"
     return text
 
@@ -354,7 +353,7 @@ def report_load(result, out: pathlib.Path, backend: str):
     tolerance = config.context_thresholds[0] * (config.context_upper[0] - config.context_lower[0])  # eq. (14)
     phases = ["| load [kg] (trials) | falls | c_load [N] | c_load spread within a run [N] (same-context tolerance "
               f"t_load·r_load = {tolerance:g} N) | trials with β_init,c | β |", "|---|---|---|---|---|---|"]
-    for load, start, stop in zip(loads, starts[:-1], starts[1:]):
+    for load, start, stop in zip(loads, starts[:-1], starts[1:], strict=True):
         after = [last_mean(x, stop) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective)]
         before = None
         if load > 0:
@@ -430,7 +429,7 @@ def report_multi_velocity(result, out: pathlib.Path, backend: str):
     rows = ["| target [m/s] (trials) | data reuse | trials to track (mean [95 % CI] of the runs that track, "
             "never-tracked runs) | final velocity | final CoT |", "|---|---|---|---|---|"]
     tracked = {}
-    for s, e in zip(starts[:-1], starts[1:]):
+    for s, e in zip(starts[:-1], starts[1:], strict=True):
         target = float(cond.target_velocity_mps[0, s])
         for flag in result.spec.data_reuse:
             bs = np.flatnonzero(reuse == flag)
@@ -464,7 +463,7 @@ def report_slope(result, out: pathlib.Path, backend: str):
     learn = int(np.argmax(cond.inference[0])) if cond.inference[0].any() else n
     starts = phase_starts(cond.slope_deg[0, :learn]) + [learn]
     rows = ["| slope [deg] (trials) | velocity | CoT | J | c_slope [rad] | falls |", "|---|---|---|---|---|---|"]
-    for s, e in zip(starts[:-1], starts[1:]):
+    for s, e in zip(starts[:-1], starts[1:], strict=True):
         rows.append(f"| {cond.slope_deg[0, s]:g} ({s}–{e - 1}) | " + " | ".join(
             mean_ci(last_mean(x, e)) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective, tr.context[..., 1]))
             + f" | {int(tr.fell[s:e].sum())} |")
@@ -474,7 +473,7 @@ def report_slope(result, out: pathlib.Path, backend: str):
         rows = ["| slope [deg] | velocity | J | falls / trials | paper |", "|---|---|---|---|---|"]
         inf_starts = phase_starts(cond.slope_deg[0, learn:])
         bounds = [learn + s for s in inf_starts] + [n]
-        for s, e in zip(bounds[:-1], bounds[1:]):
+        for s, e in zip(bounds[:-1], bounds[1:], strict=True):
             slope = float(cond.slope_deg[0, s])
             paper = "walks" if slope <= 15.0 else "not reported as walking"
             rows.append(f"| {slope:g} | {mean_ci(tr.velocity_xy_mps[s:e, :, 0])} | {mean_ci(tr.objective[s:e])} | "
@@ -496,7 +495,7 @@ def report_hardware(result, out: pathlib.Path, backend: str):
         b0 = bs[0]
         fields = np.stack([cond.friction[b0], cond.slope_deg[b0], cond.payload_kg[b0], cond.target_velocity_mps[b0]])
         starts = [0] + [t for t in range(1, n) if np.any(fields[:, t] != fields[:, t - 1])] + [n]
-        for s, e in zip(starts[:-1], starts[1:]):
+        for s, e in zip(starts[:-1], starts[1:], strict=True):
             target = float(cond.target_velocity_mps[b0, s])
             phase = (f"μ {cond.friction[b0, s]:g}, {cond.slope_deg[b0, s]:g}°, {cond.payload_kg[b0, s]:g} kg "
                      f"({s}–{e - 1})")
@@ -613,13 +612,13 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
     with study_io.writing(out, "recording.rrd"):
         study_io.write_recording(result, out / "recording.rrd", [
             study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction,
-                                g.slope_deg, g.payload_kg) for g, log in zip(gaits, logs)])
+                                g.slope_deg, g.payload_kg) for g, log in zip(gaits, logs, strict=True)])
     with study_io.writing(out, "the best gaits, their figures and videos"):
         for gait in gaits:
             study_video.save_gait(out, gait)
         study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
         filmed = study_video.write_videos(out, gaits, logs, notify)
-        strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed)}
+        strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed, strict=True)}
         study_figures.summary(out / "summary.png", result, text, gaits, strips)
     return text
 

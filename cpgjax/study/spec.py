@@ -110,7 +110,7 @@ def instances(spec: StudySpec) -> list[dict[str, Any]]:
     """The labels of every instance of the grid, in batch order."""
     axes = (spec.controllers, spec.seeds, spec.friction, spec.slope_deg, spec.payload_kg, spec.target_velocity_mps,
             [s.label for s in spec.schedules], spec.data_reuse, spec.physics)
-    return [dict(zip(LABELS, combo)) for combo in itertools.product(*axes)]
+    return [dict(zip(LABELS, combo, strict=True)) for combo in itertools.product(*axes)]
 
 
 class Conditions(NamedTuple):

@@ -146,7 +146,7 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         if start and notify is not None:
             notify(registry.resume_notice(out / spec.name, start, spec.num_trials))
     arm_results, evaluations, wall = {}, {}, 0.0
-    for (arm, home, _), spec in zip(ARMS, arm_specs):
+    for (arm, home, _), spec in zip(ARMS, arm_specs, strict=True):
         engine = ablation.Engine(spec, backend=backend)
         result = engine.run(out / spec.name, resume=spec.name in resumed, progress=progress)
         with study_io.writing(out / spec.name, "trials.parquet, metadata.json and best_params/"):
@@ -160,7 +160,7 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
     env, fixed = Environments("paper"), len(physics_profiles.PROFILES)
     draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}" for f, p, s, lat, z in zip(
         env.friction[fixed:], env.payload_kg[fixed:], env.mass_scale[fixed:], env.latency_ticks[fixed:],
-        env.noise_scale[fixed:]))
+        env.noise_scale[fixed:], strict=True))
     n, runs = arm_specs[0].num_trials, len(arm_specs[0].seeds)
     text = (f"# transfer\n\nEach controller optimized online for {n} trials ({runs} seeds) under one physics profile "
             f"(or under randomized paper physics), then its best parameters walked — one settling trial, one measured "

@@ -12,6 +12,7 @@ gravity (docs/decisions.md §4), to one whose z is against gravity.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import pathlib
@@ -198,7 +199,7 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
     done = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
     last = (child.stderr.strip().splitlines() or [""])[-1]
     infos = []
-    for job, tmp, info in zip(jobs, tmps, done):
+    for job, tmp, info in zip(jobs, tmps, done, strict=False):  # done: the videos the child finished, a prefix
         os.replace(tmp, job.path)
         infos.append(dict(info, path=str(job.path), rollout_s=len(job.qpos) * TICK_S, backend=backend))
     for tmp in tmps[len(done):]:
@@ -214,13 +215,13 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
     """``best_<group>.mp4`` of each gait from its rollout log (``protocol.StepLog``, arrays (T, ...)), a line to
     ``notify`` for each. Where no OpenGL backend works, one line says so and no video is written; another rendering
     failure is one line too. Either way the caller's other files are left as they are."""
-    jobs = [Job(video_file(out, g.group), log.qpos, g.slope_deg) for g, log in zip(gaits, logs)]
+    jobs = [Job(video_file(out, g.group), log.qpos, g.slope_deg) for g, log in zip(gaits, logs, strict=True)]
     try:
         infos = render_videos(jobs)
     except (RenderUnavailable, RuntimeError) as err:
         notify(str(err))
         return []
-    for gait, info in zip(gaits, infos):
+    for gait, info in zip(gaits, infos, strict=True):
         notify(f"{info['path']}: {info['rollout_s']:.1f} s of {gait.controller} at friction {gait.friction:g}, slope "
                f"{gait.slope_deg:g}°, payload {gait.payload_kg:g} kg; {info['frames']} frames rendered in "
                f"{info['render_s']:.1f} s ({info['backend']})")
@@ -251,11 +252,7 @@ def _main(argv: list[str]) -> int:
             print(f"no video: MuJoCo's {backend!r} OpenGL backend (MUJOCO_GL) does not work here ({what[:120]}); "
                   f"{GL_HELP.get(backend, _OSMESA)}", file=sys.stderr)
             return _UNAVAILABLE
-
-        def everything():
-            yield first
-            yield from frames
-        count = _encode(pathlib.Path(path), everything(), fps)
+        count = _encode(pathlib.Path(path), itertools.chain([first], frames), fps)
         print(json.dumps(dict(frames=count, render_s=round(time.perf_counter() - t0, 3))), flush=True)
     return 0
 

@@ -42,7 +42,7 @@ def from_unit(unit):
 
 def as_dict(params) -> dict[str, float]:
     """One parameter vector (8,) as {name: value}."""
-    return {name: float(v) for name, v in zip(PARAM_NAMES, np.asarray(params))}
+    return {name: float(v) for name, v in zip(PARAM_NAMES, np.asarray(params), strict=True)}
 
 
 def validate(params, *, what: str = "params") -> np.ndarray:
