@@ -328,8 +328,11 @@ class Engine:
             (lambda a, t: opt.init(active_dims=a))
         self._init = jax.jit(jax.vmap(init))
         self._propose = jax.jit(jax.vmap(opt.propose_with_fallback))
-        self._observe = jax.jit(jax.vmap(opt.observe if config.safe else
-                                         lambda state, x, c, observation, margin: opt.observe(state, x, c, observation)))
+        def observe_unconstrained(state, x, c, observation, margin):
+            del margin  # only a safe optimizer learns it
+            return opt.observe(state, x, c, observation)
+
+        self._observe = jax.jit(jax.vmap(opt.observe if config.safe else observe_unconstrained))
         self._beta = jax.jit(jax.vmap(opt.beta))
         self._set_target = jax.jit(jax.vmap(opt.set_target)) if self.uses_records else None
         self._keys = jax.jit(jax.vmap(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
@@ -453,9 +456,10 @@ class Engine:
             beta = self._beta(opt_state, ctx)
             x, fell_back = self._propose(opt_state, ctx, keys)
             x, fell_back = local(x).astype(np.float64), local(fell_back)
-            if fell_back.any():
+            real = max(0, min(stop, self.batch_size) - first)  # this process's rows before the padding
+            if fell_back[:real].any():
                 log.info("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
-                         "their best safe trial (docs/decisions.md §17)", t, int(fell_back[:max(0, min(stop, self.batch_size) - first)].sum()))
+                         "their best safe trial (docs/decisions.md §17)", t, int(fell_back[:real].sum()))
             # The proposal is in the box up to float32 rounding; the simulator validates strictly.
             x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
         with _timed(timing, "simulation_s"):

@@ -100,7 +100,7 @@ def _one_matrix_per_lapack_call(fn):
     @unbatched.def_vmap
     def loop_over_batch(axis_size, in_batched, *args):
         args = tuple(arg if batched else jnp.broadcast_to(arg, (axis_size, *jnp.shape(arg)))
-                     for arg, batched in zip(args, in_batched))
+                     for arg, batched in zip(args, in_batched, strict=True))
         return jax.lax.map(lambda one: unbatched(*one), args), True
 
     return unbatched

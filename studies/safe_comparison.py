@@ -41,7 +41,7 @@ def phases(columns, instance: int) -> list[tuple[int, int]]:
     fields = np.stack([by_instance(columns, c)[:, instance] for c in CONDITIONS])
     n = fields.shape[1]
     starts = [0] + [t for t in range(1, n) if np.any(fields[:, t] != fields[:, t - 1])] + [n]
-    return list(zip(starts[:-1], starts[1:]))
+    return list(zip(starts[:-1], starts[1:], strict=True))
 
 
 def recover(j: np.ndarray, fell: np.ndarray) -> float:

@@ -35,10 +35,10 @@ from the kernel and are set to the box midpoint in every proposal.
 Safe optimization (``OptimizerConfig.safe``, docs/decisions.md §17): every observation also
 carries a safety margin :math:`g` (< 0: the trial was unsafe), and a second GP over the same
 (parameters, context) inputs, with its own hyperparameters, models it. The random phase ends at
-the first safe observation (margin ≥ 0); from then on a proposal maximizes eq. (8) over the safe set :math:`\{x : \mu_g(x, c) - \beta_s\,
-\sigma_g(x, c) \ge 0\}`, the safe set of SafeOpt (Sui et al., ICML 2015) without its Lipschitz
-constant, as in Berkenkamp et al.'s SafeOpt-MC (2016, arXiv:1602.04450, used on a quadrotor and a
-quadruped). When no point of the box is certified safe, the proposal repeats the best safe
+the first safe observation (margin ≥ 0); from then on a proposal maximizes eq. (8) over the safe
+set :math:`\{x : \mu_g(x, c) - \beta_s\, \sigma_g(x, c) \ge 0\}`, the safe set of SafeOpt (Sui et
+al., ICML 2015) without its Lipschitz constant, as in Berkenkamp et al.'s SafeOpt-MC (2016,
+arXiv:1602.04450). When no point of the box is certified safe, the proposal repeats the best safe
 observation among those in the current context (eq. 14's thresholds), else the one in the
 nearest context; with no safe observation at all, it is uniform random. :meth:`propose_with_fallback`
 says which. Context changes, inference mode and data reuse act on the objective as without
