@@ -1,0 +1,94 @@
+"""What looping the GP's LAPACK calls over the batch costs (cpgjax.gp, docs/backends.md "LAPACK calls, one matrix at a
+time"): a vmapped fit + posterior of many instances with the loop against the same program handing whole batches to
+jaxlib's LAPACK kernels, same machine, same run, unpinned (the whole batch's LAPACK work is what jaxlib would split
+over the intra-op threads).
+
+    python benchmarks/gp_batching.py [--batches 20,80] [--points 40,150] [--repeats 5]
+
+The whole-batch variant is the same module with the batching rule switched off; it can deadlock when two such
+batched programs run at once (one program at a time is timed here, which does not). The last line is a JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import jax.scipy as jsp
+import numpy as np
+
+from cpgjax import gp
+
+
+def parse_args():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batches", default="20,80")
+    parser.add_argument("--points", default="40,150")
+    parser.add_argument("--repeats", type=int, default=5)
+    return parser.parse_args()
+
+
+def program(batch: int, points: int):
+    dims = 10
+    inputs = jax.random.uniform(jax.random.PRNGKey(0), (batch, points, dims))
+    data = gp.Dataset(inputs, jnp.sin(inputs.sum(-1)), jnp.ones((batch, points), bool))
+    active = jnp.ones(dims, bool)
+
+    def one(x, y, valid):
+        dataset = gp.Dataset(x, y, valid)
+        params = gp.fit(dataset, active, gp.default_params(dims), 2)
+        return gp.posterior(params, dataset, active, 2).weights
+
+    return jax.vmap(one), data
+
+
+def seconds(batch: int, points: int, repeats: int) -> float:
+    fn, data = program(batch, points)
+    compiled = jax.jit(fn)
+    jax.block_until_ready(compiled(*data))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*data))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+@contextlib.contextmanager
+def whole_batch_lapack():
+    """The module's one-matrix-per-call wrappers swapped for the plain LAPACK calls (for timing only)."""
+    saved = gp._lower_cholesky, gp._solve_lower, gp._cholesky_solve
+    gp._lower_cholesky = lambda m: jax.lax.linalg.cholesky(m, symmetrize_input=False)
+    gp._solve_lower = lambda lower, rhs: jsp.linalg.solve_triangular(lower, rhs, lower=True)
+    gp._cholesky_solve = lambda lower, rhs: jsp.linalg.cho_solve((lower, True), rhs)
+    try:
+        yield
+    finally:
+        gp._lower_cholesky, gp._solve_lower, gp._cholesky_solve = saved
+
+
+def main() -> None:
+    args = parse_args()
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs (unpinned); "
+          f"jax {jax.__version__}")
+    figures = {}
+    for points in (int(p) for p in args.points.split(",")):
+        for batch in (int(b) for b in args.batches.split(",")):
+            looped = seconds(batch, points, args.repeats)
+            with whole_batch_lapack():
+                whole = seconds(batch, points, args.repeats)
+            figures[f"{batch} x {points} points"] = {"looped_s": looped, "whole_batch_s": whole,
+                                                     "ratio": looped / whole}
+            print(f"{batch} instances, {points} points: looped {looped * 1e3:.1f} ms, whole batch "
+                  f"{whole * 1e3:.1f} ms, ratio {looped / whole:.2f}")
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
