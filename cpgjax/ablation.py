@@ -458,7 +458,7 @@ class Engine:
             x, fell_back = local(x).astype(np.float64), local(fell_back)
             real = max(0, min(stop, self.batch_size) - first)  # this process's rows before the padding
             if fell_back[:real].any():
-                log.info("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
+                log.warning("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
                          "their best safe trial (docs/decisions.md §17)", t, int(fell_back[:real].sum()))
             # The proposal is in the box up to float32 rounding; the simulator validates strictly.
             x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
