@@ -54,6 +54,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import backends
+from cpgjax.sim.base import Backend
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import Conditions, StudySpec, instances, validate
@@ -350,7 +351,7 @@ class Engine:
                                         self.physics, c.mass_scale[:, trial], c.latency_ticks[:, trial],
                                         c.noise_scale[:, trial], self.seeds)  # one noise stream per seed
 
-    def simulator(self, trial: int):
+    def simulator(self, trial: int) -> Backend:
         """The backend of this process's instances for trial ``trial``'s scenario, on this process's devices; rebuilt
         (reusing its compiled code where the backend allows) only when one of its instances' conditions change."""
         first, stop = self.placement.rows

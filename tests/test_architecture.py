@@ -24,7 +24,7 @@ LAYERS = (
     ("controller", ("cpg",)),
     ("sensors and trial", ("go1.sensors", "trial.limits", "trial.protocol", "trial.objective", "trial.tuned")),
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
-    ("simulation", ("mjx_go1", "sim.native", "sim.backends", "sim.walk")),
+    ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.backends", "sim.walk")),
     ("studies", ("study.spec", "study.stats", "study.video", "study.scene", "study.viewer", "study.files",
                  "study.figures", "ablation", "study.transfer", "study.registry", "study.launch")),
     ("robot", ("robot.protocol", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.cpu_wakeup",
