@@ -257,13 +257,6 @@ def _record_template(trial: protocol.TrialConfig) -> protocol.TrialRecord:
     return protocol.TrialRecord(**fields)
 
 
-def _where_batch(mask, a, b):
-    def one(x, y):
-        m = mask.reshape(mask.shape + (1,) * (x.ndim - 1))
-        return jnp.where(m, x, y)
-    return jax.tree.map(one, a, b)
-
-
 class _Run(NamedTuple):
     """What :meth:`Engine.run` carries from trial to trial (host-side; ``timing`` is updated in place)."""
 
@@ -383,8 +376,8 @@ class Engine:
         new_target = self.placement.put(jnp.asarray(targets[:, trial], jnp.float32))
         reused = self._set_target(opt_state, new_target)
         fresh = self._init(self.placement.put(self.active), new_target)
-        fresh = _where_batch(self.placement.put(~self.reuse), fresh, reused)
-        return _where_batch(self.placement.put(changed), fresh, opt_state)
+        fresh = protocol.where_batch(self.placement.put(~self.reuse), fresh, reused)
+        return protocol.where_batch(self.placement.put(changed), fresh, opt_state)
 
     # -- the loop -------------------------------------------------------------------------------------------
 
