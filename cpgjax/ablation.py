@@ -310,8 +310,7 @@ class Engine:
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
         self.physics = _pad(np.array([lab["physics"] for lab in self.labels]), size)
         self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
-        self.active = np.ones((size, param_space.NUM_PARAMS), bool)
-        self.active[:, param_space.SIGMA_N_INDEX] = self.gates.tegotae > 0  # docs/decisions.md §13
+        self.active = param_space.active_parameters(self.gates.tegotae > 0)
         targets = self.padded.target_velocity_mps
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
         config = self.optimizer_config = spec.optimizer_config()

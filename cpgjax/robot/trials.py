@@ -69,13 +69,11 @@ class RandomSearch:
 
     def __init__(self, seed: int = 0, tegotae: bool = True):
         self._rng = np.random.default_rng(seed)
-        self._tegotae = tegotae
+        self._active = param_space.active_parameters(tegotae)
 
     def propose(self, context: np.ndarray) -> np.ndarray:
-        x = param_space.from_unit(self._rng.uniform(size=param_space.NUM_PARAMS))
-        if not self._tegotae:
-            x[param_space.SIGMA_N_INDEX] = param_space.midpoint()[param_space.SIGMA_N_INDEX]
-        return x
+        return param_space.hold_inactive(param_space.from_unit(self._rng.uniform(size=param_space.NUM_PARAMS)),
+                                         self._active)
 
     def observe(self, params, context, record, objective) -> None:
         pass
@@ -90,8 +88,7 @@ class BayesianOptimizer:
     optimizer, learning each trial's safety margin (the tilt stop's, from the IMU; docs/decisions.md §17)."""
 
     def __init__(self, seed: int, tegotae: bool, safe: bool = False):
-        active = np.ones(param_space.NUM_PARAMS, bool)
-        active[param_space.SIGMA_N_INDEX] = tegotae
+        active = param_space.active_parameters(tegotae)
         self._key = jax.random.PRNGKey(seed)
         self._safe = safe
         self._opt = bo.make_optimizer(dataclasses.replace(CONTEXT_RANGES, safe=safe))
