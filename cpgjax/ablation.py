@@ -488,7 +488,8 @@ class Engine:
         """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
         when any is; the trial log keeps the measured values."""
         real = max(0, min(self.placement.rows[1], self.batch_size) - self.placement.rows[0])  # rows before padding
-        clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real])
+        clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real],
+                                                           objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
         if messages:
             log.warning("trial %d: %d context value(s) outside the GP's range, clipped; first: %s", trial,
                         len(messages), messages[0])

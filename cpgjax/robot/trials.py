@@ -38,7 +38,7 @@ from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import memory_lock
 from cpgjax.robot import safety as go1_safety
-from cpgjax.trial import objective, protocol, tuned
+from cpgjax.trial import objective, optimizer_setting, protocol, tuned
 from cpgjax.trial import params as param_space
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 _SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")
 # The robot's context normalization: its foot force is calibrated so that the feet carry its weight standing, the
 # signal of the go1 physics profile, whose c_load range it takes (docs/decisions.md §3, §11).
-CONTEXT_RANGES = optimizer_config.profile_config(physics_profiles.ROBOT_PROFILE)
+CONTEXT_RANGES = optimizer_setting.profile_config(physics_profiles.ROBOT_PROFILE)
 
 
 class OnlineOptimizer(Protocol):
@@ -262,7 +262,8 @@ def _evaluate(signals: np.ndarray, spec: OptimizerSpec, observe, trial: int, x: 
     record = trial_record(signals, spec.total_mass_kg, spec.dt_s)
     j = float(objective.objective(record, spec.target_velocity_mps))
     c = np.asarray(objective.context(record), np.float64)
-    c_gp, messages = optimizer_config.clip_context(CONTEXT_RANGES, c)  # docs/decisions.md §11: never silently
+    # docs/decisions.md §11: never silently
+    c_gp, messages = optimizer_config.clip_context(CONTEXT_RANGES, c, objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
     for message in messages if trial >= 0 else ():
         log.warning("trial %d: %s", trial, message)
     observe(param_space.midpoint() if x is None else x, c_gp, record, j)
