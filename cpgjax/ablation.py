@@ -448,13 +448,13 @@ class Engine:
             ctx = put_local(run.context)
             beta = self._beta(opt_state, ctx)
             x, fell_back = self._propose(opt_state, ctx, keys)
+            # In the box as they are: the optimizer rounds its bounds inward to float32 (optim.bo), so no proposal
+            # crosses the float64 box that the simulator validates.
             x, fell_back = local(x).astype(np.float64), local(fell_back)
             real = max(0, min(stop, self.batch_size) - first)  # this process's rows before the padding
             if fell_back[:real].any():
                 log.info("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
                          "their best safe trial (docs/decisions.md §17)", t, int(fell_back[:real].sum()))
-            # The proposal is in the box up to float32 rounding; the simulator validates strictly.
-            x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
         with _timed(timing, "simulation_s"):
             sim = self.simulator(t)
             sim_state = sim.reset(x) if run.sim_state is None else run.sim_state

@@ -155,7 +155,6 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
     sim, sim_state, payload = None, None, None
     for t in range(TRIALS):
         x = np.asarray(opt.propose(state, context, jax.random.fold_in(jax.random.PRNGKey(seed), t)), np.float64)
-        x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
         if t >= config.num_random_proposals:
             ours, theirs = uninterrupted.trials.params[t, b], x
             beta = float(opt.beta(state, context).beta)
