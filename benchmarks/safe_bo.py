@@ -42,8 +42,8 @@ import numpy as np  # noqa: E402
 from scipy.stats import mannwhitneyu  # noqa: E402
 
 from cpgjax.optim import black_box, bo  # noqa: E402
-from cpgjax.optim import config as optimizer_config  # noqa: E402
 from cpgjax.study import stats  # noqa: E402
+from cpgjax.trial import optimizer_setting  # noqa: E402
 
 
 def toy(unit):
@@ -53,7 +53,7 @@ def toy(unit):
 
 def iteration_seconds(safe: bool, stored: int, batch: int, repeats: int) -> float:
     """Median wall time of one vmapped observe + propose with ``stored`` points already observed."""
-    config = optimizer_config.paper_config(capacity=stored + 1, safe=safe)
+    config = optimizer_setting.paper_config(capacity=stored + 1, safe=safe)
     opt = bo.make_optimizer(config)
     lower, width = np.array(config.parameter_lower), np.array(config.parameter_upper) - np.array(config.parameter_lower)
     rng = np.random.default_rng(0)

@@ -54,6 +54,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import backends
+from cpgjax.sim.base import Backend
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import Conditions, StudySpec, instances, validate
@@ -256,13 +257,6 @@ def _record_template(trial: protocol.TrialConfig) -> protocol.TrialRecord:
     return protocol.TrialRecord(**fields)
 
 
-def _where_batch(mask, a, b):
-    def one(x, y):
-        m = mask.reshape(mask.shape + (1,) * (x.ndim - 1))
-        return jnp.where(m, x, y)
-    return jax.tree.map(one, a, b)
-
-
 class _Run(NamedTuple):
     """What :meth:`Engine.run` carries from trial to trial (host-side; ``timing`` is updated in place)."""
 
@@ -316,8 +310,7 @@ class Engine:
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
         self.physics = _pad(np.array([lab["physics"] for lab in self.labels]), size)
         self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
-        self.active = np.ones((size, param_space.NUM_PARAMS), bool)
-        self.active[:, param_space.SIGMA_N_INDEX] = self.gates.tegotae > 0  # docs/decisions.md §13
+        self.active = param_space.active_parameters(self.gates.tegotae > 0)
         targets = self.padded.target_velocity_mps
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
         config = self.optimizer_config = spec.optimizer_config()
@@ -350,7 +343,7 @@ class Engine:
                                         self.physics, c.mass_scale[:, trial], c.latency_ticks[:, trial],
                                         c.noise_scale[:, trial], self.seeds)  # one noise stream per seed
 
-    def simulator(self, trial: int):
+    def simulator(self, trial: int) -> Backend:
         """The backend of this process's instances for trial ``trial``'s scenario, on this process's devices; rebuilt
         (reusing its compiled code where the backend allows) only when one of its instances' conditions change."""
         first, stop = self.placement.rows
@@ -382,8 +375,8 @@ class Engine:
         new_target = self.placement.put(jnp.asarray(targets[:, trial], jnp.float32))
         reused = self._set_target(opt_state, new_target)
         fresh = self._init(self.placement.put(self.active), new_target)
-        fresh = _where_batch(self.placement.put(~self.reuse), fresh, reused)
-        return _where_batch(self.placement.put(changed), fresh, opt_state)
+        fresh = protocol.where_batch(self.placement.put(~self.reuse), fresh, reused)
+        return protocol.where_batch(self.placement.put(changed), fresh, opt_state)
 
     # -- the loop -------------------------------------------------------------------------------------------
 
@@ -455,13 +448,13 @@ class Engine:
             ctx = put_local(run.context)
             beta = self._beta(opt_state, ctx)
             x, fell_back = self._propose(opt_state, ctx, keys)
+            # In the box as they are: the optimizer rounds its bounds inward to float32 (optim.bo), so no proposal
+            # crosses the float64 box that the simulator validates.
             x, fell_back = local(x).astype(np.float64), local(fell_back)
             real = max(0, min(stop, self.batch_size) - first)  # this process's rows before the padding
             if fell_back[:real].any():
                 log.warning("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
                          "their best safe trial (docs/decisions.md §17)", t, int(fell_back[:real].sum()))
-            # The proposal is in the box up to float32 rounding; the simulator validates strictly.
-            x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
         with _timed(timing, "simulation_s"):
             sim = self.simulator(t)
             sim_state = sim.reset(x) if run.sim_state is None else run.sim_state
@@ -495,7 +488,8 @@ class Engine:
         """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
         when any is; the trial log keeps the measured values."""
         real = max(0, min(self.placement.rows[1], self.batch_size) - self.placement.rows[0])  # rows before padding
-        clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real])
+        clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real],
+                                                           objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
         if messages:
             log.warning("trial %d: %d context value(s) outside the GP's range, clipped; first: %s", trial,
                         len(messages), messages[0])

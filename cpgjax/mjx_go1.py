@@ -30,6 +30,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics, sensors
+from cpgjax.sim.base import Backend
 from cpgjax.trial import protocol
 
 
@@ -228,8 +229,8 @@ def per_shard(fn, in_axes, mesh: Mesh):
                          check_vma=False)
 
 
-class MJXBackend:
-    """A batch of simulated Go1s in MJX behind the trial interface shared by every backend.
+class MJXBackend(Backend):
+    """A batch of simulated Go1s in MJX behind the interface of every backend (``cpgjax.sim.base.Backend``).
 
     >>> sim = MJXBackend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))
     >>> state = sim.reset(params)                         # params (3, 8), physical units

@@ -5,6 +5,7 @@ import pytest
 
 from cpgjax import mjx_go1
 from cpgjax.go1 import model as go1_model
+from cpgjax.sim import native as native_go1
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -17,7 +18,14 @@ SCENARIOS = dict(friction=[0.6, 0.6, 0.6, 0.1, 0.9, 0.6], slope_deg=[0, 0, 6, 0,
 
 @pytest.fixture(scope="session")
 def short_sim():
+    """The session batch on the MJX backend."""
     return mjx_go1.MJXBackend(go1_model.make_scenarios(**SCENARIOS), trial_config=SHORT_TRIAL)
+
+
+@pytest.fixture(scope="session")
+def native_sim():
+    """The session batch on the native backend (C MuJoCo)."""
+    return native_go1.NativeBackend(go1_model.make_scenarios(**SCENARIOS), trial_config=SHORT_TRIAL)
 
 
 @pytest.fixture(scope="session")

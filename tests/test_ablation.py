@@ -19,12 +19,11 @@ import pytest
 
 from cpgjax import ablation, gp
 from cpgjax.optim import acquisition, bo
-from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import native as native_go1
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import Change, Schedule, StudyError, StudySpec
-from cpgjax.trial import objective, protocol
+from cpgjax.trial import objective, optimizer_setting, protocol
 from cpgjax.trial import params as param_space
 
 TRIAL = protocol.TrialConfig(transition_steps=100, steady_steps=200)
@@ -34,9 +33,9 @@ TRIALS = 5
 def small_optimizer(capacity=TRIALS):
     # The soft physics profile's context ranges (docs/decisions.md §11), which these studies simulate.
     ranges = StudySpec("ranges").optimizer_config()
-    return optimizer_config.paper_config(capacity=capacity, fit=gp.FitConfig(num_steps=8),
-                                         context_lower=ranges.context_lower, context_upper=ranges.context_upper,
-                                         acquisition=acquisition.AcquisitionConfig(num_candidates=32, num_restarts=2,
+    return optimizer_setting.paper_config(capacity=capacity, fit=gp.FitConfig(num_steps=8),
+                                          context_lower=ranges.context_lower, context_upper=ranges.context_upper,
+                                          acquisition=acquisition.AcquisitionConfig(num_candidates=32, num_restarts=2,
                                                                                    num_steps=5))
 
 
@@ -54,16 +53,15 @@ from cpgjax import ablation
 from cpgjax.optim import acquisition
 from cpgjax.optim import bo
 from cpgjax import gp
-from cpgjax.optim import config as optimizer_config
 from cpgjax.study import spec as study_spec
-from cpgjax.trial import protocol
+from cpgjax.trial import optimizer_setting, protocol
 spec = study_spec.StudySpec(
     name="tiny", num_trials=5, controllers=("open_loop", "vmc_tegotae"), seeds=(0, 1),
     trial=protocol.TrialConfig(transition_steps=100, steady_steps=200),
-    optimizer=optimizer_config.paper_config(capacity=5, fit=gp.FitConfig(num_steps=8),
-                                            context_lower=study_spec.StudySpec("ranges").optimizer_config().context_lower,
-                                            context_upper=study_spec.StudySpec("ranges").optimizer_config().context_upper,
-                                            acquisition=acquisition.AcquisitionConfig(
+    optimizer=optimizer_setting.paper_config(capacity=5, fit=gp.FitConfig(num_steps=8),
+                                             context_lower=study_spec.StudySpec("ranges").optimizer_config().context_lower,
+                                             context_upper=study_spec.StudySpec("ranges").optimizer_config().context_upper,
+                                             acquisition=acquisition.AcquisitionConfig(
                                                 num_candidates=32, num_restarts=2, num_steps=5)),
     schedules=(study_spec.Schedule("load", (study_spec.Change(3, "payload_kg", 7.5),)),))
 """
@@ -157,7 +155,6 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
     sim, sim_state, payload = None, None, None
     for t in range(TRIALS):
         x = np.asarray(opt.propose(state, context, jax.random.fold_in(jax.random.PRNGKey(seed), t)), np.float64)
-        x = np.clip(x, param_space.PARAM_LOWER, param_space.PARAM_UPPER)
         if t >= config.num_random_proposals:
             ours, theirs = uninterrupted.trials.params[t, b], x
             beta = float(opt.beta(state, context).beta)

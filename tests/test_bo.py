@@ -13,8 +13,9 @@ from cpgjax import gp
 from cpgjax.optim import black_box, bo, exploration
 from cpgjax.optim import config as optimizer_config
 from cpgjax.optim.acquisition import AcquisitionConfig
+from cpgjax.trial import optimizer_setting
 
-SMALL = optimizer_config.paper_config(capacity=12, fit=gp.FitConfig(30, 0.2),
+SMALL = optimizer_setting.paper_config(capacity=12, fit=gp.FitConfig(30, 0.2),
                         acquisition=AcquisitionConfig(128, 4, 15, 0.05))
 LOWER, UPPER = np.array(SMALL.parameter_lower), np.array(SMALL.parameter_upper)
 MIDPOINT = 0.5 * (LOWER + UPPER)
@@ -239,7 +240,7 @@ def test_bad_calls_fail_with_clear_errors(opt):
     with pytest.raises(ValueError, match="context_thresholds"):
         optimizer_config.OptimizerConfig((0.0,), (1.0,), (0.0,), (1.0,))
     with pytest.raises(ValueError, match="ucb_form"):
-        optimizer_config.paper_config(ucb_form="sqrt")
+        optimizer_setting.paper_config(ucb_form="sqrt")
     # An inactive parameter may hold any finite value.
     seven = opt.init(active_dims=jnp.arange(8) < 7)
     _, accepted = opt.observe(seven, x.at[7].set(-5.0), NOMINAL, 1.0)

@@ -221,3 +221,15 @@ def test_parameter_space_round_trip_and_validation():
         param_space.validate(np.zeros(7))
     with pytest.raises(ValueError, match="unknown controller"):
         cpg.controller_gates("pid")
+
+
+def test_sigma_n_is_the_one_inactive_parameter_without_tegotae():
+    """docs/decisions.md §13: without Tegotae σ_N is inactive, held at the box midpoint."""
+    active = param_space.active_parameters([True, False])
+    assert active.shape == (2, param_space.NUM_PARAMS) and active[0].all()
+    assert [param_space.PARAM_NAMES[i] for i in np.flatnonzero(~active[1])] == ["sigma_n"]
+    p = random_params(2)
+    held = param_space.hold_inactive(p, active)
+    np.testing.assert_array_equal(held[0], p[0])
+    np.testing.assert_array_equal(held[1], np.where(active[1], p[1], param_space.midpoint()))
+    assert held[1, param_space.SIGMA_N_INDEX] == param_space.midpoint()[param_space.SIGMA_N_INDEX]

@@ -15,11 +15,10 @@ import pytest
 from cpgjax import ablation, cpg, gp
 from cpgjax.go1 import model as go1_model
 from cpgjax.optim import acquisition
-from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import native as native_go1
 from cpgjax.study import files as study_io
 from cpgjax.study.spec import Change, Schedule, StudySpec
-from cpgjax.trial import protocol
+from cpgjax.trial import optimizer_setting, protocol
 
 TRIAL = protocol.TrialConfig(transition_steps=60, steady_steps=120)
 TRIALS = 4
@@ -27,9 +26,9 @@ TRIALS = 4
 
 def _optimizer():
     ranges = StudySpec("ranges", physics=("paper",)).optimizer_config()
-    return optimizer_config.paper_config(capacity=TRIALS, fit=gp.FitConfig(num_steps=4),
-                                         context_lower=ranges.context_lower, context_upper=ranges.context_upper,
-                                         acquisition=acquisition.AcquisitionConfig(num_candidates=16, num_restarts=1,
+    return optimizer_setting.paper_config(capacity=TRIALS, fit=gp.FitConfig(num_steps=4),
+                                          context_lower=ranges.context_lower, context_upper=ranges.context_upper,
+                                          acquisition=acquisition.AcquisitionConfig(num_candidates=16, num_restarts=1,
                                                                                    num_steps=3))
 
 

@@ -17,7 +17,7 @@ from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import native as native_go1
 from cpgjax.study import spec as study_spec
 from cpgjax.study import transfer
-from cpgjax.trial import params, protocol
+from cpgjax.trial import objective, optimizer_setting, params, protocol
 
 IDS = go1_model.indices()
 
@@ -234,7 +234,8 @@ def test_context_ranges_follow_the_profile_and_clipping_is_reported():
     assert study_spec.StudySpec("t").optimizer_config().context_upper == (75.0, 0.1)  # soft: the widened range
     with pytest.raises(study_spec.StudyError, match="normalize c_load over different ranges"):
         study_spec.validate(study_spec.StudySpec("t", physics=("soft", "paper")))
-    clipped, messages = optimizer_config.clip_context(paper, np.array([[60.0, -0.1], [30.0, 0.2], [40.0, 0.0]]))
+    clipped, messages = optimizer_config.clip_context(paper, np.array([[60.0, -0.1], [30.0, 0.2], [40.0, 0.0]]),
+                                                      objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
     np.testing.assert_array_equal(clipped, [[55.0, -0.1], [30.0, 0.1], [40.0, 0.0]])
     assert messages == ["instance 0: c_load = 60 N outside [15, 55], clipped for the GP",
                         "instance 1: c_slope = 0.2 rad outside [-0.4, 0.1], clipped for the GP"]
@@ -249,7 +250,7 @@ def test_domain_randomization_draws_each_trials_physics_and_the_engine_simulates
     np.testing.assert_array_equal(study_spec.randomized(ranges, 3, 50)["mass_scale"][:2], draws["mass_scale"])
     spec = study_spec.StudySpec("dr", num_trials=3, controllers=("open_loop",), randomize=ranges,
                                 trial=protocol.TrialConfig(transition_steps=20, steady_steps=60),
-                                optimizer=optimizer_config.paper_config(capacity=3))
+                                optimizer=optimizer_setting.paper_config(capacity=3))
     result = ablation.Engine(spec, backend="native").run()
     cond = result.conditions
     urdf_mass_kg = 12.74  # docs/go1-model.md: the model's total mass

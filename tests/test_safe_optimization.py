@@ -12,7 +12,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax.optim import black_box, bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.optim.acquisition import AcquisitionConfig
-from cpgjax.trial import protocol
+from cpgjax.trial import optimizer_setting, protocol
 from tests.numpy_reference import RefGP
 
 TRIAL = protocol.TrialConfig()
@@ -149,8 +149,8 @@ def test_no_certified_point_repeats_the_best_safe_observation(observed):
 
 
 def test_fallback_prefers_the_current_context_then_the_nearest():
-    config = optimizer_config.paper_config(capacity=8, safe=True, safe_beta=1e4, fit=gp.FitConfig(5, 0.1),
-                                           acquisition=AcquisitionConfig(64, 2, 5, 0.05))
+    config = optimizer_setting.paper_config(capacity=8, safe=True, safe_beta=1e4, fit=gp.FitConfig(5, 0.1),
+                                            acquisition=AcquisitionConfig(64, 2, 5, 0.05))
     opt = bo.make_optimizer(config)
     mid = 0.5 * (np.array(config.parameter_lower) + np.array(config.parameter_upper))
     width = np.array(config.parameter_upper) - np.array(config.parameter_lower)

@@ -3,7 +3,7 @@ r"""The sequential contextual-BO optimizer of Algorithm 1, as pure functions ove
 :func:`make_optimizer` returns a :class:`ContextualBO`, a NamedTuple of pure functions in the
 style of optax's ``init``/``update`` pairs::
 
-    opt = make_optimizer(paper_config(), objective_fn, record_template)
+    opt = make_optimizer(config, objective_fn, record_template)   # e.g. trial.optimizer_setting.paper_config()
     state = opt.init(target_velocity=jnp.array([0.5, 0.0]))
     x = opt.propose(state, context, key)              # physical units, shape (8,)
     state, accepted = opt.observe(state, x, context, record)

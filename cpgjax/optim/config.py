@@ -1,31 +1,23 @@
-"""Static structure of the contextual-BO optimizer (:class:`OptimizerConfig`) and the paper's
-setting (:func:`paper_config`).
+"""Static structure of the contextual-BO optimizer (:class:`OptimizerConfig`), and the clipping of
+measured contexts to its ranges (:func:`clip_context`).
 
 A configuration fixes everything that shapes the compiled program: the parameter box and the
 context normalization ranges (physical units), the context-sharing thresholds of eq. (14), the
 dataset capacity, the length of the random phase, the UCB form (docs/decisions.md §2) and the
 static settings of the GP fit and of the acquisition maximizer. Changing it recompiles; per-
 instance data (β schedules, active inputs, targets) live in the optimizer state instead
-(:mod:`cpgjax.optim.bo`).
+(:mod:`cpgjax.optim.bo`). The optimizer knows nothing of the robot: its parameters and contexts
+are whatever the boxes say. The paper's setting for the Go1 is
+``cpgjax.trial.optimizer_setting.paper_config``.
 """
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 
 from cpgjax import gp
-from cpgjax.go1 import physics as physics_profiles
 from cpgjax.optim.acquisition import UCB_FORMS, AcquisitionConfig
-from cpgjax.trial import params as param_space
-
-PAPER_CONTEXT_LOWER = (15.0, -0.4)
-PAPER_CONTEXT_UPPER = (55.0, 0.1)
-"""The paper's ranges of c = [c_load (N), c_slope (rad)]: r_load = 40 N, r_slope = 0.5 rad (docs/decisions.md §11).
-A physics profile whose foot-force signal reads otherwise carries its own c_load range
-(``cpgjax.go1.physics.PhysicsProfile.context_load_range_n``)."""
-
-PAPER_CONTEXT_THRESHOLDS = (0.2, 0.1)
-"""t_load, t_slope of eq. (14), as fractions of the range widths."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,37 +96,21 @@ def _check_box(name, lower, upper):
                              f" [{lo}, {hi}]")
 
 
-def clip_context(config: OptimizerConfig, context: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def clip_context(config: OptimizerConfig, context: np.ndarray, names: Sequence[str],
+                 units: Sequence[str]) -> tuple[np.ndarray, list[str]]:
     """Contexts (..., C) clipped to the normalization ranges for the GP input, and one message per clipped value
-    (docs/decisions.md §11: never silently). The caller logs the messages; the unclipped values stay in the record."""
+    naming the instance (the leading index), the component (``names``, ``units``: one per component) and the range
+    (docs/decisions.md §11: never silently). The caller logs the messages; the unclipped values stay in the record.
+
+    Raises:
+      ValueError: ``names`` or ``units`` do not have one entry per context component.
+    """
+    if len(names) != config.num_contexts or len(units) != config.num_contexts:
+        raise ValueError(f"{len(names)} names and {len(units)} units for {config.num_contexts} context components")
     context = np.asarray(context)
     lower, upper = np.asarray(config.context_lower), np.asarray(config.context_upper)
     clipped = np.clip(context, lower, upper)
-    names, units = ("c_load", "c_slope"), ("N", "rad")
     messages = [f"instance {idx[0] if len(idx) > 1 else 0}: {names[idx[-1]]} = {context[idx]:.4g} "
                 f"{units[idx[-1]]} outside [{lower[idx[-1]]:g}, {upper[idx[-1]]:g}], clipped for the GP"
-                for idx in zip(*np.nonzero(clipped != context), strict=True)] if len(lower) == 2 else []
+                for idx in zip(*np.nonzero(clipped != context), strict=True)]
     return clipped.astype(context.dtype), messages
-
-
-def profile_config(physics: str, **overrides) -> OptimizerConfig:
-    """:func:`paper_config` with the c_load normalization range of a physics profile's foot-force signal
-    (docs/decisions.md §11)."""
-    load_lower, load_upper = physics_profiles.get(physics).context_load_range_n
-    return paper_config(**{"context_lower": (load_lower, PAPER_CONTEXT_LOWER[1]),
-                           "context_upper": (load_upper, PAPER_CONTEXT_UPPER[1]), **overrides})
-
-
-def paper_config(**overrides) -> OptimizerConfig:
-    """The paper's setting: the Table I box of :mod:`cpgjax.trial.params` (physical units, order
-    [g_c, g_p, ω_swing, ω_stance, μ, x_off_front, x_off_hind, σ_N]), the context ranges of
-    docs/decisions.md §11 and the thresholds of eq. (14)."""
-    settings = dict(
-        parameter_lower=tuple(float(v) for v in param_space.PARAM_LOWER),
-        parameter_upper=tuple(float(v) for v in param_space.PARAM_UPPER),
-        context_lower=PAPER_CONTEXT_LOWER,
-        context_upper=PAPER_CONTEXT_UPPER,
-        context_thresholds=PAPER_CONTEXT_THRESHOLDS,
-    )
-    settings.update(overrides)
-    return OptimizerConfig(**settings)

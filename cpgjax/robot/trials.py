@@ -38,7 +38,7 @@ from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import memory_lock
 from cpgjax.robot import safety as go1_safety
-from cpgjax.trial import objective, protocol, tuned
+from cpgjax.trial import objective, optimizer_setting, protocol, tuned
 from cpgjax.trial import params as param_space
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 _SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")
 # The robot's context normalization: its foot force is calibrated so that the feet carry its weight standing, the
 # signal of the go1 physics profile, whose c_load range it takes (docs/decisions.md §3, §11).
-CONTEXT_RANGES = optimizer_config.profile_config(physics_profiles.ROBOT_PROFILE)
+CONTEXT_RANGES = optimizer_setting.profile_config(physics_profiles.ROBOT_PROFILE)
 
 
 class OnlineOptimizer(Protocol):
@@ -69,13 +69,11 @@ class RandomSearch:
 
     def __init__(self, seed: int = 0, tegotae: bool = True):
         self._rng = np.random.default_rng(seed)
-        self._tegotae = tegotae
+        self._active = param_space.active_parameters(tegotae)
 
     def propose(self, context: np.ndarray) -> np.ndarray:
-        x = param_space.from_unit(self._rng.uniform(size=param_space.NUM_PARAMS))
-        if not self._tegotae:
-            x[param_space.SIGMA_N_INDEX] = param_space.midpoint()[param_space.SIGMA_N_INDEX]
-        return x
+        return param_space.hold_inactive(param_space.from_unit(self._rng.uniform(size=param_space.NUM_PARAMS)),
+                                         self._active)
 
     def observe(self, params, context, record, objective) -> None:
         pass
@@ -90,8 +88,7 @@ class BayesianOptimizer:
     optimizer, learning each trial's safety margin (the tilt stop's, from the IMU; docs/decisions.md §17)."""
 
     def __init__(self, seed: int, tegotae: bool, safe: bool = False):
-        active = np.ones(param_space.NUM_PARAMS, bool)
-        active[param_space.SIGMA_N_INDEX] = tegotae
+        active = param_space.active_parameters(tegotae)
         self._key = jax.random.PRNGKey(seed)
         self._safe = safe
         self._opt = bo.make_optimizer(dataclasses.replace(CONTEXT_RANGES, safe=safe))
@@ -265,7 +262,8 @@ def _evaluate(signals: np.ndarray, spec: OptimizerSpec, observe, trial: int, x: 
     record = trial_record(signals, spec.total_mass_kg, spec.dt_s)
     j = float(objective.objective(record, spec.target_velocity_mps))
     c = np.asarray(objective.context(record), np.float64)
-    c_gp, messages = optimizer_config.clip_context(CONTEXT_RANGES, c)  # docs/decisions.md §11: never silently
+    # docs/decisions.md §11: never silently
+    c_gp, messages = optimizer_config.clip_context(CONTEXT_RANGES, c, objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
     for message in messages if trial >= 0 else ():
         log.warning("trial %d: %s", trial, message)
     observe(param_space.midpoint() if x is None else x, c_gp, record, j)

@@ -1,7 +1,8 @@
 """Choosing the physics backend: MJX on accelerators, C MuJoCo (native) on CPU-only machines.
 
-Both backends run the same trial with the same jitted controller and sensor model and return the same
-``protocol.TrialRecord`` (see docs/backends.md for speeds and the differences between the two physics engines).
+Both backends are a ``cpgjax.sim.base.Backend``: they run the same trial with the same jitted controller and sensor
+model and return the same ``protocol.TrialRecord`` (see docs/backends.md for speeds and the differences between the
+two physics engines).
 
 >>> sim = make_backend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))   # "auto"
 >>> sim.name                                                                  # "native" on a laptop
@@ -16,6 +17,7 @@ import jax
 from cpgjax import cpg, mjx_go1
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native as native_go1
+from cpgjax.sim.base import Backend
 from cpgjax.trial import protocol
 
 BACKENDS = ("auto", "mjx", "native")
@@ -62,7 +64,7 @@ def check_mjx_layout(instances_per_device: int, devices) -> None:
 
 
 def make_backend(scenario: go1_model.Scenario, backend: str = "auto", cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, devices=None):
+                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, devices=None) -> Backend:
     """A batch simulator (``MJXBackend`` or ``NativeBackend``) for ``scenario``; its ``.name`` says which one.
     ``devices``: what MJX shards the batch over (default: all of this process's that divide it: a simulator never
     spans processes); the native backend's physics runs on host threads and ignores it."""

@@ -43,6 +43,7 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import sensors
+from cpgjax.sim.base import Backend
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -382,8 +383,9 @@ def _summarize(trial_config: protocol.TrialConfig, dt_s: float, unravel_row: Cal
 
 # ----------------------------------------------------------------------------------------------- batch interface
 
-class NativeBackend:
-    """A batch of simulated Go1s in C MuJoCo behind the trial interface shared by every backend (CPU-fast).
+class NativeBackend(Backend):
+    """A batch of simulated Go1s in C MuJoCo behind the interface of every backend (``cpgjax.sim.base.Backend``;
+    fast on CPUs).
 
     >>> sim = NativeBackend(go1_model.make_scenarios(friction=[0.3, 0.6, 0.9]))
     >>> state = sim.reset(params)                               # params (3, 8), physical units

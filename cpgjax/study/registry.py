@@ -75,27 +75,28 @@ def _scaled(trial: int, paper_total: int, total: int) -> int:
     return int(round(trial * total / paper_total))
 
 
-def _seeds(seeds: int | None, quick: bool) -> tuple[int, ...]:
-    return tuple(range(seeds if seeds is not None else (QUICK_SEEDS if quick else DEFAULT_SEEDS)))
+def seed_range(seeds: int | None, quick: bool, default: int = DEFAULT_SEEDS) -> tuple[int, ...]:
+    """The seeds 0 … n − 1 of a study: n = ``seeds`` if given, else ``QUICK_SEEDS`` with ``quick``, else ``default``."""
+    return tuple(range(seeds if seeds is not None else (QUICK_SEEDS if quick else default)))
 
 
 # ----------------------------------------------------------------------------------------------- specs
 
 def ablation_spec(seeds=None, trials=None, quick=False) -> StudySpec:
     return StudySpec("controller_ablation", num_trials=trials or (12 if quick else 40), controllers=cpg.CONTROLLERS,
-                     seeds=_seeds(seeds, quick), target_velocity_mps=(0.5,), physics=PHYSICS)
+                     seeds=seed_range(seeds, quick), target_velocity_mps=(0.5,), physics=PHYSICS)
 
 
 def load_spec(seeds=None, trials=None, quick=False) -> StudySpec:
     n = trials or (24 if quick else 80)
     schedule = Schedule("0→7.5→15 kg", (Change(_scaled(36, 80, n), "payload_kg", 7.5),
                                          Change(_scaled(58, 80, n), "payload_kg", 15.0)))
-    return StudySpec("load_adaptation", num_trials=n, seeds=_seeds(seeds, quick), schedules=(schedule,),
+    return StudySpec("load_adaptation", num_trials=n, seeds=seed_range(seeds, quick), schedules=(schedule,),
                      group_by=("schedule",), physics=PHYSICS)
 
 
 def friction_spec(seeds=None, trials=None, quick=False) -> StudySpec:
-    return StudySpec("friction", num_trials=trials or (12 if quick else 40), seeds=_seeds(seeds, quick),
+    return StudySpec("friction", num_trials=trials or (12 if quick else 40), seeds=seed_range(seeds, quick),
                      friction=(0.3, 0.6, 0.9), group_by=("friction",), physics=PHYSICS)
 
 
@@ -103,7 +104,7 @@ def multi_velocity_spec(seeds=None, trials=None, quick=False) -> StudySpec:
     n = trials or (42 if quick else 140)
     schedule = Schedule("0.8→0.3→0.6 m/s", (Change(_scaled(40, 140, n), "target_velocity_mps", 0.3),
                                              Change(_scaled(90, 140, n), "target_velocity_mps", 0.6)))
-    return StudySpec("multi_velocity", num_trials=n, seeds=_seeds(seeds, quick), target_velocity_mps=(0.8,),
+    return StudySpec("multi_velocity", num_trials=n, seeds=seed_range(seeds, quick), target_velocity_mps=(0.8,),
                      schedules=(schedule,), data_reuse=(True, False), group_by=("data_reuse",), physics=PHYSICS)
 
 
@@ -117,7 +118,7 @@ def slope_spec(seeds=None, trials=None, quick=False) -> StudySpec:
     changes = [Change(_scaled(40, 80, learn), "slope_deg", 10.0), Change(_scaled(60, 80, learn), "slope_deg", 12.5),
                Change(learn, "inference", 1.0)]
     changes += [Change(learn + k * per_slope, "slope_deg", s) for k, s in enumerate(INFERENCE_SLOPES_DEG)]
-    return StudySpec("slope_adaptation", num_trials=n, seeds=_seeds(seeds, quick),
+    return StudySpec("slope_adaptation", num_trials=n, seeds=seed_range(seeds, quick),
                      schedules=(Schedule("0→10→12.5° + inference 10…17.5°", tuple(changes)),), group_by=("schedule",),
                      physics=PHYSICS)
 
@@ -149,7 +150,7 @@ def hardware_spec(seeds=None, trials=None, quick=False) -> StudySpec:
         Schedule("flat → 10°", (Change(half, "slope_deg", 10.0),)),
         Schedule("0→5→10→15 kg", tuple(loads)),
     )
-    return StudySpec("paper_hardware", num_trials=n, seeds=_seeds(seeds, quick),
+    return StudySpec("paper_hardware", num_trials=n, seeds=seed_range(seeds, quick),
                      target_velocity_mps=(HARDWARE_TARGET_MPS,), schedules=schedules, group_by=("schedule",),
                      physics=(physics_profiles.ROBOT_PROFILE,))
 

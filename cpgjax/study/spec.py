@@ -18,7 +18,7 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.optim import config as optimizer_config
-from cpgjax.trial import limits, protocol
+from cpgjax.trial import limits, optimizer_setting, protocol
 from cpgjax.trial import params as param_space
 
 CONDITION_FIELDS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
@@ -70,8 +70,8 @@ class StudySpec:
       group_by: instance labels whose combinations form the groups of the progress display and the summaries.
       randomize: domain randomization of every trial's physics (None: the grid's fixed values).
       trial: trial timing (static).
-      optimizer: the optimizer's static structure; ``None`` = :func:`optimizer_config.paper_config` with capacity
-        ``num_trials``.
+      optimizer: the optimizer's static structure; ``None`` = :func:`optimizer_setting.profile_config` of the first
+        physics profile with capacity ``num_trials``.
       safe: safe optimization (docs/decisions.md §17): each instance's optimizer also models the trials' safety
         margins and proposes only where they are certified ≥ 0 (``OptimizerConfig.safe``).
     """
@@ -98,7 +98,7 @@ class StudySpec:
         profiles' foot-force signal (docs/decisions.md §11; :func:`validate` checks the profiles agree); safe with
         ``safe``."""
         config = (self.optimizer if self.optimizer is not None
-                  else optimizer_config.profile_config(self.physics[0], capacity=self.num_trials))
+                  else optimizer_setting.profile_config(self.physics[0], capacity=self.num_trials))
         return dataclasses.replace(config, safe=True) if self.safe and not config.safe else config
 
 

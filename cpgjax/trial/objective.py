@@ -50,6 +50,10 @@ def mean_velocity(record: TrialRecord) -> jax.Array:
     return jnp.mean(record.velocity_xy_mps, axis=-2)
 
 
+CONTEXT_NAMES = ("c_load", "c_slope")  # the components of context(), in order
+CONTEXT_UNITS = ("N", "rad")
+
+
 def context(record: TrialRecord) -> jax.Array:
-    """The context c = [c_load [N], c_slope [rad]] of eq. (11)."""
+    """The context c = [c_load [N], c_slope [rad]] of eq. (11) (``CONTEXT_NAMES``, ``CONTEXT_UNITS``)."""
     return jnp.stack([record.c_load_n, record.c_slope_rad], axis=-1)

@@ -30,6 +30,21 @@ def midpoint() -> np.ndarray:
     return 0.5 * (PARAM_LOWER + PARAM_UPPER)
 
 
+def active_parameters(tegotae) -> np.ndarray:
+    """Which parameters the optimizer searches, (..., 8) bool, for controllers with (True) or without (False)
+    Tegotae (``tegotae``: a bool or an array of them): without it σ_N, the Tegotae gain, has no effect and is an
+    inactive input, held at the box midpoint (docs/decisions.md §13)."""
+    tegotae = np.asarray(tegotae, bool)
+    active = np.ones(tegotae.shape + (NUM_PARAMS,), bool)
+    active[..., SIGMA_N_INDEX] = tegotae
+    return active
+
+
+def hold_inactive(params, active) -> np.ndarray:
+    """Parameters (..., 8) with the inactive ones (``active`` False, :func:`active_parameters`) at the box midpoint."""
+    return np.where(active, params, midpoint())
+
+
 def to_unit(params):
     """Physical parameters (..., 8) -> unit box [0, 1]^8. Works on NumPy and JAX arrays."""
     return (params - PARAM_LOWER) / (PARAM_UPPER - PARAM_LOWER)
