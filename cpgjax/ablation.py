@@ -454,7 +454,8 @@ class Engine:
             real = max(0, min(stop, self.batch_size) - first)  # this process's rows before the padding
             if fell_back[:real].any():
                 log.warning("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
-                         "their best safe trial (docs/decisions.md §17)", t, int(fell_back[:real].sum()))
+                            "the safe trial with the highest expected margin there (docs/decisions.md §17)", t,
+                            int(fell_back[:real].sum()))
         with _timed(timing, "simulation_s"):
             sim = self.simulator(t)
             sim_state = sim.reset(x) if run.sim_state is None else run.sim_state

@@ -138,37 +138,39 @@ def test_safe_proposal_maximizes_the_ucb_over_the_reference_safe_set(safe_opt, o
     assert ucb_x[0] > np.max(np.where(lcb >= 0.0, ucb, -np.inf)[np.linalg.norm(grid - 0.3, axis=1) < 0.15])
 
 
-def test_no_certified_point_repeats_the_best_safe_observation(observed):
+def test_no_certified_point_repeats_the_safe_observation_rated_safest(observed):
+    """β_s = 1e4 certifies nothing: the proposal is the safe observation with the highest expected margin by the
+    dense reference GP."""
     state, points = observed
     cautious = bo.make_optimizer(optimizer_config.OptimizerConfig(**{**SAFE.__dict__, "safe_beta": 1e4}))
     x, fell_back = cautious.propose_with_fallback(state, NO_CONTEXT, jax.random.PRNGKey(0))
     values = np.array([toy(u) for u in points])
-    best_safe = np.argmax(np.where(values[:, 1] >= 0, values[:, 0], -np.inf))
+    margin_gp = RefGP(state.margin_gp_params, points, values[:, 1], np.ones(2, bool), 0, gp.JITTER_RATIO)
+    mean, _ = margin_gp.predict(points)
     assert bool(fell_back)
-    np.testing.assert_allclose(np.asarray(x), points[best_safe], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(x), points[np.argmax(np.where(values[:, 1] >= 0, mean, -np.inf))], atol=1e-6)
 
 
-def test_fallback_prefers_the_current_context_then_the_nearest():
-    config = optimizer_setting.paper_config(capacity=8, safe=True, safe_beta=1e4, fit=gp.FitConfig(5, 0.1),
-                                            acquisition=AcquisitionConfig(64, 2, 5, 0.05))
+def test_fallback_does_not_repeat_parameters_that_fell_in_this_context():
+    """One context dimension: two gaits safe at c = 0.1; the better one (a) fell at c = 0.9. At c = 0.9 nothing is
+    certified, and the fallback walks b, the safe gait with the higher expected margin there, not a again."""
+    config = optimizer_config.OptimizerConfig(
+        parameter_lower=(0.0, 0.0), parameter_upper=(1.0, 1.0), context_lower=(0.0,), context_upper=(1.0,),
+        context_thresholds=(0.1,), capacity=6, safe=True, fit=gp.FitConfig(40, 0.2),
+        acquisition=AcquisitionConfig(256, 8, 40, 0.05))
     opt = bo.make_optimizer(config)
-    mid = 0.5 * (np.array(config.parameter_lower) + np.array(config.parameter_upper))
-    width = np.array(config.parameter_upper) - np.array(config.parameter_lower)
-    xs = [mid - 0.2 * width, mid, mid + 0.2 * width, mid + 0.1 * width]
-    contexts = [[20.0, 0.0], [30.0, 0.0], [52.0, 0.0], [52.0, 0.0]]
-    objectives, margins = [1.0, 2.0, 0.5, 3.0], [0.5, 0.5, 0.5, -0.2]  # the best J at 52 N fell
+    a, b = [0.3, 0.3], [0.7, 0.7]
     state = opt.init()
-    for x, c, j, g in zip(xs, contexts, objectives, margins, strict=True):
-        state, _ = opt.observe(state, jnp.asarray(x, jnp.float32), jnp.asarray(c, jnp.float32), jnp.float32(j),
+    for x, c, j, g in ((a, 0.1, 2.0, 0.5), (b, 0.1, 1.0, 0.4), (a, 0.9, -1.0, -2.0), ([0.2, 0.8], 0.9, -1.0, -1.5)):
+        state, _ = opt.observe(state, jnp.asarray(x, jnp.float32), jnp.asarray([c], jnp.float32), jnp.float32(j),
                                jnp.float32(g))
-    key = jax.random.PRNGKey(1)
-    at_52, back = opt.propose_with_fallback(state, jnp.asarray([50.0, 0.0], jnp.float32), key)  # shares 52 N
+    x, back = opt.propose_with_fallback(state, jnp.asarray([0.9], jnp.float32), jax.random.PRNGKey(1))
     assert bool(back)
-    np.testing.assert_allclose(np.asarray(at_52), np.asarray(xs[2], np.float32), rtol=1e-6)
-    at_24, _ = opt.propose_with_fallback(state, jnp.asarray([24.0, 0.0], jnp.float32), key)  # shares 20 and 30 N
-    np.testing.assert_allclose(np.asarray(at_24), np.asarray(xs[1], np.float32), rtol=1e-6)
-    at_44, _ = opt.propose_with_fallback(state, jnp.asarray([44.0, 0.3], jnp.float32), key)  # shares none: nearest
-    np.testing.assert_allclose(np.asarray(at_44), np.asarray(xs[2], np.float32), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(x), b, atol=1e-6)
+    # Where both were safe, a is expected safer (0.5 against 0.4 measured): the rule judges in the current context.
+    at_home, back_home = opt.propose_with_fallback(state, jnp.asarray([0.1], jnp.float32), jax.random.PRNGKey(1))
+    assert bool(back_home)  # four points certify nothing, even here
+    np.testing.assert_allclose(np.asarray(at_home), a, atol=1e-6)
 
 
 def test_nothing_safe_seen_proposes_a_random_point_and_says_so(safe_opt):

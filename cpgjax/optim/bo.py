@@ -38,10 +38,10 @@ carries a safety margin :math:`g` (< 0: the trial was unsafe), and a second GP o
 the first safe observation (margin ≥ 0); from then on a proposal maximizes eq. (8) over the safe
 set :math:`\{x : \mu_g(x, c) - \beta_s\, \sigma_g(x, c) \ge 0\}`, the safe set of SafeOpt (Sui et
 al., ICML 2015) without its Lipschitz constant, as in Berkenkamp et al.'s SafeOpt-MC (2016,
-arXiv:1602.04450). When no point of the box is certified safe, the proposal repeats the best safe
-observation among those in the current context (eq. 14's thresholds), else the one in the
-nearest context; with no safe observation at all, it is uniform random. :meth:`propose_with_fallback`
-says which. Context changes, inference mode and data reuse act on the objective as without
+arXiv:1602.04450). When no point of the box is certified safe, the proposal repeats the parameters
+of a safe observation, the one with the highest expected margin at the current context (so
+parameters that fell in this context are not repeated); with no safe observation at all, it is
+uniform random. :meth:`propose_with_fallback` says which. Context changes, inference mode and data reuse act on the objective as without
 ``safe``; the margins do not depend on the target velocity.
 
 Bad calls raise ``ValueError`` in the Python wrappers, before anything is compiled: wrong
@@ -287,16 +287,16 @@ def _maximize_ucb(s: _Static, post, state: OptimizerState, context, key, multipl
                                 None if margin_post is None else margin_lower_bound)
 
 
-def _best_safe_observed(s: _Static, state: OptimizerState, context):
-    """Unit-cube parameters of the best safe observation (margin ≥ 0) in the current context (eq. 14's thresholds),
-    else of the safe one in the nearest context (best J among equals), and whether any safe observation exists."""
+def _safest_safe_observed(s: _Static, state: OptimizerState, context, margin_post):
+    """Unit-cube parameters of the observation that was safe (margin ≥ 0) and whose expected margin (the margin GP's
+    posterior mean) at the current context is the highest, and whether any safe observation exists. Judged at this
+    context, parameters that were safe elsewhere but fell here rank low, so a fall is not repeated. The mean, not the
+    lower bound: the bound would rate a gait known to fall here above one never tried here."""
     safe = state.stored & (state.margins >= 0.0) & jnp.isfinite(state.objectives)
-    within = jnp.all(jnp.abs(state.contexts - context) <= s.context_tolerance, axis=-1)
-    distance = jnp.sqrt(jnp.sum(((state.contexts - context) / s.context_width) ** 2, axis=-1))
-    nearest = jnp.min(jnp.where(safe, distance, jnp.inf))
-    candidates = safe & jnp.where(jnp.any(safe & within), within, distance <= nearest)
-    best = jnp.argmax(jnp.where(candidates, state.objectives, -jnp.inf))
-    return (state.parameters[best] - s.lower) / s.width, jnp.any(safe)
+    unit = (state.parameters - s.lower) / s.width
+    expected, _ = gp.predict(margin_post, _queries(s, context, unit), s.config.num_contexts)
+    best = jnp.argmax(jnp.where(safe, expected, -jnp.inf))
+    return unit[best], jnp.any(safe)
 
 
 def _propose(s: _Static, state: OptimizerState, context, key) -> tuple[jax.Array, jax.Array]:
@@ -318,10 +318,11 @@ def _propose(s: _Static, state: OptimizerState, context, key) -> tuple[jax.Array
         if not config.safe:
             point, _ = _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier)
             return point, jnp.zeros((), bool)
+        margin_post = _condition_margin(s, state)
         point, value = _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier,
-                                     _condition_margin(s, state))
+                                     margin_post)
         found = jnp.isfinite(value)
-        repeat, any_safe = _best_safe_observed(s, state, context)
+        repeat, any_safe = _safest_safe_observed(s, state, context, margin_post)
         fallback = jnp.where(any_safe, repeat, random_point())
         return jnp.where(found, point, fallback), ~found
 

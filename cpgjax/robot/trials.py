@@ -98,8 +98,8 @@ class BayesianOptimizer:
         self._key, key = jax.random.split(self._key)
         x, fell_back = self._opt.propose_with_fallback(self._state, jnp.asarray(context, jnp.float32), key)
         if bool(fell_back):
-            log.info("no parameters certified safe for context (%.1f N, %.3f rad): the best safe trial is repeated",
-                     *np.asarray(context, np.float64))
+            log.info("no parameters certified safe for context (%.1f N, %.3f rad): the safe trial with the highest "
+                     "expected margin there is repeated", *np.asarray(context, np.float64))
         return np.asarray(x, np.float64)
 
     def _margin(self, record):

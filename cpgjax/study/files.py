@@ -71,7 +71,7 @@ class TrialLog(NamedTuple):
     fell: np.ndarray
     failed: np.ndarray
     safety_margin: np.ndarray  # (B,) the trial's worst safety margin (< 0: unsafe; docs/decisions.md §17)
-    safe_fallback: np.ndarray  # (B,) --safe: no proposal was certified safe, the best safe trial seen was repeated
+    safe_fallback: np.ndarray  # (B,) --safe: nothing was certified safe, a safe trial's parameters were repeated
 
 
 class Checkpoint(NamedTuple):
