@@ -12,7 +12,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax.optim import black_box, bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.optim.acquisition import AcquisitionConfig
-from cpgjax.trial import optimizer_setting, protocol
+from cpgjax.trial import protocol
 from tests.numpy_reference import RefGP
 
 TRIAL = protocol.TrialConfig()

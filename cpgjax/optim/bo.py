@@ -41,8 +41,8 @@ al., ICML 2015) without its Lipschitz constant, as in Berkenkamp et al.'s SafeOp
 arXiv:1602.04450). When no point of the box is certified safe, the proposal repeats the parameters
 of a safe observation, the one with the highest expected margin at the current context (so
 parameters that fell in this context are not repeated); with no safe observation at all, it is
-uniform random. :meth:`propose_with_fallback` says which. Context changes, inference mode and data reuse act on the objective as without
-``safe``; the margins do not depend on the target velocity.
+uniform random. :meth:`propose_with_fallback` says which. Context changes, inference mode and data
+reuse act on the objective as without ``safe``; the margins do not depend on the target velocity.
 
 Bad calls raise ``ValueError`` in the Python wrappers, before anything is compiled: wrong
 shapes always; non-finite values, parameters outside the box and a full buffer whenever the
