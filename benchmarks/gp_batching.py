@@ -5,8 +5,9 @@ over the intra-op threads).
 
     python benchmarks/gp_batching.py [--batches 20,80] [--points 40,150] [--repeats 5]
 
-The whole-batch variant is the same module with the batching rule switched off; it can deadlock when two such
-batched programs run at once (one program at a time is timed here, which does not). The last line is a JSON object.
+The whole-batch variant is the same module with the batching rule switched off. It can deadlock (independent
+batched solves of one program on both intra-op threads), so each measurement runs in a child process with a time
+limit (``--timeout-s``), and a child that does not finish is reported as stalled. The last line is a JSON object.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import contextlib
 import json
 import os
 import platform
+import subprocess
+import sys
 import time
 
 import jax
@@ -31,6 +34,8 @@ def parse_args():
     parser.add_argument("--batches", default="20,80")
     parser.add_argument("--points", default="40,150")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--timeout-s", type=float, default=300.0, help="per measurement (compile included)")
+    parser.add_argument("--child", nargs=3, metavar=("VARIANT", "BATCH", "POINTS"), help=argparse.SUPPRESS)
     return parser.parse_args()
 
 
@@ -73,20 +78,36 @@ def whole_batch_lapack():
         gp._lower_cholesky, gp._solve_lower, gp._cholesky_solve = saved
 
 
+def measure(variant: str, batch: int, points: int, args) -> float | None:
+    """Seconds of one variant in a child process, or None if it did not finish within the time limit."""
+    command = [sys.executable, __file__, "--child", variant, str(batch), str(points), "--repeats", str(args.repeats)]
+    try:
+        child = subprocess.run(command, capture_output=True, text=True, timeout=args.timeout_s, check=True)
+    except subprocess.TimeoutExpired:
+        return None
+    return float(child.stdout.strip().splitlines()[-1])
+
+
 def main() -> None:
     args = parse_args()
+    if args.child:
+        variant, batch, points = args.child[0], int(args.child[1]), int(args.child[2])
+        with whole_batch_lapack() if variant == "whole" else contextlib.nullcontext():
+            print(seconds(batch, points, args.repeats))
+        return
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs (unpinned); "
           f"jax {jax.__version__}")
     figures = {}
     for points in (int(p) for p in args.points.split(",")):
         for batch in (int(b) for b in args.batches.split(",")):
-            looped = seconds(batch, points, args.repeats)
-            with whole_batch_lapack():
-                whole = seconds(batch, points, args.repeats)
-            figures[f"{batch} x {points} points"] = {"looped_s": looped, "whole_batch_s": whole,
-                                                     "ratio": looped / whole}
-            print(f"{batch} instances, {points} points: looped {looped * 1e3:.1f} ms, whole batch "
-                  f"{whole * 1e3:.1f} ms, ratio {looped / whole:.2f}")
+            looped, whole = measure("looped", batch, points, args), measure("whole", batch, points, args)
+            figures[f"{batch} x {points} points"] = {
+                "looped_s": looped, "whole_batch_s": whole,
+                "ratio": None if looped is None or whole is None else looped / whole}
+            shown = lambda t: "stalled" if t is None else f"{t * 1e3:.1f} ms"  # noqa: E731
+            ratio = "" if looped is None or whole is None else f", ratio {looped / whole:.2f}"
+            print(f"{batch} instances, {points} points: looped {shown(looped)}, whole batch {shown(whole)}{ratio}",
+                  flush=True)
     print(json.dumps(figures))
 
 
