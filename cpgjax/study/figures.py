@@ -189,7 +189,7 @@ def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict) ->
     panel = fig.add_subplot(grid[1, :])
     panel.axis("off")
     table = [line for line in table_text.splitlines() if line.startswith("|") and not line.startswith("|---")]
-    panel.text(0, 1, "\n".join(table[:12]), family="monospace", fontsize=5.5, va="top")
+    panel.annotate("\n".join(table[:12]), (0, 1), xycoords="axes fraction", family="monospace", fontsize=5.5, va="top")
     for r, gait in enumerate(gaits):
         strip = frames.get(gait.group, [])
         for c in range(4):
