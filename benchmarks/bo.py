@@ -71,6 +71,7 @@ from gpytorch.likelihoods import GaussianLikelihood  # noqa: E402
 from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from gpytorch.priors import GammaPrior  # noqa: E402
 from scipy.stats import mannwhitneyu  # noqa: E402
+from timing import median_seconds  # noqa: E402  (benchmarks/timing.py)
 
 from cpgjax import provenance  # noqa: E402
 from cpgjax.optim import bo  # noqa: E402
@@ -165,16 +166,6 @@ def filled_state(opt, config, rng, num_points):
     ), x, y
 
 
-def time_call(fn, *args, repeats):
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
 def vmapped_iteration(opt):
     """Jitted, vmapped (observe the last point, then propose): one BO iteration per instance."""
     def iteration(state, x, y, key):
@@ -193,8 +184,8 @@ def single_iteration(num_points, capacity, repeats, rng):
     key = jax.random.PRNGKey(0)
     observe = jax.jit(lambda s: opt.observe(s, new_x, jnp.zeros((0,)), new_y)[0])
     propose = jax.jit(lambda s: opt.propose(s, jnp.zeros((0,)), key))
-    fit_s = time_call(observe, state, repeats=repeats)
-    acq_s = time_call(propose, observe(state), repeats=repeats)
+    fit_s = median_seconds(observe, state, repeats=repeats)
+    acq_s = median_seconds(propose, observe(state), repeats=repeats)
     return 1e3 * fit_s, 1e3 * acq_s, np.vstack([x, np.asarray(new_x)]), np.append(y, float(new_y))
 
 
@@ -212,7 +203,7 @@ def batched_iteration(batch, repeats, rng, num_points=40):
     xs = jnp.asarray(rng.uniform(-1, 1, (batch, 8)), jnp.float32)
     ys = jax.vmap(cosine8)(xs)
     keys = jax.random.split(jax.random.PRNGKey(1), batch)
-    return 1e3 * time_call(vmapped_iteration(opt), states, xs, ys, keys, repeats=repeats)
+    return 1e3 * median_seconds(vmapped_iteration(opt), states, xs, ys, keys, repeats=repeats)
 
 
 # ---- (c) regret ---------------------------------------------------------------------------

@@ -19,12 +19,11 @@ import os
 import platform
 import subprocess
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
 import jax.scipy as jsp
-import numpy as np
+from timing import median_seconds  # benchmarks/timing.py
 
 from cpgjax import gp
 
@@ -55,14 +54,7 @@ def program(batch: int, points: int):
 
 def seconds(batch: int, points: int, repeats: int) -> float:
     fn, data = program(batch, points)
-    compiled = jax.jit(fn)
-    jax.block_until_ready(compiled(*data))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*data))
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+    return median_seconds(jax.jit(fn), *data, repeats=repeats)
 
 
 @contextlib.contextmanager

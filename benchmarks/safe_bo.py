@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import platform
-import time
 
 
 def parse_args():
@@ -40,6 +39,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import mannwhitneyu  # noqa: E402
+from timing import median_seconds  # noqa: E402  (benchmarks/timing.py)
 
 from cpgjax.optim import black_box, bo  # noqa: E402
 from cpgjax.study import stats  # noqa: E402
@@ -80,15 +80,9 @@ def iteration_seconds(safe: bool, stored: int, batch: int, repeats: int) -> floa
 
     def once():
         new_state, _ = observe(*args)
-        return jax.block_until_ready(propose(new_state, c, keys))
+        return propose(new_state, c, keys)
 
-    once()  # compile
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        once()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+    return median_seconds(once, repeats=repeats)
 
 
 def gardner(x):

@@ -451,7 +451,7 @@ class Engine:
             # In the box as they are: the optimizer rounds its bounds inward to float32 (optim.bo), so no proposal
             # crosses the float64 box that the simulator validates.
             x, fell_back = local(x).astype(np.float64), local(fell_back)
-            real = max(0, min(stop, self.batch_size) - first)  # this process's rows before the padding
+            real = self._unpadded_local_rows()
             if fell_back[:real].any():
                 log.warning("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
                             "the safe trial with the highest expected margin there (docs/decisions.md §17)", t,
@@ -485,10 +485,15 @@ class Engine:
         return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(gp_context, np.float32),
                             logs=run.logs + [trial_log])
 
+    def _unpadded_local_rows(self) -> int:
+        """How many of this process's rows are instances, not the padding copies after the last one."""
+        first, stop = self.placement.rows
+        return max(0, min(stop, self.batch_size) - first)
+
     def _clip_context(self, trial: int, context: np.ndarray) -> np.ndarray:
         """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
         when any is; the trial log keeps the measured values."""
-        real = max(0, min(self.placement.rows[1], self.batch_size) - self.placement.rows[0])  # rows before padding
+        real = self._unpadded_local_rows()
         clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real],
                                                            objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
         if messages:
@@ -500,8 +505,8 @@ class Engine:
     def _checkpoint(self, out_dir, run: _Run, t: int, wall_s: float) -> None:
         """This process's instances (not their padding copies) after trial ``t``; once every process has written
         trial t, the files a resume no longer needs are deleted (``study_io.prune_checkpoints``)."""
-        first, stop = self.placement.rows
-        keep = max(0, min(stop, self.batch_size) - first)
+        first = self.placement.rows[0]
+        keep = self._unpadded_local_rows()
         shard = study_io.Shard(jax.process_index(), jax.process_count(), first)
         study_io.save_checkpoint(out_dir, self.spec, study_io.Checkpoint(
             trial=t + 1, opt_leaves=[leaf[:keep] for leaf in self.placement.local(jax.tree.leaves(run.opt_state))],

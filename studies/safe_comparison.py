@@ -18,7 +18,7 @@ import pathlib
 import numpy as np
 import pyarrow.parquet as pq
 
-from cpgjax.study import stats
+from cpgjax.study import registry, stats
 
 LAST_TRIALS = 5
 CONDITIONS = ("payload_kg", "slope_deg", "friction", "target_velocity_mps", "inference")
@@ -38,9 +38,9 @@ def by_instance(columns: dict[str, np.ndarray], name: str) -> np.ndarray:
 
 
 def phases(columns, instance: int) -> list[tuple[int, int]]:
-    fields = np.stack([by_instance(columns, c)[:, instance] for c in CONDITIONS])
-    n = fields.shape[1]
-    starts = [0] + [t for t in range(1, n) if np.any(fields[:, t] != fields[:, t - 1])] + [n]
+    """[start, stop) of each phase of one instance: a new phase wherever any condition changes."""
+    fields = [by_instance(columns, c)[:, instance] for c in CONDITIONS]
+    starts = sorted(set().union(*(registry.phase_starts(f) for f in fields))) + [len(fields[0])]
     return list(zip(starts[:-1], starts[1:], strict=True))
 
 

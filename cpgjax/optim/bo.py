@@ -287,12 +287,17 @@ def _maximize_ucb(s: _Static, post, state: OptimizerState, context, key, multipl
                                 None if margin_post is None else margin_lower_bound)
 
 
+def _safe_observations(state: OptimizerState) -> jax.Array:
+    """(capacity,) bool: the stored observations whose trial was safe (margin ≥ 0)."""
+    return state.stored & (state.margins >= 0.0) & jnp.isfinite(state.objectives)
+
+
 def _safest_safe_observed(s: _Static, state: OptimizerState, context, margin_post):
     """Unit-cube parameters of the observation that was safe (margin ≥ 0) and whose expected margin (the margin GP's
     posterior mean) at the current context is the highest, and whether any safe observation exists. Judged at this
     context, parameters that were safe elsewhere but fell here rank low, so a fall is not repeated. The mean, not the
     lower bound: the bound would rate a gait known to fall here above one never tried here."""
-    safe = state.stored & (state.margins >= 0.0) & jnp.isfinite(state.objectives)
+    safe = _safe_observations(state)
     unit = (state.parameters - s.lower) / s.width
     expected, _ = gp.predict(margin_post, _queries(s, context, unit), s.config.num_contexts)
     best = jnp.argmax(jnp.where(safe, expected, -jnp.inf))
@@ -307,7 +312,7 @@ def _propose(s: _Static, state: OptimizerState, context, key) -> tuple[jax.Array
     random_key, acquisition_key = jax.random.split(key)
     use_random = (state.num_stored < config.num_random_proposals) & ~state.inference_mode
     if config.safe:  # a safe trial seeds the safe set: no more random proposals
-        use_random = use_random & ~jnp.any(state.stored & (state.margins >= 0.0))
+        use_random = use_random & ~jnp.any(_safe_observations(state))
 
     def random_point():
         uniform = jax.random.uniform(random_key, (config.num_parameters,), jnp.float32)
