@@ -607,7 +607,7 @@ def _folder_kind(out: pathlib.Path) -> str | None:
     study = (_read_json(out / "metadata.json") or {}).get("study")
     if study in ("optimize", "walk"):
         return study
-    gaits = any(n.startswith("best_") and n.endswith((".json", ".mp4")) for n in names)  # a study's best gaits
+    gaits = study_io.BEST_PARAMS in names or any(n.startswith("best_") and n.endswith(".mp4") for n in names)
     if names & {"table.md", "trials.parquet", "metadata.json", "recording.rrd"} or gaits or study_io.checkpoint_files(
             out) or any((out / n / "metadata.json").exists() or study_io.checkpoint_files(out / n) for n in names):
         return "optimize" if "best_params.json" in names else "study"
@@ -737,7 +737,7 @@ def _inapplicable(args, calibrating: bool = False) -> str | None:
 
 
 def _show_video(args) -> int:
-    """``cpgjax show DIR --video``: film each best_<group>.json of a study folder again."""
+    """``cpgjax show DIR --video``: film each best_params/<group>.json of a study folder again."""
     out = pathlib.Path(args.results)
     try:
         gaits = study_video.load_gaits(out) if out.is_dir() else None
@@ -745,7 +745,8 @@ def _show_video(args) -> int:
         print(f"cpgjax show: {err}", file=sys.stderr)
         return 2
     if not gaits:
-        print(f"cpgjax show: {out} has no best_<group>.json to film (a study writes them)", file=sys.stderr)
+        print(f"cpgjax show: {out} has no {study_io.BEST_PARAMS}/<group>.json to film (a study writes them)",
+              file=sys.stderr)
         return 2
     for gait in gaits:
         if study_video.video_file(out, gait.group).exists():
@@ -1005,7 +1006,7 @@ def _add_show(sub) -> None:
     v.add_argument("results", help="e.g. results/controller_ablation")
     v.add_argument("--no-viewer", action="store_true", help="do not open the recording")
     v.add_argument("--video", action="store_true", help="(re)render the study's best_<group>.mp4 from its "
-                   "best_<group>.json first, replacing them")
+                   "best_params/<group>.json first, replacing them")
     _add_video_length_arg(v)
     backends.add_backend_argument(v)
     v.add_argument("--web", action="store_true", help="serve the recording in rerun's web viewer on 127.0.0.1 (for "

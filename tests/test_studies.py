@@ -191,20 +191,27 @@ def test_group_names_are_file_names():
 
 
 def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tiny_ablation):
-    """best_params/controller=<c>.json: the group's highest J over every instance and trial of trials.parquet, and
-    that instance's controller, physics and the trial's conditions; `deploy --params` reads it back."""
+    """best_params/<c>.json: the group's best gait, read from trials.parquet: the run with the best mean J over its
+    last trials, its highest-J trial (one condition phase here), that run's controller, physics and the trial's
+    conditions; `deploy --params` reads it back, and it is the gait the study films."""
     _, out, _ = tiny_ablation
     table = pq.read_table(out / "trials.parquet").to_pandas()
+    last = table.trial.max() - studies.LAST_TRIALS
+    filmed = {g.group: g for g in study_video.load_gaits(out)}
     for c in cpg.CONTROLLERS:
-        path = out / study_io.BEST_PARAMS / f"controller={c}.json"
+        path = out / study_io.BEST_PARAMS / f"{c}.json"
         saved = json.loads(path.read_text())
-        best = table[table.controller == c].sort_values("objective").iloc[-1]
-        assert (saved["trial"], saved["objective"]) == (best.trial, pytest.approx(best.objective))
+        runs = table[table.controller == c]
+        run = runs[runs.trial > last].groupby("instance").objective.mean().idxmax()
+        best = runs[runs.instance == run].sort_values("objective").iloc[-1]
+        assert (saved["instance"], saved["trial"], saved["objective"]) == (run, best.trial,
+                                                                          pytest.approx(best.objective))
         assert {k: saved[k] for k in tuned.TUNED_FOR} == dict(
             controller=c, physics=best.physics, friction=pytest.approx(best.friction), slope_deg=best.slope_deg,
             payload_kg=best.payload_kg, target_velocity_mps=best.target_velocity_mps)
         read = tuned.load(path)
         np.testing.assert_allclose(read.params, [best[name] for name in param_space.PARAM_NAMES])
+        np.testing.assert_array_equal(filmed[c].params, read.params)
 
 
 def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp_path, monkeypatch):
@@ -220,3 +227,29 @@ def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp
         studies.write_outputs(result, tmp_path, "native")
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 16 and (tmp_path / "metadata.json").exists()
 
+
+
+def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_path, monkeypatch):
+    """Each arm's folder gets best_params/<controller>.json (the run's best gait, tuned for the arm's home physics)
+    and, once table.md is written, best_<controller>.mp4 where this machine can render (else one line says why)."""
+    from cpgjax.study import transfer
+
+    real_specs = transfer.specs
+
+    def tiny(seeds=None, trials=None, quick=False, safe=False):
+        return [dataclasses.replace(s, optimizer=small_optimizer(4),
+                                    trial=protocol.TrialConfig(transition_steps=100, steady_steps=200))
+                for s in real_specs(seeds=1, trials=4, safe=safe)]
+
+    monkeypatch.setattr(transfer, "specs", tiny)
+    lines = []
+    text, out = transfer.run(out=tmp_path / "transfer", backend="native", notify=lines.append)
+    assert (out / "table.md").read_text() == text
+    filmed = [line for line in lines if ".mp4: " in line]
+    for (arm, home, _), spec in zip(transfer.ARMS, tiny(), strict=True):
+        gaits = {g.group: g for g in study_video.load_gaits(out / spec.name)}
+        assert sorted(gaits) == sorted(cpg.CONTROLLERS), arm
+        assert {tuned.load(study_video.gait_file(out / spec.name, c)).tuned_for["physics"] for c in gaits} == {home}
+        if filmed:
+            assert all(len(iio.imread(study_video.video_file(out / spec.name, c))) == 5 for c in gaits)
+    assert filmed or any(line.startswith("no video: ") for line in lines), lines

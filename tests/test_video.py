@@ -14,6 +14,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax.study import video
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
+from cpgjax.trial import tuned
 
 
 def test_frames_play_in_real_time():
@@ -76,19 +77,25 @@ def test_no_gl_backend_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
 def test_gait_files_round_trip_and_refuse_damage(tmp_path):
     gait = video.Gait("friction0.3", param_space.midpoint(), "vmc_tegotae", 0.3, 5.0, 7.5, "paper", 1500, 3000,
                       0.5, 1.9, 4, 11)
-    path = video.save_gait(tmp_path, gait)
-    assert path.name == "best_friction0.3.json"
+    path = video.save_gait(tmp_path, gait, seed=3)
+    assert path == tmp_path / "best_params" / "friction0.3.json"
     data = json.loads(path.read_text())
-    assert list(data["params"]) == list(param_space.PARAM_NAMES)  # what `cpgjax deploy --params` reads
+    assert list(data["params"]) == list(param_space.PARAM_NAMES) and data["seed"] == 3
+    replayed = tuned.load(path)  # what `cpgjax deploy --params` and `walk --params` read
+    assert replayed.tuned_for == dict(controller="vmc_tegotae", physics="paper", friction=0.3, slope_deg=5.0,
+                                      payload_kg=7.5, target_velocity_mps=0.5)
     (back,) = video.load_gaits(tmp_path)
     np.testing.assert_array_equal(back.params, gait.params)
     assert back._replace(params=None) == gait._replace(params=None)
+    path.write_text(json.dumps({k: v for k, v in data.items() if k != "steady_steps"}))
+    with pytest.raises(StudyError, match="friction0.3.json is not a study's gait file .missing key 'steady_steps'"):
+        video.load_gaits(tmp_path)
     data["params"]["sigma_n"] = 9.0
     path.write_text(json.dumps(data))
     with pytest.raises(StudyError, match="sigma_n"):
         video.load_gaits(tmp_path)
     path.write_text("{")
-    with pytest.raises(StudyError, match="best_friction0.3.json is unreadable"):
+    with pytest.raises(StudyError, match="friction0.3.json: not valid JSON"):
         video.load_gaits(tmp_path)
 
 
@@ -107,7 +114,7 @@ def test_cli_show_video_films_the_gait_files(tmp_path, capsys):
 
 def test_cli_video_options_are_checked_before_compute(tmp_path, capsys):
     assert cli.main(["show", str(tmp_path), "--video"]) == 2
-    assert "has no best_<group>.json to film" in capsys.readouterr().err
+    assert "has no best_params/<group>.json to film" in capsys.readouterr().err
     assert cli.main(["walk", "--controllers", "vmc,tegotae", "--video", str(tmp_path / "w.mp4")]) == 2
     assert "--controllers has 2 values (give one)" in capsys.readouterr().err
     (tmp_path / "w.mp4").write_bytes(b"keep")

@@ -11,9 +11,10 @@
 * ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and each
   group's best gait, full body (``cpgjax.study.scene``: every body and its geoms, the floor at the slope, contact
   forces as arrows, CPG phases and amplitudes).
-* ``best_params/<group>.json`` — per group of the study (its ``group_by`` labels, e.g. ``controller=tegotae``) the
-  best observed trial's parameters with what they were tuned for (:mod:`cpgjax.trial.tuned`), which
-  ``cpgjax deploy --params`` and ``cpgjax walk --params`` replay.
+* ``best_params/<group>.json`` — per group of the study (``registry.group_name`` of its ``group_by`` labels, e.g.
+  ``tegotae``) the best gait of its final phase (``registry.best_gaits``): its parameters with what they were tuned
+  for (:mod:`cpgjax.trial.tuned`), which ``cpgjax deploy --params`` and ``cpgjax walk --params`` replay, and the
+  trial lengths the study films it with (``best_<group>.mp4``, :mod:`cpgjax.study.video`).
 * ``metadata.json`` — the command line, cpgjax's version and git commit, the optimizer's settings, versions,
   devices, backend, wall time, env-steps/s and real-time factor.
 
@@ -39,7 +40,6 @@ from cpgjax.go1 import physics as physics_profiles
 from cpgjax.study import scene as study_scene
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
-from cpgjax.trial import tuned
 
 
 class OutputError(RuntimeError):
@@ -305,15 +305,16 @@ def _entries(folder: pathlib.Path) -> list[str]:
 
 # Every file name a cpgjax command writes into its output folder (studies, optimize, walk and, written by
 # cpgjax.robot, a deploy run: its per-tick log, run.json and calibration.json), beside the figures (*.png), the
-# checkpoint shards and the best_params/ folder; --overwrite deletes these and nothing else.
+# checkpoint shards, the best gaits' videos (best_<group>.mp4) and the best_params/ folder; --overwrite deletes these
+# and nothing else.
 OUTPUT_FILES = frozenset({CHECKPOINT, "trials.parquet", "recording.rrd", "trials.rrd", "metadata.json", "table.md",
                           "best_params.json", "walk.parquet", "run.json", "ticks.arrows", "calibration.json"})
 
 
 def _is_output(path: pathlib.Path) -> bool:
     """Whether ``path`` is a file or folder a cpgjax command wrote: a name of :data:`OUTPUT_FILES`, a figure, a
-    checkpoint shard or an unfinished checkpoint (``.tmp``), ``best_params/`` holding only JSON files, or a folder
-    holding only such files (an arm of the transfer study)."""
+    checkpoint shard or an unfinished checkpoint (``.tmp``), a best gait's video, ``best_params/`` holding only JSON
+    files, or a folder holding only such files (an arm of the transfer study)."""
     if path.is_symlink():
         return False
     if path.is_dir():
@@ -322,7 +323,8 @@ def _is_output(path: pathlib.Path) -> bool:
             return all(p.suffix == ".json" and p.is_file() for p in inside)
         return bool(inside) and all(_is_output(p) for p in inside)
     name = path.name.removesuffix(".tmp")
-    return name in OUTPUT_FILES or bool(_SHARD.fullmatch(name)) or path.suffix == ".png"
+    video = name.startswith("best_") and path.suffix == ".mp4"
+    return name in OUTPUT_FILES or bool(_SHARD.fullmatch(name)) or path.suffix == ".png" or video
 
 
 def _remove_outputs(folder: pathlib.Path) -> None:
@@ -481,11 +483,6 @@ def write_trials(result, path) -> pathlib.Path:
     return path
 
 
-def group_file_name(labels: dict[str, Any], group_by: tuple[str, ...]) -> str:
-    """'controller=tegotae' or 'schedule=load_change,controller=vmc': a group's best-parameter file, without .json."""
-    return ",".join(f"{g}={labels[g]}" for g in group_by).replace("/", "_")
-
-
 @contextlib.contextmanager
 def writing(out_dir, what: str):
     """Turn any failure while writing ``what`` into :class:`OutputError`: which file, why, the files already in
@@ -497,30 +494,6 @@ def writing(out_dir, what: str):
         kept = ", ".join(_entries(out)) if out.is_dir() else "nothing"
         raise OutputError(f"writing {what} in {out} failed ({type(err).__name__}: {err}); kept: {kept}. Every trial "
                           f"is in its checkpoint: the same command with --resume writes the outputs again") from err
-
-
-def write_best_params(result, folder) -> list[pathlib.Path]:
-    """``folder/<group>.json`` for every group of the study (:func:`group_file_name`): the best observed trial of the
-    group's instances (highest J), its parameters, and what they were tuned for: the instance's controller and
-    physics profile and that trial's friction, slope, payload and target velocity."""
-    folder = pathlib.Path(folder)
-    folder.mkdir(exist_ok=True)
-    tr, cond = result.trials, result.conditions
-    groups: dict[str, list[int]] = {}
-    for b, lab in enumerate(result.labels):
-        groups.setdefault(group_file_name(lab, result.spec.group_by), []).append(b)
-    paths = []
-    for name, members in groups.items():
-        j = np.asarray(tr.objective, np.float64)[:, members]
-        t, k = np.unravel_index(np.argmax(np.where(np.isfinite(j), j, -np.inf)), j.shape)
-        b, lab = members[k], result.labels[members[k]]
-        tuned_for = dict(controller=lab["controller"], physics=lab["physics"],
-                         **{f: float(getattr(cond, f)[b, t]) for f in tuned.TUNED_FOR if hasattr(cond, f)})
-        path = folder / f"{name}.json"
-        tuned.save(path, tr.params[t, b], tuned_for, objective=float(j[t, k]), trial=int(t), instance=int(b),
-                   seed=int(lab["seed"]), study=result.spec.name)
-        paths.append(path)
-    return paths
 
 
 # ----------------------------------------------------------------------------------------------- metadata

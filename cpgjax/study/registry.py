@@ -17,10 +17,10 @@ The paper used 5 seeds; the studies default to 20 (``DEFAULT_SEEDS``), and every
 confidence interval over seeds (``cpgjax.study.stats``).
 
 Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures (the study's own and
-``optimization_progress.png``: the best J so far and the parameters per group), ``best_params/``, ``trials.parquet``,
+``optimization_progress.png``: the best J so far and the parameters per group), ``trials.parquet``,
 ``recording.rrd`` (with each group's best gait, full body), ``metadata.json`` and the engine's ``checkpoint.npz``
-(``cpgjax.study.files``), then each group's best gait of its final phase, ``best_<group>.json``, and its video
-``best_<group>.mp4`` (``cpgjax.study.video``).
+(``cpgjax.study.files``), each group's best gait of its final phase, ``best_params/<group>.json`` (what a replay
+runs), and its video ``best_<group>.mp4`` (``cpgjax.study.video``).
 """
 
 from __future__ import annotations
@@ -242,6 +242,15 @@ def best_gaits(result) -> list[study_video.Gait]:
             transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
             target_velocity_mps=float(cond.target_velocity_mps[b, n - 1]), objective=float(tr.objective[t, b]),
             instance=b, trial=t))
+    return gaits
+
+
+def save_best_gaits(out: pathlib.Path, result) -> list[study_video.Gait]:
+    """Each group's :func:`best_gaits` as ``out/best_params/<group>.json``, what ``deploy --params`` and
+    ``walk --params`` replay as tuned and what the study films (``best_<group>.mp4``)."""
+    gaits = best_gaits(result)
+    for gait in gaits:
+        study_video.save_gait(out, gait, seed=int(result.labels[gait.instance]["seed"]), study=result.spec.name)
     return gaits
 
 
@@ -581,16 +590,16 @@ def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str |
     return spec
 
 
-def _to_stderr(line: str) -> None:
+def notify_stderr(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
 def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None, command: str | None = None,
-                  notify: Callable[[str], None] = _to_stderr) -> str:
-    """Every file of a finished study; returns the table text. The trial table, the metadata and the best parameters
-    first (they cannot fail but for the disk), then the report (table.md, figures), the recording, and last each
-    group's best gait (``best_<group>.json``) and its video (``best_<group>.mp4``, :mod:`cpgjax.study.video`), with a
-    line to ``notify`` per video, or one saying why there is none.
+                  notify: Callable[[str], None] = notify_stderr) -> str:
+    """Every file of a finished study; returns the table text. The trial table, the metadata and each group's best
+    gait (``best_params/<group>.json``, :func:`save_best_gaits`) first (they cannot fail but for the disk), then the
+    report (table.md, figures), the recording, and last the gaits' figures and videos (``best_<group>.mp4``,
+    :mod:`cpgjax.study.video`), with a line to ``notify`` per video, or one saying why there is none.
 
     Raises:
       study_io.OutputError: a file could not be written; the message names it and what was kept.
@@ -601,22 +610,19 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
     with study_io.writing(out, "metadata.json"):
         study_io.write_metadata(result, out / "metadata.json", command=command)
     with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
-        study_io.write_best_params(result, out / study_io.BEST_PARAMS)
+        gaits = save_best_gaits(out, result)
     with study_io.writing(out, "table.md and the figures"):
         text = STUDIES[name or result.spec.name].report(result, out, backend) + safety_summary(result)
         study_figures.optimization_progress(out / "optimization_progress.png", result, [
-            study_io.group_file_name(lab, result.spec.group_by) for lab in result.labels])
+            group_name(lab, result.spec.group_by) for lab in result.labels])
         text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
         (out / "table.md").write_text(text)
-    gaits = best_gaits(result)
     logs = gait_rollouts(gaits, backend)
     with study_io.writing(out, "recording.rrd"):
         study_io.write_recording(result, out / "recording.rrd", [
             study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction,
                                 g.slope_deg, g.payload_kg) for g, log in zip(gaits, logs, strict=True)])
-    with study_io.writing(out, "the best gaits, their figures and videos"):
-        for gait in gaits:
-            study_video.save_gait(out, gait)
+    with study_io.writing(out, "the best gaits' figures and videos"):
         study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
         filmed = study_video.write_videos(out, gaits, logs, notify)
         strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed, strict=True)}
@@ -650,4 +656,4 @@ def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=Fal
     result = engine.run(out, resume=resume, progress=progress)
     if jax.process_index() > 0:  # one process writes the study's files (docs/scaling.md)
         return f"process {jax.process_index()}: instances {result.rows[0]}–{result.rows[1] - 1} done", out
-    return write_outputs(result, out, engine.backend_name, name, command, notify or _to_stderr), out
+    return write_outputs(result, out, engine.backend_name, name, command, notify or notify_stderr), out

@@ -12,7 +12,9 @@ profile (docs/physics.md):
 Each run's best parameters are then walked (a settling trial, then a measured trial) under every fixed profile and
 under ``EVALUATION_DRAWS`` randomized physics (drawn with another seed than any training draw). The table gives, per
 controller and arm, J, velocity, CoT and falls at home and away, and the drop of J. Each arm is its own engine run
-with its own folder and checkpoint below the study's output folder, so ``--resume`` continues where it stopped.
+with its own folder and checkpoint below the study's output folder, so ``--resume`` continues where it stopped; each
+arm's folder also holds its trial table, metadata, each controller's best gait (``best_params/<group>.json``) and,
+after the study's table, that gait's video (``best_<group>.mp4``).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from cpgjax.sim import backends
 from cpgjax.study import files as study_io
 from cpgjax.study import registry
 from cpgjax.study import spec as study_spec
+from cpgjax.study import video as study_video
 from cpgjax.trial import limits
 
 NAME = "transfer"
@@ -148,14 +151,14 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
                                   overwrite=overwrite)
         if start and notify is not None:
             notify(registry.resume_notice(out / spec.name, start, spec.num_trials))
-    arm_results, evaluations, wall = {}, {}, 0.0
+    arm_results, evaluations, gaits, wall = {}, {}, {}, 0.0
     for (arm, home, _), spec in zip(ARMS, arm_specs, strict=True):
         engine = ablation.Engine(spec, backend=backend)
         result = engine.run(out / spec.name, resume=spec.name in resumed, progress=progress)
         with study_io.writing(out / spec.name, "trials.parquet, metadata.json and best_params/"):
             study_io.write_trials(result, out / spec.name / "trials.parquet")
             study_io.write_metadata(result, out / spec.name / "metadata.json", command=command)
-            study_io.write_best_params(result, out / spec.name / study_io.BEST_PARAMS)
+            gaits[arm] = registry.save_best_gaits(out / spec.name, result)
         arm_results[arm] = result
         evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels],
                                     Environments(home), spec.trial, engine.backend_name)
@@ -173,4 +176,8 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
             + f"\nOptimization wall time {wall:.0f} s (all arms).\n")
     out.mkdir(parents=True, exist_ok=True)
     (out / "table.md").write_text(text)
+    for (arm, _, _), spec in zip(ARMS, arm_specs, strict=True):  # after the table: filming never costs a result
+        with study_io.writing(out / spec.name, "the best gaits' videos"):
+            logs = registry.gait_rollouts(gaits[arm], engine.backend_name)
+            study_video.write_videos(out / spec.name, gaits[arm], logs, notify or registry.notify_stderr)
     return text, out

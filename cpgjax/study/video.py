@@ -27,9 +27,9 @@ import numpy as np
 
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
+from cpgjax.study.files import BEST_PARAMS
 from cpgjax.study.spec import StudyError
-from cpgjax.trial import limits
-from cpgjax.trial import params as param_space
+from cpgjax.trial import limits, tuned
 
 FPS = 25  # frames per second of video; one frame every 1000 / FPS ticks of 1 ms, so the video plays in real time
 WIDTH, HEIGHT = 640, 480
@@ -55,10 +55,11 @@ class RenderUnavailable(RuntimeError):
 
 class Gait(NamedTuple):
     """A gait to film: fixed parameters in one condition, rolled out after a settling trial of the given lengths.
-    A study writes one per group as ``best_<group>.json`` (its ``params`` object is what ``cpgjax deploy --params``
-    replays) and films it as ``best_<group>.mp4``."""
+    A study writes one per group as ``best_params/<group>.json`` (:func:`save_gait`: a :mod:`cpgjax.trial.tuned`
+    file, which ``cpgjax deploy --params`` and ``cpgjax walk --params`` replay as tuned) and films it as
+    ``best_<group>.mp4``."""
 
-    group: str  # the files' stem after best_
+    group: str  # the group's name in file names (``registry.group_name``)
     params: np.ndarray  # (8,) physical units
     controller: str
     friction: float
@@ -73,41 +74,49 @@ class Gait(NamedTuple):
     trial: int | None = None
 
 
+# A gait file's fields besides what the parameters were tuned for (tuned.TUNED_FOR), required to film it again.
+_FILM_FIELDS = ("transition_steps", "steady_steps")
+
+
 def gait_file(out, group: str) -> pathlib.Path:
-    return pathlib.Path(out) / f"best_{group}.json"
+    return pathlib.Path(out) / BEST_PARAMS / f"{group}.json"
 
 
 def video_file(out, group: str) -> pathlib.Path:
     return pathlib.Path(out) / f"best_{group}.mp4"
 
 
-def save_gait(out, gait: Gait) -> pathlib.Path:
-    info = {k: v for k, v in gait._asdict().items() if k != "params"}
+def save_gait(out, gait: Gait, **info) -> pathlib.Path:
+    """``best_params/<group>.json`` of ``gait`` in the :mod:`cpgjax.trial.tuned` format, with the trial lengths, its
+    objective, instance and trial, and ``info`` (e.g. seed, study)."""
+    fields = gait._asdict()
+    tuned_for = {name: fields[name] for name in tuned.TUNED_FOR}
+    rest = {k: v for k, v in fields.items() if k not in tuned.TUNED_FOR and k not in ("params", "group")}
     path = gait_file(out, gait.group)
-    path.write_text(json.dumps({"params": param_space.as_dict(gait.params), **info}, indent=1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tuned.save(path, gait.params, tuned_for, **rest, **info)
     return path
 
 
 def load_gaits(out) -> list[Gait]:
-    """Every ``best_<group>.json`` in the folder ``out``.
+    """Every ``best_params/<group>.json`` of the study folder ``out``.
 
     Raises:
       StudyError: a file that is not such a gait (the message names it and the key).
     """
     gaits = []
-    for path in sorted(pathlib.Path(out).glob("best_*.json")):
+    for path in sorted((pathlib.Path(out) / BEST_PARAMS).glob("*.json")):
         try:
+            read = tuned.load(path)
             data = json.loads(path.read_text())
-            values = [data["params"][name] for name in param_space.PARAM_NAMES]
-            fields = {k: data[k] for k in Gait._fields if k != "params" and k in data}
-            gait = Gait(params=param_space.validate(np.asarray(values, np.float64), what=f"{path}"), **fields)
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-            raise StudyError(f"{path} is unreadable ({type(err).__name__}); run the study again") from None
-        except (KeyError, TypeError) as err:
-            raise StudyError(f"{path} is not a gait file (missing or bad {err}); run the study again") from None
-        except ValueError as err:
+            missing = [k for k in (*tuned.TUNED_FOR, *_FILM_FIELDS) if data.get(k) is None]
+            if missing:
+                raise StudyError(f"{path} is not a study's gait file (missing key {missing[0]!r}); run the study "
+                                 "again")
+            fields = {k: data[k] for k in Gait._fields if k not in ("params", "group", *tuned.TUNED_FOR) and k in data}
+            gaits.append(Gait(group=path.stem, params=read.params, **read.tuned_for, **fields))
+        except ValueError as err:  # tuned.load's one line: unreadable, bad JSON, a value out of range
             raise StudyError(str(err)) from None
-        gaits.append(gait)
     return gaits
 
 
