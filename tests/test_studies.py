@@ -253,3 +253,18 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
         if filmed:
             assert all(len(iio.imread(study_video.video_file(out / spec.name, c))) == 5 for c in gaits)
     assert filmed or any(line.startswith("no video: ") for line in lines), lines
+
+
+def test_summary_marks_the_papers_j_where_the_paper_gives_it():
+    """The load study's marks: the paper's J after adaptation (Table "load": 2.175, 2.213, 2.189) over the last 5
+    trials of each payload phase; the ablation's: each controller's J ± std over the last 5 trials."""
+    payload = np.array([0.0] * 36 + [7.5] * 22 + [15.0] * 22)
+    result = type("Result", (), {"conditions": type("C", (), {"payload_kg": payload[None, :]}),
+                                 "trials": type("T", (), {"objective": np.zeros((80, 1))})})
+    marks = studies.load_paper_marks(result)
+    assert [(m.first_trial, m.last_trial, m.objective, m.std) for m in marks] == [
+        (31, 35, 2.175, None), (53, 57, 2.213, None), (75, 79, 2.189, None)]
+    ablation_marks = {m.group: m for m in studies.ablation_paper_marks(result)}
+    assert (ablation_marks["tegotae"].first_trial, ablation_marks["tegotae"].last_trial) == (75, 79)
+    assert (ablation_marks["tegotae"].objective, ablation_marks["tegotae"].std) == (2.153, 0.042)
+    assert studies.STUDIES["friction"].paper_marks(result) == []

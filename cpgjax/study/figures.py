@@ -5,17 +5,33 @@
 * :func:`optimization_progress` — Fig. "slope_adapt_exp" (b) style: the best J so far and the 8 parameters per trial,
   per group.
 * :func:`attitude` — Fig. "att_comp": roll–pitch trajectories of the best parameters of two controllers.
+* :func:`attitude_by_group` — roll–pitch of every group's best gait, one panel per group.
+* :func:`summary` — one page per study: J per trial with the paper's values marked (:class:`PaperMark`), the table,
+  and a filmstrip of each group's best gait.
 """
 
 from __future__ import annotations
 
 import pathlib
+from typing import NamedTuple
 
 import numpy as np
 
 from cpgjax.trial import params as param_space
 
 CONTEXT_LABELS = ("$c_{load}$ [N]", "$c_{slope}$ [rad]")
+
+
+class PaperMark(NamedTuple):
+    """A value of the paper's to mark on a per-trial panel: ``objective`` (± ``std`` where the paper gives one) over
+    trials ``first_trial``…``last_trial``, in the colour of ``group``'s curve where it has one."""
+
+    label: str
+    first_trial: int
+    last_trial: int
+    objective: float
+    std: float | None = None
+    group: str | None = None
 
 
 def _plt():
@@ -164,9 +180,12 @@ def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
     return path
 
 
-def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict) -> pathlib.Path:
-    """One page: the objective J per trial (mean ± std per group), the study's table, and a filmstrip of each group's
-    best gait (``frames``: group → a few video frames (H, W, 3); a group without them gets a line saying so)."""
+def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict,
+            paper_marks: list[PaperMark] = ()) -> pathlib.Path:
+    """One page: the objective J per trial (mean ± std per group) with the paper's values (``paper_marks``: dashed
+    segments, a band for the paper's std; the title says where the paper gives none), the study's table, and a
+    filmstrip of each group's best gait (``frames``: group → a few video frames (H, W, 3); a group without them gets
+    a line saying so)."""
     plt = _plt()
     group_key = result.spec.group_by[0]
     tr = result.trials
@@ -176,16 +195,28 @@ def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict) ->
     ax = fig.add_subplot(grid[0, :])
     labels = np.array([str(lab[group_key]) for lab in result.labels])
     trials = np.arange(tr.objective.shape[0])
+    colors = {}
     for group in dict.fromkeys(labels):
         v = np.asarray(tr.objective)[:, labels == group]
         line, = ax.plot(trials, v.mean(axis=1), label=f"{group_key} = {group}", lw=1.4)
+        colors[group] = line.get_color()
         ax.fill_between(trials, v.mean(axis=1) - v.std(axis=1), v.mean(axis=1) + v.std(axis=1),
                         color=line.get_color(), alpha=0.2, lw=0)
+    for mark in paper_marks:
+        color = colors.get(mark.group, "black")
+        span = [mark.first_trial - 0.4, mark.last_trial + 0.4]
+        ax.plot(span, [mark.objective] * 2, ls="--", lw=1.6, color=color, label=mark.label)
+        if mark.std is not None:
+            ax.fill_between(span, mark.objective - mark.std, mark.objective + mark.std, color=color, alpha=0.12,
+                            lw=0, hatch="//")
     ax.set_xlabel("trial (from 0)")
     ax.set_ylabel("objective J")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    ax.set_title(f"{result.spec.name}: {len(result.labels)} runs × {len(trials)} trials", fontsize=10)
+    ax.legend(fontsize=6, ncol=2)
+    paper = ("dashed: the paper's J" + (" ± std" if any(m.std is not None for m in paper_marks) else "")
+             if paper_marks else "the paper gives no J for this result")
+    ax.set_title(f"{result.spec.name}: {len(result.labels)} runs × {len(trials)} trials, mean ± std per group; "
+                 f"{paper}", fontsize=9)
     panel = fig.add_subplot(grid[1, :])
     panel.axis("off")
     table = [line for line in table_text.splitlines() if line.startswith("|") and not line.startswith("|---")]

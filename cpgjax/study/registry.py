@@ -553,16 +553,35 @@ def safety_summary(result) -> str:
             + "; margin < 0: a fall or a tilt stop, docs/decisions.md §17):\n\n" + "\n".join(rows) + "\n")
 
 
+def ablation_paper_marks(result) -> list[study_figures.PaperMark]:
+    """The paper's J per controller (mean ± std over its 5 seeds) over the last trials it averages."""
+    n = result.trials.objective.shape[0]
+    return [study_figures.PaperMark(f"paper {c}", max(n - LAST_TRIALS, 0), n - 1, j[0], j[1], group=c)
+            for c, (_, _, j) in PAPER_CONTROLLER_TABLE.items()]
+
+
+def load_paper_marks(result) -> list[study_figures.PaperMark]:
+    """The paper's J after adaptation per payload (no spread given) over the last trials of each payload phase."""
+    payload = result.conditions.payload_kg[0]
+    starts = phase_starts(payload) + [result.trials.objective.shape[0]]
+    return [study_figures.PaperMark(f"paper {float(payload[start]):g} kg", max(stop - LAST_TRIALS, start), stop - 1,
+                                    PAPER_LOAD_TABLE[float(payload[start])][0][2])
+            for start, stop in zip(starts[:-1], starts[1:], strict=True) if float(payload[start]) in PAPER_LOAD_TABLE]
+
+
 class Study(NamedTuple):
     name: str
     make_spec: Callable[..., StudySpec]
     report: Callable[..., str]  # (result, out, backend) → the table text; writes the study's figures
     description: str
+    # (result) → the paper's J values that summary.png marks; none where the paper gives no J for the result
+    paper_marks: Callable[..., list] = lambda result: []
 
 
 STUDIES = {s.name: s for s in (
-    Study("controller_ablation", ablation_spec, report_ablation, "4 controllers × seeds × 40 trials, v* = 0.5 m/s"),
-    Study("load_adaptation", load_spec, report_load, "payload 0 → 7.5 → 15 kg with contextual BO"),
+    Study("controller_ablation", ablation_spec, report_ablation, "4 controllers × seeds × 40 trials, v* = 0.5 m/s",
+          ablation_paper_marks),
+    Study("load_adaptation", load_spec, report_load, "payload 0 → 7.5 → 15 kg with contextual BO", load_paper_marks),
     Study("friction", friction_spec, report_friction, "friction 0.3 / 0.6 / 0.9 learning curves"),
     Study("multi_velocity", multi_velocity_spec, report_multi_velocity, "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
     Study("slope_adaptation", slope_spec, report_slope, "0° → 10° → 12.5°, then inference mode on 10°…17.5°"),
@@ -626,7 +645,8 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
         study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
         filmed = study_video.write_videos(out, gaits, logs, notify)
         strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed, strict=True)}
-        study_figures.summary(out / "summary.png", result, text, gaits, strips)
+        study_figures.summary(out / "summary.png", result, text, gaits, strips,
+                              STUDIES[name or result.spec.name].paper_marks(result))
     return text
 
 
