@@ -518,6 +518,8 @@ def _file_kind(path: pathlib.Path) -> str:
         return FILE_KINDS[path.name]
     if path.suffix == ".png":
         return "figure"
+    if path.name.startswith("best_") and path.suffix == ".mp4":
+        return "video of the group's best gait (show --video films it again)"
     if path in study_io.checkpoint_files(path.parent):
         return "one process's checkpoint shard (--processes)"
     if path.name.endswith(".ticks.arrows"):
@@ -556,6 +558,10 @@ def _damage(path: pathlib.Path) -> str | None:
         elif path.suffix == ".png":
             if path.read_bytes()[:4] != b"\x89PNG":
                 return "not a PNG image"
+        elif path.suffix == ".mp4":
+            data = path.read_bytes()
+            if data[4:8] != b"ftyp" or b"moov" not in data:  # an MP4's file-type box, and its index (written last)
+                return "not a complete MP4 video (show --video films it again)"
     except study_spec.StudyError as err:
         return str(err)
     except Exception as err:  # each reader raises its own kinds for a damaged file

@@ -124,3 +124,21 @@ def test_cli_video_options_are_checked_before_compute(tmp_path, capsys):
     with pytest.raises(SystemExit):
         cli.main(["walk", "--video-s", "0", "--video", str(tmp_path / "v.mp4")])
     assert "outside the allowed range [0.04, 120]" in capsys.readouterr().err
+
+
+def test_show_names_a_study_video_and_a_cut_one(tmp_path, capsys):
+    gait = video.Gait("vmc", param_space.midpoint(), "vmc", 0.6, 0.0, 0.0, "soft", 100, 200)
+    video.save_gait(tmp_path, gait)
+    stand = np.tile(go1_model.standing_qpos(), (80, 1))
+    lines = []
+    if not video.write_videos(tmp_path, [gait], [type("Log", (), {"qpos": stand})], lines.append):
+        pytest.skip(f"no OpenGL backend: {lines}")
+    assert cli.main(["show", str(tmp_path), "--no-viewer"]) == 0
+    listed, = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  best_vmc.mp4 ")]
+    assert "video of the group's best gait" in listed and "[" not in listed
+    data = video.video_file(tmp_path, "vmc").read_bytes()
+    cut = data[:len(data) // 2] if data.find(b"moov") > len(data) // 2 else data.replace(b"moov", b"free")
+    video.video_file(tmp_path, "vmc").write_bytes(cut)
+    assert cli.main(["show", str(tmp_path), "--no-viewer"]) == 1
+    listed, = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  best_vmc.mp4 ")]
+    assert "[best_vmc.mp4: not a complete MP4 video" in listed, listed
