@@ -7,7 +7,8 @@ then ``--measured`` trials back to back; the measured trials are reported. A var
 profile with one field replaced, registered under its own name for the run. Paired comparisons (the same sets under
 both settings): the mean difference with its 95 % interval and the Wilcoxon signed-rank p.
 
-    python studies/paper_misses.py [--sets 32] [--measured 3] [--only signal,contact,start,search,floor,load,imu]
+    python studies/paper_misses.py [--sets 32] [--measured 3]
+        [--only signal,contact,start,search,floor,load,imu,placement,slope_signal]
 
 Experiments:
   signal   the foot-force signal (c_load and the walk) as the unitree_ros plugin computes it (the mean over the update's
@@ -23,11 +24,18 @@ Experiments:
            diagnostic (is the paper's K_p what lets the loaded legs sag?)
   imu      a slope as rotated gravity (ours) against an inclined floor under vertical gravity: the IMU pitch and
            the foot forces of the robot standing 1 s under joint PD
+  placement  where the 15 kg (and 7.5 kg) payload sits, which the paper does not say: cpgjax's box at the trunk's
+           centre of mass against a point mass there (a raised URDF trunk mass, its inertia unchanged) and against
+           the same box resting on the trunk's top
+  slope_signal  the foot-force signal on 10° and 12.5°: the plugin's mean (`paper`) against the 100 Hz sample of one
+           step, the profile's only change between the slope runs before and after the plugin was modelled (the slope
+           study's floor is μ 0.6, where Gazebo's friction rule changes nothing)
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 from importlib import resources
 
 import jax
@@ -268,8 +276,67 @@ def imu(p, measured) -> None:
             print(f"| {slope:g} | {label} | {pitch:+.5f} | {np.array2string(forces, precision=2)} |")
 
 
+# The payload's placements (docs/decisions.md §6 places cpgjax's): its body's position in the trunk frame [m] and
+# whether it keeps the box's inertia. The box on the back rests on the trunk's collision box (half-height 0.057 m).
+TRUNK_TOP_M = 0.057
+PLACEMENTS = {
+    "box at the trunk's centre of mass (cpgjax)": (None, True),
+    "point mass at the trunk's centre of mass (the trunk's URDF mass raised)": (None, False),
+    "box on the trunk's back": ((0.0223, 0.002, TRUNK_TOP_M + go1_model.PAYLOAD_BOX_M[2] / 2), True),
+}
+
+
+@contextlib.contextmanager
+def payload_placed(pos_m, box_inertia: bool):
+    """Within the block, every model the native backend builds carries its payload at ``pos_m`` (the trunk frame;
+    None keeps go1.xml's) and, unless ``box_inertia``, as a point mass; the derived quantities recomputed."""
+    original = go1_model.scenario_model
+
+    def placed(scenario, i):
+        m = original(scenario, i)
+        if pos_m is not None:
+            m.body_pos[IDS.payload_body] = pos_m
+        if not box_inertia:
+            m.body_inertia[IDS.payload_body] = 0.0
+        mujoco.mj_setConst(m, mujoco.MjData(m))
+        return m
+
+    go1_model.scenario_model = placed
+    try:
+        yield
+    finally:
+        go1_model.scenario_model = original
+
+
+def placement(p, measured) -> None:
+    print("\n## placement: where the payload sits\n")
+    for payload in (7.5, 15.0):
+        print(f"\n{payload:g} kg:\n\n{HEADER}")
+        runs = {}
+        for name, (pos_m, box) in PLACEMENTS.items():
+            with payload_placed(pos_m, box):
+                runs[name] = walk(p, "paper", payload_kg=payload, measured=measured)
+            print(summary(name, runs[name]))
+        print()
+        base = next(iter(PLACEMENTS))
+        for name in list(PLACEMENTS)[1:]:
+            print(paired_line(f"{name} − {base}", runs[name], runs[base]))
+
+
+def slope_signal(p, measured) -> None:
+    print("\n## slope_signal: the foot-force signal on the slopes\n")
+    for slope in (10.0, 12.5):
+        print(f"\n{slope:g}°:\n\n{HEADER}")
+        runs = {name: walk(p, name, slope_deg=slope, measured=measured) for name in ("paper", "paper_sampled")}
+        for name, w in runs.items():
+            print(summary(name, w))
+        print()
+        print(paired_line("paper − paper_sampled (the plugin's mean − one step's force)", runs["paper"],
+                          runs["paper_sampled"]))
+
+
 EXPERIMENTS = {"signal": signal, "contact": contact, "start": start, "search": search, "floor": floor, "load": load,
-               "imu": imu}
+               "imu": imu, "placement": placement, "slope_signal": slope_signal}
 
 
 def main(argv=None) -> None:
