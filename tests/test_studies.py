@@ -122,6 +122,7 @@ def test_ablation_outputs(tiny_ablation):
         j = result.trials.objective[:, [lab["controller"] == c for lab in result.labels]]
         assert f"{np.mean(j[-5:].mean(axis=0)):.3f} [" in row  # mean of the last 5, then over seeds, with its CI
     assert (out / "table.md").read_text().startswith("# controller_ablation")
+    assert "Roll–pitch of the best parameters" in (out / "table.md").read_text()  # the attitude figure's rows
     for png in ("learning_curves.png", "attitude.png", "attitude_best_gaits.png", "summary.png",
                 "optimization_progress.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
@@ -216,17 +217,20 @@ def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tin
 
 def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp_path, monkeypatch):
     """A figure that cannot be drawn (here: a raising learning_curves) stops the outputs with one message; the trial
-    table, the metadata and the best parameters are already written, and the message names them."""
+    table, the metadata, the best parameters and table.md are already written, and the message names them."""
     result, _, _ = tiny_ablation
 
     def broken(*args, **kwargs):
         raise OSError(28, "No space left on device")
     monkeypatch.setattr(study_figures, "learning_curves", broken)
-    with pytest.raises(study_io.OutputError, match=r"writing table.md and the figures in .* failed \(OSError: "
-                       r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, trials.parquet"):
+    with pytest.raises(study_io.OutputError, match=r"writing the study's figures in .* failed \(OSError: "
+                       r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, table.md, "
+                       r"trials.parquet"):
         studies.write_outputs(result, tmp_path, "native")
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 16 and (tmp_path / "metadata.json").exists()
-
+    table = (tmp_path / "table.md").read_text()
+    assert "| vmc_tegotae |" in table and "Safety during optimization" in table and "\nRun: " in table
+    assert "Roll–pitch of the best parameters" not in table  # the part its figure walks is not drawn yet
 
 
 def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_path, monkeypatch):

@@ -272,7 +272,7 @@ def _labels(result, key) -> np.ndarray:
     return np.array([lab[key] for lab in result.labels])
 
 
-def report_ablation(result, out: pathlib.Path, backend: str):
+def report_ablation(result, backend: str) -> str:
     tr, n = result.trials, result.trials.objective.shape[0]
     controllers = _labels(result, "controller")
     rows = ["| controller | velocity [m/s] ours | paper | CoT ours | paper | J ours | paper | falls (all trials) |",
@@ -286,24 +286,30 @@ def report_ablation(result, out: pathlib.Path, backend: str):
         rows.append(f"| {c} | {mean_ci(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {mean_ci(cot)} | "
                     f"{p[1][0]:.3f} ± {p[1][1]:.3f} | {mean_ci(j)} | {p[2][0]:.3f} ± {p[2][1]:.3f} | "
                     f"{int(tr.fell[:, m].sum())}/{tr.fell[:, m].size} |")
-    text = (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then mean "
+    return (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then mean "
             f"[95 % CI] over {len(result.spec.seeds)} seeds; the paper's mean ± std over {PAPER_SEEDS} seeds.\n\n"
             + "\n".join(rows) + "\n" + ablation_verdicts(result))
+
+
+def figures_ablation(result, out: pathlib.Path, backend: str) -> str:
+    """learning_curves.png, and attitude.png with its table: the roll–pitch of open loop's and VMC+Tegotae's best
+    parameters (the paper's Fig. att_comp), each walked again."""
+    controllers = _labels(result, "controller")
     study_figures.learning_curves(out / "learning_curves.png", result, "controller")
     picks = [c for c in ("open_loop", "vmc_tegotae") if (controllers == c).any()]
-    logs = {}
-    if picks:
-        best = [best_params(result, controllers == c) for c in picks]
-        params = np.stack([b[0] for b in best])
-        scenario = go1_model.make_scenarios(friction=[result.spec.friction[0]] * len(picks),
-                                            physics=[result.labels[b]["physics"] for _, b, _ in best])
-        for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend), strict=True):
-            logs[f"best_{c}"] = lg
-        study_figures.attitude(out / "attitude.png", logs)
-        text += "\nRoll–pitch of the best parameters (3 s after a settling trial), std [rad]:\n\n"
-        text += "| controller | best J (instance) | roll std | pitch std |\n|---|---|---|---|\n"
-        for (c, lg), (_, b, jb) in zip(logs.items(), best, strict=True):
-            text += f"| {c} | {jb:.3f} (#{b}) | {np.std(lg.rpy_rad[:, 0]):.4f} | {np.std(lg.rpy_rad[:, 1]):.4f} |\n"
+    if not picks:
+        return ""
+    best = [best_params(result, controllers == c) for c in picks]
+    params = np.stack([b[0] for b in best])
+    scenario = go1_model.make_scenarios(friction=[result.spec.friction[0]] * len(picks),
+                                        physics=[result.labels[b]["physics"] for _, b, _ in best])
+    logs = {f"best_{c}": lg for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend),
+                                             strict=True)}
+    study_figures.attitude(out / "attitude.png", logs)
+    text = "\nRoll–pitch of the best parameters (3 s after a settling trial), std [rad]:\n\n"
+    text += "| controller | best J (instance) | roll std | pitch std |\n|---|---|---|---|\n"
+    for (c, lg), (_, b, jb) in zip(logs.items(), best, strict=True):
+        text += f"| {c} | {jb:.3f} (#{b}) | {np.std(lg.rpy_rad[:, 0]):.4f} | {np.std(lg.rpy_rad[:, 1]):.4f} |\n"
     return text
 
 
@@ -351,7 +357,7 @@ def phase_diagnostics(result, start: int, stop: int) -> str:
             f"{beta.min():.2g} – {beta.max():.2g}")
 
 
-def report_load(result, out: pathlib.Path, backend: str):
+def report_load(result, backend: str) -> str:
     tr, cond = result.trials, result.conditions
     starts = phase_starts(cond.payload_kg[0]) + [tr.objective.shape[0]]
     loads = [float(cond.payload_kg[0, s]) for s in starts[:-1]]
@@ -383,12 +389,10 @@ def report_load(result, out: pathlib.Path, backend: str):
             "parentheses: the best parameters found before the first payload change, re-run on the loaded robot. The "
             "paper gives no spread for this table.\n\n" + "\n".join(rows) + "\n\nPer phase:\n\n"
             + "\n".join(phases) + "\n")
-    study_figures.learning_curves(out / "load_adaptation.png", result, "schedule", changes=starts[1:-1],
-                                  context_index=0)
     return text
 
 
-def report_friction(result, out: pathlib.Path, backend: str):
+def report_friction(result, backend: str) -> str:
     tr, n = result.trials, result.trials.objective.shape[0]
     friction = _labels(result, "friction")
     rows = ["| friction | velocity [m/s] | CoT | J | trials to a prospective solution (J ≥ 90 % of the run's best) |",
@@ -403,7 +407,6 @@ def report_friction(result, out: pathlib.Path, backend: str):
     text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, mean [95 % CI] over "
             f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
             "(no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction"))
-    study_figures.learning_curves(out / "friction.png", result, "friction")
     return text
 
 
@@ -431,7 +434,7 @@ def _finite_counts(counts: np.ndarray) -> np.ndarray:
     return counts[np.isfinite(counts)]
 
 
-def report_multi_velocity(result, out: pathlib.Path, backend: str):
+def report_multi_velocity(result, backend: str) -> str:
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
     starts = phase_starts(cond.target_velocity_mps[0]) + [n]
@@ -462,12 +465,10 @@ def report_multi_velocity(result, out: pathlib.Path, backend: str):
             verdict = stats.compare(a, b) if min(a.size, b.size) >= 2 else "too few tracking runs"
             lines.append(f"- {float(cond.target_velocity_mps[0, s]):g} m/s (from trial {s}): {verdict}")
         text += "\n".join(lines) + "\n"
-    study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse", changes=starts[1:-1],
-                                  target=cond.target_velocity_mps[0])
     return text
 
 
-def report_slope(result, out: pathlib.Path, backend: str):
+def report_slope(result, backend: str) -> str:
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
     learn = int(np.argmax(cond.inference[0])) if cond.inference[0].any() else n
@@ -489,12 +490,10 @@ def report_slope(result, out: pathlib.Path, backend: str):
             rows.append(f"| {slope:g} | {mean_ci(tr.velocity_xy_mps[s:e, :, 0])} | {mean_ci(tr.objective[s:e])} | "
                         f"{int(tr.fell[s:e].sum())}/{tr.fell[s:e].size} | {paper} |")
         text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{n - 1}:\n\n" + "\n".join(rows) + "\n")
-    study_figures.learning_curves(out / "slope_adaptation.png", result, "schedule", changes=starts[1:],
-                                  context_index=1)
     return text
 
 
-def report_hardware(result, out: pathlib.Path, backend: str):
+def report_hardware(result, backend: str) -> str:
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
     schedules = _labels(result, "schedule")
@@ -527,8 +526,32 @@ def report_hardware(result, out: pathlib.Path, backend: str):
             f"trial with |v_x − v*| ≤ {TRACKING_TOLERANCE_MPS} m/s and no fall. Taped feet: floor μ "
             f"{TAPED_FEET_FRICTION:g} (the paper gives none). The paper's figures are from one robot run each.\n\n"
             + "\n".join(rows) + "\n")
-    study_figures.learning_curves(out / "paper_hardware.png", result, "schedule")
     return text
+
+
+def _figure(name: str, group_key: str, changes_of=None, **kwargs):
+    """A study's learning-curve figure ``name``: J (and the context) per trial per ``group_key``, with a line at each
+    trial where ``changes_of(result)`` changes (the condition's phases)."""
+    def draw(result, out: pathlib.Path, backend: str) -> str:
+        del backend
+        changes = [] if changes_of is None else changes_of(result)
+        study_figures.learning_curves(out / name, result, group_key, changes=changes, **kwargs)
+        return ""
+    return draw
+
+
+def _learning_end(result) -> int:
+    """The first inference-mode trial (the trial count if none)."""
+    inference = result.conditions.inference[0]
+    return int(np.argmax(inference)) if inference.any() else result.trials.objective.shape[0]
+
+
+def figures_multi_velocity(result, out: pathlib.Path, backend: str) -> str:
+    del backend
+    target = result.conditions.target_velocity_mps[0]
+    study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse",
+                                  changes=phase_starts(target)[1:], target=target)
+    return ""
 
 
 def safety_summary(result) -> str:
@@ -572,20 +595,30 @@ def load_paper_marks(result) -> list[study_figures.PaperMark]:
 class Study(NamedTuple):
     name: str
     make_spec: Callable[..., StudySpec]
-    report: Callable[..., str]  # (result, out, backend) → the table text; writes the study's figures
+    report: Callable[..., str]  # (result, backend) → the table text; writes no file
+    figures: Callable[..., str]  # (result, out, backend) → the study's figures; returns text the table gains
     description: str
     # (result) → the paper's J values that summary.png marks; none where the paper gives no J for the result
     paper_marks: Callable[..., list] = lambda result: []
 
 
 STUDIES = {s.name: s for s in (
-    Study("controller_ablation", ablation_spec, report_ablation, "4 controllers × seeds × 40 trials, v* = 0.5 m/s",
-          ablation_paper_marks),
-    Study("load_adaptation", load_spec, report_load, "payload 0 → 7.5 → 15 kg with contextual BO", load_paper_marks),
-    Study("friction", friction_spec, report_friction, "friction 0.3 / 0.6 / 0.9 learning curves"),
-    Study("multi_velocity", multi_velocity_spec, report_multi_velocity, "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
-    Study("slope_adaptation", slope_spec, report_slope, "0° → 10° → 12.5°, then inference mode on 10°…17.5°"),
-    Study("paper_hardware", hardware_spec, report_hardware,
+    Study("controller_ablation", ablation_spec, report_ablation, figures_ablation,
+          "4 controllers × seeds × 40 trials, v* = 0.5 m/s", ablation_paper_marks),
+    Study("load_adaptation", load_spec, report_load,
+          _figure("load_adaptation.png", "schedule", lambda r: phase_starts(r.conditions.payload_kg[0])[1:],
+                  context_index=0),
+          "payload 0 → 7.5 → 15 kg with contextual BO", load_paper_marks),
+    Study("friction", friction_spec, report_friction, _figure("friction.png", "friction"),
+          "friction 0.3 / 0.6 / 0.9 learning curves"),
+    Study("multi_velocity", multi_velocity_spec, report_multi_velocity, figures_multi_velocity,
+          "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
+    Study("slope_adaptation", slope_spec, report_slope,
+          _figure("slope_adaptation.png", "schedule",
+                  lambda r: phase_starts(r.conditions.slope_deg[0, :_learning_end(r)])[1:] + [_learning_end(r)],
+                  context_index=1),
+          "0° → 10° → 12.5°, then inference mode on 10°…17.5°"),
+    Study("paper_hardware", hardware_spec, report_hardware, _figure("paper_hardware.png", "schedule"),
           "the hardware experiments under go1: flat, taped feet, 0.6→0.3→0.5→0.6 m/s, 10°, 5/10/15 kg"),
 
 )}
@@ -616,8 +649,9 @@ def notify_stderr(line: str) -> None:
 def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None, command: str | None = None,
                   notify: Callable[[str], None] = notify_stderr) -> str:
     """Every file of a finished study; returns the table text. The trial table, the metadata and each group's best
-    gait (``best_params/<group>.json``, :func:`save_best_gaits`) first (they cannot fail but for the disk), then the
-    report (table.md, figures), the recording, and last the gaits' figures and videos (``best_<group>.mp4``,
+    gait (``best_params/<group>.json``, :func:`save_best_gaits`) first (they cannot fail but for the disk), then
+    table.md, then the study's figures (the ablation's table then gains the attitude rows its figure walks), the
+    recording, and last the gaits' figures and videos (``best_<group>.mp4``,
     :mod:`cpgjax.study.video`), with a line to ``notify`` per video, or one saying why there is none.
 
     Raises:
@@ -630,12 +664,20 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
         study_io.write_metadata(result, out / "metadata.json", command=command)
     with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
         gaits = save_best_gaits(out, result)
-    with study_io.writing(out, "table.md and the figures"):
-        text = STUDIES[name or result.spec.name].report(result, out, backend) + safety_summary(result)
+    study = STUDIES[name or result.spec.name]
+    report = study.report(result, backend)
+    run = f"\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
+    with study_io.writing(out, "table.md"):
+        text = f"# {result.spec.name}\n\n{report}{safety_summary(result)}{run}"
+        (out / "table.md").write_text(text)
+    with study_io.writing(out, "the study's figures"):
+        extra = study.figures(result, out, backend)
         study_figures.optimization_progress(out / "optimization_progress.png", result, [
             group_name(lab, result.spec.group_by) for lab in result.labels])
-        text = f"# {result.spec.name}\n\n{text}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
-        (out / "table.md").write_text(text)
+    if extra:
+        with study_io.writing(out, "table.md"):
+            text = f"# {result.spec.name}\n\n{report}{extra}{safety_summary(result)}{run}"
+            (out / "table.md").write_text(text)
     logs = gait_rollouts(gaits, backend)
     with study_io.writing(out, "recording.rrd"):
         study_io.write_recording(result, out / "recording.rrd", [
@@ -646,7 +688,7 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
         filmed = study_video.write_videos(out, gaits, logs, notify)
         strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed, strict=True)}
         study_figures.summary(out / "summary.png", result, text, gaits, strips,
-                              STUDIES[name or result.spec.name].paper_marks(result))
+                              study.paper_marks(result))
     return text
 
 
