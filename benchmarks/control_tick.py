@@ -24,9 +24,9 @@ from cpgjax.go1 import physics, sensors
 from cpgjax.trial import params, protocol
 
 
-def threefry_draws(profile: physics.ProfileArrays, tick) -> jax.Array:
+def threefry_draws(profile: physics.ProfileArrays, tick) -> physics.NoisyReadings:
     key = jax.random.fold_in(jax.random.PRNGKey(profile.noise_seed), tick)
-    return jax.random.uniform(key, (physics.NUM_NOISY_READINGS,), jnp.float32, -1.0, 1.0)
+    return physics.NOISE_DRAWS.unravel(jax.random.uniform(key, (physics.NUM_NOISY_READINGS,), jnp.float32, -1.0, 1.0))
 
 
 def tick_inputs(batch: int):

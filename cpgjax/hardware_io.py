@@ -33,13 +33,11 @@ from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD
 from cpgjax.robot import cpu_wakeup, memory_lock
 from cpgjax.robot import protocol as proto
 from cpgjax.robot.controller import (
-    IN_SIZE,
-    OBS_SIZE,
-    OUT_FINITE,
-    OUT_GUARDED,
-    OUT_STATE,
-    OUT_TORQUE,
+    INPUT,
+    OBSERVATION,
+    OUTPUT,
     CompiledController,
+    ControllerInput,
     pack_observation,
 )
 from cpgjax.robot.foot_force import FootForceCalibration
@@ -75,7 +73,7 @@ class ParamSchedule(Protocol):
         """Parameters (8,) for this tick of the run phase."""
 
     def record(self, run_tick: int, out: np.ndarray) -> None:
-        """The controller's flat output (OUT_SIZE,) of this tick."""
+        """The controller's flat output (``robot.controller.OUTPUT``) of this tick."""
 
 
 class FixedParams:
@@ -135,7 +133,7 @@ class TickLog(NamedTuple):
     fresh: np.ndarray  # a new robot state arrived this tick
     robot_tick_ms: np.ndarray
     foot_force_raw: np.ndarray  # (n, 4) the latest robot state's raw foot-sensor counts
-    obs: np.ndarray  # (n, OBS_SIZE) observation given to the controller (run phase)
+    obs: np.ndarray  # (n, OBSERVATION.size) observation given to the controller (run phase), flat
     torque_nm: np.ndarray  # (n, 12) torque sent (after clamping)
     controller_torque_nm: np.ndarray  # (n, 12) torque returned by the controller (before clamping)
     q_rad: np.ndarray  # (n, 12) the latest robot state's joint angles (every phase)
@@ -156,7 +154,7 @@ class TickLog(NamedTuple):
         zeros = lambda shape, dtype=np.float32: np.full(shape, 0, dtype)  # noqa: E731 (np.full writes every page)
         return cls(zeros(n, np.float64), zeros(n), zeros(n), zeros(n), zeros(n), zeros(n, bool),
                    np.full(n, -1, np.int8), zeros(n, bool), zeros(n, np.uint32), zeros((n, 4), np.int16),
-                   zeros((n, OBS_SIZE)), zeros((n, 12)), zeros((n, 12)), zeros((n, 12)), zeros((n, 12)),
+                   zeros((n, OBSERVATION.size)), zeros((n, 12)), zeros((n, 12)), zeros((n, 12)), zeros((n, 12)),
                    zeros((n, 4)), zeros((n, 3)), zeros((n, 12)), zeros(n), zeros(n), zeros(n, np.int32),
                    zeros(n, np.int16), zeros(n, np.int16))
 
@@ -388,11 +386,13 @@ def _phase_ticks(loop: LoopConfig) -> tuple[int, ...]:
             round(loop.stand_s / period_s), 0, max(1, round(loop.end_damping_s / period_s)))
 
 
-def _controller_input(gates: cpg.Gates) -> np.ndarray:
-    """The controller's flat input (IN_SIZE,) with the gates set; the loop writes the rest each run tick."""
-    x = np.zeros(IN_SIZE, np.float32)
-    x[OBS_SIZE + 8], x[OBS_SIZE + 9] = float(gates.vmc), float(gates.tegotae)
-    return x
+def _controller_input(gates: cpg.Gates) -> tuple[np.ndarray, ControllerInput]:
+    """The controller's flat input (``robot.controller.INPUT``) with the gates set, and its named views; the loop
+    writes the rest each run tick."""
+    x = INPUT.zeros()
+    views = INPUT.unravel(x)
+    views.gates.vmc[...], views.gates.tegotae[...] = float(gates.vmc), float(gates.tegotae)
+    return x, views
 
 
 def _enter_phase(events: list, tick: int, phase: int, message: str) -> tuple[int, int]:
@@ -504,7 +504,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
     if n_log % flush:
         raise ValueError(f"log_ticks {n_log} must be a multiple of flush_ticks {flush}")
     tick_log = TickLog.allocate(n_log)
-    x = _controller_input(gates)
+    x, inputs = _controller_input(gates)
 
     events: list = []
     trip, stopped = None, False
@@ -547,17 +547,17 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
             command_phase = phase  # the phase whose command this tick sends (logged)
             if phase == RUN:  # whole: step_s must time exactly pack + compiled call + unpack
                 ts = time.perf_counter()
-                pack_observation(last_state, calibration, x)
+                pack_observation(last_state, calibration, inputs.obs)
                 if run_tick == 0:  # start the CPG from the observation of its first tick (as the simulator)
-                    x[OBS_SIZE + 10:] = controller.initial_state(x[:OBS_SIZE])
-                x[OBS_SIZE:OBS_SIZE + 8] = schedule.params(run_tick)
+                    x[INPUT.slices.state] = controller.initial_state(x[INPUT.slices.obs])
+                inputs.params[:] = schedule.params(run_tick)
                 out = controller.step(x)
-                x[OBS_SIZE + 10:] = out[OUT_STATE]
+                x[INPUT.slices.state] = out[OUTPUT.slices.state]
                 step_s = time.perf_counter() - ts
                 schedule.record(run_tick, out)
-                cmd, guarded = torque_command(out[OUT_GUARDED].astype(np.float64)), True
-                tick_log.obs[i] = x[:OBS_SIZE]
-                tick_log.controller_torque_nm[i] = out[OUT_TORQUE]
+                cmd, guarded = torque_command(out[OUTPUT.slices.guarded_torque_nm].astype(np.float64)), True
+                tick_log.obs[i] = x[INPUT.slices.obs]
+                tick_log.controller_torque_nm[i] = out[OUTPUT.slices.torque_nm]
                 run_tick += 1
                 if schedule.finished:
                     phase, phase_tick = _enter_phase(events, k, DAMP, "run complete")
@@ -572,7 +572,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 cmd = damp
 
             if guarded:  # safety.guard_command of a torque command: finite, clamped to the motor limits
-                reason = None if out[OUT_FINITE] else "non-finite command (tau)"
+                reason = None if out[OUTPUT.slices.finite][0] else "non-finite command (tau)"
             else:
                 cmd, reason = guard_command(cmd, safety)
             if reason is not None:

@@ -18,7 +18,7 @@ PACKAGE = ROOT / "cpgjax"
 
 # docs/architecture.md: the layers, lowest first. A module may import modules of its own layer or of lower ones.
 LAYERS = (
-    ("run provenance", ("provenance",)),
+    ("run provenance and flat layouts", ("provenance", "layout")),
     ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.model")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
@@ -33,8 +33,9 @@ LAYERS = (
                "robot.tick_log", "robot.trials", "robot.deploy", "robot.calibrate")),
     ("command line", ("cli",)),
 )
-# The design's modules, the entry point, and what a run records about its code and machine (below every layer)
-TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli", "provenance"}
+# The design's modules, the entry point, and below every layer what a run records about its code and machine and how
+# a pytree is laid out in a flat vector
+TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli", "provenance", "layout"}
 # docs/architecture.md: these layers sit side by side, neither imports the other (whatever their order in LAYERS).
 SIDE_BY_SIDE = ("studies", "robot")
 # docs/architecture.md: the optimizer is generic over its parameter and context boxes; of cpgjax it imports only these

@@ -192,8 +192,8 @@ if sys.argv[1] == "late":
 from cpgjax import hardware_io as hio
 from cpgjax.robot import controller as compiled_controller
 controller = compiled_controller.CompiledController(warmup_calls=10)
-x = np.zeros(compiled_controller.IN_SIZE, np.float32)
-x[24] = 1.0
+x = compiled_controller.INPUT.zeros()
+compiled_controller.INPUT.unravel(x).obs.imu_quat_wxyz[0] = 1.0
 def waits():
     return int(next(l for l in open("/proc/thread-self/status") if l.startswith("voluntary_ctxt")).split()[1])
 before = waits()
@@ -312,13 +312,13 @@ def test_foot_force_calibration_recovers_the_simulated_sensor(tmp_path):
 
 def _rollout_torques(obs_sequence: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Torques of the MJX rollout's controller path (``cpg.controller_step`` vmapped over instances and scanned
-    over ticks, as in ``mjx_go1``) for a given observation sequence (T, OBS_SIZE)."""
+    over ticks, as in ``mjx_go1``) for a given flat observation sequence (T, OBSERVATION.size)."""
     def rollout(obs_seq, p_inst, gates):
-        state0 = cpg.init_state(compiled_controller.unpack_observation(obs_seq[0]))
+        state0 = cpg.init_state(compiled_controller.OBSERVATION.unravel(obs_seq[0]))
 
         def body(state, x):
             state, torque, _ = cpg.controller_step(cpg.CPGConfig(), state, p_inst, gates,
-                                                   compiled_controller.unpack_observation(x))
+                                                   compiled_controller.OBSERVATION.unravel(x))
             return state, torque
         return jax.lax.scan(body, state0, obs_seq)[1]
 
@@ -488,21 +488,23 @@ def test_the_compiled_step_guards_its_torque_as_the_safety_guard_does(controller
     """The run phase's guard runs inside the compiled step (one dispatch a tick): its torque and finiteness flag
     must be what ``safety.guard_command`` makes of the controller's torque command, saturated and NaN alike."""
     rng = np.random.default_rng(0)
-    x = np.zeros(compiled_controller.IN_SIZE, np.float32)
-    x[compiled_controller.OBS_SIZE:compiled_controller.OBS_SIZE + 8] = params.midpoint()
-    x[compiled_controller.OBS_SIZE + 8:compiled_controller.OBS_SIZE + 10] = 1.0
+    layout, result = compiled_controller.INPUT, compiled_controller.OUTPUT
+    x = layout.zeros()
+    inputs = layout.unravel(x)
+    inputs.params[:] = params.midpoint()
+    inputs.gates.vmc[...] = inputs.gates.tegotae[...] = 1.0
     clipped = 0
     for k in range(40):
-        x[:compiled_controller.OBS_SIZE] = rng.normal(0.0, 3.0, compiled_controller.OBS_SIZE)
-        x[24:28] /= np.linalg.norm(x[24:28])
+        x[layout.slices.obs] = rng.normal(0.0, 3.0, compiled_controller.OBSERVATION.size)
+        inputs.obs.imu_quat_wxyz[:] /= np.linalg.norm(inputs.obs.imu_quat_wxyz)
         if k == 39:
-            x[3] = np.nan
-        out = controller.step(x)
-        torque = out[compiled_controller.OUT_TORQUE].astype(np.float64)
+            inputs.obs.joint_pos_rad[3] = np.nan
+        out = result.unravel(controller.step(x))
+        torque = out.torque_nm.astype(np.float64)
         guarded, reason = go1_safety.guard_command(go1_safety.torque_command(torque), SAFETY)
-        assert bool(out[compiled_controller.OUT_FINITE]) == (reason is None)
+        assert bool(out.finite) == (reason is None)
         if reason is None:
-            np.testing.assert_allclose(out[compiled_controller.OUT_GUARDED], guarded.tau_nm, rtol=1e-6)
+            np.testing.assert_allclose(out.guarded_torque_nm, guarded.tau_nm, rtol=1e-6)
             clipped += int(np.any(np.abs(torque) > constants.TORQUE_LIMIT_NM))
     assert reason is not None and clipped > 0  # both cases were exercised
 
@@ -528,7 +530,7 @@ def test_the_simulated_go1_motor_law():
             if dq_cmd[i] != proto.VEL_STOP_F:
                 tau += cmd.kd_nm_s_rad[i] * (dq_cmd[i] - dq[i])
         expected[i] = np.clip(tau, -constants.TORQUE_LIMIT_NM[i], constants.TORQUE_LIMIT_NM[i])
-    c32 = proto.MotorCommand(*sim.command_vector(cmd).reshape(6, 12))
+    c32 = sim.COMMAND.unravel(sim.command_vector(cmd))
     got = np.asarray(sim.motor_torque(c32, q.astype(np.float32), dq.astype(np.float32)))
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-4)
     assert np.any(np.abs(expected) == constants.TORQUE_LIMIT_NM)  # the clip was exercised

@@ -309,10 +309,11 @@ def test_go1_sensor_noise_is_uniform_within_its_amplitudes_and_a_pure_function_o
         np.testing.assert_allclose(error.mean(), 0.0, atol=0.03 * amplitude)
         np.testing.assert_allclose(error.std(), amplitude / np.sqrt(3.0), rtol=0.05)  # uniform's std
     # Uncorrelated across readings, from tick to tick, and between seeds (|r| ≤ 0.1 over 2000 draws; 4.5 σ).
-    u = np.asarray(jax.vmap(lambda t: physics.noise_draws(jax.tree.map(lambda x: x[0], physics.batch_arrays(
-        ["go1"])), t))(jnp.arange(2000)))
-    other = np.asarray(jax.vmap(lambda t: physics.noise_draws(jax.tree.map(lambda x: x[0], physics.batch_arrays(
-        ["go1"], noise_seed=[1])), t))(jnp.arange(2000)))
+    def flat_draws(noise_seed):
+        profile = jax.tree.map(lambda x: x[0], physics.batch_arrays(["go1"], noise_seed=noise_seed))
+        return np.asarray(jax.vmap(lambda t: physics.NOISE_DRAWS.ravel(physics.noise_draws(profile, t)))(
+            jnp.arange(2000)))
+    u, other = flat_draws(None), flat_draws([1])
     r = np.corrcoef(np.concatenate([u, u[1:].tolist() + [u[0]], other], axis=1).T)
     n = physics.NUM_NOISY_READINGS
     assert np.abs(r - np.eye(3 * n)).max() < 0.1
@@ -336,8 +337,8 @@ def test_go1_sensor_noise_is_uniform_within_its_amplitudes_and_a_pure_function_o
     np.testing.assert_array_equal(np.asarray(paper.imu_quat_wxyz), np.asarray(truth.imu_quat_wxyz))
     # A noise scale on the paper profile gives it that multiple of the go1 amplitudes.
     scaled = physics.batch_arrays(["paper", "paper"], noise_scale=[2.0, -1.0])
-    np.testing.assert_allclose(scaled.noise[0], 2 * physics.arrays(physics.get("go1")).noise)
-    np.testing.assert_array_equal(scaled.noise[1], 0.0)
+    np.testing.assert_allclose(np.array(scaled.noise)[:, 0], 2 * np.array(physics.arrays(physics.get("go1")).noise))
+    np.testing.assert_array_equal(np.array(scaled.noise)[:, 1], 0.0)
     # The motors see the true velocity: the control tick's torque equals actuate on qvel's joint velocities.
     profile = jax.tree.map(lambda x: x[0], physics.batch_arrays(["go1"]))
     io = physics.init_state(jnp.zeros(4))

@@ -28,6 +28,7 @@ import mujoco
 import numpy as np
 
 from cpgjax.go1 import attitude, constants
+from cpgjax.layout import FlatLayout
 
 # Largest actuation latency a profile may have [ticks]; the command queue has this many slots (static).
 MAX_LATENCY_TICKS = 4
@@ -161,6 +162,17 @@ def apply_to_model(model: mujoco.MjModel, profile: PhysicsProfile, floor_geom: i
 
 # ----------------------------------------------------------------------------------------------- per-tick arrays
 
+class NoisyReadings(NamedTuple):
+    """The sensor readings that carry noise, by name: per reading its noise amplitude (a profile's, shape ()) or one
+    tick's uniform draws (:func:`noise_draws`, one per axis)."""
+
+    joint_pos: jax.Array  # [rad]; draws (12,)
+    joint_vel: jax.Array  # [rad/s]; draws (12,)
+    gyro: jax.Array  # [rad/s]; draws (3,)
+    tilt: jax.Array  # [rad] the IMU's orientation about the trunk's x and y; draws (2,)
+    foot_force: jax.Array  # [N]; draws (4,)
+
+
 class ProfileArrays(NamedTuple):
     """The actuator and sensor fields of a profile as arrays (a leading batch axis when batched)."""
 
@@ -173,7 +185,7 @@ class ProfileArrays(NamedTuple):
     force_contact_mean: jax.Array  # () bool: each update reports the mean over its in-contact ticks
     contact_layer_m: jax.Array  # () float32: a foot touches the floor within this clearance
     force_n_per_count: jax.Array  # () float32, 0: continuous
-    noise: jax.Array  # (5,) float32, the noise amplitudes (joint pos, joint vel, gyro, tilt, foot force)
+    noise: NoisyReadings  # () float32 each, the noise amplitudes of the readings
     noise_seed: jax.Array  # () uint32, this instance's noise stream
 
 
@@ -195,8 +207,9 @@ def arrays(profile: PhysicsProfile) -> ProfileArrays:
         force_contact_mean=np.bool_(profile.foot_force_contact_mean),
         contact_layer_m=np.float32(profile.foot_contact_layer_m),
         force_n_per_count=np.float32(profile.foot_force_n_per_count),
-        noise=np.array([profile.joint_pos_noise_rad, profile.joint_vel_noise_rad_s, profile.gyro_noise_rad_s,
-                        profile.tilt_noise_rad, profile.foot_force_noise_n], np.float32),
+        noise=NoisyReadings(*(np.float32(a) for a in (
+            profile.joint_pos_noise_rad, profile.joint_vel_noise_rad_s, profile.gyro_noise_rad_s,
+            profile.tilt_noise_rad, profile.foot_force_noise_n))),
         noise_seed=np.uint32(0))
 
 
@@ -206,14 +219,15 @@ def batch_arrays(names, latency_ticks=None, noise_scale=None, noise_seed=None) -
     the profile's own) replaces its sensor noise by that multiple of the robot's (ROBOT_PROFILE's), and
     ``noise_seed`` chooses the instance's noise stream."""
     rows = [arrays(get(str(n))) for n in names]
-    batch = ProfileArrays(*(np.stack(field) for field in zip(*rows, strict=True)))
+    batch = jax.tree.map(lambda *field: np.stack(field), *rows)
     if latency_ticks is not None:
         override = np.asarray(latency_ticks, np.int32)
         batch = batch._replace(latency_ticks=np.where(override >= 0, override, batch.latency_ticks).astype(np.int32))
     if noise_scale is not None:
-        scale = np.asarray(noise_scale, np.float32)[:, None]
-        robot = arrays(get(ROBOT_PROFILE)).noise
-        batch = batch._replace(noise=np.where(scale >= 0, scale * robot, batch.noise).astype(np.float32))
+        scale = np.asarray(noise_scale, np.float32)
+        batch = batch._replace(noise=jax.tree.map(
+            lambda robot, own: np.where(scale >= 0, scale * robot, own).astype(np.float32),
+            arrays(get(ROBOT_PROFILE)).noise, batch.noise))
     if noise_seed is not None:
         batch = batch._replace(noise_seed=np.asarray(noise_seed, np.uint32))
     return batch
@@ -271,7 +285,8 @@ def count(profile: ProfileArrays, force_n: jax.Array) -> jax.Array:
     return jnp.where(step > 0, jnp.round(force_n / jnp.where(step > 0, step, 1.0)) * step, force_n)
 
 
-NUM_NOISY_READINGS = 12 + 12 + 3 + 2 + 4  # joint angles, joint velocities, gyro axes, tilt axes, foot forces
+NOISE_DRAWS = FlatLayout(NoisyReadings(np.zeros(12), np.zeros(12), np.zeros(3), np.zeros(2), np.zeros(4)))
+NUM_NOISY_READINGS = NOISE_DRAWS.size
 
 
 _GOLDEN_GAMMA = np.uint32(0x9E3779B9)  # SplitMix's increment: 2³² / golden ratio
@@ -285,9 +300,9 @@ def _fmix32(x: jax.Array) -> jax.Array:
     return x ^ (x >> 16)
 
 
-def noise_draws(profile: ProfileArrays, tick: jax.Array) -> jax.Array:
-    """Uniform draws in [−1, 1) (NUM_NOISY_READINGS,) for one tick of one instance: a pure function of the
-    instance's noise seed and the tick, so a run and its resume see the same noise.
+def noise_draws(profile: ProfileArrays, tick: jax.Array) -> NoisyReadings:
+    """Uniform draws in [−1, 1), one per noisy reading (:data:`NOISE_DRAWS`), for one tick of one instance: a pure
+    function of the instance's noise seed and the tick, so a run and its resume see the same noise.
 
     A counter-based SplitMix32 stream (the state for (seed, tick), advanced by the golden gamma per reading, each
     output finalized by ``_fmix32``), not ``jax.random``: in the vmapped 1 kHz tick, threefry made the batch-20
@@ -297,7 +312,7 @@ def noise_draws(profile: ProfileArrays, tick: jax.Array) -> jax.Array:
     seed = jnp.asarray(profile.noise_seed, jnp.uint32)
     state = _fmix32(_fmix32(seed + _GOLDEN_GAMMA) ^ jnp.asarray(tick).astype(jnp.uint32))
     counter = state + _GOLDEN_GAMMA * jnp.arange(1, NUM_NOISY_READINGS + 1, dtype=jnp.uint32)
-    return (_fmix32(counter) >> 8).astype(jnp.float32) * np.float32(2.0 ** -23) - 1.0
+    return NOISE_DRAWS.unravel((_fmix32(counter) >> 8).astype(jnp.float32) * np.float32(2.0 ** -23) - 1.0)
 
 
 def init_state(force_n: jax.Array) -> ActuatorSensorState:

@@ -45,17 +45,18 @@ def measure(profile: physics.ProfileArrays, io: physics.ActuatorSensorState, qpo
     contact_data = sensordata[ids.foot_contact_data]
     signal = physics.foot_force_signal(profile, qpos, contact_data, ids.root_qpos, ids.joint_qpos)
     clearance = foot_positions(qpos)[:, 2] - go1_model.FOOT_RADIUS_M
-    io, held = physics.foot_sensor_update(profile, io, physics.count(profile, signal + amplitude[4] * u[29:33]),
+    io, held = physics.foot_sensor_update(profile, io,
+                                          physics.count(profile, signal + amplitude.foot_force * u.foot_force),
                                           physics.touching(profile, clearance))
     # The IMU's orientation turned in the trunk frame about x and y by the tilt noise (rotation vector → quaternion;
     # sin(θ/2)/θ = sinc(θ/2π)/2 is finite at θ = 0).
-    turn = amplitude[3] * jnp.concatenate([u[27:29], jnp.zeros(1, u.dtype)])
+    turn = amplitude.tilt * jnp.concatenate([u.tilt, jnp.zeros(1, u.tilt.dtype)])
     angle = jnp.linalg.norm(turn)
     tilt = jnp.concatenate([jnp.cos(angle / 2)[None], 0.5 * jnp.sinc(angle / (2 * jnp.pi)) * turn])
-    return io, obs._replace(joint_pos_rad=obs.joint_pos_rad + amplitude[0] * u[0:12],
-                            joint_vel_rad_s=obs.joint_vel_rad_s + amplitude[1] * u[12:24],
+    return io, obs._replace(joint_pos_rad=obs.joint_pos_rad + amplitude.joint_pos * u.joint_pos,
+                            joint_vel_rad_s=obs.joint_vel_rad_s + amplitude.joint_vel * u.joint_vel,
                             imu_quat_wxyz=attitude.quat_mul(obs.imu_quat_wxyz, tilt.astype(obs.imu_quat_wxyz.dtype)),
-                            gyro_rad_s=obs.gyro_rad_s + amplitude[2] * u[24:27],
+                            gyro_rad_s=obs.gyro_rad_s + amplitude.gyro * u.gyro,
                             foot_force_n=held)
 
 

@@ -8,6 +8,7 @@ observation (SI units, foot forces through the calibration) into the flat input.
 from __future__ import annotations
 
 import logging
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -16,6 +17,7 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import attitude, kinematics
 from cpgjax.go1.constants import TORQUE_LIMIT_NM
+from cpgjax.layout import FlatLayout
 from cpgjax.robot import cpu_dispatch
 from cpgjax.robot import protocol as proto
 from cpgjax.robot.foot_force import FootForceCalibration
@@ -23,15 +25,44 @@ from cpgjax.trial import protocol
 
 log = logging.getLogger(__name__)
 
-OBS_SIZE = 35  # q 12 | dq 12 | quat 4 | gyro 3 | foot force 4
-IN_SIZE = OBS_SIZE + 8 + 2 + 9  # obs | params 8 | gates 2 | CPG state (amplitude 4, phase 4, heading 1)
-# Output layout (float32): torque | CPG state | rpy | stance | odometry velocity (v_x, v_y) | power ⟨|τ|, |q̇|⟩ [W] |
-# mean foot force [N] | number of torques clipped to the motor limits | the guarded torque | 1 if every torque is
-# finite (the guard of a torque command, ``safety.guard_command``, in the same compiled call: one dispatch a tick).
-OUT_TORQUE, OUT_STATE, OUT_RPY, OUT_STANCE = slice(0, 12), slice(12, 21), slice(21, 24), slice(24, 28)
-OUT_VELOCITY, OUT_POWER, OUT_LOAD, OUT_SATURATED = slice(28, 30), 30, 31, 32
-OUT_GUARDED, OUT_FINITE = slice(33, 45), 45
-OUT_SIZE = 46
+
+
+def _zeros(*shape) -> np.ndarray:
+    return np.zeros(shape, np.float32)
+
+
+class ControllerInput(NamedTuple):
+    """The compiled step's input, one flat float32 vector laid out by :data:`INPUT` (every field read by name)."""
+
+    obs: cpg.Observation  # the LowState's observation in SI units (foot forces through the calibration)
+    params: np.ndarray  # (8,) the CPG parameters of this tick
+    gates: cpg.Gates  # the controller variant
+    state: cpg.CPGState  # the CPG state carried from the last tick
+
+
+class ControllerOutput(NamedTuple):
+    """The compiled step's output, one flat float32 vector laid out by :data:`OUTPUT`: the controller's torque and
+    state, the robot-side trial signals, and the guard of the torque command (``safety.guard_command``) in the same
+    compiled call, so a tick costs one dispatch."""
+
+    torque_nm: np.ndarray  # (12,) the controller's torque
+    state: cpg.CPGState  # the CPG state for the next tick
+    rpy_rad: np.ndarray  # (3,)
+    stance: np.ndarray  # (4,)
+    velocity_mps: np.ndarray  # (2,) leg-odometry (v_x, v_y) in the heading frame
+    power_w: np.ndarray  # () ⟨|τ|, |q̇|⟩
+    load_n: np.ndarray  # () mean foot force
+    saturated: np.ndarray  # () number of torques clipped to the motor limits
+    guarded_torque_nm: np.ndarray  # (12,) the torque clipped to the motor limits
+    finite: np.ndarray  # () 1 if every torque is finite
+
+
+OBSERVATION = FlatLayout(cpg.Observation(_zeros(12), _zeros(12), _zeros(4), _zeros(3), _zeros(4)))
+STATE = FlatLayout(cpg.CPGState(_zeros(4), _zeros(4), _zeros()))
+INPUT = FlatLayout(ControllerInput(OBSERVATION.unravel(OBSERVATION.zeros()), _zeros(8), cpg.Gates(_zeros(), _zeros()),
+                                   STATE.unravel(STATE.zeros())))
+OUTPUT = FlatLayout(ControllerOutput(_zeros(12), STATE.unravel(STATE.zeros()), _zeros(3), _zeros(4), _zeros(2),
+                                     _zeros(), _zeros(), _zeros(), _zeros(12), _zeros()))
 
 
 def leg_odometry_velocity(obs: cpg.Observation, stance: jax.Array) -> jax.Array:
@@ -48,37 +79,30 @@ def leg_odometry_velocity(obs: cpg.Observation, stance: jax.Array) -> jax.Array:
     return attitude.to_heading_frame(v_world, attitude.quat_to_rpy(obs.imu_quat_wxyz)[2])
 
 
-def unpack_observation(x: jax.Array) -> cpg.Observation:
-    return cpg.Observation(x[0:12], x[12:24], x[24:28], x[28:31], x[31:35])
-
-
 def flat_step(config: cpg.CPGConfig, x: jax.Array) -> jax.Array:
-    """``cpg.controller_step`` on one flat input vector (IN_SIZE,) → one flat output vector (OUT_SIZE,)."""
-    obs = unpack_observation(x)
-    params = x[OBS_SIZE:OBS_SIZE + 8]
-    gates = cpg.Gates(x[OBS_SIZE + 8], x[OBS_SIZE + 9])
-    s = x[OBS_SIZE + 10:]
-    state, torque, diag = cpg.controller_step(config, cpg.CPGState(s[0:4], s[4:8], s[8]), params, gates, obs)
-    velocity = leg_odometry_velocity(obs, diag.stance)
+    """``cpg.controller_step`` on one flat input vector (:data:`INPUT`) → one flat output vector (:data:`OUTPUT`)."""
+    inputs = INPUT.unravel(x)
+    obs = inputs.obs
+    state, torque, diag = cpg.controller_step(config, inputs.state, inputs.params, inputs.gates, obs)
     pre = protocol.pre_step(obs, torque, diag, obs.joint_vel_rad_s)  # the trial's per-tick power, load, clipping
-    guarded = jnp.clip(torque, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM)
-    finite = jnp.all(jnp.isfinite(torque)).astype(torque.dtype)
-    return jnp.concatenate([torque, state.amplitude, state.phase_rad, state.heading_ref_rad[None], diag.rpy_rad,
-                            diag.stance, velocity, pre.power_w[None], pre.load_n[None], pre.saturated[None], guarded,
-                            finite[None]])
+    return OUTPUT.ravel(ControllerOutput(
+        torque_nm=torque, state=state, rpy_rad=diag.rpy_rad, stance=diag.stance,
+        velocity_mps=leg_odometry_velocity(obs, diag.stance), power_w=pre.power_w, load_n=pre.load_n,
+        saturated=pre.saturated, guarded_torque_nm=jnp.clip(torque, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM),
+        finite=jnp.all(jnp.isfinite(torque)).astype(torque.dtype)))
 
 
 def flat_initial_state(x_obs: jax.Array) -> jax.Array:
-    """``cpg.init_state`` for the observation x_obs (OBS_SIZE,), as the flat CPG-state slice (9,)."""
-    s = cpg.init_state(unpack_observation(x_obs))
-    return jnp.concatenate([s.amplitude, s.phase_rad, s.heading_ref_rad[None]])
+    """``cpg.init_state`` for the flat observation x_obs (:data:`OBSERVATION`), as the flat CPG state
+    (:data:`STATE`, ``x[INPUT.slices.state]``)."""
+    return STATE.ravel(cpg.init_state(OBSERVATION.unravel(x_obs)))
 
 
 class CompiledController:
     """The controller step compiled ahead of time (``jit(...).lower(...).compile()``) and warmed up.
 
-    ``step(x)`` takes the flat float32 input (IN_SIZE,) and returns the flat output (OUT_SIZE,) as NumPy;
-    ``initial_state(x_obs)`` gives the CPG-state slice to start from.
+    ``step(x)`` takes the flat float32 input (:data:`INPUT`) and returns the flat output (:data:`OUTPUT`) as NumPy;
+    ``initial_state(x_obs)`` gives the flat CPG state (``x[INPUT.slices.state]``) to start from.
     """
 
     def __init__(self, config: cpg.CPGConfig = cpg.CPGConfig(), warmup_calls: int = 200):
@@ -88,13 +112,13 @@ class CompiledController:
                         "runs on an XLA worker thread at normal priority while the loop thread waits for it. Call "
                         "cpgjax.robot.cpu_dispatch.request_inline() at program start, before any JAX computation.")
         self.config = config
-        x = np.zeros(IN_SIZE, np.float32)
-        x[24] = 1.0  # identity quaternion
+        x = INPUT.zeros()
+        INPUT.unravel(x).obs.imu_quat_wxyz[0] = 1.0  # identity quaternion
         self._step = jax.jit(lambda v: flat_step(config, v)).lower(x).compile()
-        self._init = jax.jit(flat_initial_state).lower(x[:OBS_SIZE]).compile()
+        self._init = jax.jit(flat_initial_state).lower(x[INPUT.slices.obs]).compile()
         for _ in range(warmup_calls):
             self.step(x)
-        self.initial_state(x[:OBS_SIZE])
+        self.initial_state(x[INPUT.slices.obs])
 
     def step(self, x: np.ndarray) -> np.ndarray:
         return np.asarray(self._step(x))
@@ -103,10 +127,11 @@ class CompiledController:
         return np.asarray(self._init(x_obs))
 
 
-def pack_observation(state: proto.RobotState, calibration: FootForceCalibration, out: np.ndarray) -> None:
-    """Write the controller's observation (SI units) from a LowState into out[:OBS_SIZE]."""
-    out[0:12] = state.q_rad
-    out[12:24] = state.dq_rad_s
-    out[24:28] = state.quaternion_wxyz
-    out[28:31] = state.gyro_rad_s
-    out[31:35] = calibration.to_newtons(state.foot_force_raw)
+def pack_observation(state: proto.RobotState, calibration: FootForceCalibration, obs: cpg.Observation) -> None:
+    """Write the controller's observation (SI units) from a LowState into ``obs``, the named views of a flat input
+    (``INPUT.unravel(x).obs``)."""
+    obs.joint_pos_rad[:] = state.q_rad
+    obs.joint_vel_rad_s[:] = state.dq_rad_s
+    obs.imu_quat_wxyz[:] = state.quaternion_wxyz
+    obs.gyro_rad_s[:] = state.gyro_rad_s
+    obs.foot_force_n[:] = calibration.to_newtons(state.foot_force_raw)

@@ -22,7 +22,6 @@ UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``p
 from __future__ import annotations
 
 import argparse
-import functools
 import gc
 import json
 import os
@@ -32,18 +31,19 @@ import socket
 import subprocess
 import sys
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from jax.flatten_util import ravel_pytree
 
 from cpgjax import cpg
 from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import GRAVITY_MPS2, TORQUE_LIMIT_NM
+from cpgjax.layout import FlatLayout
 from cpgjax.robot import cpu_dispatch, memory_lock
 from cpgjax.robot import protocol as proto
 
@@ -72,25 +72,59 @@ def motor_torque(cmd: proto.MotorCommand, q_rad, dq_rad_s):
     return jnp.clip(tau, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM)
 
 
-@functools.cache
-def _io_unravel():
-    """The profile's sensor and motor state travels through the compiled steps as one float32 vector: its size and
-    the function that turns such a vector back into the state."""
-    vector, unravel = ravel_pytree(physics_profiles.init_state(np.zeros(4, np.float32)))
-    return vector.size, unravel
+def _joints() -> np.ndarray:
+    return np.zeros(12, np.float32)
 
 
-def _io_vector(io: physics_profiles.ActuatorSensorState) -> jax.Array:
-    return ravel_pytree(io)[0]
+class SensorReport(NamedTuple):
+    """The LowState's sensor fields as the simulated Go1 reports them (:meth:`Go1Physics.sense`)."""
+
+    quaternion_wxyz: np.ndarray  # (4,)
+    gyro_rad_s: np.ndarray  # (3,)
+    accel_mps2: np.ndarray  # (3,) the specific force of a robot at rest
+    rpy_rad: np.ndarray  # (3,)
+    q_rad: np.ndarray  # (12,)
+    dq_rad_s: np.ndarray  # (12,)
+    foot_force_raw: np.ndarray  # (4,) counts
 
 
-def _io_state(v: jax.Array) -> physics_profiles.ActuatorSensorState:
-    return _io_unravel()[1](v)
+class _DriveIn(NamedTuple):
+    io: physics_profiles.ActuatorSensorState
+    command: proto.MotorCommand
+    q_rad: np.ndarray  # (12,) the joints' measured angles
+    dq_rad_s: np.ndarray  # (12,)
+
+
+class _DriveOut(NamedTuple):
+    io: physics_profiles.ActuatorSensorState
+    law_torque_nm: np.ndarray  # (12,) the motor law's torque
+    applied_torque_nm: np.ndarray  # (12,) after the profile's motors
+
+
+class _SenseIn(NamedTuple):
+    io: physics_profiles.ActuatorSensorState
+    qpos: np.ndarray
+    qvel: np.ndarray
+    sensordata: np.ndarray
+
+
+class _SenseOut(NamedTuple):
+    io: physics_profiles.ActuatorSensorState
+    report: SensorReport
+
+
+_IO = physics_profiles.init_state(np.zeros(4, np.float32))  # the sensor and motor state after a reset
+_IO_LAYOUT = FlatLayout(_IO)
+COMMAND = FlatLayout(proto.MotorCommand(*(_joints() for _ in proto.MotorCommand._fields)))
+REPORT = FlatLayout(SensorReport(np.zeros(4), np.zeros(3), np.zeros(3), np.zeros(3), _joints(), _joints(),
+                                 np.zeros(4)))
+_DRIVE_IN = FlatLayout(_DriveIn(_IO, COMMAND.unravel(COMMAND.zeros()), _joints(), _joints()))
+_DRIVE_OUT = FlatLayout(_DriveOut(_IO, _joints(), _joints()))
 
 
 def command_vector(cmd: proto.MotorCommand) -> np.ndarray:
-    """A motor command as the compiled motor step takes it: mode | q | dq | tau | Kp | Kd, float32 (72,)."""
-    return np.concatenate(cmd).astype(np.float32)
+    """A motor command as the compiled motor step takes it: the :data:`COMMAND` layout, float32."""
+    return COMMAND.ravel(cmd, np.float32)
 
 
 class Go1Physics:
@@ -112,29 +146,30 @@ class Go1Physics:
             noise_seed=np.uint32(scenario.noise_seed[0]))
         profile = jax.tree.map(jax.numpy.asarray, profile)
         # The simulators' sensor model and the profile's foot sensor and motors, compiled ahead of time on one flat
-        # float32 vector in and out (a compiled call costs per argument): one definition of what the robot senses and
-        # how its motors respond.
-        n_qpos, n_qvel = self.model.nq, self.model.nv
-        io_size = self._io_size = _io_unravel()[0]
+        # float32 vector in and out (a compiled call costs per argument), each laid out by name: one definition of
+        # what the robot senses and how its motors respond.
+        m = self.model
+        self._sense_layout = FlatLayout(_SenseIn(_IO, np.zeros(m.nq), np.zeros(m.nv), np.zeros(m.nsensordata)))
+        self._sense_out = FlatLayout(_SenseOut(_IO, REPORT.unravel(REPORT.zeros())))
 
-        def drive(x):  # io | command (72) | q | dq → io | the motor law's τ | applied τ
-            io, c = _io_state(x[:io_size]), x[io_size:io_size + 72].reshape(6, 12)
-            dq = x[io_size + 84:]
-            torque = motor_torque(proto.MotorCommand(*c), x[io_size + 72:io_size + 84], dq)
-            io, applied = physics_profiles.actuate(profile, io, torque, dq)
-            return jnp.concatenate([_io_vector(io), torque, applied])
+        def drive(x):  # _DriveIn → _DriveOut
+            d = _DRIVE_IN.unravel(x)
+            torque = motor_torque(d.command, d.q_rad, d.dq_rad_s)
+            io, applied = physics_profiles.actuate(profile, d.io, torque, d.dq_rad_s)
+            return _DRIVE_OUT.ravel(_DriveOut(io, torque, applied))
 
-        def sense(x):  # io | qpos | qvel | sensordata → io | the LowState's sensor fields (_REPORT_SIZES)
-            io = _io_state(x[:io_size])
-            qpos, qvel = x[io_size:io_size + n_qpos], x[io_size + n_qpos:io_size + n_qpos + n_qvel]
-            io, obs = sensors.measure(profile, io, qpos, qvel, x[io_size + n_qpos + n_qvel:], gravity)
-            return jnp.concatenate([_io_vector(io), *_report(obs)])
+        def sense(x):  # _SenseIn → _SenseOut
+            s = self._sense_layout.unravel(x)
+            io, obs = sensors.measure(profile, s.io, s.qpos, s.qvel, s.sensordata, gravity)
+            return self._sense_out.ravel(_SenseOut(io, _report(obs)))
 
         compile_for = lambda f, n: jax.jit(f).lower(np.zeros(n, np.float32)).compile()  # noqa: E731
-        self._drive = compile_for(drive, io_size + 96)
-        self._sense = compile_for(sense, io_size + n_qpos + n_qvel + self.model.nsensordata)
-        self._drive_in = np.zeros(io_size + 96, np.float32)
-        self._sense_in = np.zeros(io_size + n_qpos + n_qvel + self.model.nsensordata, np.float32)
+        self._drive = compile_for(drive, _DRIVE_IN.size)
+        self._sense = compile_for(sense, self._sense_layout.size)
+        self._drive_in = _DRIVE_IN.zeros()
+        self._drive_views = _DRIVE_IN.unravel(self._drive_in)
+        self._sense_in = self._sense_layout.zeros()
+        self._sense_views = self._sense_layout.unravel(self._sense_in)
         self.reset()
 
     def reset(self) -> None:
@@ -143,7 +178,7 @@ class Go1Physics:
         self.data.qpos[:] = self._standing
         mujoco.mj_forward(self.model, self.data)
         self.held_root_qpos = None
-        self._io = np.asarray(_io_vector(physics_profiles.init_state(np.zeros(4, np.float32))))
+        self._io = np.asarray(_IO_LAYOUT.ravel(_IO, np.float32))
 
     def lift(self, height_m: float) -> None:
         """Hold the trunk ``height_m`` above its standing pose, like a robot hung from a crane for calibration: from
@@ -160,57 +195,51 @@ class Go1Physics:
             root, dof = self.ids.root_qpos, self.ids.root_dof
             self.data.qpos[root:root + 7] = self.held_root_qpos
             self.data.qvel[dof:dof + 6] = 0.0
-        x = self._drive_in
-        x[:self._io_size] = self._io
-        x[self._io_size:self._io_size + 72] = cmd
-        x[self._io_size + 72:self._io_size + 84] = self.data.qpos[self.ids.joint_qpos]
-        x[self._io_size + 84:] = self.data.qvel[self.ids.joint_dof]
+        x, d = self._drive_in, self._drive_views
+        x[_DRIVE_IN.slices.io] = self._io
+        x[_DRIVE_IN.slices.command] = cmd
+        d.q_rad[:] = self.data.qpos[self.ids.joint_qpos]
+        d.dq_rad_s[:] = self.data.qvel[self.ids.joint_dof]
         out = np.asarray(self._drive(x))
-        self._io = out[:self._io_size]
-        self.data.ctrl[self.ids.actuator] = out[self._io_size + 12:]
+        self._io = out[_DRIVE_OUT.slices.io]
+        self.data.ctrl[self.ids.actuator] = out[_DRIVE_OUT.slices.applied_torque_nm]
         self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
         mujoco.mj_step(self.model, self.data)
-        return out[self._io_size:self._io_size + 12].astype(np.float64)
+        return out[_DRIVE_OUT.slices.law_torque_nm].astype(np.float64)
 
-    def sense(self) -> np.ndarray:
+    def sense(self) -> SensorReport:
         """What the robot's sensors report now (the profile's sensor model: noise, the foot sensor's counting): its
-        LowState fields (:data:`_REPORT_SIZES`) as one float64 vector, for :func:`robot_state`."""
-        x, nq, nv = self._sense_in, self.model.nq, self.model.nv
-        x[:self._io_size] = self._io
-        x[self._io_size:self._io_size + nq] = self.data.qpos
-        x[self._io_size + nq:self._io_size + nq + nv] = self.data.qvel
-        x[self._io_size + nq + nv:] = self.data.sensordata
+        LowState's sensor fields, float64, for :func:`robot_state`."""
+        x, s, layout = self._sense_in, self._sense_views, self._sense_out
+        x[self._sense_layout.slices.io] = self._io
+        s.qpos[:], s.qvel[:], s.sensordata[:] = self.data.qpos, self.data.qvel, self.data.sensordata
         out = np.asarray(self._sense(x))
-        self._io = out[:self._io_size]
-        return out[self._io_size:].astype(np.float64)
+        self._io = out[layout.slices.io]
+        return REPORT.unravel(out[layout.slices.report].astype(np.float64))
 
     def trunk_height_m(self) -> float:
         return float(self.data.qpos[self.ids.root_qpos + 2])
 
 
-_REPORT_SIZES = (4, 3, 3, 3, 12, 12, 4)  # quaternion, gyro, accelerometer, rpy, q, dq, foot counts
-_REPORT_SPLIT = tuple(int(i) for i in np.cumsum(_REPORT_SIZES)[:-1])
-
-
-def _report(obs: cpg.Observation) -> tuple:
+def _report(obs: cpg.Observation) -> SensorReport:
     """The controller-facing sensors as the Go1 reports them (JAX, compiled into the sensor step): the IMU's
     quaternion, gyro, specific force of a robot at rest (R^T ẑ g: linear acceleration not modelled) and roll, pitch,
     yaw; the joints; the raw foot counts (offset + N / scale, rounded, int16 range)."""
     quat = obs.imu_quat_wxyz
     gravity_body = GRAVITY_MPS2 * attitude.quat_to_matrix(quat)[2]
     counts = FOOT_FORCE_OFFSET_COUNTS + jnp.round(obs.foot_force_n / FOOT_FORCE_N_PER_COUNT)
-    return (quat, obs.gyro_rad_s, gravity_body, attitude.quat_to_rpy(quat), obs.joint_pos_rad, obs.joint_vel_rad_s,
-            jnp.clip(counts, -32768, 32767))
+    return SensorReport(quat, obs.gyro_rad_s, gravity_body, attitude.quat_to_rpy(quat), obs.joint_pos_rad,
+                        obs.joint_vel_rad_s, jnp.clip(counts, -32768, 32767))
 
 
-def robot_state(sensed: np.ndarray, torque_nm: np.ndarray, tick_ms: int, *,
+def robot_state(sensed: SensorReport, torque_nm: np.ndarray, tick_ms: int, *,
                 buttons: tuple[str, ...] = ()) -> proto.RobotState:
     """The LowState of the sensors' report (:meth:`Go1Physics.sense`), tauEst = the applied torque."""
-    quat, gyro, accel, rpy, q, dq, counts = np.split(sensed, _REPORT_SPLIT)
     return proto.RobotState(
-        tick_ms=tick_ms, quaternion_wxyz=quat, gyro_rad_s=gyro, accel_mps2=accel, rpy_rad=rpy,
-        motor_mode=_SERVO_MODES, q_rad=q, dq_rad_s=dq, tau_est_nm=torque_nm, motor_temperature_c=_TEMPERATURES_C,
-        foot_force_raw=counts.astype(np.int16), wireless_remote=proto.remote_with_buttons(*buttons))
+        tick_ms=tick_ms, quaternion_wxyz=sensed.quaternion_wxyz, gyro_rad_s=sensed.gyro_rad_s,
+        accel_mps2=sensed.accel_mps2, rpy_rad=sensed.rpy_rad, motor_mode=_SERVO_MODES, q_rad=sensed.q_rad,
+        dq_rad_s=sensed.dq_rad_s, tau_est_nm=torque_nm, motor_temperature_c=_TEMPERATURES_C,
+        foot_force_raw=sensed.foot_force_raw.astype(np.int16), wireless_remote=proto.remote_with_buttons(*buttons))
 
 
 _SERVO_MODES = np.full(12, proto.MODE_SERVO, np.uint8)

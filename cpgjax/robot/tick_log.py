@@ -25,7 +25,7 @@ import numpy as np
 import pyarrow as pa
 
 from cpgjax import hardware_io as hio
-from cpgjax.robot.controller import OBS_SIZE
+from cpgjax.robot.controller import OBSERVATION
 
 FILE_NAME = "ticks.arrows"
 # Column (TickLog field, or derived) → Arrow type, for the columns that are written as they are.
@@ -36,7 +36,7 @@ _SCALARS = {
     "command_kd": pa.float32(),
 }
 _VECTORS = {  # (n, width) fields, stored as fixed-size lists
-    "q_rad": 12, "dq_rad_s": 12, "quaternion_wxyz": 4, "gyro_rad_s": 3, "foot_force_raw": 4, "obs": OBS_SIZE,
+    "q_rad": 12, "dq_rad_s": 12, "quaternion_wxyz": 4, "gyro_rad_s": 3, "foot_force_raw": 4, "obs": OBSERVATION.size,
     "command_q_rad": 12, "torque_nm": 12, "controller_torque_nm": 12,
 }
 _DESCRIPTION = {

@@ -205,9 +205,8 @@ def trial_row(trial: int, x: np.ndarray, record: protocol.TrialRecord, j: float,
 
 def signal_columns() -> np.ndarray:
     """The columns of the controller's flat output that make a trial's per-tick signals (:data:`_SIGNALS`)."""
-    out = compiled_controller
-    return np.array([out.OUT_VELOCITY.start, out.OUT_VELOCITY.start + 1, out.OUT_POWER, out.OUT_LOAD,
-                     out.OUT_RPY.start, out.OUT_RPY.start + 1, out.OUT_SATURATED])
+    column = compiled_controller.OUTPUT.unravel(np.arange(compiled_controller.OUTPUT.size))  # each field's columns
+    return np.array([*column.velocity_mps, column.power_w, column.load_n, *column.rpy_rad[:2], column.saturated])
 
 
 class ReplayTrials:

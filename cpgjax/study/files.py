@@ -414,8 +414,8 @@ def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
 def profile_noise_scale(name: str) -> float:
     """The sensor noise of physics profile ``name`` as a multiple of the robot's (the go1 profile's), NaN where it
     is no multiple of it."""
-    noise = physics_profiles.arrays(physics_profiles.get(name)).noise.astype(np.float64)
-    robot = physics_profiles.arrays(physics_profiles.get(physics_profiles.ROBOT_PROFILE)).noise.astype(np.float64)
+    noise = np.array(physics_profiles.arrays(physics_profiles.get(name)).noise, np.float64)
+    robot = np.array(physics_profiles.arrays(physics_profiles.get(physics_profiles.ROBOT_PROFILE)).noise, np.float64)
     scale = float(np.dot(noise, robot) / np.dot(robot, robot))
     return scale if np.allclose(noise, scale * robot, rtol=1e-6, atol=0.0) else float("nan")
 
