@@ -508,6 +508,7 @@ FILE_KINDS = {
     "best_params.json": "the best trial's parameters and what they were tuned for (deploy / walk --params)",
     study_io.BEST_PARAMS: "the best parameters of each group and what they were tuned for (deploy / walk --params)",
     "run.json": "how the robot run ended, its timing and what ran it",
+    "sim_truth.parquet": "the simulated Go1's true trunk state, one row per physics step",
     tick_log.FILE_NAME: "the 1 kHz loop's per-tick log",
     "calibration.json": "the foot-force calibration the run used",
 }

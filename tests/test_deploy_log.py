@@ -100,3 +100,33 @@ def test_a_killed_deploy_keeps_its_logged_batches(tmp_path):
     assert not (tmp_path / "run.json").exists()
     summary = tick_log.summarize_run(tmp_path)
     assert "ended: unknown: no run.json" in summary and f"{table.num_rows} ticks" in summary
+
+
+def test_a_replay_on_the_simulated_go1_logs_its_true_state_beside_the_estimate(tmp_path):
+    """``deploy --robot sim`` writes the simulated Go1's true trunk state per physics step (sim_truth.parquet) and
+    each trial's true velocity and distance beside the robot's leg-odometry estimate, in trials.parquet, run.json and
+    the printed lines. The true distance is checked against the trunk's displacement read from the file directly."""
+    import pyarrow.parquet as pq
+
+    out = subprocess.run([sys.executable, "-m", "cpgjax.cli", "deploy", "--robot", "sim", "--sim-pacing", "lockstep",
+                          "--duration-s", "9.5", "--log-dir", str(tmp_path)], capture_output=True, text=True,
+                         timeout=300, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    assert out.returncode == 0, out.stderr[-2000:]
+    truth = pq.read_table(tmp_path / deploy.TRUTH_FILE)
+    assert undocumented("sim_truth.parquet", truth.column_names) == []
+    ticks, _ = tick_log.read_tick_log(tmp_path / tick_log.FILE_NAME)
+    assert truth.num_rows >= ticks.num_rows - 2  # a physics step for every loop tick (lockstep)
+    rows = pq.read_table(tmp_path / "trials.parquet").to_pylist()
+    assert [r["trial"] for r in rows] == [0, 1]
+    assert undocumented("robot trials.parquet", rows[0]) == []
+    run_ticks = ticks["robot_tick_ms"].to_numpy()[ticks["phase"].to_numpy() == hio.RUN]
+    x = dict(zip(truth["tick_ms"].to_numpy(), truth["x_m"].to_numpy(), strict=True))
+    for r in rows:
+        first, last = run_ticks[r["trial"] * 4500 + 1500], run_ticks[r["trial"] * 4500 + 4499]
+        assert r["true_distance_m"] == pytest.approx(x[last] - x[first], rel=0.05, abs=0.02)
+        assert r["true_velocity_x_mps"] == pytest.approx(r["true_distance_m"] / 3.0, rel=1e-3)
+        assert r["velocity_x_mps"] == pytest.approx(r["true_velocity_x_mps"], rel=0.25)  # odometry: an estimate
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["trials"][1]["true_velocity_x_mps"] == pytest.approx(rows[1]["true_velocity_x_mps"])
+    assert undocumented("run.json", run) == []
+    assert "(the simulated Go1's truth: v_x" in out.stderr + out.stdout

@@ -379,7 +379,7 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
                      target_velocity_mps=0.5)
     spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), tuned_for)
     try:
-        result, rows = robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
+        result, rows, _ = robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
                                                   params.midpoint(), 3, protocol.TrialConfig(300, 600), LOOP, SAFETY)
     finally:
         transport.close()

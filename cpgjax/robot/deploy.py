@@ -134,21 +134,47 @@ def run(args) -> int:
                                  robot_mass_kg(args.payload_kg), str(args.log_dir), tuned_for(args),
                                  safe=args.safe)
             timing = protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
-            result, rows = online_optimization(transport, controller, calibration, gates, spec, params,
-                                               args.trials, timing, loop, safety, ticks, hint)
+            result, rows, windows = online_optimization(transport, controller, calibration, gates, spec, params,
+                                                        args.trials, timing, loop, safety, ticks, hint)
         else:
             replay = ReplayTrials(params, round(args.duration_s * 1000))
             result = hio.run_loop(transport, controller, replay, calibration, gates, loop, safety, ticks, hint)
-        truth = None if server is None else dict(trunk_start_xy_m=start_xy,
-                                                 trunk_end_xy_m=server.stats()["trunk_xy_m"])
+            windows = replay.steady_windows
+        truth = None
+        if server is not None:
+            truth = dict(trunk_start_xy_m=start_xy, trunk_end_xy_m=server.stats()["trunk_xy_m"])
+            server.save_truth(args.log_dir / TRUTH_FILE)
     if not args.optimize:  # the figures after the loop: the robot is damped
         rows = replay.rows(robot_mass_kg(args.payload_kg), args.target_velocity_mps, args.seed, tuned_for(args))
-        if rows:
-            import pyarrow as pa
-            import pyarrow.parquet as pq
+    if server is not None:
+        rows = with_truth(rows, windows, args.log_dir)
+    if rows:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
 
-            pq.write_table(pa.Table.from_pylist(rows), args.log_dir / "trials.parquet")
+        pq.write_table(pa.Table.from_pylist(rows), args.log_dir / "trials.parquet")
     return report(args, result, rows, truth)
+
+
+TRUTH_FILE = "sim_truth.parquet"
+
+
+def with_truth(rows: list[dict], steady_windows: list[tuple[int, int]], log_dir) -> list[dict]:
+    """Each trial's row with the simulated Go1's true figures beside the robot's estimate (``sim_server.trial_truth``
+    over the robot ticks its steady phase observed: the per-tick log's run-phase ticks map a run tick to the robot
+    tick of its observation; the truth is the simulated Go1's ``sim_truth.parquet``)."""
+    import pyarrow.parquet as pq
+
+    ticks, _ = tick_log.read_tick_log(log_dir / tick_log.FILE_NAME)
+    run = ticks["robot_tick_ms"].to_numpy()[ticks["phase"].to_numpy() == hio.RUN]  # run tick → robot tick
+    table = pq.read_table(log_dir / TRUTH_FILE)
+    truth = {name: table[name].to_numpy() for name in table.column_names}
+    windows = [*steady_windows, *[None] * max(len(rows) - len(steady_windows), 0)]
+    out = []
+    for row, window in zip(rows, windows, strict=False):
+        robot_ticks = (int(run[window[0]]), int(run[window[1]])) if window and window[1] < len(run) else (1, 0)
+        out.append({**row, **sim.trial_truth(truth, robot_ticks)})
+    return out
 
 
 def tuned_for(args) -> dict:
@@ -168,11 +194,16 @@ def stale_hint(args) -> str:
 
 
 WALKED = ("trial", "objective", "velocity_x_mps", "distance_m", "cost_of_transport", "c_load_n", "c_slope_rad")
+TRUE = ("true_velocity_x_mps", "true_velocity_y_mps", "true_distance_m")  # the simulated Go1's, beside the estimate
 
 
 def walked_line(row: dict) -> str:
-    return (f"trial {row['trial']}: J {row['objective']:.3f}, v_x {row['velocity_x_mps']:.3f} m/s, "
+    line = (f"trial {row['trial']}: J {row['objective']:.3f}, v_x {row['velocity_x_mps']:.3f} m/s, "
             f"{row['distance_m']:.2f} m in its steady phase, CoT {row['cost_of_transport']:.3f}")
+    if row.get("true_velocity_x_mps") is not None:
+        line += (f" (the simulated Go1's truth: v_x {row['true_velocity_x_mps']:.3f} m/s, "
+                 f"{row['true_distance_m']:.2f} m)")
+    return line
 
 
 def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | None = None) -> int:
@@ -184,7 +215,7 @@ def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | No
     lockstep = args.robot == "sim" and args.sim_pacing == "lockstep"
     summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events, "realtime": result.realtime,
                "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
-               "trials": [{k: row[k] for k in WALKED} for row in rows], "sim_truth": truth,
+               "trials": [{k: row[k] for k in (*WALKED, *TRUE) if k in row} for row in rows], "sim_truth": truth,
                "timing": result.timing(), "command": getattr(args, "command_line", None),
                "cpgjax_version": cpgjax.__version__, "git_commit": provenance.git_commit(),
                "environment": provenance.environment()}

@@ -259,6 +259,57 @@ def apply_sensor_faults(state: proto.RobotState, faults: dict) -> proto.RobotSta
     return state
 
 
+class TruthLog:
+    """The simulated Go1's true trunk state after each physics step, by the tick its LowState reports (the robot's
+    estimate has nothing to compare with on a real robot): appended each tick into preallocated chunks, written as
+    ``sim_truth.parquet`` (:meth:`save`)."""
+
+    CHUNK = 60_000  # one minute of ticks
+    COLUMNS = ("tick_ms", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz", "vx_mps", "vy_mps", "vz_mps")
+
+    def __init__(self):
+        self._chunks = [np.empty((self.CHUNK, len(self.COLUMNS)))]
+        self._n = 0
+
+    def append(self, tick_ms: int, qpos: np.ndarray, qvel: np.ndarray, ids) -> None:
+        if self._n == self.CHUNK:
+            self._chunks.append(np.empty((self.CHUNK, len(self.COLUMNS))))
+            self._n = 0
+        row = self._chunks[-1][self._n]
+        row[0] = tick_ms
+        row[1:8] = qpos[ids.root_qpos:ids.root_qpos + 7]
+        row[8:11] = qvel[ids.root_dof:ids.root_dof + 3]
+        self._n += 1
+
+    def rows(self) -> np.ndarray:
+        return np.concatenate([*self._chunks[:-1], self._chunks[-1][:self._n]])
+
+    def save(self, path: str) -> int:
+        """Write every row to ``path`` (parquet; docs/outputs.md); returns the number of rows."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        rows = self.rows()
+        columns = {name: rows[:, i] for i, name in enumerate(self.COLUMNS)}
+        columns["tick_ms"] = rows[:, 0].astype(np.int64)
+        pq.write_table(pa.table(columns), path)
+        return len(rows)
+
+
+def trial_truth(truth: dict[str, np.ndarray], robot_ticks: tuple[int, int], dt_s: float = TICK_S) -> dict:
+    """A trial's true figures from the simulated Go1's :class:`TruthLog` columns over the robot ticks [first, last]
+    of its steady phase: the mean trunk velocity (v_x, v_y) in the heading (yaw-only) frame and the forward distance
+    Σ v_x Δt, the definitions of the trial's own figures (``trial.protocol``, docs/decisions.md §9)."""
+    first, last = robot_ticks
+    m = (truth["tick_ms"] >= first) & (truth["tick_ms"] <= last)
+    if not m.any():
+        return dict(true_velocity_x_mps=None, true_velocity_y_mps=None, true_distance_m=None)
+    yaw = attitude.quat_to_rpy(np.stack([truth[k][m] for k in ("qw", "qx", "qy", "qz")]))[2]  # per tick
+    v_x, v_y = attitude.to_heading_frame(np.stack([truth["vx_mps"][m], truth["vy_mps"][m]]), yaw)
+    return dict(true_velocity_x_mps=float(v_x.mean()), true_velocity_y_mps=float(v_y.mean()),
+                true_distance_m=float(v_x.sum() * dt_s))
+
+
 class SimGo1Server:
     """The simulated Go1's event loop (run it in its own process: ``python -m cpgjax.robot.sim_server``)."""
 
@@ -287,6 +338,7 @@ class SimGo1Server:
         self.stats = {"commands": 0, "bad_packets": 0, "states_sent": 0, "max_abs_tau_cmd_nm": 0.0,
                       "min_kp_cmd": float("inf"), "max_kp_cmd": 0.0, "max_kd_cmd": 0.0, "damping_commands": 0}
         self._last_state = robot_state(self.physics.sense(), self.torque, self.tick)
+        self.truth = TruthLog()
 
     @property
     def ports(self) -> tuple[int, int]:
@@ -323,6 +375,8 @@ class SimGo1Server:
             elif op == "stats":
                 reply.update(self.stats, tick=self.tick, trunk_height_m=self.physics.trunk_height_m(),
                              trunk_xy_m=[float(v) for v in self.physics.data.qpos[:2]])
+            elif op == "truth":
+                reply.update(rows=self.truth.save(request["path"]))
             elif op == "quit":
                 self.running = False
             else:
@@ -368,6 +422,7 @@ class SimGo1Server:
         if "freeze_tick" not in faults:
             self.torque = self.physics.step(self.command, float(faults.get("push_roll_nm", 0.0)))
             self.tick += 1
+            self.truth.append(self.tick, self.physics.data.qpos, self.physics.data.qvel, self.physics.ids)
             self._last_state = robot_state(self.physics.sense(), self.torque, self.tick)
         else:
             self.tick += 1  # the server's clock runs on, the reported state (and its tick) does not
@@ -497,6 +552,11 @@ class SimGo1Client:
 
     def stats(self) -> dict:
         return self.request("stats")
+
+    def save_truth(self, path) -> int:
+        """Write the true trunk state of every tick since the start (or the last reset) to ``path`` (parquet,
+        :class:`TruthLog`); returns the number of ticks."""
+        return int(self.request("truth", path=str(path))["rows"])
 
     def close(self) -> None:
         if self.process.poll() is None:

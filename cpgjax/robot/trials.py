@@ -221,6 +221,7 @@ class ReplayTrials:
         self._columns = signal_columns()
         period = timing.transition_steps + timing.steady_steps
         self._signals = np.zeros((run_ticks // period, timing.steady_steps, len(_SIGNALS)), np.float32)
+        self.steady_windows: list[tuple[int, int]] = []  # per complete trial: its steady phase's first, last run tick
         self.trials_done = 0
         self.trial = 0  # the trial being walked (logged per tick)
 
@@ -238,6 +239,7 @@ class ReplayTrials:
         if steady >= 0 and self.trials_done < self._signals.shape[0]:
             self._signals[self.trials_done, steady] = out[self._columns]
             if steady + 1 == self._timing.steady_steps:
+                self.steady_windows.append((run_tick - steady, run_tick))
                 self.trials_done += 1
                 self.trial = self.trials_done
 
@@ -352,6 +354,7 @@ class TrialRunner:
         self._signals = np.full((timing.steady_steps, len(_SIGNALS)), 0, np.float32)  # written now, not in the loop
         self._previous = self._current = np.asarray(initial_params, np.float32)
         self._num_trials = num_trials
+        self.steady_windows: list[tuple[int, int]] = []  # per complete trial: its steady phase's first, last run tick
         self.trials_done = 0
         self.trial = 0  # the trial whose parameters the robot walks with (logged per tick)
         self._tick_in_trial = 0
@@ -380,6 +383,7 @@ class TrialRunner:
             self._signals[steady] = out[self._columns]
         self._tick_in_trial += 1
         if steady + 1 == self._timing.steady_steps:
+            self.steady_windows.append((run_tick - steady, run_tick))
             self._mailer.send(("trial", self.trials_done, self._current.astype(np.float64), self._signals.copy(),
                              self._wait_ticks))
             self.trials_done += 1
@@ -396,7 +400,8 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
     ``initial_params``, or with None with the optimizer's first (random) proposal, as in simulation
     (docs/decisions.md §16). ``sink`` and ``stale_hint``: as for ``hardware_io.run_loop``.
 
-    Returns (LoopResult, per-trial rows). The log files are in ``spec.log_dir``.
+    Returns (LoopResult, per-trial rows, each complete trial's steady phase as its (first, last) run tick). The log
+    files are in ``spec.log_dir``.
     """
     Path(spec.log_dir).mkdir(parents=True, exist_ok=True)
     loop = loop or hio.LoopConfig()
@@ -431,4 +436,4 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
     finally:
         if worker.is_alive():
             worker.kill()
-    return result, rows
+    return result, rows, runner.steady_windows

@@ -308,7 +308,8 @@ def _entries(folder: pathlib.Path) -> list[str]:
 # checkpoint shards, the best gaits' videos (best_<group>.mp4) and the best_params/ folder; --overwrite deletes these
 # and nothing else.
 OUTPUT_FILES = frozenset({CHECKPOINT, "trials.parquet", "recording.rrd", "trials.rrd", "metadata.json", "table.md",
-                          "best_params.json", "walk.parquet", "run.json", "ticks.arrows", "calibration.json"})
+                          "best_params.json", "walk.parquet", "run.json", "ticks.arrows", "calibration.json",
+                          "sim_truth.parquet"})
 
 
 def _is_output(path: pathlib.Path) -> bool:
