@@ -352,13 +352,13 @@ def _study(args) -> int:
         if problem:
             print(f"cpgjax study: {problem}", file=sys.stderr)
             return 2
-    if args.processes is not None and args.processes > 1:
+    if args.processes is not None and args.processes > 1 and not args.dry_run:
         command = [sys.executable, "-m", "cpgjax.cli", *_without_processes(args.argv), "--distributed"]
         outcome = study_launch.run(command, args.processes)
         if outcome.returncode:
             print(f"cpgjax study: {outcome.message}; `--resume` continues from the last checkpoint", file=sys.stderr)
         return outcome.returncode
-    if args.distributed:
+    if args.distributed and not args.dry_run:
         ablation.initialize_distributed()
     name = args.name
     run = transfer.run if name == transfer.NAME else functools.partial(studies.run, name)
@@ -367,7 +367,7 @@ def _study(args) -> int:
         text, out = run(seeds=args.seeds, trials=args.trials, quick=args.quick, out=out, resume=args.resume,
                         overwrite=args.overwrite, backend=args.backend, physics=args.physics,
                         command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c),
-                        safe=args.safe)
+                        safe=args.safe, dry_run=args.dry_run)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -383,7 +383,7 @@ def _study(args) -> int:
                     if study_io.checkpoint_files(out / s.name)), None) if name == transfer.NAME else out
         return _interrupted(args.command_line, args, arm)
     print(text)
-    print(f"outputs in {out}/")
+    print("nothing computed (--dry-run)" if args.dry_run else f"outputs in {out}/")
     return 0
 
 
@@ -975,6 +975,9 @@ def _add_study(sub) -> None:
                    help="trials per run; condition changes scale with it (default: the study's)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
     s.add_argument("--safe", action="store_true", help=SAFE_HELP)
+    s.add_argument("--dry-run", action="store_true", help="check every input and the output folder, print what "
+                   "the run would compute (instances, trials, env-steps, where it writes) and stop: nothing is "
+                   "computed, written or deleted")
     _add_output_args(s, None, "results/<study>")
     s.add_argument("--distributed", action="store_true", help="one of several cooperating processes: "
                    "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "

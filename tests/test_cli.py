@@ -830,3 +830,22 @@ def test_the_botorch_benchmark_says_what_to_install():
                           text=True, timeout=60, cwd=REPO)
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert "pip install -e '.[bench]' (or make bench-deps)" in done.stderr
+
+
+def test_a_study_dry_run_checks_everything_and_touches_nothing(tmp_path, capsys):
+    """``study --dry-run`` prints the plan and exits 0 without creating the folder; a non-empty folder is refused as a
+    run would refuse it, and with --overwrite nothing is deleted; --resume reports where it would start."""
+    out = tmp_path / "ablation"
+    assert cli.main(["study", "controller_ablation", "--quick", "--out", str(out), "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    assert f"controller_ablation: 8 instances (4 controllers, 2 seeds) × 12 trials of 4.5 s: {8 * 12 * 4500:,} " \
+           "env-steps" in text and "nothing computed (--dry-run)" in text
+    assert not out.exists()
+    spec = studies.make_spec("controller_ablation", quick=True)
+    _fake_checkpoint(out, spec, 3, "native")
+    assert cli.main(["study", "controller_ablation", "--quick", "--out", str(out), "--dry-run"]) == 2
+    assert "is not empty (checkpoint.npz): pass --resume" in capsys.readouterr().err
+    assert cli.main(["study", "controller_ablation", "--quick", "--out", str(out), "--dry-run", "--overwrite"]) == 0
+    assert (out / study_io.CHECKPOINT).exists()
+    assert cli.main(["study", "controller_ablation", "--quick", "--out", str(out), "--dry-run", "--resume"]) == 0
+    assert f"resuming {out} at trial 3" in capsys.readouterr().out

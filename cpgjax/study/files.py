@@ -250,12 +250,14 @@ def resume_point(out_dir, spec, backend: str) -> int:
     return meta["trial"]
 
 
-def open_run(out_dir, spec, backend: str, *, resume: bool = False, overwrite: bool = False) -> int:
+def open_run(out_dir, spec, backend: str, *, resume: bool = False, overwrite: bool = False,
+             dry_run: bool = False) -> int:
     """Check a study's output folder before any compute (:func:`claim_folder`; with ``resume``,
-    :func:`resume_point`) and return the trial the run starts at (0: afresh)."""
+    :func:`resume_point`) and return the trial the run starts at (0: afresh). ``dry_run``: check only."""
     start = resume_point(out_dir, spec, backend) if resume else 0
-    claim_folder(out_dir, overwrite=overwrite, resume=resume)
+    claim_folder(out_dir, overwrite=overwrite, resume=resume, dry_run=dry_run)
     return start
+
 
 
 def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Checkpoint | None:
@@ -338,13 +340,16 @@ def _remove_outputs(folder: pathlib.Path) -> None:
             path.unlink()
 
 
-def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resumable: bool = True) -> pathlib.Path:
+def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resumable: bool = True,
+                 dry_run: bool = False) -> pathlib.Path:
     """Make sure a command may write into ``folder`` before it computes anything, and create it.
 
     A missing or empty folder is fine; a non-empty one only with ``resume`` (its checkpoint is continued) or
     ``overwrite``: the files a cpgjax command wrote there (:func:`_is_output`) are deleted, so that the run starts
     afresh and no old file is taken for the new run's; anything else in the folder is refused by name, and nothing is
     deleted then. ``resumable``: whether the command has ``--resume`` (the refusal offers it where a checkpoint is).
+    ``dry_run``: every check, but nothing deleted or created (a missing folder: its nearest existing parent must be a
+    folder this process can write in).
 
     Raises:
       StudyError: ``folder`` is a file, cannot be created, holds files and neither flag is given, or holds, with
@@ -367,7 +372,14 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resum
                 raise StudyError(f"{folder}: --overwrite replaces only what cpgjax wrote, and {shown} "
                                  f"{'is' if len(foreign) == 1 else 'are'} not cpgjax's: move "
                                  f"{'it' if len(foreign) == 1 else 'them'}, or write somewhere else")
-            _remove_outputs(folder)
+            if not dry_run:
+                _remove_outputs(folder)
+    if dry_run:
+        parent = next(p for p in (folder, *folder.absolute().parents) if p.exists())
+        if not parent.is_dir():
+            raise StudyError(f"cannot create the folder {folder}: {parent} is a file")
+        check_writable(parent)
+        return folder
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:

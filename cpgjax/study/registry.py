@@ -697,21 +697,40 @@ def output_folder(name: str, out=None) -> pathlib.Path:
     return pathlib.Path(out or pathlib.Path("results") / name)
 
 
+def run_plan(spec, out_dir, backend: str, start: int) -> str:
+    """One line on what a study run would compute (``--dry-run``): instances, trials, env-steps, where it writes."""
+    batch = len(study_spec.instances(spec))
+    steps = spec.trial.transition_steps + spec.trial.steady_steps
+    remaining = batch * (spec.num_trials - start) * steps
+    axes = ", ".join(f"{len(getattr(spec, a))} {a}" for a in ("controllers", "seeds", "friction", "slope_deg",
+                                                               "payload_kg", "target_velocity_mps", "schedules",
+                                                               "data_reuse", "physics") if len(getattr(spec, a)) > 1)
+    where = f"resuming {out_dir} at trial {start}" if start else f"writing {out_dir}/"
+    return (f"{spec.name}: {batch} instances ({axes or 'one'}) × {spec.num_trials} trials of {steps * 0.001:g} s"
+            f"{', safe' if spec.safe else ''}: {remaining:,} env-steps ({remaining * 0.001 / 3600:.2f} robot-hours) "
+            f"on the {backend} backend, {where}")
+
+
 def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
     return f"resuming {out} at trial {start} (trials are numbered from 0; {start} of {num_trials} are done)"
 
 
 def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
         progress=None, physics: str | None = None, command: str | None = None,
-        notify: Callable[[str], None] | None = None, safe: bool = False) -> tuple[str, pathlib.Path]:
+        notify: Callable[[str], None] | None = None, safe: bool = False,
+        dry_run: bool = False) -> tuple[str, pathlib.Path]:
     """Run (or resume) a study and write its outputs; returns (table text, output folder). ``physics``: the
     profile every instance simulates (default: the study's own); ``safe``: safe optimization (docs/decisions.md §17).
     The output folder is checked first
     (:func:`study_io.open_run`: a non-empty one needs ``resume`` or ``overwrite``); ``notify`` gets the line that
-    says where a resume starts; ``command`` goes into ``metadata.json``."""
+    says where a resume starts; ``command`` goes into ``metadata.json``. ``dry_run``: every check, then the run's
+    plan (:func:`run_plan`) as the text, nothing computed or written."""
     spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics, safe=safe)
     out = output_folder(name, out)
-    start = study_io.open_run(out, spec, backends.resolve_backend(backend), resume=resume, overwrite=overwrite)
+    backend_name = backends.resolve_backend(backend)
+    start = study_io.open_run(out, spec, backend_name, resume=resume, overwrite=overwrite, dry_run=dry_run)
+    if dry_run:
+        return run_plan(spec, out, backend_name, start), out
     if start and notify is not None and jax.process_index() == 0:
         notify(resume_notice(out, start, spec.num_trials))
     engine = ablation.Engine(spec, backend=backend)

@@ -124,10 +124,11 @@ def table(arm_results: dict, evaluations: dict) -> str:
 
 def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
         progress=None, physics=None, command: str | None = None,
-        notify: Callable[[str], None] | None = None, safe: bool = False) -> tuple[str, pathlib.Path]:
+        notify: Callable[[str], None] | None = None, safe: bool = False,
+        dry_run: bool = False) -> tuple[str, pathlib.Path]:
     """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder).
-    Output folders, ``resume``, ``overwrite``, ``command`` and ``notify`` as in :func:`registry.run`; a resume
-    continues the arms that have a checkpoint and starts the others."""
+    Output folders, ``resume``, ``overwrite``, ``command``, ``notify`` and ``dry_run`` (each arm's plan) as in
+    :func:`registry.run`; a resume continues the arms that have a checkpoint and starts the others."""
     if physics is not None:
         raise study_spec.StudyError("the transfer study sets each arm's physics itself; drop --physics")
     if seeds is not None and seeds < 1:
@@ -144,13 +145,17 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         resumed = {spec.name: spec for spec in arm_specs if (out / spec.name / study_io.CHECKPOINT).exists()}
         if not resumed:
             raise study_spec.StudyError(f"--resume: no arm of {out} has a checkpoint; run without --resume to start")
-    study_io.claim_folder(out, overwrite=overwrite, resume=resume)
+    study_io.claim_folder(out, overwrite=overwrite, resume=resume, dry_run=dry_run)
+    plans = []
     for spec in arm_specs:
         arm_resume = spec.name in resumed
         start = study_io.open_run(out / spec.name, spec, backends.resolve_backend(backend), resume=arm_resume,
-                                  overwrite=overwrite)
-        if start and notify is not None:
+                                  overwrite=overwrite, dry_run=dry_run)
+        plans.append(registry.run_plan(spec, out / spec.name, backends.resolve_backend(backend), start))
+        if start and notify is not None and not dry_run:
             notify(registry.resume_notice(out / spec.name, start, spec.num_trials))
+    if dry_run:
+        return "\n".join(plans) + "\nthen each arm's best gaits walked in every evaluation environment", out
     arm_results, evaluations, gaits, wall = {}, {}, {}, 0.0
     for (arm, home, _), spec in zip(ARMS, arm_specs, strict=True):
         engine = ablation.Engine(spec, backend=backend)
