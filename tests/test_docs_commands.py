@@ -1,12 +1,23 @@
-"""Every complete `cpgjax` command line in README.md and docs/ still parses with today's parser and passes the
-checks that span options (no option of the other robot or mode): a renamed, removed or refused option in a
-documented command fails here. The commands are parsed, not run (their files need not exist: the file-reading
-option types are replaced by plain paths); command lines with placeholders (`<out>`, `FILE`, `N`, `...`) are
-skipped."""
+"""Every complete `cpgjax` command line in README.md and docs/ still works.
 
+- **Parsed**: each parses with today's parser and passes the checks that span options (no option of the other robot
+  or mode), its files replaced by plain paths: a renamed, removed or refused option fails here.
+- **Run**: each is then run, in the order its document gives it, in a fresh folder per document (so a command that
+  reads what an earlier one wrote, `deploy --params sim-opt/best_params.json` after `deploy --optimize --log-dir
+  sim-opt`, finds it or fails), made short by options appended after the documented ones (the last given
+  wins): a study with `--dry-run` (every check of the run, its output folder included, without computing: the paper
+  studies take minutes to hours); `deploy --robot sim` in lockstep pacing, a replay of 1 s, `--optimize` with 2
+  trials of 0.2 + 0.3 s, `calibrate` with stands of a few tenths of a second; `walk` with 1 trial. A command that
+  would reach a real Go1 (any `deploy` without `--robot sim`) is parsed, never run. Command lines with placeholders
+  (`<out>`, `FILE`, `N`, `...`) are skipped.
+"""
+
+import os
 import pathlib
 import re
 import shlex
+import subprocess
+import sys
 
 import pytest
 
@@ -16,22 +27,25 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 PLACEHOLDER = re.compile(r"<|\[|\||\.\.\.|…|\b(FILE|N|NAME|DIR|FOLDER|CALIBRATION)\b")
 
 
-def documented_commands() -> list[tuple[str, str]]:
-    """(file, command line) of every `cpgjax <command> <option>…` in a code span or block of the docs."""
+
+
+def commands_in_order(path: pathlib.Path) -> list[str]:
+    """Every complete `cpgjax <command> <option>…` of one document, in the order the document gives them (in a code
+    block or a code span), without repeats."""
     found = []
-    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
-        text = path.read_text()
-        spans = re.findall(r"```(?:bash)?\n(.*?)```", text, re.S) + re.findall(r"`([^`\n]+)`", text)
-        for span in spans:
-            for line in span.splitlines():
-                line = line.split("#")[0].strip().removesuffix("&").strip()
-                m = re.match(r"^(?:\.venv/bin/)?cpgjax (walk|study|optimize|show|demo|deploy)(?=\s|$)(.*)$", line)
-                if m and m.group(2).strip() not in ("", "calibrate") and not PLACEHOLDER.search(line):
-                    found.append((path.name, line.removeprefix(".venv/bin/")))
-    return sorted(set(found))
+    for span in re.finditer(r"```[a-z]*\n(.*?)```|`([^`\n]+)`", path.read_text(), re.S):
+        for line in (span.group(1) or span.group(2)).splitlines():
+            line = line.split("#")[0].strip().removesuffix("&").strip()
+            m = re.match(r"^(?:\.venv/bin/)?cpgjax (walk|study|optimize|show|demo|deploy)(?=\s|$)(.*)$", line)
+            if m and m.group(2).strip() not in ("", "calibrate") and not PLACEHOLDER.search(line):
+                command = line.removeprefix(".venv/bin/")
+                if command not in found:
+                    found.append(command)
+    return found
 
 
-COMMANDS = documented_commands()
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+COMMANDS = sorted({(path.name, c) for path in DOCS for c in commands_in_order(path)})
 
 
 def test_the_docs_name_commands():
@@ -51,3 +65,39 @@ def test_a_documented_command_parses(doc, command, monkeypatch, capsys):
     if args.command == "deploy" and getattr(args, "robot", None) is not None:
         problem = cli._inapplicable(args, calibrating=args.func is cli._calibrate)
         assert problem is None, f"{doc}: `{command}`: {problem}"
+
+
+def shortened(argv: list[str]) -> list[str] | None:
+    """The documented command's arguments with the options that make it short appended (the module docstring), or
+    None for a command that would reach a real robot."""
+    command = argv[0]
+    if command == "study":
+        return [*argv, "--dry-run"]
+    if command == "walk":
+        return [*argv, "--trials", "1"]
+    if command == "deploy":
+        if "--robot" not in argv or argv[argv.index("--robot") + 1] != "sim":
+            return None
+        short = ["--sim-pacing", "lockstep"]
+        if "calibrate" in argv:
+            return [*argv, *short, "--air-s", "0.2", "--stand-s", "0.3", "--settle-s", "0.2"]
+        if "--optimize" in argv:
+            return [*argv, *short, "--trials", "2", "--transition-s", "0.2", "--steady-s", "0.3"]
+        return [*argv, *short, "--duration-s", "1"]
+    return argv
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("doc", [d for d in DOCS if commands_in_order(d)], ids=lambda d: d.name)
+def test_the_documented_commands_run_in_a_fresh_folder(doc, tmp_path):
+    ran = []
+    for command in commands_in_order(doc):
+        argv = shortened(shlex.split(command)[1:])
+        if argv is None:
+            continue
+        proc = subprocess.run([sys.executable, "-m", "cpgjax.cli", *argv], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=600, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+        assert proc.returncode == 0, (f"{doc.name}: `{command}` (run as `cpgjax {shlex.join(argv)}` in a fresh "
+                                      f"folder, after {ran}) exited {proc.returncode}: {proc.stderr[-1500:]}")
+        ran.append(command)
+    assert ran or doc.name in ("decisions.md",), f"{doc.name}: no documented command was run"
