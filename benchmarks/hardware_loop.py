@@ -43,8 +43,7 @@ import numpy as np
 from cpgjax import cpg, provenance
 from cpgjax import hardware_io as hio
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import cpu_dispatch, cpu_wakeup, deploy
-from cpgjax.robot import protocol as proto
+from cpgjax.robot import cpu_dispatch, cpu_wakeup, deploy, wire
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
@@ -134,10 +133,10 @@ class StageTimer:
         self.calls = dict.fromkeys(STAGES, 0)
         self._patches = []
         self._wrap(transport, "receive", "receive", inner="decode")
-        self._wrap(proto, "decode_low_state", "decode")
+        self._wrap(wire, "decode_low_state", "decode")
         self._wrap(hio, "_trip_reason", "checks")
         self._wrap(hio, "guard_command", "guard")
-        self._wrap(proto, "encode_low_cmd", "encode")
+        self._wrap(wire, "encode_low_cmd", "encode")
         self._wrap(transport, "send", "send", inner="encode")
         self._wrap(hio, "_log_tick", "log")
 

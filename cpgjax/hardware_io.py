@@ -30,8 +30,7 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD
-from cpgjax.robot import cpu_wakeup, memory_lock
-from cpgjax.robot import protocol as proto
+from cpgjax.robot import cpu_wakeup, memory_lock, wire
 from cpgjax.robot.controller import (
     INPUT,
     OBSERVATION,
@@ -403,7 +402,7 @@ def _enter_phase(events: list, tick: int, phase: int, message: str) -> tuple[int
     return phase, tick
 
 
-def _trip_reason(power_counter: int, state: proto.RobotState | None, fresh: bool, stale_ticks: int,
+def _trip_reason(power_counter: int, state: wire.RobotState | None, fresh: bool, stale_ticks: int,
                  transport: Transport, safety: SafetyConfig, stop_mask: int,
                  stale_hint: str) -> tuple[int, str | None]:
     """The safety checks of one tick once connected, in order: the stale-state watchdog or, on a fresh state, tilt,
@@ -422,7 +421,7 @@ def _trip_reason(power_counter: int, state: proto.RobotState | None, fresh: bool
 
 
 def _soft_start_command(phase: int, ticks_in_phase: int, hold_q_rad: np.ndarray, stand_q_rad: np.ndarray,
-                        phase_ticks: tuple[int, ...], loop: LoopConfig) -> proto.MotorCommand:
+                        phase_ticks: tuple[int, ...], loop: LoopConfig) -> wire.MotorCommand:
     """The motor PD command of one soft-start tick: hold the measured pose while Kp ramps from
     ``loop.hold_kp_fraction`` of the standing Kp up to it, move linearly to the standing pose, stand."""
     kp, kd = loop.stand_kp_nm_rad, loop.stand_kd_nm_s_rad
@@ -446,7 +445,7 @@ def _after_soft_start_phase(phase: int, stand_ticks: int, schedule: ParamSchedul
 
 
 def _log_tick(tick_log: TickLog, i: int, t0: float, cpu0: float, late_s: float, step_s: float, phase: int,
-              fresh: bool, robot_tick_ms: int, state: proto.RobotState | None, cmd: proto.MotorCommand,
+              fresh: bool, robot_tick_ms: int, state: wire.RobotState | None, cmd: wire.MotorCommand,
               stale_ticks: int, power_counter: int, trial: int) -> None:
     """Write one tick's record at ring index i (the run phase's obs and controller torque are written by the
     loop); its work time (wall and thread CPU since t0, cpu0) last."""
@@ -497,7 +496,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
     """
     period_s, wait_spin_s = loop.period_s, _spin_s(loop)
     stand_q_rad = go1_model.standing_qpos()[go1_model.indices().joint_qpos]
-    stop_mask = sum(proto.REMOTE_BUTTON_BITS[b] for b in safety.stop_buttons)
+    stop_mask = sum(wire.REMOTE_BUTTON_BITS[b] for b in safety.stop_buttons)
     phase_ticks = _phase_ticks(loop)
     damp = damping_command(loop.damping_kd_nm_s_rad)
     n_log, flush = loop.log_ticks, loop.flush_ticks

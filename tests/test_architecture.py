@@ -28,7 +28,7 @@ LAYERS = (
     ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.backends", "sim.walk")),
     ("studies", ("study.spec", "study.stats", "study.video", "study.scene", "study.viewer", "study.files",
                  "study.figures", "ablation", "study.transfer", "study.registry", "study.launch")),
-    ("robot", ("robot.protocol", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.cpu_wakeup",
+    ("robot", ("robot.wire", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.cpu_wakeup",
                "robot.foot_force", "robot.safety", "robot.controller", "robot.sim_server", "hardware_io",
                "robot.tick_log", "robot.trials", "robot.deploy", "robot.calibrate")),
     ("command line", ("cli",)),

@@ -22,9 +22,8 @@ import pytest
 from cpgjax import cli, cpg
 from cpgjax import hardware_io as hio
 from cpgjax.go1 import constants
-from cpgjax.robot import calibrate, deploy, foot_force, tick_log
+from cpgjax.robot import calibrate, deploy, foot_force, tick_log, wire
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import protocol as proto
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
@@ -274,16 +273,16 @@ def test_guard_clamps_before_encoding_and_refuses_nan():
     np.testing.assert_array_equal(guarded.kp_nm_rad, safety.kp_max_nm_rad)
     np.testing.assert_array_equal(guarded.kd_nm_s_rad, 0.0)
     np.testing.assert_array_equal(guarded.q_rad, np.minimum(5.0, constants.JOINT_UPPER_RAD))
-    proto.encode_low_cmd(guarded)  # encodable: nothing would wrap
+    wire.encode_low_cmd(guarded)  # encodable: nothing would wrap
     torque_mode, _ = go1_safety.guard_command(go1_safety.torque_command(np.zeros(12)), safety)
-    assert np.all(torque_mode.q_rad == proto.POS_STOP_F)  # the stop marker survives (position term stays off)
+    assert np.all(torque_mode.q_rad == wire.POS_STOP_F)  # the stop marker survives (position term stays off)
     _, reason = go1_safety.guard_command(go1_safety.torque_command(np.full(12, np.nan)), safety)
     assert reason == "non-finite command (tau)"
 
 
 def test_power_protection_counts_like_the_sdk():
     safety = go1_safety.SafetyConfig(power_level=1)
-    hot = proto.RobotState(0, np.array([1.0, 0, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3),
+    hot = wire.RobotState(0, np.array([1.0, 0, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3),
                            np.full(12, 10, np.uint8), np.zeros(12), np.full(12, 1.0), np.full(12, 10.0),
                            np.zeros(12), np.zeros(4), bytes(40))  # 120 W > 100 W
     cold = hot._replace(dq_rad_s=np.zeros(12))
@@ -515,19 +514,19 @@ def test_the_simulated_go1_motor_law():
     damping mode −20 dq, clipped to the motor limits."""
     rng = np.random.default_rng(1)
     q, dq = rng.normal(0, 1, 12), rng.normal(0, 5, 12)
-    mode = np.where(np.arange(12) % 5 == 4, proto.MODE_DAMPING, proto.MODE_SERVO).astype(np.uint8)
-    q_cmd = np.where(np.arange(12) % 3 == 0, proto.POS_STOP_F, rng.normal(0, 1, 12))
-    dq_cmd = np.where(np.arange(12) % 4 == 1, proto.VEL_STOP_F, rng.normal(0, 2, 12))
-    cmd = proto.MotorCommand(mode, q_cmd, dq_cmd, rng.normal(0, 10, 12), rng.uniform(0, 80, 12), rng.uniform(0, 5, 12))
+    mode = np.where(np.arange(12) % 5 == 4, wire.MODE_DAMPING, wire.MODE_SERVO).astype(np.uint8)
+    q_cmd = np.where(np.arange(12) % 3 == 0, wire.POS_STOP_F, rng.normal(0, 1, 12))
+    dq_cmd = np.where(np.arange(12) % 4 == 1, wire.VEL_STOP_F, rng.normal(0, 2, 12))
+    cmd = wire.MotorCommand(mode, q_cmd, dq_cmd, rng.normal(0, 10, 12), rng.uniform(0, 80, 12), rng.uniform(0, 5, 12))
     expected = np.empty(12)
     for i in range(12):
-        if mode[i] != proto.MODE_SERVO:
+        if mode[i] != wire.MODE_SERVO:
             tau = -sim.BRAKE_KD_NM_S_RAD * dq[i]
         else:
             tau = cmd.tau_nm[i]
-            if q_cmd[i] != proto.POS_STOP_F:
+            if q_cmd[i] != wire.POS_STOP_F:
                 tau += cmd.kp_nm_rad[i] * (q_cmd[i] - q[i])
-            if dq_cmd[i] != proto.VEL_STOP_F:
+            if dq_cmd[i] != wire.VEL_STOP_F:
                 tau += cmd.kd_nm_s_rad[i] * (dq_cmd[i] - dq[i])
         expected[i] = np.clip(tau, -constants.TORQUE_LIMIT_NM[i], constants.TORQUE_LIMIT_NM[i])
     c32 = sim.COMMAND.unravel(sim.command_vector(cmd))

@@ -24,8 +24,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import GRAVITY_MPS2
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import cpu_wakeup, deploy
-from cpgjax.robot import protocol as proto
+from cpgjax.robot import cpu_wakeup, deploy, wire
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import trials as robot_trials
 from cpgjax.trial import params, protocol
@@ -63,7 +62,7 @@ def test_the_simulated_go1_reports_its_imu_as_the_numpy_attitude_defines_it():
     while it stands (soft profile: the contact normal force, no sensor noise)."""
     physics = sim.Go1Physics(physics="soft")
     stand_q_rad = go1_model.standing_qpos()[physics.ids.joint_qpos]
-    stand = sim.command_vector(proto.MotorCommand(np.full(12, proto.MODE_SERVO), stand_q_rad, np.zeros(12),
+    stand = sim.command_vector(wire.MotorCommand(np.full(12, wire.MODE_SERVO), stand_q_rad, np.zeros(12),
                                                   np.zeros(12), np.full(12, 70.0), np.full(12, 1.5)))
     for _ in range(1500):  # settle on its feet under a standing PD command (1.5 s)
         physics.step(stand)

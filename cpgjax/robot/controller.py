@@ -18,8 +18,7 @@ from cpgjax import cpg
 from cpgjax.go1 import attitude, kinematics
 from cpgjax.go1.constants import TORQUE_LIMIT_NM
 from cpgjax.layout import FlatLayout
-from cpgjax.robot import cpu_dispatch
-from cpgjax.robot import protocol as proto
+from cpgjax.robot import cpu_dispatch, wire
 from cpgjax.robot.foot_force import FootForceCalibration
 from cpgjax.trial import protocol
 
@@ -127,7 +126,7 @@ class CompiledController:
         return np.asarray(self._init(x_obs))
 
 
-def pack_observation(state: proto.RobotState, calibration: FootForceCalibration, obs: cpg.Observation) -> None:
+def pack_observation(state: wire.RobotState, calibration: FootForceCalibration, obs: cpg.Observation) -> None:
     """Write the controller's observation (SI units) from a LowState into ``obs``, the named views of a flat input
     (``INPUT.unravel(x).obs``)."""
     obs.joint_pos_rad[:] = state.q_rad

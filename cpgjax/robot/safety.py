@@ -12,7 +12,7 @@ import numpy as np
 
 from cpgjax.go1 import attitude
 from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD, TILT_STOP_RAD, TORQUE_LIMIT_NM
-from cpgjax.robot import protocol as proto
+from cpgjax.robot import wire
 
 
 class SafetyConfig(NamedTuple):
@@ -58,11 +58,11 @@ def check_safety(safety: SafetyConfig) -> SafetyConfig:
     need(0 < number("max_motor_temperature_c") <= MAX_MOTOR_TEMPERATURE_C, "max_motor_temperature_c",
          f"(0, {MAX_MOTOR_TEMPERATURE_C}] °C")
     need(isinstance(safety.power_trip_count, int) and safety.power_trip_count >= 1, "power_trip_count", "integers >= 1")
-    need(0.0 <= number("kp_max_nm_rad") <= proto.KP_RANGE[1], "kp_max_nm_rad", f"[0, {proto.KP_RANGE[1]}] N·m/rad")
-    need(0.0 <= number("kd_max_nm_s_rad") <= proto.KD_RANGE[1], "kd_max_nm_s_rad",
-         f"[0, {proto.KD_RANGE[1]}] N·m·s/rad")
-    unknown = [b for b in safety.stop_buttons if b not in proto.REMOTE_BUTTON_BITS]
-    need(not unknown, "stop_buttons", f"names of {tuple(proto.REMOTE_BUTTON_BITS)}")
+    need(0.0 <= number("kp_max_nm_rad") <= wire.KP_RANGE[1], "kp_max_nm_rad", f"[0, {wire.KP_RANGE[1]}] N·m/rad")
+    need(0.0 <= number("kd_max_nm_s_rad") <= wire.KD_RANGE[1], "kd_max_nm_s_rad",
+         f"[0, {wire.KD_RANGE[1]}] N·m·s/rad")
+    unknown = [b for b in safety.stop_buttons if b not in wire.REMOTE_BUTTON_BITS]
+    need(not unknown, "stop_buttons", f"names of {tuple(wire.REMOTE_BUTTON_BITS)}")
     return safety
 
 
@@ -72,12 +72,12 @@ def tilt_rad(quaternion_wxyz: np.ndarray) -> tuple[float, float]:
     return roll, pitch
 
 
-def state_trip_reason(state: proto.RobotState, safety: SafetyConfig, stop_mask: int) -> str | None:
+def state_trip_reason(state: wire.RobotState, safety: SafetyConfig, stop_mask: int) -> str | None:
     """The reason a fresh robot state must stop the robot (tilt, stop buttons, motor temperature), or None."""
     roll, pitch = tilt_rad(state.quaternion_wxyz)
     if not (abs(roll) <= safety.max_tilt_rad and abs(pitch) <= safety.max_tilt_rad):
         return f"tilt: roll {roll:+.3f} rad, pitch {pitch:+.3f} rad beyond ±{safety.max_tilt_rad} rad"
-    if stop_mask and proto.remote_buttons(state.wireless_remote) & stop_mask == stop_mask:
+    if stop_mask and wire.remote_buttons(state.wireless_remote) & stop_mask == stop_mask:
         return f"remote stop buttons {'+'.join(safety.stop_buttons)} pressed"
     hottest = int(np.max(state.motor_temperature_c))
     if hottest >= safety.max_motor_temperature_c:
@@ -86,7 +86,7 @@ def state_trip_reason(state: proto.RobotState, safety: SafetyConfig, stop_mask: 
     return None
 
 
-def power_protect(counter: int, state: proto.RobotState, safety: SafetyConfig) -> tuple[int, str | None]:
+def power_protect(counter: int, state: wire.RobotState, safety: SafetyConfig) -> tuple[int, str | None]:
     """One update of the SDK's power-protection counter; returns (counter, trip reason or None)."""
     power_w = float(np.sum(np.abs(state.tau_est_nm * state.dq_rad_s)))
     limit_w = 100.0 * min(max(safety.power_level, 1), 10)
@@ -97,30 +97,30 @@ def power_protect(counter: int, state: proto.RobotState, safety: SafetyConfig) -
     return counter, None
 
 
-_SERVO = np.full(12, proto.MODE_SERVO, np.uint8)
-_POS_STOP = np.full(12, proto.POS_STOP_F)
-_VEL_STOP = np.full(12, proto.VEL_STOP_F)
+_SERVO = np.full(12, wire.MODE_SERVO, np.uint8)
+_POS_STOP = np.full(12, wire.POS_STOP_F)
+_VEL_STOP = np.full(12, wire.VEL_STOP_F)
 _ZERO = np.zeros(12)
 for _a in (_SERVO, _POS_STOP, _VEL_STOP, _ZERO):
     _a.flags.writeable = False  # shared by every command
 
 
-def torque_command(torque_nm: np.ndarray) -> proto.MotorCommand:
+def torque_command(torque_nm: np.ndarray) -> wire.MotorCommand:
     """Pure torque: both motor PD terms stopped (PosStopF, VelStopF, zero gains)."""
-    return proto.MotorCommand(_SERVO, _POS_STOP, _VEL_STOP, torque_nm, _ZERO, _ZERO)
+    return wire.MotorCommand(_SERVO, _POS_STOP, _VEL_STOP, torque_nm, _ZERO, _ZERO)
 
 
-def pd_command(q_rad: np.ndarray, kp: float, kd: float) -> proto.MotorCommand:
+def pd_command(q_rad: np.ndarray, kp: float, kd: float) -> wire.MotorCommand:
     """Motor-side PD to joint positions (velocity target 0)."""
-    return proto.MotorCommand(_SERVO, q_rad, _ZERO, _ZERO, np.full(12, kp), np.full(12, kd))
+    return wire.MotorCommand(_SERVO, q_rad, _ZERO, _ZERO, np.full(12, kp), np.full(12, kd))
 
 
-def damping_command(kd: float) -> proto.MotorCommand:
+def damping_command(kd: float) -> wire.MotorCommand:
     """Damping: τ = −kd · dq on every motor (no stiffness, no torque)."""
-    return proto.MotorCommand(_SERVO, _POS_STOP, _ZERO, _ZERO, _ZERO, np.full(12, kd))
+    return wire.MotorCommand(_SERVO, _POS_STOP, _ZERO, _ZERO, _ZERO, np.full(12, kd))
 
 
-def guard_command(cmd: proto.MotorCommand, safety: SafetyConfig) -> tuple[proto.MotorCommand, str | None]:
+def guard_command(cmd: wire.MotorCommand, safety: SafetyConfig) -> tuple[wire.MotorCommand, str | None]:
     """Check and clamp a command before it is encoded (the wire silently wraps out-of-range values).
 
     A non-finite tau, gain, velocity or (active) position target gives a trip reason. Otherwise torques are clamped
@@ -136,7 +136,7 @@ def guard_command(cmd: proto.MotorCommand, safety: SafetyConfig) -> tuple[proto.
     q = cmd.q_rad
     if position_active.any():
         q = np.where(position_active, np.minimum(np.maximum(q, JOINT_LOWER_RAD), JOINT_UPPER_RAD), q)
-    return proto.MotorCommand(
+    return wire.MotorCommand(
         cmd.mode, q, cmd.dq_rad_s, np.minimum(np.maximum(cmd.tau_nm, -TORQUE_LIMIT_NM), TORQUE_LIMIT_NM),
         np.minimum(np.maximum(cmd.kp_nm_rad, 0.0), safety.kp_max_nm_rad),
         np.minimum(np.maximum(cmd.kd_nm_s_rad, 0.0), safety.kd_max_nm_s_rad)), None

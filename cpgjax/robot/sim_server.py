@@ -1,7 +1,7 @@
 """A loopback simulated Go1: a separate process that speaks the robot's low-level UDP protocol on 127.0.0.1.
 
 It receives LowCmd datagrams and answers LowState datagrams in the SDK's exact wire format
-(``cpgjax.robot.protocol``: 614/807 bytes, fixed-point fields, CRC), so the real ``unitree_legged_sdk`` and
+(``cpgjax.robot.wire``: 614/807 bytes, fixed-point fields, CRC), so the real ``unitree_legged_sdk`` and
 ``cpgjax.hardware_io`` both accept it. Each tick it applies the Go1 motor law to the latest command, steps C MuJoCo
 with cpgjax's own Go1 model (1 ms), and reports the sensors with the same definitions as the simulator backends
 (``cpgjax.go1.sensors.observe``), encoded in the robot's raw units. Foot forces are reported as raw int16 counts with a
@@ -44,8 +44,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import GRAVITY_MPS2, TORQUE_LIMIT_NM
 from cpgjax.layout import FlatLayout
-from cpgjax.robot import cpu_dispatch, memory_lock
-from cpgjax.robot import protocol as proto
+from cpgjax.robot import cpu_dispatch, memory_lock, wire
 
 LOOPBACK = "127.0.0.1"
 TICK_S = 0.001
@@ -59,16 +58,16 @@ FAULT_KINDS = ("drop", "late_ms", "corrupt_crc", "wrong_head", "freeze_tick", "s
                "buttons", "power", "temperature_c", "nan_q")
 
 
-def motor_torque(cmd: proto.MotorCommand, q_rad, dq_rad_s):
+def motor_torque(cmd: wire.MotorCommand, q_rad, dq_rad_s):
     """The Go1 motor law (docs/go1-sdk.md §1.8): in servo mode τ = tau + Kp (q* − q) + Kd (dq* − dq), with the position
     term off when q* = PosStopF and the velocity term off when dq* = VelStopF; in damping mode τ = −Kd_brake dq.
     Clipped to the motor limits (12,). JAX (it runs inside the simulated Go1's compiled motor step)."""
-    kp = jnp.where(jnp.abs(cmd.q_rad - proto.POS_STOP_F) < 1e3, 0.0, cmd.kp_nm_rad)
-    kd = jnp.where(jnp.abs(cmd.dq_rad_s - proto.VEL_STOP_F) < 1.0, 0.0, cmd.kd_nm_s_rad)
+    kp = jnp.where(jnp.abs(cmd.q_rad - wire.POS_STOP_F) < 1e3, 0.0, cmd.kp_nm_rad)
+    kd = jnp.where(jnp.abs(cmd.dq_rad_s - wire.VEL_STOP_F) < 1.0, 0.0, cmd.kd_nm_s_rad)
     q_err = jnp.where(kp > 0.0, cmd.q_rad - q_rad, 0.0)
     dq_err = jnp.where(kd > 0.0, cmd.dq_rad_s - dq_rad_s, 0.0)
     servo = cmd.tau_nm + kp * q_err + kd * dq_err
-    tau = jnp.where(cmd.mode == proto.MODE_SERVO, servo, -BRAKE_KD_NM_S_RAD * dq_rad_s)
+    tau = jnp.where(cmd.mode == wire.MODE_SERVO, servo, -BRAKE_KD_NM_S_RAD * dq_rad_s)
     return jnp.clip(tau, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM)
 
 
@@ -90,7 +89,7 @@ class SensorReport(NamedTuple):
 
 class _DriveIn(NamedTuple):
     io: physics_profiles.ActuatorSensorState
-    command: proto.MotorCommand
+    command: wire.MotorCommand
     q_rad: np.ndarray  # (12,) the joints' measured angles
     dq_rad_s: np.ndarray  # (12,)
 
@@ -115,14 +114,14 @@ class _SenseOut(NamedTuple):
 
 _IO = physics_profiles.init_state(np.zeros(4, np.float32))  # the sensor and motor state after a reset
 _IO_LAYOUT = FlatLayout(_IO)
-COMMAND = FlatLayout(proto.MotorCommand(*(_joints() for _ in proto.MotorCommand._fields)))
+COMMAND = FlatLayout(wire.MotorCommand(*(_joints() for _ in wire.MotorCommand._fields)))
 REPORT = FlatLayout(SensorReport(np.zeros(4), np.zeros(3), np.zeros(3), np.zeros(3), _joints(), _joints(),
                                  np.zeros(4)))
 _DRIVE_IN = FlatLayout(_DriveIn(_IO, COMMAND.unravel(COMMAND.zeros()), _joints(), _joints()))
 _DRIVE_OUT = FlatLayout(_DriveOut(_IO, _joints(), _joints()))
 
 
-def command_vector(cmd: proto.MotorCommand) -> np.ndarray:
+def command_vector(cmd: wire.MotorCommand) -> np.ndarray:
     """A motor command as the compiled motor step takes it: the :data:`COMMAND` layout, float32."""
     return COMMAND.ravel(cmd, np.float32)
 
@@ -233,23 +232,23 @@ def _report(obs: cpg.Observation) -> SensorReport:
 
 
 def robot_state(sensed: SensorReport, torque_nm: np.ndarray, tick_ms: int, *,
-                buttons: tuple[str, ...] = ()) -> proto.RobotState:
+                buttons: tuple[str, ...] = ()) -> wire.RobotState:
     """The LowState of the sensors' report (:meth:`Go1Physics.sense`), tauEst = the applied torque."""
-    return proto.RobotState(
+    return wire.RobotState(
         tick_ms=tick_ms, quaternion_wxyz=sensed.quaternion_wxyz, gyro_rad_s=sensed.gyro_rad_s,
         accel_mps2=sensed.accel_mps2, rpy_rad=sensed.rpy_rad, motor_mode=_SERVO_MODES, q_rad=sensed.q_rad,
         dq_rad_s=sensed.dq_rad_s, tau_est_nm=torque_nm, motor_temperature_c=_TEMPERATURES_C,
-        foot_force_raw=sensed.foot_force_raw.astype(np.int16), wireless_remote=proto.remote_with_buttons(*buttons))
+        foot_force_raw=sensed.foot_force_raw.astype(np.int16), wireless_remote=wire.remote_with_buttons(*buttons))
 
 
-_SERVO_MODES = np.full(12, proto.MODE_SERVO, np.uint8)
+_SERVO_MODES = np.full(12, wire.MODE_SERVO, np.uint8)
 _TEMPERATURES_C = np.full(12, MOTOR_TEMPERATURE_C)
 
 
-def apply_sensor_faults(state: proto.RobotState, faults: dict) -> proto.RobotState:
+def apply_sensor_faults(state: wire.RobotState, faults: dict) -> wire.RobotState:
     """The state as reported under the active sensor faults (buttons, power, temperature, NaN joint angle)."""
     if "buttons" in faults:
-        state = state._replace(wireless_remote=proto.remote_with_buttons(*faults["buttons"]))
+        state = state._replace(wireless_remote=wire.remote_with_buttons(*faults["buttons"]))
     if "power" in faults:  # Σ|tauEst·dq| = 12 · 20 N·m · 5 rad/s = 1200 W
         state = state._replace(tau_est_nm=np.full(12, 20.0), dq_rad_s=np.full(12, 5.0))
     if "temperature_c" in faults:
@@ -400,8 +399,8 @@ class SimGo1Server:
         n = 0
         for data, addr in self._pending:
             try:
-                cmd = proto.decode_low_cmd(data)
-            except proto.ProtocolError:
+                cmd = wire.decode_low_cmd(data)
+            except wire.ProtocolError:
                 self.stats["bad_packets"] += 1
                 continue
             self.command, self.client, n = command_vector(cmd), addr, n + 1
@@ -431,8 +430,8 @@ class SimGo1Server:
         if "late_ms" in faults:
             time.sleep(float(faults["late_ms"]) / 1000.0)
         state = apply_sensor_faults(self._last_state, faults)
-        packet = proto.encode_low_state(state, corrupt_crc="corrupt_crc" in faults,
-                                        head=(0x00, 0x00) if "wrong_head" in faults else proto.HEAD)
+        packet = wire.encode_low_state(state, corrupt_crc="corrupt_crc" in faults,
+                                        head=(0x00, 0x00) if "wrong_head" in faults else wire.HEAD)
         self.sock.sendto(packet, self.client)
         self.stats["states_sent"] += 1
 

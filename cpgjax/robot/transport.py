@@ -2,7 +2,7 @@
 low-level UDP protocol, used for the loopback simulated Go1 and usable on the robot; :class:`LockstepTransport`
 waits for a lockstep simulated Go1's answers) and :class:`SdkTransport` (the official ``unitree_legged_sdk`` Python
 binding, optional extra ``go1``). Both move
-:class:`~cpgjax.robot.protocol.RobotState` in and :class:`~cpgjax.robot.protocol.MotorCommand` out
+:class:`~cpgjax.robot.wire.RobotState` in and :class:`~cpgjax.robot.wire.MotorCommand` out
 (docs/go1-sdk.md §1.5–1.7).
 
 The robot's real address appears only as the default of :data:`GO1_ROBOT_IP`; tests and examples use 127.0.0.1.
@@ -16,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from cpgjax.robot import protocol as proto
+from cpgjax.robot import wire
 
 GO1_ROBOT_IP = "192.168.123.10"  # the SDK's low-level target (UDP_SERVER_IP_BASIC); used only with --robot go1
 GO1_ROBOT_PORT = 8007  # UDP_SERVER_PORT
@@ -28,10 +28,10 @@ class Transport(Protocol):
 
     power_tripped: bool  # the transport's own power protection (the SDK's Safety) has cut the motors
 
-    def receive(self) -> proto.RobotState | None:
+    def receive(self) -> wire.RobotState | None:
         """The newest valid state received since the last call, or None."""
 
-    def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
+    def send(self, cmd: wire.MotorCommand, state: wire.RobotState | None) -> None:
         """Send one command (already clamped and checked)."""
 
     def close(self) -> None: ...
@@ -63,7 +63,7 @@ class UdpTransport:
         self.sock.setblocking(False)
         self.rejected = {"size": 0, "head": 0, "level": 0, "crc": 0}
 
-    def receive(self) -> proto.RobotState | None:
+    def receive(self) -> wire.RobotState | None:
         packets = []
         while True:
             try:
@@ -74,19 +74,19 @@ class UdpTransport:
         for data in reversed(packets):  # newest first; each datagram's checks (CRC included) run once
             if newest is None:
                 try:
-                    newest = proto.decode_low_state(data)
+                    newest = wire.decode_low_state(data)
                     continue
-                except proto.ProtocolError as e:
+                except wire.ProtocolError as e:
                     error = str(e)
             else:
-                error = proto.packet_error(data, proto.LOW_STATE_LENGTH)
+                error = wire.packet_error(data, wire.LOW_STATE_LENGTH)
             if error is not None:
                 self.rejected[error.split(":")[0]] += 1
         return newest
 
-    def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
+    def send(self, cmd: wire.MotorCommand, state: wire.RobotState | None) -> None:
         try:
-            self.sock.send(proto.encode_low_cmd(cmd))
+            self.sock.send(wire.encode_low_cmd(cmd))
         except ConnectionRefusedError:  # nobody listening yet (ICMP port unreachable); the watchdog handles it
             pass
 
@@ -109,12 +109,12 @@ class LockstepTransport(UdpTransport):
         self.timeout_s = timeout_s
         self._answer_due = False
 
-    def receive(self) -> proto.RobotState | None:
+    def receive(self) -> wire.RobotState | None:
         if self._answer_due:
             select.select([self.sock], [], [], self.timeout_s)
         return super().receive()
 
-    def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
+    def send(self, cmd: wire.MotorCommand, state: wire.RobotState | None) -> None:
         super().send(cmd, state)
         self._answer_due = True
 
@@ -135,7 +135,7 @@ class SdkTransport:
 
         _check_port_free(local_port)
         self._sdk = sdk
-        self.udp = sdk.UDP(proto.LEVEL_LOW, local_port, robot_ip, robot_port)
+        self.udp = sdk.UDP(wire.LEVEL_LOW, local_port, robot_ip, robot_port)
         self.cmd = sdk.LowCmd()
         self.state = sdk.LowState()
         self.udp.InitCmdData(self.cmd)
@@ -143,13 +143,13 @@ class SdkTransport:
         self.safety = sdk.Safety(sdk.LeggedType.Go1) if power_level else None
         self.power_level = power_level
 
-    def receive(self) -> proto.RobotState | None:
+    def receive(self) -> wire.RobotState | None:
         if self.udp.Recv() != 0:
             return None
         self.udp.GetRecv(self.state)
         s, ms = self.state, self.state.motorState
         imu = s.imu
-        return proto.RobotState(
+        return wire.RobotState(
             tick_ms=s.tick, quaternion_wxyz=np.array(imu.quaternion), gyro_rad_s=np.array(imu.gyroscope),
             accel_mps2=np.array(imu.accelerometer), rpy_rad=np.array(imu.rpy),
             motor_mode=np.array([ms[i].mode for i in range(12)], np.uint8),
@@ -158,7 +158,7 @@ class SdkTransport:
             motor_temperature_c=np.array([ms[i].temperature for i in range(12)]),
             foot_force_raw=np.array(s.footForce), wireless_remote=bytes(s.wirelessRemote))
 
-    def send(self, cmd: proto.MotorCommand, state: proto.RobotState | None) -> None:
+    def send(self, cmd: wire.MotorCommand, state: wire.RobotState | None) -> None:
         for i, m in enumerate(self._motors[:12]):
             m.mode, m.q, m.dq = int(cmd.mode[i]), float(cmd.q_rad[i]), float(cmd.dq_rad_s[i])
             m.tau, m.Kp, m.Kd = float(cmd.tau_nm[i]), float(cmd.kp_nm_rad[i]), float(cmd.kd_nm_s_rad[i])

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from cpgjax.robot import protocol as proto
+from cpgjax.robot import wire
 
 
 def _reference_crc(data: bytes) -> int:
@@ -22,56 +22,56 @@ def _reference_crc(data: bytes) -> int:
     return crc
 
 
-def _state(**overrides) -> proto.RobotState:
+def _state(**overrides) -> wire.RobotState:
     fields = dict(
         tick_ms=1234, quaternion_wxyz=np.array([0.9, 0.1, 0.2, 0.3]), gyro_rad_s=np.array([1.0, 2.0, 3.0]),
         accel_mps2=np.array([0.0, 0.0, 9.8]), rpy_rad=np.array([0.1, 0.2, 0.3]),
-        motor_mode=np.full(12, proto.MODE_SERVO, np.uint8), q_rad=np.linspace(-1, 1, 12),
+        motor_mode=np.full(12, wire.MODE_SERVO, np.uint8), q_rad=np.linspace(-1, 1, 12),
         dq_rad_s=np.linspace(2, -2, 12), tau_est_nm=np.linspace(-20, 20, 12),
         motor_temperature_c=np.arange(12) + 30, foot_force_raw=np.array([10, -20, 300, 4000]),
-        wireless_remote=proto.remote_with_buttons("L2", "B"))
+        wireless_remote=wire.remote_with_buttons("L2", "B"))
     fields.update(overrides)
-    return proto.RobotState(**fields)
+    return wire.RobotState(**fields)
 
 
-def _command(tau=None, kp=None, kd=None) -> proto.MotorCommand:
+def _command(tau=None, kp=None, kd=None) -> wire.MotorCommand:
     i = np.arange(12)
-    return proto.MotorCommand(np.full(12, proto.MODE_SERVO, np.uint8), 0.1 * i, -0.2 * i,
+    return wire.MotorCommand(np.full(12, wire.MODE_SERVO, np.uint8), 0.1 * i, -0.2 * i,
                               1.7 * i - 10 if tau is None else tau, 3.3 * i if kp is None else kp,
                               0.7 * i if kd is None else kd)
 
 
 def test_sizes_and_offsets_match_the_sdk_wire_layout():
-    assert proto.LOW_CMD_DTYPE.itemsize == 614 and proto.LOW_STATE_DTYPE.itemsize == 807
-    cmd_fields = {name: proto.LOW_CMD_DTYPE.fields[name][1] for name in proto.LOW_CMD_DTYPE.names}
+    assert wire.LOW_CMD_DTYPE.itemsize == 614 and wire.LOW_STATE_DTYPE.itemsize == 807
+    cmd_fields = {name: wire.LOW_CMD_DTYPE.fields[name][1] for name in wire.LOW_CMD_DTYPE.names}
     assert cmd_fields == {"head": 0, "level_flag": 2, "frame_reserve": 3, "sn": 4, "version": 12, "bandwidth": 20,
                           "motor": 22, "bms": 562, "wireless_remote": 566, "reserve": 606, "crc": 610}
-    state_fields = {name: proto.LOW_STATE_DTYPE.fields[name][1] for name in proto.LOW_STATE_DTYPE.names}
+    state_fields = {name: wire.LOW_STATE_DTYPE.fields[name][1] for name in wire.LOW_STATE_DTYPE.names}
     assert state_fields["imu"] == 22 and state_fields["motor"] == 75 and state_fields["bms"] == 715
     assert state_fields["foot_force"] == 739 and state_fields["tick"] == 755
     assert state_fields["wireless_remote"] == 759 and state_fields["crc"] == 803
-    motor = proto.LOW_STATE_DTYPE.fields["motor"][0].base
+    motor = wire.LOW_STATE_DTYPE.fields["motor"][0].base
     assert motor.itemsize == 32 and motor.fields["tau_est"][1] == 11 and motor.fields["temperature"][1] == 23
 
 
 @pytest.mark.parametrize("length", [608, 800, 124, 4])
 def test_crc_equals_the_bitwise_definition(length):
     data = np.random.default_rng(length).integers(0, 256, length, dtype=np.uint8).tobytes()
-    assert proto.crc32_words(data) == _reference_crc(data)
+    assert wire.crc32_words(data) == _reference_crc(data)
 
 
 def test_low_cmd_fixed_point_encoding_truncates_toward_zero():
     tau = np.array([23.7, -23.7, 0.003, -0.003, 127.99, -128.0, 1.0, 0, 0, 0, 0, 0])
     kp = np.array([0.03, 2047.9, 70.0, 0, 0, 0, 0, 0, 0, 0, 0, 0])
     kd = np.array([0.06, 4095.9, 1.3, 0, 0, 0, 0, 0, 0, 0, 0, 0])
-    packet = proto.encode_low_cmd(_command(tau, kp, kd))
+    packet = wire.encode_low_cmd(_command(tau, kp, kd))
     assert len(packet) == 614 and packet[:3] == b"\xfe\xef\xff"
-    raw = np.frombuffer(packet, proto.LOW_CMD_DTYPE)[0]["motor"]
+    raw = np.frombuffer(packet, wire.LOW_CMD_DTYPE)[0]["motor"]
     np.testing.assert_array_equal(raw["tau"][:7], [6067, -6067, 0, 0, 32765, -32768, 256])  # trunc(τ·256)
     np.testing.assert_array_equal(raw["kp"][:3], [0, 65532, 2240])  # trunc(Kp·32): 0.03·32 = 0.96 → 0
     np.testing.assert_array_equal(raw["kd"][:3], [0, 65534, 20])  # trunc(Kd·16)
     # Unused slots as the SDK's InitCmdData leaves them.
-    assert raw["mode"][19] == proto.MODE_SERVO and raw["q"][19] == np.float32(proto.POS_STOP_F)
+    assert raw["mode"][19] == wire.MODE_SERVO and raw["q"][19] == np.float32(wire.POS_STOP_F)
     assert int.from_bytes(packet[610:], "little") == _reference_crc(packet[:608])
 
 
@@ -80,19 +80,19 @@ def test_low_cmd_fixed_point_encoding_truncates_toward_zero():
 def test_values_the_wire_would_wrap_are_refused(field, value):
     values = {"tau": np.zeros(12), "kp": np.zeros(12), "kd": np.zeros(12)}
     values[field][5] = value
-    with pytest.raises(proto.ProtocolError, match="not encodable"):
-        proto.encode_low_cmd(_command(**values))
+    with pytest.raises(wire.ProtocolError, match="not encodable"):
+        wire.encode_low_cmd(_command(**values))
 
 
 def test_non_finite_position_target_is_refused():
     cmd = _command()._replace(q_rad=np.where(np.arange(12) == 3, np.nan, 0.0))
-    with pytest.raises(proto.ProtocolError, match="not finite"):
-        proto.encode_low_cmd(cmd)
+    with pytest.raises(wire.ProtocolError, match="not finite"):
+        wire.encode_low_cmd(cmd)
 
 
 def test_low_cmd_round_trip():
     cmd = _command()
-    back = proto.decode_low_cmd(proto.encode_low_cmd(cmd))
+    back = wire.decode_low_cmd(wire.encode_low_cmd(cmd))
     np.testing.assert_allclose(back.tau_nm, cmd.tau_nm, atol=1 / 256)
     np.testing.assert_allclose(back.kp_nm_rad, cmd.kp_nm_rad, atol=1 / 32)
     np.testing.assert_allclose(back.kd_nm_s_rad, cmd.kd_nm_s_rad, atol=1 / 16)
@@ -101,18 +101,18 @@ def test_low_cmd_round_trip():
 
 def test_low_state_round_trip_and_encodings():
     state = _state()
-    packet = proto.encode_low_state(state)
+    packet = wire.encode_low_state(state)
     assert len(packet) == 807
-    raw = np.frombuffer(packet, proto.LOW_STATE_DTYPE)[0]
+    raw = np.frombuffer(packet, wire.LOW_STATE_DTYPE)[0]
     np.testing.assert_array_equal(raw["motor"]["tau_est"][:12], np.round(state.tau_est_nm * 256))
-    back = proto.decode_low_state(packet)
+    back = wire.decode_low_state(packet)
     assert back.tick_ms == 1234 and back.wireless_remote == state.wireless_remote
     np.testing.assert_array_equal(back.foot_force_raw, state.foot_force_raw)
     np.testing.assert_array_equal(back.motor_temperature_c, state.motor_temperature_c)
     np.testing.assert_allclose(back.q_rad, state.q_rad, rtol=1e-6)
     np.testing.assert_allclose(back.tau_est_nm, state.tau_est_nm, atol=1 / 512)
-    assert proto.remote_buttons(back.wireless_remote) == (proto.REMOTE_BUTTON_BITS["L2"]
-                                                          | proto.REMOTE_BUTTON_BITS["B"])
+    assert wire.remote_buttons(back.wireless_remote) == (wire.REMOTE_BUTTON_BITS["L2"]
+                                                          | wire.REMOTE_BUTTON_BITS["B"])
 
 
 @pytest.mark.parametrize("damage, match", [
@@ -122,15 +122,15 @@ def test_low_state_round_trip_and_encodings():
     (lambda p: p[:-1], "bytes"),
 ])
 def test_invalid_state_datagrams_are_rejected(damage, match):
-    with pytest.raises(proto.ProtocolError, match=match):
-        proto.decode_low_state(damage(proto.encode_low_state(_state())))
+    with pytest.raises(wire.ProtocolError, match=match):
+        wire.decode_low_state(damage(wire.encode_low_state(_state())))
 
 
 def test_fault_injection_helpers_break_exactly_one_thing():
-    with pytest.raises(proto.ProtocolError, match="crc"):
-        proto.decode_low_state(proto.encode_low_state(_state(), corrupt_crc=True))
-    with pytest.raises(proto.ProtocolError, match="head"):
-        proto.decode_low_state(proto.encode_low_state(_state(), head=(0, 0)))
+    with pytest.raises(wire.ProtocolError, match="crc"):
+        wire.decode_low_state(wire.encode_low_state(_state(), corrupt_crc=True))
+    with pytest.raises(wire.ProtocolError, match="head"):
+        wire.decode_low_state(wire.encode_low_state(_state(), head=(0, 0)))
 
 
 # ------------------------------------------------------------------------------------ against the real SDK wheel
@@ -146,7 +146,7 @@ def sdk_pair():
     probe.bind(("127.0.0.1", 0))
     local_port = probe.getsockname()[1]
     probe.close()
-    udp = sdk.UDP(proto.LEVEL_LOW, local_port, "127.0.0.1", robot.getsockname()[1])
+    udp = sdk.UDP(wire.LEVEL_LOW, local_port, "127.0.0.1", robot.getsockname()[1])
     yield sdk, udp, robot
     del udp
     robot.close()
@@ -165,7 +165,7 @@ def test_the_sdk_sends_what_we_decode_and_we_encode_what_it_sends(sdk_pair):
     udp.SetSend(cmd)
     udp.Send()
     packet, _ = robot.recvfrom(2048)
-    assert packet == proto.encode_low_cmd(ours)  # byte for byte, CRC included
+    assert packet == wire.encode_low_cmd(ours)  # byte for byte, CRC included
 
 
 def test_the_sdk_accepts_our_state_and_rejects_our_faults(sdk_pair):
@@ -182,13 +182,13 @@ def test_the_sdk_accepts_our_state_and_rejects_our_faults(sdk_pair):
         return udp.Recv()
 
     ours = _state()
-    assert deliver(proto.encode_low_state(ours)) == 0
+    assert deliver(wire.encode_low_state(ours)) == 0
     udp.GetRecv(state)
     assert state.tick == 1234 and list(state.footForce) == [10, -20, 300, 4000]
     np.testing.assert_allclose([state.motorState[i].tauEst for i in range(12)], ours.tau_est_nm, atol=1 / 256)
     np.testing.assert_allclose(list(state.imu.quaternion), ours.quaternion_wxyz, rtol=1e-6)
     assert state.motorState[11].temperature == 41
-    assert deliver(proto.encode_low_state(ours._replace(tick_ms=7), corrupt_crc=True)) == -3
-    assert deliver(proto.encode_low_state(ours._replace(tick_ms=8), head=(0, 0))) == -1
+    assert deliver(wire.encode_low_state(ours._replace(tick_ms=7), corrupt_crc=True)) == -3
+    assert deliver(wire.encode_low_state(ours._replace(tick_ms=8), head=(0, 0))) == -1
     udp.GetRecv(state)
     assert state.tick == 1234  # neither fault reached the state
