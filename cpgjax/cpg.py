@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cpgjax.go1 import attitude, constants, kinematics
+from cpgjax.go1 import attitude, constants, kinematics, sensors
 from cpgjax.trial.params import NUM_PARAMS
 
 # Trot phase lags φ_ij (eq. 3), leg order FR, FL, RR, RL.
@@ -75,17 +75,6 @@ class CPGState(NamedTuple):
     amplitude: jax.Array  # r_i, (4,)
     phase_rad: jax.Array  # θ_i in [0, 2π), (4,)
     heading_ref_rad: jax.Array  # ψ_des, heading at the start of the run, ()
-
-
-class Observation(NamedTuple):
-    """Exactly what the Go1 reports each tick (LowState), in SI units; motor order FR, FL, RR, RL × (hip, thigh,
-    calf)."""
-
-    joint_pos_rad: jax.Array  # (12,)
-    joint_vel_rad_s: jax.Array  # (12,)
-    imu_quat_wxyz: jax.Array  # (4,) trunk orientation relative to gravity (IMU frame = trunk frame)
-    gyro_rad_s: jax.Array  # (3,) trunk angular velocity in the trunk frame
-    foot_force_n: jax.Array  # (4,) foot normal forces [N]
 
 
 class Diagnostics(NamedTuple):
@@ -148,7 +137,7 @@ def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConf
     return jnp.einsum("lij,li->lj", jac, force).reshape(12)
 
 
-def init_state(obs: Observation, initial_amplitude: float = 0.1) -> CPGState:
+def init_state(obs: sensors.Observation, initial_amplitude: float = 0.1) -> CPGState:
     """Controller state at the start of a run: small amplitude, trot phases θ = φ_0j, heading reference = heading
     now."""
     phase = jnp.mod(jnp.asarray(TROT_PHASE_LAG_RAD[0], jnp.float32), 2.0 * jnp.pi)
@@ -160,7 +149,7 @@ def init_state(obs: Observation, initial_amplitude: float = 0.1) -> CPGState:
 
 
 def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates: Gates,
-                    obs: Observation) -> tuple[CPGState, jax.Array, Diagnostics]:
+                    obs: sensors.Observation) -> tuple[CPGState, jax.Array, Diagnostics]:
     """One 1 kHz control tick: (state, 8 parameters, observation) → (new state, 12 joint torques [N·m], diagnostics).
 
     The oscillators are advanced by one forward-Euler step of dt, then mapped to foot targets (eqs. 4-5), joint

@@ -19,10 +19,10 @@ PACKAGE = ROOT / "cpgjax"
 # docs/architecture.md: the layers, lowest first. A module may import modules of its own layer or of lower ones.
 LAYERS = (
     ("run provenance and flat layouts", ("provenance", "layout")),
-    ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.model")),
+    ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.model", "go1.sensors")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
-    ("sensors and trial", ("go1.sensors", "trial.limits", "trial.protocol", "trial.objective", "trial.tuned")),
+    ("trial", ("trial.limits", "trial.protocol", "trial.objective", "trial.tuned")),
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
     ("optimizer setting", ("trial.optimizer_setting",)),
     ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.backends", "sim.walk")),

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cpgjax import cpg
-from cpgjax.go1 import attitude, constants, kinematics
+from cpgjax.go1 import attitude, constants, kinematics, sensors
 from cpgjax.trial import params as param_space
 from tests import numpy_reference as ref
 
@@ -19,7 +19,7 @@ def random_params(n, rng=RNG):
 
 def observation(force_n=(0.0, 0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0), q=None):
     q = np.tile([0.0, 0.85, -1.57], 4) if q is None else q
-    return cpg.Observation(joint_pos_rad=jnp.asarray(q, jnp.float32), joint_vel_rad_s=jnp.zeros(12),
+    return sensors.Observation(joint_pos_rad=jnp.asarray(q, jnp.float32), joint_vel_rad_s=jnp.zeros(12),
                            imu_quat_wxyz=jnp.asarray(quat, jnp.float32), gyro_rad_s=jnp.zeros(3),
                            foot_force_n=jnp.asarray(force_n, jnp.float32))
 

@@ -7,15 +7,27 @@ frame, foot positions).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 
-from cpgjax import cpg
 from cpgjax.go1 import attitude, kinematics, physics
 from cpgjax.go1 import model as go1_model
 
 
-def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: jax.Array) -> cpg.Observation:
+class Observation(NamedTuple):
+    """Exactly what the Go1 reports each tick (LowState), in SI units; motor order FR, FL, RR, RL × (hip, thigh,
+    calf)."""
+
+    joint_pos_rad: jax.Array  # (12,)
+    joint_vel_rad_s: jax.Array  # (12,)
+    imu_quat_wxyz: jax.Array  # (4,) trunk orientation relative to gravity (IMU frame = trunk frame)
+    gyro_rad_s: jax.Array  # (3,) trunk angular velocity in the trunk frame
+    foot_force_n: jax.Array  # (4,) foot normal forces [N]
+
+
+def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: jax.Array) -> Observation:
     """The controller's observation computed as the Go1's sensors would report it.
 
     IMU orientation relative to gravity (so a slope reads as pitch, docs/decisions.md §4), gyro in the trunk frame,
@@ -24,7 +36,7 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
     ids = go1_model.indices()
     r = ids.root_qpos
     quat_floor = qpos[r + 3:r + 7]
-    return cpg.Observation(
+    return Observation(
         joint_pos_rad=qpos[ids.joint_qpos],
         joint_vel_rad_s=qvel[ids.joint_dof],
         imu_quat_wxyz=attitude.quat_mul(attitude.gravity_frame_quat(gravity), quat_floor),
@@ -34,7 +46,7 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
 
 
 def measure(profile: physics.ProfileArrays, io: physics.ActuatorSensorState, qpos: jax.Array, qvel: jax.Array,
-            sensordata: jax.Array, gravity: jax.Array) -> tuple[physics.ActuatorSensorState, cpg.Observation]:
+            sensordata: jax.Array, gravity: jax.Array) -> tuple[physics.ActuatorSensorState, Observation]:
     """The observation under a physics profile: :func:`observe` with the profile's foot-force signal (contact normal
     or calf-frame z), its sensor noise (uniform, drawn every tick), the force counted when the sensor counts, and
     updated and held at the profile's rate (``physics.foot_sensor_update``)."""

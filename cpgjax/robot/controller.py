@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import cpg
-from cpgjax.go1 import attitude, kinematics
+from cpgjax.go1 import attitude, kinematics, sensors
 from cpgjax.go1.constants import TORQUE_LIMIT_NM
 from cpgjax.layout import FlatLayout
 from cpgjax.robot import cpu_dispatch, wire
@@ -33,7 +33,7 @@ def _zeros(*shape) -> np.ndarray:
 class ControllerInput(NamedTuple):
     """The compiled step's input, one flat float32 vector laid out by :data:`INPUT` (every field read by name)."""
 
-    obs: cpg.Observation  # the LowState's observation in SI units (foot forces through the calibration)
+    obs: sensors.Observation  # the LowState's observation in SI units (foot forces through the calibration)
     params: np.ndarray  # (8,) the CPG parameters of this tick
     gates: cpg.Gates  # the controller variant
     state: cpg.CPGState  # the CPG state carried from the last tick
@@ -56,7 +56,7 @@ class ControllerOutput(NamedTuple):
     finite: np.ndarray  # () 1 if every torque is finite
 
 
-OBSERVATION = FlatLayout(cpg.Observation(_zeros(12), _zeros(12), _zeros(4), _zeros(3), _zeros(4)))
+OBSERVATION = FlatLayout(sensors.Observation(_zeros(12), _zeros(12), _zeros(4), _zeros(3), _zeros(4)))
 STATE = FlatLayout(cpg.CPGState(_zeros(4), _zeros(4), _zeros()))
 INPUT = FlatLayout(ControllerInput(OBSERVATION.unravel(OBSERVATION.zeros()), _zeros(8), cpg.Gates(_zeros(), _zeros()),
                                    STATE.unravel(STATE.zeros())))
@@ -64,7 +64,7 @@ OUTPUT = FlatLayout(ControllerOutput(_zeros(12), STATE.unravel(STATE.zeros()), _
                                      _zeros(), _zeros(), _zeros(), _zeros(12), _zeros()))
 
 
-def leg_odometry_velocity(obs: cpg.Observation, stance: jax.Array) -> jax.Array:
+def leg_odometry_velocity(obs: sensors.Observation, stance: jax.Array) -> jax.Array:
     """Trunk velocity (v_x, v_y) [m/s] in the heading (yaw-only, gravity-aligned) frame from the stance legs'
     kinematics: v_body = −(J(q) q̇ + ω × p_foot), averaged over stance legs (zero when none is in stance)."""
     q = obs.joint_pos_rad.reshape(4, 3)
@@ -126,7 +126,7 @@ class CompiledController:
         return np.asarray(self._init(x_obs))
 
 
-def pack_observation(state: wire.RobotState, calibration: FootForceCalibration, obs: cpg.Observation) -> None:
+def pack_observation(state: wire.RobotState, calibration: FootForceCalibration, obs: sensors.Observation) -> None:
     """Write the controller's observation (SI units) from a LowState into ``obs``, the named views of a flat input
     (``INPUT.unravel(x).obs``)."""
     obs.joint_pos_rad[:] = state.q_rad

@@ -38,7 +38,6 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from cpgjax import cpg
 from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
@@ -220,7 +219,7 @@ class Go1Physics:
         return float(self.data.qpos[self.ids.root_qpos + 2])
 
 
-def _report(obs: cpg.Observation) -> SensorReport:
+def _report(obs: sensors.Observation) -> SensorReport:
     """The controller-facing sensors as the Go1 reports them (JAX, compiled into the sensor step): the IMU's
     quaternion, gyro, specific force of a robot at rest (R^T ẑ g: linear acceleration not modelled) and roll, pitch,
     yaw; the joints; the raw foot counts (offset + N / scale, rounded, int16 range)."""

@@ -87,7 +87,7 @@ class PreStep(NamedTuple):
     saturated: jax.Array  # number of clipped joint torques
 
 
-def pre_step(obs: cpg.Observation, torque: jax.Array, diag: cpg.Diagnostics, joint_vel_rad_s: jax.Array) -> PreStep:
+def pre_step(obs: sensors.Observation, torque: jax.Array, diag: cpg.Diagnostics, joint_vel_rad_s: jax.Array) -> PreStep:
     """Record quantities of the state the controller saw and the torque it applied (shared by every backend).
 
     The power is |τ|·|q̇| with ``joint_vel_rad_s`` the joints' true velocity in a simulator (sensor noise would bias
@@ -206,7 +206,7 @@ class Control(NamedTuple):
 
     io: physics.ActuatorSensorState
     cpg: cpg.CPGState
-    obs: cpg.Observation  # what the controller read (with the profile's sensor noise)
+    obs: sensors.Observation  # what the controller read (with the profile's sensor noise)
     joint_vel_rad_s: jax.Array  # (12,) the joints' true velocity
     torque_nm: jax.Array  # (12,) the torque the motors apply
     diag: cpg.Diagnostics
