@@ -18,9 +18,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q
 
-# Ruff over the repository, with the rules of pyproject.toml's [tool.ruff].
+# Ruff over the repository, with the rules of pyproject.toml's [tool.ruff], then the dead-code check
+# ([tool.vulture]: what nothing in the package, tests, benchmarks or studies uses).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/vulture
 
 bench: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) benchmarks/rollout.py --quick

@@ -26,7 +26,7 @@ def hopf_derivatives(r, theta, mu, omega_swing, omega_stance, sigma_n, normal_fo
 
 def integrate(r, theta, params, normal_force, steps, dt=1e-3, tegotae=True, squared_mu=True):
     """Forward Euler, θ wrapped to [0, 2π) each step."""
-    g_c, g_p, w_sw, w_st, mu, xf, xh, sigma = params
+    g_c, g_p, w_sw, w_st, mu, _, _, sigma = params  # x_f, x_h shape the foot path, not the oscillator
     r, theta = np.array(r, float), np.array(theta, float)
     for _ in range(steps):
         dr, dth = hopf_derivatives(r, theta, mu, w_sw, w_st, sigma, normal_force, tegotae, squared_mu=squared_mu)

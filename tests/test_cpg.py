@@ -169,7 +169,7 @@ def test_open_loop_has_no_vmc_torque_and_no_force_term():
     quat = _tilted_quat(0.2, -0.15, 0.3)
     open_loop = cpg.controller_gates("open_loop")
     s0, tau0, d0 = _one_step(open_loop, np.zeros(4), quat)
-    s1, tau1, d1 = _one_step(open_loop, np.full(4, 60.0), quat)
+    s1, tau1, _ = _one_step(open_loop, np.full(4, 60.0), quat)
     np.testing.assert_array_equal(d0.tau_vmc_nm, 0.0)
     np.testing.assert_array_equal(s0.phase_rad, s1.phase_rad)  # foot forces do not reach the phase
     np.testing.assert_array_equal(tau0, tau1)

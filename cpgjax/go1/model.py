@@ -29,7 +29,6 @@ STAND_FOOT_X_M = -0.035
 STAND_FOOT_Z_M = -0.30
 FOOT_RADIUS_M = 0.02
 VISUAL_GROUP = 2  # the geom group of the geoms that are only seen (go1.xml's classes visual_*)
-COLLISION_GROUP = 3  # the geom group of the robot's collision geoms (hidden by MuJoCo's default visual options)
 
 
 def _model_xml() -> str:

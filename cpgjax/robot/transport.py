@@ -134,7 +134,6 @@ class SdkTransport:
         from unitree_legged_sdk import robot_interface as sdk  # optional extra "go1"
 
         _check_port_free(local_port)
-        self._sdk = sdk
         self.udp = sdk.UDP(wire.LEVEL_LOW, local_port, robot_ip, robot_port)
         self.cmd = sdk.LowCmd()
         self.state = sdk.LowState()

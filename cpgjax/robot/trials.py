@@ -279,8 +279,8 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     if spec.cpus:
         os.sched_setaffinity(0, spec.cpus)  # before JAX starts its threads (they inherit it)
     jax.config.update("jax_platforms", "cpu")  # before this process's first JAX computation
-    optimizer = (BayesianOptimizer(spec.seed, spec.tegotae, spec.safe) if spec.kind == "bo"
-                 else RandomSearch(spec.seed, spec.tegotae))
+    optimizer: OnlineOptimizer = (BayesianOptimizer(spec.seed, spec.tegotae, spec.safe) if spec.kind == "bo"
+                                  else RandomSearch(spec.seed, spec.tegotae))
     _, _, _, c_gp = _evaluate(np.zeros((spec.steady_steps, len(_SIGNALS)), np.float32), spec, optimizer.warm_up, -1)
     # Idle while each trial walks: unlocked, its pages were evicted and the next proposal waited on the disk.
     log.info("optimizer process: %s", memory_lock.lock())
