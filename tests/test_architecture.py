@@ -8,6 +8,7 @@ same check runs from the command line: ``python tests/test_architecture.py``.
 from __future__ import annotations
 
 import ast
+import os
 import pathlib
 import re
 import subprocess
@@ -255,3 +256,20 @@ def test_every_citation_resolves_inside_the_repository():
 if __name__ == "__main__":
     graph = import_graph()
     print(f"{len(graph)} modules, {sum(map(len, graph.values()))} import arrows, cycles: {cycles(graph) or 'none'}")
+
+
+def test_importing_cpgjax_runs_no_jax_computation():
+    """Every module imports without a JAX computation, so JAX's CPU client does not exist yet and a process (the
+    robot loop, the simulated Go1, a distributed study) can still choose its dispatch and devices after the imports:
+    ``cpu_dispatch.request_inline`` then reports inline dispatch. An array built at import would create the client
+    unpinned and asynchronous (it slowed the robot loop's step by half, benchmarks/hardware_loop.py)."""
+    names = sorted(n for n in module_files() if n)
+    code = ("import importlib, sys\n"
+            f"for name in {names!r}:\n"
+            "    importlib.import_module('cpgjax.' + name)\n"
+            "from cpgjax.robot import cpu_dispatch\n"
+            "print(cpu_dispatch.request_inline())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "True", out.stdout[-500:]

@@ -22,6 +22,7 @@ UDP socket (the control port, JSON requests), see :class:`SimGo1Client`. Run ``p
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import json
 import os
@@ -111,13 +112,26 @@ class _SenseOut(NamedTuple):
     report: SensorReport
 
 
-_IO = physics_profiles.init_state(np.zeros(4, np.float32))  # the sensor and motor state after a reset
-_IO_LAYOUT = FlatLayout(_IO)
 COMMAND = FlatLayout(wire.MotorCommand(*(_joints() for _ in wire.MotorCommand._fields)))
 REPORT = FlatLayout(SensorReport(np.zeros(4), np.zeros(3), np.zeros(3), np.zeros(3), _joints(), _joints(),
                                  np.zeros(4)))
-_DRIVE_IN = FlatLayout(_DriveIn(_IO, COMMAND.unravel(COMMAND.zeros()), _joints(), _joints()))
-_DRIVE_OUT = FlatLayout(_DriveOut(_IO, _joints(), _joints()))
+
+
+class _Layouts(NamedTuple):
+    io: FlatLayout  # the profile's sensor and motor state
+    drive_in: FlatLayout
+    drive_out: FlatLayout
+    reset_io: np.ndarray  # the flat state after a reset
+
+
+@functools.cache
+def _layouts() -> _Layouts:
+    """The motor step's layouts, built at the first :class:`Go1Physics`: the example sensor and motor state is a JAX
+    computation, and none may run at import (the process sets JAX's CPU dispatch and its CPUs first, ``main``)."""
+    io = physics_profiles.init_state(np.zeros(4, np.float32))  # the sensor and motor state after a reset
+    io_layout = FlatLayout(io)
+    return _Layouts(io_layout, FlatLayout(_DriveIn(io, COMMAND.unravel(COMMAND.zeros()), _joints(), _joints())),
+                    FlatLayout(_DriveOut(io, _joints(), _joints())), np.asarray(io_layout.ravel(io, np.float32)))
 
 
 def command_vector(cmd: wire.MotorCommand) -> np.ndarray:
@@ -147,14 +161,16 @@ class Go1Physics:
         # float32 vector in and out (a compiled call costs per argument), each laid out by name: one definition of
         # what the robot senses and how its motors respond.
         m = self.model
-        self._sense_layout = FlatLayout(_SenseIn(_IO, np.zeros(m.nq), np.zeros(m.nv), np.zeros(m.nsensordata)))
-        self._sense_out = FlatLayout(_SenseOut(_IO, REPORT.unravel(REPORT.zeros())))
+        lay = self._layouts = _layouts()
+        io = lay.io.unravel(lay.reset_io)
+        self._sense_layout = FlatLayout(_SenseIn(io, np.zeros(m.nq), np.zeros(m.nv), np.zeros(m.nsensordata)))
+        self._sense_out = FlatLayout(_SenseOut(io, REPORT.unravel(REPORT.zeros())))
 
         def drive(x):  # _DriveIn → _DriveOut
-            d = _DRIVE_IN.unravel(x)
+            d = lay.drive_in.unravel(x)
             torque = motor_torque(d.command, d.q_rad, d.dq_rad_s)
             io, applied = physics_profiles.actuate(profile, d.io, torque, d.dq_rad_s)
-            return _DRIVE_OUT.ravel(_DriveOut(io, torque, applied))
+            return lay.drive_out.ravel(_DriveOut(io, torque, applied))
 
         def sense(x):  # _SenseIn → _SenseOut
             s = self._sense_layout.unravel(x)
@@ -162,10 +178,10 @@ class Go1Physics:
             return self._sense_out.ravel(_SenseOut(io, _report(obs)))
 
         compile_for = lambda f, n: jax.jit(f).lower(np.zeros(n, np.float32)).compile()  # noqa: E731
-        self._drive = compile_for(drive, _DRIVE_IN.size)
+        self._drive = compile_for(drive, lay.drive_in.size)
         self._sense = compile_for(sense, self._sense_layout.size)
-        self._drive_in = _DRIVE_IN.zeros()
-        self._drive_views = _DRIVE_IN.unravel(self._drive_in)
+        self._drive_in = lay.drive_in.zeros()
+        self._drive_views = lay.drive_in.unravel(self._drive_in)
         self._sense_in = self._sense_layout.zeros()
         self._sense_views = self._sense_layout.unravel(self._sense_in)
         self.reset()
@@ -176,7 +192,7 @@ class Go1Physics:
         self.data.qpos[:] = self._standing
         mujoco.mj_forward(self.model, self.data)
         self.held_root_qpos = None
-        self._io = np.asarray(_IO_LAYOUT.ravel(_IO, np.float32))
+        self._io = self._layouts.reset_io.copy()
 
     def lift(self, height_m: float) -> None:
         """Hold the trunk ``height_m`` above its standing pose, like a robot hung from a crane for calibration: from
@@ -193,27 +209,27 @@ class Go1Physics:
             root, dof = self.ids.root_qpos, self.ids.root_dof
             self.data.qpos[root:root + 7] = self.held_root_qpos
             self.data.qvel[dof:dof + 6] = 0.0
-        x, d = self._drive_in, self._drive_views
-        x[_DRIVE_IN.slices.io] = self._io
-        x[_DRIVE_IN.slices.command] = cmd
+        x, d, into, out_of = self._drive_in, self._drive_views, self._layouts.drive_in, self._layouts.drive_out
+        x[into.slices.io] = self._io
+        x[into.slices.command] = cmd
         d.q_rad[:] = self.data.qpos[self.ids.joint_qpos]
         d.dq_rad_s[:] = self.data.qvel[self.ids.joint_dof]
         out = np.asarray(self._drive(x))
-        self._io = out[_DRIVE_OUT.slices.io]
-        self.data.ctrl[self.ids.actuator] = out[_DRIVE_OUT.slices.applied_torque_nm]
+        self._io = out[out_of.slices.io]
+        self.data.ctrl[self.ids.actuator] = out[out_of.slices.applied_torque_nm]
         self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
         mujoco.mj_step(self.model, self.data)
-        return out[_DRIVE_OUT.slices.law_torque_nm].astype(np.float64)
+        return out[out_of.slices.law_torque_nm].astype(np.float64)
 
-    def sense(self) -> SensorReport:
+    def sense(self) -> np.ndarray:
         """What the robot's sensors report now (the profile's sensor model: noise, the foot sensor's counting): its
-        LowState's sensor fields, float64, for :func:`robot_state`."""
+        LowState's sensor fields as one float64 vector laid out by :data:`REPORT`, for :func:`robot_state`."""
         x, s, layout = self._sense_in, self._sense_views, self._sense_out
         x[self._sense_layout.slices.io] = self._io
         s.qpos[:], s.qvel[:], s.sensordata[:] = self.data.qpos, self.data.qvel, self.data.sensordata
         out = np.asarray(self._sense(x))
         self._io = out[layout.slices.io]
-        return REPORT.unravel(out[layout.slices.report].astype(np.float64))
+        return out[layout.slices.report].astype(np.float64)
 
     def trunk_height_m(self) -> float:
         return float(self.data.qpos[self.ids.root_qpos + 2])
@@ -230,14 +246,16 @@ def _report(obs: sensors.Observation) -> SensorReport:
                         obs.joint_vel_rad_s, jnp.clip(counts, -32768, 32767))
 
 
-def robot_state(sensed: SensorReport, torque_nm: np.ndarray, tick_ms: int, *,
+def robot_state(sensed: np.ndarray, torque_nm: np.ndarray, tick_ms: int, *,
                 buttons: tuple[str, ...] = ()) -> wire.RobotState:
-    """The LowState of the sensors' report (:meth:`Go1Physics.sense`), tauEst = the applied torque."""
+    """The LowState of the sensors' report (:meth:`Go1Physics.sense`, read by :data:`REPORT`'s field slices: views,
+    cheaper per tick than building the pytree), tauEst = the applied torque."""
+    at = REPORT.slices
     return wire.RobotState(
-        tick_ms=tick_ms, quaternion_wxyz=sensed.quaternion_wxyz, gyro_rad_s=sensed.gyro_rad_s,
-        accel_mps2=sensed.accel_mps2, rpy_rad=sensed.rpy_rad, motor_mode=_SERVO_MODES, q_rad=sensed.q_rad,
-        dq_rad_s=sensed.dq_rad_s, tau_est_nm=torque_nm, motor_temperature_c=_TEMPERATURES_C,
-        foot_force_raw=sensed.foot_force_raw.astype(np.int16), wireless_remote=wire.remote_with_buttons(*buttons))
+        tick_ms=tick_ms, quaternion_wxyz=sensed[at.quaternion_wxyz], gyro_rad_s=sensed[at.gyro_rad_s],
+        accel_mps2=sensed[at.accel_mps2], rpy_rad=sensed[at.rpy_rad], motor_mode=_SERVO_MODES, q_rad=sensed[at.q_rad],
+        dq_rad_s=sensed[at.dq_rad_s], tau_est_nm=torque_nm, motor_temperature_c=_TEMPERATURES_C,
+        foot_force_raw=sensed[at.foot_force_raw].astype(np.int16), wireless_remote=wire.remote_with_buttons(*buttons))
 
 
 _SERVO_MODES = np.full(12, wire.MODE_SERVO, np.uint8)
