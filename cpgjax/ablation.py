@@ -46,10 +46,10 @@ import numpy as np
 # that is alive but never joins holds every other one inside the collective for as long as it stays away (jax 0.10.2,
 # CPU: rank 0 waited the 20 s that rank 1 slept before joining), and nothing says which rank is missing. One key per
 # rank and a bounded wait for each name the rank that did not deliver (ProcessLost).
-from jax._src import distributed
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from cpgjax import jax_internals
 from cpgjax.go1 import model as go1_model
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
@@ -106,7 +106,7 @@ def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
     rank, count = jax.process_index(), jax.process_count()
     if count == 1:
         return [local]
-    client = distributed.global_state.client
+    client = jax_internals.coordinator_client()
     timeout_s = exchange_timeout_s() if timeout_s is None else timeout_s
     n = client.key_value_increment(f"cpgjax/exchanges/{rank}", 1) - 1
     leaves, treedef = jax.tree.flatten(local)

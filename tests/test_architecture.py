@@ -19,7 +19,7 @@ PACKAGE = ROOT / "cpgjax"
 
 # docs/architecture.md: the layers, lowest first. A module may import modules of its own layer or of lower ones.
 LAYERS = (
-    ("run provenance and flat layouts", ("provenance", "layout")),
+    ("run provenance, flat layouts, JAX internals", ("provenance", "layout", "jax_internals")),
     ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.model", "go1.sensors")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
@@ -35,8 +35,8 @@ LAYERS = (
     ("command line", ("cli",)),
 )
 # The design's modules, the entry point, and below every layer what a run records about its code and machine and how
-# a pytree is laid out in a flat vector
-TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli", "provenance", "layout"}
+# a pytree is laid out in a flat vector, and the one module that reads JAX's internals
+TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli", "provenance", "layout", "jax_internals"}
 # docs/architecture.md: these layers sit side by side, neither imports the other (whatever their order in LAYERS).
 SIDE_BY_SIDE = ("studies", "robot")
 # docs/architecture.md: the optimizer is generic over its parameter and context boxes; of cpgjax it imports only these
@@ -273,3 +273,10 @@ def test_importing_cpgjax_runs_no_jax_computation():
                          env={**os.environ, "JAX_PLATFORMS": "cpu"})
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "True", out.stdout[-500:]
+
+
+def test_only_jax_internals_reads_jax_internals():
+    """``jax._src`` is imported by cpgjax/jax_internals.py alone (what JAX's public API does not give)."""
+    readers = sorted(str(path.relative_to(ROOT)) for name, path in module_files().items()
+                     if "jax._src" in path.read_text() and name != "jax_internals")
+    assert readers == []

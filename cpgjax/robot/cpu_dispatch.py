@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import jax
 
+from cpgjax import jax_internals
+
 
 def request_inline() -> bool:
     """Ask for inline CPU dispatch; return whether it is in effect.
@@ -19,12 +21,8 @@ def request_inline() -> bool:
     start. Called after JAX has computed anything it returns False (unless the setting was already off): the client
     keeps dispatching asynchronously. Process-wide.
     """
-    # Whether JAX's CPU client exists yet: no public API tells without creating it. jax.devices() and
-    # jax.extend.backend.backends() create the client, which must not happen here (jax.distributed.initialize, for
-    # `cpgjax study --distributed`, has to come before it); jax.extend.backend.clear_backends() would recreate it but
-    # drops every array and compiled program; jax.config holds only the flag, which the client reads when created.
-    from jax._src import xla_bridge
-
+    # jax.config holds only the flag, which the client reads when it is created; whether it exists yet no public API
+    # tells without creating it (cpgjax.jax_internals).
     was_inline = not jax.config.read("jax_cpu_enable_async_dispatch")
     jax.config.update("jax_cpu_enable_async_dispatch", False)
-    return was_inline or not xla_bridge.backends_are_initialized()
+    return was_inline or not jax_internals.cpu_client_exists()
