@@ -29,7 +29,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax.go1 import physics, sensors
+from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1 import sensors
 from cpgjax.sim.base import Backend
 from cpgjax.trial import protocol
 
@@ -59,7 +60,7 @@ class SimState(NamedTuple):
     data: mjx.Data
     cpg: cpg.CPGState
     params: jax.Array  # (8,) the parameters applied at the end of the last trial (start of the next transition)
-    io: physics.ActuatorSensorState  # the physics profile's foot sensor and motors
+    io: physics_profiles.ActuatorSensorState  # the physics profile's foot sensor and motors
 
 
 # ----------------------------------------------------------------------------------------------- scenarios
@@ -71,14 +72,14 @@ class BatchModel(NamedTuple):
     model: mjx.Model
     in_axes: mjx.Model
     scenario: go1_model.Scenario
-    profile: physics.ProfileArrays  # (B, ...) leaves
+    profile: physics_profiles.ProfileArrays  # (B, ...) leaves
 
 
 def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     """Per-instance MJX model data for a whole batch of scenarios, in one call.
 
     Floor friction → ``geom_friction[floor, 0]`` (the floor has priority, docs/decisions.md §5; under the profile's
-    friction rule, ``physics.floor_friction``); slope →
+    friction rule, ``physics_profiles.floor_friction``); slope →
     ``opt.gravity``; payload and physics profile → every field they change, recomputed by ``mj_setConst`` once per
     distinct (payload, profile).
     """
@@ -98,14 +99,14 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     # then walks 0.09 m/s instead of 0.53), so MJX carries a negligible bound where a profile has no joint friction.
     updates["dof_frictionloss"] = jnp.maximum(updates["dof_frictionloss"], MIN_FRICTIONLOSS_NM)
     friction = np.broadcast_to(np.asarray(base.geom_friction), (batch,) + base.geom_friction.shape).copy()
-    friction[:, ids.floor_geom, 0] = [physics.floor_friction(physics.get(str(name)), mu)
+    friction[:, ids.floor_geom, 0] = [physics_profiles.floor_friction(physics_profiles.get(str(name)), mu)
                                       for name, mu in zip(scenario.physics, scenario.friction, strict=True)]
     updates["geom_friction"] = jnp.asarray(friction, mx.geom_friction.dtype)
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})
     return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario,
-                      profile=physics.batch_arrays(scenario.physics, scenario.latency_ticks, scenario.noise_scale,
-                                                   scenario.noise_seed))
+                      profile=physics_profiles.batch_arrays(scenario.physics, scenario.latency_ticks,
+                                                            scenario.noise_scale, scenario.noise_seed))
 
 
 # ----------------------------------------------------------------------------------------------- one instance
@@ -118,11 +119,11 @@ def _standing_data(model: mjx.Model) -> mjx.Data:
 def _reset(model: mjx.Model, params: jax.Array) -> SimState:
     data = _standing_data(model)
     obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
-    return SimState(data=data, cpg=cpg.init_state(obs), params=params, io=physics.init_state(obs.foot_force_n))
+    return SimState(data=data, cpg=cpg.init_state(obs), params=params, io=physics_profiles.init_state(obs.foot_force_n))
 
 
-def _control(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics.ProfileArrays, data: mjx.Data,
-             io: physics.ActuatorSensorState, cpg_state: cpg.CPGState, params: jax.Array,
+def _control(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics_profiles.ProfileArrays, data: mjx.Data,
+             io: physics_profiles.ActuatorSensorState, cpg_state: cpg.CPGState, params: jax.Array,
              gates: cpg.Gates) -> tuple[protocol.Control, mjx.Data]:
     """The shared control tick, then one physics step with its torques."""
     c = protocol.control(cpg_config, profile, io, cpg_state, params, gates, data.qpos, data.qvel, data.sensordata,
@@ -142,7 +143,7 @@ def _reset_tick_state_where(cond, reset: mjx.Data, data: mjx.Data) -> mjx.Data:
 
 
 def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model,
-          profile: physics.ProfileArrays, gates: cpg.Gates, reset: SimState, state: SimState,
+          profile: physics_profiles.ProfileArrays, gates: cpg.Gates, reset: SimState, state: SimState,
           params_now: jax.Array) -> tuple[SimState, protocol.Tick]:
     """Sensors → controller → motors → one physics step; a non-finite result is replaced by the standing reset."""
     c, stepped = _control(cpg_config, model, profile, state.data, state.io, state.cpg, params_now, gates)
@@ -156,7 +157,7 @@ def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: 
 
 
 def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model,
-           profile: physics.ProfileArrays, state: SimState, new_params: jax.Array,
+           profile: physics_profiles.ProfileArrays, state: SimState, new_params: jax.Array,
            gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
     """One trial of one instance: transition (linear interpolation) then steady phase; reset after a fall."""
     reset = _reset(model, new_params)
@@ -182,7 +183,7 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model:
     return protocol.where_batch((record.fell > 0) | (record.failed > 0), reset, end), record
 
 
-def rollout_log(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics.ProfileArrays, state: SimState,
+def rollout_log(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics_profiles.ProfileArrays, state: SimState,
                 params: jax.Array, gates: cpg.Gates, num_steps: int) -> tuple[SimState, protocol.StepLog]:
     """``num_steps`` ticks of one instance with constant parameters, logging every tick. Not vmapped: wrap it."""
     ids = go1_model.indices()

@@ -280,3 +280,29 @@ def test_only_jax_internals_reads_jax_internals():
     readers = sorted(str(path.relative_to(ROOT)) for name, path in module_files().items()
                      if "jax._src" in path.read_text() and name != "jax_internals")
     assert readers == []
+
+
+def import_names() -> dict[str, set[str]]:
+    """cpgjax module → the names the package's modules import it under (``from cpgjax.go1 import model as
+    go1_model`` gives ``go1.model`` → ``go1_model``)."""
+    modules = module_files()
+    names: dict[str, set[str]] = {}
+    for path in modules.values():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("cpgjax") and not node.level:
+                for alias in node.names:
+                    target = f"{node.module}.{alias.name}".removeprefix("cpgjax.")
+                    if target in modules:
+                        names.setdefault(target, set()).add(alias.asname or alias.name)
+    return names
+
+
+def test_each_module_has_one_import_name():
+    """docs/architecture.md, "Import names": a module is imported under one name across the package, its own or the
+    alias the table there gives with its reason."""
+    several = {module: sorted(n) for module, n in import_names().items() if len(n) > 1}
+    assert several == {}
+    table = (ROOT / "docs" / "architecture.md").read_text()
+    documented = re.findall(r"^\| `([a-z0-9_.]+)` \| `([a-z0-9_]+)` \|", table, re.M)
+    aliased = {module: next(iter(n)) for module, n in import_names().items() if next(iter(n)) != module.split(".")[-1]}
+    assert aliased == dict(documented)

@@ -12,8 +12,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from cpgjax.go1 import attitude, kinematics, physics
+from cpgjax.go1 import attitude, kinematics
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 
 
 class Observation(NamedTuple):
@@ -45,21 +46,22 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
     )
 
 
-def measure(profile: physics.ProfileArrays, io: physics.ActuatorSensorState, qpos: jax.Array, qvel: jax.Array,
-            sensordata: jax.Array, gravity: jax.Array) -> tuple[physics.ActuatorSensorState, Observation]:
+def measure(profile: physics_profiles.ProfileArrays, io: physics_profiles.ActuatorSensorState, qpos: jax.Array,
+            qvel: jax.Array, sensordata: jax.Array,
+            gravity: jax.Array) -> tuple[physics_profiles.ActuatorSensorState, Observation]:
     """The observation under a physics profile: :func:`observe` with the profile's foot-force signal (contact normal
     or calf-frame z), its sensor noise (uniform, drawn every tick), the force counted when the sensor counts, and
-    updated and held at the profile's rate (``physics.foot_sensor_update``)."""
+    updated and held at the profile's rate (``physics_profiles.foot_sensor_update``)."""
     ids = go1_model.indices()
     obs = observe(qpos, qvel, sensordata, gravity)
-    u = physics.noise_draws(profile, io.tick)
+    u = physics_profiles.noise_draws(profile, io.tick)
     amplitude = profile.noise
     contact_data = sensordata[ids.foot_contact_data]
-    signal = physics.foot_force_signal(profile, qpos, contact_data, ids.root_qpos, ids.joint_qpos)
+    signal = physics_profiles.foot_force_signal(profile, qpos, contact_data, ids.root_qpos, ids.joint_qpos)
     clearance = foot_positions(qpos)[:, 2] - go1_model.FOOT_RADIUS_M
-    io, held = physics.foot_sensor_update(profile, io,
-                                          physics.count(profile, signal + amplitude.foot_force * u.foot_force),
-                                          physics.touching(profile, clearance))
+    io, held = physics_profiles.foot_sensor_update(profile, io,
+                                          physics_profiles.count(profile, signal + amplitude.foot_force * u.foot_force),
+                                          physics_profiles.touching(profile, clearance))
     # The IMU's orientation turned in the trunk frame about x and y by the tilt noise (rotation vector → quaternion;
     # sin(θ/2)/θ = sinc(θ/2π)/2 is finite at θ = 0).
     turn = amplitude.tilt * jnp.concatenate([u.tilt, jnp.zeros(1, u.tilt.dtype)])

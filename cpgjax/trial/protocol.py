@@ -24,8 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import cpg
-from cpgjax.go1 import attitude, physics, sensors
+from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import TILT_STOP_RAD
 from cpgjax.trial import params as param_space
 
@@ -204,7 +205,7 @@ def summarize(steady: Tick, total_mass_kg: jax.Array, dt_s: float, transition: T
 class Control(NamedTuple):
     """One control tick's output (:func:`control`)."""
 
-    io: physics.ActuatorSensorState
+    io: physics_profiles.ActuatorSensorState
     cpg: cpg.CPGState
     obs: sensors.Observation  # what the controller read (with the profile's sensor noise)
     joint_vel_rad_s: jax.Array  # (12,) the joints' true velocity
@@ -212,14 +213,14 @@ class Control(NamedTuple):
     diag: cpg.Diagnostics
 
 
-def control(cpg_config: cpg.CPGConfig, profile: physics.ProfileArrays, io: physics.ActuatorSensorState,
-            cpg_state: cpg.CPGState, params: jax.Array, gates: cpg.Gates, qpos: jax.Array, qvel: jax.Array,
-            sensordata: jax.Array, gravity: jax.Array) -> Control:
+def control(cpg_config: cpg.CPGConfig, profile: physics_profiles.ProfileArrays,
+            io: physics_profiles.ActuatorSensorState, cpg_state: cpg.CPGState, params: jax.Array, gates: cpg.Gates,
+            qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: jax.Array) -> Control:
     """Sensors → controller → motors for one instance, under its physics profile; every backend's tick."""
     io, obs = sensors.measure(profile, io, qpos, qvel, sensordata, gravity)
     cpg_state, command, diag = cpg.controller_step(cpg_config, cpg_state, params, gates, obs)
     joint_vel_rad_s = qvel[go1_model.indices().joint_dof]
-    io, torque = physics.actuate(profile, io, command, joint_vel_rad_s)  # the motors feel the true velocity
+    io, torque = physics_profiles.actuate(profile, io, command, joint_vel_rad_s)  # the motors feel the true velocity
     return Control(io=io, cpg=cpg_state, obs=obs, joint_vel_rad_s=joint_vel_rad_s, torque_nm=torque, diag=diag)
 
 
