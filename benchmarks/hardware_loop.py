@@ -42,8 +42,9 @@ import numpy as np
 
 from cpgjax import cpg, provenance
 from cpgjax import hardware_io as hio
+from cpgjax.deployment import deploy
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import cpu_dispatch, cpu_wakeup, deploy, wire
+from cpgjax.robot import cpu_dispatch, cpu_wakeup, wire
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport

@@ -20,8 +20,9 @@ import numpy as np
 
 import cpgjax
 from cpgjax import ablation, cpg, provenance
+from cpgjax.deployment import calibrate, deploy, tick_log
 from cpgjax.go1 import physics as physics_profiles
-from cpgjax.robot import calibrate, cpu_dispatch, deploy, foot_force, tick_log
+from cpgjax.robot import cpu_dispatch, foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
 from cpgjax.sim import backends, walk

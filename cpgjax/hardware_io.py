@@ -473,7 +473,7 @@ def _log_tick(tick_log: TickLog, i: int, t0: float, cpu0: float, late_s: float, 
 
 
 class TickSink(Protocol):
-    """Takes the per-tick log as the loop runs (e.g. :class:`cpgjax.robot.tick_log.TickLogWriter`)."""
+    """Takes the per-tick log as the loop runs (e.g. :class:`cpgjax.deployment.tick_log.TickLogWriter`)."""
 
     def write(self, log: TickLog, rows: slice, ticks: range) -> None:
         """Rows ``rows`` of the ring buffer ``log`` hold loop ticks ``ticks`` (called every

@@ -1,7 +1,7 @@
 """Run provenance: what a run records about the code and the machine it ran on (the commit of the checkout, the
 library versions, the CPU and the devices). Study metadata (cpgjax.study.files), the robot's run.json
-(cpgjax.robot.deploy), walks and the benchmarks all write it; it sits below them all, so that neither the studies nor
-the robot import each other for it.
+(cpgjax.deployment.deploy), walks and the benchmarks all write it; it sits below them all, so that neither the
+studies nor the robot import each other for it.
 """
 
 from __future__ import annotations

@@ -30,15 +30,16 @@ LAYERS = (
     ("studies", ("study.spec", "study.stats", "study.video", "study.scene", "study.viewer", "study.files",
                  "study.figures", "ablation", "study.transfer", "study.registry", "study.launch")),
     ("robot", ("robot.wire", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.cpu_wakeup",
-               "robot.foot_force", "robot.safety", "robot.controller", "robot.sim_server", "hardware_io",
-               "robot.tick_log", "robot.trials", "robot.deploy", "robot.calibrate")),
+               "robot.foot_force", "robot.safety", "robot.controller", "robot.sim_server")),
+    ("the 1 kHz loop", ("hardware_io",)),
+    ("deployment", ("deployment.tick_log", "deployment.trials", "deployment.deploy", "deployment.calibrate")),
     ("command line", ("cli",)),
 )
 # The design's modules, the entry point, and below every layer what a run records about its code and machine and how
 # a pytree is laid out in a flat vector, and the one module that reads JAX's internals
 TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli", "provenance", "layout", "jax_internals"}
 # docs/architecture.md: these layers sit side by side, neither imports the other (whatever their order in LAYERS).
-SIDE_BY_SIDE = ("studies", "robot")
+SIDE_BY_SIDE = (("studies", "robot"), ("studies", "the 1 kHz loop"), ("studies", "deployment"))
 # docs/architecture.md: the optimizer is generic over its parameter and context boxes; of cpgjax it imports only these
 # (and its own modules), never the robot's facts or the trial.
 OPTIMIZER_IMPORTS = {"gp"}
@@ -145,9 +146,11 @@ def test_lower_layers_never_import_higher_ones():
 
 def test_the_robot_and_the_studies_never_import_each_other():
     members = dict(LAYERS)
-    one, other = (set(members[name]) for name in SIDE_BY_SIDE)
-    crossing = [f"{a} imports {b}" for a, targets in import_graph().items() for b in sorted(targets)
-                if (a in one and b in other) or (a in other and b in one)]
+    crossing = []
+    for pair in SIDE_BY_SIDE:
+        one, other = (set(members[name]) for name in pair)
+        crossing += [f"{a} imports {b}" for a, targets in import_graph().items() for b in sorted(targets)
+                     if (a in one and b in other) or (a in other and b in one)]
     assert crossing == []
 
 
@@ -306,3 +309,16 @@ def test_each_module_has_one_import_name():
     documented = re.findall(r"^\| `([a-z0-9_.]+)` \| `([a-z0-9_]+)` \|", table, re.M)
     aliased = {module: next(iter(n)) for module, n in import_names().items() if next(iter(n)) != module.split(".")[-1]}
     assert aliased == dict(documented)
+
+
+def test_folders_follow_the_layers():
+    """A folder holds one layer: what the 1 kHz loop uses (robot/) sits below hardware_io.py, what drives it
+    (deployment/) above; every layer's modules share their folder (or sit at the top of the package)."""
+    folders = {name: {module.split(".")[0] if "." in module else "" for module in modules} for name, modules in LAYERS}
+    assert folders["robot"] == {"robot"} and folders["deployment"] == {"deployment"}
+    assert folders["the 1 kHz loop"] == {""}
+    rank = {name: i for i, (name, _) in enumerate(LAYERS)}
+    assert rank["robot"] < rank["the 1 kHz loop"] < rank["deployment"]
+    listed = {module for _, modules in LAYERS for module in modules}
+    for folder in ("robot", "deployment"):
+        assert {m for m in module_files() if m.startswith(folder + ".")} <= listed

@@ -17,7 +17,8 @@ import pytest
 
 import cpgjax
 from cpgjax import ablation, cli
-from cpgjax.robot import calibrate, deploy, foot_force, sim_server, tick_log
+from cpgjax.deployment import calibrate, deploy, tick_log
+from cpgjax.robot import foot_force, sim_server
 from cpgjax.robot import safety as go1_safety
 from cpgjax.sim import walk
 from cpgjax.study import files as study_io

@@ -1,4 +1,4 @@
-"""The deploy run's per-tick log (``cpgjax.robot.tick_log``) survives trips, Ctrl-C and kills; Ctrl-C is a stop.
+"""The deploy run's per-tick log (``cpgjax.deployment.tick_log``) survives trips, Ctrl-C and kills; Ctrl-C is a stop.
 
 Against the loopback simulated Go1 in lockstep pacing (127.0.0.1 only), so the outcome does not depend on the load.
 """
@@ -15,8 +15,8 @@ import pytest
 
 from cpgjax import cpg
 from cpgjax import hardware_io as hio
+from cpgjax.deployment import deploy, tick_log
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import deploy, tick_log
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport

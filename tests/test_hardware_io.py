@@ -21,13 +21,14 @@ import pytest
 
 from cpgjax import cli, cpg
 from cpgjax import hardware_io as hio
+from cpgjax.deployment import calibrate, deploy, tick_log
+from cpgjax.deployment import trials as robot_trials
 from cpgjax.go1 import constants
-from cpgjax.robot import calibrate, deploy, foot_force, tick_log, wire
 from cpgjax.robot import controller as compiled_controller
+from cpgjax.robot import foot_force, wire
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
-from cpgjax.robot import trials as robot_trials
 from cpgjax.trial import params, protocol, tuned
 from tests.test_outputs_doc import undocumented
 

@@ -9,7 +9,7 @@ import re
 import numpy as np
 
 from cpgjax import hardware_io as hio
-from cpgjax.robot import tick_log
+from cpgjax.deployment import tick_log
 from cpgjax.trial import params as param_space
 from cpgjax.trial import tuned
 

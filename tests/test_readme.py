@@ -12,7 +12,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def test_importing_cpgjax_prints_nothing():
-    code = "import cpgjax, cpgjax.cli, cpgjax.mjx_go1, cpgjax.ablation, cpgjax.sim.backends, cpgjax.robot.deploy"
+    code = "import cpgjax, cpgjax.cli, cpgjax.mjx_go1, cpgjax.ablation, cpgjax.sim.backends, cpgjax.deployment.deploy"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300,
                           env={**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)})
     assert done.returncode == 0, done.stderr[-2000:]

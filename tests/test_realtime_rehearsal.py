@@ -19,14 +19,15 @@ import numpy as np
 import pytest
 
 from cpgjax import hardware_io as hio
+from cpgjax.deployment import deploy
+from cpgjax.deployment import trials as robot_trials
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1.constants import GRAVITY_MPS2
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import cpu_wakeup, deploy, wire
+from cpgjax.robot import cpu_wakeup, wire
 from cpgjax.robot import sim_server as sim
-from cpgjax.robot import trials as robot_trials
 from cpgjax.trial import params, protocol
 
 

@@ -1,3 +1,3 @@
-"""The robot side: the Go1 wire protocol, transports, safety, the compiled controller, foot-force calibration,
-online trials on the robot, the loopback simulated Go1 and ``cpgjax deploy``. The 1 kHz loop is
-``cpgjax.hardware_io``."""
+"""What the robot's 1 kHz loop (``cpgjax.hardware_io``) uses: the Go1's wire format, transports, safety, the compiled
+controller, the foot-force calibration's conversion, CPU placement, and the loopback simulated Go1. What drives the
+loop (``cpgjax deploy``, online trials, calibration, the run log) is ``cpgjax.deployment``."""

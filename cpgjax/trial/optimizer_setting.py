@@ -1,6 +1,6 @@
 """The paper's setting of the generic optimizer (``cpgjax.optim``) for the Go1's trials: the parameter box of
 :mod:`cpgjax.trial.params`, the context ranges of docs/decisions.md §11 and the thresholds of eq. (14). Studies
-(``cpgjax.study.spec``) and the robot (``cpgjax.robot.trials``) both take their optimizer configuration from here.
+(``cpgjax.study.spec``) and the robot (``cpgjax.deployment.trials``) both take their optimizer configuration from here.
 """
 
 from cpgjax.go1 import physics as physics_profiles

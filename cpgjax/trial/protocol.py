@@ -10,8 +10,8 @@ reset to standing (docs/decisions.md §8).
 Here live the backend-neutral pieces: the timing (:class:`TrialConfig`), the blend, the per-tick sums
 (:func:`pre_step` at control time, :func:`tick_row` after the physics step), the summary, the checks on parameters
 and gates, and the per-tick log format of fixed-parameter rollouts (:class:`StepLog`). ``cpgjax.mjx_go1`` and
-``cpgjax.sim.native`` run them in their own loops; the robot (``cpgjax.robot.trials``) computes its per-tick row with
-:func:`pre_step` in the compiled controller and summarizes with :func:`summarize`, keeping only what is really
+``cpgjax.sim.native`` run them in their own loops; the robot (``cpgjax.deployment.trials``) computes its per-tick row
+with :func:`pre_step` in the compiled controller and summarizes with :func:`summarize`, keeping only what is really
 different there: wall-clock ticks and safety.
 """
 

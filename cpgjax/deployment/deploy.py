@@ -1,6 +1,7 @@
 """``cpgjax deploy``: run the CPG on a Go1 (or the loopback simulated Go1), replaying parameters or optimizing them
-online (:mod:`cpgjax.robot.trials`), and what ``cpgjax deploy calibrate`` (:mod:`cpgjax.robot.calibrate`) shares
-with it: reaching the robot and the loop's configuration. The options are defined in :mod:`cpgjax.cli`.
+online (:mod:`cpgjax.deployment.trials`), and what ``cpgjax deploy calibrate``
+(:mod:`cpgjax.deployment.calibrate`) shares with it: reaching the robot and the loop's configuration. The options
+are defined in :mod:`cpgjax.cli`.
 """
 
 from __future__ import annotations
@@ -16,13 +17,14 @@ import numpy as np
 import cpgjax
 from cpgjax import cpg, provenance
 from cpgjax import hardware_io as hio
+from cpgjax.deployment import tick_log
+from cpgjax.deployment.trials import OptimizerSpec, ReplayTrials, online_optimization
 from cpgjax.go1 import model as go1_model
 from cpgjax.robot import controller as compiled_controller
-from cpgjax.robot import foot_force, tick_log
+from cpgjax.robot import foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
-from cpgjax.robot.trials import OptimizerSpec, ReplayTrials, online_optimization
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 

@@ -24,7 +24,8 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax import hardware_io as hio
-from cpgjax.robot import deploy, foot_force, tick_log
+from cpgjax.deployment import deploy, tick_log
+from cpgjax.robot import foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
 
