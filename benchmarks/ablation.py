@@ -35,9 +35,9 @@ import jax  # noqa: E402
 
 from cpgjax import ablation, cpg, provenance  # noqa: E402
 from cpgjax.sim import backends  # noqa: E402
+from cpgjax.studies import launch as study_launch  # noqa: E402
+from cpgjax.studies import registry  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
-from cpgjax.study import launch as study_launch  # noqa: E402
-from cpgjax.study import registry as studies  # noqa: E402
 
 PAPER_SEEDS = 5  # the paper's controller table: 4 controllers × 5 seeds = 20 instances
 
@@ -80,14 +80,14 @@ def run_once(args, physics: str | None) -> float:
     """One study run (the physics profile replaced when given); prints its figures, returns its study wall time."""
     if args.sweep:
         seeds = -(-args.sweep // len(cpg.CONTROLLERS))
-        spec = studies.ablation_spec(seeds=seeds, trials=args.trials or 40)
+        spec = registry.ablation_spec(seeds=seeds, trials=args.trials or 40)
         mode = "sweep"
     elif args.quick:
         # the full batch (20 instances), 4 trials
-        spec = studies.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials or 4)
+        spec = registry.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials or 4)
         mode = "quick"
     else:
-        spec = studies.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials)
+        spec = registry.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials)
         mode = "full"
     if physics is not None:
         spec = dataclasses.replace(spec, physics=(physics,))

@@ -42,7 +42,7 @@ from scipy.stats import mannwhitneyu  # noqa: E402
 from timing import median_seconds  # noqa: E402  (benchmarks/timing.py)
 
 from cpgjax.optim import black_box, bo  # noqa: E402
-from cpgjax.study import stats  # noqa: E402
+from cpgjax.studies import stats  # noqa: E402
 from cpgjax.trial import optimizer_setting  # noqa: E402
 
 

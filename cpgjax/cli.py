@@ -26,13 +26,12 @@ from cpgjax.robot import cpu_dispatch, foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
 from cpgjax.sim import backends, walk
+from cpgjax.studies import launch as study_launch
+from cpgjax.studies import registry, transfer
+from cpgjax.studies import video as study_video
+from cpgjax.studies import viewer as study_viewer
 from cpgjax.study import files as study_io
-from cpgjax.study import launch as study_launch
-from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
-from cpgjax.study import transfer
-from cpgjax.study import video as study_video
-from cpgjax.study import viewer as study_viewer
 from cpgjax.trial import limits, protocol, tuned
 from cpgjax.trial import params as param_space
 
@@ -216,7 +215,7 @@ def _walk_video(args) -> int:
     gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
                             args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
                             trial.steady_steps, args.target_velocity_mps)
-    (log,) = studies.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
+    (log,) = registry.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
     try:
         (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg)])
     except (study_video.RenderUnavailable, RuntimeError) as err:
@@ -362,8 +361,8 @@ def _study(args) -> int:
     if args.distributed and not args.dry_run:
         ablation.initialize_distributed()
     name = args.name
-    run = transfer.run if name == transfer.NAME else functools.partial(studies.run, name)
-    out = studies.output_folder(name, args.out)
+    run = transfer.run if name == transfer.NAME else functools.partial(registry.run, name)
+    out = registry.output_folder(name, args.out)
     try:
         text, out = run(seeds=args.seeds, trials=args.trials, quick=args.quick, out=out, resume=args.resume,
                         overwrite=args.overwrite, backend=args.backend, physics=args.physics,
@@ -400,7 +399,7 @@ def _demo(args) -> int:
           "v* = 0.5 m/s, all runs batched in lockstep on the CPU (quick variant: 2 seeds × 12 trials; the first "
           f"trial compiles). Outputs replace those in {DEMO_OUT}/.", flush=True)
     try:
-        text, out = studies.run("controller_ablation", quick=True, out=DEMO_OUT, overwrite=True,
+        text, out = registry.run("controller_ablation", quick=True, out=DEMO_OUT, overwrite=True,
                                 command=args.command_line, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except KeyboardInterrupt:
         print("\ncpgjax demo: interrupted", file=sys.stderr)
@@ -451,7 +450,7 @@ def _optimize(args) -> int:
         start = study_io.open_run(out, spec, backends.resolve_backend(args.backend), resume=args.resume,
                                   overwrite=args.overwrite)
         if start:
-            _notice(studies.resume_notice(out, start, spec.num_trials))
+            _notice(registry.resume_notice(out, start, spec.num_trials))
         engine = ablation.Engine(spec, backend=args.backend)
         result = engine.run(out, resume=args.resume, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except study_spec.StudyError as err:
@@ -759,7 +758,7 @@ def _show_video(args) -> int:
     for gait in gaits:
         if study_video.video_file(out, gait.group).exists():
             _notice(f"replacing {study_video.video_file(out, gait.group)}")
-    logs = studies.gait_rollouts(gaits, args.backend, steps=int(round(args.video_s * 1000)))
+    logs = registry.gait_rollouts(gaits, args.backend, steps=int(round(args.video_s * 1000)))
     return 0 if study_video.write_videos(out, gaits, logs, _notice) else 1
 
 
@@ -966,12 +965,12 @@ SAFE_HELP = ("safe optimization: a second GP learns each trial's safety margin (
 def _add_study(sub) -> None:
     s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/",
                        formatter_class=_HelpFormatter)
-    descriptions = {k: v.description for k, v in studies.STUDIES.items()}
+    descriptions = {k: v.description for k, v in registry.STUDIES.items()}
     descriptions[transfer.NAME] = transfer.DESCRIPTION
     s.add_argument("name", choices=sorted(descriptions), help="; ".join(f"{k}: {v}" for k, v in descriptions.items()))
     s.add_argument("--seeds", type=_count(1, maximum=limits.MAX_SEEDS, maximum_reason=limits.MAX_SEEDS_REASON),
-                   default=None, help=f"seeds per group (default: {studies.DEFAULT_SEEDS}, {transfer.NAME} "
-                   f"{transfer.DEFAULT_SEEDS}; --quick {studies.QUICK_SEEDS})")
+                   default=None, help=f"seeds per group (default: {registry.DEFAULT_SEEDS}, {transfer.NAME} "
+                   f"{transfer.DEFAULT_SEEDS}; --quick {registry.QUICK_SEEDS})")
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help="trials per run; condition changes scale with it (default: the study's)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")

@@ -47,7 +47,7 @@ from cpgjax import ablation, cpg
 from cpgjax.go1 import attitude, physics, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native
-from cpgjax.study import stats
+from cpgjax.studies import stats
 from cpgjax.trial import objective, params, protocol
 
 TARGET_MPS = 0.5

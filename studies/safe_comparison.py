@@ -18,7 +18,7 @@ import pathlib
 import numpy as np
 import pyarrow.parquet as pq
 
-from cpgjax.study import registry, stats
+from cpgjax.studies import registry, stats
 
 LAST_TRIALS = 5
 CONDITIONS = ("payload_kg", "slope_deg", "friction", "target_velocity_mps", "inference")

@@ -23,7 +23,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from cpgjax.go1 import model as go1_model
-from cpgjax.study import registry
+from cpgjax.studies import registry
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 

@@ -27,8 +27,10 @@ LAYERS = (
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
     ("optimizer setting", ("trial.optimizer_setting",)),
     ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.backends", "sim.walk")),
-    ("studies", ("study.spec", "study.stats", "study.video", "study.scene", "study.viewer", "study.files",
-                 "study.figures", "ablation", "study.transfer", "study.registry", "study.launch")),
+    ("study definitions and files", ("study.spec", "study.scene", "study.files")),
+    ("the study engine", ("ablation",)),
+    ("studies", ("studies.stats", "studies.video", "studies.viewer", "studies.figures", "studies.transfer",
+                 "studies.registry", "studies.launch")),
     ("robot", ("robot.wire", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.cpu_wakeup",
                "robot.foot_force", "robot.safety", "robot.controller", "robot.sim_server")),
     ("the 1 kHz loop", ("hardware_io",)),
@@ -39,7 +41,8 @@ LAYERS = (
 # a pytree is laid out in a flat vector, and the one module that reads JAX's internals
 TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io", "cli", "provenance", "layout", "jax_internals"}
 # docs/architecture.md: these layers sit side by side, neither imports the other (whatever their order in LAYERS).
-SIDE_BY_SIDE = (("studies", "robot"), ("studies", "the 1 kHz loop"), ("studies", "deployment"))
+SIDE_BY_SIDE = tuple((a, b) for a in ("study definitions and files", "the study engine", "studies")
+                     for b in ("robot", "the 1 kHz loop", "deployment"))
 # docs/architecture.md: the optimizer is generic over its parameter and context boxes; of cpgjax it imports only these
 # (and its own modules), never the robot's facts or the trial.
 OPTIMIZER_IMPORTS = {"gp"}
@@ -313,12 +316,15 @@ def test_each_module_has_one_import_name():
 
 def test_folders_follow_the_layers():
     """A folder holds one layer: what the 1 kHz loop uses (robot/) sits below hardware_io.py, what drives it
-    (deployment/) above; every layer's modules share their folder (or sit at the top of the package)."""
+    (deployment/) above; the study definitions and files (study/) below the study engine (ablation.py), the studies,
+    their reports and launcher (studies/) above; every layer's modules share their folder (or sit at the top)."""
     folders = {name: {module.split(".")[0] if "." in module else "" for module in modules} for name, modules in LAYERS}
     assert folders["robot"] == {"robot"} and folders["deployment"] == {"deployment"}
-    assert folders["the 1 kHz loop"] == {""}
+    assert folders["the 1 kHz loop"] == {""} and folders["the study engine"] == {""}
+    assert folders["study definitions and files"] == {"study"} and folders["studies"] == {"studies"}
     rank = {name: i for i, (name, _) in enumerate(LAYERS)}
     assert rank["robot"] < rank["the 1 kHz loop"] < rank["deployment"]
+    assert rank["study definitions and files"] < rank["the study engine"] < rank["studies"]
     listed = {module for _, modules in LAYERS for module in modules}
-    for folder in ("robot", "deployment"):
+    for folder in ("robot", "deployment", "study", "studies"):
         assert {m for m in module_files() if m.startswith(folder + ".")} <= listed

@@ -21,8 +21,8 @@ from cpgjax.deployment import calibrate, deploy, tick_log
 from cpgjax.robot import foot_force, sim_server
 from cpgjax.robot import safety as go1_safety
 from cpgjax.sim import walk
+from cpgjax.studies import registry
 from cpgjax.study import files as study_io
-from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
 from cpgjax.trial import tuned
@@ -598,7 +598,7 @@ def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, mo
         except KeyboardInterrupt:
             pass
         return "the table", kwargs["out"]
-    monkeypatch.setattr(studies, "run", finishes_after_a_lost_interrupt)
+    monkeypatch.setattr(registry, "run", finishes_after_a_lost_interrupt)
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         assert cli.main(["study", "friction", "--quick", "--out", str(tmp_path / "s")]) == 130
@@ -611,9 +611,9 @@ def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypat
     out = tmp_path / "study"
 
     def interrupted(name, **kwargs):
-        _fake_checkpoint(kwargs["out"], studies.make_spec(name, quick=True), 3, "native")
+        _fake_checkpoint(kwargs["out"], registry.make_spec(name, quick=True), 3, "native")
         raise KeyboardInterrupt
-    monkeypatch.setattr(studies, "run", interrupted)
+    monkeypatch.setattr(registry, "run", interrupted)
     assert cli.main(["study", "friction", "--quick", "--out", str(out)]) == 130
     err = capsys.readouterr().err
     assert f"trials 0…2 are saved in {out / study_io.CHECKPOINT}" in err and "Traceback" not in err
@@ -842,7 +842,7 @@ def test_a_study_dry_run_checks_everything_and_touches_nothing(tmp_path, capsys)
     assert f"controller_ablation: 8 instances (4 controllers, 2 seeds) × 12 trials of 4.5 s: {8 * 12 * 4500:,} " \
            "env-steps" in text and "nothing computed (--dry-run)" in text
     assert not out.exists()
-    spec = studies.make_spec("controller_ablation", quick=True)
+    spec = registry.make_spec("controller_ablation", quick=True)
     _fake_checkpoint(out, spec, 3, "native")
     assert cli.main(["study", "controller_ablation", "--quick", "--out", str(out), "--dry-run"]) == 2
     assert "is not empty (checkpoint.npz): pass --resume" in capsys.readouterr().err

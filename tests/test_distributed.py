@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from cpgjax import cli
+from cpgjax.studies import launch
 from cpgjax.study import files as study_io
-from cpgjax.study import launch
 from cpgjax.study import spec as study_spec
 from tests.test_ablation import SPEC_SOURCE, TRIALS, tiny_spec
 

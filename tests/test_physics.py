@@ -15,8 +15,8 @@ from cpgjax.go1 import attitude, physics, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import native as native_go1
+from cpgjax.studies import transfer
 from cpgjax.study import spec as study_spec
-from cpgjax.study import transfer
 from cpgjax.trial import objective, optimizer_setting, params, protocol
 
 IDS = go1_model.indices()

@@ -1,4 +1,4 @@
-"""The study statistics (cpgjax.study.stats) against independent references: SciPy's own two-sample tests on raw data,
+"""The study statistics (cpgjax.studies.stats) against independent references: SciPy's own two-sample tests on raw data,
 textbook values of the t distribution, and the coverage of the intervals on simulated seeds."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import stats as scipy_stats
 
-from cpgjax.study import stats
+from cpgjax.studies import stats
 
 
 def test_mean_ci_is_the_student_t_interval():

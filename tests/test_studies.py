@@ -13,11 +13,11 @@ import pytest
 
 import cpgjax
 from cpgjax import ablation, cli, cpg
-from cpgjax.study import figures as study_figures
+from cpgjax.studies import figures as study_figures
+from cpgjax.studies import registry
+from cpgjax.studies import video as study_video
 from cpgjax.study import files as study_io
-from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
-from cpgjax.study import video as study_video
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol, tuned
 from tests.test_ablation import small_optimizer
@@ -26,23 +26,23 @@ from tests.test_outputs_doc import undocumented
 # ----------------------------------------------------------------------------------------------- specifications
 
 def test_specs_follow_the_paper():
-    spec = studies.make_spec("controller_ablation")
+    spec = registry.make_spec("controller_ablation")
     assert spec.controllers == cpg.CONTROLLERS and spec.seeds == tuple(range(20)) and spec.num_trials == 40
     assert spec.target_velocity_mps == (0.5,) and spec.trial == protocol.TrialConfig()  # 1.5 s + 3 s at 1 kHz
     assert len(study_spec.instances(spec)) * spec.num_trials * 4.5 == 14400.0  # robot-seconds: 20 seeds, not 5
-    cond = study_spec.conditions(studies.make_spec("load_adaptation"))
-    np.testing.assert_array_equal(studies.phase_starts(cond.payload_kg[0]), [0, 36, 58])  # paper: trials 36, 58
+    cond = study_spec.conditions(registry.make_spec("load_adaptation"))
+    np.testing.assert_array_equal(registry.phase_starts(cond.payload_kg[0]), [0, 36, 58])  # paper: trials 36, 58
     np.testing.assert_array_equal(cond.payload_kg[0, [0, 36, 58]], [0.0, 7.5, 15.0])
-    cond = study_spec.conditions(studies.make_spec("multi_velocity"))
+    cond = study_spec.conditions(registry.make_spec("multi_velocity"))
     assert cond.target_velocity_mps.shape[1] == 140
     np.testing.assert_array_equal(np.unique(cond.target_velocity_mps[0]), [0.3, 0.6, 0.8])
-    spec = studies.make_spec("slope_adaptation")
+    spec = registry.make_spec("slope_adaptation")
     cond = study_spec.conditions(spec)
     learn = int(np.argmax(cond.inference[0]))
-    assert [cond.slope_deg[0, t] for t in studies.phase_starts(cond.slope_deg[0, :learn])] == [0.0, 10.0, 12.5]
+    assert [cond.slope_deg[0, t] for t in registry.phase_starts(cond.slope_deg[0, :learn])] == [0.0, 10.0, 12.5]
     assert sorted(set(cond.slope_deg[0, learn:])) == [10.0, 12.5, 15.0, 17.5] and cond.inference[0, learn:].all()
-    assert studies.make_spec("friction").friction == (0.3, 0.6, 0.9)
-    spec = studies.make_spec("paper_hardware")  # the paper's hardware experiments under the go1 profile
+    assert registry.make_spec("friction").friction == (0.3, 0.6, 0.9)
+    spec = registry.make_spec("paper_hardware")  # the paper's hardware experiments under the go1 profile
     cond = study_spec.conditions(spec)
     labels = [lab["schedule"] for lab in study_spec.instances(spec)]
     assert spec.physics == ("go1",) and len(set(labels)) == 5
@@ -51,15 +51,15 @@ def test_specs_follow_the_paper():
     assert np.all(cond.friction[by["flat 0.4 m/s"]] == 0.6)
     assert np.all(cond.friction[by["taped feet 0.4 m/s"]] == 0.3)
     v = cond.target_velocity_mps[by["0.6→0.3→0.5→0.6 m/s"]]
-    assert [v[t] for t in studies.phase_starts(v)] == [0.6, 0.3, 0.5, 0.6]
+    assert [v[t] for t in registry.phase_starts(v)] == [0.6, 0.3, 0.5, 0.6]
     slope = cond.slope_deg[by["flat → 10°"]]
-    assert studies.phase_starts(slope) == [0, 30] and slope[-1] == 10.0
+    assert registry.phase_starts(slope) == [0, 30] and slope[-1] == 10.0
     load = cond.payload_kg[by["0→5→10→15 kg"]]
-    assert [load[t] for t in studies.phase_starts(load)] == [0.0, 5.0, 10.0, 15.0]
-    assert studies.phase_starts(load)[1] == 30
-    for name in studies.STUDIES:  # every quick variant is a valid, smaller study
-        quick = studies.make_spec(name, quick=True)
-        assert quick.num_trials < studies.make_spec(name).num_trials and len(quick.seeds) == 2
+    assert [load[t] for t in registry.phase_starts(load)] == [0.0, 5.0, 10.0, 15.0]
+    assert registry.phase_starts(load)[1] == 30
+    for name in registry.STUDIES:  # every quick variant is a valid, smaller study
+        quick = registry.make_spec(name, quick=True)
+        assert quick.num_trials < registry.make_spec(name).num_trials and len(quick.seeds) == 2
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -69,7 +69,7 @@ def test_specs_follow_the_paper():
 ])
 def test_bad_study_options(kwargs, message):
     with pytest.raises(study_spec.StudyError, match=message):
-        studies.make_spec(**kwargs)
+        registry.make_spec(**kwargs)
 
 
 def test_cli_rejects_bad_options_before_compute(capsys, tmp_path):
@@ -87,29 +87,29 @@ def test_trials_to_track_counts_from_the_change():
     v = np.array([0.1, 0.2, 0.79, 0.5, 0.35, 0.31, 0.3])
     target = np.array([0.8, 0.8, 0.8, 0.3, 0.3, 0.3, 0.3])
     fell = np.array([0, 0, 0, 0, 0, 1, 0])
-    assert studies.trials_to_track(v, target, fell, 0, 3) == 3.0
-    assert studies.trials_to_track(v, target, fell, 3, 7) == 2.0  # 0.35 is within 0.05 of 0.3
-    assert np.isnan(studies.trials_to_track(v, target, fell, 3, 4))
-    assert studies.trials_to_track(v, target, np.array([0, 0, 0, 0, 1, 1, 0]), 3, 7) == 4.0  # falls don't count
+    assert registry.trials_to_track(v, target, fell, 0, 3) == 3.0
+    assert registry.trials_to_track(v, target, fell, 3, 7) == 2.0  # 0.35 is within 0.05 of 0.3
+    assert np.isnan(registry.trials_to_track(v, target, fell, 3, 4))
+    assert registry.trials_to_track(v, target, np.array([0, 0, 0, 0, 1, 1, 0]), 3, 7) == 4.0  # falls don't count
 
 
 def test_last_mean_and_phase_starts():
     values = np.arange(20.0).reshape(10, 2)
-    np.testing.assert_allclose(studies.last_mean(values, 10), [14.0, 15.0])  # trials 5..9
-    np.testing.assert_allclose(studies.last_mean(values, 3), [2.0, 3.0])  # fewer than 5 available
-    assert studies.phase_starts(np.array([0, 0, 7.5, 7.5, 15])) == [0, 2, 4]
+    np.testing.assert_allclose(registry.last_mean(values, 10), [14.0, 15.0])  # trials 5..9
+    np.testing.assert_allclose(registry.last_mean(values, 3), [2.0, 3.0])  # fewer than 5 available
+    assert registry.phase_starts(np.array([0, 0, 7.5, 7.5, 15])) == [0, 2, 4]
 
 
 # ----------------------------------------------------------------------------------------------- outputs
 
 @pytest.fixture(scope="module")
 def tiny_ablation(tmp_path_factory):
-    spec = dataclasses.replace(studies.ablation_spec(seeds=1, trials=4), optimizer=small_optimizer(4),
+    spec = dataclasses.replace(registry.ablation_spec(seeds=1, trials=4), optimizer=small_optimizer(4),
                                trial=protocol.TrialConfig(transition_steps=100, steady_steps=200))
     out = tmp_path_factory.mktemp("controller_ablation")
     engine = ablation.Engine(spec, backend="native")
     result = engine.run(out)
-    text = studies.write_outputs(result, out, "native")
+    text = registry.write_outputs(result, out, "native")
     return result, out, text
 
 
@@ -117,7 +117,7 @@ def test_ablation_outputs(tiny_ablation):
     result, out, text = tiny_ablation
     for c in cpg.CONTROLLERS:  # our row beside the paper's
         row = next(line for line in text.splitlines() if line.startswith(f"| {c} |"))
-        paper = studies.PAPER_CONTROLLER_TABLE[c]
+        paper = registry.PAPER_CONTROLLER_TABLE[c]
         assert f"{paper[1][0]:.3f} ± {paper[1][1]:.3f}" in row
         j = result.trials.objective[:, [lab["controller"] == c for lab in result.labels]]
         assert f"{np.mean(j[-5:].mean(axis=0)):.3f} [" in row  # mean of the last 5, then over seeds, with its CI
@@ -168,7 +168,7 @@ def test_cli_show_prints_the_table(tiny_ablation, capsys):
 
 def test_best_gaits_are_each_groups_best_run_and_trial(tiny_ablation):
     result, _, _ = tiny_ablation
-    gaits = studies.best_gaits(result)
+    gaits = registry.best_gaits(result)
     assert [g.group for g in gaits] == list(cpg.CONTROLLERS)  # one per controller, the study's groups
     n = result.trials.objective.shape[0]
     for gait in gaits:
@@ -177,17 +177,17 @@ def test_best_gaits_are_each_groups_best_run_and_trial(tiny_ablation):
         t = int(np.argmax(result.trials.objective[:, b]))
         assert (gait.instance, gait.trial, gait.controller) == (b, t, gait.group)
         np.testing.assert_array_equal(gait.params, result.trials.params[t, b])
-    (log,) = studies.gait_rollouts(gaits[:1], "native", steps=250)
+    (log,) = registry.gait_rollouts(gaits[:1], "native", steps=250)
     assert log.qpos.shape[0] == 250 and log.phase_rad.shape == (250, 4) and np.all(np.isfinite(log.qpos))
 
 
 def test_group_names_are_file_names():
-    assert studies.group_name({"controller": "vmc_tegotae", "seed": 0}, ("controller",)) == "vmc_tegotae"
-    assert studies.group_name({"friction": 0.3}, ("friction",)) == "friction0.3"
-    assert studies.group_name({"schedule": "0→7.5→15 kg"}, ("schedule",)) == "schedule0-7.5-15kg"
-    assert studies.group_name({"schedule": "0→10→12.5° + inference 10…17.5°"}, ("schedule",)) == \
+    assert registry.group_name({"controller": "vmc_tegotae", "seed": 0}, ("controller",)) == "vmc_tegotae"
+    assert registry.group_name({"friction": 0.3}, ("friction",)) == "friction0.3"
+    assert registry.group_name({"schedule": "0→7.5→15 kg"}, ("schedule",)) == "schedule0-7.5-15kg"
+    assert registry.group_name({"schedule": "0→10→12.5° + inference 10…17.5°"}, ("schedule",)) == \
         "schedule0-10-12.5inference1017.5"
-    assert studies.group_name({"data_reuse": True, "controller": "vmc"}, ("controller", "data_reuse")) == \
+    assert registry.group_name({"data_reuse": True, "controller": "vmc"}, ("controller", "data_reuse")) == \
         "vmc_data_reuseTrue"
 
 
@@ -197,7 +197,7 @@ def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tin
     conditions; `deploy --params` reads it back, and it is the gait the study films."""
     _, out, _ = tiny_ablation
     table = pq.read_table(out / "trials.parquet").to_pandas()
-    last = table.trial.max() - studies.LAST_TRIALS
+    last = table.trial.max() - registry.LAST_TRIALS
     filmed = {g.group: g for g in study_video.load_gaits(out)}
     for c in cpg.CONTROLLERS:
         path = out / study_io.BEST_PARAMS / f"{c}.json"
@@ -226,7 +226,7 @@ def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp
     with pytest.raises(study_io.OutputError, match=r"writing the study's figures in .* failed \(OSError: "
                        r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, table.md, "
                        r"trials.parquet"):
-        studies.write_outputs(result, tmp_path, "native")
+        registry.write_outputs(result, tmp_path, "native")
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 16 and (tmp_path / "metadata.json").exists()
     table = (tmp_path / "table.md").read_text()
     assert "| vmc_tegotae |" in table and "Safety during optimization" in table and "\nRun: " in table
@@ -236,7 +236,7 @@ def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp
 def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_path, monkeypatch):
     """Each arm's folder gets best_params/<controller>.json (the run's best gait, tuned for the arm's home physics)
     and, once table.md is written, best_<controller>.mp4 where this machine can render (else one line says why)."""
-    from cpgjax.study import transfer
+    from cpgjax.studies import transfer
 
     real_specs = transfer.specs
 
@@ -265,10 +265,10 @@ def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     payload = np.array([0.0] * 36 + [7.5] * 22 + [15.0] * 22)
     result = type("Result", (), {"conditions": type("C", (), {"payload_kg": payload[None, :]}),
                                  "trials": type("T", (), {"objective": np.zeros((80, 1))})})
-    marks = studies.load_paper_marks(result)
+    marks = registry.load_paper_marks(result)
     assert [(m.first_trial, m.last_trial, m.objective, m.std) for m in marks] == [
         (31, 35, 2.175, None), (53, 57, 2.213, None), (75, 79, 2.189, None)]
-    ablation_marks = {m.group: m for m in studies.ablation_paper_marks(result)}
+    ablation_marks = {m.group: m for m in registry.ablation_paper_marks(result)}
     assert (ablation_marks["tegotae"].first_trial, ablation_marks["tegotae"].last_trial) == (75, 79)
     assert (ablation_marks["tegotae"].objective, ablation_marks["tegotae"].std) == (2.153, 0.042)
-    assert studies.STUDIES["friction"].paper_marks(result) == []
+    assert registry.STUDIES["friction"].paper_marks(result) == []

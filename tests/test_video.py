@@ -1,4 +1,4 @@
-"""Videos of the Go1 (cpgjax/study/video.py): frames at real-time pace, the slope's rotation against gravity, a camera
+"""Videos of the Go1 (cpgjax/studies/video.py): frames at real-time pace, the slope's rotation against gravity, a camera
 that follows the robot (a few rendered frames, read back from the MP4), one line where no OpenGL backend works, and
 the gait files a study writes."""
 
@@ -11,7 +11,7 @@ import pytest
 from cpgjax import cli
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
-from cpgjax.study import video
+from cpgjax.studies import video
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 from cpgjax.trial import tuned

@@ -21,7 +21,8 @@ import rerun as rr
 from rerun.chunk import RrdReader
 from websockets.sync.client import connect
 
-from cpgjax.study import scene, viewer
+from cpgjax.studies import viewer
+from cpgjax.study import scene
 from tests.test_scene import _synthetic_log
 
 pytestmark = pytest.mark.skipif(shutil.which("chromium") is None or shutil.which("ss") is None,

@@ -1,7 +1,7 @@
 """The interface of every physics backend: :class:`Backend`, which the MJX backend (``cpgjax.mjx_go1.MJXBackend``) and
 the native one (``cpgjax.sim.native.NativeBackend``) declare, and ``cpgjax.sim.backends.make_backend`` returns.
 
-The lockstep engine (``cpgjax.ablation``), the studies' evaluations and rollouts (``cpgjax.study.registry``) and
+The lockstep engine (``cpgjax.ablation``), the studies' evaluations and rollouts (``cpgjax.studies.registry``) and
 ``cpgjax walk`` (``cpgjax.sim.walk``) use a backend through this interface only. A new backend subclasses
 :class:`Backend` (its abstract members must then all be defined) and runs the shared trial of
 ``cpgjax.trial.protocol``, so that its records mean what every other backend's mean.

@@ -1,2 +1,3 @@
-"""Studies: their specification, the paper's five studies, checkpoints and result files, and figures. The engine that
-runs them is ``cpgjax.ablation``."""
+"""What a study is, below the engine that runs it (``cpgjax.ablation``): its specification (``spec``), its files
+(``files``: checkpoint, trial table, recording, metadata) and the robot's scene in the recording (``scene``). The
+paper's studies, their reports and the launcher are ``cpgjax.studies``."""

@@ -14,7 +14,7 @@
 * ``best_params/<group>.json`` — per group of the study (``registry.group_name`` of its ``group_by`` labels, e.g.
   ``tegotae``) the best gait of its final phase (``registry.best_gaits``): its parameters with what they were tuned
   for (:mod:`cpgjax.trial.tuned`), which ``cpgjax deploy --params`` and ``cpgjax walk --params`` replay, and the
-  trial lengths the study films it with (``best_<group>.mp4``, :mod:`cpgjax.study.video`).
+  trial lengths the study films it with (``best_<group>.mp4``, :mod:`cpgjax.studies.video`).
 * ``metadata.json`` — the command line, cpgjax's version and git commit, the optimizer's settings, versions,
   devices, backend, wall time, env-steps/s and real-time factor.
 

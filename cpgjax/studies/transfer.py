@@ -28,10 +28,10 @@ from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
+from cpgjax.studies import registry
+from cpgjax.studies import video as study_video
 from cpgjax.study import files as study_io
-from cpgjax.study import registry as studies
 from cpgjax.study import spec as study_spec
-from cpgjax.study import video as study_video
 from cpgjax.trial import limits
 
 NAME = "transfer"
@@ -41,16 +41,16 @@ ARMS = (("paper", "paper", False), ("go1", "go1", False), ("paper_randomized", "
 TRAINING_RANDOMIZATION = study_spec.Randomization(seed=0)
 EVALUATION_RANDOMIZATION = study_spec.Randomization(seed=1)
 EVALUATION_DRAWS = 8
-# The paper's 5 seeds by default, not the other studies' 20 (studies.DEFAULT_SEEDS): every seed is 12 optimization
+# The paper's 5 seeds by default, not the other studies' 20 (registry.DEFAULT_SEEDS): every seed is 12 optimization
 # runs (3 arms × 4 controllers) whose best gaits are then walked in every evaluation environment. The 5-seed run of
 # docs/REPRODUCTION.md took 13 min on a 2-vCPU machine; 20 seeds would take about four times as long.
-DEFAULT_SEEDS = studies.PAPER_SEEDS
+DEFAULT_SEEDS = registry.PAPER_SEEDS
 
 
 def specs(seeds=None, trials=None, quick=False, safe=False) -> list[study_spec.StudySpec]:
     """One study spec per arm (``safe``: safe optimization in every arm)."""
     n = trials or (12 if quick else 40)
-    seeds = studies.seed_range(seeds, quick, DEFAULT_SEEDS)
+    seeds = registry.seed_range(seeds, quick, DEFAULT_SEEDS)
     return [study_spec.StudySpec(f"transfer_{name}", num_trials=n, controllers=cpg.CONTROLLERS, seeds=seeds,
                                  target_velocity_mps=(TARGET_MPS,), physics=(home,),
                                  randomize=TRAINING_RANDOMIZATION if randomized else None, safe=safe)
@@ -81,7 +81,7 @@ def evaluate(params: np.ndarray, controllers: list[str], env: Environments, tria
         physics=np.tile(env.physics, runs), mass_scale=np.tile(env.mass_scale, runs),
         latency_ticks=np.tile(env.latency_ticks, runs), noise_scale=np.tile(env.noise_scale, runs))
     repeated = [c for c in controllers for _ in range(count)]
-    v, cot, j, fell = studies.evaluate(np.repeat(params, count, axis=0), repeated, scenario, trial_config, backend,
+    v, cot, j, fell = registry.evaluate(np.repeat(params, count, axis=0), repeated, scenario, trial_config, backend,
                                         TARGET_MPS)
     return tuple(a.reshape(runs, count) for a in (j, v, cot, fell))
 
@@ -128,7 +128,7 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         dry_run: bool = False) -> tuple[str, pathlib.Path]:
     """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder).
     Output folders, ``resume``, ``overwrite``, ``command``, ``notify`` and ``dry_run`` (each arm's plan) as in
-    :func:`studies.run`; a resume continues the arms that have a checkpoint and starts the others."""
+    :func:`registry.run`; a resume continues the arms that have a checkpoint and starts the others."""
     if physics is not None:
         raise study_spec.StudyError("the transfer study sets each arm's physics itself; drop --physics")
     if seeds is not None and seeds < 1:
@@ -136,7 +136,7 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
     if trials is not None and trials < limits.MIN_STUDY_TRIALS:
         raise study_spec.StudyError(f"{NAME}: --trials {trials}: need at least {limits.MIN_STUDY_TRIALS} "
                                     f"({limits.MIN_STUDY_TRIALS_REASON})")
-    out = studies.output_folder(NAME, out)
+    out = registry.output_folder(NAME, out)
     arm_specs = specs(seeds, trials, quick, safe)
     for spec in arm_specs:
         study_spec.validate(spec)
@@ -151,9 +151,9 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         arm_resume = spec.name in resumed
         start = study_io.open_run(out / spec.name, spec, backends.resolve_backend(backend), resume=arm_resume,
                                   overwrite=overwrite, dry_run=dry_run)
-        plans.append(studies.run_plan(spec, out / spec.name, backends.resolve_backend(backend), start))
+        plans.append(registry.run_plan(spec, out / spec.name, backends.resolve_backend(backend), start))
         if start and notify is not None and not dry_run:
-            notify(studies.resume_notice(out / spec.name, start, spec.num_trials))
+            notify(registry.resume_notice(out / spec.name, start, spec.num_trials))
     if dry_run:
         return "\n".join(plans) + "\nthen each arm's best gaits walked in every evaluation environment", out
     arm_results, evaluations, gaits, wall = {}, {}, {}, 0.0
@@ -163,7 +163,7 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         with study_io.writing(out / spec.name, "trials.parquet, metadata.json and best_params/"):
             study_io.write_trials(result, out / spec.name / "trials.parquet")
             study_io.write_metadata(result, out / spec.name / "metadata.json", command=command)
-            gaits[arm] = studies.save_best_gaits(out / spec.name, result)
+            gaits[arm] = registry.save_best_gaits(out / spec.name, result)
         arm_results[arm] = result
         evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels],
                                     Environments(home), spec.trial, engine.backend_name)
@@ -183,6 +183,6 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
     (out / "table.md").write_text(text)
     for (arm, _, _), spec in zip(ARMS, arm_specs, strict=True):  # after the table: filming never costs a result
         with study_io.writing(out / spec.name, "the best gaits' videos"):
-            logs = studies.gait_rollouts(gaits[arm], engine.backend_name)
-            study_video.write_videos(out / spec.name, gaits[arm], logs, notify or studies.notify_stderr)
+            logs = registry.gait_rollouts(gaits[arm], engine.backend_name)
+            study_video.write_videos(out / spec.name, gaits[arm], logs, notify or registry.notify_stderr)
     return text, out

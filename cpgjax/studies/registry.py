@@ -14,13 +14,13 @@
 ======================  =======================================================================================
 
 The paper used 5 seeds; the studies default to 20 (``DEFAULT_SEEDS``), and every figure is a mean with its 95 %
-confidence interval over seeds (``cpgjax.study.stats``).
+confidence interval over seeds (``cpgjax.studies.stats``).
 
 Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures (the study's own and
 ``optimization_progress.png``: the best J so far and the parameters per group), ``trials.parquet``,
 ``recording.rrd`` (with each group's best gait, full body), ``metadata.json`` and the engine's ``checkpoint.npz``
 (``cpgjax.study.files``), each group's best gait of its final phase, ``best_params/<group>.json`` (what a replay
-runs), and its video ``best_<group>.mp4`` (``cpgjax.study.video``).
+runs), and its video ``best_<group>.mp4`` (``cpgjax.studies.video``).
 """
 
 from __future__ import annotations
@@ -39,12 +39,12 @@ from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
-from cpgjax.study import figures as study_figures
+from cpgjax.studies import figures as study_figures
+from cpgjax.studies import stats
+from cpgjax.studies import video as study_video
 from cpgjax.study import files as study_io
 from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
-from cpgjax.study import stats
-from cpgjax.study import video as study_video
 from cpgjax.study.spec import Change, Schedule, StudySpec
 from cpgjax.trial import limits, objective, protocol
 
@@ -652,7 +652,7 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
     gait (``best_params/<group>.json``, :func:`save_best_gaits`) first (they cannot fail but for the disk), then
     table.md, then the study's figures (the ablation's table then gains the attitude rows its figure walks), the
     recording, and last the gaits' figures and videos (``best_<group>.mp4``,
-    :mod:`cpgjax.study.video`), with a line to ``notify`` per video, or one saying why there is none.
+    :mod:`cpgjax.studies.video`), with a line to ``notify`` per video, or one saying why there is none.
 
     Raises:
       study_io.OutputError: a file could not be written; the message names it and what was kept.

@@ -2,7 +2,7 @@
 (``go1_model.load_visual_model``) along a rollout's qpos, with a camera that follows the trunk, and imageio encodes
 the frames as H.264 MP4 with imageio-ffmpeg's packaged ffmpeg.
 
-Rendering runs in a child process (``python -m cpgjax.study.video``): MuJoCo chooses its OpenGL backend from
+Rendering runs in a child process (``python -m cpgjax.studies.video``): MuJoCo chooses its OpenGL backend from
 ``MUJOCO_GL`` once, when it is imported, which the parent did long before; the child gets EGL where an NVIDIA GPU is
 and OSMesa (software) otherwise, unless ``MUJOCO_GL`` is set. Where no backend works the child says so in one line
 (:class:`RenderUnavailable`, with the package to install) and nothing else of the caller is touched. A sloped trial
@@ -203,7 +203,7 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
                   for k, j in enumerate(jobs)}
         np.savez(frames_file, slope_deg=np.array([float(j.slope_deg) for j in jobs]), fps=fps, width=width,
                  height=height, paths=np.array(tmps), **arrays)
-        child = subprocess.run([sys.executable, "-m", "cpgjax.study.video", str(frames_file)], env=env,
+        child = subprocess.run([sys.executable, "-m", "cpgjax.studies.video", str(frames_file)], env=env,
                                capture_output=True, text=True)
     done = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
     last = (child.stderr.strip().splitlines() or [""])[-1]
@@ -246,7 +246,7 @@ def filmstrip(path, count: int = 4) -> list[np.ndarray]:
 
 
 def _main(argv: list[str]) -> int:
-    """The child: ``python -m cpgjax.study.video JOBS.npz``; one JSON line per finished video on stdout."""
+    """The child: ``python -m cpgjax.studies.video JOBS.npz``; one JSON line per finished video on stdout."""
     with np.load(argv[0]) as z:
         slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
         paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]

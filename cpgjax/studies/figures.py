@@ -162,7 +162,7 @@ def run_line(result, figures: dict) -> str:
 
 
 def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
-    """One roll–pitch panel [deg] per group's best gait (``study.video.Gait`` and its log), on shared axes."""
+    """One roll–pitch panel [deg] per group's best gait (``studies.video.Gait`` and its log), on shared axes."""
     plt = _plt()
     fig, axes = plt.subplots(1, len(gaits), figsize=(3.2 * len(gaits), 3.4), sharex=True, sharey=True, squeeze=False)
     for ax, gait, lg in zip(axes[0], gaits, logs, strict=True):
