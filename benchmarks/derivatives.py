@@ -18,13 +18,12 @@ JSON line per pair with the ratio autodiff / hand-written (> 1: the hand-written
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 
 import jax
 import jax.numpy as jnp
-import jax.scipy as jsp
 import numpy as np
+from gp_batching import whole_batch_lapack
 from timing import median_seconds
 
 from cpgjax import cpg, gp, provenance
@@ -51,21 +50,6 @@ def gp_problem(batch: int, capacity: int, seed: int = 0):
     return params, gp.Dataset(jnp.asarray(inputs), jnp.asarray(targets), jnp.asarray(valid)), active
 
 
-@contextlib.contextmanager
-def plain_lapack():
-    """While tracing: the GP's Cholesky factorization and solves as plain batched LAPACK calls. The GP loops them one
-    matrix per call (``gp._one_matrix_per_lapack_call``, a custom batching rule that reverse-mode autodiff cannot
-    pass through), so autodiff needs the plain ones; the hand-written gradient is timed with both."""
-    saved = gp._lower_cholesky, gp._solve_lower, gp._cholesky_solve
-    gp._lower_cholesky = lambda m: jax.lax.linalg.cholesky(m, symmetrize_input=False)
-    gp._solve_lower = lambda lower, rhs: jsp.linalg.solve_triangular(lower, rhs, lower=True)
-    gp._cholesky_solve = lambda lower, rhs: jsp.linalg.cho_solve((lower, True), rhs)
-    try:
-        yield
-    finally:
-        gp._lower_cholesky, gp._solve_lower, gp._cholesky_solve = saved
-
-
 def traced(fn, args):
     """``fn`` compiled now for ``args`` (so a patch in force while this runs is what it computes)."""
     return jax.jit(fn).lower(*args).compile()
@@ -76,7 +60,7 @@ def gp_pair(problem):
     analytic = jax.vmap(lambda p, d, a: gp.log_posterior_and_gradient(p, d, a, CONTEXT_DIMS))
     autodiff = jax.vmap(jax.value_and_grad(lambda p, d, a: gp.log_posterior(p, d, a, CONTEXT_DIMS)))
     engine = traced(analytic, problem)
-    with plain_lapack():
+    with whole_batch_lapack():  # autodiff cannot pass the GP's one-matrix-per-call batching rule
         return engine, traced(analytic, problem), traced(autodiff, problem)
 
 

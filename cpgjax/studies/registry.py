@@ -471,8 +471,8 @@ def report_multi_velocity(result, backend: str) -> str:
 def report_slope(result, backend: str) -> str:
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
-    learn = int(np.argmax(cond.inference[0])) if cond.inference[0].any() else n
-    starts = phase_starts(cond.slope_deg[0, :learn]) + [learn]
+    starts = _slope_phases(result)
+    learn = starts[-1]
     rows = ["| slope [deg] (trials) | velocity | CoT | J | c_slope [rad] | falls |", "|---|---|---|---|---|---|"]
     for s, e in zip(starts[:-1], starts[1:], strict=True):
         rows.append(f"| {cond.slope_deg[0, s]:g} ({s}–{e - 1}) | " + " | ".join(
@@ -540,10 +540,12 @@ def _figure(name: str, group_key: str, changes_of=None, **kwargs):
     return draw
 
 
-def _learning_end(result) -> int:
-    """The first inference-mode trial (the trial count if none)."""
+def _slope_phases(result) -> list[int]:
+    """The slope study's learning phases: the first trial of each slope, then the first inference-mode trial (the
+    trial count if none)."""
     inference = result.conditions.inference[0]
-    return int(np.argmax(inference)) if inference.any() else result.trials.objective.shape[0]
+    learn = int(np.argmax(inference)) if inference.any() else result.trials.objective.shape[0]
+    return phase_starts(result.conditions.slope_deg[0, :learn]) + [learn]
 
 
 def figures_multi_velocity(result, out: pathlib.Path, backend: str) -> str:
@@ -614,9 +616,7 @@ STUDIES = {s.name: s for s in (
     Study("multi_velocity", multi_velocity_spec, report_multi_velocity, figures_multi_velocity,
           "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
     Study("slope_adaptation", slope_spec, report_slope,
-          _figure("slope_adaptation.png", "schedule",
-                  lambda r: phase_starts(r.conditions.slope_deg[0, :_learning_end(r)])[1:] + [_learning_end(r)],
-                  context_index=1),
+          _figure("slope_adaptation.png", "schedule", lambda r: _slope_phases(r)[1:], context_index=1),
           "0° → 10° → 12.5°, then inference mode on 10°…17.5°"),
     Study("paper_hardware", hardware_spec, report_hardware, _figure("paper_hardware.png", "schedule"),
           "the hardware experiments under go1: flat, taped feet, 0.6→0.3→0.5→0.6 m/s, 10°, 5/10/15 kg"),
@@ -666,9 +666,9 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
         gaits = save_best_gaits(out, result)
     study = STUDIES[name or result.spec.name]
     report = study.report(result, backend)
-    run = f"\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
+    tail = f"{safety_summary(result)}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
     with study_io.writing(out, "table.md"):
-        text = f"# {result.spec.name}\n\n{report}{safety_summary(result)}{run}"
+        text = f"# {result.spec.name}\n\n{report}{tail}"
         (out / "table.md").write_text(text)
     with study_io.writing(out, "the study's figures"):
         extra = study.figures(result, out, backend)
@@ -676,7 +676,7 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
             group_name(lab, result.spec.group_by) for lab in result.labels])
     if extra:
         with study_io.writing(out, "table.md"):
-            text = f"# {result.spec.name}\n\n{report}{extra}{safety_summary(result)}{run}"
+            text = f"# {result.spec.name}\n\n{report}{extra}{tail}"
             (out / "table.md").write_text(text)
     logs = gait_rollouts(gaits, backend)
     with study_io.writing(out, "recording.rrd"):
