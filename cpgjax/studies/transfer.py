@@ -146,13 +146,13 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         if not resumed:
             raise study_spec.StudyError(f"--resume: no arm of {out} has a checkpoint; run without --resume to start")
     study_io.claim_folder(out, overwrite=overwrite, resume=resume, dry_run=dry_run)
-    plans = []
+    plans, backend_name = [], backends.resolve_backend(backend)
     for spec in arm_specs:
-        arm_resume = spec.name in resumed
-        start = study_io.open_run(out / spec.name, spec, backends.resolve_backend(backend), resume=arm_resume,
+        start = study_io.open_run(out / spec.name, spec, backend_name, resume=spec.name in resumed,
                                   overwrite=overwrite, dry_run=dry_run)
-        plans.append(registry.run_plan(spec, out / spec.name, backends.resolve_backend(backend), start))
-        if start and notify is not None and not dry_run:
+        if dry_run:
+            plans.append(registry.run_plan(spec, out / spec.name, backend_name, start))
+        elif start and notify is not None:
             notify(registry.resume_notice(out / spec.name, start, spec.num_trials))
     if dry_run:
         return "\n".join(plans) + "\nthen each arm's best gaits walked in every evaluation environment", out
