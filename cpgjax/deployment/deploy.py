@@ -171,10 +171,10 @@ def with_truth(rows: list[dict], steady_windows: list[tuple[int, int]], log_dir)
     run = ticks["robot_tick_ms"].to_numpy()[ticks["phase"].to_numpy() == hio.RUN]  # run tick → robot tick
     table = pq.read_table(log_dir / TRUTH_FILE)
     truth = {name: table[name].to_numpy() for name in table.column_names}
-    windows = [*steady_windows, *[None] * max(len(rows) - len(steady_windows), 0)]
     out = []
-    for row, window in zip(rows, windows, strict=False):
-        robot_ticks = (int(run[window[0]]), int(run[window[1]])) if window and window[1] < len(run) else (1, 0)
+    for i, row in enumerate(rows):  # a trial whose steady window the logs do not hold gets nulls
+        first, last = steady_windows[i] if i < len(steady_windows) else (0, len(run))
+        robot_ticks = (int(run[first]), int(run[last])) if last < len(run) else None
         out.append({**row, **sim.trial_truth(truth, robot_ticks)})
     return out
 

@@ -312,12 +312,13 @@ class TruthLog:
         return len(rows)
 
 
-def trial_truth(truth: dict[str, np.ndarray], robot_ticks: tuple[int, int], dt_s: float = TICK_S) -> dict:
+def trial_truth(truth: dict[str, np.ndarray], robot_ticks: tuple[int, int] | None, dt_s: float = TICK_S) -> dict:
     """A trial's true figures from the simulated Go1's :class:`TruthLog` columns over the robot ticks [first, last]
-    of its steady phase: the mean trunk velocity (v_x, v_y) in the heading (yaw-only) frame and the forward distance
-    Σ v_x Δt, the definitions of the trial's own figures (``trial.protocol``, docs/decisions.md §9)."""
-    first, last = robot_ticks
-    m = (truth["tick_ms"] >= first) & (truth["tick_ms"] <= last)
+    of its steady phase (None: not known, every figure null): the mean trunk velocity (v_x, v_y) in the heading
+    (yaw-only) frame and the forward distance Σ v_x Δt, the definitions of the trial's own figures
+    (``trial.protocol``, docs/decisions.md §9)."""
+    m = (np.zeros(len(truth["tick_ms"]), bool) if robot_ticks is None
+         else (truth["tick_ms"] >= robot_ticks[0]) & (truth["tick_ms"] <= robot_ticks[1]))
     if not m.any():
         return dict(true_velocity_x_mps=None, true_velocity_y_mps=None, true_distance_m=None)
     yaw = attitude.quat_to_rpy(np.stack([truth[k][m] for k in ("qw", "qx", "qy", "qz")]))[2]  # per tick
