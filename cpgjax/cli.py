@@ -367,7 +367,7 @@ def _study(args) -> int:
         text, out = run(seeds=args.seeds, trials=args.trials, quick=args.quick, out=out, resume=args.resume,
                         overwrite=args.overwrite, backend=args.backend, physics=args.physics,
                         command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c),
-                        safe=args.safe, dry_run=args.dry_run)
+                        safe=args.safe, dry_run=args.dry_run, max_trials=args.max_trials)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -439,10 +439,14 @@ def optimize_spec(args) -> study_spec.StudySpec:
     return study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,),
                                 seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
                                 payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
-                                physics=(args.physics,), safe=args.safe)
+                                physics=(args.physics,), safe=args.safe, max_trials=args.max_trials)
 
 
 def _optimize(args) -> int:
+    if args.max_trials is not None and args.max_trials < args.trials:
+        print(f"cpgjax optimize: --max-trials {args.max_trials}: need at least --trials ({args.trials})",
+              file=sys.stderr)
+        return 2
     spec = optimize_spec(args)
     out = pathlib.Path(args.out)
     try:
@@ -962,6 +966,10 @@ SAFE_HELP = ("safe optimization: a second GP learns each trial's safety margin (
              "and tilt-stop thresholds) and proposals stay where it is certified >= 0 (docs/decisions.md §17)")
 
 
+MAX_TRIALS_HELP = ("the trials the run can later be extended to with --resume --trials N, N <= this, with the "
+                   "results of a run of N (the optimizers hold this many; default: --trials)")
+
+
 def _add_study(sub) -> None:
     s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/",
                        formatter_class=_HelpFormatter)
@@ -974,6 +982,8 @@ def _add_study(sub) -> None:
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help="trials per run; condition changes scale with it (default: the study's)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
+    s.add_argument("--max-trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
+                   help=MAX_TRIALS_HELP)
     s.add_argument("--safe", action="store_true", help=SAFE_HELP)
     s.add_argument("--dry-run", action="store_true", help="check every input and the output folder, print what "
                    "the run would compute (instances, trials, env-steps, where it writes) and stop: nothing is "
@@ -997,6 +1007,7 @@ def _add_optimize(sub) -> None:
     _add_scenario_args(o)
     _add_target_arg(o)
     o.add_argument("--trials", type=_count(), default=40, help="trials of 1.5 s + 3 s")
+    o.add_argument("--max-trials", type=_count(), default=None, help=MAX_TRIALS_HELP)
     o.add_argument("--seed", type=_seed, default=0, help="the optimizer's random seed")
     o.add_argument("--safe", action="store_true", help=SAFE_HELP)
     _add_output_args(o, "results/optimize")

@@ -92,6 +92,7 @@ def uninterrupted(engine):
     (dict(target_velocity_mps=(0.0,)), "target_velocity_mps = 0.0 is outside the allowed range (0, 2]"),
     (dict(friction=(5.0,)), "friction = 5.0 is outside the allowed range [0.1, 1.5]"),
     (dict(optimizer=small_optimizer(capacity=3)), "capacity 3 < num_trials 5"),
+    (dict(max_trials=4), "max_trials = 4; need an integer in [num_trials = 5, 1000]"),
     (dict(group_by=("colour",)), "group_by 'colour'"),
 ])
 def test_bad_options_fail_before_compute_with_a_clear_message(overrides, message):
@@ -286,6 +287,23 @@ ablation.Engine(spec, backend="native").run({str(out)!r})
     # resuming a different study from this folder is refused
     with pytest.raises(StudyError, match="different study"):
         ablation.Engine(tiny_spec(seeds=(0, 1, 2)), backend="native").run(out, resume=True)
+
+
+def test_max_trials_is_the_capacity_of_the_papers_optimizer():
+    assert StudySpec("s", num_trials=12).optimizer_config().capacity == 12
+    assert StudySpec("s", num_trials=12, max_trials=40).optimizer_config().capacity == 40
+
+
+def test_a_finished_study_extended_to_more_trials_equals_a_run_of_that_many(tmp_path, uninterrupted):
+    """A run of 4 trials whose optimizers hold 5 (``max_trials``; here the explicit optimizer's capacity), then
+    ``--resume`` with 5 trials: the same trial logs and optimizer state, bit for bit, as a run of 5 from the start."""
+    out = tmp_path / "study"
+    ablation.Engine(tiny_spec(num_trials=TRIALS - 1), backend="native").run(out)
+    extended = ablation.Engine(tiny_spec(), backend="native").run(out, resume=True)
+    for name in study_io.TrialLog._fields:
+        np.testing.assert_array_equal(getattr(extended.trials, name), getattr(uninterrupted.trials, name), name)
+    for a, b in zip(jax.tree.leaves(extended.opt_state), jax.tree.leaves(uninterrupted.opt_state), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_mjx_scenario_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_tegotae_gates):

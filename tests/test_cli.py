@@ -2,6 +2,7 @@
 overwrite, errors instead of tracebacks, one option per quantity, truthful `show`. None of these compiles a JAX
 program: every refused input stops at parsing or at the output folder's check."""
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -531,8 +532,48 @@ def test_a_different_definition_is_refused_naming_the_fields(tmp_path, capsys, n
     assert err.count("\n") == 1 and ("was written by a different study definition (controllers ('vmc_tegotae',) there, "
                                      "('vmc',) here; friction (0.6,) there, (0.9,) here); use another --out") in err
     assert cli.main(["optimize", "--trials", "20", "--out", str(out), "--resume", "--backend", "native"]) == 2
-    assert ("(num_trials 12 there, 20 here) (a finished study is not extended to more trials: the optimizer's arrays "
-            "and the schedules are sized for its trials)") in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and ("--trials 20: the run in this folder holds 12 trials in its optimizers (its "
+                                     "--max-trials, by default its --trials)") in err and "run it afresh" in err
+
+
+def _checkpoint_of(out: pathlib.Path, spec, trial: int) -> None:
+    log = study_io.TrialLog(*(np.zeros(1) for _ in study_io.TrialLog._fields))
+    study_io.save_checkpoint(out, spec, study_io.Checkpoint(trial, [], [], np.zeros((1, 2)), [log] * trial, 1.0, {}),
+                             "native")
+
+
+def test_extending_a_run_needs_its_optimizers_capacity_and_its_conditions(tmp_path):
+    """``--resume --trials N`` continues a run only where the result is a run of N: the same optimizer capacity
+    (``--max-trials``), trials already done ≤ N, and the conditions those trials ran under; otherwise one line
+    saying what to run."""
+    out = tmp_path / "out"
+    _checkpoint_of(out, dataclasses.replace(_optimize_spec(trials=12), max_trials=30), 12)
+    assert study_io.resume_point(out, dataclasses.replace(_optimize_spec(trials=30), max_trials=30), "native") == 12
+    assert study_io.resume_point(out, _optimize_spec(trials=30), "native") == 12  # room for 30 either way
+    with pytest.raises(study_spec.StudyError, match="resume with --trials 20 --max-trials 30 to continue it"):
+        study_io.resume_point(out, _optimize_spec(trials=20), "native")
+    with pytest.raises(study_spec.StudyError, match="has done 12 trials already; --resume with --trials 12 or more"):
+        study_io.resume_point(out, dataclasses.replace(_optimize_spec(trials=10), max_trials=30), "native")
+    with pytest.raises(study_spec.StudyError, match="holds 30 trials .* run it afresh"):
+        study_io.resume_point(out, _optimize_spec(trials=40), "native")
+    # a study whose condition changes scale with its trials: another length is another study
+    studies = tmp_path / "load"
+    _checkpoint_of(studies, registry.load_spec(seeds=1, trials=24), 24)
+    with pytest.raises(study_spec.StudyError, match=r"schedules .* \(its condition changes scale with --trials"):
+        study_io.resume_point(studies, registry.load_spec(seeds=1, trials=30), "native")
+    # a schedule written with trial numbers that stay: the conditions of the trials done must be those they ran under
+    fixed = dataclasses.replace(_optimize_spec(trials=12), max_trials=30,
+                                schedules=(study_spec.Schedule("s", (study_spec.Change(8, "payload_kg", 5.0),)),))
+    _checkpoint_of(tmp_path / "fixed", fixed, 12)
+    assert study_io.resume_point(tmp_path / "fixed", dataclasses.replace(fixed, num_trials=30), "native") == 12
+
+
+def test_max_trials_below_the_trials_is_refused_in_one_line(tmp_path, capsys):
+    assert cli.main(["optimize", "--trials", "10", "--max-trials", "5", "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err == "cpgjax optimize: --max-trials 5: need at least --trials (10)\n"
+    assert cli.main(["study", "friction", "--quick", "--max-trials", "10", "--out", str(tmp_path / "s")]) == 2
+    assert capsys.readouterr().err == "cpgjax study: --max-trials 10: need at least the run's 12 trials\n"
 
 
 def test_resume_says_where_and_ctrl_c_says_how_to_resume(tmp_path, capsys, monkeypatch):

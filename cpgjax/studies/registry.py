@@ -625,7 +625,7 @@ STUDIES = {s.name: s for s in (
 
 
 def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str | None = None,
-              safe: bool = False) -> StudySpec:
+              safe: bool = False, max_trials: int | None = None) -> StudySpec:
     if name not in STUDIES:
         raise study_spec.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
     if seeds is not None and seeds < 1:
@@ -638,6 +638,10 @@ def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str |
         spec = dataclasses.replace(spec, physics=(physics,))
     if safe:
         spec = dataclasses.replace(spec, safe=True)
+    if max_trials is not None:
+        if max_trials < spec.num_trials:
+            raise study_spec.StudyError(f"--max-trials {max_trials}: need at least the run's {spec.num_trials} trials")
+        spec = dataclasses.replace(spec, max_trials=max_trials)
     study_spec.validate(spec)
     return spec
 
@@ -717,15 +721,17 @@ def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
 
 def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
         progress=None, physics: str | None = None, command: str | None = None,
-        notify: Callable[[str], None] | None = None, safe: bool = False,
-        dry_run: bool = False) -> tuple[str, pathlib.Path]:
+        notify: Callable[[str], None] | None = None, safe: bool = False, dry_run: bool = False,
+        max_trials: int | None = None) -> tuple[str, pathlib.Path]:
     """Run (or resume) a study and write its outputs; returns (table text, output folder). ``physics``: the
-    profile every instance simulates (default: the study's own); ``safe``: safe optimization (docs/decisions.md §17).
+    profile every instance simulates (default: the study's own); ``safe``: safe optimization (docs/decisions.md §17);
+    ``max_trials``: the trials the run can later be extended to (``StudySpec.max_trials``).
     The output folder is checked first
     (:func:`study_io.open_run`: a non-empty one needs ``resume`` or ``overwrite``); ``notify`` gets the line that
     says where a resume starts; ``command`` goes into ``metadata.json``. ``dry_run``: every check, then the run's
     plan (:func:`run_plan`) as the text, nothing computed or written."""
-    spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics, safe=safe)
+    spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics, safe=safe,
+                     max_trials=max_trials)
     out = output_folder(name, out)
     backend_name = backends.resolve_backend(backend)
     start = study_io.open_run(out, spec, backend_name, resume=resume, overwrite=overwrite, dry_run=dry_run)

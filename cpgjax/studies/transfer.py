@@ -124,13 +124,15 @@ def table(arm_results: dict, evaluations: dict) -> str:
 
 def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
         progress=None, physics=None, command: str | None = None,
-        notify: Callable[[str], None] | None = None, safe: bool = False,
-        dry_run: bool = False) -> tuple[str, pathlib.Path]:
+        notify: Callable[[str], None] | None = None, safe: bool = False, dry_run: bool = False,
+        max_trials: int | None = None) -> tuple[str, pathlib.Path]:
     """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder).
     Output folders, ``resume``, ``overwrite``, ``command``, ``notify`` and ``dry_run`` (each arm's plan) as in
     :func:`registry.run`; a resume continues the arms that have a checkpoint and starts the others."""
     if physics is not None:
         raise study_spec.StudyError("the transfer study sets each arm's physics itself; drop --physics")
+    if max_trials is not None:
+        raise study_spec.StudyError(f"{NAME}: --max-trials {max_trials}: its arms are not extended; drop it")
     if seeds is not None and seeds < 1:
         raise study_spec.StudyError(f"{NAME}: --seeds {seeds}: need at least 1")
     if trials is not None and trials < limits.MIN_STUDY_TRIALS:

@@ -38,6 +38,7 @@ import cpgjax
 from cpgjax import provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.study import scene as study_scene
+from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 
@@ -108,13 +109,61 @@ def checkpoint_files(out_dir) -> list[pathlib.Path]:
 
 
 def fingerprint(spec) -> str:
-    """A string that changes whenever the study's definition does (its full repr)."""
-    return repr(spec)
+    """A string that changes whenever the study's definition does: its repr, where ``max_trials``, the last field, is
+    left out when it is unset, so that the fingerprint of such a spec is that of its other fields (checkpoints written
+    before the field existed resume)."""
+    text = repr(spec)
+    unset = ", max_trials=None)"
+    return text[:-len(unset)] + ")" if text.endswith(unset) else text
 
 
 def definition(spec) -> dict[str, str]:
-    """Each field of the study's definition, as its repr (a checkpoint records them to name what differs)."""
-    return {f.name: repr(getattr(spec, f.name)) for f in dataclasses.fields(spec)}
+    """Each field of the study's definition, as its repr (a checkpoint records them to name what differs); an unset
+    ``max_trials`` is left out as in :func:`fingerprint`."""
+    return {f.name: repr(getattr(spec, f.name)) for f in dataclasses.fields(spec)
+            if not (f.name == "max_trials" and spec.max_trials is None)}
+
+
+def extension_of(meta: dict, spec) -> bool:
+    """Whether ``spec`` continues the checkpointed run ``meta`` describes with the results of a run of
+    ``spec.num_trials``: the definitions differ in ``num_trials`` and ``max_trials`` alone, both give the optimizers
+    the same capacity (the GP's arithmetic depends on it), the checkpoint's trials are within ``spec.num_trials``,
+    and ``spec`` gives those trials the conditions they were run under.
+
+    Raises:
+      StudyError: the definitions differ in those two fields only, but one of the other conditions fails (the
+        message says which, and what to run instead).
+    """
+    theirs = meta.get("definition")
+    if not isinstance(theirs, dict) or "num_trials" not in theirs:
+        return False
+    try:
+        ran = dataclasses.replace(spec, num_trials=int(theirs["num_trials"]),
+                                  max_trials=int(theirs["max_trials"]) if "max_trials" in theirs else None)
+    except ValueError:
+        return False
+    if fingerprint(ran) != meta.get("fingerprint") or ran == spec:
+        return False
+    capacity, wanted = ran.optimizer_config().capacity, spec.optimizer_config().capacity
+    again = "run it afresh in another --out (a run started with --max-trials M can be extended up to M trials)"
+    if capacity != wanted:
+        how = (f"resume with --trials {spec.num_trials} --max-trials {capacity} to continue it as that run"
+               if capacity >= spec.num_trials else again)
+        raise StudyError(f"--trials {spec.num_trials}: the run in this folder holds {capacity} trials in its "
+                         f"optimizers (its --max-trials, by default its --trials), and the GP's arithmetic depends "
+                         f"on it: a run of {spec.num_trials} with room for {wanted} computes every trial otherwise; "
+                         f"{how}")
+    done = int(meta["trial"])
+    if done > spec.num_trials:
+        raise StudyError(f"--trials {spec.num_trials}: the run in this folder has done {done} trials already; "
+                         f"--resume with --trials {done} or more")
+    ran_conditions, conditions = study_spec.conditions(ran), study_spec.conditions(spec)
+    for field, values in ran_conditions._asdict().items():
+        if not np.array_equal(values[:, :done], getattr(conditions, field)[:, :done]):
+            raise StudyError(f"--trials {spec.num_trials}: the study's {field} schedule scales with its trials, so a "
+                             f"run of {spec.num_trials} runs trials 0…{done - 1} under other conditions than this "
+                             f"run did: {again}")
+    return True
 
 
 def _shortened(text: str, size: int = 80) -> str:
@@ -124,14 +173,18 @@ def _shortened(text: str, size: int = 80) -> str:
 def different_definition(path, meta: dict, spec) -> StudyError:
     """The refusal to continue ``path``, written by another study definition, naming the fields that differ."""
     theirs, ours = meta.get("definition"), definition(spec)
+    differ: list[str] = []
     if isinstance(theirs, dict):
-        fields = "; ".join(f"{name} {_shortened(str(theirs.get(name, '(not recorded)')))} there, "
-                           f"{_shortened(value)} here" for name, value in ours.items() if theirs.get(name) != value)
+        def value(fields: dict, name: str) -> str:  # an unset max_trials is not recorded (see definition)
+            return fields.get(name, "None" if name == "max_trials" else "(not recorded)")
+        names = [*ours, *(n for n in theirs if n not in ours)]
+        differ = [n for n in names if value(theirs, n) != value(ours, n)]
+        fields = "; ".join(f"{n} {_shortened(str(value(theirs, n)))} there, {_shortened(value(ours, n))} here"
+                           for n in differ)
     else:
         fields = "it does not record its fields"
-    extend = (" (a finished study is not extended to more trials: the optimizer's arrays and the schedules are sized "
-              "for its trials)" if isinstance(theirs, dict) and [n for n in ours if theirs.get(n) != ours[n]] == [
-                  "num_trials"] else "")
+    extend = (" (its condition changes scale with --trials: a run of another length is another study)"
+              if {"num_trials", "schedules"} <= set(differ) <= {"num_trials", "max_trials", "schedules"} else "")
     return StudyError(f"{path} was written by a different study definition ({fields}){extend}; use another --out, "
                       f"or --overwrite to start afresh")
 
@@ -242,7 +295,7 @@ def resume_point(out_dir, spec, backend: str) -> int:
     meta = checkpoint_meta(out_dir)
     if meta is None:
         raise StudyError(f"--resume: there is no checkpoint in {out_dir}; run without --resume to start afresh")
-    if meta.get("fingerprint") != fingerprint(spec):
+    if meta.get("fingerprint") != fingerprint(spec) and not extension_of(meta, spec):
         raise different_definition(path, meta, spec)
     if meta.get("backend", backend) != backend:
         raise StudyError(f"{path} was written on the {meta['backend']} backend, this run would use {backend}: resume "
@@ -273,7 +326,7 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
     parts = []
     for path in generations[-1][1]:
         meta = _read_meta(path)
-        if meta["fingerprint"] != fingerprint(spec):
+        if meta["fingerprint"] != fingerprint(spec) and not extension_of(meta, spec):
             raise different_definition(path, meta, spec)
         try:
             with np.load(path, allow_pickle=False) as z:

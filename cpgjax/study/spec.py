@@ -71,9 +71,13 @@ class StudySpec:
       randomize: domain randomization of every trial's physics (None: the grid's fixed values).
       trial: trial timing (static).
       optimizer: the optimizer's static structure; ``None`` = :func:`optimizer_setting.profile_config` of the first
-        physics profile with capacity ``num_trials``.
+        physics profile with capacity ``max_trials``.
       safe: safe optimization (docs/decisions.md §17): each instance's optimizer also models the trials' safety
         margins and proposes only where they are certified ≥ 0 (``OptimizerConfig.safe``).
+      max_trials: the trials the optimizers hold (their GP's capacity; ``None``: ``num_trials``). The GP's arithmetic
+        depends on its padded size, so a run computes each trial exactly as another run of the same ``max_trials``
+        does, whatever their ``num_trials``: a finished run can be extended up to ``max_trials`` trials with the
+        results of a run of that many (``cpgjax.study.files.extension_of``).
     """
 
     name: str
@@ -92,13 +96,14 @@ class StudySpec:
     trial: protocol.TrialConfig = protocol.TrialConfig()
     optimizer: optimizer_config.OptimizerConfig | None = None
     safe: bool = False
+    max_trials: int | None = None  # the last field: see study.files.fingerprint
 
     def optimizer_config(self) -> optimizer_config.OptimizerConfig:
-        """``optimizer``, or the paper's setting with capacity ``num_trials`` and the c_load range of the physics
-        profiles' foot-force signal (docs/decisions.md §11; :func:`validate` checks the profiles agree); safe with
-        ``safe``."""
+        """``optimizer``, or the paper's setting with capacity ``max_trials`` (default ``num_trials``) and the c_load
+        range of the physics profiles' foot-force signal (docs/decisions.md §11; :func:`validate` checks the profiles
+        agree); safe with ``safe``."""
         config = (self.optimizer if self.optimizer is not None
-                  else optimizer_setting.profile_config(self.physics[0], capacity=self.num_trials))
+                  else optimizer_setting.profile_config(self.physics[0], capacity=self.max_trials or self.num_trials))
         return dataclasses.replace(config, safe=True) if self.safe and not config.safe else config
 
 
@@ -171,6 +176,10 @@ def validate(spec: StudySpec) -> Conditions:
 
     if not isinstance(spec.num_trials, int) or spec.num_trials < 1:
         fail(f"num_trials = {spec.num_trials!r}; need an integer >= 1")
+    if spec.max_trials is not None and (not isinstance(spec.max_trials, int)
+                                        or not spec.num_trials <= spec.max_trials <= limits.MAX_TRIALS):
+        fail(f"max_trials = {spec.max_trials!r}; need an integer in [num_trials = {spec.num_trials}, "
+             f"{limits.MAX_TRIALS}]")
     for axis in ("controllers", "seeds", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedules",
                  "data_reuse", "physics"):
         values = getattr(spec, axis)
