@@ -113,6 +113,19 @@ def tiny_ablation(tmp_path_factory):
     return result, out, text
 
 
+def test_a_machine_without_video_still_gets_every_other_output(tiny_ablation, tmp_path, monkeypatch):
+    """No OpenGL backend (an unknown MUJOCO_GL fails MuJoCo's import in the renderer, as a missing OSMesa does): one
+    line says so, and the summary page, the table and the rest are written without the filmstrips."""
+    result, _, _ = tiny_ablation
+    monkeypatch.setenv("MUJOCO_GL", "no-such-backend")
+    lines = []
+    registry.write_outputs(result, tmp_path, "native", notify=lines.append)
+    (said,) = [line for line in lines if line.startswith("no video")]
+    assert "'no-such-backend' OpenGL backend" in said and "RuntimeError" in said and "\n" not in said
+    assert (tmp_path / "summary.png").read_bytes()[:4] == b"\x89PNG" and (tmp_path / "table.md").exists()
+    assert not list(tmp_path.glob("*.mp4"))
+
+
 def test_ablation_outputs(tiny_ablation):
     result, out, text = tiny_ablation
     for c in cpg.CONTROLLERS:  # our row beside the paper's

@@ -2,7 +2,7 @@
 (``go1_model.load_visual_model``) along a rollout's qpos, with a camera that follows the trunk, and imageio encodes
 the frames as H.264 MP4 with imageio-ffmpeg's packaged ffmpeg.
 
-Rendering runs in a child process (``python -m cpgjax.studies.video``): MuJoCo chooses its OpenGL backend from
+Rendering runs in a child process (``python -m cpgjax.studies.renderer``): MuJoCo chooses its OpenGL backend from
 ``MUJOCO_GL`` once, when it is imported, which the parent did long before; the child gets EGL where an NVIDIA GPU is
 and OSMesa (software) otherwise, unless ``MUJOCO_GL`` is set. Where no backend works the child says so in one line
 (:class:`RenderUnavailable`, with the package to install) and nothing else of the caller is touched. A sloped trial
@@ -12,21 +12,18 @@ gravity (docs/decisions.md §4), to one whose z is against gravity.
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import pathlib
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
 
-from cpgjax.go1 import attitude
-from cpgjax.go1 import model as go1_model
+from cpgjax.studies import renderer
 from cpgjax.study.files import BEST_PARAMS
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import limits, tuned
@@ -34,19 +31,7 @@ from cpgjax.trial import limits, tuned
 FPS = 25  # frames per second of video; one frame every 1000 / FPS ticks of 1 ms, so the video plays in real time
 WIDTH, HEIGHT = 640, 480
 DURATION_S = limits.Range(0.04, 120.0, "at least one frame, at most two minutes of video")
-CAMERA_DISTANCE_M = 1.4
-CAMERA_AZIMUTH_DEG = 120.0  # from the robot's left and front, looking back at it
-CAMERA_ELEVATION_DEG = -18.0
 TICK_S = 0.001
-_OSMESA = "install OSMesa (Debian/Ubuntu: apt-get install libosmesa6 libgl1-mesa-dri)"
-# What a machine needs for each OpenGL backend (Debian package names).
-GL_HELP = {
-    "osmesa": _OSMESA,
-    "egl": "install EGL (an NVIDIA driver, or Debian/Ubuntu: apt-get install libegl1 libgl1-mesa-dri)",
-    "glx": f"it needs a display (DISPLAY); without one set MUJOCO_GL=osmesa and {_OSMESA}",
-    "glfw": f"it needs a display (DISPLAY); without one set MUJOCO_GL=osmesa and {_OSMESA}",
-}
-_UNAVAILABLE = 3  # the child's exit status when no OpenGL context can be made
 
 
 class RenderUnavailable(RuntimeError):
@@ -120,59 +105,10 @@ def load_gaits(out) -> list[Gait]:
     return gaits
 
 
-def gl_backend(environ=os.environ) -> str:
-    """The MUJOCO_GL the renderer uses: the environment's, else EGL with an NVIDIA GPU, else OSMesa."""
-    chosen = environ.get("MUJOCO_GL", "").strip().lower()
-    if chosen:
-        return chosen
-    return "egl" if pathlib.Path("/dev/nvidia0").exists() else "osmesa"
-
-
 def frame_ticks(num_ticks: int, fps: int = FPS) -> np.ndarray:
     """The ticks drawn: every ``1 / (fps · TICK_S)``-th, from the first."""
     stride = max(int(round(1.0 / (fps * TICK_S))), 1)
     return np.arange(0, num_ticks, stride)
-
-
-def render_frames(qpos: np.ndarray, slope_deg: float = 0.0, width: int = WIDTH, height: int = HEIGHT):
-    """Frames (height, width, 3) uint8 of the visual model at each qpos row (T, nq), camera following the trunk.
-    Needs a working OpenGL backend in this process (MUJOCO_GL)."""
-    import mujoco
-
-    m = go1_model.load_visual_model()
-    d = mujoco.MjData(m)
-    root = go1_model.indices().root_qpos
-    tilt = go1_model.slope_quaternion(slope_deg)
-    camera = mujoco.MjvCamera()
-    camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-    camera.distance, camera.azimuth, camera.elevation = CAMERA_DISTANCE_M, CAMERA_AZIMUTH_DEG, CAMERA_ELEVATION_DEG
-    renderer = mujoco.Renderer(m, height, width)
-    try:
-        for row in np.asarray(qpos, np.float64):
-            d.qpos[:] = row
-            mujoco.mj_kinematics(m, d)
-            camera.lookat[:] = attitude.quat_rotate(tilt, row[root:root + 3])
-            renderer.update_scene(d, camera)
-            scene = renderer.scene
-            scene.enabletransform = 1
-            scene.rotate[:] = tilt
-            scene.translate[:] = 0.0
-            scene.scale = 1.0
-            yield renderer.render()
-    finally:
-        renderer.close()
-
-
-def _encode(path: pathlib.Path, frames, fps: int) -> int:
-    import imageio.v2 as imageio
-
-    count = 0
-    with imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7,
-                            pixelformat="yuv420p", macro_block_size=16) as writer:
-        for frame in frames:
-            writer.append_data(frame)
-            count += 1
-    return count
 
 
 class Job(NamedTuple):
@@ -192,7 +128,7 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
       RenderUnavailable: no OpenGL backend here (one line: the backend tried and what to install); nothing written.
       RuntimeError: the child failed otherwise (its last error line); the videos it finished are kept.
     """
-    backend = gl_backend()
+    backend = renderer.gl_backend()
     env = dict(os.environ, MUJOCO_GL=backend, JAX_PLATFORMS="cpu")
     if backend in ("osmesa", "egl"):
         env["PYOPENGL_PLATFORM"] = backend
@@ -203,7 +139,7 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
                   for k, j in enumerate(jobs)}
         np.savez(frames_file, slope_deg=np.array([float(j.slope_deg) for j in jobs]), fps=fps, width=width,
                  height=height, paths=np.array(tmps), **arrays)
-        child = subprocess.run([sys.executable, "-m", "cpgjax.studies.video", str(frames_file)], env=env,
+        child = subprocess.run([sys.executable, "-m", "cpgjax.studies.renderer", str(frames_file)], env=env,
                                capture_output=True, text=True)
     done = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
     last = (child.stderr.strip().splitlines() or [""])[-1]
@@ -213,7 +149,7 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
         infos.append(dict(info, path=str(job.path), rollout_s=len(job.qpos) * TICK_S, backend=backend))
     for tmp in tmps[len(done):]:
         pathlib.Path(tmp).unlink(missing_ok=True)
-    if child.returncode == _UNAVAILABLE:
+    if child.returncode == renderer.UNAVAILABLE:
         raise RenderUnavailable(last)
     if child.returncode != 0:
         raise RuntimeError(f"rendering failed (status {child.returncode}): {last}")
@@ -243,28 +179,3 @@ def filmstrip(path, count: int = 4) -> list[np.ndarray]:
 
     frames = iio.imread(path)
     return [frames[k] for k in np.linspace(0, len(frames) - 1, count).astype(int)]
-
-
-def _main(argv: list[str]) -> int:
-    """The child: ``python -m cpgjax.studies.video JOBS.npz``; one JSON line per finished video on stdout."""
-    with np.load(argv[0]) as z:
-        slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
-        paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
-    backend = gl_backend()
-    for k, path in enumerate(paths):
-        t0 = time.perf_counter()
-        frames = render_frames(qpos[k], float(slopes[k]), width, height)
-        try:
-            first = next(frames)
-        except Exception as err:  # the GL backends fail with many types (ImportError, OSError, GL errors...)
-            what = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
-            print(f"no video: MuJoCo's {backend!r} OpenGL backend (MUJOCO_GL) does not work here ({what[:120]}); "
-                  f"{GL_HELP.get(backend, _OSMESA)}", file=sys.stderr)
-            return _UNAVAILABLE
-        count = _encode(pathlib.Path(path), itertools.chain([first], frames), fps)
-        print(json.dumps(dict(frames=count, render_s=round(time.perf_counter() - t0, 3))), flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))

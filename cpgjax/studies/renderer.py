@@ -1,0 +1,125 @@
+"""The renderer of :mod:`cpgjax.studies.video`, run as its child process (``python -m cpgjax.studies.renderer
+JOBS.npz``), and what each OpenGL backend needs.
+
+MuJoCo loads its OpenGL backend (``MUJOCO_GL``) when it is imported, and an unusable one can fail that import itself
+(PyOpenGL without its library, as OSMesa on a machine that lacks it). So this module imports only the standard
+library at the top, and MuJoCo and cpgjax where they are used, after :func:`main` has imported MuJoCo under a check:
+a machine without a working backend gets one line, with what to install, and the exit status :data:`UNAVAILABLE`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import pathlib
+import sys
+import time
+
+UNAVAILABLE = 3  # the child's exit status when no OpenGL context can be made
+_OSMESA = "install OSMesa (Debian/Ubuntu: apt-get install libosmesa6 libgl1-mesa-dri)"
+# What a machine needs for each OpenGL backend (Debian package names).
+GL_HELP = {
+    "osmesa": _OSMESA,
+    "egl": "install EGL (an NVIDIA driver, or Debian/Ubuntu: apt-get install libegl1 libgl1-mesa-dri)",
+    "glx": f"it needs a display (DISPLAY); without one set MUJOCO_GL=osmesa and {_OSMESA}",
+    "glfw": f"it needs a display (DISPLAY); without one set MUJOCO_GL=osmesa and {_OSMESA}",
+}
+CAMERA_DISTANCE_M = 1.4
+CAMERA_AZIMUTH_DEG = 120.0  # from the robot's left and front, looking back at it
+CAMERA_ELEVATION_DEG = -18.0
+
+
+def gl_backend(environ=os.environ) -> str:
+    """The MUJOCO_GL the renderer uses: the environment's, else EGL with an NVIDIA GPU, else OSMesa."""
+    chosen = environ.get("MUJOCO_GL", "").strip().lower()
+    if chosen:
+        return chosen
+    return "egl" if pathlib.Path("/dev/nvidia0").exists() else "osmesa"
+
+
+def unavailable(err: BaseException) -> int:
+    """One line on stderr: this machine's OpenGL backend does not work, and what it needs; returns
+    :data:`UNAVAILABLE`."""
+    backend = gl_backend()
+    what = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+    print(f"no video: MuJoCo's {backend!r} OpenGL backend (MUJOCO_GL) does not work here ({what[:120]}); "
+          f"{GL_HELP.get(backend, _OSMESA)}", file=sys.stderr)
+    return UNAVAILABLE
+
+
+def render_frames(qpos, slope_deg: float, width: int, height: int):
+    """Frames (height, width, 3) uint8 of the visual model at each qpos row (T, nq), camera following the trunk.
+    Needs a working OpenGL backend in this process (MUJOCO_GL)."""
+    import mujoco
+    import numpy as np
+
+    from cpgjax.go1 import attitude
+    from cpgjax.go1 import model as go1_model
+
+    m = go1_model.load_visual_model()
+    d = mujoco.MjData(m)
+    root = go1_model.indices().root_qpos
+    tilt = go1_model.slope_quaternion(slope_deg)
+    camera = mujoco.MjvCamera()
+    camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+    camera.distance, camera.azimuth, camera.elevation = CAMERA_DISTANCE_M, CAMERA_AZIMUTH_DEG, CAMERA_ELEVATION_DEG
+    renderer = mujoco.Renderer(m, height, width)
+    try:
+        for row in np.asarray(qpos, np.float64):
+            d.qpos[:] = row
+            mujoco.mj_kinematics(m, d)
+            camera.lookat[:] = attitude.quat_rotate(tilt, row[root:root + 3])
+            renderer.update_scene(d, camera)
+            scene = renderer.scene
+            scene.enabletransform = 1
+            scene.rotate[:] = tilt
+            scene.translate[:] = 0.0
+            scene.scale = 1.0
+            yield renderer.render()
+    finally:
+        renderer.close()
+
+
+def _encode(path: str, frames, fps: int) -> int:
+    import imageio.v2 as imageio
+
+    count = 0
+    with imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7,
+                            pixelformat="yuv420p", macro_block_size=16) as writer:
+        for frame in frames:
+            writer.append_data(frame)
+            count += 1
+    return count
+
+
+def render_jobs(jobs_file: str) -> int:
+    """Each video of the jobs file (written by ``video.render_videos``), one JSON line per finished one on stdout;
+    MuJoCo's OpenGL backend is loaded."""
+    import numpy as np
+
+    with np.load(jobs_file) as z:
+        slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
+        paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
+    for k, path in enumerate(paths):
+        t0 = time.perf_counter()
+        frames = render_frames(qpos[k], float(slopes[k]), width, height)
+        try:
+            first = next(frames)
+        except Exception as err:  # the GL backends fail with many types (ImportError, OSError, GL errors...)
+            return unavailable(err)
+        count = _encode(path, itertools.chain([first], frames), fps)
+        print(json.dumps(dict(frames=count, render_s=round(time.perf_counter() - t0, 3))), flush=True)
+    return 0
+
+
+def main(argv: list[str]) -> int:
+    try:
+        import mujoco  # noqa: F401  (loads the OpenGL backend MUJOCO_GL names)
+    except Exception as err:  # the GL backends fail with many types (ImportError, OSError, AttributeError...)
+        return unavailable(err)
+    return render_jobs(argv[0])
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
