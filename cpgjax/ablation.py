@@ -457,6 +457,7 @@ class Engine:
                             "the safe trial with the highest expected margin there (docs/decisions.md §17)", t,
                             int(fell_back[:real].sum()))
         with _timed(timing, "simulation_s"):
+            self._walk_the_ramp(t, run.logs)
             sim = self.simulator(t)
             sim_state = sim.reset(x) if run.sim_state is None else run.sim_state
             sim_state, record = sim.trial(sim_state, x, self.local_gates)
@@ -484,6 +485,25 @@ class Engine:
             trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts, strict=True)))
         return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(gp_context, np.float32),
                             logs=run.logs + [trial_log])
+
+    def _walk_the_ramp(self, trial: int, logs: list) -> None:
+        """Where trial ``trial`` walks the spec's ramp (``study_spec.Ramp``): its slope, from the distance each
+        instance has climbed since it reached the ramp, written into the conditions (so ``trials.parquet`` records
+        the slope walked). A trial climbs its forward distance, the steady phase's scaled to the whole trial (the
+        record measures the steady phase); a fall puts the robot back at the bottom. The slope is constant within a
+        trial, so the ramp is walked at the trials' resolution (docs/decisions.md §4). The logs hold every
+        instance, so each process computes the same slopes, and a resume computes them again from its logs."""
+        on = self.padded.ramp[:, trial]
+        if not on.any():
+            return
+        scale = (self.spec.trial.transition_steps + self.spec.trial.steady_steps) / self.spec.trial.steady_steps
+        climbed = np.zeros(on.shape[0])
+        for s, lg in enumerate(logs[:trial]):
+            walked = np.maximum(climbed + scale * np.asarray(lg.distance_m, np.float64), 0.0)
+            climbed = np.where(self.padded.ramp[:, s] & ~(np.asarray(lg.fell) > 0), walked, 0.0)
+        slope = np.where(on, self.spec.ramp.slope_deg(climbed), self.padded.slope_deg[:, trial])
+        self.padded.slope_deg[:, trial] = slope
+        self.conditions.slope_deg[:, trial] = slope[:self.batch_size]
 
     def _unpadded_local_rows(self) -> int:
         """How many of this process's rows are instances, not the padding copies after the last one."""

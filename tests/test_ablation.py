@@ -15,6 +15,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
 from cpgjax import ablation, gp
@@ -304,6 +305,31 @@ def test_a_finished_study_extended_to_more_trials_equals_a_run_of_that_many(tmp_
         np.testing.assert_array_equal(getattr(extended.trials, name), getattr(uninterrupted.trials, name), name)
     for a, b in zip(jax.tree.leaves(extended.opt_state), jax.tree.leaves(uninterrupted.opt_state), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_trials_on_the_ramp_walk_the_slope_of_the_distance_climbed(tmp_path):
+    """Trials 2… walk a ramp: each starts on the ramp's slope at the distance climbed since trial 2 (each trial's
+    steady-phase distance scaled to the whole trial, 4.5 / 3 here 300 / 200 ticks), back at the bottom after a fall,
+    recomputed here from the written trials.parquet alone."""
+    ramp = study_spec.Ramp(start_deg=2.0, end_deg=6.0, length_m=0.5)
+    spec = tiny_spec(schedules=(Schedule("ramp", (Change(2, "ramp", 1.0),)),), ramp=ramp)
+    result = ablation.Engine(spec, backend="native").run()
+    study_io.write_trials(result, tmp_path / "trials.parquet")
+    table = pq.read_table(tmp_path / "trials.parquet").to_pandas()
+    for _, rows in table.groupby("instance"):
+        rows = rows.sort_values("trial")
+        assert list(rows.ramp) == [False, False, True, True, True] and (rows.slope_deg[:2] == 0.0).all()
+        climbed, expected = 0.0, []
+        for distance, fell in zip(rows.distance_m[2:], rows.fell[2:], strict=True):
+            expected.append(ramp.start_deg + (ramp.end_deg - ramp.start_deg) * min(climbed / ramp.length_m, 1.0))
+            climbed = 0.0 if fell else max(climbed + distance * 300 / 200, 0.0)
+        np.testing.assert_allclose(rows.slope_deg[2:], expected, rtol=0, atol=1e-9)
+    assert table.slope_deg[table.ramp].max() > ramp.start_deg  # some instance climbed
+
+
+def test_a_ramp_schedule_needs_a_ramp():
+    with pytest.raises(StudyError, match="puts trials on the ramp, and the study defines none"):
+        study_spec.validate(tiny_spec(schedules=(Schedule("ramp", (Change(2, "ramp", 1.0),)),)))
 
 
 def test_mjx_scenario_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_tegotae_gates):

@@ -41,6 +41,9 @@ def test_specs_follow_the_paper():
     learn = int(np.argmax(cond.inference[0]))
     assert [cond.slope_deg[0, t] for t in registry.phase_starts(cond.slope_deg[0, :learn])] == [0.0, 10.0, 12.5]
     assert sorted(set(cond.slope_deg[0, learn:])) == [10.0, 12.5, 15.0, 17.5] and cond.inference[0, learn:].all()
+    ramp = int(np.argmax(cond.ramp[0]))  # then the continuous ramp, 10° → 17.5°, 12 trials in inference mode
+    assert ramp == learn + 12 == spec.num_trials - 12 and cond.ramp[0, ramp:].all() and not cond.ramp[0, :ramp].any()
+    assert spec.ramp.start_deg == 10.0 and spec.ramp.end_deg == 17.5
     assert registry.make_spec("friction").friction == (0.3, 0.6, 0.9)
     spec = registry.make_spec("paper_hardware")  # the paper's hardware experiments under the go1 profile
     cond = study_spec.conditions(spec)

@@ -109,18 +109,26 @@ def multi_velocity_spec(seeds=None, trials=None, quick=False) -> StudySpec:
 
 
 INFERENCE_SLOPES_DEG = (10.0, 12.5, 15.0, 17.5)
+# The paper's continuous ramp (Fig. slope_setting) rises from 10° to 17.5°; the paper gives no length. 12 m: a gait
+# that tracks v* = 0.5 m/s reaches the top in about 5 of its 12 trials there, one at 0.25 m/s by the last.
+RAMP = study_spec.Ramp(start_deg=10.0, end_deg=17.5, length_m=12.0)
 
 
 def slope_spec(seeds=None, trials=None, quick=False) -> StudySpec:
-    n = trials or (32 if quick else 92)
-    learn = n - 4 * (1 if quick else 3)  # the last trials: inference mode, 1 or 3 per slope
-    per_slope = (n - learn) // len(INFERENCE_SLOPES_DEG)
+    n = trials or (36 if quick else 104)
+    per_slope = 1 if quick else 3  # inference mode: this many trials on each slope, then 4 × as many on the ramp
+    ramp = n - 4 * per_slope
+    learn = ramp - 4 * per_slope
+    if learn < 4:
+        raise study_spec.StudyError(f"--trials {n}: the slope study needs at least {8 * per_slope + 4} trials (its "
+                                    f"last {8 * per_slope} are in inference mode)")
     changes = [Change(_scaled(40, 80, learn), "slope_deg", 10.0), Change(_scaled(60, 80, learn), "slope_deg", 12.5),
                Change(learn, "inference", 1.0)]
     changes += [Change(learn + k * per_slope, "slope_deg", s) for k, s in enumerate(INFERENCE_SLOPES_DEG)]
+    changes += [Change(ramp, "ramp", 1.0)]
     return StudySpec("slope_adaptation", num_trials=n, seeds=seed_range(seeds, quick),
-                     schedules=(Schedule("0→10→12.5° + inference 10…17.5°", tuple(changes)),), group_by=("schedule",),
-                     physics=PHYSICS)
+                     schedules=(Schedule("0→10→12.5° + inference 10…17.5° + ramp", tuple(changes)),),
+                     group_by=("schedule",), physics=PHYSICS, ramp=RAMP)
 
 
 HARDWARE_TARGET_MPS = 0.4  # the paper's hardware experiments track 0.4 m/s (except the velocity schedule)
@@ -210,9 +218,10 @@ def best_params(result, mask: np.ndarray, stop: int | None = None) -> tuple[np.n
 
 def _best_run(result, mask: np.ndarray) -> tuple[int, int]:
     """(instance, trial): among the instances in ``mask``, the run with the best final objective (mean of its last
-    trials), and its best trial of the final condition phase."""
+    trials), and its best trial of the final condition phase; the trials on a ramp do not count (their slopes differ
+    by instance and trial)."""
     tr, cond = result.trials, result.conditions
-    n = tr.objective.shape[0]
+    n = ramp_start(result)
     b = int(np.argmax(np.where(mask, last_mean(tr.objective, n), -np.inf)))
     fields = (cond.friction[b], cond.slope_deg[b], cond.payload_kg[b], cond.target_velocity_mps[b])
     start = max(max(phase_starts(f[:n])) for f in fields)
@@ -228,9 +237,9 @@ def group_name(labels: dict, group_by) -> str:
 
 def best_gaits(result) -> list[study_video.Gait]:
     """Per group of the study (``spec.group_by``): the best parameters of :func:`_best_run` among its instances, in
-    the conditions of the last trial."""
+    the conditions of the last trial before a ramp."""
     tr, cond = result.trials, result.conditions
-    n = tr.objective.shape[0]
+    n = ramp_start(result)
     names = np.array([group_name(lab, result.spec.group_by) for lab in result.labels])
     gaits = []
     for name in dict.fromkeys(names):
@@ -480,17 +489,55 @@ def report_slope(result, backend: str) -> str:
             + f" | {int(tr.fell[s:e].sum())} |")
     text = (f"Slope adaptation, v* = 0.5 m/s, contextual BO; last {LAST_TRIALS} trials of each phase, "
             f"{len(result.spec.seeds)} seeds.\n\n" + "\n".join(rows) + "\n")
-    if learn < n:
+    ramp = ramp_start(result)
+    if learn < ramp:
         rows = ["| slope [deg] | velocity | J | falls / trials | paper |", "|---|---|---|---|---|"]
-        inf_starts = phase_starts(cond.slope_deg[0, learn:])
-        bounds = [learn + s for s in inf_starts] + [n]
+        inf_starts = phase_starts(cond.slope_deg[0, learn:ramp])
+        bounds = [learn + s for s in inf_starts] + [ramp]
         for s, e in zip(bounds[:-1], bounds[1:], strict=True):
             slope = float(cond.slope_deg[0, s])
             paper = "walks" if slope <= 15.0 else "not reported as walking"
             rows.append(f"| {slope:g} | {mean_ci(tr.velocity_xy_mps[s:e, :, 0])} | {mean_ci(tr.objective[s:e])} | "
                         f"{int(tr.fell[s:e].sum())}/{tr.fell[s:e].size} | {paper} |")
-        text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{n - 1}:\n\n" + "\n".join(rows) + "\n")
+        text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{ramp - 1}:\n\n" + "\n".join(rows) + "\n")
+    if ramp < n:
+        text += report_ramp(result, ramp)
     return text
+
+
+RAMP_BANDS_DEG = (10.0, 12.5, 15.0, 17.5)  # the ramp's trials grouped by the slope they started on
+
+
+def ramp_start(result) -> int:
+    """The first trial on the continuous ramp (the trial count if none)."""
+    on = result.conditions.ramp[0]
+    return int(np.argmax(on)) if on.any() else result.trials.objective.shape[0]
+
+
+def report_ramp(result, start: int) -> str:
+    """The continuous ramp in inference mode: per band of slopes, the trials that started there (pooled over
+    seeds), and per seed the steepest slope a trial walked without falling."""
+    tr, cond, ramp = result.trials, result.conditions, result.spec.ramp
+    slope = cond.slope_deg[:, start:].T  # (trials, B): the slope each trial started on
+    fell = tr.fell[start:] > 0
+    rows = ["| slopes [deg] | trials | velocity | J | falls / trials | paper |", "|---|---|---|---|---|---|"]
+    edges = list(RAMP_BANDS_DEG)
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+        band = (slope >= lo) & ((slope < hi) | (k == len(edges) - 2))
+        if not band.any():
+            rows.append(f"| {lo:g}–{hi:g} | 0 | – | – | – | {'walks' if hi <= 15.0 else 'walks up to 15°'} |")
+            continue
+        paper = "walks" if hi <= 15.0 else "walks up to 15°"
+        rows.append(f"| {lo:g}–{hi:g} | {int(band.sum())} | {mean_ci(tr.velocity_xy_mps[start:, :, 0][band])} | "
+                    f"{mean_ci(tr.objective[start:][band])} | {int(fell[band].sum())}/{int(band.sum())} | {paper} |")
+    steepest = np.where(~fell, slope, -np.inf).max(axis=0)  # per seed; −inf: every ramp trial fell
+    walked = np.isfinite(steepest)
+    top = int(np.sum(steepest >= ramp.end_deg))
+    return (f"\nContinuous ramp {ramp.start_deg:g}° → {ramp.end_deg:g}° over {ramp.length_m:g} m (the paper's Fig. "
+            f"slope_setting), inference mode, trials {start}–{tr.objective.shape[0] - 1}; each trial starts on the "
+            f"slope the instance has climbed to, a fall puts it back at the bottom:\n\n" + "\n".join(rows) + "\n\n"
+            f"Steepest slope walked without a fall: {mean_ci(steepest[walked])}° over the {int(walked.sum())} of "
+            f"{walked.size} seeds with one; {top} reached the top.\n")
 
 
 def report_hardware(result, backend: str) -> str:

@@ -108,20 +108,22 @@ def checkpoint_files(out_dir) -> list[pathlib.Path]:
     return sorted(p for p in out.iterdir() if p.name == CHECKPOINT or _SHARD.fullmatch(p.name))
 
 
-def fingerprint(spec) -> str:
-    """A string that changes whenever the study's definition does: its repr, where ``max_trials``, the last field, is
-    left out when it is unset, so that the fingerprint of such a spec is that of its other fields (checkpoints written
-    before the field existed resume)."""
-    text = repr(spec)
-    unset = ", max_trials=None)"
-    return text[:-len(unset)] + ")" if text.endswith(unset) else text
+# Fields a study sets only where it uses them; unset (None), they are not part of its definition, so a study without
+# them keeps the fingerprint of its other fields (and the checkpoints written before the fields existed resume).
+_UNSET_UNLESS_GIVEN = ("max_trials", "ramp")
 
 
 def definition(spec) -> dict[str, str]:
-    """Each field of the study's definition, as its repr (a checkpoint records them to name what differs); an unset
-    ``max_trials`` is left out as in :func:`fingerprint`."""
+    """Each field of the study's definition, as its repr (a checkpoint records them to name what differs); the
+    fields of ``_UNSET_UNLESS_GIVEN`` only where they are set."""
     return {f.name: repr(getattr(spec, f.name)) for f in dataclasses.fields(spec)
-            if not (f.name == "max_trials" and spec.max_trials is None)}
+            if not (f.name in _UNSET_UNLESS_GIVEN and getattr(spec, f.name) is None)}
+
+
+def fingerprint(spec) -> str:
+    """A string that changes whenever the study's definition does: the spec's repr, of the fields of
+    :func:`definition`."""
+    return f"{type(spec).__qualname__}({', '.join(f'{k}={v}' for k, v in definition(spec).items())})"
 
 
 def extension_of(meta: dict, spec) -> bool:
@@ -175,8 +177,8 @@ def different_definition(path, meta: dict, spec) -> StudyError:
     theirs, ours = meta.get("definition"), definition(spec)
     differ: list[str] = []
     if isinstance(theirs, dict):
-        def value(fields: dict, name: str) -> str:  # an unset max_trials is not recorded (see definition)
-            return fields.get(name, "None" if name == "max_trials" else "(not recorded)")
+        def value(fields: dict, name: str) -> str:  # an unset field is not recorded (see definition)
+            return fields.get(name, "None" if name in _UNSET_UNLESS_GIVEN else "(not recorded)")
         names = [*ours, *(n for n in theirs if n not in ours)]
         differ = [n for n in names if value(theirs, n) != value(ours, n)]
         fields = "; ".join(f"{n} {_shortened(str(value(theirs, n)))} there, {_shortened(value(ours, n))} here"
@@ -514,7 +516,7 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     cols: dict[str, np.ndarray] = {"instance": inst, "trial": trial}
     for label in ("controller", "seed", "schedule", "data_reuse", "physics"):
         cols[label] = np.array([lab[label] for lab in result.labels])[inst]
-    for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "mass_scale"):
+    for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "ramp", "mass_scale"):
         cols[field] = np.asarray(getattr(cond, field))[:, :n].reshape(-1)
     latency, noise = _resolved(cond, result.labels, n)
     cols["latency_ticks"], cols["noise_scale"] = latency.reshape(-1), noise.reshape(-1)

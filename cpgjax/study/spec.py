@@ -22,7 +22,7 @@ from cpgjax.trial import limits, optimizer_setting, protocol
 from cpgjax.trial import params as param_space
 
 CONDITION_FIELDS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
-SCHEDULE_FIELDS = CONDITION_FIELDS + ("inference",)
+SCHEDULE_FIELDS = CONDITION_FIELDS + ("inference", "ramp")
 
 
 class StudyError(ValueError):
@@ -30,7 +30,7 @@ class StudyError(ValueError):
 
 
 class Change(NamedTuple):
-    """From ``trial`` on, ``field`` (one of :data:`SCHEDULE_FIELDS`) takes ``value`` (inference: 0 or 1)."""
+    """From ``trial`` on, ``field`` (one of :data:`SCHEDULE_FIELDS`) takes ``value`` (inference, ramp: 0 or 1)."""
 
     trial: int
     field: str
@@ -48,6 +48,22 @@ class Randomization(NamedTuple):
     latency_ticks: tuple[int, int] = (0, 2)  # integers, both ends included
     noise_scale: tuple[float, float] = (0.0, 2.0)  # sensor noise × the robot's (the go1 profile's)
     seed: int = 0
+
+
+class Ramp(NamedTuple):
+    """A continuous ramp, the terrain of the paper's Fig. slope_setting: the slope rises from ``start_deg`` at the
+    bottom to ``end_deg`` over ``length_m`` of climb, then stays there. Trials whose ``ramp`` condition is on walk
+    it: each trial's slope is the ramp's at the distance the instance has climbed since it reached the ramp, and a
+    fall puts it back at the bottom (``cpgjax.ablation``; docs/decisions.md §4)."""
+
+    start_deg: float
+    end_deg: float
+    length_m: float
+
+    def slope_deg(self, climbed_m):
+        """The slope [deg] after ``climbed_m`` of climb (NumPy, any shape)."""
+        fraction = np.clip(np.asarray(climbed_m, np.float64) / self.length_m, 0.0, 1.0)
+        return self.start_deg + (self.end_deg - self.start_deg) * fraction
 
 
 class Schedule(NamedTuple):
@@ -74,6 +90,7 @@ class StudySpec:
         physics profile with capacity ``max_trials``.
       safe: safe optimization (docs/decisions.md §17): each instance's optimizer also models the trials' safety
         margins and proposes only where they are certified ≥ 0 (``OptimizerConfig.safe``).
+      ramp: the continuous ramp that trials with the ``ramp`` condition walk (None: no trial does).
       max_trials: the trials the optimizers hold (their GP's capacity; ``None``: ``num_trials``). The GP's arithmetic
         depends on its padded size, so a run computes each trial exactly as another run of the same ``max_trials``
         does, whatever their ``num_trials``: a finished run can be extended up to ``max_trials`` trials with the
@@ -96,7 +113,8 @@ class StudySpec:
     trial: protocol.TrialConfig = protocol.TrialConfig()
     optimizer: optimizer_config.OptimizerConfig | None = None
     safe: bool = False
-    max_trials: int | None = None  # the last field: see study.files.fingerprint
+    max_trials: int | None = None  # max_trials and ramp: unset unless given, see study.files.fingerprint
+    ramp: Ramp | None = None
 
     def optimizer_config(self) -> optimizer_config.OptimizerConfig:
         """``optimizer``, or the paper's setting with capacity ``max_trials`` (default ``num_trials``) and the c_load
@@ -126,6 +144,7 @@ class Conditions(NamedTuple):
     payload_kg: np.ndarray
     target_velocity_mps: np.ndarray
     inference: np.ndarray  # bool
+    ramp: np.ndarray  # bool: the trial walks the spec's ramp, whose slope the engine writes into slope_deg
     mass_scale: np.ndarray  # 1 unless randomized
     latency_ticks: np.ndarray  # int, −1 (the profile's) unless randomized
     noise_scale: np.ndarray  # sensor noise × the robot's; −1 (the profile's own) unless randomized
@@ -142,7 +161,7 @@ def conditions(spec: StudySpec) -> Conditions:
             out[f][b] = lab[f]
         for change in sorted(schedules[lab["schedule"]].changes, key=lambda c: c.trial):
             out[change.field][b, change.trial:] = change.value
-    out["inference"] = out["inference"] > 0.5
+    out["inference"], out["ramp"] = out["inference"] > 0.5, out["ramp"] > 0.5
     out["mass_scale"], out["latency_ticks"] = np.ones((len(labels), n)), np.full((len(labels), n), -1, np.int64)
     out["noise_scale"] = np.full((len(labels), n), -1.0)
     if spec.randomize is not None:
@@ -209,6 +228,13 @@ def validate(spec: StudySpec) -> Conditions:
                 fail(f"schedule {schedule.label!r}: unknown field {change.field!r}; allowed: {SCHEDULE_FIELDS}")
             if not 0 <= change.trial < spec.num_trials:
                 fail(f"schedule {schedule.label!r}: change at trial {change.trial} outside [0, {spec.num_trials})")
+    ramp_trials = any(c.field == "ramp" and c.value > 0.5 for s in spec.schedules for c in s.changes)
+    if ramp_trials and spec.ramp is None:
+        fail("a schedule puts trials on the ramp, and the study defines none (ramp)")
+    if spec.ramp is not None:
+        r = spec.ramp
+        if not (r.length_m > 0 and limits.SLOPE_DEG.contains(r.start_deg) and limits.SLOPE_DEG.contains(r.end_deg)):
+            fail(f"ramp {r}: need length_m > 0 and slopes in {limits.SLOPE_DEG}")
     config = spec.optimizer_config()
     if config.capacity < spec.num_trials:
         fail(f"optimizer capacity {config.capacity} < num_trials {spec.num_trials}")
