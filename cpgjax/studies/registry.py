@@ -8,7 +8,7 @@
 ``friction``            friction 0.3 / 0.6 / 0.9 learning curves (paper Fig. sim_overview a)
 ``multi_velocity``      target 0.8 → 0.3 → 0.6 m/s with and without data reuse (Fig. sim_overview b)
 ``slope_adaptation``    slope 0° → 10° → 12.5° with contextual BO, then inference mode (β = 1e-6) on 10°…17.5°
-                        (Fig. sim_overview c)
+                        and up the continuous 10° → 17.5° ramp (Fig. sim_overview c, Fig. slope_setting)
 ``paper_hardware``      the paper's hardware experiments predicted under the ``go1`` profile: v* = 0.4 m/s on flat
                         and on slippery ground (taped feet), 0.6 → 0.3 → 0.5 → 0.6 m/s, a 10° slope, 5 / 10 / 15 kg
 ======================  =======================================================================================
@@ -664,7 +664,7 @@ STUDIES = {s.name: s for s in (
           "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
     Study("slope_adaptation", slope_spec, report_slope,
           _figure("slope_adaptation.png", "schedule", lambda r: _slope_phases(r)[1:], context_index=1),
-          "0° → 10° → 12.5°, then inference mode on 10°…17.5°"),
+          "0° → 10° → 12.5°, then inference mode on 10°…17.5° and up the 10° → 17.5° ramp"),
     Study("paper_hardware", hardware_spec, report_hardware, _figure("paper_hardware.png", "schedule"),
           "the hardware experiments under go1: flat, taped feet, 0.6→0.3→0.5→0.6 m/s, 10°, 5/10/15 kg"),
 
