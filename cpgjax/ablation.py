@@ -432,6 +432,8 @@ class Engine:
                      if ckpt.trial < self.spec.num_trials else None)
         size = self.placement.padded_size
         logs = [study_io.TrialLog(*(_pad(np.asarray(f)[:self.batch_size], size) for f in lg)) for lg in ckpt.logs]
+        for t in range(ckpt.trial):  # the slopes the restored trials walked on a ramp
+            self._walk_the_ramp(t, logs)
         log.info("resumed %s at trial %d", self.spec.name, ckpt.trial)
         return _Run(start=ckpt.trial, opt_state=opt_state, sim_state=sim_state, context=ckpt.context[index],
                     logs=logs, wall_before=ckpt.wall_s, timing={**run.timing, **ckpt.timing})

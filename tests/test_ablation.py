@@ -5,6 +5,7 @@ Tiny instances throughout (short trials, small optimizer) and the native backend
 the trial and optimizer logic is the same at the paper's sizes.
 """
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -325,6 +326,11 @@ def test_trials_on_the_ramp_walk_the_slope_of_the_distance_climbed(tmp_path):
             climbed = 0.0 if fell else max(climbed + distance * 300 / 200, 0.0)
         np.testing.assert_allclose(rows.slope_deg[2:], expected, rtol=0, atol=1e-9)
     assert table.slope_deg[table.ramp].max() > ramp.start_deg  # some instance climbed
+    # a run stopped on the ramp and resumed (here: extended from 4 trials) records the slopes of the same walk
+    out = tmp_path / "resumed"
+    ablation.Engine(dataclasses.replace(spec, num_trials=4), backend="native").run(out)
+    resumed = ablation.Engine(spec, backend="native").run(out, resume=True)
+    np.testing.assert_array_equal(resumed.conditions.slope_deg, result.conditions.slope_deg)
 
 
 def test_a_ramp_schedule_needs_a_ramp():
