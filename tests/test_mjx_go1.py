@@ -173,6 +173,8 @@ print(json.dumps({k: np.asarray(v).tolist() for k, v in record._asdict().items()
     two = json.loads(out.stdout.strip().splitlines()[-1])
     _, one = two_trials
     np.testing.assert_array_equal(two["fell"], np.asarray(one.fell))
-    np.testing.assert_allclose(two["distance_m"], np.asarray(one.distance_m), atol=2e-3)
+    # Rounding grows most on the slippery floor (μ 0.1), which slides: 0.29 % of its distance on a 2-vCPU AMD EPYC.
+    # The batch's different scenarios walk distances at least 5 % apart, so 1 % still tells instances apart.
+    np.testing.assert_allclose(two["distance_m"], np.asarray(one.distance_m), rtol=1e-2)
     np.testing.assert_allclose(two["energy_j"], np.asarray(one.energy_j), rtol=1e-2)
     np.testing.assert_allclose(two["c_load_n"], np.asarray(one.c_load_n), rtol=1e-3)
