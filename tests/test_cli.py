@@ -523,9 +523,7 @@ def test_resume_needs_a_checkpoint_of_the_same_backend(tmp_path, capsys, no_engi
 
 def test_a_different_definition_is_refused_naming_the_fields(tmp_path, capsys, no_engine):
     out = tmp_path / "out"
-    spec = _optimize_spec(trials=12)
-    log = study_io.TrialLog(*(np.zeros(1) for _ in study_io.TrialLog._fields))
-    study_io.save_checkpoint(out, spec, study_io.Checkpoint(1, [], [], np.zeros((1, 2)), [log], 1.0, {}), "native")
+    _checkpoint_of(out, _optimize_spec(trials=12), 1)
     assert cli.main(["optimize", "--trials", "12", "--friction", "0.9", "--controller", "vmc", "--out", str(out),
                      "--resume", "--backend", "native"]) == 2
     err = capsys.readouterr().err

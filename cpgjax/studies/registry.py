@@ -521,15 +521,12 @@ def report_ramp(result, start: int) -> str:
     slope = cond.slope_deg[:, start:].T  # (trials, B): the slope each trial started on
     fell = tr.fell[start:] > 0
     rows = ["| slopes [deg] | trials | velocity | J | falls / trials | paper |", "|---|---|---|---|---|---|"]
-    edges = list(RAMP_BANDS_DEG)
-    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
-        band = (slope >= lo) & ((slope < hi) | (k == len(edges) - 2))
-        if not band.any():
-            rows.append(f"| {lo:g}–{hi:g} | 0 | – | – | – | {'walks' if hi <= 15.0 else 'walks up to 15°'} |")
-            continue
+    for lo, hi in zip(RAMP_BANDS_DEG[:-1], RAMP_BANDS_DEG[1:], strict=True):
+        band = (slope >= lo) & ((slope < hi) | (hi == RAMP_BANDS_DEG[-1]))  # the top band holds the top
         paper = "walks" if hi <= 15.0 else "walks up to 15°"
-        rows.append(f"| {lo:g}–{hi:g} | {int(band.sum())} | {mean_ci(tr.velocity_xy_mps[start:, :, 0][band])} | "
-                    f"{mean_ci(tr.objective[start:][band])} | {int(fell[band].sum())}/{int(band.sum())} | {paper} |")
+        figures = (f"{mean_ci(tr.velocity_xy_mps[start:, :, 0][band])} | {mean_ci(tr.objective[start:][band])} | "
+                   f"{int(fell[band].sum())}/{int(band.sum())}" if band.any() else "– | – | –")
+        rows.append(f"| {lo:g}–{hi:g} | {int(band.sum())} | {figures} | {paper} |")
     steepest = np.where(~fell, slope, -np.inf).max(axis=0)  # per seed; −inf: every ramp trial fell
     walked = np.isfinite(steepest)
     top = int(np.sum(steepest >= ramp.end_deg))

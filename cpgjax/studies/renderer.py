@@ -2,8 +2,8 @@
 JOBS.npz``), and what each OpenGL backend needs.
 
 MuJoCo loads its OpenGL backend (``MUJOCO_GL``) when it is imported, and an unusable one can fail that import itself
-(PyOpenGL without its library, as OSMesa on a machine that lacks it). So this module imports only the standard
-library at the top, and MuJoCo and cpgjax where they are used, after :func:`main` has imported MuJoCo under a check:
+(PyOpenGL without its library, as OSMesa on a machine that lacks it). So this module imports nothing at the top
+that loads MuJoCo, and MuJoCo and cpgjax where they are used, after :func:`main` has imported MuJoCo under a check:
 a machine without a working backend gets one line, with what to install, and the exit status :data:`UNAVAILABLE`.
 """
 
@@ -15,6 +15,8 @@ import os
 import pathlib
 import sys
 import time
+
+import numpy as np
 
 UNAVAILABLE = 3  # the child's exit status when no OpenGL context can be made
 _OSMESA = "install OSMesa (Debian/Ubuntu: apt-get install libosmesa6 libgl1-mesa-dri)"
@@ -52,7 +54,6 @@ def render_frames(qpos, slope_deg: float, width: int, height: int):
     """Frames (height, width, 3) uint8 of the visual model at each qpos row (T, nq), camera following the trunk.
     Needs a working OpenGL backend in this process (MUJOCO_GL)."""
     import mujoco
-    import numpy as np
 
     from cpgjax.go1 import attitude
     from cpgjax.go1 import model as go1_model
@@ -96,8 +97,6 @@ def _encode(path: str, frames, fps: int) -> int:
 def render_jobs(jobs_file: str) -> int:
     """Each video of the jobs file (written by ``video.render_videos``), one JSON line per finished one on stdout;
     MuJoCo's OpenGL backend is loaded."""
-    import numpy as np
-
     with np.load(jobs_file) as z:
         slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
         paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
