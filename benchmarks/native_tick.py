@@ -6,6 +6,10 @@ Each part is timed on its own over as many calls as the trial has ticks, with th
 controller with a standing robot's host input, the physics with the torques the closed loop applied), best of
 ``--repeats``; the closed loop is timed as a whole, and "rest" is what the two parts leave of it.
 
+"Controller in a scan" is the same ``_advance`` with the same inputs run as the body of one ``lax.scan`` over the
+trial's ticks, a single XLA call: its arithmetic, without what XLA's CPU runtime and the Python dispatch cost per
+call. The difference between the two controller columns is that per-call cost.
+
     JAX_PLATFORMS=cpu python benchmarks/native_tick.py [--batch-sizes 16,20,64] [--steps 400] [--repeats 3]
 
 The last line of the output is a JSON object of the figures.
@@ -73,6 +77,27 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
             np.asarray(torque)
         return time.perf_counter() - t0
 
+    host_in_device = jnp.asarray(host_in)
+
+    @jax.jit
+    def scanned(carry):
+        def body(c, _):
+            c, torque = program.advance(consts, c, host_in_device)
+            return c, torque[0, 0]
+        return jax.lax.scan(body, carry, None, length=steps)
+
+    def fresh_carry():
+        return native_go1._Carry(controller=controller.copy(), pending=jnp.zeros(program.pending_size),
+                                 step=jnp.int32(0), rows=jnp.zeros((steps, program.row_size)))
+
+    jax.block_until_ready(scanned(fresh_carry()))  # compiles
+
+    def controller_scan():
+        carry = fresh_carry()
+        t0 = time.perf_counter()
+        jax.block_until_ready(scanned(carry))
+        return time.perf_counter() - t0
+
     torques = np.asarray(sim.rollout(sim.reset(p), p, gates, steps)[1].torque_nm)  # (B, T, 12), as applied
 
     def physics_steps():
@@ -83,8 +108,9 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
         return time.perf_counter() - t0
 
     per_tick = {name: 1e6 * _best(run, repeats) / steps for name, run in
-                (("closed_loop", closed_loop), ("controller", controller_calls), ("physics", physics_steps))}
-    per_tick["rest"] = per_tick["closed_loop"] - per_tick["controller"] - per_tick["physics"]
+                (("closed_loop", closed_loop), ("controller", controller_calls), ("physics", physics_steps),
+                 ("controller_scan", controller_scan))}
+    per_tick["rest"] = per_tick["closed_loop"] - per_tick["controller"] - per_tick["physics"]  # the scan is apart
     sim.physics.close()
     return {**{f"{k}_us": round(v, 1) for k, v in per_tick.items()},
             "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]), "threads": sim.physics.nthread}
@@ -103,14 +129,15 @@ def main() -> None:
     load_start = os.getloadavg()[0]
     print(f"# {provenance.machine()}, {native_go1.available_cores()} cores, {args.physics} physics, {args.steps} "
           f"ticks, best of {args.repeats}, load average {load_start:.1f}")
-    print("| batch | threads | closed loop [µs/tick] | controller call [µs] | physics step [µs] | rest [µs] "
-          "| env-steps/s |\n|---|---|---|---|---|---|---|")
+    print("| batch | threads | closed loop [µs/tick] | controller call [µs] | controller in a scan [µs/tick] "
+          "| physics step [µs] | rest [µs] | env-steps/s |\n|---|---|---|---|---|---|---|---|")
     figures = {"benchmark": "native_tick", "machine": provenance.machine(), "physics": args.physics,
                "steps": args.steps, "repeats": args.repeats}
     for b in args.batch_sizes:
         r = breakdown(b, args.steps, args.repeats, args.physics)
-        print(f"| {b} | {r['threads']} | {r['closed_loop_us']:.0f} | {r['controller_us']:.0f} | {r['physics_us']:.0f} "
-              f"| {r['rest_us']:.0f} | {r['env_steps_per_s']:,} |", flush=True)
+        print(f"| {b} | {r['threads']} | {r['closed_loop_us']:.0f} | {r['controller_us']:.0f} "
+              f"| {r['controller_scan_us']:.0f} | {r['physics_us']:.0f} | {r['rest_us']:.0f} "
+              f"| {r['env_steps_per_s']:,} |", flush=True)
         figures.update({f"{k}_b{b}": v for k, v in r.items()})
     figures.update(load_avg_1min_start=round(load_start, 2), load_avg_1min_end=round(os.getloadavg()[0], 2))
     print(json.dumps(figures))
