@@ -175,9 +175,35 @@ class LoopResult(NamedTuple):
     realtime: str  # what scheduling the loop actually got
     log: TickLog
     stopped: bool = False  # Ctrl-C (SIGINT) stopped the run: damped, not a trip
+    loop_starts: tuple[int, ...] = (0,)  # rows of ``log`` where a loop began (several: ``joined``)
+    safety_stops: tuple = ()  # (tick, reason) of each trip that ended a loop of a joined run but the last
 
     def timing(self) -> dict:
-        return timing_stats(self.log, self.overruns, self.ticks)
+        return timing_stats(self.log, self.overruns, self.ticks, self.loop_starts)
+
+
+def joined(results: list[LoopResult]) -> LoopResult:
+    """One run's result from the results of the loops it ran one after the other (an online optimization that stood
+    the robot up after a safety stop): ticks, events and logs follow on, the trip and the stop are the last loop's,
+    and each earlier loop's trip is a safety stop."""
+    if len(results) == 1:
+        return results[0]
+    offsets = np.cumsum([0] + [r.ticks for r in results[:-1]])
+    rows = np.cumsum([0] + [len(r.log.phase) for r in results[:-1]])
+    rejected: dict = {}
+    for r in results:
+        for name, n in r.rejected_packets.items():
+            rejected[name] = rejected.get(name, 0) + n
+    last = results[-1]
+    return LoopResult(
+        trip=last.trip, events=[(tick + int(o), phase, msg) for r, o in zip(results, offsets, strict=True)
+                                for tick, phase, msg in r.events],
+        ticks=sum(r.ticks for r in results), overruns=sum(r.overruns for r in results),
+        skipped_ticks=sum(r.skipped_ticks for r in results), rejected_packets=rejected, realtime=last.realtime,
+        log=TickLog(*(np.concatenate(fields) for fields in zip(*(r.log for r in results), strict=True))),
+        stopped=last.stopped, loop_starts=tuple(int(v) for v in rows),
+        safety_stops=tuple((int(o) + next(t for t, _, m in reversed(r.events) if m == r.trip), r.trip)
+                           for r, o in zip(results[:-1], offsets[:-1], strict=True)))
 
 
 OVERRUN_CAUSES = ("late_start", "not_running", "work_cpu")
@@ -194,12 +220,14 @@ def overrun_causes(log: TickLog) -> np.ndarray:
     return np.argmax(np.stack([late, not_running, cpu]), axis=0) if late.size else np.zeros(0, int)
 
 
-def timing_stats(log: TickLog, overruns: int, ticks: int) -> dict:
+def timing_stats(log: TickLog, overruns: int, ticks: int, loop_starts: tuple[int, ...] = (0,)) -> dict:
     """Controller-step latency and loop-period statistics [µs] over the logged ticks after connection, and the
-    overruns by cause (:func:`overrun_causes`, logged ticks only)."""
+    overruns by cause (:func:`overrun_causes`, logged ticks only). ``loop_starts``: the rows where a loop began
+    (a period is measured within one loop)."""
     active = log.phase > CONNECT
     step_us = log.step_s[active & (log.phase == RUN)] * 1e6
-    period_us = np.diff(log.t_start_s[active]) * 1e6
+    loop = np.cumsum(np.isin(np.arange(len(log.phase)), loop_starts))[active]  # the loop of each active tick
+    period_us = np.diff(log.t_start_s[active])[np.diff(loop) == 0] * 1e6
     pct = lambda a, q: float(np.percentile(a, q)) if a.size else float("nan")  # noqa: E731
     causes = np.bincount(overrun_causes(log), minlength=len(OVERRUN_CAUSES))
     return {
@@ -478,6 +506,21 @@ class TickSink(Protocol):
     def write(self, log: TickLog, rows: slice, ticks: range) -> None:
         """Rows ``rows`` of the ring buffer ``log`` hold loop ticks ``ticks`` (called every
         ``LoopConfig.flush_ticks`` ticks, inside a tick after its command was sent, and once at the end)."""
+
+
+class _OffsetSink:
+    """A sink whose ticks follow those of the loops before (``offset`` of them)."""
+
+    def __init__(self, sink: TickSink, offset: int):
+        self._sink, self._offset = sink, offset
+
+    def write(self, log: TickLog, rows: slice, ticks: range) -> None:
+        self._sink.write(log, rows, range(ticks.start + self._offset, ticks.stop + self._offset))
+
+
+def offset_sink(sink: TickSink | None, offset: int) -> TickSink | None:
+    """``sink`` for a loop that follows ``offset`` ticks of earlier loops of the same run (``sink`` itself at 0)."""
+    return sink if sink is None or offset == 0 else _OffsetSink(sink, offset)
 
 
 def run_loop(transport: Transport, controller: CompiledController | None, schedule: ParamSchedule,

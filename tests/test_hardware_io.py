@@ -29,7 +29,7 @@ from cpgjax.robot import foot_force, wire
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
-from cpgjax.trial import params, protocol, tuned
+from cpgjax.trial import objective, params, protocol, tuned
 from tests.test_outputs_doc import undocumented
 
 GATES = cpg.controller_gates("vmc_tegotae")
@@ -399,6 +399,92 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     np.testing.assert_allclose(best, [best_row[name] for name in params.PARAM_NAMES])
     replay, _, _ = _run(robot, controller, run_ticks=300, schedule=hio.FixedParams(best, 300))
     assert replay.trip is None
+
+
+def _optimize_with_a_fault(robot, controller, tmp_path, kind, value, recover):
+    """Three short trials of random search with a fault injected 200 ticks into trial 1 (after trial 0's 900 and its
+    wait for a proposal, a few ticks in lockstep)."""
+    robot.reset()
+    robot.inject(kind, value, after_ticks=RUN_STARTS_AT + 900 + 200, ticks=10**6)
+    transport = go1_transport.LockstepTransport(robot.address)
+    tuned_for = dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0, payload_kg=0.0,
+                     target_velocity_mps=0.5)
+    spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), tuned_for)
+    try:
+        return robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
+                                                params.midpoint(), 3, protocol.TrialConfig(300, 600), LOOP, SAFETY,
+                                                recover=recover)
+    finally:
+        transport.close()
+
+
+def test_a_tilt_stop_during_online_optimization_is_an_unsafe_trial_then_the_robot_stands_up(robot, controller,
+                                                                                             tmp_path):
+    """docs/decisions.md §17: the stop ends trial 1 as fallen, with a margin ≤ 0 and J at its minimum; the robot is
+    put back on its feet (here the simulated Go1's reset, which also ends the push), stands up through the soft start
+    and walks trial 2."""
+    calls = []
+
+    def recover(trial, reason):
+        calls.append((trial, reason))
+        robot.reset()
+        return True
+
+    result, rows, windows = _optimize_with_a_fault(robot, controller, tmp_path, "push_roll_nm", 60.0, recover)
+    assert result.trip is None, result.events
+    assert [trial for trial, _ in calls] == [1] and calls[0][1].startswith("tilt:")
+    assert [(tick, reason) for tick, reason in result.safety_stops] == [(result.safety_stops[0][0], calls[0][1])]
+    assert [r["trial"] for r in rows] == [0, 1, 2]
+    assert [r["fell"] for r in rows] == [False, True, False]
+    assert [r["safety_stop"] for r in rows] == [None, calls[0][1], None]
+    assert rows[1]["safety_margin"] <= 0.0 < min(rows[0]["safety_margin"], rows[2]["safety_margin"])
+    assert rows[1]["objective"] == pytest.approx(objective.MIN_OBJECTIVE)
+    assert rows[2]["velocity_x_mps"] > 0.2  # it walks again after standing up
+    messages = [message for _, _, message in result.events]
+    assert messages.count("first robot state; holding the measured pose") == 2  # two loops, each with a soft start
+    assert len(windows) == 2 and windows[0][1] < windows[1][0]  # trials 0 and 2, in run ticks of the whole run
+    assert result.ticks == sum(1 for _ in result.log.phase) and len(result.loop_starts) == 2
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(tmp_path / "trials.parquet")
+    assert table["fell"].to_pylist() == [False, True, False]
+    assert undocumented("robot trials.parquet", table.schema.names) == []
+
+
+def test_upright_puts_the_simulated_go1_back_at_the_origin_while_its_clock_runs_on(robot, controller):
+    result, _, _ = _run(robot, controller, run_ticks=600)
+    assert result.trip is None
+    walked = robot.stats()
+    robot.upright()
+    after = robot.stats()
+    assert after["tick"] == walked["tick"] > 0 and after["commands"] == walked["commands"]
+    assert np.abs(walked["trunk_xy_m"]).max() > 0.02 and np.abs(after["trunk_xy_m"]).max() < 1e-9
+
+
+def test_deploys_recovery_asks_the_operator_on_the_robot_and_rights_the_simulated_go1(monkeypatch):
+    class Server:
+        uprights = 0
+
+        def upright(self):
+            Server.uprights += 1
+
+    assert deploy.stand_up(Server())(1, "tilt: …") and Server.uprights == 1
+    prompts = []
+    monkeypatch.setattr("builtins.input", lambda prompt: prompts.append(prompt) or "")
+    assert deploy.stand_up(None)(4, "tilt: roll +0.9 rad") and "trial 4" in prompts[0] and "Enter" in prompts[0]
+    for interruption in (EOFError, KeyboardInterrupt):
+        def refuse(prompt, interruption=interruption):
+            raise interruption
+        monkeypatch.setattr("builtins.input", refuse)
+        assert not deploy.stand_up(None)(4, "tilt: roll +0.9 rad")
+
+
+def test_a_stop_not_caused_by_the_gait_still_ends_an_online_optimization(robot, controller, tmp_path):
+    calls = []
+    result, rows, _ = _optimize_with_a_fault(robot, controller, tmp_path, "buttons", ["L2", "B"],
+                                             lambda trial, reason: calls.append(trial) or True)
+    assert result.trip is not None and "remote stop" in result.trip and calls == []
+    assert [r["trial"] for r in rows] == [0] and not rows[0]["fell"] and result.safety_stops == ()
 
 
 def test_deploy_optimize_starts_from_the_optimizers_random_proposal(tmp_path):

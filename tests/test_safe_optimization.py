@@ -209,3 +209,36 @@ def test_black_box_safe_run_violates_far_less_and_finds_the_constrained_optimum(
     assert violations(safe.xs) <= 2
     assert toy(safe.best_x)[1] >= 0 and safe.best_value >= constrained_best - 0.02
     np.testing.assert_array_equal(safe.margins, [toy(u)[1] for u in safe.xs])
+
+
+# ------------------------------------------------------------------------------------- safety stops on the robot
+
+def test_only_the_trips_a_gait_causes_become_unsafe_trials():
+    from cpgjax.robot import safety
+
+    state_reasons = ["tilt: roll +0.812 rad, pitch +0.010 rad beyond ±0.7 rad",
+                     "power protection: Σ|tauEst·dq| = 1210 W > 900 W (level 9)", "the SDK's power protection tripped"]
+    other = ["remote stop buttons L2+B pressed", "motor temperature: motor 3 at 80 °C ≥ 70 °C",
+             "no robot state within 2.0 s", "non-finite command (tau)",
+             "stale state: no new robot tick for 6 ticks", None]
+    assert [safety.is_gait_trip(r) for r in state_reasons] == [True] * 3
+    assert [safety.is_gait_trip(r) for r in other] == [False] * len(other)
+
+
+def test_a_stopped_trial_fell_with_the_stops_margin_and_the_figures_it_walked():
+    from cpgjax.deployment import trials
+    from cpgjax.trial import objective
+
+    walked = np.zeros((40, 7), np.float32)
+    walked[:, 0], walked[:, 3], walked[:, 4] = 0.3, 30.0, 0.35  # v_x, load, a roll of half the tilt stop
+    record = trials.stopped_trial_record(walked, -0.16, 12.74)
+    assert float(record.fell) == 1.0 and float(record.safety_margin) == pytest.approx(-0.16)
+    assert float(objective.objective(record, 0.5)) == objective.MIN_OBJECTIVE
+    np.testing.assert_allclose(np.mean(np.asarray(record.velocity_xy_mps)[:, 0]), 0.3, rtol=1e-6)
+    # The steady ticks' own margin is the worst when it is below the stop's (the stop's is at most 0).
+    assert float(trials.stopped_trial_record(walked, 0.0, 12.74).safety_margin) == pytest.approx(0.0)
+    walked[5, 4] = 0.84  # 1.2 × the tilt stop
+    assert float(trials.stopped_trial_record(walked, -0.1, 12.74).safety_margin) == pytest.approx(-0.2, abs=1e-6)
+    before_steady = trials.stopped_trial_record(np.zeros((0, 7), np.float32), -0.05, 12.74)
+    assert float(before_steady.safety_margin) == pytest.approx(-0.05) and float(before_steady.fell) == 1.0
+    assert np.isnan(float(before_steady.distance_m)) and float(before_steady.total_mass_kg) == pytest.approx(12.74)

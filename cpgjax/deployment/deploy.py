@@ -137,7 +137,8 @@ def run(args) -> int:
                                  safe=args.safe)
             timing = protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
             result, rows, windows = online_optimization(transport, controller, calibration, gates, spec, params,
-                                                        args.trials, timing, loop, safety, ticks, hint)
+                                                        args.trials, timing, loop, safety, ticks, hint,
+                                                        recover=stand_up(server))
         else:
             replay = ReplayTrials(params, round(args.duration_s * 1000))
             result = hio.run_loop(transport, controller, replay, calibration, gates, loop, safety, ticks, hint)
@@ -159,6 +160,24 @@ def run(args) -> int:
 
 
 TRUTH_FILE = "sim_truth.parquet"
+
+
+def stand_up(server: sim.SimGo1Client | None):
+    """How an online optimization recovers from a safety stop that its gait caused (``trials.Recover``): the
+    simulated Go1 is put back on its feet; on a real Go1 the operator is asked to, and nothing moves until they
+    press Enter (end of input or Ctrl-C ends the run). The loop's soft start then stands the robot up."""
+    def recover(trial: int, reason: str) -> bool:
+        if server is not None:
+            server.upright()
+            return True
+        try:
+            input(f"trial {trial} ended with a safety stop ({reason}); the motors are damped. Put the robot on its "
+                  "feet, then press Enter to stand it up for the next trial (Ctrl-C ends the run): ")
+        except (EOFError, KeyboardInterrupt):
+            log.info("no recovery: the run ends after trial %d", trial)
+            return False
+        return True
+    return recover
 
 
 def with_truth(rows: list[dict], steady_windows: list[tuple[int, int]], log_dir) -> list[dict]:
@@ -200,6 +219,8 @@ TRUE = ("true_velocity_x_mps", "true_velocity_y_mps", "true_distance_m")  # the 
 
 
 def walked_line(row: dict) -> str:
+    if row.get("safety_stop"):
+        return f"trial {row['trial']}: ended by a safety stop ({row['safety_stop']}), learned as unsafe"
     line = (f"trial {row['trial']}: J {row['objective']:.3f}, v_x {row['velocity_x_mps']:.3f} m/s, "
             f"{row['distance_m']:.2f} m in its steady phase, CoT {row['cost_of_transport']:.3f}")
     if row.get("true_velocity_x_mps") is not None:
@@ -215,15 +236,21 @@ def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | No
     clean end, 130 after Ctrl-C (a stop), 2 after a safety trip. ``truth``: the simulated Go1's true trunk
     position before and after the loop (its own state, beside the robot's estimate), None on the robot."""
     lockstep = args.robot == "sim" and args.sim_pacing == "lockstep"
-    summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events, "realtime": result.realtime,
+    summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events,
+               "safety_stops": [{"tick": tick, "reason": reason} for tick, reason in result.safety_stops],
+               "realtime": result.realtime,
                "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
-               "trials": [{k: row[k] for k in (*WALKED, *TRUE) if k in row} for row in rows], "sim_truth": truth,
+               "trials": [{k: _finite_or_none(row[k]) for k in (*WALKED, *TRUE) if k in row} for row in rows],
+               "sim_truth": truth,
                "timing": result.timing(), "command": getattr(args, "command_line", None),
                "cpgjax_version": cpgjax.__version__, "git_commit": provenance.git_commit(),
                "environment": provenance.environment()}
     (args.log_dir / "run.json").write_text(json.dumps(summary, indent=1, default=str))
     ended = (f"safety trip: {result.trip}" if result.trip else "stopped by Ctrl-C (damped)" if result.stopped
              else "clean end")
+    if result.safety_stops:
+        ended += (f" after {len(result.safety_stops)} safety stop(s) learned as unsafe trials, each followed by a "
+                  "stand-up: " + "; ".join(reason for _, reason in result.safety_stops))
     shared = ("\nthe simulated Go1 shared the loop's CPU: its ticks are in these figures "
               "(the loop on a CPU of its own: benchmarks/hardware_loop.py)"
               if args.robot == "sim" and not lockstep and loop_cpu(args) is not None else "")
@@ -240,6 +267,11 @@ def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | No
              args.log_dir / tick_log.FILE_NAME, walked, truth_line,
              hio.timing_table(summary["timing"], deadlines=not lockstep), shared)
     return 2 if result.trip else 130 if result.stopped else 0
+
+
+def _finite_or_none(value):
+    """JSON has no NaN: a figure a trial did not measure (a safety stop before its steady phase) is null."""
+    return None if isinstance(value, float) and not np.isfinite(value) else value
 
 
 def _free_port() -> int:

@@ -9,6 +9,13 @@ current parameters until the next proposal arrives (the wait is logged per trial
 log (``trials.parquet``, ``trials.rrd`` for rerun) and the best parameters (``best_params.json``, which
 ``cpgjax deploy --params`` replays, :mod:`cpgjax.trial.tuned`).
 
+A safety stop that a gait causes (the tilt stop or the power protection, ``robot.safety.is_gait_trip``) ends the
+loop, as every trip does; with a ``recover`` callback :func:`online_optimization` then counts it as the outcome of
+the trial being walked, an unsafe one (fallen, J at its minimum, its safety margin that of the stop), lets the
+optimizer learn it, asks ``recover`` to put the robot back on its feet (the operator on a real Go1, a reset on the
+simulated one) and starts the loop again, whose soft start stands the robot up before the next trial
+(docs/decisions.md §17).
+
 The optimizer is anything with ``propose(context) -> params`` and ``observe(params, context, record, objective)``
 (:class:`OnlineOptimizer`): the contextual BO of ``cpgjax.optim.bo`` (:class:`BayesianOptimizer`, the default) or
 :class:`RandomSearch` (a baseline, and the fast stand-in of the tests).
@@ -24,6 +31,7 @@ import os
 import queue
 import signal
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple, Protocol
 
@@ -188,9 +196,9 @@ class _TrialLog:
 
 
 def trial_row(trial: int, x: np.ndarray, record: protocol.TrialRecord, j: float, c: np.ndarray, seed: int,
-              tuned_for: dict) -> dict:
+              tuned_for: dict, safety_stop: str | None = None) -> dict:
     """One trial on the robot as a row of its ``trials.parquet``: the columns of a study's where they apply
-    (docs/outputs.md)."""
+    (docs/outputs.md). ``safety_stop``: the reason of the stop that ended the trial (an unsafe trial, which fell)."""
     return {"trial": trial, "seed": seed, **tuned_for, **param_space.as_dict(x),
             "c_load_n": float(c[0]), "c_slope_rad": float(c[1]), "objective": float(j),
             "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
@@ -200,7 +208,33 @@ def trial_row(trial: int, x: np.ndarray, record: protocol.TrialRecord, j: float,
             "saturation_fraction": float(record.saturation_fraction), "energy_j": float(record.energy_j),
             "distance_m": float(record.distance_m), "total_mass_kg": float(record.total_mass_kg),
             "safety_margin": float(record.safety_margin),
-            "fell": False, "failed": False}  # a fall trips the safety layer before a trial completes
+            "fell": safety_stop is not None, "failed": False, "safety_stop": safety_stop}
+
+
+def stopped_trial_record(signals: np.ndarray, stop_margin: float, total_mass_kg: float, dt_s: float = 0.001,
+                         timing: protocol.TrialConfig = protocol.TrialConfig()) -> protocol.TrialRecord:
+    """The record of a trial that a safety stop ended: fallen, so J is at its minimum (``objective.objective``), and
+    its safety margin the worst of its steady ticks (``signals``, possibly none) and of the stop's
+    (``stop_margin``, ≤ 0). Its walking figures are those of the steady ticks it walked, NaN without any."""
+    if len(signals):
+        record = trial_record(signals, total_mass_kg, dt_s, timing)
+    else:  # stopped during the transition: nothing was measured
+        record = jax.tree.map(lambda leaf: jnp.full_like(leaf, jnp.nan),  # every field is a float
+                              trial_record(np.zeros((1, len(_SIGNALS)), np.float32), total_mass_kg, dt_s, timing))
+        record = record._replace(total_mass_kg=jnp.float32(total_mass_kg))
+    margin = jnp.float32(stop_margin) if jnp.isnan(record.safety_margin) else jnp.minimum(record.safety_margin,
+                                                                                          stop_margin)
+    return record._replace(fell=jnp.float32(1.0), safety_margin=margin)
+
+
+def stop_margin(result: hio.LoopResult, timing: protocol.TrialConfig = protocol.TrialConfig()) -> float:
+    """The safety margin of the stop that ended a loop: the tilt stop's margin (``protocol.safety_margin``) at the
+    tick the trip was detected, from the IMU, and at most 0 (a stop is at or beyond a threshold; the power
+    protection trips at any tilt)."""
+    trip_tick = next(tick for tick, _, message in reversed(result.events) if message == result.trip)
+    row = len(result.log.quaternion_wxyz) - (result.ticks - trip_tick)  # the log holds the newest ticks
+    roll, pitch = go1_safety.tilt_rad(result.log.quaternion_wxyz[row])
+    return min(float(protocol.safety_margin(timing, roll, pitch)), 0.0)
 
 
 def signal_columns() -> np.ndarray:
@@ -293,12 +327,26 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
         message = conn.recv()
         if message[0] == "stop":
             break
-        _, trial, x, signals, wait_ticks = message
-        record, j, c, c_gp = _evaluate(signals, spec, optimizer.observe, trial, x)
+        if message[0] == "unsafe":  # a safety stop ended the trial (online_optimization)
+            _, trial, x, signals, margin, reason, wait_ticks = message
+            # The context the parameters were proposed for: a stopped trial's few steady ticks, if any, do not
+            # estimate it (the robot was falling).
+            record = stopped_trial_record(signals, margin, spec.total_mass_kg, spec.dt_s)
+            j = float(objective.objective(record, spec.target_velocity_mps))
+            c = c_gp
+            optimizer.observe(x, c_gp, record, j)
+        else:
+            _, trial, x, signals, wait_ticks = message
+            reason = None
+            record, j, c, c_gp = _evaluate(signals, spec, optimizer.observe, trial, x)
         conn.send(("params", optimizer.propose(c_gp)))
-        row = {**trial_row(trial, x, record, j, c, spec.seed, spec.tuned_for), "optimizer": spec.kind,
+        row = {**trial_row(trial, x, record, j, c, spec.seed, spec.tuned_for, reason), "optimizer": spec.kind,
                "wait_s": wait_ticks * spec.dt_s}
         trial_log.append(row)
+        if reason is not None:
+            log.info("trial %d: stopped by the safety layer (%s): learned as unsafe, safety margin %.3f, J = %.3f",
+                     trial, reason, row["safety_margin"], j)
+            continue
         log.info("trial %d: J = %.3f, v_x = %.2f m/s, CoT = %.2f, context (%.1f N, %.3f rad); its parameters came "
                  "%.2f s after the previous trial", trial, j, row["velocity_x_mps"], row["cost_of_transport"], c[0],
                  c[1], row["wait_s"])
@@ -346,7 +394,8 @@ class TrialRunner:
     """
 
     def __init__(self, conn, initial_params: np.ndarray, num_trials: int,
-                 timing: protocol.TrialConfig = protocol.TrialConfig(), mailer: _Mailer | None = None):
+                 timing: protocol.TrialConfig = protocol.TrialConfig(), mailer: _Mailer | None = None,
+                 first_trial: int = 0):
         self._conn = conn
         self._mailer = mailer or conn
         self._timing = timing
@@ -355,12 +404,28 @@ class TrialRunner:
         self._previous = self._current = np.asarray(initial_params, np.float32)
         self._num_trials = num_trials
         self.steady_windows: list[tuple[int, int]] = []  # per complete trial: its steady phase's first, last run tick
-        self.trials_done = 0
-        self.trial = 0  # the trial whose parameters the robot walks with (logged per tick)
+        self.trials_done = first_trial  # trials before this loop's (a run restarted after a safety stop) count
+        self.trial = first_trial  # the trial whose parameters the robot walks with (logged per tick)
+        self.run_ticks = 0  # run-phase ticks so far
         self._tick_in_trial = 0
         self._waiting_since = None  # run tick at which the last trial was handed to the optimizer
         self._wait_ticks = 0  # ticks spent waiting for the current trial's parameters
-        self.finished = num_trials == 0
+        self.finished = first_trial >= num_trials
+
+    @property
+    def walked_params(self) -> np.ndarray:
+        """The parameters the robot walks with once the current trial's transition is over."""
+        return self._current
+
+    @property
+    def waiting(self) -> bool:
+        """Whether the last complete trial's successor is still to come from the optimizer."""
+        return self._waiting_since is not None
+
+    def steady_signals(self) -> np.ndarray:
+        """The current trial's steady-phase signals so far (none while waiting or in its transition)."""
+        done = 0 if self.waiting else max(self._tick_in_trial - self._timing.transition_steps, 0)
+        return self._signals[:done].copy()
 
     def params(self, run_tick: int) -> np.ndarray:
         k = self._tick_in_trial
@@ -370,6 +435,7 @@ class TrialRunner:
         return self._current
 
     def record(self, run_tick: int, out: np.ndarray) -> None:
+        self.run_ticks = run_tick + 1
         if self._waiting_since is not None:
             if self._conn.poll():
                 _, proposal = self._conn.recv()
@@ -391,17 +457,27 @@ class TrialRunner:
             self._waiting_since = run_tick
 
 
+Recover = Callable[[int, str], bool]  # (the stopped trial, the stop's reason) → whether to stand up and go on
+
+
 def online_optimization(transport, controller, calibration, gates, spec: OptimizerSpec,
                         initial_params: np.ndarray | None, num_trials: int,
                         timing: protocol.TrialConfig = protocol.TrialConfig(), loop=None, safety=None, sink=None,
-                        stale_hint: str = ""):
+                        stale_hint: str = "", recover: Recover | None = None):
     """Algorithm 1 on the robot: ``num_trials`` trials back to back, the optimizer in its own process (its
     compilation done before the robot walks, off the loop's CPU when the loop has one). Trial 0 walks with
     ``initial_params``, or with None with the optimizer's first (random) proposal, as in simulation
     (docs/decisions.md §16). ``sink`` and ``stale_hint``: as for ``hardware_io.run_loop``.
 
-    Returns (LoopResult, per-trial rows, each complete trial's steady phase as its (first, last) run tick). The log
-    files are in ``spec.log_dir``.
+    A safety stop that the gait caused (``robot.safety.is_gait_trip``) during the run phase is, with ``recover``,
+    the outcome of the trial being walked (while the robot waits for a proposal, that of the next trial, with the
+    parameters it walks): the optimizer learns it as unsafe (:func:`stopped_trial_record`, :func:`stop_margin`) and
+    proposes the next trial's parameters; then, if trials remain, ``recover(trial, reason)`` is asked to put the
+    robot on its feet (True) or to end the run (False), and the loop starts again: connect, soft start, stand, next
+    trial. Without ``recover``, or after any other trip, the run ends at the trip as the loop does.
+
+    Returns (LoopResult of the whole run (``hardware_io.joined``), per-trial rows, each complete trial's steady
+    phase as its (first, last) run tick, counted over the run's loops). The log files are in ``spec.log_dir``.
     """
     Path(spec.log_dir).mkdir(parents=True, exist_ok=True)
     loop = loop or hio.LoopConfig()
@@ -419,12 +495,34 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
         log.info("trial 0 walks with %s parameters", "the given" if initial_params is not first else
                  "the optimizer's first (random, docs/decisions.md §16)")
         mailer = _Mailer(conn, spec.cpus)
-        runner = TrialRunner(conn, initial_params, num_trials, timing, mailer)
+        results, windows = [], []
+        params, first_trial, run_ticks = initial_params, 0, 0
         try:
-            result = hio.run_loop(transport, controller, runner, calibration, gates, loop,
-                                  safety or go1_safety.SafetyConfig(), sink, stale_hint)
+            while True:
+                runner = TrialRunner(conn, params, num_trials, timing, mailer, first_trial)
+                ticks = sum(r.ticks for r in results)
+                result = hio.run_loop(transport, controller, runner, calibration, gates, loop,
+                                      safety or go1_safety.SafetyConfig(), hio.offset_sink(sink, ticks), stale_hint)
+                results.append(result)
+                windows += [(first + run_ticks, last + run_ticks) for first, last in runner.steady_windows]
+                run_ticks += runner.run_ticks
+                if recover is None or not go1_safety.is_gait_trip(result.trip) or runner.run_ticks == 0 \
+                        or runner.trials_done >= num_trials:
+                    break
+                stopped = runner.trials_done
+                if runner.waiting:
+                    conn.recv()  # the proposal for this trial, made before its stop: superseded
+                mailer.send(("unsafe", stopped, runner.walked_params.astype(np.float64), runner.steady_signals(),
+                             stop_margin(result, timing), result.trip, 0))
+                _, params = conn.recv()  # proposed once the stop was learned
+                first_trial = stopped + 1
+                if first_trial >= num_trials or not recover(stopped, result.trip):
+                    break
+                log.info("trial %d ended with a safety stop (%s), learned as unsafe; standing up for trial %d",
+                         stopped, result.trip, first_trial)
         finally:
             mailer.close()
+        result = hio.joined(results)
         conn.send(("stop",))
         rows = []
         while conn.poll(120.0):
@@ -436,4 +534,4 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
     finally:
         if worker.is_alive():
             worker.kill()
-    return result, rows, runner.steady_windows
+    return result, rows, windows

@@ -86,6 +86,19 @@ def state_trip_reason(state: wire.RobotState, safety: SafetyConfig, stop_mask: i
     return None
 
 
+# The trips a gait causes, by the start of their reasons (state_trip_reason, power_protect, and the SDK's own power
+# protection in hardware_io): the robot tipped over or its motors drew too much power. An online optimization counts
+# such a stop as an unsafe trial and may stand the robot up again (cpgjax.deployment.trials, docs/decisions.md §17).
+# Every other trip (stop buttons, motor temperature, a stale or missing robot state, a non-finite command) ends the
+# run: it is the operator's, the hardware's or the link's, not the gait's.
+GAIT_TRIP_PREFIXES = ("tilt:", "power protection:", "the SDK's power protection")
+
+
+def is_gait_trip(reason: str | None) -> bool:
+    """Whether a trip ``reason`` is one a gait causes (:data:`GAIT_TRIP_PREFIXES`)."""
+    return reason is not None and reason.startswith(GAIT_TRIP_PREFIXES)
+
+
 def power_protect(counter: int, state: wire.RobotState, safety: SafetyConfig) -> tuple[int, str | None]:
     """One update of the SDK's power-protection counter; returns (counter, trip reason or None)."""
     power_w = float(np.sum(np.abs(state.tau_est_nm * state.dq_rad_s)))

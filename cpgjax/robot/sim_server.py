@@ -379,6 +379,8 @@ class SimGo1Server:
                 self.physics.reset()
                 self._reset_counters()
                 self.faults = []
+            elif op == "upright":  # what an operator does after a safety stop; the clock and the logs run on
+                self.physics.reset()
             elif op == "lift":
                 self.physics.lift(float(request["height_m"]))
             elif op == "fault":
@@ -562,6 +564,11 @@ class SimGo1Client:
     def reset(self) -> None:
         """Robot standing on the ground again, frozen until the next command; faults cleared; counters zeroed."""
         self.request("reset")
+
+    def upright(self) -> None:
+        """Put the robot back on its feet at the origin, at rest, as an operator does after a safety stop: unlike
+        :meth:`reset`, the clock, the faults, the counters and the true-state log run on."""
+        self.request("upright")
 
     def lift(self, height_m: float = 0.3) -> None:
         """Hang the robot ``height_m`` above where it stands (feet in the air) until the next reset."""
