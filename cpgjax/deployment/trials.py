@@ -457,6 +457,16 @@ class TrialRunner:
             self._waiting_since = run_tick
 
 
+def _answer(conn, worker, timeout_s: float = 600.0):
+    """The optimizer process's next message, while the robot is damped; one line if the process is gone."""
+    while not conn.poll(1.0):
+        timeout_s -= 1.0
+        if not worker.is_alive() or timeout_s <= 0:
+            raise RuntimeError("the optimizer process ended or stopped answering after a safety stop (its log is "
+                               "above); the robot is damped")
+    return conn.recv()
+
+
 Recover = Callable[[int, str], bool]  # (the stopped trial, the stop's reason) → whether to stand up and go on
 
 
@@ -511,10 +521,10 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
                     break
                 stopped = runner.trials_done
                 if runner.waiting:
-                    conn.recv()  # the proposal for this trial, made before its stop: superseded
+                    _answer(conn, worker)  # the proposal for this trial, made before its stop: superseded
                 mailer.send(("unsafe", stopped, runner.walked_params.astype(np.float64), runner.steady_signals(),
                              stop_margin(result, timing), result.trip, 0))
-                _, params = conn.recv()  # proposed once the stop was learned
+                _, params = _answer(conn, worker)  # proposed once the stop was learned
                 first_trial = stopped + 1
                 if first_trial >= num_trials or not recover(stopped, result.trip):
                     break
