@@ -67,6 +67,8 @@ class ParamSchedule(Protocol):
 
     finished: bool
     trial: int  # the trial the parameters belong to (logged per tick)
+    # Optional: why the schedule finished early, if it failed (the run ends with this trip); unset or None otherwise.
+    failure: str | None
 
     def params(self, run_tick: int) -> np.ndarray:
         """Parameters (8,) for this tick of the run phase."""
@@ -602,7 +604,9 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 tick_log.controller_torque_nm[i] = out[OUTPUT.slices.torque_nm]
                 run_tick += 1
                 if schedule.finished:
-                    phase, phase_tick = _enter_phase(events, k, DAMP, "run complete")
+                    failure = getattr(schedule, "failure", None)  # once per run
+                    trip = trip or failure
+                    phase, phase_tick = _enter_phase(events, k, DAMP, failure or "run complete")
             elif HOLD <= phase <= STAND:
                 cmd = _soft_start_command(phase, k - phase_tick, hold_q_rad, stand_q_rad, phase_ticks, loop)
                 if k - phase_tick + 1 >= phase_ticks[phase]:  # the phase's last tick

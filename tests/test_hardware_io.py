@@ -620,3 +620,22 @@ def test_the_simulated_go1_motor_law():
     got = np.asarray(sim.motor_torque(c32, q.astype(np.float32), dq.astype(np.float32)))
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-4)
     assert np.any(np.abs(expected) == constants.TORQUE_LIMIT_NM)  # the clip was exercised
+
+
+def test_a_lost_optimizer_process_ends_the_run_with_a_trip_and_damping(robot, controller, tmp_path):
+    """The runner waits for trial 1's parameters from a process that is gone: the loop damps, and the run ends on a
+    trip naming it, instead of an exception out of the 1 kHz loop (which would send no damping)."""
+    class Gone:  # the loop's end of a pipe whose other end closed
+        def poll(self, timeout=0.0):
+            return True
+
+        def recv(self):
+            raise EOFError
+
+        def send(self, message):
+            pass
+
+    runner = robot_trials.TrialRunner(Gone(), params.midpoint(), 3, protocol.TrialConfig(100, 200))
+    result, _, stats = _run(robot, controller, schedule=runner)
+    assert result.trip is not None and "optimizer process ended while trial 1" in result.trip
+    assert runner.trials_done == 1 and result.events[-1][1] == "damp" and stats["damping_commands"] > 0

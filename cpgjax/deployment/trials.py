@@ -411,6 +411,7 @@ class TrialRunner:
         self._waiting_since = None  # run tick at which the last trial was handed to the optimizer
         self._wait_ticks = 0  # ticks spent waiting for the current trial's parameters
         self.finished = first_trial >= num_trials
+        self.failure: str | None = None  # the optimizer process was lost (hardware_io.ParamSchedule.failure)
 
     @property
     def walked_params(self) -> np.ndarray:
@@ -437,8 +438,15 @@ class TrialRunner:
     def record(self, run_tick: int, out: np.ndarray) -> None:
         self.run_ticks = run_tick + 1
         if self._waiting_since is not None:
-            if self._conn.poll():
-                _, proposal = self._conn.recv()
+            try:
+                answered = self._conn.poll()
+                _, proposal = self._conn.recv() if answered else (None, None)
+            except (EOFError, OSError):  # the optimizer process is gone: no parameters will come
+                self.failure = (f"the optimizer process ended while trial {self.trials_done} waited for its "
+                                "parameters (its log is above)")
+                self.finished = True
+                return
+            if answered:
                 self._previous, self._current = self._current, np.asarray(proposal, np.float32)
                 self._wait_ticks = run_tick - self._waiting_since
                 self._waiting_since, self._tick_in_trial = None, 0
@@ -533,13 +541,15 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
         finally:
             mailer.close()
         result = hio.joined(results)
-        conn.send(("stop",))
         rows = []
-        while conn.poll(120.0):
-            message = conn.recv()
-            if message[0] == "done":
-                rows = message[1]
-                break
+        # A lost optimizer process (the loop ended on runner.failure) wrote trials.parquet up to its last trial.
+        with contextlib.suppress(EOFError, OSError):
+            conn.send(("stop",))
+            while conn.poll(120.0):
+                message = conn.recv()
+                if message[0] == "done":
+                    rows = message[1]
+                    break
         worker.join(timeout=30.0)
     finally:
         if worker.is_alive():
