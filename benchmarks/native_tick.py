@@ -68,9 +68,12 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
     controller = ravel_pytree(native_go1._Controller(state.cpg, state.io))[0]
     host_in = sim._pack_host_inputs(np.zeros(batch, bool)).copy()
 
+    def fresh_carry():
+        return native_go1._Carry(controller=controller.copy(), pending=jnp.zeros(program.pending_size),
+                                 step=jnp.int32(0), rows=jnp.zeros((steps, program.row_size)))
+
     def controller_calls():
-        carry = native_go1._Carry(controller=controller.copy(), pending=jnp.zeros(program.pending_size),
-                                  step=jnp.int32(0), rows=jnp.zeros((steps, program.row_size)))
+        carry = fresh_carry()
         t0 = time.perf_counter()
         for _ in range(steps):
             carry, torque = program.advance(consts, carry, host_in)
@@ -85,10 +88,6 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
             c, torque = program.advance(consts, c, host_in_device)
             return c, torque[0, 0]
         return jax.lax.scan(body, carry, None, length=steps)
-
-    def fresh_carry():
-        return native_go1._Carry(controller=controller.copy(), pending=jnp.zeros(program.pending_size),
-                                 step=jnp.int32(0), rows=jnp.zeros((steps, program.row_size)))
 
     jax.block_until_ready(scanned(fresh_carry()))  # compiles
 

@@ -67,8 +67,7 @@ class ParamSchedule(Protocol):
 
     finished: bool
     trial: int  # the trial the parameters belong to (logged per tick)
-    # Optional: why the schedule finished early, if it failed (the run ends with this trip); unset or None otherwise.
-    failure: str | None
+    failure: str | None  # why the schedule finished early, if it failed (the run ends with this trip), else None
 
     def params(self, run_tick: int) -> np.ndarray:
         """Parameters (8,) for this tick of the run phase."""
@@ -81,6 +80,7 @@ class FixedParams:
     """One parameter set for ``run_ticks`` ticks (None: until stopped; 0: the run phase is skipped)."""
 
     trial = 0
+    failure = None
 
     def __init__(self, params: np.ndarray, run_ticks: int | None = None):
         self._params = np.asarray(params, np.float32)
@@ -183,6 +183,10 @@ class LoopResult(NamedTuple):
     def timing(self) -> dict:
         return timing_stats(self.log, self.overruns, self.ticks, self.loop_starts)
 
+    def trip_tick(self) -> int:
+        """The loop tick at which the trip was detected (its event's)."""
+        return next(tick for tick, _, message in reversed(self.events) if message == self.trip)
+
 
 def joined(results: list[LoopResult]) -> LoopResult:
     """One run's result from the results of the loops it ran one after the other (an online optimization that stood
@@ -204,8 +208,7 @@ def joined(results: list[LoopResult]) -> LoopResult:
         skipped_ticks=sum(r.skipped_ticks for r in results), rejected_packets=rejected, realtime=last.realtime,
         log=TickLog(*(np.concatenate(fields) for fields in zip(*(r.log for r in results), strict=True))),
         stopped=last.stopped, loop_starts=tuple(int(v) for v in rows),
-        safety_stops=tuple((int(o) + next(t for t, _, m in reversed(r.events) if m == r.trip), r.trip)
-                           for r, o in zip(results[:-1], offsets[:-1], strict=True)))
+        safety_stops=tuple((int(o) + r.trip_tick(), r.trip) for r, o in zip(results[:-1], offsets[:-1], strict=True)))
 
 
 OVERRUN_CAUSES = ("late_start", "not_running", "work_cpu")
@@ -604,9 +607,8 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 tick_log.controller_torque_nm[i] = out[OUTPUT.slices.torque_nm]
                 run_tick += 1
                 if schedule.finished:
-                    failure = getattr(schedule, "failure", None)  # once per run
-                    trip = trip or failure
-                    phase, phase_tick = _enter_phase(events, k, DAMP, failure or "run complete")
+                    trip = trip or schedule.failure
+                    phase, phase_tick = _enter_phase(events, k, DAMP, schedule.failure or "run complete")
             elif HOLD <= phase <= STAND:
                 cmd = _soft_start_command(phase, k - phase_tick, hold_q_rad, stand_q_rad, phase_ticks, loop)
                 if k - phase_tick + 1 >= phase_ticks[phase]:  # the phase's last tick

@@ -222,8 +222,7 @@ def stopped_trial_record(signals: np.ndarray, stop_margin: float, total_mass_kg:
         record = jax.tree.map(lambda leaf: jnp.full_like(leaf, jnp.nan),  # every field is a float
                               trial_record(np.zeros((1, len(_SIGNALS)), np.float32), total_mass_kg, dt_s, timing))
         record = record._replace(total_mass_kg=jnp.float32(total_mass_kg))
-    margin = jnp.float32(stop_margin) if jnp.isnan(record.safety_margin) else jnp.minimum(record.safety_margin,
-                                                                                          stop_margin)
+    margin = jnp.fmin(record.safety_margin, jnp.float32(stop_margin))  # fmin: the stop's where nothing was measured
     return record._replace(fell=jnp.float32(1.0), safety_margin=margin)
 
 
@@ -231,8 +230,7 @@ def stop_margin(result: hio.LoopResult, timing: protocol.TrialConfig = protocol.
     """The safety margin of the stop that ended a loop: the tilt stop's margin (``protocol.safety_margin``) at the
     tick the trip was detected, from the IMU, and at most 0 (a stop is at or beyond a threshold; the power
     protection trips at any tilt)."""
-    trip_tick = next(tick for tick, _, message in reversed(result.events) if message == result.trip)
-    row = len(result.log.quaternion_wxyz) - (result.ticks - trip_tick)  # the log holds the newest ticks
+    row = len(result.log.quaternion_wxyz) - (result.ticks - result.trip_tick())  # the log holds the newest ticks
     roll, pitch = go1_safety.tilt_rad(result.log.quaternion_wxyz[row])
     return min(float(protocol.safety_margin(timing, roll, pitch)), 0.0)
 
@@ -258,6 +256,7 @@ class ReplayTrials:
         self.steady_windows: list[tuple[int, int]] = []  # per complete trial: its steady phase's first, last run tick
         self.trials_done = 0
         self.trial = 0  # the trial being walked (logged per tick)
+        self.failure = None  # a replay does not fail (hardware_io.ParamSchedule)
 
     @property
     def finished(self) -> bool:
