@@ -24,8 +24,9 @@ Outcomes are standardized over the valid points (mean, unbiased std; a std below
 fewer than two points gives std 1, as BoTorch's ``Standardize``). The GP has a learned
 constant mean and Gaussian noise :math:`\sigma^2`.
 
-Priors (BoTorch 0.5.0 ``SingleTaskGP`` defaults, the version pinned by bayesopt4ros, on which
-the paper's code was built; densities of the constrained values, no Jacobian, as GPyTorch):
+Priors (:class:`Priors`, Gamma densities of the constrained values, no Jacobian, as GPyTorch; a
+fit is given its own). The objective's are :data:`BOTORCH_PRIORS`, the BoTorch 0.5.0
+``SingleTaskGP`` defaults, the version pinned by bayesopt4ros, on which the paper's code was built:
 
 * lengthscales, each active input: Gamma(3, 6) (rate form; mode 1/3, mean 1/2);
 * output scale :math:`s^2`: Gamma(2, 0.15) (mode 6.7);
@@ -113,14 +114,34 @@ _solve_lower = _one_matrix_per_lapack_call(
 _cholesky_solve = _one_matrix_per_lapack_call(
     lambda lower, rhs: jsp.linalg.cho_solve((lower, True), rhs))
 
-LENGTHSCALE_PRIOR = (3.0, 6.0)
-"""Gamma(concentration, rate) on every active lengthscale (normalized input units)."""
+class GammaPrior(NamedTuple):
+    """A Gamma(concentration, rate) density (rate form: mean concentration / rate)."""
 
-OUTPUTSCALE_PRIOR = (2.0, 0.15)
-"""Gamma(concentration, rate) on the output scale ``s**2``."""
+    concentration: float
+    rate: float
 
-NOISE_PRIOR = (1.1, 0.05)
-"""Gamma(concentration, rate) on the noise variance (standardized outcome units)."""
+    @property
+    def mean(self) -> float:
+        return self.concentration / self.rate
+
+
+class Priors(NamedTuple):
+    """The priors of a GP's hyperparameters (static: part of what a fit compiles).
+
+    Attributes:
+      lengthscale: on every active lengthscale (normalized input units).
+      outputscale: on the output scale ``s**2``.
+      noise: on the noise variance (standardized outcome units).
+    """
+
+    lengthscale: GammaPrior
+    outputscale: GammaPrior
+    noise: GammaPrior
+
+
+BOTORCH_PRIORS = Priors(lengthscale=GammaPrior(3.0, 6.0), outputscale=GammaPrior(2.0, 0.15),
+                        noise=GammaPrior(1.1, 0.05))
+"""BoTorch 0.5.0 ``SingleTaskGP``'s priors: the objective's (module docstring)."""
 
 # The box the fit projects onto after every Adam step (log space; the mean in standardized
 # units). It only guards against runaway values: the priors keep fits well inside it.
@@ -198,11 +219,11 @@ class FitConfig(NamedTuple):
     learning_rate: float = 0.1
 
 
-def default_params(num_inputs: int) -> GPParams:
-    """The fixed default start of the fit: lengthscales 0.5 (the prior mean), ``s**2 = 1``,
-    noise variance 0.1, mean 0."""
+def default_params(num_inputs: int, priors: Priors = BOTORCH_PRIORS) -> GPParams:
+    """The fixed default start of the fit: lengthscales at their prior's mean (0.5 under
+    :data:`BOTORCH_PRIORS`), ``s**2 = 1``, noise variance 0.1, mean 0."""
     return GPParams(
-        log_lengthscales=jnp.full((num_inputs,), jnp.log(0.5), jnp.float32),
+        log_lengthscales=jnp.full((num_inputs,), jnp.log(priors.lengthscale.mean), jnp.float32),
         log_outputscale=jnp.zeros((), jnp.float32),
         log_noise=jnp.asarray(jnp.log(0.1), jnp.float32),
         mean=jnp.zeros((), jnp.float32),
@@ -402,17 +423,17 @@ def _gamma_log_density(value, concentration, rate):
     return jax.scipy.stats.gamma.logpdf(value, concentration, scale=1.0 / rate)
 
 
-def log_prior(params: GPParams, active: jax.Array) -> jax.Array:
-    """Sum of the Gamma log densities listed in the module docstring (active inputs only)."""
-    lengthscale_terms = _gamma_log_density(jnp.exp(params.log_lengthscales), *LENGTHSCALE_PRIOR)
+def log_prior(params: GPParams, active: jax.Array, priors: Priors = BOTORCH_PRIORS) -> jax.Array:
+    """Sum of the Gamma log densities of ``priors`` (active inputs only)."""
+    lengthscale_terms = _gamma_log_density(jnp.exp(params.log_lengthscales), *priors.lengthscale)
     return (
         jnp.sum(jnp.where(active, lengthscale_terms, 0.0))
-        + _gamma_log_density(jnp.exp(params.log_outputscale), *OUTPUTSCALE_PRIOR)
-        + _gamma_log_density(jnp.exp(params.log_noise), *NOISE_PRIOR)
+        + _gamma_log_density(jnp.exp(params.log_outputscale), *priors.outputscale)
+        + _gamma_log_density(jnp.exp(params.log_noise), *priors.noise)
     )
 
 
-def _log_prior_gradient(params: GPParams, active: jax.Array) -> GPParams:
+def _log_prior_gradient(params: GPParams, active: jax.Array, priors: Priors) -> GPParams:
     r"""Gradient of :func:`log_prior` in the log parameters: for a Gamma(a, b) density of
     :math:`v = e^u`, :math:`\partial_u \log p = (a - 1) - b v`."""
     def gamma_term(log_value, prior):
@@ -420,10 +441,9 @@ def _log_prior_gradient(params: GPParams, active: jax.Array) -> GPParams:
         return (concentration - 1.0) - rate * jnp.exp(log_value)
 
     return GPParams(
-        log_lengthscales=jnp.where(active, gamma_term(params.log_lengthscales,
-                                                      LENGTHSCALE_PRIOR), 0.0),
-        log_outputscale=gamma_term(params.log_outputscale, OUTPUTSCALE_PRIOR),
-        log_noise=gamma_term(params.log_noise, NOISE_PRIOR),
+        log_lengthscales=jnp.where(active, gamma_term(params.log_lengthscales, priors.lengthscale), 0.0),
+        log_outputscale=gamma_term(params.log_outputscale, priors.outputscale),
+        log_noise=gamma_term(params.log_noise, priors.noise),
         mean=jnp.zeros_like(params.mean),
     )
 
@@ -483,25 +503,28 @@ def _log_marginal_likelihood_gradient(
     )
 
 
-def log_posterior(params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int):
+def log_posterior(params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int,
+                  priors: Priors = BOTORCH_PRIORS):
     """The fit's objective: log marginal likelihood + log prior (unnormalized log MAP)."""
     return log_marginal_likelihood(params, dataset, active, context_dims) + log_prior(
-        params, active)
+        params, active, priors)
 
 
 def log_posterior_and_gradient(
-    params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int
+    params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int,
+    priors: Priors = BOTORCH_PRIORS,
 ) -> tuple[jax.Array, GPParams]:
     """:func:`log_posterior` and its analytic gradient in the (log) hyperparameters."""
-    return _log_posterior_and_gradient(params, _prepare(dataset), active, context_dims)
+    return _log_posterior_and_gradient(params, _prepare(dataset), active, context_dims, priors)
 
 
-def _log_posterior_and_gradient(params, prepared, active, context_dims):
+def _log_posterior_and_gradient(params, prepared, active, context_dims, priors):
     factored = _factor(params, prepared, active, context_dims)
-    value = _log_marginal_likelihood(factored, prepared) + log_prior(params, active)
+    value = _log_marginal_likelihood(factored, prepared) + log_prior(params, active, priors)
     likelihood_gradient = _log_marginal_likelihood_gradient(params, prepared, factored, active,
                                                             context_dims)
-    gradient = jax.tree.map(jnp.add, likelihood_gradient, _log_prior_gradient(params, active))
+    gradient = jax.tree.map(jnp.add, likelihood_gradient,
+                            _log_prior_gradient(params, active, priors))
     return value, gradient
 
 
@@ -520,6 +543,7 @@ def fit(
     warm_start: GPParams,
     context_dims: int,
     config: FitConfig = FitConfig(),
+    priors: Priors = BOTORCH_PRIORS,
 ) -> GPParams:
     """MAP hyperparameters by projected Adam from the better of the warm and default starts.
 
@@ -535,6 +559,7 @@ def fit(
       warm_start: parameters to start from, e.g. the previous fit.
       context_dims: static number of trailing context columns.
       config: static fit settings.
+      priors: the hyperparameters' priors (static).
 
     Returns:
       The fitted :class:`GPParams`.
@@ -543,13 +568,13 @@ def fit(
     per_point = 1.0 / jnp.maximum(jnp.sum(dataset.valid), 1)
 
     def objective(params):
-        value, gradient = _log_posterior_and_gradient(params, prepared, active, context_dims)
+        value, gradient = _log_posterior_and_gradient(params, prepared, active, context_dims, priors)
         return -per_point * value, jax.tree.map(lambda g: -per_point * g, gradient)
 
     def start_loss(params):
         factored = _factor(params, prepared, active, context_dims)
         return -per_point * (_log_marginal_likelihood(factored, prepared)
-                             + log_prior(params, active))
+                             + log_prior(params, active, priors))
 
     schedule = optax.cosine_decay_schedule(config.learning_rate, config.num_steps, alpha=0.1)
     optimizer = optax.adam(schedule)
@@ -573,7 +598,7 @@ def fit(
         )
         return params
 
-    default = default_params(dataset.inputs.shape[-1])
+    default = default_params(dataset.inputs.shape[-1], priors)
     starts = jax.tree.map(lambda a, b: jnp.stack([a, b]), default, warm_start)
     start_losses = jax.vmap(lambda p: start_loss(_project(p)))(starts)
     start_losses = jnp.where(jnp.isfinite(start_losses), start_losses, jnp.inf)

@@ -20,7 +20,11 @@ from tests.numpy_reference import RefGP, ref_kernel
 CONTEXT_DIMS = 2
 
 
-def ref_log_prior(params, active):
+BOTORCH = {"lengthscale": (3.0, 6.0), "outputscale": (2.0, 0.15), "noise": (1.1, 0.05)}  # BoTorch 0.5.0's
+OTHER = {"lengthscale": (5.0, 2.5), "outputscale": (3.0, 1.0), "noise": (2.0, 40.0)}  # any other priors
+
+
+def ref_log_prior(params, active, priors=BOTORCH):
     def gamma_logpdf(x, a, rate):
         from math import lgamma
 
@@ -28,10 +32,14 @@ def ref_log_prior(params, active):
 
     ls = np.exp(np.asarray(params.log_lengthscales, np.float64))
     return (
-        sum(gamma_logpdf(v, 3.0, 6.0) for v, on in zip(ls, active, strict=True) if on)
-        + gamma_logpdf(float(np.exp(params.log_outputscale)), 2.0, 0.15)
-        + gamma_logpdf(float(np.exp(params.log_noise)), 1.1, 0.05)
+        sum(gamma_logpdf(v, *priors["lengthscale"]) for v, on in zip(ls, active, strict=True) if on)
+        + gamma_logpdf(float(np.exp(params.log_outputscale)), *priors["outputscale"])
+        + gamma_logpdf(float(np.exp(params.log_noise)), *priors["noise"])
     )
+
+
+def as_priors(priors) -> gp.Priors:
+    return gp.Priors(**{name: gp.GammaPrior(*ab) for name, ab in priors.items()})
 
 
 # ---- fixtures: data and compiled functions shared by the module ---------------------------
@@ -123,6 +131,32 @@ def test_log_marginal_likelihood_and_gradient_match_reference(compiled, problem)
     analytic = np.concatenate([np.ravel(leaf) for leaf in grads])
     assert numeric[2] == pytest.approx(0.0, abs=1e-6)  # the inactive lengthscale is inert
     np.testing.assert_allclose(analytic, numeric, rtol=2e-3, atol=2e-3)
+
+
+def test_a_gp_given_its_own_priors_fits_under_them(problem):
+    """Priors other than BoTorch's (the safe optimizer's margin GP takes its own, ``OptimizerConfig.margin_priors``):
+    the log prior and the log posterior's gradient against the reference under those priors."""
+    p = problem
+    active = jnp.asarray(p["active"])
+    data = dataset_of(p["inputs"], p["targets"])
+    priors = as_priors(OTHER)
+    assert gp.BOTORCH_PRIORS == as_priors(BOTORCH)
+    np.testing.assert_allclose(gp.log_prior(p["params"], active, priors),
+                               ref_log_prior(p["params"], p["active"], OTHER), rtol=1e-5, atol=1e-4)
+    value, grads = jax.jit(gp.log_posterior_and_gradient, static_argnums=(3, 4))(p["params"], data, active,
+                                                                                 CONTEXT_DIMS, priors)
+    ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS, gp.JITTER_RATIO)
+    np.testing.assert_allclose(value, ref.log_marginal_likelihood() + ref_log_prior(p["params"], p["active"], OTHER),
+                               rtol=1e-5, atol=2e-3)
+    # d/du log Gamma(e^u; a, b) = (a - 1) - b e^u on each hyperparameter, the likelihood's part unchanged.
+    _, default_grads = gp.log_posterior_and_gradient(p["params"], data, active, CONTEXT_DIMS)
+    for name, field in (("outputscale", "log_outputscale"), ("noise", "log_noise")):
+        value_now = float(np.exp(getattr(p["params"], field)))
+        shift = ((OTHER[name][0] - 1) - OTHER[name][1] * value_now) - ((BOTORCH[name][0] - 1)
+                                                                       - BOTORCH[name][1] * value_now)
+        assert float(getattr(grads, field) - getattr(default_grads, field)) == pytest.approx(shift, rel=1e-4,
+                                                                                              abs=1e-4)
+    assert gp.default_params(3, priors).log_lengthscales[0] == pytest.approx(np.log(5.0 / 2.5))
 
 
 @pytest.mark.parametrize("size", [5, 33, 100, 160])

@@ -2,6 +2,8 @@
 definition, the safe optimizer's proposal against a dense float64 reference GP on a small problem, its fallbacks,
 its argument checks, and the black-box loop on a constrained test function."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -107,6 +109,31 @@ def observed(safe_opt):
         j, g = toy(u)
         state, _ = safe_opt.observe(state, jnp.asarray(u, jnp.float32), NO_CONTEXT, jnp.float32(j), jnp.float32(g))
     return state, points
+
+
+def test_the_margin_gp_fits_under_its_own_priors(observed):
+    """The same observations, the margin GP given other priors: its hyperparameters are the MAP under those (the
+    fit's objective is higher there than the default fit's), the objective's GP does not change."""
+    state, points = observed
+    values = np.array([toy(u) for u in points])
+    priors = gp.Priors(lengthscale=gp.GammaPrior(8.0, 4.0), outputscale=gp.GammaPrior(2.0, 2.0),
+                       noise=gp.GammaPrior(2.0, 100.0))
+    own = bo.make_optimizer(dataclasses.replace(SAFE, margin_priors=priors))
+    other = own.init()
+    for u, (j, g) in zip(points, values, strict=True):
+        other, _ = own.observe(other, jnp.asarray(u, jnp.float32), NO_CONTEXT, jnp.float32(j), jnp.float32(g))
+    for a, b in zip(jax.tree.leaves(other.gp_params), jax.tree.leaves(state.gp_params), strict=True):
+        np.testing.assert_array_equal(a, b)
+    data = gp.Dataset(jnp.asarray(points, jnp.float32), jnp.asarray(values[:, 1], jnp.float32),
+                      jnp.ones(len(points), bool))
+    active = jnp.ones(2, bool)
+
+    def log_map(params):
+        return float(gp.log_posterior(params, data, active, 0, priors))
+
+    assert log_map(other.margin_gp_params) > log_map(state.margin_gp_params)
+    # Their lengthscale prior's mean is 2, BoTorch's 0.5: the same data fitted under it give longer lengthscales.
+    assert np.mean(other.margin_gp_params.log_lengthscales) > np.mean(state.margin_gp_params.log_lengthscales) + 0.2
 
 
 def test_safe_proposal_maximizes_the_ucb_over_the_reference_safe_set(safe_opt, observed):

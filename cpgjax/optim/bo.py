@@ -242,7 +242,7 @@ def _refit(s: _Static, state: OptimizerState) -> OptimizerState:
     if not s.config.safe:
         return state
     params = gp.fit(_margin_dataset(s, state), _kernel_active(s, state), state.margin_gp_params,
-                    s.config.num_contexts, s.config.fit)
+                    s.config.num_contexts, s.config.fit, s.config.margin_priors)
     return state._replace(margin_gp_params=params)
 
 
@@ -444,7 +444,7 @@ def _init(s: _Static, active_dims=None, schedule=None, target_velocity=None) -> 
         inference_mode=jnp.zeros((), bool),
         gp_params=gp.default_params(num_params + num_contexts),
         margins=jnp.zeros((config.capacity,), jnp.float32) if config.safe else (),
-        margin_gp_params=gp.default_params(num_params + num_contexts) if config.safe else (),
+        margin_gp_params=gp.default_params(num_params + num_contexts, config.margin_priors) if config.safe else (),
     )
 
 

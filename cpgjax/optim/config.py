@@ -39,6 +39,8 @@ class OptimizerConfig:
         confidence bound is ≥ 0.
       safe_beta: β_s, the multiplier on the margin GP's σ in that lower bound (2: a one-sided
         97.7 % bound under a Gaussian posterior).
+      margin_priors: the margin GP's hyperparameter priors, its own: the objective's GP has
+        ``gp.BOTORCH_PRIORS``, which are also this default (docs/decisions.md §17 says why).
     """
 
     parameter_lower: tuple[float, ...]
@@ -54,6 +56,7 @@ class OptimizerConfig:
     acquisition: AcquisitionConfig = AcquisitionConfig()
     safe: bool = False
     safe_beta: float = 2.0
+    margin_priors: gp.Priors = gp.BOTORCH_PRIORS
 
     def __post_init__(self):
         _check_box("parameter", self.parameter_lower, self.parameter_upper)
