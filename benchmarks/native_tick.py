@@ -2,13 +2,16 @@
 JAX call, ``_advance``), the physics step (``BatchPhysics.step``: ``mujoco.batch`` plus its host arithmetic) and
 the rest (record completion, packing the host input, the loop), per batch size.
 
-Each part is timed on its own over as many calls as the trial has ticks, with the inputs the trial gives it (the
-controller with a standing robot's host input, the physics with the torques the closed loop applied), best of
-``--repeats``; the closed loop is timed as a whole, and "rest" is what the two parts leave of it.
+Each part is timed on its own over as many calls as the trial has ticks, with the inputs the closed-loop trial gave
+it, tick by tick (the controller with the host inputs the trial packed, the physics with the torques it applied),
+best of ``--repeats``; the closed loop is timed as a whole, and "rest" is what the two parts leave of it: the glue,
+and what the parts cost each other when they alternate (caches, the two thread pools waking).
 
-"Controller in a scan" is the same ``_advance`` with the same inputs run as the body of one ``lax.scan`` over the
-trial's ticks, a single XLA call: its arithmetic, without what XLA's CPU runtime and the Python dispatch cost per
-call. The difference between the two controller columns is that per-call cost.
+"Controller in a scan" is the same ``_advance`` with the same per-tick inputs run as the body of one ``lax.scan``
+over the trial's ticks, a single XLA call: its arithmetic, without what XLA's CPU runtime and the Python dispatch
+cost per call. The difference between the two controller columns is that per-call cost. The inputs must vary from
+tick to tick as in the trial: with one input for every tick, XLA hoists the observation of it out of the loop, and
+the scan then times a part of the controller only (about 0.6 of it at batch 64).
 
     JAX_PLATFORMS=cpu python benchmarks/native_tick.py [--batch-sizes 16,20,64] [--steps 400] [--repeats 3]
 
@@ -66,44 +69,51 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
     state = sim.reset(p)
     consts = ravel_pytree(sim._constants(state.params, jnp.asarray(p, jnp.float32), gates))[0]
     controller = ravel_pytree(native_go1._Controller(state.cpg, state.io))[0]
-    host_in = sim._pack_host_inputs(np.zeros(batch, bool)).copy()
 
     def fresh_carry():
         return native_go1._Carry(controller=controller.copy(), pending=jnp.zeros(program.pending_size),
                                  step=jnp.int32(0), rows=jnp.zeros((steps, program.row_size)))
 
+    # The host inputs and torques of the closed-loop trial, tick by tick (the loop of NativeBackend._run, recorded).
+    host_inputs = np.empty((steps, *sim._host_in.shape), np.float32)
+    torques = np.empty((steps, batch, 12))
+    sim.physics.set_state(state.physics, state.warmstart, state.sensordata)
+    carry, failed = fresh_carry(), np.zeros(batch, bool)
+    for k in range(steps):
+        host_inputs[k] = sim._pack_host_inputs(failed)
+        carry, torque = program.advance(consts, carry, host_inputs[k])
+        torques[k] = torque
+        failed = sim.physics.step(torques[k])
+
     def controller_calls():
         carry = fresh_carry()
         t0 = time.perf_counter()
-        for _ in range(steps):
-            carry, torque = program.advance(consts, carry, host_in)
+        for k in range(steps):
+            carry, torque = program.advance(consts, carry, host_inputs[k])
             np.asarray(torque)
         return time.perf_counter() - t0
 
-    host_in_device = jnp.asarray(host_in)
-
     @jax.jit
-    def scanned(carry):
-        def body(c, _):
-            c, torque = program.advance(consts, c, host_in_device)
+    def scanned(carry, host_inputs):
+        def body(c, host_in):
+            c, torque = program.advance(consts, c, host_in)
             return c, torque[0, 0]
-        return jax.lax.scan(body, carry, None, length=steps)
+        return jax.lax.scan(body, carry, host_inputs)
 
-    jax.block_until_ready(scanned(fresh_carry()))  # compiles
+    host_inputs_device = jnp.asarray(host_inputs)
+    jax.block_until_ready(scanned(fresh_carry(), host_inputs_device))  # compiles
 
     def controller_scan():
         carry = fresh_carry()
         t0 = time.perf_counter()
-        jax.block_until_ready(scanned(carry))
+        jax.block_until_ready(scanned(carry, host_inputs_device))
         return time.perf_counter() - t0
-
-    torques = np.asarray(sim.rollout(sim.reset(p), p, gates, steps)[1].torque_nm)  # (B, T, 12), as applied
 
     def physics_steps():
         sim.physics.set_state(state.physics, state.warmstart, state.sensordata)
         t0 = time.perf_counter()
         for k in range(steps):
-            sim.physics.step(torques[:, k])
+            sim.physics.step(torques[k])
         return time.perf_counter() - t0
 
     per_tick = {name: 1e6 * _best(run, repeats) / steps for name, run in
