@@ -319,21 +319,36 @@ class Engine:
         opt = self.optimizer
         init = (lambda a, t: opt.init(active_dims=a, target_velocity=t)) if self.uses_records else \
             (lambda a, t: opt.init(active_dims=a))
-        self._init = jax.jit(jax.vmap(init))
-        self._propose = jax.jit(jax.vmap(opt.propose_with_fallback))
+        self._init = self._per_instance(init)
+        self._propose = self._per_instance(opt.propose_with_fallback)
         def observe_unconstrained(state, x, c, observation, margin):
             del margin  # only a safe optimizer learns it
             return opt.observe(state, x, c, observation)
 
-        self._observe = jax.jit(jax.vmap(opt.observe if config.safe else observe_unconstrained))
-        self._beta = jax.jit(jax.vmap(opt.beta))
-        self._set_target = jax.jit(jax.vmap(opt.set_target)) if self.uses_records else None
-        self._keys = jax.jit(jax.vmap(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
-                                      in_axes=(0, None)))
+        self._observe = self._per_instance(opt.observe if config.safe else observe_unconstrained)
+        self._beta = self._per_instance(opt.beta)
+        self._set_target = self._per_instance(opt.set_target) if self.uses_records else None
+        self._keys = self._per_instance(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
+                                        in_axes=(0, None))
         self._summary = jax.jit(jax.vmap(lambda r, v: (
             objective.objective(r, v), objective.context(r), objective.mean_velocity(r),
             objective.cost_of_transport(r))))
         self._sim = None
+
+    def _per_instance(self, fn: Callable, in_axes=0) -> Callable:
+        """``fn`` of one instance as a jitted function of the whole sharded batch (``in_axes`` as ``jax.vmap``'s:
+        0 for a batched argument, None for one shared by every instance), each device computing its own rows
+        (``jax.shard_map``). The instances are independent, so no device needs another's data; left to jit's
+        partitioner, the GP's loop over its instances' matrices (``cpgjax.gp``, one matrix per LAPACK call) made
+        every device gather the whole batch and compute all of it (10 all-gathers in the optimizer's observe: 2 CPU
+        devices 1.9× slower, and processes exchanged every instance's data over the network)."""
+        axes = in_axes if isinstance(in_axes, tuple) else None
+        specs = PartitionSpec("batch") if axes is None else tuple(PartitionSpec() if a is None else
+                                                                  PartitionSpec("batch") for a in axes)
+        # check_vma=False: the optimizer's scans carry values that the mesh's manual axis would otherwise have to
+        # mark as varying by hand (jax.lax.pcast); every value here varies along the batch.
+        return jax.jit(jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=self.placement.mesh, in_specs=specs,
+                                     out_specs=PartitionSpec("batch"), check_vma=False))
 
     # -- pieces ---------------------------------------------------------------------------------------------
 
