@@ -340,8 +340,8 @@ class Engine:
         0 for a batched argument, None for one shared by every instance), each device computing its own rows
         (``jax.shard_map``). The instances are independent, so no device needs another's data; left to jit's
         partitioner, the GP's loop over its instances' matrices (``cpgjax.gp``, one matrix per LAPACK call) made
-        every device gather the whole batch and compute all of it (10 all-gathers in the optimizer's observe: 2 CPU
-        devices 1.9× slower, and processes exchanged every instance's data over the network)."""
+        every device gather the whole batch and compute all of it (all-gathers in propose and observe: on 2 CPU
+        devices 1.9× slower, and each process of a multi-process run computed every instance's optimizer)."""
         axes = in_axes if isinstance(in_axes, tuple) else None
         specs = PartitionSpec("batch") if axes is None else tuple(PartitionSpec() if a is None else
                                                                   PartitionSpec("batch") for a in axes)

@@ -48,6 +48,39 @@ ablation.Engine(spec, backend="native").run(sys.argv[1])
 """
 
 
+# The optimizer's compiled programs on 2 CPU devices: the collectives XLA put in them (none, each device computes its
+# own instances' rows).
+COLLECTIVES = SPEC_SOURCE + """
+import re, jax, numpy as np
+assert len(jax.devices()) == 2
+engine = ablation.Engine(spec, backend="native")
+put = engine.placement.put
+state = engine.initial_opt_state()
+context = engine.placement.put_local(engine.initial_context())
+keys = engine._keys(put(engine.seeds.astype(np.uint32)), 0)
+x = put(np.full((engine.placement.padded_size, 8), 0.5, np.float32))
+ones = put(np.ones(engine.placement.padded_size, np.float32))
+programs = {"propose": engine._propose.lower(state, context, keys),
+            "observe": engine._observe.lower(state, x, context, ones, ones),
+            "beta": engine._beta.lower(state, context)}
+pattern = r"(all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)"
+for name, lowered in programs.items():
+    found = re.findall(pattern, lowered.compile().as_text())
+    print(name, len(found), sorted(set(found)))
+"""
+
+
+def test_the_optimizer_computes_each_devices_own_instances_without_collectives():
+    """Per-instance work needs no other device's data (docs/scaling.md): on 2 CPU devices the optimizer's programs
+    hold no collective. Left to jit's partitioner, observe gathered the whole batch 10 times (each process then
+    computed, and exchanged, every instance's optimizer)."""
+    run = subprocess.run([sys.executable, "-c", COLLECTIVES], capture_output=True, text=True, timeout=600,
+                         env=dict(ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2"))
+    assert run.returncode == 0, run.stderr[-3000:]
+    counts = dict(line.split()[:2] for line in run.stdout.splitlines())
+    assert counts == {"propose": "0", "observe": "0", "beta": "0"}, run.stdout
+
+
 def _launch(out, *, resume=False, kill_rank=-1, kill_after=0):
     buffer = io.StringIO()
     t0 = time.monotonic()
