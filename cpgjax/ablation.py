@@ -342,9 +342,8 @@ class Engine:
         partitioner, the GP's loop over its instances' matrices (``cpgjax.gp``, one matrix per LAPACK call) made
         every device gather the whole batch and compute all of it (all-gathers in propose and observe: on 2 CPU
         devices 1.9× slower, and each process of a multi-process run computed every instance's optimizer)."""
-        axes = in_axes if isinstance(in_axes, tuple) else None
-        specs = PartitionSpec("batch") if axes is None else tuple(PartitionSpec() if a is None else
-                                                                  PartitionSpec("batch") for a in axes)
+        specs = (tuple(PartitionSpec() if axis is None else PartitionSpec("batch") for axis in in_axes)
+                 if isinstance(in_axes, tuple) else PartitionSpec("batch"))
         # check_vma=False: the optimizer's scans carry values that the mesh's manual axis would otherwise have to
         # mark as varying by hand (jax.lax.pcast); every value here varies along the batch.
         return jax.jit(jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=self.placement.mesh, in_specs=specs,

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 import pyarrow.parquet as pq
 
-from cpgjax import gp
+from cpgjax import cpg, gp
 from cpgjax.trial import optimizer_setting
 from cpgjax.trial import params as param_space
 
@@ -33,16 +33,17 @@ CONTEXT_COLUMNS = ("c_load_n", "c_slope_rad")
 
 def datasets(folders: list[pathlib.Path]) -> tuple[gp.Dataset, np.ndarray]:
     """One padded dataset per run of every folder, and the (runs, d) active-input masks."""
-    config = optimizer_setting.paper_config()
-    lower, upper = np.asarray(config.context_lower), np.asarray(config.context_upper)
     runs = []
     for folder in folders:
         table = pq.read_table(folder / "trials.parquet").to_pandas()
         table = table[~table["inference"] & table["accepted"] & np.isfinite(table["safety_margin"])]
         for _, run in table.groupby("instance"):
+            # The context ranges the run's optimizer normalized with: its physics profile's (the study's first).
+            config = optimizer_setting.profile_config(str(run["physics"].iloc[0]))
+            lower, upper = np.asarray(config.context_lower), np.asarray(config.context_upper)
             unit = param_space.to_unit(run[list(param_space.PARAM_NAMES)].to_numpy())
             contexts = (run[list(CONTEXT_COLUMNS)].to_numpy() - lower) / (upper - lower)
-            tegotae = "tegotae" in str(run["controller"].iloc[0])
+            tegotae = cpg.controller_gates(str(run["controller"].iloc[0])).tegotae > 0
             active = np.concatenate([param_space.active_parameters(tegotae), np.ones(len(CONTEXT_COLUMNS), bool)])
             runs.append((np.concatenate([unit, contexts], axis=1), run["safety_margin"].to_numpy(), active))
     capacity = max(len(y) for _, y, _ in runs)
