@@ -12,7 +12,8 @@ round for the whole batch::
 A :class:`Schedule` changes an instance's conditions from a given trial on (payload +7.5 kg at trial 36, slope
 0° → 10° → 12.5°, target 0.8 → 0.3 → 0.6 m/s, inference mode); a target change either reuses the stored trial
 records (paper Sec. III-A-2: ``set_target`` recomputes every stored J) or restarts the optimizer, per instance.
-The proposal of trial t uses the context measured in trial t − 1 (Algorithm 1: context, then argmax).
+The proposal of trial t uses the context measured in trial t − 1 (Algorithm 1: context, then argmax); if trial t − 1
+fell, the one it was proposed for (a fallen robot measures no ground).
 
 The optimizer's arrays are sharded along the batch axis over every device (``jax.sharding``), the simulator's over this
 process's devices. With several processes (``jax.distributed``, :func:`initialize_distributed`, docs/scaling.md) each
@@ -482,7 +483,11 @@ class Engine:
             rec = fetch(record)
             target = self.padded.target_velocity_mps[first:stop, t].astype(np.float32)
             j, new_context, velocity, cot = fetch(self._summary(rec, target))
-            gp_context = self._clip_context(t, new_context)
+            # A trial that fell measured a robot on the ground (its feet carry nothing: c_load ≈ 0 N), not the
+            # ground it walked: the optimizer takes the context the trial was proposed for, as on the robot
+            # (deployment.trials), both for this observation and for the next proposal (docs/decisions.md §11).
+            unmeasured = ((np.asarray(rec.fell) > 0) | (np.asarray(rec.failed) > 0))[:, None]
+            gp_context = self._clip_context(t, np.where(unmeasured, run.context, new_context))
             record_d, x_d = put_local(rec), put_local(x.astype(np.float32))
         with _timed(timing, "observe_s", "optimizer_s"):
             observation = record_d if self.uses_records else put_local(j)

@@ -177,8 +177,10 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
         j = objective.objective(one, 0.5)
         measured = objective.context(one)
         # The GP sees the context clipped to the optimizer's ranges (docs/decisions.md §11); the log keeps it raw.
+        # A trial that fell keeps the context it was proposed for.
         config = small_optimizer()
-        context = jnp.clip(measured, jnp.asarray(config.context_lower), jnp.asarray(config.context_upper))
+        if not (float(one.fell) > 0 or float(one.failed) > 0):
+            context = jnp.clip(measured, jnp.asarray(config.context_lower), jnp.asarray(config.context_upper))
         state, _ = opt.observe(state, jnp.asarray(x[0], jnp.float32), context, j)
         np.testing.assert_allclose(uninterrupted.trials.params[t, b], x[0], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(uninterrupted.trials.objective[t, b], float(j), rtol=1e-4, atol=1e-5)
@@ -352,6 +354,26 @@ def test_mjx_scenario_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc
                                go1_model.make_scenarios().payload_kg[0] + np.asarray(before.total_mass_kg)
                                - short_sim.scenario.payload_kg + 7.5, rtol=1e-5)
     assert short_sim.scenario.payload_kg.max() == 15.0  # the original backend is unchanged
+
+
+def test_a_fallen_trial_is_learned_at_the_context_it_was_proposed_for():
+    """On 30° every instance falls in some trial. A fallen robot's feet carry nothing (its measured c_load is a few N),
+    so the optimizer stores a fallen trial at the context its parameters were proposed for, the previous trial's (the
+    middle of the ranges for trial 0), as the robot's optimizer does with a stopped trial (docs/decisions.md §11); every
+    other trial at its measured context, clipped to the ranges. The trial log keeps what was measured."""
+    steep = ablation.Engine(tiny_spec(slope_deg=(30.0,)), backend="native")
+    result = steep.run()
+    tr, config = result.trials, small_optimizer()
+    fell = (tr.fell > 0) | (tr.failed > 0)
+    assert fell.any(axis=0).all() and not fell.all(axis=0).any()
+    assert np.median(tr.context[..., 0][fell]) < config.context_lower[0]  # what a fallen trial measures
+    stored = np.swapaxes(result.opt_state.contexts[:, :TRIALS], 0, 1)  # (trials, instances, 2)
+    proposed_for = np.asarray(steep.initial_context())
+    for t in range(TRIALS):
+        measured = np.clip(tr.context[t], config.context_lower, config.context_upper)
+        expected = np.where(fell[t][:, None], proposed_for, measured)
+        np.testing.assert_allclose(stored[t], expected, rtol=1e-6, atol=1e-6)
+        proposed_for = expected
 
 
 def test_safe_study_stores_each_trials_margin_and_shares_the_random_start(uninterrupted):

@@ -4,6 +4,7 @@ file of a tiny controller ablation (table, figures, parquet, rerun recording, me
 
 import dataclasses
 import json
+import pathlib
 
 import imageio.v3 as iio
 import numpy as np
@@ -288,3 +289,29 @@ def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     assert (ablation_marks["tegotae"].first_trial, ablation_marks["tegotae"].last_trial) == (75, 79)
     assert (ablation_marks["tegotae"].objective, ablation_marks["tegotae"].std) == (2.153, 0.042)
     assert registry.STUDIES["friction"].paper_marks(result) == []
+
+
+def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk():
+    """``studies/fall_chains.py`` on a hand-made table of two instances × five trials, counted by hand: instance 0
+    falls at trials 1, 2 and 4; instance 1 at trial 3, and its condition changes at trial 3 (that pair is not
+    counted); instance 0's trial 4 is in inference mode (neither it nor its pair is counted)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("fall_chains", pathlib.Path(__file__).resolve().parents[1] / "studies"
+                                                  / "fall_chains.py")
+    fall_chains = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fall_chains)
+    fell = {0: [0, 1, 1, 0, 1], 1: [0, 0, 0, 1, 0]}
+    rows = [(i, t) for i in (0, 1) for t in range(5)]
+    columns = {"instance": np.array([i for i, _ in rows]), "trial": np.array([t for _, t in rows]),
+               "fell": np.array([fell[i][t] for i, t in rows], float), "failed": np.zeros(10),
+               "inference": np.array([float(i == 0 and t == 4) for i, t in rows]),
+               "friction": np.full(10, 0.6), "slope_deg": np.array([10.0 * (i == 1 and t >= 3) for i, t in rows]),
+               "payload_kg": np.zeros(10), "target_velocity_mps": np.full(10, 0.5),
+               "c_load_n": np.array([1.0 if fell[i][t] else 20.0 + t for i, t in rows]),
+               "c_slope_rad": np.zeros(10)}
+    counted = fall_chains.chains(columns)
+    # instance 0: (0,1) walk→fall, (1,2) fall→fall, (2,3) fall→walk; instance 1: (0,1), (1,2) walk→walk, (3,4)
+    # fall→walk on the new slope
+    assert counted["after_fall"] == (1, 3) and counted["after_walk"] == (1, 3)
+    assert counted["falls"] == 3 and counted["trials"] == 9
+    assert counted["contexts"]["c_load_n"] == (1.0, 21.5)

@@ -112,8 +112,9 @@ def clip_context(config: OptimizerConfig, context: np.ndarray, names: Sequence[s
         raise ValueError(f"{len(names)} names and {len(units)} units for {config.num_contexts} context components")
     context = np.asarray(context)
     lower, upper = np.asarray(config.context_lower), np.asarray(config.context_upper)
-    clipped = np.clip(context, lower, upper)
+    # Compared in the context's precision, so a value already clipped to a bound (rounded to it) is inside.
+    clipped = np.clip(context, lower, upper).astype(context.dtype)
     messages = [f"instance {idx[0] if len(idx) > 1 else 0}: {names[idx[-1]]} = {context[idx]:.4g} "
                 f"{units[idx[-1]]} outside [{lower[idx[-1]]:g}, {upper[idx[-1]]:g}], clipped for the GP"
                 for idx in zip(*np.nonzero(clipped != context), strict=True)]
-    return clipped.astype(context.dtype), messages
+    return clipped, messages
