@@ -3,9 +3,21 @@ and after one that walked (the same condition, the trial before also optimized),
 walking trials measured (docs/decisions.md §11).
 
     python studies/fall_chains.py results/slope_adaptation [more folders]
+    python studies/fall_chains.py results/slope_adaptation --rewalk slope_adaptation
 
 Reads each folder's ``trials.parquet``. The two probabilities come with Clopper–Pearson 95 % intervals and a
 two-sided Fisher exact test of their difference.
+
+``--rewalk STUDY`` (the registry name the folder ran) asks why a trial after a fall falls. After a fall the robot
+is reset to standing (docs/decisions.md §8), so that trial starts from rest on the condition. For every such trial
+it walks again, on the native backend, with the study's scenario of that trial:
+
+* as in the study: from standing, the fallen trial's parameters as the transition's start (this must give the
+  study's outcome, a check);
+* the instance's last gait that walked that condition before the fall, from standing: one trial;
+* the same gait arriving walking: one trial on the condition's flat-ground counterpart (slope 0°, no payload) from
+  standing, then one trial on the condition (the scenario switched under the walking robot, as when a study's
+  condition changes), counted where the flat trial walked.
 """
 
 from __future__ import annotations
@@ -17,20 +29,32 @@ import numpy as np
 import pyarrow.parquet as pq
 from scipy import stats as scipy_stats
 
-from cpgjax.studies import stats
+from cpgjax import ablation
+from cpgjax.go1 import model as go1_model
+from cpgjax.sim import backends
+from cpgjax.studies import registry, stats
+from cpgjax.trial import params as param_space
+from cpgjax.trial import protocol
 
 CONDITIONS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
+
+
+def _columns(folder: pathlib.Path) -> dict[str, np.ndarray]:
+    return {k: np.asarray(v) for k, v in pq.read_table(folder / "trials.parquet").to_pydict().items()}
+
+
+def _grid(columns: dict[str, np.ndarray], name: str) -> np.ndarray:
+    n_inst, n_trial = columns["instance"].max() + 1, columns["trial"].max() + 1
+    out = np.empty((n_trial, n_inst) + columns[name].shape[1:], columns[name].dtype)
+    out[columns["trial"], columns["instance"]] = columns[name]
+    return out
 
 
 def chains(columns: dict[str, np.ndarray]) -> dict:
     """Counts of falls after a fall and after a walk, and the median measured contexts of fallen and walking
     trials, over every instance of one study."""
-    n_inst, n_trial = columns["instance"].max() + 1, columns["trial"].max() + 1
-
     def col(name):
-        out = np.empty((n_trial, n_inst), columns[name].dtype)
-        out[columns["trial"], columns["instance"]] = columns[name]
-        return out
+        return _grid(columns, name)
 
     fell = (col("fell") > 0) | (col("failed") > 0)
     optimized = col("inference") == 0
@@ -45,9 +69,55 @@ def chains(columns: dict[str, np.ndarray]) -> dict:
                           for name in ("c_load_n", "c_slope_rad")})
 
 
+def rewalk(folder: pathlib.Path, study: str) -> str:
+    """The three walks of ``--rewalk`` (module docstring), as one line."""
+    columns = _columns(folder)
+    fell = (_grid(columns, "fell") > 0) | (_grid(columns, "failed") > 0)
+    optimized = _grid(columns, "inference") == 0
+    condition = np.stack([_grid(columns, c) for c in CONDITIONS], axis=-1)
+    params = np.stack([_grid(columns, name) for name in param_space.PARAM_NAMES], axis=-1)
+    cases = []  # (trial, instance, last params that walked this condition before the fall)
+    for t, b in zip(*np.nonzero(fell[:-1] & optimized[:-1] & optimized[1:]
+                                & np.all(condition[1:] == condition[:-1], axis=-1)), strict=True):
+        walked = [k for k in range(t) if not fell[k, b] and np.array_equal(condition[k, b], condition[t, b])]
+        if walked:
+            cases.append((t + 1, b, params[walked[-1], b]))
+    if not cases:
+        return f"{folder}: no trial after a fall with an earlier walk on its condition"
+    spec = registry.make_spec(study)
+    engine = ablation.Engine(spec, backend="native")
+    scenario = go1_model.Scenario(*(np.stack([getattr(engine.scenario(t), f)[b] for t, b, _ in cases])
+                                    for f in go1_model.Scenario._fields))
+    level = scenario._replace(slope_deg=np.zeros_like(scenario.slope_deg),
+                              payload_kg=np.zeros_like(scenario.payload_kg))
+    gates = protocol.batch_gates([str(columns["controller"][columns["instance"] == b][0]) for _, b, _ in cases])
+    x = np.stack([params[t, b] for t, b, _ in cases])
+    x_before = np.stack([params[t - 1, b] for t, b, _ in cases])
+    x_walked = np.stack([w for _, _, w in cases])
+
+    def one_trial(sim, state, p):
+        state, record = sim.trial(state, p, gates)
+        return state, np.asarray(ablation.fetch(record).fell) > 0
+
+    sim = backends.make_backend(scenario, "native", trial_config=spec.trial)
+    _, as_walked = one_trial(sim, sim.reset(x_before), x)
+    _, from_standing = one_trial(sim, sim.reset(x_walked), x_walked)
+    flat = backends.make_backend(level, "native", trial_config=spec.trial)
+    state, flat_fell = one_trial(flat, flat.reset(x_walked), x_walked)
+    _, arriving = one_trial(flat.with_scenario(scenario), state, x_walked)
+    expected = np.array([fell[t, b] for t, b, _ in cases])
+    n, m = len(cases), int((~flat_fell).sum())
+    return (f"{folder}: {n} trials after a fall (with an earlier walk on the condition). Walked again as in the "
+            f"study: {int(as_walked.sum())} fell (the study: {int(expected.sum())}; "
+            f"{'the same trials' if np.array_equal(as_walked, expected) else 'NOT the same trials'}). The last gait "
+            f"that walked the condition, from standing: {int(from_standing.sum())} of {n} fell "
+            f"({stats.proportion_ci(int(from_standing.sum()), n)}); arriving walking from level ground: "
+            f"{int((arriving & ~flat_fell).sum())} of {m} fell "
+            f"({stats.proportion_ci(int((arriving & ~flat_fell).sum()), m)}).")
+
+
 def report(folder: pathlib.Path) -> str:
-    columns = {k: np.asarray(v) for k, v in pq.read_table(folder / "trials.parquet").to_pydict().items()}
-    c = chains(columns)
+    c = chains(_columns(folder))
     (k_f, n_f), (k_w, n_w) = c["after_fall"], c["after_walk"]
     p = scipy_stats.fisher_exact([[k_f, n_f - k_f], [k_w, n_w - k_w]]).pvalue if n_f and n_w else np.nan
     contexts = "; ".join(f"{name} median {fallen:.3g} fallen, {walked:.3g} walking"
@@ -60,8 +130,13 @@ def report(folder: pathlib.Path) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folders", type=pathlib.Path, nargs="+", help="study folders with a trials.parquet")
-    for folder in parser.parse_args().folders:
+    parser.add_argument("--rewalk", metavar="STUDY", help="walk the trials after falls again (the registry name "
+                        "of the study the folders ran)")
+    args = parser.parse_args()
+    for folder in args.folders:
         print(report(folder))
+        if args.rewalk:
+            print(rewalk(folder, args.rewalk))
 
 
 if __name__ == "__main__":
