@@ -5,8 +5,8 @@ walking trials measured (docs/decisions.md §11).
     python studies/fall_chains.py results/slope_adaptation [more folders]
     python studies/fall_chains.py results/slope_adaptation --rewalk slope_adaptation
 
-Reads each folder's ``trials.parquet``. The two probabilities come with Clopper–Pearson 95 % intervals and a
-two-sided Fisher exact test of their difference.
+Reads each folder's ``trials.parquet``. Per condition (the rates differ between conditions), the two probabilities
+come with Clopper–Pearson 95 % intervals and a two-sided Fisher exact test of their difference.
 
 ``--rewalk STUDY`` (the registry name the folder ran) asks why a trial after a fall falls. After a fall the robot
 is reset to standing (docs/decisions.md §8), so that trial starts from rest on the condition. For every such trial
@@ -51,22 +51,30 @@ def _grid(columns: dict[str, np.ndarray], name: str) -> np.ndarray:
 
 
 def chains(columns: dict[str, np.ndarray]) -> dict:
-    """Counts of falls after a fall and after a walk, and the median measured contexts of fallen and walking
-    trials, over every instance of one study."""
+    """Per condition of one study (the values of the conditions that vary, as a label): the falls after a fall and
+    after a walk (falls, trials) and the median measured contexts of the optimized trials that fell and that walked;
+    over every instance. Falls are counted per condition because their rate differs between conditions (pooled,
+    the conditions without falls would make a fall look likelier after a fall)."""
     def col(name):
         return _grid(columns, name)
 
     fell = (col("fell") > 0) | (col("failed") > 0)
     optimized = col("inference") == 0
-    same = np.all([col(c)[1:] == col(c)[:-1] for c in CONDITIONS], axis=0)
-    pairs = optimized[1:] & optimized[:-1] & same
-    after_fall, after_walk = fell[1:][pairs & fell[:-1]], fell[1:][pairs & ~fell[:-1]]
-    return dict(after_fall=(int(after_fall.sum()), after_fall.size),
-                after_walk=(int(after_walk.sum()), after_walk.size),
-                falls=int(fell[optimized].sum()), trials=int(optimized.sum()),
-                contexts={name: (float(np.median(col(name)[fell & optimized])) if (fell & optimized).any() else np.nan,
-                                 float(np.median(col(name)[~fell & optimized])))
-                          for name in ("c_load_n", "c_slope_rad")})
+    condition = np.stack([col(c) for c in CONDITIONS], axis=-1)
+    varying = [i for i, c in enumerate(CONDITIONS) if np.unique(col(c)).size > 1]
+    pairs = optimized[1:] & optimized[:-1] & np.all(condition[1:] == condition[:-1], axis=-1)
+    out = {}
+    for values in np.unique(condition[optimized][:, varying], axis=0):
+        here = np.all(condition[..., varying] == values, axis=-1)
+        label = ", ".join(f"{CONDITIONS[i]} {v:g}" for i, v in zip(varying, values, strict=True)) or "all"
+        after_fall, after_walk = (fell[1:][pairs & here[1:] & fell[:-1]], fell[1:][pairs & here[1:] & ~fell[:-1]])
+        fallen, walked = here & optimized & fell, here & optimized & ~fell
+        out[label] = dict(after_fall=(int(after_fall.sum()), after_fall.size),
+                          after_walk=(int(after_walk.sum()), after_walk.size),
+                          falls=int(fallen.sum()), trials=int((here & optimized).sum()),
+                          contexts={name: tuple(float(np.median(col(name)[m])) if m.any() else np.nan
+                                                for m in (fallen, walked)) for name in ("c_load_n", "c_slope_rad")})
+    return out
 
 
 def rewalk(folder: pathlib.Path, study: str) -> str:
@@ -117,14 +125,16 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
 
 
 def report(folder: pathlib.Path) -> str:
-    c = chains(_columns(folder))
-    (k_f, n_f), (k_w, n_w) = c["after_fall"], c["after_walk"]
-    p = scipy_stats.fisher_exact([[k_f, n_f - k_f], [k_w, n_w - k_w]]).pvalue if n_f and n_w else np.nan
-    contexts = "; ".join(f"{name} median {fallen:.3g} fallen, {walked:.3g} walking"
-                         for name, (fallen, walked) in c["contexts"].items())
-    return (f"{folder}: {c['falls']} falls in {c['trials']} optimized trials. A fall after a fall: {k_f}/{n_f} "
-            f"({stats.proportion_ci(k_f, n_f)}); after a walk: {k_w}/{n_w} ({stats.proportion_ci(k_w, n_w)}); "
-            f"Fisher p = {p:.2g}. Measured contexts: {contexts}.")
+    lines = []
+    for label, c in chains(_columns(folder)).items():
+        (k_f, n_f), (k_w, n_w) = c["after_fall"], c["after_walk"]
+        p = scipy_stats.fisher_exact([[k_f, n_f - k_f], [k_w, n_w - k_w]]).pvalue if n_f and n_w else np.nan
+        contexts = "; ".join(f"{name} median {fallen:.3g} fallen, {walked:.3g} walking"
+                             for name, (fallen, walked) in c["contexts"].items())
+        lines.append(f"{folder}, {label}: {c['falls']} falls in {c['trials']} optimized trials. A fall after a fall: "
+                     f"{k_f}/{n_f} ({stats.proportion_ci(k_f, n_f)}); after a walk: {k_w}/{n_w} "
+                     f"({stats.proportion_ci(k_w, n_w)}); Fisher p = {p:.2g}. Measured contexts: {contexts}.")
+    return "\n".join(lines)
 
 
 def main() -> None:

@@ -310,8 +310,11 @@ def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk():
                "c_load_n": np.array([1.0 if fell[i][t] else 20.0 + t for i, t in rows]),
                "c_slope_rad": np.zeros(10)}
     counted = fall_chains.chains(columns)
-    # instance 0: (0,1) walk→fall, (1,2) fall→fall, (2,3) fall→walk; instance 1: (0,1), (1,2) walk→walk, (3,4)
-    # fall→walk on the new slope
-    assert counted["after_fall"] == (1, 3) and counted["after_walk"] == (1, 3)
-    assert counted["falls"] == 3 and counted["trials"] == 9
-    assert counted["contexts"]["c_load_n"] == (1.0, 21.5)
+    assert list(counted) == ["slope_deg 0", "slope_deg 10"]
+    level, steep = counted["slope_deg 0"], counted["slope_deg 10"]
+    # instance 0: (0,1) walk→fall, (1,2) fall→fall, (2,3) fall→walk; instance 1: (0,1), (1,2) walk→walk
+    assert level["after_fall"] == (1, 2) and level["after_walk"] == (1, 3)
+    # instance 1 on the new slope: (3,4) fall→walk
+    assert steep["after_fall"] == (0, 1) and steep["after_walk"] == (0, 0)
+    assert (level["falls"], level["trials"], steep["falls"], steep["trials"]) == (2, 7, 1, 2)
+    assert level["contexts"]["c_load_n"] == (1.0, 21.0) and steep["contexts"]["c_load_n"] == (1.0, 24.0)
