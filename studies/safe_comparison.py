@@ -7,7 +7,8 @@ Reads each folder's ``trials.parquet``. Per phase of the conditions (payload, sl
 trials are their own phase): falls during the phase's optimized trials, the final J and velocity (mean of the phase's
 last 5 trials per run; mean [95 % CI] over seeds), and the trials from the phase's start to its first prospective
 trial (no fall, J ≥ 90 % of the run's best in the phase). Safe against unconstrained: the falls' ratio with a paired
-Wilcoxon test over seeds; final J paired over seeds (the same seed in both runs: paired t and Wilcoxon).
+Wilcoxon test over seeds; final J paired over seeds (the same seed in both runs: paired t and Wilcoxon). Each arm's
+falls by where they came from (:func:`fall_breakdown`).
 """
 
 from __future__ import annotations
@@ -47,6 +48,24 @@ def phases(columns, instance: int) -> list[tuple[int, int]]:
 def recover(j: np.ndarray, fell: np.ndarray) -> float:
     ok = (fell == 0) & (j >= 0.9 * j.max())
     return float(np.argmax(ok) + 1) if ok.any() else np.nan
+
+
+def fall_breakdown(columns) -> dict[str, int]:
+    """Where an arm's falls during optimization came from: the first trial of a condition (proposed for the
+    context of the one before), a trial right after a fall (a restart from standing, docs/REPRODUCTION.md), a
+    fallback (nothing certified safe), and the rest (proposals after a walking trial)."""
+    fell = (by_instance(columns, "fell") > 0) | (by_instance(columns, "failed") > 0)
+    optimized = by_instance(columns, "inference") == 0
+    condition = np.stack([by_instance(columns, c) for c in CONDITIONS[:-1]], axis=-1)
+    first, after_fall = np.zeros_like(fell), np.zeros_like(fell)
+    first[1:] = np.any(condition[1:] != condition[:-1], axis=-1)
+    after_fall[1:] = fell[:-1] & ~first[1:]
+    fallback = by_instance(columns, "safe_fallback") > 0
+    counted = fell & optimized
+    return {"first trial of a condition": int((counted & first).sum()),
+            "after a fall": int((counted & after_fall).sum()),
+            "fallback": int((counted & ~first & ~after_fall & fallback).sum()),
+            "after a walk": int((counted & ~first & ~after_fall & ~fallback).sum())}
 
 
 def group_keys(columns) -> np.ndarray:
@@ -98,6 +117,9 @@ def compare(unsafe_dir: pathlib.Path, safe_dir: pathlib.Path) -> str:
     lines += ["", f"Falls during optimization, all phases: {int(falls_u.sum())} unconstrained, {int(falls_s.sum())} "
               f"safe ({ratio:.1f}× fewer{'' if falls_s.sum() else ', safe had none: a lower bound'}); per run, safe − "
               f"unconstrained: {stats.paired(falls_s, falls_u)}."]
+    for arm, columns in runs.items():
+        parts = ", ".join(f"{label} {count}" for label, count in fall_breakdown(columns).items())
+        lines.append(f"Falls of the {arm} run by where they came from: {parts}.")
     return "\n".join(lines) + "\n"
 
 
