@@ -26,42 +26,29 @@ import argparse
 import pathlib
 
 import numpy as np
-import pyarrow.parquet as pq
 from scipy import stats as scipy_stats
 
 from cpgjax import ablation
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import backends
 from cpgjax.studies import registry, stats
+from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
 CONDITIONS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
 
 
-def _columns(folder: pathlib.Path) -> dict[str, np.ndarray]:
-    return {k: np.asarray(v) for k, v in pq.read_table(folder / "trials.parquet").to_pydict().items()}
-
-
-def _grid(columns: dict[str, np.ndarray], name: str) -> np.ndarray:
-    n_inst, n_trial = columns["instance"].max() + 1, columns["trial"].max() + 1
-    out = np.empty((n_trial, n_inst) + columns[name].shape[1:], columns[name].dtype)
-    out[columns["trial"], columns["instance"]] = columns[name]
-    return out
-
-
 def chains(columns: dict[str, np.ndarray]) -> dict:
-    """Per condition of one study (the values of the conditions that vary, as a label): the falls after a fall and
-    after a walk (falls, trials) and the median measured contexts of the optimized trials that fell and that walked;
-    over every instance. Falls are counted per condition because their rate differs between conditions (pooled,
-    the conditions without falls would make a fall look likelier after a fall)."""
-    def col(name):
-        return _grid(columns, name)
-
-    fell = (col("fell") > 0) | (col("failed") > 0)
-    optimized = col("inference") == 0
-    condition = np.stack([col(c) for c in CONDITIONS], axis=-1)
-    varying = [i for i, c in enumerate(CONDITIONS) if np.unique(col(c)).size > 1]
+    """Per condition of one study's trials (``columns``, as ``study_io.read_trials`` gives them; the values of the
+    conditions that vary, as a label): the falls after a fall and after a walk (falls, trials) and the median
+    measured contexts of the optimized trials that fell and that walked; over every instance. Falls are counted per
+    condition because their rate differs between conditions (pooled, the conditions without falls would make a fall
+    look likelier after a fall)."""
+    fell = (columns["fell"] > 0) | (columns["failed"] > 0)
+    optimized = columns["inference"] == 0
+    condition = np.stack([columns[c] for c in CONDITIONS], axis=-1)
+    varying = [i for i, c in enumerate(CONDITIONS) if np.unique(columns[c]).size > 1]
     pairs = optimized[1:] & optimized[:-1] & np.all(condition[1:] == condition[:-1], axis=-1)
     out = {}
     for values in np.unique(condition[optimized][:, varying], axis=0):
@@ -72,18 +59,18 @@ def chains(columns: dict[str, np.ndarray]) -> dict:
         out[label] = dict(after_fall=(int(after_fall.sum()), after_fall.size),
                           after_walk=(int(after_walk.sum()), after_walk.size),
                           falls=int(fallen.sum()), trials=int((here & optimized).sum()),
-                          contexts={name: tuple(float(np.median(col(name)[m])) if m.any() else np.nan
+                          contexts={name: tuple(float(np.median(columns[name][m])) if m.any() else np.nan
                                                 for m in (fallen, walked)) for name in ("c_load_n", "c_slope_rad")})
     return out
 
 
 def rewalk(folder: pathlib.Path, study: str) -> str:
     """The three walks of ``--rewalk`` (module docstring), as one line."""
-    columns = _columns(folder)
-    fell = (_grid(columns, "fell") > 0) | (_grid(columns, "failed") > 0)
-    optimized = _grid(columns, "inference") == 0
-    condition = np.stack([_grid(columns, c) for c in CONDITIONS], axis=-1)
-    params = np.stack([_grid(columns, name) for name in param_space.PARAM_NAMES], axis=-1)
+    columns = study_io.read_trials(folder / "trials.parquet")
+    fell = (columns["fell"] > 0) | (columns["failed"] > 0)
+    optimized = columns["inference"] == 0
+    condition = np.stack([columns[c] for c in CONDITIONS], axis=-1)
+    params = np.stack([columns[name] for name in param_space.PARAM_NAMES], axis=-1)
     cases = []  # (trial, instance, last params that walked this condition before the fall)
     for t, b in zip(*np.nonzero(fell[:-1] & optimized[:-1] & optimized[1:]
                                 & np.all(condition[1:] == condition[:-1], axis=-1)), strict=True):
@@ -98,7 +85,7 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
                                     for f in go1_model.Scenario._fields))
     level = scenario._replace(slope_deg=np.zeros_like(scenario.slope_deg),
                               payload_kg=np.zeros_like(scenario.payload_kg))
-    gates = protocol.batch_gates([str(columns["controller"][columns["instance"] == b][0]) for _, b, _ in cases])
+    gates = protocol.batch_gates([str(columns["controller"][t, b]) for t, b, _ in cases])
     x = np.stack([params[t, b] for t, b, _ in cases])
     x_before = np.stack([params[t - 1, b] for t, b, _ in cases])
     x_walked = np.stack([w for _, _, w in cases])
@@ -126,7 +113,7 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
 
 def report(folder: pathlib.Path) -> str:
     lines = []
-    for label, c in chains(_columns(folder)).items():
+    for label, c in chains(study_io.read_trials(folder / "trials.parquet")).items():
         (k_f, n_f), (k_w, n_w) = c["after_fall"], c["after_walk"]
         p = scipy_stats.fisher_exact([[k_f, n_f - k_f], [k_w, n_w - k_w]]).pvalue if n_f and n_w else np.nan
         contexts = "; ".join(f"{name} median {fallen:.3g} fallen, {walked:.3g} walking"

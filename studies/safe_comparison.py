@@ -17,30 +17,22 @@ import argparse
 import pathlib
 
 import numpy as np
-import pyarrow.parquet as pq
 
 from cpgjax.studies import registry, stats
+from cpgjax.study import files as study_io
 
 LAST_TRIALS = 5
 CONDITIONS = ("payload_kg", "slope_deg", "friction", "target_velocity_mps", "inference")
 
 
 def load(folder: pathlib.Path) -> dict[str, np.ndarray]:
-    table = pq.read_table(folder / "trials.parquet").to_pydict()
-    return {k: np.asarray(v) for k, v in table.items()}
-
-
-def by_instance(columns: dict[str, np.ndarray], name: str) -> np.ndarray:
-    """(trials, instances) of one column."""
-    n_inst, n_trial = columns["instance"].max() + 1, columns["trial"].max() + 1
-    out = np.empty((n_trial, n_inst), columns[name].dtype)
-    out[columns["trial"], columns["instance"]] = columns[name]
-    return out
+    """The folder's ``trials.parquet``, each column (trials, instances)."""
+    return study_io.read_trials(folder / "trials.parquet")
 
 
 def phases(columns, instance: int) -> list[tuple[int, int]]:
     """[start, stop) of each phase of one instance: a new phase wherever any condition changes."""
-    fields = [by_instance(columns, c)[:, instance] for c in CONDITIONS]
+    fields = [columns[c][:, instance] for c in CONDITIONS]
     starts = sorted(set().union(*(registry.phase_starts(f) for f in fields))) + [len(fields[0])]
     return list(zip(starts[:-1], starts[1:], strict=True))
 
@@ -54,13 +46,13 @@ def fall_breakdown(columns) -> dict[str, int]:
     """Where an arm's falls during optimization came from: the first trial of a condition (proposed for the
     context of the one before), a trial right after a fall (a restart from standing, docs/REPRODUCTION.md), a
     fallback (nothing certified safe), and the rest (proposals after a walking trial)."""
-    fell = (by_instance(columns, "fell") > 0) | (by_instance(columns, "failed") > 0)
-    optimized = by_instance(columns, "inference") == 0
-    condition = np.stack([by_instance(columns, c) for c in CONDITIONS[:-1]], axis=-1)
+    fell = (columns["fell"] > 0) | (columns["failed"] > 0)
+    optimized = columns["inference"] == 0
+    condition = np.stack([columns[c] for c in CONDITIONS[:-1]], axis=-1)
     first, after_fall = np.zeros_like(fell), np.zeros_like(fell)
     first[1:] = np.any(condition[1:] != condition[:-1], axis=-1)
     after_fall[1:] = fell[:-1] & ~first[1:]
-    fallback = by_instance(columns, "safe_fallback") > 0
+    fallback = columns["safe_fallback"] > 0
     counted = fell & optimized
     return {"first trial of a condition": int((counted & first).sum()),
             "after a fall": int((counted & after_fall).sum()),
@@ -70,10 +62,7 @@ def fall_breakdown(columns) -> dict[str, int]:
 
 def group_keys(columns) -> np.ndarray:
     labels = [c for c in ("controller", "schedule") if c in columns]
-    per_instance = {}
-    for row in range(len(columns["instance"])):
-        per_instance[columns["instance"][row]] = ", ".join(str(columns[c][row]) for c in labels)
-    return np.array([per_instance[i] for i in range(len(per_instance))])
+    return np.array([", ".join(str(columns[c][0, b]) for c in labels) for b in range(columns["instance"].shape[1])])
 
 
 def compare(unsafe_dir: pathlib.Path, safe_dir: pathlib.Path) -> str:
@@ -94,9 +83,9 @@ def compare(unsafe_dir: pathlib.Path, safe_dir: pathlib.Path) -> str:
         for start, stop in phases(base, members[0]):
             cells = {}
             for arm, columns in runs.items():
-                j, fell = by_instance(columns, "objective")[:, members], by_instance(columns, "fell")[:, members]
-                v = by_instance(columns, "velocity_x_mps")[:, members]
-                inference = by_instance(columns, "inference")[start, members[0]] > 0
+                j, fell = columns["objective"][:, members], columns["fell"][:, members]
+                v = columns["velocity_x_mps"][:, members]
+                inference = columns["inference"][start, members[0]] > 0
                 falls = fell[start:stop].sum(axis=0)
                 if not inference:
                     totals[arm].append(falls)

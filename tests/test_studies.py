@@ -291,10 +291,11 @@ def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     assert registry.STUDIES["friction"].paper_marks(result) == []
 
 
-def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk():
+def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk(tmp_path):
     """``studies/fall_chains.py`` on a hand-made table of two instances × five trials, counted by hand: instance 0
-    falls at trials 1, 2 and 4; instance 1 at trial 3, and its condition changes at trial 3 (that pair is not
-    counted); instance 0's trial 4 is in inference mode (neither it nor its pair is counted)."""
+    falls at trials 1, 2 and 4; instance 1 at trial 3, and its condition changes at trial 3 (the pair (2, 3) is not
+    counted); instance 0's trial 4 is in inference mode (neither it nor its pair is counted). The table goes through a
+    parquet file and ``study_io.read_trials``, as a study's does."""
     import importlib.util
     spec = importlib.util.spec_from_file_location("fall_chains", pathlib.Path(__file__).resolve().parents[1] / "studies"
                                                   / "fall_chains.py")
@@ -309,7 +310,8 @@ def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk():
                "payload_kg": np.zeros(10), "target_velocity_mps": np.full(10, 0.5),
                "c_load_n": np.array([1.0 if fell[i][t] else 20.0 + t for i, t in rows]),
                "c_slope_rad": np.zeros(10)}
-    counted = fall_chains.chains(columns)
+    pq.write_table(pa.table(columns), tmp_path / "trials.parquet")
+    counted = fall_chains.chains(study_io.read_trials(tmp_path / "trials.parquet"))
     assert list(counted) == ["slope_deg 0", "slope_deg 10"]
     level, steep = counted["slope_deg 0"], counted["slope_deg 10"]
     # instance 0: (0,1) walk→fall, (1,2) fall→fall, (2,3) fall→walk; instance 1: (0,1), (1,2) walk→walk

@@ -551,6 +551,20 @@ def write_trials(result, path) -> pathlib.Path:
     return path
 
 
+def read_trials(path) -> dict[str, np.ndarray]:
+    """``trials.parquet`` (:func:`write_trials`) back as one (trials, instances) array per column: element [t, b] is
+    instance b's trial t."""
+    import pyarrow.parquet as pq
+
+    rows = {k: np.asarray(v) for k, v in pq.read_table(path).to_pydict().items()}
+    n_trial, batch = rows["trial"].max() + 1, rows["instance"].max() + 1
+    grids = {}
+    for name, values in rows.items():
+        grids[name] = np.empty((n_trial, batch), values.dtype)
+        grids[name][rows["trial"], rows["instance"]] = values
+    return grids
+
+
 @contextlib.contextmanager
 def writing(out_dir, what: str):
     """Turn any failure while writing ``what`` into :class:`OutputError`: which file, why, the files already in
