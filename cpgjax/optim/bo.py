@@ -217,13 +217,22 @@ def _inputs(s: _Static, state: OptimizerState) -> jax.Array:
                             s.context_width], axis=-1)
 
 
+def _learned(s: _Static, state: OptimizerState) -> jax.Array:
+    """(capacity,) bool: the stored observations the GP(s) learn from, those with a finite J (and margin, with
+    ``safe``). Both GPs of a safe optimizer learn from the same observations at the same inputs, so the
+    hyperparameter-free part of their datasets (``gp.squared_differences``) is one expression, which XLA computes
+    once for both. A stored row's margin is finite (``observe`` refuses any other), so this is what each GP would
+    learn from alone."""
+    learned = state.stored & jnp.isfinite(state.objectives)
+    return learned & jnp.isfinite(state.margins) if s.config.safe else learned
+
+
 def _dataset(s: _Static, state: OptimizerState) -> gp.Dataset:
-    valid = state.stored & jnp.isfinite(state.objectives)
-    return gp.Dataset(_inputs(s, state), state.objectives, valid)
+    return gp.Dataset(_inputs(s, state), state.objectives, _learned(s, state))
 
 
 def _margin_dataset(s: _Static, state: OptimizerState) -> gp.Dataset:
-    return gp.Dataset(_inputs(s, state), state.margins, state.stored & jnp.isfinite(state.margins))
+    return gp.Dataset(_inputs(s, state), state.margins, _learned(s, state))
 
 
 def _kernel_active(s: _Static, state: OptimizerState) -> jax.Array:
