@@ -5,7 +5,9 @@
 
 (a) Cost: one optimizer iteration (observe = store and refit, then propose = acquisition) of the paper's setting
     (8 parameters, 2 contexts), safe against unconstrained, at 40 and 150 stored points, for 1 and 20 vmapped instances.
-    The process pins itself to one core (``--cpu``), as benchmarks/bo.py does, so the two are timed alike.
+    The process pins itself to one core (``--cpu``), as benchmarks/bo.py does, so the two are timed alike. The two
+    iterations are timed in alternation, one of each per pair, so that a drift of the machine's speed falls on both;
+    the ratio is the geometric mean of the pairs' ratios with its 95 % interval (Student t on the log ratios).
 (b) A standard constrained test function, Gardner et al. (ICML 2014, "Bayesian optimization with inequality
     constraints", their first simulated problem): minimize cos(2x) cos(y) + sin(x) over [0, 6]² subject to
     cos(x) cos(y) − sin(x) sin(y) ≤ 0.5. Here: maximize the negative, margin = 0.5 − constraint. Each seed starts both
@@ -22,11 +24,12 @@ import argparse
 import json
 import os
 import platform
+import time
 
 
 def parse_args():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer repeats and seeds")
+    parser.add_argument("--quick", action="store_true", help="fewer timed pairs and seeds")
     parser.add_argument("--cpu", type=int, default=(os.cpu_count() or 1) - 1, help="the CPU core to pin to")
     parser.add_argument("--seeds", type=int, default=None, help="seeds for (b) (default 20, --quick 6)")
     return parser.parse_args()
@@ -39,7 +42,6 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import mannwhitneyu  # noqa: E402
-from timing import median_seconds  # noqa: E402  (benchmarks/timing.py)
 
 from cpgjax.optim import black_box, bo  # noqa: E402
 from cpgjax.studies import stats  # noqa: E402
@@ -51,8 +53,9 @@ def toy(unit):
     return -jnp.sum((unit - 0.7) ** 2), 0.5 - jnp.linalg.norm(unit - 0.4)
 
 
-def iteration_seconds(safe: bool, stored: int, batch: int, repeats: int) -> float:
-    """Median wall time of one vmapped observe + propose with ``stored`` points already observed."""
+def iteration(safe: bool, stored: int, batch: int):
+    """One vmapped observe + propose with ``stored`` points already observed, compiled, as a call that waits for
+    its result."""
     config = optimizer_setting.paper_config(capacity=stored + 1, safe=safe)
     opt = bo.make_optimizer(config)
     lower, width = np.array(config.parameter_lower), np.array(config.parameter_upper) - np.array(config.parameter_lower)
@@ -80,9 +83,28 @@ def iteration_seconds(safe: bool, stored: int, batch: int, repeats: int) -> floa
 
     def once():
         new_state, _ = observe(*args)
-        return propose(new_state, c, keys)
+        return jax.block_until_ready(propose(new_state, c, keys))
 
-    return median_seconds(once, repeats=repeats)
+    once()  # compiles
+    return once
+
+
+def paired_cost(stored: int, batch: int, pairs: int) -> dict:
+    """Wall seconds of an unconstrained and a safe iteration timed in alternation, ``pairs`` of each (after one
+    untimed warm-up pair): their medians, and the geometric mean of the per-pair ratios safe / unconstrained with
+    its 95 % interval."""
+    calls = {"unconstrained": iteration(False, stored, batch), "safe": iteration(True, stored, batch)}
+    seconds = {name: [] for name in calls}
+    for timed in [False] + [True] * pairs:
+        for name, call in calls.items():
+            t0 = time.perf_counter()
+            call()
+            if timed:
+                seconds[name].append(time.perf_counter() - t0)
+    log_ratio = stats.mean_ci(np.log(seconds["safe"]) - np.log(seconds["unconstrained"]))
+    return {"unconstrained_s": float(np.median(seconds["unconstrained"])), "safe_s": float(np.median(seconds["safe"])),
+            "ratio": float(np.exp(log_ratio.mean)), "ratio_ci": [float(np.exp(log_ratio.low)),
+                                                                 float(np.exp(log_ratio.high))], "pairs": pairs}
 
 
 def gardner(x):
@@ -131,18 +153,18 @@ def constrained_runs(seeds: int, trials: int) -> dict:
 
 
 def main() -> None:
-    repeats = 3 if ARGS.quick else 7
+    pairs = 10 if ARGS.quick else 30
     seeds = ARGS.seeds or (6 if ARGS.quick else 20)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, pinned to CPU {ARGS.cpu}; "
           f"jax {jax.__version__}")
     cost = {}
     for stored in (40, 150):
         for batch in (1, 20):
-            plain = iteration_seconds(False, stored, batch, repeats)
-            safe = iteration_seconds(True, stored, batch, repeats)
-            cost[f"{stored} points x {batch}"] = {"unconstrained_s": plain, "safe_s": safe, "ratio": safe / plain}
-            print(f"(a) {stored} points, {batch} instance(s): unconstrained {plain * 1e3:.1f} ms, safe "
-                  f"{safe * 1e3:.1f} ms, ratio {safe / plain:.2f}")
+            c = paired_cost(stored, batch, pairs)
+            cost[f"{stored} points x {batch}"] = c
+            print(f"(a) {stored} points, {batch} instance(s): unconstrained {c['unconstrained_s'] * 1e3:.1f} ms, safe "
+                  f"{c['safe_s'] * 1e3:.1f} ms (medians of {pairs}), ratio {c['ratio']:.2f} "
+                  f"[{c['ratio_ci'][0]:.2f}, {c['ratio_ci'][1]:.2f}]", flush=True)
     trials = 30
     runs = constrained_runs(seeds, trials)
     for arm in ("unconstrained", "safe"):
