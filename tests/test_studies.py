@@ -276,6 +276,56 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
     assert filmed or any(line.startswith("no video: ") for line in lines), lines
 
 
+def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
+    """The transfer table's drops and their tests on hand-made J: 4 seeds per controller, every environment's J drawn
+    at random. The worst fixed profile is the away profile with the lowest mean over seeds, the randomized J the mean
+    over the draws; intervals and p-values are recomputed with SciPy (Welch's t, Mann–Whitney's U)."""
+    from scipy import stats as sp
+
+    from cpgjax.go1 import physics as physics_profiles
+    from cpgjax.studies import transfer
+
+    seeds, fixed = 4, list(physics_profiles.PROFILES)
+    environments = len(fixed) + transfer.EVALUATION_DRAWS
+    labels = [{"controller": c} for c in cpg.CONTROLLERS for _ in range(seeds)]
+    rng = np.random.default_rng(3)
+    results = {arm: type("Result", (), {"labels": labels}) for arm, _, _ in transfer.ARMS}
+    evaluations = {arm: tuple(rng.normal(2.0, 0.3, (len(labels), environments)) for _ in range(3))
+                   + (np.zeros((len(labels), environments)),) for arm, _, _ in transfer.ARMS}
+
+    def drops(arm, home, controller):
+        j = evaluations[arm][0][[lab["controller"] == controller for lab in labels]]
+        h = fixed.index(home)
+        away = [k for k in range(len(fixed)) if k != h]
+        worst = away[int(np.argmin(j[:, away].mean(axis=0)))]
+        return j[:, h], j[:, worst] - j[:, h], j[:, len(fixed):].mean(axis=1) - j[:, h]
+
+    text = transfer.comparisons(results, evaluations)
+    rows = {tuple(cell.strip() for cell in line.split("|")[1:3]): line for line in text.splitlines()[2:]}
+    assert len(rows) == 3 * 3 * 2 + 4 * 2
+    for arm, home, randomized in transfer.ARMS:
+        label = home + (" + randomization" if randomized else "")
+        for c in cpg.CONTROLLERS[1:]:
+            for k, quantity in ((1, "drop: worst fixed"), (2, "drop: randomized")):
+                a, b = drops(arm, home, c)[k], drops(arm, home, "open_loop")[k]
+                line = rows[(f"{c} − open_loop, optimized under {label}", quantity)]
+                cells = [cell.strip() for cell in line.split("|")[3:6]]
+                assert cells[0].startswith(f"{a.mean() - b.mean():+.3f} [")
+                welch = sp.ttest_ind(a, b, equal_var=False)
+                low, high = welch.confidence_interval(0.95)
+                assert cells[0] == f"{a.mean() - b.mean():+.3f} [{low:+.3f}, {high:+.3f}]"
+                assert cells[1] == f"{welch.pvalue:.2g}"
+                assert cells[2] == f"{sp.mannwhitneyu(a, b, alternative='two-sided').pvalue:.2g}"
+    home_dr, home_plain = drops("paper_randomized", "paper", "tegotae")[0], drops("paper", "paper", "tegotae")[0]
+    line = rows[("tegotae: paper + randomization − paper", "J at home")]
+    assert f"| {sp.ttest_ind(home_dr, home_plain, equal_var=False).pvalue:.2g} |" in line
+    table = transfer.table(results, evaluations)
+    home, worst, randomized = drops("go1", "go1", "vmc")
+    line = next(r for r in table.splitlines() if r.startswith("| vmc | go1 |"))
+    half = sp.t.ppf(0.975, seeds - 1) * worst.std(ddof=1) / np.sqrt(seeds)
+    assert f"| {worst.mean():+.3f} [{worst.mean() - half:+.3f}, {worst.mean() + half:+.3f}] |" in line
+
+
 def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     """The load study's marks: the paper's J after adaptation (Table "load": 2.175, 2.213, 2.189) over the last 5
     trials of each payload phase; the ablation's: each controller's J ± std over the last 5 trials."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import pathlib
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
-from cpgjax.studies import registry
+from cpgjax.studies import registry, stats
 from cpgjax.studies import video as study_video
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
@@ -93,8 +94,40 @@ def _best(result) -> np.ndarray:
     return result.trials.params[t, np.arange(j.shape[1])]
 
 
+class _Transfer(NamedTuple):
+    """One controller of one arm, per seed (S,): J at home, J under the worst other fixed profile (the one with the
+    lowest mean over seeds), J averaged over the randomized draws, and the drops J away − J at home."""
+
+    home: np.ndarray
+    worst_fixed: np.ndarray
+    randomized: np.ndarray
+
+    @property
+    def drop_worst_fixed(self) -> np.ndarray:
+        return self.worst_fixed - self.home
+
+    @property
+    def drop_randomized(self) -> np.ndarray:
+        return self.randomized - self.home
+
+
+def _runs(result, controller: str) -> np.ndarray:
+    """(R,) bool: the runs of ``controller`` in an arm's result."""
+    return np.array([lab["controller"] == controller for lab in result.labels])
+
+
+def _transfer(result, j: np.ndarray, controller: str, home: str) -> _Transfer:
+    fixed = list(physics_profiles.PROFILES)
+    jm = j[_runs(result, controller)]
+    home_col = fixed.index(home)
+    away_fixed = [k for k in range(len(fixed)) if k != home_col]
+    worst_col = away_fixed[int(np.argmin(jm[:, away_fixed].mean(axis=0)))]
+    return _Transfer(home=jm[:, home_col], worst_fixed=jm[:, worst_col], randomized=jm[:, len(fixed):].mean(axis=1))
+
+
 def table(arm_results: dict, evaluations: dict) -> str:
-    """The transfer table: per controller and arm, at home and away (J, v_x, CoT, falls) and the drop of J."""
+    """The transfer table: per controller and arm, at home and away (J, v_x, CoT, falls) and the drop of J, means
+    with 95 % intervals over seeds where they are compared (``stats.mean_ci``)."""
     fixed = list(physics_profiles.PROFILES)
     head = ("| controller | optimized under | J at home | " + " | ".join(f"J {p}" for p in fixed)
             + " | J randomized | drop: worst fixed | drop: randomized | v_x home / randomized [m/s] | "
@@ -103,22 +136,56 @@ def table(arm_results: dict, evaluations: dict) -> str:
     for c in cpg.CONTROLLERS:
         for arm, home, randomized in ARMS:
             result, (j, v, cot, fell) = arm_results[arm], evaluations[arm]
-            m = np.array([lab["controller"] == c for lab in result.labels])
+            m = _runs(result, c)
             home_col = fixed.index(home)
-            jm = j[m]
-            rand = jm[:, len(fixed):]
-            away_fixed = [k for k in range(len(fixed)) if k != home_col]
-            worst = np.min(jm[:, away_fixed].mean(axis=0))
+            t = _transfer(result, j, c, home)
             label = home + (" + randomization" if randomized else "")
             away = [k for k in range(j.shape[1]) if k != home_col]
-            j_home = jm[:, home_col].mean()
             rows.append(
-                f"| {c} | {label} | {j_home:.3f} ± {jm[:, home_col].std():.3f} | "
-                + " | ".join(f"{jm[:, k].mean():.3f}" for k in range(len(fixed)))
-                + f" | {rand.mean():.3f} ± {rand.mean(axis=1).std():.3f} | {worst - j_home:+.3f} | "
-                f"{rand.mean() - j_home:+.3f} | {v[m][:, home_col].mean():.3f} / {v[m][:, len(fixed):].mean():.3f} | "
-                f"{cot[m][:, home_col].mean():.3f} / {cot[m][:, len(fixed):].mean():.3f} | "
-                f"{int(fell[m][:, away].sum())}/{fell[m].shape[0] * len(away)} |")
+                f"| {c} | {label} | {stats.mean_ci(t.home)} | "
+                + " | ".join(f"{j[m][:, k].mean():.3f}" for k in range(len(fixed)))
+                + f" | {stats.mean_ci(t.randomized)} | {_signed(stats.mean_ci(t.drop_worst_fixed))} | "
+                f"{_signed(stats.mean_ci(t.drop_randomized))} | {v[m][:, home_col].mean():.3f} / "
+                f"{v[m][:, len(fixed):].mean():.3f} | {cot[m][:, home_col].mean():.3f} / "
+                f"{cot[m][:, len(fixed):].mean():.3f} | {int(fell[m][:, away].sum())}/{fell[m].shape[0] * len(away)} |")
+    return "\n".join(rows) + "\n"
+
+
+def _signed(interval: stats.Interval) -> str:
+    return f"{interval.mean:+.3f} [{interval.low:+.3f}, {interval.high:+.3f}]"
+
+
+def comparisons(arm_results: dict, evaluations: dict) -> str:
+    """The table's differences tested over seeds (``stats.compare``: Welch's t and Mann–Whitney's U; the runs of
+    two controllers or two arms are independent optimizations):
+
+    - per arm, each controller's drops against open loop's (does feedback make a tuned gait survive better?);
+    - per controller, the randomization arm against the ``paper`` arm: J at home (the cost of training under
+      randomization) and the randomized drop (what it buys away from home).
+    """
+    rows = ["| comparison | quantity | difference [95 % CI] | Welch p | Mann–Whitney p | seeds |",
+            "|---|---|---|---|---|---|"]
+
+    def row(name: str, quantity: str, a, b) -> None:
+        d = stats.compare(a, b)
+        rows.append(f"| {name} | {quantity} | {d.difference:+.3f} [{d.low:+.3f}, {d.high:+.3f}] | {d.t_p:.2g} | "
+                    f"{d.rank_p:.2g} | {d.n_a} / {d.n_b} |")
+
+    per_arm = {arm: {c: _transfer(arm_results[arm], evaluations[arm][0], c, home) for c in cpg.CONTROLLERS}
+               for arm, home, _ in ARMS}
+    baseline = cpg.CONTROLLERS[0]
+    for arm, home, randomized in ARMS:
+        label = home + (" + randomization" if randomized else "")
+        for c in cpg.CONTROLLERS[1:]:
+            a, b = per_arm[arm][c], per_arm[arm][baseline]
+            row(f"{c} − {baseline}, optimized under {label}", "drop: worst fixed", a.drop_worst_fixed,
+                b.drop_worst_fixed)
+            row(f"{c} − {baseline}, optimized under {label}", "drop: randomized", a.drop_randomized, b.drop_randomized)
+    (plain, _, _), (dr, _, _) = ARMS[0], ARMS[2]
+    for c in cpg.CONTROLLERS:
+        a, b = per_arm[dr][c], per_arm[plain][c]
+        row(f"{c}: paper + randomization − paper", "J at home", a.home, b.home)
+        row(f"{c}: paper + randomization − paper", "drop: randomized", a.drop_randomized, b.drop_randomized)
     return "\n".join(rows) + "\n"
 
 
@@ -178,8 +245,11 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
     text = (f"# transfer\n\nEach controller optimized online for {n} trials ({runs} seeds) under one physics profile "
             f"(or under randomized paper physics), then its best parameters walked — one settling trial, one measured "
             f"trial, v* = {TARGET_MPS} m/s — under every fixed profile (flat, μ 0.6) and under {EVALUATION_DRAWS} "
-            f"randomized physics ({draws}, on the arm's home profile). J: mean ± std over seeds; drop: J away − J at "
-            f"home (worst fixed profile; mean over the randomized draws).\n\n" + table(arm_results, evaluations)
+            f"randomized physics ({draws}, on the arm's home profile). J at home, J randomized and the drops: mean "
+            f"[95 % interval] over seeds; the profiles' J: means; drop: J away − J at home (the worst other fixed "
+            f"profile by its mean; the mean over the randomized draws).\n\n" + table(arm_results, evaluations)
+            + (f"\n## Differences, tested over {runs} seeds\n\n" + comparisons(arm_results, evaluations)
+               if runs >= 2 else "\nOne seed: no differences are tested.\n")
             + f"\nOptimization wall time {wall:.0f} s (all arms).\n")
     out.mkdir(parents=True, exist_ok=True)
     (out / "table.md").write_text(text)
