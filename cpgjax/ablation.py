@@ -441,8 +441,8 @@ class Engine:
         if ckpt is None:
             return run
         index = np.minimum(np.arange(first, stop), last) - min(first, last)
-        opt_state = self.placement.put_local(jax.tree.unflatten(jax.tree.structure(run.opt_state),
-                                                                [leaf[index] for leaf in ckpt.opt_leaves]))
+        saved = jax.tree.unflatten(jax.tree.structure(run.opt_state), [leaf[index] for leaf in ckpt.opt_leaves])
+        opt_state = self.placement.put_local(bo.full_rows(self.placement.local(run.opt_state), saved))
         sim_state = (self._restore_sim(ckpt.trial, [leaf[index] for leaf in ckpt.sim_leaves])
                      if ckpt.trial < self.spec.num_trials else None)
         size = self.placement.padded_size
@@ -549,8 +549,10 @@ class Engine:
         first = self.placement.rows[0]
         keep = self._unpadded_local_rows()
         shard = study_io.Shard(jax.process_index(), jax.process_count(), first)
+        # Trial t is at most the (t + 1)-th observation since init: the later rows of the buffers are init's.
+        local = self.placement.local(run.opt_state)
         study_io.save_checkpoint(out_dir, self.spec, study_io.Checkpoint(
-            trial=t + 1, opt_leaves=[leaf[:keep] for leaf in self.placement.local(jax.tree.leaves(run.opt_state))],
+            trial=t + 1, opt_leaves=[leaf[:keep] for leaf in jax.tree.leaves(bo.first_rows(local, t + 1))],
             sim_leaves=[np.asarray(leaf)[:keep] for leaf in jax.tree.leaves(run.sim_state)],
             context=run.context[:keep], logs=[study_io.TrialLog(*(np.asarray(f)[first:first + keep] for f in lg))
                                               for lg in run.logs], wall_s=wall_s, timing=dict(run.timing)),

@@ -283,6 +283,9 @@ ablation.Engine(spec, backend="native").run({str(out)!r})
     proc.kill()
     proc.wait()
     assert 2 <= done < TRIALS, f"expected to kill mid-study, got {done} trials done (rc {proc.returncode})"
+    left = study_io.load_checkpoint(out, tiny_spec())
+    # the optimizer's observation buffers are kept up to the trials run, not to its capacity (bo.first_rows)
+    assert left.opt_leaves[0].shape == (4, left.trial, 8) and left.trial < tiny_spec().optimizer_config().capacity
     resumed = ablation.Engine(tiny_spec(), backend="native").run(out, resume=True)
     for name in study_io.TrialLog._fields:
         np.testing.assert_array_equal(getattr(resumed.trials, name), getattr(uninterrupted.trials, name), name)

@@ -1,6 +1,7 @@
 """The optimizer of Algorithm 1 (cpgjax.optim.bo): beta schedule and context counting on hand-built
 histories, data reuse, validation, batching, and optimization of standard test functions."""
 
+import functools
 import operator
 from typing import NamedTuple
 
@@ -199,6 +200,26 @@ def test_data_reuse_equals_recomputation_from_scratch(reuse_opt):
 
     with pytest.raises(ValueError, match="set_target needs"):
         bo.make_optimizer(SMALL).set_target(bo.make_optimizer(SMALL).init(), 0.8)
+
+
+def test_a_state_cut_to_its_observed_rows_is_restored_over_a_fresh_one(reuse_opt):
+    """``first_rows`` keeps the observation buffers' first rows (the trial records too); ``full_rows`` over a fresh
+    state gives back every leaf, for one instance and for a batch whose instances stored different counts."""
+    records = make_records(3)
+    xs = [jnp.asarray(LOWER + (UPPER - LOWER) * (i + 0.5) / 3, jnp.float32) for i in range(3)]
+    state = reuse_opt.init(target_velocity=jnp.float32(0.5))
+    states = []
+    for x, record in zip(xs, records, strict=True):
+        state, _ = reuse_opt.observe(state, x, NOMINAL, record)
+        states.append(state)
+    assert state.stored.shape[0] > 3  # the capacity
+    init = reuse_opt.init(target_velocity=jnp.float32(0.5))
+    stack = functools.partial(jax.tree.map, lambda *a: np.stack(a))
+    for full, fresh in ((state, init), (stack(state, states[1]), stack(init, init))):
+        cut = bo.first_rows(full, 3)
+        assert cut.records.velocity_xy_mps.shape[-3] == 3 and cut.stored.shape[-1] == 3
+        for a, b in zip(jax.tree.leaves(bo.full_rows(fresh, cut)), jax.tree.leaves(full), strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_non_finite_record_is_rejected(reuse_opt):

@@ -126,6 +126,35 @@ class OptimizerState(NamedTuple):
     margin_gp_params: Any
 
 
+OBSERVATION_FIELDS = ("parameters", "contexts", "objectives", "stored", "records", "margins")
+"""The fields of :class:`OptimizerState` with a capacity axis: row k holds the k-th observation stored since ``init``,
+and the rows past ``num_stored`` hold ``init``'s values (``observe`` writes row ``num_stored`` only when it stores)."""
+
+
+def _rows_axis(state: OptimizerState) -> int:
+    return np.ndim(state.stored) - 1  # after any batch axes
+
+
+def first_rows(state: OptimizerState, rows: int) -> OptimizerState:
+    """``state`` (batched or not) with its observation buffers cut to their first ``rows`` rows, as host arrays: all
+    it holds beyond ``init``'s values when at most ``rows`` observations were stored since ``init`` (e.g. after
+    ``rows`` trials). :func:`full_rows` puts the rest back. A checkpoint of a study with data reuse then holds the
+    trial records stored so far, not the whole capacity's."""
+    cut = (slice(None),) * _rows_axis(state) + (slice(0, rows),)
+    return state._replace(**{f: jax.tree.map(lambda leaf: np.asarray(leaf)[cut], getattr(state, f))
+                             for f in OBSERVATION_FIELDS})
+
+
+def full_rows(fresh: OptimizerState, cut: OptimizerState) -> OptimizerState:
+    """The state :func:`first_rows` cut, as host arrays: ``cut``'s observation rows written over the buffers of
+    ``fresh``, a state from ``init`` with the same batch axes."""
+    def put(full, part):
+        full = np.array(full)
+        full[(slice(None),) * _rows_axis(fresh) + (slice(0, np.shape(part)[_rows_axis(fresh)]),)] = part
+        return full
+    return cut._replace(**{f: jax.tree.map(put, getattr(fresh, f), getattr(cut, f)) for f in OBSERVATION_FIELDS})
+
+
 class ContextualBO(NamedTuple):
     """The optimizer's pure functions (see the module docstring). Signatures:
 
