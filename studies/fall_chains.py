@@ -26,7 +26,6 @@ import argparse
 import pathlib
 
 import numpy as np
-from scipy import stats as scipy_stats
 
 from cpgjax import ablation
 from cpgjax.go1 import model as go1_model
@@ -115,7 +114,7 @@ def report(folder: pathlib.Path) -> str:
     lines = []
     for label, c in chains(study_io.read_trials(folder / "trials.parquet")).items():
         (k_f, n_f), (k_w, n_w) = c["after_fall"], c["after_walk"]
-        p = scipy_stats.fisher_exact([[k_f, n_f - k_f], [k_w, n_w - k_w]]).pvalue if n_f and n_w else np.nan
+        p = stats.fisher_p(k_f, n_f, k_w, n_w)
         contexts = "; ".join(f"{name} median {fallen:.3g} fallen, {walked:.3g} walking"
                              for name, (fallen, walked) in c["contexts"].items())
         lines.append(f"{folder}, {label}: {c['falls']} falls in {c['trials']} optimized trials. A fall after a fall: "

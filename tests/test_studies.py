@@ -279,7 +279,8 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
 def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
     """The transfer table's drops and their tests on hand-made J: 4 seeds per controller, every environment's J drawn
     at random. The worst fixed profile is the away profile with the lowest mean over seeds, the randomized J the mean
-    over the draws; intervals and p-values are recomputed with SciPy (Welch's t, Mann–Whitney's U)."""
+    over the draws; intervals and p-values are recomputed with SciPy (Welch's t, Mann–Whitney's U, Fisher's exact
+    test of the seeds whose gait fell away from home)."""
     from scipy import stats as sp
 
     from cpgjax.go1 import physics as physics_profiles
@@ -291,7 +292,7 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
     rng = np.random.default_rng(3)
     results = {arm: type("Result", (), {"labels": labels}) for arm, _, _ in transfer.ARMS}
     evaluations = {arm: tuple(rng.normal(2.0, 0.3, (len(labels), environments)) for _ in range(3))
-                   + (np.zeros((len(labels), environments)),) for arm, _, _ in transfer.ARMS}
+                   + (rng.random((len(labels), environments)) < 0.08,) for arm, _, _ in transfer.ARMS}
 
     def drops(arm, home, controller):
         j = evaluations[arm][0][[lab["controller"] == controller for lab in labels]]
@@ -300,7 +301,7 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
         worst = away[int(np.argmin(j[:, away].mean(axis=0)))]
         return j[:, h], j[:, worst] - j[:, h], j[:, len(fixed):].mean(axis=1) - j[:, h]
 
-    text = transfer.comparisons(results, evaluations)
+    text, falls = transfer.comparisons(results, evaluations).split("\n\n")
     rows = {tuple(cell.strip() for cell in line.split("|")[1:3]): line for line in text.splitlines()[2:]}
     assert len(rows) == 3 * 3 * 2 + 4 * 2
     for arm, home, randomized in transfer.ARMS:
@@ -319,6 +320,11 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
     home_dr, home_plain = drops("paper_randomized", "paper", "tegotae")[0], drops("paper", "paper", "tegotae")[0]
     line = rows[("tegotae: paper + randomization − paper", "J at home")]
     assert f"| {sp.ttest_ind(home_dr, home_plain, equal_var=False).pvalue:.2g} |" in line
+    # falls away by seed (any away environment; go1's home column is left out), Fisher's exact test
+    fell = evaluations["go1"][3][:, [k for k in range(environments) if k != fixed.index("go1")]].any(axis=1)
+    a, b = fell[[lab["controller"] == "tegotae" for lab in labels]], fell[:seeds]
+    p = sp.fisher_exact([[a.sum(), seeds - a.sum()], [b.sum(), seeds - b.sum()]]).pvalue
+    assert f"| go1 | tegotae | {a.sum()}/{seeds} | {b.sum()}/{seeds} | {p:.2g} |" in falls.splitlines()
     table = transfer.table(results, evaluations)
     home, worst, randomized = drops("go1", "go1", "vmc")
     line = next(r for r in table.splitlines() if r.startswith("| vmc | go1 |"))

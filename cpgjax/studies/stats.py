@@ -131,3 +131,12 @@ def proportion_ci(successes: int, trials: int) -> Interval:
         return Interval(np.nan, np.nan, np.nan, 0)
     ci = stats.binomtest(int(successes), int(trials)).proportion_ci(CONFIDENCE, method="exact")
     return Interval(successes / trials, float(ci.low), float(ci.high), int(trials))
+
+
+def fisher_p(successes_a: int, trials_a: int, successes_b: int, trials_b: int) -> float:
+    """Fisher's exact test (two-sided) of two proportions, successes_a / trials_a against successes_b / trials_b; NaN
+    when either group is empty."""
+    if trials_a <= 0 or trials_b <= 0:
+        return np.nan
+    table = [[int(successes_a), int(trials_a - successes_a)], [int(successes_b), int(trials_b - successes_b)]]
+    return float(stats.fisher_exact(table).pvalue)

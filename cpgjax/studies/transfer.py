@@ -42,10 +42,9 @@ ARMS = (("paper", "paper", False), ("go1", "go1", False), ("paper_randomized", "
 TRAINING_RANDOMIZATION = study_spec.Randomization(seed=0)
 EVALUATION_RANDOMIZATION = study_spec.Randomization(seed=1)
 EVALUATION_DRAWS = 8
-# The paper's 5 seeds by default, not the other studies' 20 (registry.DEFAULT_SEEDS): every seed is 12 optimization
-# runs (3 arms × 4 controllers) whose best gaits are then walked in every evaluation environment. The 5-seed run of
-# docs/REPRODUCTION.md took 13 min on a 2-vCPU machine; 20 seeds would take about four times as long.
-DEFAULT_SEEDS = registry.PAPER_SEEDS
+# The other studies' 20 seeds (registry.DEFAULT_SEEDS): at the paper's 5, the differences between controllers that
+# docs/REPRODUCTION.md reports were not resolved. 20 seeds took 17 min on a 2-vCPU machine (docs/REPRODUCTION.md).
+DEFAULT_SEEDS = registry.DEFAULT_SEEDS
 
 
 def specs(seeds=None, trials=None, quick=False, safe=False) -> list[study_spec.StudySpec]:
@@ -96,11 +95,13 @@ def _best(result) -> np.ndarray:
 
 class _Transfer(NamedTuple):
     """One controller of one arm, per seed (S,): J at home, J under the worst other fixed profile (the one with the
-    lowest mean over seeds), J averaged over the randomized draws, and the drops J away − J at home."""
+    lowest mean over seeds), J averaged over the randomized draws, the drops J away − J at home, and whether the
+    seed's gait fell in any environment away from home."""
 
     home: np.ndarray
     worst_fixed: np.ndarray
     randomized: np.ndarray
+    fell_away: np.ndarray
 
     @property
     def drop_worst_fixed(self) -> np.ndarray:
@@ -116,13 +117,15 @@ def _runs(result, controller: str) -> np.ndarray:
     return np.array([lab["controller"] == controller for lab in result.labels])
 
 
-def _transfer(result, j: np.ndarray, controller: str, home: str) -> _Transfer:
+def _transfer(result, evaluation: tuple, controller: str, home: str) -> _Transfer:
     fixed = list(physics_profiles.PROFILES)
-    jm = j[_runs(result, controller)]
+    runs = _runs(result, controller)
+    jm, fell = evaluation[0][runs], evaluation[3][runs]
     home_col = fixed.index(home)
     away_fixed = [k for k in range(len(fixed)) if k != home_col]
     worst_col = away_fixed[int(np.argmin(jm[:, away_fixed].mean(axis=0)))]
-    return _Transfer(home=jm[:, home_col], worst_fixed=jm[:, worst_col], randomized=jm[:, len(fixed):].mean(axis=1))
+    return _Transfer(home=jm[:, home_col], worst_fixed=jm[:, worst_col], randomized=jm[:, len(fixed):].mean(axis=1),
+                     fell_away=np.delete(fell, home_col, axis=1).any(axis=1))
 
 
 def table(arm_results: dict, evaluations: dict) -> str:
@@ -138,7 +141,7 @@ def table(arm_results: dict, evaluations: dict) -> str:
             result, (j, v, cot, fell) = arm_results[arm], evaluations[arm]
             m = _runs(result, c)
             home_col = fixed.index(home)
-            t = _transfer(result, j, c, home)
+            t = _transfer(result, evaluations[arm], c, home)
             label = home + (" + randomization" if randomized else "")
             away = [k for k in range(j.shape[1]) if k != home_col]
             rows.append(
@@ -161,7 +164,9 @@ def comparisons(arm_results: dict, evaluations: dict) -> str:
 
     - per arm, each controller's drops against open loop's (does feedback make a tuned gait survive better?);
     - per controller, the randomization arm against the ``paper`` arm: J at home (the cost of training under
-      randomization) and the randomized drop (what it buys away from home).
+      randomization) and the randomized drop (what it buys away from home);
+    - per arm, each controller's seeds whose gait fell away from home against open loop's (Fisher's exact test; the
+      unit is the seed, since one gait walks every environment).
     """
     rows = ["| comparison | quantity | difference [95 % CI] | Welch p | Mann–Whitney p | seeds |",
             "|---|---|---|---|---|---|"]
@@ -171,7 +176,7 @@ def comparisons(arm_results: dict, evaluations: dict) -> str:
         rows.append(f"| {name} | {quantity} | {d.difference:+.3f} [{d.low:+.3f}, {d.high:+.3f}] | {d.t_p:.2g} | "
                     f"{d.rank_p:.2g} | {d.n_a} / {d.n_b} |")
 
-    per_arm = {arm: {c: _transfer(arm_results[arm], evaluations[arm][0], c, home) for c in cpg.CONTROLLERS}
+    per_arm = {arm: {c: _transfer(arm_results[arm], evaluations[arm], c, home) for c in cpg.CONTROLLERS}
                for arm, home, _ in ARMS}
     baseline = cpg.CONTROLLERS[0]
     for arm, home, randomized in ARMS:
@@ -186,7 +191,16 @@ def comparisons(arm_results: dict, evaluations: dict) -> str:
         a, b = per_arm[dr][c], per_arm[plain][c]
         row(f"{c}: paper + randomization − paper", "J at home", a.home, b.home)
         row(f"{c}: paper + randomization − paper", "drop: randomized", a.drop_randomized, b.drop_randomized)
-    return "\n".join(rows) + "\n"
+    falls = ["| optimized under | controller | seeds whose gait fell away | open loop's | Fisher p |",
+             "|---|---|---|---|---|"]
+    for arm, home, randomized in ARMS:
+        label = home + (" + randomization" if randomized else "")
+        b = per_arm[arm][baseline].fell_away
+        for c in cpg.CONTROLLERS[1:]:
+            a = per_arm[arm][c].fell_away
+            falls.append(f"| {label} | {c} | {a.sum()}/{a.size} | {b.sum()}/{b.size} | "
+                         f"{stats.fisher_p(a.sum(), a.size, b.sum(), b.size):.2g} |")
+    return "\n".join(rows) + "\n\n" + "\n".join(falls) + "\n"
 
 
 def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
