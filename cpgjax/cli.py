@@ -977,8 +977,8 @@ def _add_study(sub) -> None:
     descriptions[transfer.NAME] = transfer.DESCRIPTION
     s.add_argument("name", choices=sorted(descriptions), help="; ".join(f"{k}: {v}" for k, v in descriptions.items()))
     s.add_argument("--seeds", type=_count(1, maximum=limits.MAX_SEEDS, maximum_reason=limits.MAX_SEEDS_REASON),
-                   default=None, help=f"seeds per group (default: {registry.DEFAULT_SEEDS}, {transfer.NAME} "
-                   f"{transfer.DEFAULT_SEEDS}; --quick {registry.QUICK_SEEDS})")
+                   default=None,
+                   help=f"seeds per group (default: {registry.DEFAULT_SEEDS}; --quick {registry.QUICK_SEEDS})")
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help="trials per run; condition changes scale with it (default: the study's)")
     s.add_argument("--quick", action="store_true", help="fewer seeds and trials")

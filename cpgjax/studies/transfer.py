@@ -42,15 +42,12 @@ ARMS = (("paper", "paper", False), ("go1", "go1", False), ("paper_randomized", "
 TRAINING_RANDOMIZATION = study_spec.Randomization(seed=0)
 EVALUATION_RANDOMIZATION = study_spec.Randomization(seed=1)
 EVALUATION_DRAWS = 8
-# The other studies' 20 seeds (registry.DEFAULT_SEEDS): at the paper's 5, the differences between controllers that
-# docs/REPRODUCTION.md reports were not resolved. 20 seeds took 17 min on a 2-vCPU machine (docs/REPRODUCTION.md).
-DEFAULT_SEEDS = registry.DEFAULT_SEEDS
 
 
 def specs(seeds=None, trials=None, quick=False, safe=False) -> list[study_spec.StudySpec]:
     """One study spec per arm (``safe``: safe optimization in every arm)."""
     n = trials or (12 if quick else 40)
-    seeds = registry.seed_range(seeds, quick, DEFAULT_SEEDS)
+    seeds = registry.seed_range(seeds, quick)  # 20 seeds took 17 min on 2 vCPUs (docs/REPRODUCTION.md)
     return [study_spec.StudySpec(f"transfer_{name}", num_trials=n, controllers=cpg.CONTROLLERS, seeds=seeds,
                                  target_velocity_mps=(TARGET_MPS,), physics=(home,),
                                  randomize=TRAINING_RANDOMIZATION if randomized else None, safe=safe)
