@@ -251,8 +251,9 @@ def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp
 
 
 def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_path, monkeypatch):
-    """Each arm's folder gets best_params/<controller>.json (the run's best gait, tuned for the arm's home physics)
-    and, once table.md is written, best_<controller>.mp4 where this machine can render (else one line says why)."""
+    """Each arm's folder gets best_params/<controller>.json (the run's best gait, tuned for the arm's home physics),
+    evaluations.parquet (the table's rows before aggregation) and, once table.md is written, best_<controller>.mp4
+    where this machine can render (else one line says why)."""
     from cpgjax.studies import transfer
 
     real_specs = transfer.specs
@@ -274,6 +275,17 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
         if filmed:
             assert all(len(iio.imread(study_video.video_file(out / spec.name, c))) == 5 for c in gaits)
     assert filmed or any(line.startswith("no video: ") for line in lines), lines
+    # every run × evaluation environment, documented; the table's J at home is their mean
+    for (arm, home, randomized), spec in zip(transfer.ARMS, tiny(), strict=True):
+        rows = pq.read_table(out / spec.name / "evaluations.parquet").to_pydict()
+        assert undocumented("evaluations.parquet", rows) == []
+        environments = transfer.Environments(home).names
+        assert len(rows["objective"]) == len(cpg.CONTROLLERS) * len(environments)
+        assert rows["environment"][:len(environments)] == environments
+        j_home = np.mean([j for j, c, e in zip(rows["objective"], rows["controller"], rows["environment"], strict=True)
+                          if c == "vmc" and e == home])
+        label = home + (" + randomization" if randomized else "")
+        assert f"| vmc | {label} | {j_home:.3f} [" in text, arm
 
 
 def test_transfer_drops_and_their_tests_over_seeds_match_scipy():

@@ -13,8 +13,9 @@ Each run's best parameters are then walked (a settling trial, then a measured tr
 under ``EVALUATION_DRAWS`` randomized physics (drawn with another seed than any training draw). The table gives, per
 controller and arm, J, velocity, CoT and falls at home and away, and the drop of J. Each arm is its own engine run
 with its own folder and checkpoint below the study's output folder, so ``--resume`` continues where it stopped; each
-arm's folder also holds its trial table, metadata, each controller's best gait (``best_params/<group>.json``) and,
-after the study's table, that gait's video (``best_<group>.mp4``).
+arm's folder also holds its trial table, metadata, each controller's best gait (``best_params/<group>.json``), every
+run's evaluations (``evaluations.parquet``, :func:`write_evaluations`) and, after the study's table, each best gait's
+video (``best_<group>.mp4``).
 """
 
 from __future__ import annotations
@@ -81,6 +82,31 @@ def evaluate(params: np.ndarray, controllers: list[str], env: Environments, tria
     v, cot, j, fell = registry.evaluate(np.repeat(params, count, axis=0), repeated, scenario, trial_config, backend,
                                         TARGET_MPS)
     return tuple(a.reshape(runs, count) for a in (j, v, cot, fell))
+
+
+def write_evaluations(path, result, env: Environments, evaluation: tuple) -> pathlib.Path:
+    """``evaluations.parquet``: one row per (run, environment) of :func:`evaluate`'s results for one arm, run-major
+    (docs/outputs.md). A fixed profile's latency and noise are its own (null)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    j, v, cot, fell = (np.asarray(a) for a in evaluation)
+    runs, count = j.shape
+    per_env = lambda values: np.tile(np.asarray(values), runs)  # noqa: E731
+    latency, noise = per_env(env.latency_ticks).astype(np.int64), per_env(env.noise_scale).astype(np.float64)
+    columns = {
+        "instance": np.repeat(np.arange(runs, dtype=np.int64), count),
+        "controller": np.repeat([lab["controller"] for lab in result.labels], count),
+        "seed": np.repeat(np.array([lab["seed"] for lab in result.labels], np.int64), count),
+        "environment": per_env(env.names), "physics": per_env(env.physics),
+        "friction": per_env(env.friction).astype(np.float64), "payload_kg": per_env(env.payload_kg).astype(np.float64),
+        "mass_scale": per_env(env.mass_scale).astype(np.float64),
+        "latency_ticks": pa.array(latency, mask=latency < 0), "noise_scale": pa.array(noise, mask=noise < 0),
+        "objective": j.ravel().astype(np.float64), "velocity_x_mps": v.ravel().astype(np.float64),
+        "cost_of_transport": cot.ravel().astype(np.float64), "fell": fell.ravel() > 0,
+    }
+    pq.write_table(pa.table(columns), path)
+    return pathlib.Path(path)
 
 
 def _best(result) -> np.ndarray:
@@ -247,6 +273,8 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         arm_results[arm] = result
         evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels],
                                     Environments(home), spec.trial, engine.backend_name)
+        with study_io.writing(out / spec.name, "evaluations.parquet"):
+            write_evaluations(out / spec.name / "evaluations.parquet", result, Environments(home), evaluations[arm])
         wall += result.wall_s
     env, fixed = Environments("paper"), len(physics_profiles.PROFILES)
     draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}" for f, p, s, lat, z in zip(
