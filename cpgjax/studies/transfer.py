@@ -135,6 +135,11 @@ class _Transfer(NamedTuple):
         return self.randomized - self.home
 
 
+def _arm_label(home: str, randomized: bool) -> str:
+    """How the table names where an arm optimized: its home profile, with randomization or not."""
+    return home + (" + randomization" if randomized else "")
+
+
 def _runs(result, controller: str) -> np.ndarray:
     """(R,) bool: the runs of ``controller`` in an arm's result."""
     return np.array([lab["controller"] == controller for lab in result.labels])
@@ -165,7 +170,7 @@ def table(arm_results: dict, evaluations: dict) -> str:
             m = _runs(result, c)
             home_col = fixed.index(home)
             t = _transfer(result, evaluations[arm], c, home)
-            label = home + (" + randomization" if randomized else "")
+            label = _arm_label(home, randomized)
             away = [k for k in range(j.shape[1]) if k != home_col]
             rows.append(
                 f"| {c} | {label} | {stats.mean_ci(t.home)} | "
@@ -203,7 +208,7 @@ def comparisons(arm_results: dict, evaluations: dict) -> str:
                for arm, home, _ in ARMS}
     baseline = cpg.CONTROLLERS[0]
     for arm, home, randomized in ARMS:
-        label = home + (" + randomization" if randomized else "")
+        label = _arm_label(home, randomized)
         for c in cpg.CONTROLLERS[1:]:
             a, b = per_arm[arm][c], per_arm[arm][baseline]
             row(f"{c} − {baseline}, optimized under {label}", "drop: worst fixed", a.drop_worst_fixed,
@@ -217,7 +222,7 @@ def comparisons(arm_results: dict, evaluations: dict) -> str:
     falls = ["| optimized under | controller | seeds whose gait fell away | open loop's | Fisher p |",
              "|---|---|---|---|---|"]
     for arm, home, randomized in ARMS:
-        label = home + (" + randomization" if randomized else "")
+        label = _arm_label(home, randomized)
         b = per_arm[arm][baseline].fell_away
         for c in cpg.CONTROLLERS[1:]:
             a = per_arm[arm][c].fell_away
@@ -271,10 +276,11 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
             study_io.write_metadata(result, out / spec.name / "metadata.json", command=command)
             gaits[arm] = registry.save_best_gaits(out / spec.name, result)
         arm_results[arm] = result
-        evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels],
-                                    Environments(home), spec.trial, engine.backend_name)
+        env = Environments(home)
+        evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels], env, spec.trial,
+                                    engine.backend_name)
         with study_io.writing(out / spec.name, "evaluations.parquet"):
-            write_evaluations(out / spec.name / "evaluations.parquet", result, Environments(home), evaluations[arm])
+            write_evaluations(out / spec.name / "evaluations.parquet", result, env, evaluations[arm])
         wall += result.wall_s
     env, fixed = Environments("paper"), len(physics_profiles.PROFILES)
     draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}" for f, p, s, lat, z in zip(
