@@ -25,11 +25,6 @@ LAST_TRIALS = 5
 CONDITIONS = ("payload_kg", "slope_deg", "friction", "target_velocity_mps", "inference")
 
 
-def load(folder: pathlib.Path) -> dict[str, np.ndarray]:
-    """The folder's ``trials.parquet``, each column (trials, instances)."""
-    return study_io.read_trials(folder / "trials.parquet")
-
-
 def phases(columns, instance: int) -> list[tuple[int, int]]:
     """[start, stop) of each phase of one instance: a new phase wherever any condition changes."""
     fields = [columns[c][:, instance] for c in CONDITIONS]
@@ -66,7 +61,8 @@ def group_keys(columns) -> np.ndarray:
 
 
 def compare(unsafe_dir: pathlib.Path, safe_dir: pathlib.Path) -> str:
-    runs = {"unconstrained": load(unsafe_dir), "safe": load(safe_dir)}
+    runs = {"unconstrained": study_io.read_trials(unsafe_dir / "trials.parquet"),
+            "safe": study_io.read_trials(safe_dir / "trials.parquet")}
     base = runs["unconstrained"]
     groups = group_keys(base)
     lines = [f"Safe (`--safe`, {safe_dir}) against unconstrained ({unsafe_dir}), the same seeds. Per phase: falls in "
