@@ -54,6 +54,8 @@ def main() -> None:
     parser.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes")
     backends.add_backend_argument(parser)
     args = parser.parse_args()
+    if args.backend != "mjx":
+        cpu_dispatch.request_one_pool_thread()  # as the cpgjax commands: the cores for MuJoCo's threads
     if args.processes is not None:
         if args.processes < 1 or args.distributed:
             parser.error(f"--processes {args.processes}: need at least 1, and no --distributed")

@@ -1,6 +1,13 @@
-"""Where a native-backend tick's time goes: the closed-loop trial split into the controller (the tick's one jitted
-JAX call, ``_advance``), the physics step (``BatchPhysics.step``: ``mujoco.batch`` plus its host arithmetic) and
-the rest (record completion, packing the host input, the loop), per batch size.
+"""Where a native-backend tick's time goes: the closed-loop trial split into the controller (the tick's jitted
+``_advance``), the physics step (``BatchPhysics.step``: the batch step plus its host arithmetic) and the rest, per
+batch size.
+
+With the ``ffi`` stepping (the default where it builds) the closed loop is one compiled program per trial, whose
+ticks run the controller and call the physics step through XLA's FFI; its controller is the "controller in a scan"
+column below, and the rest is what the loop, the FFI calls and the alternation (caches, the two kinds of threads)
+add. With the ``batch`` stepping (``--stepping batch``) the host calls the controller once per tick ("controller
+call") and steps the batch between calls; the rest is then the glue (record completion, packing the host input,
+the loop) and the alternation.
 
 Each part is timed on its own over as many calls as the trial has ticks, with the inputs the closed-loop trial gave
 it, tick by tick (the controller with the host inputs the trial packed, the physics with the torques it applied),
@@ -14,6 +21,7 @@ tick to tick as in the trial: with one input for every tick, XLA hoists the obse
 the scan then times a part of the controller only (about 0.6 of it at batch 64).
 
     JAX_PLATFORMS=cpu python benchmarks/native_tick.py [--batch-sizes 16,20,64] [--steps 400] [--repeats 3]
+                                                        [--stepping ffi|batch]
 
 The last line of the output is a JSON object of the figures.
 """
@@ -30,7 +38,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 from cpgjax.robot import cpu_dispatch  # noqa: E402
 
-cpu_dispatch.request_inline()  # as every cpgjax command: the per-tick JAX call runs inline
+cpu_dispatch.request_inline()  # as every cpgjax command: the per-tick JAX call runs inline,
+cpu_dispatch.request_one_pool_thread()  # and XLA's pool leaves the cores to MuJoCo's threads
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -49,12 +58,12 @@ def _best(run, repeats: int) -> float:
     return min(run() for _ in range(repeats))
 
 
-def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
+def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str) -> dict:
     """µs per tick of the closed loop, its controller call and its physics step (see the module docstring)."""
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
     sim = native_go1.NativeBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics),
-                                   trial_config=config)
+                                   trial_config=config, stepping=stepping)
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
 
@@ -74,7 +83,8 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
         return native_go1._Carry(controller=controller.copy(), pending=jnp.zeros(program.pending_size),
                                  step=jnp.int32(0), rows=jnp.zeros((steps, program.row_size)))
 
-    # The host inputs and torques of the closed-loop trial, tick by tick (the loop of NativeBackend._run, recorded).
+    # The host inputs and torques of the closed-loop trial, tick by tick (the per-tick loop of NativeBackend._run,
+    # recorded; with the ffi stepping its step is called from Python).
     host_inputs = np.empty((steps, *sim._host_in.shape), np.float32)
     torques = np.empty((steps, batch, 12))
     sim.physics.set_state(state.physics, state.warmstart, state.sensordata)
@@ -119,7 +129,8 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str) -> dict:
     per_tick = {name: 1e6 * _best(run, repeats) / steps for name, run in
                 (("closed_loop", closed_loop), ("controller", controller_calls), ("physics", physics_steps),
                  ("controller_scan", controller_scan))}
-    per_tick["rest"] = per_tick["closed_loop"] - per_tick["controller"] - per_tick["physics"]  # the scan is apart
+    controller = per_tick["controller_scan" if stepping == "ffi" else "controller"]  # what the closed loop runs
+    per_tick["rest"] = per_tick["closed_loop"] - controller - per_tick["physics"]
     sim.physics.close()
     return {**{f"{k}_us": round(v, 1) for k, v in per_tick.items()},
             "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]), "threads": sim.physics.nthread}
@@ -131,19 +142,22 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=400, help="ticks per timed run")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--physics", default=physics_profiles.PAPER_STUDIES_PROFILE, choices=physics_profiles.PROFILES)
+    parser.add_argument("--stepping", choices=("ffi", "batch"), default=None,
+                        help="the native backend's stepping (default: native.default_stepping())")
     args = parser.parse_args()
+    stepping = args.stepping or native_go1.default_stepping()
     if min(args.batch_sizes) < 1 or args.steps < 4 or args.repeats < 1:
         parser.error(f"--batch-sizes {args.batch_sizes}, --steps {args.steps}, --repeats {args.repeats}: need "
                      "batch sizes ≥ 1, steps ≥ 4, repeats ≥ 1")
     load_start = os.getloadavg()[0]
-    print(f"# {provenance.machine()}, {native_go1.available_cores()} cores, {args.physics} physics, {args.steps} "
-          f"ticks, best of {args.repeats}, load average {load_start:.1f}")
+    print(f"# {provenance.machine()}, {native_go1.available_cores()} cores, {args.physics} physics, {stepping} "
+          f"stepping, {args.steps} ticks, best of {args.repeats}, load average {load_start:.1f}")
     print("| batch | threads | closed loop [µs/tick] | controller call [µs] | controller in a scan [µs/tick] "
           "| physics step [µs] | rest [µs] | env-steps/s |\n|---|---|---|---|---|---|---|---|")
     figures = {"benchmark": "native_tick", "machine": provenance.machine(), "physics": args.physics,
-               "steps": args.steps, "repeats": args.repeats}
+               "stepping": stepping, "steps": args.steps, "repeats": args.repeats}
     for b in args.batch_sizes:
-        r = breakdown(b, args.steps, args.repeats, args.physics)
+        r = breakdown(b, args.steps, args.repeats, args.physics, stepping)
         print(f"| {b} | {r['threads']} | {r['closed_loop_us']:.0f} | {r['controller_us']:.0f} "
               f"| {r['controller_scan_us']:.0f} | {r['physics_us']:.0f} | {r['rest_us']:.0f} "
               f"| {r['env_steps_per_s']:,} |", flush=True)

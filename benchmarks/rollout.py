@@ -44,6 +44,7 @@ from mujoco import rollout as mj_rollout
 from cpgjax import mjx_go1, provenance
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.robot import cpu_dispatch
 from cpgjax.sim import backends
 from cpgjax.sim import native as native_go1
 from cpgjax.trial import params as param_space
@@ -236,15 +237,18 @@ def main() -> None:
     parser.add_argument("--profiles", help="comma list of physics profiles: time only their closed loops (ratios "
                         "against the first)")
     parser.add_argument("--native-only", action="store_true", help="only the native closed loop against its limit")
-    parser.add_argument("--steppings", type=lambda s: s.split(","), default=[native_go1.DEFAULT_STEPPING],
+    parser.add_argument("--steppings", type=lambda s: s.split(","), default=[native_go1.default_stepping()],
                         help="comma list of the native backend's steppings to time against the limit "
-                        f"(of {native_go1.STEPPINGS}; default {native_go1.DEFAULT_STEPPING})")
+                        f"(of {native_go1.STEPPINGS}; default {native_go1.default_stepping()})")
     parser.add_argument("--physics", default=physics_profiles.PAPER_STUDIES_PROFILE, choices=physics_profiles.PROFILES,
                         help="physics profile of the native closed loop and its limit (default: the studies')")
     args = parser.parse_args()
     unknown = [name for name in args.steppings if name not in native_go1.STEPPINGS]
     if unknown:
         parser.error(f"--steppings {','.join(args.steppings)}: unknown {unknown}; allowed: {native_go1.STEPPINGS}")
+    if args.native_only:  # as the cpgjax commands: per-tick calls inline, the cores for MuJoCo's threads
+        cpu_dispatch.request_inline()
+        cpu_dispatch.request_one_pool_thread()
     jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
     batches = args.batch_sizes or ([16] if args.quick else [1, 4, 16, 64, 256])
     steps = args.steps or (400 if args.quick else 2000)

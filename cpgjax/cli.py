@@ -1116,8 +1116,11 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     args.command_line = "cpgjax " + shlex.join(argv)  # metadata.json and the resume hint
     args.argv = argv  # `study --processes N` starts the same command line N times
-    # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline.
+    # Before any JAX computation: the native backend's and the robot loop's per-tick controller calls run inline, and
+    # XLA's CPU pool leaves the cores to the native backend's physics threads (all but an explicit MJX run).
     cpu_dispatch.request_inline()
+    if getattr(args, "backend", "auto") != "mjx":
+        cpu_dispatch.request_one_pool_thread()
     with _CtrlC() as args.ctrl_c:  # study, optimize, demo: check it after every trial
         code = args.func(args)
     if args.ctrl_c.requested and code == 0:  # lost after the last trial's check: the outputs are written

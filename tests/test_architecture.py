@@ -26,7 +26,7 @@ LAYERS = (
     ("trial", ("trial.limits", "trial.protocol", "trial.objective", "trial.tuned")),
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
     ("optimizer setting", ("trial.optimizer_setting",)),
-    ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.backends", "sim.walk")),
+    ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.ffi_step", "sim.backends", "sim.walk")),
     ("study definitions and files", ("study.spec", "study.scene", "study.files")),
     ("the study engine", ("ablation",)),
     ("studies", ("studies.stats", "studies.renderer", "studies.video", "studies.viewer", "studies.figures",

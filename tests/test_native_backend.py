@@ -43,9 +43,9 @@ def _figures(record) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize("stepping", native_go1.STEPPINGS)
 def test_batched_steps_equal_a_persistent_mj_step_loop(stepping):
-    """BatchPhysics (``mujoco.batch`` in place, or one ``mujoco.rollout`` call per step; warm start rebuilt from the
-    states) against a plain ``mj_step`` loop on one persistent MjData, with the same PD torques: equal to float64
-    rounding (the loop warm-starts with MuJoCo's own acceleration, which differs in the last bits)."""
+    """BatchPhysics (the FFI step, ``mujoco.batch`` in place, or one ``mujoco.rollout`` call per step; warm start
+    rebuilt from the states) against a plain ``mj_step`` loop on one persistent MjData, with the same PD torques:
+    equal to float64 rounding (the loop warm-starts with MuJoCo's own acceleration, which differs in the last bits)."""
     scenario = go1_model.make_scenarios(friction=[0.6, 0.3], slope_deg=[0.0, 5.0], payload_kg=[0.0, 7.5])
     batch = native_go1.BatchPhysics(scenario, stepping=stepping)
     assert batch.stepping == stepping
@@ -58,7 +58,8 @@ def test_batched_steps_equal_a_persistent_mj_step_loop(stepping):
     q_stand = go1_model.standing_qpos()[ids.joint_qpos]
     for k in range(300):
         q, dq = batch.physics[:, lay.qpos][:, ids.joint_qpos], batch.physics[:, lay.qvel][:, ids.joint_dof]
-        torque = 70.0 * (q_stand + 0.2 * np.sin(0.02 * k) - q) - 1.3 * dq
+        # float32, as the controller's torques (the ffi stepping takes float32)
+        torque = (70.0 * (q_stand + 0.2 * np.sin(0.02 * k) - q) - 1.3 * dq).astype(np.float32)
         assert not batch.step(torque).any()
         for i, d in enumerate(reference):
             d.ctrl[ids.actuator] = torque[i]

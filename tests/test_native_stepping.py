@@ -1,11 +1,18 @@
-"""The native backend's in-place stepping (``mujoco.batch``) against its reference, one ``mujoco.rollout`` call per
-step (``cpgjax.sim.native.STEPPINGS``): whole studies, compared by the bytes of the ``trials.parquet`` they write.
+"""The native backend's steppings (``cpgjax.sim.native.STEPPINGS``) against each other.
 
-The two steppings run the same C MuJoCo ``mj_step`` on the same per-instance models from the same states, controls
-and warm starts (docs/backends.md), so nothing is allowed to differ: not a bit of any trial's figures, parameters or
-optimizer decisions, and not the states they leave. Studies are short (few trials of 0.18 s, a small optimizer)
-and cover a controller ablation and a load adaptation whose payload changes twice (a new batch of models each
-time), at batch 1, 20 and 64.
+- ``batch`` (``mujoco.batch`` from Python, one jitted call per tick) against its reference, one ``mujoco.rollout``
+  call per step: whole studies, compared by the bytes of the ``trials.parquet`` they write. The two run the same C
+  MuJoCo ``mj_step`` on the same per-instance models from the same states, controls and warm starts
+  (docs/backends.md), so nothing is allowed to differ: not a bit of any trial's figures, parameters or optimizer
+  decisions, and not the states they leave. Studies are short (few trials of 0.18 s, a small optimizer) and cover a
+  controller ablation and a load adaptation whose payload changes twice (a new batch of models each time), at batch
+  1, 20 and 64.
+- ``ffi`` (``cpgjax.sim.ffi_step``: the step in C++, called from inside one compiled program per trial): its
+  physics step, from Python and through the FFI, equals the reference's bit for bit for the same torques. Its
+  trials do not equal the per-tick ones bit for bit: XLA compiles the controller inside the trial's loop into other
+  kernels than the per-tick call, which round some results differently in the last bit (as a different number of
+  XLA threads does to the per-tick call itself), and the dynamics amplify such differences. The last test bounds
+  them.
 """
 
 import jax
@@ -15,6 +22,7 @@ import pytest
 from cpgjax import ablation, cpg, gp
 from cpgjax.go1 import model as go1_model
 from cpgjax.optim import acquisition
+from cpgjax.sim import ffi_step
 from cpgjax.sim import native as native_go1
 from cpgjax.study import files as study_io
 from cpgjax.study.spec import Change, Schedule, StudySpec
@@ -22,6 +30,8 @@ from cpgjax.trial import optimizer_setting, protocol
 
 TRIAL = protocol.TrialConfig(transition_steps=60, steady_steps=120)
 TRIALS = 4
+needs_ffi = pytest.mark.skipif(not ffi_step.available(), reason="the native physics step could not be built here "
+                               "(no C++ compiler, or the build failed: see the warning it logs)")
 
 
 def _optimizer():
@@ -44,7 +54,7 @@ def _spec(study: str, batch: int) -> StudySpec:
 def _run(engine: ablation.Engine, stepping: str, out, monkeypatch):
     """The whole study with ``stepping``; one engine for both steppings (its optimizer compiles once), whose
     simulator is made afresh for each run (``Engine.simulator`` keeps it from trial to trial)."""
-    monkeypatch.setattr(native_go1, "DEFAULT_STEPPING", stepping)
+    monkeypatch.setattr(native_go1, "default_stepping", lambda: stepping)
     engine._sim = None
     result = engine.run()
     sim = engine.simulator(TRIALS - 1)
@@ -67,14 +77,15 @@ def test_a_study_writes_the_same_bytes_with_either_stepping(study, batch, tmp_pa
         np.testing.assert_array_equal(a, b)
 
 
-def test_both_steppings_step_and_reset_a_diverged_instance_alike(tmp_path, monkeypatch):
+@pytest.mark.parametrize("stepping", ["batch", pytest.param("ffi", marks=needs_ffi)])
+def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(stepping, tmp_path, monkeypatch):
     """The physics alone, 200 PD-driven steps of three scenarios with instance 1 sent to an infinite velocity at
     step 50: every array equal bit for bit after every step, and the diverged instance flagged once and back to
     standing."""
     monkeypatch.chdir(tmp_path)  # MuJoCo logs its instability warning to ./MUJOCO_LOG.TXT
     scenario = go1_model.make_scenarios(friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0],
                                         payload_kg=[0.0, 7.5, 15.0], physics="paper")
-    ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("rollout", "batch"))
+    ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("rollout", stepping))
     ids = go1_model.indices()
     q_stand = go1_model.standing_qpos()[ids.joint_qpos]
     flagged = []
@@ -92,8 +103,59 @@ def test_both_steppings_step_and_reset_a_diverged_instance_alike(tmp_path, monke
         flagged += [k] * int(failed_new[1])
     assert flagged == [50]
     ref.close()
+    new.close()
 
 
 def test_an_unknown_stepping_is_refused_with_the_allowed_ones():
-    with pytest.raises(ValueError, match=r"stepping 'threads': allowed \('batch', 'rollout'\)"):
+    with pytest.raises(ValueError, match=r"stepping 'threads': allowed \('ffi', 'batch', 'rollout'\)"):
         native_go1.BatchPhysics(go1_model.make_scenarios(friction=[0.6]), stepping="threads")
+
+
+@needs_ffi
+def test_the_step_called_inside_a_compiled_loop_equals_the_reference():
+    """The FFI path itself: 100 steps with a random torque sequence inside one jitted ``fori_loop``
+    (``ffi_step.call``), against the ``batch`` stepping from Python: every step's output is the reference's state
+    packed as the controller reads it (float32 [physics | sensor data | failed]), and the states after the loop are
+    equal bit for bit."""
+    scenario = go1_model.make_scenarios(friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0],
+                                        payload_kg=[0.0, 7.5, 15.0], physics="paper")
+    ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
+    torques = np.random.default_rng(0).normal(scale=3.0, size=(100, 3, 12)).astype(np.float32)
+    shape = (3, new.layout.size + new.sensordata.shape[1] + 1)
+
+    @jax.jit
+    def run(handle, torques):
+        def step(k, outputs):
+            return outputs.at[k].set(ffi_step.call(handle, torques[k], shape))
+        return jax.lax.fori_loop(0, len(torques), step, jax.numpy.zeros((len(torques), *shape)))
+
+    outputs = np.asarray(run(new.ffi_handle, torques))
+    for k, torque in enumerate(torques):
+        failed = ref.step(torque)
+        expected = np.concatenate([ref.physics, ref.sensordata, failed[:, None]], axis=1).astype(np.float32)
+        np.testing.assert_array_equal(outputs[k], expected)
+    for a, b in zip(new.get_state(), ref.get_state(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    new.close()
+
+
+@needs_ffi
+def test_an_ffi_trial_follows_the_per_tick_trial_to_rounding_until_the_dynamics_amplify_it(native_sim, mid_params,
+                                                                                          vmc_tegotae_gates):
+    """The session batch (nominal, 15 kg, uphill, μ = 0.1, coarse, nominal) from standing, 300 logged ticks with
+    each stepping from the same state: every logged quantity (state, torques, foot forces and positions, CPG, foot
+    targets, attitude) agrees within 1e-4 of its size (of 1 where smaller). Measured: at most 1.0e-5 (torques),
+    1.3e-6 (velocities), 1.2e-7 (positions); 3.3e-5 after 1,000 ticks. Over a trial the trajectories part further
+    (contact decided a tick apart), as between the engines (docs/backends.md): the trials are samples of the same
+    noisy objective."""
+    logs = []
+    for stepping in ("batch", "ffi"):
+        sim = native_go1.NativeBackend(native_sim.scenario, trial_config=native_sim.trial_config, stepping=stepping)
+        _, log = sim.rollout(sim.reset(mid_params), mid_params, vmc_tegotae_gates, num_steps=300)
+        logs.append(log)
+        sim.physics.close()
+    for name, per_tick, fused in zip(protocol.StepLog._fields, *logs, strict=True):
+        per_tick, fused = np.asarray(per_tick), np.asarray(fused)
+        assert np.all(np.isfinite(fused)), name
+        np.testing.assert_array_less(np.abs(fused - per_tick), 1e-4 * np.maximum(np.abs(per_tick), 1.0),
+                                     err_msg=name)

@@ -1,4 +1,5 @@
-"""Run JAX's CPU computations on the calling thread (``jax_cpu_enable_async_dispatch = False``).
+"""Run JAX's CPU computations on the calling thread (``jax_cpu_enable_async_dispatch = False``), and give XLA's CPU
+thread pool one thread where C MuJoCo's threads need the cores (:func:`request_one_pool_thread`).
 
 Two parts of cpgjax make one small JAX call per 1 ms control tick: the native backend's controller step and the
 robot loop's compiled controller. With JAX's default asynchronous CPU dispatch each call is handed to an XLA worker
@@ -9,9 +10,15 @@ priority inversion that a loaded machine turns into milliseconds. MJX rollouts a
 
 from __future__ import annotations
 
+import os
+
 import jax
 
 from cpgjax import jax_internals
+
+# XLA sizes its CPU client's intra-op thread pool from this environment variable when it is set, else from the cores
+# it may use (``DefaultThreadPoolSize`` in XLA's xla/pjrt/utils.cc); it reads it once, when JAX creates the client.
+POOL_SIZE_VARIABLE = "NPROC"
 
 
 def request_inline() -> bool:
@@ -26,3 +33,20 @@ def request_inline() -> bool:
     was_inline = not jax.config.read("jax_cpu_enable_async_dispatch")
     jax.config.update("jax_cpu_enable_async_dispatch", False)
     return was_inline or not jax_internals.cpu_client_exists()
+
+
+def request_one_pool_thread() -> bool:
+    """Ask for an XLA CPU thread pool of one thread; return whether it is in effect. Call at program start, as
+    :func:`request_inline` (after JAX has computed anything it returns False); a size the environment already sets
+    is kept.
+
+    The native backend runs its trial as one XLA program whose physics step runs on MuJoCo's batch threads, one per
+    core (``cpgjax.sim.ffi_step``). XLA's own pool, one thread per core by default, wakes for the controller's small
+    kernels between the steps, and its threads hold the cores that MuJoCo's need: on 2 cores a tick takes 1.4-1.6x
+    as long (docs/backends.md). So cpgjax commands that run the native backend ask for one pool thread; commands on
+    MJX keep XLA's default.
+    """
+    if jax_internals.cpu_client_exists():
+        return False
+    os.environ.setdefault(POOL_SIZE_VARIABLE, "1")
+    return os.environ[POOL_SIZE_VARIABLE] == "1"

@@ -6,10 +6,13 @@ Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, 
 arrays are allocated once and reused; the solver is warm-started from the previous step's acceleration as a
 persistent ``mj_step`` loop would be.
 
-Control: one jitted, vmapped call per control tick for the whole batch runs the shared sensor model
-(``cpgjax.go1.sensors.observe``) and controller (``cpg.controller_step``) and writes the tick's record into a device
-buffer that is donated from call to call (updated in place). At the end of a trial the buffer is summarized by
-``protocol.summarize``, so a record means the same thing whichever backend produced it.
+Control: a jitted, vmapped tick for the whole batch runs the shared sensor model (``cpgjax.go1.sensors.observe``)
+and controller (``cpg.controller_step``) and writes the tick's record into a device buffer. With the ``ffi``
+stepping (the default where ``cpgjax.sim.ffi_step`` builds) the whole trial is one compiled program: a
+``lax.fori_loop`` whose body is the tick and the physics step, called through XLA's FFI. Otherwise the host calls
+the tick once per control tick and steps the batch between calls, the buffer donated from call to call (updated in
+place). At the end of a trial the buffer is summarized by ``protocol.summarize``, so a record means the same thing
+whichever backend produced it.
 
 Tick k is, as in the MJX backend (``cpgjax.mjx_go1``): observe S_k → controller → torque_k → physics step → S_{k+1}
 → record k.
@@ -43,6 +46,7 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import sensors
+from cpgjax.sim import ffi_step
 from cpgjax.sim.base import Backend
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
@@ -52,8 +56,14 @@ from cpgjax.trial import protocol
 CLOCK_START_S = 1.0
 _PHYSICS_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS.value  # time, qpos, qvel (the Go1 has no act, mocap, ...)
 _CTRL_SPEC = mujoco.mjtState.mjSTATE_CTRL.value
-STEPPINGS = ("batch", "rollout")  # how BatchPhysics steps (see there): mujoco.batch, or the mujoco.rollout reference
-DEFAULT_STEPPING = "batch"
+# How BatchPhysics steps (see there): the FFI step inside one program per trial, mujoco.batch from Python, or the
+# mujoco.rollout reference.
+STEPPINGS = ("ffi", "batch", "rollout")
+
+
+def default_stepping() -> str:
+    """``"ffi"`` where its library builds on this machine (``ffi_step.available``), else ``"batch"``."""
+    return "ffi" if ffi_step.available() else "batch"
 
 
 def available_cores() -> int:
@@ -94,21 +104,24 @@ class BatchPhysics:
     """B C-MuJoCo Go1s (one scenario each) stepped together, one physics step per :meth:`step`.
 
     The current state lives in host arrays allocated once: ``physics`` (B, nstate), ``sensordata`` (B, nsensordata)
-    and ``warmstart`` (B, nv). ``stepping`` chooses how a step runs (``STEPPINGS``):
+    and ``warmstart`` (B, nv). ``stepping`` chooses how a step runs (``STEPPINGS``; default :func:`default_stepping`):
 
-    - ``"batch"`` (default): ``mujoco.batch.Batch``, whose state rows (``mjSTATE_INTEGRATION``: clock, qpos, qvel,
+    - ``"ffi"``: ``ffi_step.Stepper``, MuJoCo's batch API in C (``mjbatch.h``) with this method's host arithmetic in
+      C++ (batch_step.cc), its rows and sensor data these arrays; the native backend calls it from inside the
+      compiled trial, :meth:`step` from Python;
+    - ``"batch"``: ``mujoco.batch.Batch``, whose state rows (``mjSTATE_INTEGRATION``: clock, qpos, qvel,
       warm start, controls, ...) *are* these arrays, stepped in place on a persistent pool of one thread per core
       with one model variant per instance (``set_models``);
     - ``"rollout"``: one ``mujoco.rollout`` call per step (``nstep=1``) into a second state buffer, the reference
       that tests/test_native_backend.py checks the batch stepping against, byte for byte.
 
-    Both warm-start the solver with the step's acceleration recovered from the states, (q̇' − q̇)/h (see
+    All warm-start the solver with the step's acceleration recovered from the states, (q̇' − q̇)/h (see
     :meth:`step`), so they run the same arithmetic. Used by the native backend only (the loopback simulated Go1
     steps its own ``mj_step``).
     """
 
     def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None, stepping: str | None = None):
-        stepping = DEFAULT_STEPPING if stepping is None else stepping
+        stepping = default_stepping() if stepping is None else stepping
         if stepping not in STEPPINGS:
             raise ValueError(f"stepping {stepping!r}: allowed {STEPPINGS}")
         self.scenario = scenario
@@ -137,7 +150,20 @@ class BatchPhysics:
             mujoco.mj_getState(mi, d, self.standing_physics[i], _PHYSICS_SPEC)
             self.standing_sensordata[i] = d.sensordata
 
-        self.sensordata = self.standing_sensordata.copy()
+        if stepping == "ffi":
+            rows = _RowLayout.of(m, mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_INTEGRATION.value))
+            offsets = ffi_step.RowOffsets(nphysics=self.layout.size, qvel_at=self.layout.qvel.start, nv=m.nv,
+                                          warmstart_at=rows.warmstart.start, ctrl_at=rows.ctrl.start,
+                                          nsensordata=m.nsensordata)
+            self._stepper = ffi_step.Stepper(self.models, self.nthread, offsets, self.actuator, self.standing_physics,
+                                             self.standing_sensordata)
+            self.physics = self._stepper.rows[:, rows.physics]  # views of the library's arrays
+            self.warmstart = self._stepper.rows[:, rows.warmstart]
+            self.sensordata = self._stepper.sensordata
+            np.copyto(self.physics, self.standing_physics)
+            np.copyto(self.sensordata, self.standing_sensordata)
+        else:
+            self.sensordata = self.standing_sensordata.copy()
         if stepping == "batch":
             self._batch = mj_batch.Batch(m, batch, nthread=self.nthread)
             self._batch.set_models(self.models)
@@ -149,7 +175,7 @@ class BatchPhysics:
             self._step_sensordata = self._batch.bind("sensordata")  # refreshed by every step
             self._before = np.empty((batch, self.layout.size))  # the state before the step
             np.copyto(self.physics, self.standing_physics)
-        else:
+        elif stepping == "rollout":
             self._chunk = -(-batch // self.nthread)  # one contiguous chunk per thread: least pool overhead
             self._pool = mj_rollout.Rollout(nthread=self.nthread if self.nthread > 1 else 0)
             self._data = [mujoco.MjData(m) for _ in range(self.nthread)]
@@ -162,6 +188,11 @@ class BatchPhysics:
     @property
     def batch_size(self) -> int:
         return self.scenario.batch_size
+
+    @property
+    def ffi_handle(self) -> np.ndarray:
+        """The stepper's name for ``ffi_step.call`` (the ``ffi`` stepping only)."""
+        return self._stepper.handle
 
     def set_state(self, physics: np.ndarray, warmstart: np.ndarray, sensordata: np.ndarray) -> None:
         np.copyto(self.physics, physics)
@@ -185,6 +216,8 @@ class BatchPhysics:
 
         Returns the (B,) bool mask of instances that diverged during the step; they are already reset to standing.
         """
+        if self.stepping == "ffi":
+            return self._stepper.step(torque_nm)
         self._ctrl[:, self.actuator] = torque_nm
         if self.stepping == "batch":
             before, after = self._before, self.physics
@@ -214,6 +247,8 @@ class BatchPhysics:
         """Release the thread pool (the batch's goes with the object)."""
         if self.stepping == "rollout":
             self._pool.close()
+        elif self.stepping == "ffi":
+            self._stepper.close()
 
 
 class _RowLayout(NamedTuple):
@@ -322,6 +357,7 @@ class _Program(NamedTuple):
     row_size: int  # length of a flat row
     advance: Callable  # jitted _advance: finish row k−1, control tick k
     complete: Callable  # jitted _complete: finish the last row
+    run: Callable  # jitted _run_ffi: every tick and physics step of a run (the ffi stepping)
     summarize: Callable  # jitted _summarize: flat rows → trial records
 
 
@@ -368,6 +404,20 @@ def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, c
                                                     qpos, qvel, sensordata)
     return _Carry(controller=ravel_pytree(controller)[0], pending=ravel_pytree(pending)[0], step=carry.step + 1,
                   rows=carry.rows), torque
+
+
+def _run_ffi(advance: Callable, complete: Callable, num_steps: int, handle, consts_flat, carry: _Carry,
+             host_in) -> _Carry:
+    """A run's ``num_steps`` ticks in one program: each tick's ``_advance``, then the physics step through the FFI
+    (``ffi_step.call``), whose output is the next tick's host input; then ``_complete``. ``handle`` names the
+    stepper (``ffi_step.Stepper.handle``)."""
+    def tick(_, loop):
+        carry, host_in = loop
+        carry, torque = advance(consts_flat, carry, host_in)
+        return carry, ffi_step.call(handle, torque, host_in.shape)
+
+    carry, host_in = jax.lax.fori_loop(0, num_steps, tick, (carry, host_in))
+    return complete(consts_flat, carry, host_in)
 
 
 def _summarize(trial_config: protocol.TrialConfig, dt_s: float, unravel_row: Callable, rows,
@@ -465,10 +515,13 @@ class NativeBackend(Backend):
             advance = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing)
             complete = functools.partial(_complete, trial_config, recorder, packing)
             summarize = functools.partial(_summarize, trial_config, self.cpg_config.dt_s, packing.row)
+            run = functools.partial(_run_ffi, advance, complete,
+                                    trial_config.transition_steps + trial_config.steady_steps)
             self._compiled[key] = _Program(
                 packing=packing, pending_size=ravel_pytree(zeros(pending))[0].size,
                 row_size=ravel_pytree(zeros(row))[0].size, advance=jax.jit(advance, donate_argnums=(1,)),
-                complete=jax.jit(complete, donate_argnums=(1,)), summarize=jax.jit(summarize))
+                complete=jax.jit(complete, donate_argnums=(1,)), run=jax.jit(run, donate_argnums=(2,)),
+                summarize=jax.jit(summarize))
         return self._compiled[key]
 
     def _pack_host_inputs(self, failed: np.ndarray) -> np.ndarray:
@@ -491,6 +544,12 @@ class NativeBackend(Backend):
                        pending=jnp.zeros(program.pending_size), step=jnp.int32(0),
                        rows=jnp.zeros((num_steps, program.row_size)))
         failed = np.zeros(self.batch_size, bool)
+        if p.stepping == "ffi":
+            carry = program.run(p.ffi_handle, consts_flat, carry, self._pack_host_inputs(failed))
+            # The program steps the physics arrays in place: done before anything reads or frees them (JAX may
+            # return before a computation finishes).
+            carry = jax.block_until_ready(carry)
+            return program.packing.controller(carry.controller), carry.rows
         advance = program.advance  # one attribute lookup, not one per tick
         for _ in range(num_steps):
             carry, torque = advance(consts_flat, carry, self._pack_host_inputs(failed))

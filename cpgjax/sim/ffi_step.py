@@ -1,0 +1,184 @@
+"""The native backend's physics step as an XLA FFI target, so that a whole trial is one compiled JAX program.
+
+``batch_step.cc`` steps a batch of C-MuJoCo Go1s in place with MuJoCo's batch API (``mujoco/mjbatch.h``: one
+thread per core, one model variant per instance) and does the step's host arithmetic of
+``cpgjax.sim.native.BatchPhysics.step`` (the failure test on the clock, the recovered warm start, the reset of a
+failed instance) in the same order and precision. Registered with ``jax.ffi``, it is called from inside a
+``lax.fori_loop`` over the trial's ticks: the controller, the physics step and the record then alternate inside
+one XLA program, with no Python, dispatch or host copy between them (docs/backends.md).
+
+The library is compiled once per machine, with the system's C++ compiler, against the headers of the installed
+``mujoco`` and ``jaxlib`` wheels, into a cache (``CPGJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/cpgjax``, else
+``~/.cache/cpgjax``), under a name that hashes the source, the compiler and both wheels' versions. Without a
+compiler (or if the build fails) :func:`load` logs why in one line and returns None, and the native backend steps
+tick by tick from Python instead (``native.default_stepping``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import logging
+import os
+import pathlib
+import shutil
+import subprocess
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import jaxlib
+import mujoco
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+SOURCE = pathlib.Path(__file__).with_name("batch_step.cc")
+TARGET = "cpgjax_batch_step"  # the FFI target's name, as the library's symbol
+
+
+def cache_dir() -> pathlib.Path:
+    if os.environ.get("CPGJAX_CACHE_DIR"):
+        return pathlib.Path(os.environ["CPGJAX_CACHE_DIR"])
+    return pathlib.Path(os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache") / "cpgjax"
+
+
+def _compiler() -> str | None:
+    return shutil.which(os.environ.get("CXX", "c++")) or shutil.which("g++") or shutil.which("clang++")
+
+
+def _mujoco_library() -> pathlib.Path:
+    """The libmujoco shared library of the installed wheel (the one the ``mujoco`` module has loaded)."""
+    found = sorted(pathlib.Path(mujoco.__file__).parent.glob("libmujoco.so*"))
+    if not found:
+        raise FileNotFoundError(f"no libmujoco.so* beside {mujoco.__file__}")
+    return found[-1]
+
+
+def _command(compiler: str, output: pathlib.Path) -> list[str]:
+    lib = _mujoco_library()
+    return [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-w", f"-I{jax.ffi.include_dir()}",
+            f"-I{lib.parent / 'include'}", str(SOURCE), "-o", str(output), f"-L{lib.parent}", f"-l:{lib.name}",
+            f"-Wl,-rpath,{lib.parent}"]
+
+
+def library_path(compiler: str) -> pathlib.Path:
+    digest = hashlib.sha256()
+    for part in (SOURCE.read_bytes(), compiler.encode(), mujoco.__version__.encode(), jaxlib.__version__.encode()):
+        digest.update(part)
+    return cache_dir() / f"batch_step-{digest.hexdigest()[:16]}.so"
+
+
+def _build(compiler: str, path: pathlib.Path) -> None:
+    """Compile into a temporary file beside ``path`` and move it there: processes that build at once each finish
+    with a whole library."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    log.info("building the native physics step (once per machine): %s", path)
+    with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+        output = pathlib.Path(tmp) / path.name
+        done = subprocess.run(_command(compiler, output), capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"{compiler} exited with {done.returncode}: {done.stderr.strip()[-500:]}")
+        os.replace(output, path)
+
+
+@functools.cache
+def load() -> ctypes.CDLL | None:
+    """The built library with its FFI target registered, or None (logged) where it cannot be built."""
+    compiler = _compiler()
+    if compiler is None:
+        log.warning("no C++ compiler (CXX, c++, g++, clang++): the native backend steps tick by tick from Python, "
+                    "about 1.5-2x slower (docs/backends.md)")
+        return None
+    path = library_path(compiler)
+    try:
+        if not path.exists():
+            _build(compiler, path)
+        lib = ctypes.CDLL(str(path))
+    except (OSError, RuntimeError, FileNotFoundError) as err:
+        log.warning("the native physics step could not be built (%s): the native backend steps tick by tick from "
+                    "Python instead (docs/backends.md)", err)
+        return None
+    lib.cpgjax_stepper_new.restype = ctypes.c_void_p
+    lib.cpgjax_stepper_new.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p,
+                                       ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_char_p, ctypes.c_int]
+    for name in ("cpgjax_stepper_rows", "cpgjax_stepper_sensordata"):
+        getattr(lib, name).restype = ctypes.POINTER(ctypes.c_double)
+        getattr(lib, name).argtypes = [ctypes.c_void_p]
+    lib.cpgjax_stepper_nstate.argtypes = [ctypes.c_void_p]
+    lib.cpgjax_stepper_step.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_char_p,
+                                        ctypes.c_int]
+    lib.cpgjax_stepper_delete.argtypes = [ctypes.c_void_p]
+    jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(getattr(lib, TARGET)), platform="cpu")
+    return lib
+
+
+def available() -> bool:
+    return load() is not None
+
+
+class RowOffsets(ctypes.Structure):
+    """Where a ``mujoco.batch`` state row keeps what the step reads and writes (``Offsets`` in batch_step.cc)."""
+
+    _fields_ = [("nphysics", ctypes.c_int), ("qvel_at", ctypes.c_int), ("nv", ctypes.c_int),
+                ("warmstart_at", ctypes.c_int), ("ctrl_at", ctypes.c_int), ("nsensordata", ctypes.c_int)]
+
+
+class Stepper:
+    """B Go1s in one MuJoCo batch (``mjb_makeBatch`` on ``models[0]``, ``mjb_setModels(models)``), stepped by
+    :meth:`step` from Python or by :meth:`call` inside a jitted program. ``rows`` (B, nstate) and ``sensordata``
+    (B, nsensordata) are views of the library's arrays: the state the next step starts from."""
+
+    def __init__(self, models: list[mujoco.MjModel], nthread: int, offsets: RowOffsets, actuator: np.ndarray,
+                 standing_physics: np.ndarray, standing_sensordata: np.ndarray):
+        lib = load()
+        if lib is None:
+            raise RuntimeError("the native physics step is not available (see the log)")
+        self._lib = lib
+        # The batch reads the models on every step: they and the array of their addresses live as long as it does.
+        self._models = list(models)
+        batch = len(self._models)
+        self._pointers = (ctypes.c_void_p * batch)(*(m._address for m in self._models))
+        actuator = np.ascontiguousarray(actuator, np.int32)
+        standing_physics = np.ascontiguousarray(standing_physics, np.float64)
+        standing_sensordata = np.ascontiguousarray(standing_sensordata, np.float64)
+        error = ctypes.create_string_buffer(1000)
+        self._handle = lib.cpgjax_stepper_new(self._pointers, batch, nthread, ctypes.byref(offsets),
+                                              actuator.ctypes.data, actuator.size, standing_physics.ctypes.data,
+                                              standing_sensordata.ctypes.data, error, len(error))
+        if not self._handle:
+            raise RuntimeError(f"the native physics step refused the batch: {error.value.decode()}")
+        self.rows = np.ctypeslib.as_array(lib.cpgjax_stepper_rows(self._handle),
+                                          shape=(batch, lib.cpgjax_stepper_nstate(self._handle)))
+        self.sensordata = np.ctypeslib.as_array(lib.cpgjax_stepper_sensordata(self._handle),
+                                                shape=(batch, offsets.nsensordata))
+        self._failed = np.zeros(batch, np.bool_)
+        self._error = error
+        # The pointer as two uint32 (JAX's default integers are 32-bit): an argument of the compiled trial, so that
+        # one program serves every stepper of its batch size.
+        self.handle = np.array([self._handle & 0xFFFFFFFF, self._handle >> 32], np.uint32)
+
+    def step(self, torque_nm: np.ndarray) -> np.ndarray:
+        """One step with joint torques (B, 12) float32; returns the (B,) bool mask of failed instances (reset)."""
+        torque = np.ascontiguousarray(torque_nm, np.float32)
+        if self._lib.cpgjax_stepper_step(self._handle, torque.ctypes.data, self._failed.ctypes.data, self._error,
+                                         len(self._error)) < 0:
+            raise RuntimeError(f"MuJoCo: {self._error.value.decode()}")
+        return self._failed.copy()
+
+    def close(self) -> None:
+        """Free the batch and its threads; ``rows`` and ``sensordata`` must not be used after."""
+        if self._handle:
+            self._lib.cpgjax_stepper_delete(self._handle)
+            self._handle = 0
+
+    def __del__(self):
+        self.close()
+
+
+def call(handle: jax.Array, torque_nm: jax.Array, host_in_shape: tuple[int, int]) -> jax.Array:
+    """Inside a jitted program: step the stepper ``handle`` names with ``torque_nm`` (B, 12) and return the next
+    controller input (B, W) float32, [physics state | sensor data | failed] (``native._host_inputs``)."""
+    step = jax.ffi.ffi_call(TARGET, jax.ShapeDtypeStruct(host_in_shape, jnp.float32), has_side_effect=True)
+    return step(handle, torque_nm)
