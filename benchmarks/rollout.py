@@ -21,7 +21,8 @@ contacts. The three are timed in interleaved rounds (best of each).
 profile (docs/physics.md) in interleaved rounds, as ratios against the first profile of the list in the same run.
 
 On a CPU, XLA runs one device's program on one thread, so the batch is sharded over one host device per core
-(``jax_num_cpu_devices``, ``--cpu-devices``); the full run also measures the one-device layout. The last line of the
+(``jax_num_cpu_devices``, ``--cpu-devices``; not with ``--native-only``, which runs as the cpgjax commands do, on
+one host device with one XLA pool thread); the full run also measures the one-device layout. The last line of the
 output is a JSON object of the figures.
 """
 
@@ -246,10 +247,13 @@ def main() -> None:
     unknown = [name for name in args.steppings if name not in native_go1.STEPPINGS]
     if unknown:
         parser.error(f"--steppings {','.join(args.steppings)}: unknown {unknown}; allowed: {native_go1.STEPPINGS}")
-    if args.native_only:  # as the cpgjax commands: per-tick calls inline, the cores for MuJoCo's threads
+    if args.native_only:
+        # As the cpgjax commands: per-tick calls inline, the cores for MuJoCo's threads, one host device (with two,
+        # the native trial's program runs 1.8x slower on 2 cores: docs/backends.md).
         cpu_dispatch.request_inline()
         cpu_dispatch.request_one_pool_thread()
-    jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
+    else:
+        jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
     batches = args.batch_sizes or ([16] if args.quick else [1, 4, 16, 64, 256])
     steps = args.steps or (400 if args.quick else 2000)
     repeats = 2 if args.quick else 3
