@@ -1,8 +1,9 @@
 """The Go1 in C MuJoCo on the CPU: the paper's trial (``cpgjax.trial.protocol``) with native physics.
 
-Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, in place, with ``mujoco.batch``
-(MuJoCo's persistent thread pool, one thread per core, one ``MjModel`` variant per instance from
-``go1_model.scenario_model``); ``mujoco.rollout`` stepping stays as the reference it equals bit for bit. Its host
+Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, in place, with MuJoCo's batch API
+(its persistent thread pool, one thread per core, one ``MjModel`` variant per instance from
+``go1_model.scenario_model``): through ``cpgjax.sim.ffi_step`` (C++, callable from a compiled program) or
+``mujoco.batch`` from Python; ``mujoco.rollout`` stepping stays as the reference both equal bit for bit. Its host
 arrays are allocated once and reused; the solver is warm-started from the previous step's acceleration as a
 persistent ``mj_step`` loop would be.
 

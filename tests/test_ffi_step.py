@@ -1,0 +1,45 @@
+"""Building the native backend's FFI physics step (``cpgjax.sim.ffi_step``): a fresh cache gets a whole library
+named by what it was built from, and a machine that cannot build it gets one log line and the per-tick stepping.
+What the step computes is checked against the other steppings in tests/test_native_stepping.py."""
+
+import ctypes
+import logging
+
+import pytest
+
+from cpgjax.sim import ffi_step
+from cpgjax.sim import native as native_go1
+
+
+def test_a_fresh_cache_gets_the_library_with_its_entry_points(tmp_path, monkeypatch):
+    compiler = ffi_step._compiler()
+    if compiler is None:
+        pytest.skip("no C++ compiler on this machine")
+    monkeypatch.setenv("CPGJAX_CACHE_DIR", str(tmp_path / "cache"))
+    path = ffi_step.library_path(compiler)
+    assert path.parent == tmp_path / "cache" and path.name.startswith("batch_step-")
+    ffi_step._build(compiler, path)
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temporary file left behind
+    lib = ctypes.CDLL(str(path))
+    for name in (ffi_step.TARGET, "cpgjax_stepper_new", "cpgjax_stepper_step", "cpgjax_stepper_delete"):
+        assert hasattr(lib, name), name
+
+
+def test_the_cache_name_changes_with_the_compiler():
+    assert ffi_step.library_path("/usr/bin/g++") != ffi_step.library_path("/usr/bin/clang++")
+
+
+@pytest.mark.parametrize("case", ["no compiler", "failing compiler"])
+def test_without_a_working_compiler_one_line_says_so_and_the_backend_steps_tick_by_tick(case, tmp_path, monkeypatch,
+                                                                                        caplog):
+    monkeypatch.setenv("CPGJAX_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(ffi_step, "_compiler", lambda: None if case == "no compiler" else "false")
+    monkeypatch.setattr(ffi_step, "load", ffi_step.load.__wrapped__)  # not the process's cached library
+    with caplog.at_level(logging.WARNING, logger=ffi_step.__name__):
+        assert ffi_step.load() is None
+        assert native_go1.default_stepping() == "batch"
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == 2  # once per load() call: load() above, then default_stepping()'s
+    expected = "no C++ compiler" if case == "no compiler" else "could not be built (false exited with 1"
+    assert expected in messages[0] and "steps tick by tick" in messages[0]
+    assert list(tmp_path.iterdir()) == []  # a failed build leaves nothing in the cache
