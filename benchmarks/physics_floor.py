@@ -25,6 +25,7 @@ from rollout import native_limit  # benchmarks/ is the script's directory
 from cpgjax import provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.robot import cpu_dispatch
+from cpgjax.sim import native as native_go1
 from cpgjax.studies import registry
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import protocol
@@ -52,11 +53,13 @@ def main() -> None:
     if args.batch < 1 or args.steps < 4 or args.repeats < 1:
         parser.error(f"--batch {args.batch}, --steps {args.steps}, --repeats {args.repeats}: need batch ≥ 1, "
                      "steps ≥ 4, repeats ≥ 1")
-    cpu_dispatch.request_inline()  # as every cpgjax command
+    cpu_dispatch.request_inline()  # as every cpgjax command on the native backend
+    cpu_dispatch.request_one_pool_thread()
+    stepping = native_go1.default_stepping()
     physics = physics_profiles.PAPER_STUDIES_PROFILE
-    r = native_limit(args.batch, args.steps, args.repeats, physics, ["batch"])
+    r = native_limit(args.batch, args.steps, args.repeats, physics, [stepping])
     limit = r["cores"] * r["replay_one_thread_env_steps_per_s"]
-    closed = r["closed_loop_env_steps_per_s_batch"]
+    closed = r[f"closed_loop_env_steps_per_s_{stepping}"]
     steps = study_env_steps()
     print(f"# {provenance.machine()}, {r['cores']} cores, {physics} physics, batch {args.batch}, load average "
           f"{os.getloadavg()[0]:.1f}: physics limit {limit:,.0f} env-steps/s ({r['cores']} × the one-thread replay), "
@@ -69,8 +72,8 @@ def main() -> None:
     print(f"30 minutes for all of them needs {total / TARGET_S:,.0f} env-steps/s: "
           f"{total / TARGET_S / limit:.2f} of this run's physics limit")
     print(json.dumps({"benchmark": "physics_floor", "machine": provenance.machine(), "physics": physics,
-                      "batch": args.batch, "steps_per_instance": args.steps, "repeats": args.repeats,
-                      "cores": r["cores"],
+                      "stepping": stepping, "batch": args.batch, "steps_per_instance": args.steps,
+                      "repeats": args.repeats, "cores": r["cores"],
                       "replay_one_thread_env_steps_per_s": round(r["replay_one_thread_env_steps_per_s"]),
                       "closed_loop_env_steps_per_s": round(closed), "fraction_of_limit": round(closed / limit, 3),
                       **{f"env_steps_{name}": n for name, n in steps.items()}, "env_steps_all": total,
