@@ -1,9 +1,13 @@
 """Building the native backend's FFI physics step (``cpgjax.sim.ffi_step``): a fresh cache gets a whole library
 named by what it was built from, and a machine that cannot build it gets one log line and the per-tick stepping.
-What the step computes is checked against the other steppings in tests/test_native_stepping.py."""
+What the step computes is checked against the other steppings in tests/test_native_stepping.py. Also the one XLA
+pool thread the native backend's commands ask for (``cpu_dispatch.request_one_pool_thread``)."""
 
 import ctypes
 import logging
+import os
+import subprocess
+import sys
 
 import pytest
 
@@ -43,3 +47,23 @@ def test_without_a_working_compiler_one_line_says_so_and_the_backend_steps_tick_
     expected = "no C++ compiler" if case == "no compiler" else "could not be built (false exited with 1"
     assert expected in messages[0] and "steps tick by tick" in messages[0]
     assert list(tmp_path.iterdir()) == []  # a failed build leaves nothing in the cache
+
+
+@pytest.mark.parametrize("preset", [None, "3"])
+def test_one_pool_thread_is_asked_for_before_the_client_and_a_preset_size_is_kept(preset):
+    """In a fresh interpreter: ``request_one_pool_thread`` before any computation sets NPROC=1 and XLA's CPU client
+    then has one pool thread (``tf_XLAEigen``); after a computation it reports False. A size the environment sets is
+    kept (3 threads, although this machine may have fewer cores)."""
+    code = ("import glob, os\n"
+            "from cpgjax.robot import cpu_dispatch\n"
+            "first = cpu_dispatch.request_one_pool_thread()\n"
+            "import jax.numpy as jnp\n"
+            "(jnp.ones((256, 256)) @ jnp.ones((256, 256))).block_until_ready()\n"
+            "names = [open(f).read().strip() for f in glob.glob('/proc/self/task/*/comm')]\n"
+            "print(first, os.environ['NPROC'], cpu_dispatch.request_one_pool_thread(), names.count('tf_XLAEigen'))\n")
+    env = {k: v for k, v in os.environ.items() if k != "NPROC"} | {"JAX_PLATFORMS": "cpu"}
+    if preset:
+        env["NPROC"] = preset
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == (["True", "1", "False", "1"] if preset is None else ["False", "3", "False", "3"])

@@ -89,7 +89,7 @@ def load() -> ctypes.CDLL | None:
     compiler = _compiler()
     if compiler is None:
         log.warning("no C++ compiler (CXX, c++, g++, clang++): the native backend steps tick by tick from Python, "
-                    "about 1.5-2x slower (docs/backends.md)")
+                    "slower (docs/backends.md)")
         return None
     path = library_path(compiler)
     try:
