@@ -39,7 +39,7 @@ def test_without_a_working_compiler_one_line_says_so_and_the_backend_steps_tick_
     monkeypatch.setenv("CPGJAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(ffi_step, "_compiler", lambda: None if case == "no compiler" else "false")
     monkeypatch.setattr(ffi_step, "load", ffi_step.load.__wrapped__)  # not the process's cached library
-    with caplog.at_level(logging.WARNING, logger=ffi_step.__name__):
+    with caplog.at_level(logging.WARNING, logger=ffi_step.log.name):
         assert ffi_step.load() is None
         assert native_go1.default_stepping() == "batch"
     messages = [r.getMessage() for r in caplog.records]
