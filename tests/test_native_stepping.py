@@ -51,6 +51,12 @@ def _spec(study: str, batch: int) -> StudySpec:
     return StudySpec(study, seeds=tuple(range(batch)), schedules=(payload,), group_by=("schedule",), **common)
 
 
+def _three_scenarios():
+    """The physics tests' batch: three floors, slopes and payloads under the paper profile."""
+    return go1_model.make_scenarios(friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0],
+                                    payload_kg=[0.0, 7.5, 15.0], physics="paper")
+
+
 def _run(engine: ablation.Engine, stepping: str, out, monkeypatch):
     """The whole study with ``stepping``; one engine for both steppings (its optimizer compiles once), whose
     simulator is made afresh for each run (``Engine.simulator`` keeps it from trial to trial)."""
@@ -83,8 +89,7 @@ def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(st
     step 50: every array equal bit for bit after every step, and the diverged instance flagged once and back to
     standing."""
     monkeypatch.chdir(tmp_path)  # MuJoCo logs its instability warning to ./MUJOCO_LOG.TXT
-    scenario = go1_model.make_scenarios(friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0],
-                                        payload_kg=[0.0, 7.5, 15.0], physics="paper")
+    scenario = _three_scenarios()
     ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("rollout", stepping))
     ids = go1_model.indices()
     q_stand = go1_model.standing_qpos()[ids.joint_qpos]
@@ -117,8 +122,7 @@ def test_the_step_called_inside_a_compiled_loop_equals_the_reference():
     (``ffi_step.call``), against the ``batch`` stepping from Python: every step's output is the reference's state
     packed as the controller reads it (float32 [physics | sensor data | failed]), and the states after the loop are
     equal bit for bit."""
-    scenario = go1_model.make_scenarios(friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0],
-                                        payload_kg=[0.0, 7.5, 15.0], physics="paper")
+    scenario = _three_scenarios()
     ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
     torques = np.random.default_rng(0).normal(scale=3.0, size=(100, 3, 12)).astype(np.float32)
     shape = (3, new.layout.size + new.sensordata.shape[1] + 1)

@@ -40,21 +40,16 @@ namespace {
 struct Stepper {
   mjBatch* batch = nullptr;
   int nsim = 0;
-  int nstate = 0;      // length of a batch row (mjSTATE_INTEGRATION)
-  int nphysics = 0;    // mjSTATE_FULLPHYSICS: clock, qpos, qvel, at the start of a row
-  int qvel_at = 0;     // qvel within a row
-  int nv = 0;
-  int warmstart_at = 0;
-  int ctrl_at = 0;
-  int nsensordata = 0;
+  int nstate = 0;  // length of a batch row (mjSTATE_INTEGRATION)
+  Offsets at{};    // where a row keeps what the step reads and writes
   std::vector<int> actuator;  // control index of each motor, in motor order
   double timestep_s = 0.0;
-  mjtNum* rows = nullptr;            // the batch's state rows (nsim x nstate), stepped in place
+  mjtNum* rows = nullptr;                   // the batch's state rows (nsim x nstate), stepped in place
   const mjtNum* step_sensordata = nullptr;  // refreshed by every step (nsim x nsensordata)
-  std::vector<mjtNum> sensordata;    // the current sensor data (nsim x nsensordata)
+  std::vector<mjtNum> sensordata;           // the current sensor data (nsim x nsensordata)
   std::vector<mjtNum> standing_physics;
   std::vector<mjtNum> standing_sensordata;
-  std::vector<mjtNum> before;        // the physics state before the step (nsim x nphysics)
+  std::vector<mjtNum> before;  // the physics state before the step (nsim x nphysics)
 };
 
 // The step; torque (nsim x nact) float32; host_in (nsim x (nphysics + nsensordata + 1)) float32, or failed (nsim)
@@ -64,8 +59,9 @@ int Step(Stepper* s, const float* torque, float* host_in, uint8_t* failed_out, c
   const int nact = static_cast<int>(s->actuator.size());
   for (int i = 0; i < s->nsim; ++i) {
     mjtNum* row = s->rows + static_cast<size_t>(i) * s->nstate;
-    for (int j = 0; j < nact; ++j) row[s->ctrl_at + s->actuator[j]] = torque[i * nact + j];
-    std::memcpy(s->before.data() + static_cast<size_t>(i) * s->nphysics, row, sizeof(mjtNum) * s->nphysics);
+    for (int j = 0; j < nact; ++j) row[s->at.ctrl_at + s->actuator[j]] = torque[i * nact + j];
+    std::memcpy(s->before.data() + static_cast<size_t>(i) * s->at.nphysics, row,
+                sizeof(mjtNum) * s->at.nphysics);
   }
   if (mjb_step(s->batch, nullptr, s->nsim, 1, mjSTAGE_NONE) > 0) {
     for (int i = 0; i < s->nsim; ++i) {
@@ -80,28 +76,28 @@ int Step(Stepper* s, const float* torque, float* host_in, uint8_t* failed_out, c
   const double h = s->timestep_s;
   const double inv_h = 1.0 / h;
   int nfailed = 0;
-  const int width = s->nphysics + s->nsensordata + 1;
+  const int width = s->at.nphysics + s->at.nsensordata + 1;
   for (int i = 0; i < s->nsim; ++i) {
     mjtNum* row = s->rows + static_cast<size_t>(i) * s->nstate;
-    const mjtNum* before = s->before.data() + static_cast<size_t>(i) * s->nphysics;
-    mjtNum* sensordata = s->sensordata.data() + static_cast<size_t>(i) * s->nsensordata;
+    const mjtNum* before = s->before.data() + static_cast<size_t>(i) * s->at.nphysics;
+    mjtNum* sensordata = s->sensordata.data() + static_cast<size_t>(i) * s->at.nsensordata;
     const bool failed = std::fabs(row[0] - before[0] - h) > 0.5 * h;
-    for (int k = 0; k < s->nv; ++k) {
-      row[s->warmstart_at + k] = (row[s->qvel_at + k] - before[s->qvel_at + k]) * inv_h;
+    for (int k = 0; k < s->at.nv; ++k) {
+      row[s->at.warmstart_at + k] = (row[s->at.qvel_at + k] - before[s->at.qvel_at + k]) * inv_h;
     }
     if (failed_out) failed_out[i] = failed;
     if (failed) {
       ++nfailed;
-      std::memcpy(row, s->standing_physics.data() + static_cast<size_t>(i) * s->nphysics,
-                  sizeof(mjtNum) * s->nphysics);
-      std::memcpy(sensordata, s->standing_sensordata.data() + static_cast<size_t>(i) * s->nsensordata,
-                  sizeof(mjtNum) * s->nsensordata);
-      for (int k = 0; k < s->nv; ++k) row[s->warmstart_at + k] = 0.0;
+      std::memcpy(row, s->standing_physics.data() + static_cast<size_t>(i) * s->at.nphysics,
+                  sizeof(mjtNum) * s->at.nphysics);
+      std::memcpy(sensordata, s->standing_sensordata.data() + static_cast<size_t>(i) * s->at.nsensordata,
+                  sizeof(mjtNum) * s->at.nsensordata);
+      for (int k = 0; k < s->at.nv; ++k) row[s->at.warmstart_at + k] = 0.0;
     }
     if (host_in) {
       float* out = host_in + static_cast<size_t>(i) * width;
-      for (int k = 0; k < s->nphysics; ++k) out[k] = static_cast<float>(row[k]);
-      for (int k = 0; k < s->nsensordata; ++k) out[s->nphysics + k] = static_cast<float>(sensordata[k]);
+      for (int k = 0; k < s->at.nphysics; ++k) out[k] = static_cast<float>(row[k]);
+      for (int k = 0; k < s->at.nsensordata; ++k) out[s->at.nphysics + k] = static_cast<float>(sensordata[k]);
       out[width - 1] = failed ? 1.0f : 0.0f;
     }
   }
@@ -112,7 +108,7 @@ ffi::Error BatchStep(ffi::Buffer<ffi::U32> handle, ffi::Buffer<ffi::F32> torque,
                      ffi::ResultBuffer<ffi::F32> host_in) {
   const uint32_t* h = handle.typed_data();
   auto* s = reinterpret_cast<Stepper*>(static_cast<uintptr_t>(h[0]) | (static_cast<uintptr_t>(h[1]) << 32));
-  const size_t width = s->nphysics + s->nsensordata + 1;
+  const size_t width = s->at.nphysics + s->at.nsensordata + 1;
   if (torque.element_count() != s->nsim * s->actuator.size() ||
       host_in->element_count() != s->nsim * width) {
     return ffi::Error::InvalidArgument("cpgjax_batch_step: buffer sizes do not match the stepper's batch");
@@ -156,21 +152,16 @@ void* cpgjax_stepper_new(const mjModel* const* models, int nsim, int nthread, co
   s->batch = batch;
   s->nsim = nsim;
   s->nstate = mjb_nstate(batch);
-  s->nphysics = offsets->nphysics;
-  s->qvel_at = offsets->qvel_at;
-  s->nv = offsets->nv;
-  s->warmstart_at = offsets->warmstart_at;
-  s->ctrl_at = offsets->ctrl_at;
-  s->nsensordata = offsets->nsensordata;
+  s->at = *offsets;
   s->actuator.assign(actuator, actuator + nact);
   s->timestep_s = models[0]->opt.timestep;
   s->rows = mjb_state(batch);
   s->step_sensordata = step_sensordata;
-  s->standing_physics.assign(standing_physics, standing_physics + static_cast<size_t>(nsim) * s->nphysics);
+  s->standing_physics.assign(standing_physics, standing_physics + static_cast<size_t>(nsim) * s->at.nphysics);
   s->standing_sensordata.assign(standing_sensordata,
-                                standing_sensordata + static_cast<size_t>(nsim) * s->nsensordata);
+                                standing_sensordata + static_cast<size_t>(nsim) * s->at.nsensordata);
   s->sensordata = s->standing_sensordata;
-  s->before.resize(static_cast<size_t>(nsim) * s->nphysics);
+  s->before.resize(static_cast<size_t>(nsim) * s->at.nphysics);
   return s;
 }
 

@@ -127,11 +127,12 @@ class RowOffsets(ctypes.Structure):
 
 class Stepper:
     """B Go1s in one MuJoCo batch (``mjb_makeBatch`` on ``models[0]``, ``mjb_setModels(models)``), stepped by
-    :meth:`step` from Python or by :meth:`call` inside a jitted program. ``rows`` (B, nstate) and ``sensordata``
+    :meth:`step` from Python or by :func:`call` inside a jitted program. ``rows`` (B, nstate) and ``sensordata``
     (B, nsensordata) are views of the library's arrays: the state the next step starts from."""
 
     def __init__(self, models: list[mujoco.MjModel], nthread: int, offsets: RowOffsets, actuator: np.ndarray,
                  standing_physics: np.ndarray, standing_sensordata: np.ndarray):
+        self._handle = 0  # what close() (and so __del__) frees: nothing until the library made the batch
         lib = load()
         if lib is None:
             raise RuntimeError("the native physics step is not available (see the log)")

@@ -114,7 +114,7 @@ class BatchPhysics:
       warm start, controls, ...) *are* these arrays, stepped in place on a persistent pool of one thread per core
       with one model variant per instance (``set_models``);
     - ``"rollout"``: one ``mujoco.rollout`` call per step (``nstep=1``) into a second state buffer, the reference
-      that tests/test_native_backend.py checks the batch stepping against, byte for byte.
+      that tests/test_native_stepping.py checks the other steppings against, bit for bit.
 
     All warm-start the solver with the step's acceleration recovered from the states, (q̇' − q̇)/h (see
     :meth:`step`), so they run the same arithmetic. Used by the native backend only (the loopback simulated Go1
