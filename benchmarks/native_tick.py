@@ -15,8 +15,9 @@ best of ``--repeats``; the closed loop is timed as a whole, and "rest" is what t
 and what the parts cost each other when they alternate (caches, the two thread pools waking).
 
 "Controller in a scan" is the same ``_advance`` with the same per-tick inputs run as the body of one ``lax.scan``
-over the trial's ticks, a single XLA call: its arithmetic, without what XLA's CPU runtime and the Python dispatch
-cost per call. The difference between the two controller columns is that per-call cost. The inputs must vary from
+over the trial's ticks, a single XLA call, on the pytree carry the ffi stepping's loop carries: its arithmetic,
+without what XLA's CPU runtime and the Python dispatch cost per call, nor the packing of the flat carry that the
+per-tick calls take (``native._Carry``). The inputs must vary from
 tick to tick as in the trial: with one input for every tick, XLA hoists the observation of it out of the loop, and
 the scan then times a part of the controller only (about 0.6 of it at batch 64).
 
@@ -76,45 +77,45 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
     closed_loop()  # compiles
     program = sim._program(native_go1.TRIAL_RECORDER, config)
     state = sim.reset(p)
-    consts = ravel_pytree(sim._constants(state.params, jnp.asarray(p, jnp.float32), gates))[0]
-    controller = ravel_pytree(native_go1._Controller(state.cpg, state.io))[0]
+    consts = sim._constants(state.params, jnp.asarray(p, jnp.float32), gates)
+    consts_flat = ravel_pytree(consts)[0]
+    controller = native_go1._Controller(state.cpg, state.io)
 
-    def fresh_carry():
-        return native_go1._Carry(controller=controller.copy(), pending=jnp.zeros(program.pending_size),
-                                 step=jnp.int32(0), rows=jnp.zeros((steps, program.row_size)))
+    def fresh_carry(flat: bool):
+        return sim._first_carry(program, controller, steps, flat)
 
     # The host inputs and torques of the closed-loop trial, tick by tick (the per-tick loop of NativeBackend._run,
     # recorded; with the ffi stepping its step is called from Python).
     host_inputs = np.empty((steps, *sim._host_in.shape), np.float32)
     torques = np.empty((steps, batch, 12))
     sim.physics.set_state(state.physics, state.warmstart, state.sensordata)
-    carry, failed = fresh_carry(), np.zeros(batch, bool)
+    carry, failed = fresh_carry(flat=True), np.zeros(batch, bool)
     for k in range(steps):
         host_inputs[k] = sim._pack_host_inputs(failed)
-        carry, torque = program.advance(consts, carry, host_inputs[k])
+        carry, torque = program.advance(consts_flat, carry, host_inputs[k])
         torques[k] = torque
         failed = sim.physics.step(torques[k])
 
     def controller_calls():
-        carry = fresh_carry()
+        carry = fresh_carry(flat=True)
         t0 = time.perf_counter()
         for k in range(steps):
-            carry, torque = program.advance(consts, carry, host_inputs[k])
+            carry, torque = program.advance(consts_flat, carry, host_inputs[k])
             np.asarray(torque)
         return time.perf_counter() - t0
 
     @jax.jit
-    def scanned(carry, host_inputs):
+    def scanned(carry, host_inputs):  # the tick of the ffi stepping's loop, on pytrees
         def body(c, host_in):
-            c, torque = program.advance(consts, c, host_in)
+            c, torque = program.tick(consts, c, host_in)
             return c, torque[0, 0]
         return jax.lax.scan(body, carry, host_inputs)
 
     host_inputs_device = jnp.asarray(host_inputs)
-    jax.block_until_ready(scanned(fresh_carry(), host_inputs_device))  # compiles
+    jax.block_until_ready(scanned(fresh_carry(flat=False), host_inputs_device))  # compiles
 
     def controller_scan():
-        carry = fresh_carry()
+        carry = fresh_carry(flat=False)
         t0 = time.perf_counter()
         jax.block_until_ready(scanned(carry, host_inputs_device))
         return time.perf_counter() - t0

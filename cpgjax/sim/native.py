@@ -299,13 +299,16 @@ class _Constants(NamedTuple):
 
 
 class _Carry(NamedTuple):
-    """Device state carried from tick to tick (donated: updated in place). Pytrees travel as flat vectors
-    (``_Packing``): a handful of buffers per call keeps the per-tick dispatch cheap."""
+    """Controller-side state carried from tick to tick. In the compiled trial of the ``ffi`` stepping every field
+    is its pytree; between the per-tick calls of the other steppings ``controller`` and ``pending`` travel as flat
+    vectors and ``rows`` as one flat row per tick (``_Packing``): a handful of buffers per call keeps the per-tick
+    dispatch cheap, and inside one program the pytrees spare the per-tick packing (a quarter of the tick's
+    arithmetic at batch 64, ``benchmarks/native_tick.py``)."""
 
-    controller: jax.Array  # (C,) the batch's _Controller, flat
-    pending: jax.Array  # (P,) the batch's pre-step half of the last tick's row, flat
+    controller: _Controller | jax.Array  # the batch's _Controller (B, ...), or (C,) flat
+    pending: object  # the batch's pre-step half of the last tick's row (B, ...), or (P,) flat
     step: jax.Array  # () int32, control ticks issued so far in this run
-    rows: jax.Array  # (N, R) one flat row per tick
+    rows: object  # the recorder's row of every tick (N, B, ...), or (N, R) one flat row per tick
 
 
 class _Recorder(NamedTuple):
@@ -354,12 +357,14 @@ class _Program(NamedTuple):
     """A run's compiled pieces for one recorder and trial timing (:meth:`NativeBackend._program`)."""
 
     packing: _Packing
-    pending_size: int  # length of the flat pre-step half of a row
-    row_size: int  # length of a flat row
-    advance: Callable  # jitted _advance: finish row k−1, control tick k
-    complete: Callable  # jitted _complete: finish the last row
+    pending: object  # jax.ShapeDtypeStruct pytree of the batch's pre-step half of a row
+    row: object  # jax.ShapeDtypeStruct pytree of the batch's row
+    tick: Callable  # _advance on pytrees (consts, carry, host_in): what the ffi stepping's loop runs each tick
     run: Callable  # jitted _run_ffi: every tick and physics step of a run (the ffi stepping)
-    summarize: Callable  # jitted _summarize: flat rows → trial records
+    advance: Callable  # jitted _advance on the flat carry: finish row k−1, control tick k (per-tick steppings)
+    complete: Callable  # jitted _complete on the flat carry: finish the last row
+    unpack_rows: Callable  # jitted: flat rows (N, R) → rows (N, B, ...)
+    summarize: Callable  # jitted _summarize: rows → trial records
 
 
 class _Packing(NamedTuple):
@@ -381,51 +386,84 @@ def _host_inputs(packing: _Packing, host_in: jax.Array):
     return host_in[:, lay.qpos], host_in[:, lay.qvel], sensordata, host_in[:, -1] > 0.5
 
 
-def _complete(trial_config, recorder: _Recorder, packing: _Packing, consts_flat, carry: _Carry, host_in) -> _Carry:
-    """Finish the last tick's row from the state after its step (already reset where it failed)."""
-    consts = packing.consts(consts_flat)
+def _store_rows(rows, k: jax.Array, row):
+    """``rows`` (N, B, ...) with tick ``k``'s row set, leaf by leaf."""
+    return jax.tree.map(lambda r, x: r.at[k].set(x), rows, row)
+
+
+def _store_flat_row(rows, k: jax.Array, row):
+    """``rows`` (N, R), one flat row per tick, with tick ``k``'s row set."""
+    return rows.at[k].set(ravel_pytree(row)[0])
+
+
+def _complete(trial_config, recorder: _Recorder, packing: _Packing, store: Callable, consts: _Constants,
+              carry: _Carry, host_in) -> _Carry:
+    """Finish the last tick's row from the state after its step (already reset where it failed); ``store`` writes
+    it into ``carry.rows`` (``_store_rows`` or ``_store_flat_row``)."""
     qpos, qvel, _, failed = _host_inputs(packing, host_in)
-    row = jax.vmap(functools.partial(recorder.row, trial_config))(packing.pending(carry.pending), qpos, qvel, failed)
-    controller = protocol.where_batch(failed, consts.reset, packing.controller(carry.controller))
-    return carry._replace(controller=ravel_pytree(controller)[0],
-                          rows=carry.rows.at[carry.step - 1].set(ravel_pytree(row)[0]))
+    row = jax.vmap(functools.partial(recorder.row, trial_config))(carry.pending, qpos, qvel, failed)
+    controller = protocol.where_batch(failed, consts.reset, carry.controller)
+    return carry._replace(controller=controller, rows=store(carry.rows, carry.step - 1, row))
 
 
-def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, consts_flat, carry: _Carry,
-             host_in) -> tuple[_Carry, jax.Array]:
-    """The whole host-side tick in one dispatch: finish row k−1, then observe and control tick k.
+def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, store: Callable, consts: _Constants,
+             carry: _Carry, host_in) -> tuple[_Carry, jax.Array]:
+    """The whole host-side tick: finish row k−1, then observe and control tick k.
 
     On the first tick of a run there is no row k−1; the row it writes at index −1 (the last) is overwritten by the
     run's real last row.
     """
-    carry = _complete(trial_config, recorder, packing, consts_flat, carry, host_in)
+    carry = _complete(trial_config, recorder, packing, store, consts, carry, host_in)
     qpos, qvel, sensordata, _ = _host_inputs(packing, host_in)
     control = functools.partial(_control, cpg_config, recorder, trial_config.transition_steps, carry.step)
-    controller, torque, pending = jax.vmap(control)(packing.consts(consts_flat), packing.controller(carry.controller),
-                                                    qpos, qvel, sensordata)
-    return _Carry(controller=ravel_pytree(controller)[0], pending=ravel_pytree(pending)[0], step=carry.step + 1,
-                  rows=carry.rows), torque
+    controller, torque, pending = jax.vmap(control)(consts, carry.controller, qpos, qvel, sensordata)
+    return _Carry(controller=controller, pending=pending, step=carry.step + 1, rows=carry.rows), torque
 
 
-def _run_ffi(advance: Callable, complete: Callable, num_steps: int, handle, consts_flat, carry: _Carry,
+def _flat_size(shapes) -> int:
+    """The length of ``ravel_pytree``'s vector for a pytree of ``jax.ShapeDtypeStruct``."""
+    return sum(int(np.prod(s.shape)) for s in jax.tree.leaves(shapes))
+
+
+def _unflatten(packing: _Packing, carry: _Carry) -> _Carry:
+    """The flat carry of the per-tick calls with its controller and pending half as pytrees (the rows stay one
+    flat row per tick, written by ``_store_flat_row``)."""
+    return carry._replace(controller=packing.controller(carry.controller), pending=packing.pending(carry.pending))
+
+
+def _flatten(carry: _Carry) -> _Carry:
+    return carry._replace(controller=ravel_pytree(carry.controller)[0], pending=ravel_pytree(carry.pending)[0])
+
+
+def _flat_advance(packing: _Packing, advance: Callable, consts_flat, carry: _Carry, host_in):
+    """``_advance`` (with ``_store_flat_row``) on the flat arguments of the per-tick calls."""
+    carry, torque = advance(packing.consts(consts_flat), _unflatten(packing, carry), host_in)
+    return _flatten(carry), torque
+
+
+def _flat_complete(packing: _Packing, complete: Callable, consts_flat, carry: _Carry, host_in):
+    """``_complete`` (with ``_store_flat_row``) on the flat arguments of the per-tick calls."""
+    return _flatten(complete(packing.consts(consts_flat), _unflatten(packing, carry), host_in))
+
+
+def _run_ffi(advance: Callable, complete: Callable, num_steps: int, handle, consts, carry: _Carry,
              host_in) -> _Carry:
     """A run's ``num_steps`` ticks in one program: each tick's ``_advance``, then the physics step through the FFI
     (``ffi_step.call``), whose output is the next tick's host input; then ``_complete``. ``handle`` names the
     stepper (``ffi_step.Stepper.handle``)."""
     def tick(_, loop):
         carry, host_in = loop
-        carry, torque = advance(consts_flat, carry, host_in)
+        carry, torque = advance(consts, carry, host_in)
         return carry, ffi_step.call(handle, torque, host_in.shape)
 
     carry, host_in = jax.lax.fori_loop(0, num_steps, tick, (carry, host_in))
-    return complete(consts_flat, carry, host_in)
+    return complete(consts, carry, host_in)
 
 
-def _summarize(trial_config: protocol.TrialConfig, dt_s: float, unravel_row: Callable, rows,
+def _summarize(trial_config: protocol.TrialConfig, dt_s: float, ticks: protocol.Tick,
                total_mass_kg) -> protocol.TrialRecord:
-    """Trial records (B, ...) from the flat rows (N, R) with ``protocol.summarize`` (steady phase, plus the
+    """Trial records (B, ...) from the run's rows (N, B, ...) with ``protocol.summarize`` (steady phase, plus the
     transition's falls, failures and worst margin)."""
-    ticks = jax.vmap(unravel_row)(rows)  # Tick of (N, B, ...)
     n_transition = trial_config.transition_steps
     steady = jax.tree.map(lambda x: x[n_transition:], ticks)
     transition = protocol.TransitionSummary.of(jax.tree.map(lambda x: x[:n_transition], ticks))
@@ -513,16 +551,20 @@ class NativeBackend(Backend):
             packing = _Packing(consts=ravel_pytree(consts)[1], controller=ravel_pytree(self._reset)[1],
                                pending=ravel_pytree(zeros(pending))[1], row=ravel_pytree(zeros(row))[1],
                                layout=p.layout, nsensordata=p.sensordata.shape[1])
-            advance = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing)
-            complete = functools.partial(_complete, trial_config, recorder, packing)
-            summarize = functools.partial(_summarize, trial_config, self.cpg_config.dt_s, packing.row)
-            run = functools.partial(_run_ffi, advance, complete,
+            tick = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing, _store_rows)
+            run = functools.partial(_run_ffi, tick,
+                                    functools.partial(_complete, trial_config, recorder, packing, _store_rows),
                                     trial_config.transition_steps + trial_config.steady_steps)
+            flat_advance = functools.partial(_flat_advance, packing, functools.partial(
+                _advance, self.cpg_config, trial_config, recorder, packing, _store_flat_row))
+            flat_complete = functools.partial(_flat_complete, packing, functools.partial(
+                _complete, trial_config, recorder, packing, _store_flat_row))
             self._compiled[key] = _Program(
-                packing=packing, pending_size=ravel_pytree(zeros(pending))[0].size,
-                row_size=ravel_pytree(zeros(row))[0].size, advance=jax.jit(advance, donate_argnums=(1,)),
-                complete=jax.jit(complete, donate_argnums=(1,)), run=jax.jit(run, donate_argnums=(2,)),
-                summarize=jax.jit(summarize))
+                packing=packing, pending=pending, row=row, tick=tick, run=jax.jit(run, donate_argnums=(2,)),
+                advance=jax.jit(flat_advance, donate_argnums=(1,)),
+                complete=jax.jit(flat_complete, donate_argnums=(1,)),
+                unpack_rows=jax.jit(jax.vmap(packing.row)),
+                summarize=jax.jit(functools.partial(_summarize, trial_config, self.cpg_config.dt_s)))
         return self._compiled[key]
 
     def _pack_host_inputs(self, failed: np.ndarray) -> np.ndarray:
@@ -532,38 +574,49 @@ class NativeBackend(Backend):
         buf[:, -1] = failed
         return buf
 
+    @staticmethod
+    def _first_carry(program: _Program, controller: _Controller, num_steps: int, flat: bool) -> _Carry:
+        """The carry of a run's first tick: pytrees for the compiled trial, flat for the per-tick calls."""
+        if flat:
+            return _Carry(controller=ravel_pytree(controller)[0], pending=jnp.zeros(_flat_size(program.pending)),
+                          step=jnp.int32(0), rows=jnp.zeros((num_steps, _flat_size(program.row))))
+        return _Carry(controller=jax.tree.map(jnp.array, controller),  # a copy: the run updates it in place
+                      pending=jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), program.pending),
+                      step=jnp.int32(0),
+                      rows=jax.tree.map(lambda s: jnp.zeros((num_steps, *s.shape), s.dtype), program.row))
+
     def _run(self, state: NativeState, recorder: _Recorder, trial_config: protocol.TrialConfig,
-             consts: _Constants) -> tuple[_Controller, jax.Array]:
+             consts: _Constants) -> tuple[_Controller, object]:
         """Run ``transition_steps + steady_steps`` ticks from ``state``; returns the controller-side state and the
-        flat rows (N, R). The physics state is left in ``self.physics``."""
+        recorder's rows (N, B, ...). The physics state is left in ``self.physics``."""
         program = self._program(recorder, trial_config)
         num_steps = trial_config.transition_steps + trial_config.steady_steps
         p = self.physics
         p.set_state(state.physics, state.warmstart, state.sensordata)
-        consts_flat = ravel_pytree(consts)[0]
-        carry = _Carry(controller=ravel_pytree(_Controller(state.cpg, state.io))[0],
-                       pending=jnp.zeros(program.pending_size), step=jnp.int32(0),
-                       rows=jnp.zeros((num_steps, program.row_size)))
+        controller = _Controller(state.cpg, state.io)
         failed = np.zeros(self.batch_size, bool)
         if p.stepping == "ffi":
-            carry = program.run(p.ffi_handle, consts_flat, carry, self._pack_host_inputs(failed))
+            carry = program.run(p.ffi_handle, consts, self._first_carry(program, controller, num_steps, flat=False),
+                                self._pack_host_inputs(failed))
             # The program steps the physics arrays in place: done before anything reads or frees them (JAX may
             # return before a computation finishes).
             carry = jax.block_until_ready(carry)
-            return program.packing.controller(carry.controller), carry.rows
+            return carry.controller, carry.rows
+        consts_flat = ravel_pytree(consts)[0]
+        carry = self._first_carry(program, controller, num_steps, flat=True)
         advance = program.advance  # one attribute lookup, not one per tick
         for _ in range(num_steps):
             carry, torque = advance(consts_flat, carry, self._pack_host_inputs(failed))
             failed = p.step(np.asarray(torque))
         carry = program.complete(consts_flat, carry, self._pack_host_inputs(failed))
-        return program.packing.controller(carry.controller), carry.rows
+        return program.packing.controller(carry.controller), program.unpack_rows(carry.rows)
 
     def trial(self, state: NativeState, new_params, gates: cpg.Gates) -> tuple[NativeState, protocol.TrialRecord]:
         """One trial for every instance. Returns the next state and the records (same fields as MJXBackend's)."""
         new_params = protocol.check_params(new_params, self.batch_size)
         consts = self._constants(state.params, new_params, gates)
-        controller, rows = self._run(state, TRIAL_RECORDER, self.trial_config, consts)
-        record = self._program(TRIAL_RECORDER, self.trial_config).summarize(rows, self._total_mass)
+        controller, ticks = self._run(state, TRIAL_RECORDER, self.trial_config, consts)
+        record = self._program(TRIAL_RECORDER, self.trial_config).summarize(ticks, self._total_mass)
         fell = np.asarray(record.fell) > 0
         self.physics.reset(fell)
         controller = protocol.where_batch(jnp.asarray(fell), self._reset, controller)
@@ -574,7 +627,6 @@ class NativeBackend(Backend):
         """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
         params = protocol.check_params(params, self.batch_size)
         config = protocol.TrialConfig(transition_steps=0, steady_steps=num_steps)
-        packing = self._program(LOG_RECORDER, config).packing
         controller, rows = self._run(state, LOG_RECORDER, config, self._constants(params, params, gates))
-        log = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), jax.vmap(packing.row)(rows))
+        log = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), rows)
         return NativeState(*self.physics.get_state(), cpg=controller.cpg, params=params, io=controller.io), log
