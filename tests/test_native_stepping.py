@@ -8,7 +8,8 @@
   controller ablation and a load adaptation whose payload changes twice (a new batch of models each time), at batch
   1, 20 and 64.
 - ``ffi`` (``cpgjax.sim.ffi_step``: the step in C++, called from inside one compiled program per trial): its
-  physics step, from Python and through the FFI, equals the reference's bit for bit for the same torques. Its
+  physics step, from Python and through the FFI, whole or in two overlapped parts, equals the reference's bit for
+  bit for the same torques. Its
   trials do not equal the per-tick ones bit for bit: XLA compiles the controller inside the trial's loop into other
   kernels than the per-tick call, which round some results differently in the last bit (as a different number of
   XLA threads does to the per-tick call itself), and the dynamics amplify such differences. The last test bounds
@@ -144,12 +145,61 @@ def test_the_step_called_inside_a_compiled_loop_equals_the_reference():
 
 
 @needs_ffi
+def test_the_overlapped_steps_of_two_parts_equal_the_reference():
+    """The calls of the overlapped trial (``native._run_ffi_overlapped``: ``ffi_step.start``, ``swap``,
+    ``finish``) in one jitted loop, parts [0, 2) and [2, 3), 100 random torques: every part's output of every step
+    is the reference's (the ``batch`` stepping from Python), and so are the states after, bit for bit, whichever
+    thread stepped an instance."""
+    scenario = _three_scenarios()
+    ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
+    torques = np.random.default_rng(1).normal(scale=3.0, size=(100, 3, 12)).astype(np.float32)
+    n, a, b, width = len(torques), (0, 2), (2, 3), new.layout.size + new.sensordata.shape[1] + 1
+
+    def after(x, y):  # x, computed from y: the calls' order in the program, as the controller fixes it there
+        return jax.numpy.where(jax.numpy.isfinite(y).all(), x, np.nan)
+
+    @jax.jit
+    def run(handle, torques):
+        in_b = ffi_step.start(handle, torques[0, :2], jax.numpy.zeros((1, width)), a)
+
+        def step(k, loop):
+            outputs, in_b = loop
+            in_a = ffi_step.swap(handle, after(torques[k, 2:], in_b), b, a, width)
+            in_b = ffi_step.swap(handle, after(torques[k + 1, :2], in_a), a, b, width)
+            return outputs.at[k].set(jax.numpy.concatenate([in_a, in_b])), in_b
+
+        outputs, in_b = jax.lax.fori_loop(0, n - 1, step, (jax.numpy.zeros((n, 3, width)), in_b))
+        in_a = ffi_step.swap(handle, after(torques[n - 1, 2:], in_b), b, a, width)
+        return outputs.at[n - 1].set(jax.numpy.concatenate([in_a, ffi_step.finish(handle, in_a, b, width)]))
+
+    outputs = np.asarray(run(new.ffi_handle, torques))
+    for k, torque in enumerate(torques):
+        failed = ref.step(torque)
+        expected = np.concatenate([ref.physics, ref.sensordata, failed[:, None]], axis=1).astype(np.float32)
+        np.testing.assert_array_equal(outputs[k], expected)
+    for x, y in zip(new.get_state(), ref.get_state(), strict=True):
+        np.testing.assert_array_equal(x, y)
+    new.close()
+
+
+@needs_ffi
+def test_a_part_started_out_of_order_is_refused_in_one_line_and_the_stepper_goes_on():
+    physics = native_go1.BatchPhysics(_three_scenarios(), stepping="ffi")
+    start_last = jax.jit(lambda handle, torque: ffi_step.start(handle, torque, jax.numpy.zeros(1), (2, 3)))
+    with pytest.raises(jax.errors.JaxRuntimeError, match="cpgjax_step_start: a part published out of order"):
+        jax.block_until_ready(start_last(physics.ffi_handle, jax.numpy.zeros((1, 12))))
+    assert not physics.step(np.zeros((3, 12), np.float32)).any()
+    physics.close()
+
+
+@needs_ffi
 def test_an_ffi_trial_follows_the_per_tick_trial_to_rounding_until_the_dynamics_amplify_it(native_sim, mid_params,
                                                                                           vmc_tegotae_gates):
     """The session batch (nominal, 15 kg, uphill, μ = 0.1, coarse, nominal) from standing, 300 logged ticks with
     each stepping from the same state: every logged quantity (state, torques, foot forces and positions, CPG, foot
-    targets, attitude) agrees within 1e-4 of its size (of 1 where smaller). Measured: at most 1.0e-5 (torques),
-    1.3e-6 (velocities), 1.2e-7 (positions); 3.3e-5 after 1,000 ticks. Over a trial the trajectories part further
+    targets, attitude) agrees within 1e-4 of its size (of 1 where smaller). Measured (the ffi trial in two
+    overlapped parts, ``native.overlap_parts``, on two cores): at most 8.3e-6 (torques), 6.0e-7 (velocities),
+    1.2e-7 (positions); 3.3e-5 after 1,000 ticks. Over a trial the trajectories part further
     (contact decided a tick apart), as between the engines (docs/backends.md): the trials are samples of the same
     noisy objective."""
     logs = []

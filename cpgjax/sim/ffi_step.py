@@ -1,11 +1,14 @@
-"""The native backend's physics step as an XLA FFI target, so that a whole trial is one compiled JAX program.
+"""The native backend's physics step as XLA FFI targets, so that a whole trial is one compiled JAX program.
 
-``batch_step.cc`` steps a batch of C-MuJoCo Go1s in place with MuJoCo's batch API (``mujoco/mjbatch.h``: one
-thread per core, one model variant per instance) and does the step's host arithmetic of
-``cpgjax.sim.native.BatchPhysics.step`` (the failure test on the clock, the recovered warm start, the reset of a
-failed instance) in the same order and precision. Registered with ``jax.ffi``, it is called from inside a
-``lax.fori_loop`` over the trial's ticks: the controller, the physics step and the record then alternate inside
-one XLA program, with no Python, dispatch or host copy between them (docs/backends.md).
+``batch_step.cc`` steps a batch of C-MuJoCo Go1s in place, instance by instance on one thread per core (each with
+its own one-thread MuJoCo batch, ``mujoco/mjbatch.h``, which runs the instance's model variant and traps MuJoCo's
+errors), and does the step's host arithmetic of ``cpgjax.sim.native.BatchPhysics.step`` (the failure test on the
+clock, the recovered warm start, the reset of a failed instance) in the same order and precision. Registered with
+``jax.ffi``, it is called from inside a ``lax.fori_loop`` over the trial's ticks: the controller, the physics step
+and the record then alternate inside one XLA program, with no Python, dispatch or host copy between them. The
+whole batch steps in one call (:func:`call`), or a part of it is started and finished by two (:func:`start`,
+:func:`swap`, :func:`finish`), between which the program computes the other part's controller while the
+library's threads step this one (``native._run_ffi_overlapped``; docs/backends.md).
 
 The library is compiled once per machine, with the system's C++ compiler, against the headers of the installed
 ``mujoco`` and ``jaxlib`` wheels, into a cache (``CPGJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/cpgjax``, else
@@ -35,7 +38,10 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 SOURCE = pathlib.Path(__file__).with_name("batch_step.cc")
-TARGET = "cpgjax_batch_step"  # the FFI target's name, as the library's symbol
+TARGET = "cpgjax_batch_step"  # the FFI targets' names, as the library's symbols: the whole batch's step,
+START = "cpgjax_step_start"  # a part's step started,
+SWAP = "cpgjax_step_swap"  # a part's step started and an earlier one's finished,
+FINISH = "cpgjax_step_finish"  # a part's step finished
 
 
 def cache_dir() -> pathlib.Path:
@@ -110,7 +116,8 @@ def load() -> ctypes.CDLL | None:
     lib.cpgjax_stepper_step.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_char_p,
                                         ctypes.c_int]
     lib.cpgjax_stepper_delete.argtypes = [ctypes.c_void_p]
-    jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(getattr(lib, TARGET)), platform="cpu")
+    for target in (TARGET, START, SWAP, FINISH):
+        jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, target)), platform="cpu")
     return lib
 
 
@@ -126,8 +133,9 @@ class RowOffsets(ctypes.Structure):
 
 
 class Stepper:
-    """B Go1s in one MuJoCo batch (``mjb_makeBatch`` on ``models[0]``, ``mjb_setModels(models)``), stepped by
-    :meth:`step` from Python or by :func:`call` inside a jitted program. ``rows`` (B, nstate) and ``sensordata``
+    """B Go1s on ``nthread`` threads (the caller's and ``nthread`` − 1 workers, each with a MuJoCo batch of the B
+    models: ``mjb_makeBatch`` on ``models[0]`` with one thread, ``mjb_setModels(models)``), stepped by :meth:`step`
+    from Python or by :func:`call` (or :func:`start`, :func:`swap`, :func:`finish`) inside a jitted program. ``rows`` (B, nstate) and ``sensordata``
     (B, nsensordata) are views of the library's arrays: the state the next step starts from."""
 
     def __init__(self, models: list[mujoco.MjModel], nthread: int, offsets: RowOffsets, actuator: np.ndarray,
@@ -183,3 +191,32 @@ def call(handle: jax.Array, torque_nm: jax.Array, host_in_shape: tuple[int, int]
     controller input (B, W) float32, [physics state | sensor data | failed] (``native._host_inputs``)."""
     step = jax.ffi.ffi_call(TARGET, jax.ShapeDtypeStruct(host_in_shape, jnp.float32), has_side_effect=True)
     return step(handle, torque_nm)
+
+
+def start(handle: jax.Array, torque_nm: jax.Array, through: jax.Array, part: tuple[int, int]) -> jax.Array:
+    """Inside a jitted program: start the step of the instances ``part`` = [lo, hi) with ``torque_nm``
+    (hi − lo, 12) on the stepper's threads and return at once, with a copy of the float32 ``through``: what reads
+    the copy runs after the start. Parts are started in their order in the batch, each after its last step
+    finished (:func:`swap`, :func:`finish`)."""
+    begin = jax.ffi.ffi_call(START, jax.ShapeDtypeStruct(through.shape, jnp.float32), has_side_effect=True)
+    return begin(handle, torque_nm, through, lo=np.int32(part[0]), hi=np.int32(part[1]))
+
+
+def swap(handle: jax.Array, torque_nm: jax.Array, part: tuple[int, int], done: tuple[int, int],
+         width: int) -> jax.Array:
+    """Inside a jitted program: start the step of ``part`` (as :func:`start`), then finish the step of the part
+    ``done`` started before it: step its instances that no thread has taken on this thread (then the new part's,
+    while its last ones run on the other threads) and return its next controller input (hi − lo, ``width``)
+    float32, as :func:`call`."""
+    step = jax.ffi.ffi_call(SWAP, jax.ShapeDtypeStruct((done[1] - done[0], width), jnp.float32),
+                            has_side_effect=True)
+    return step(handle, torque_nm, lo=np.int32(part[0]), hi=np.int32(part[1]), done_lo=np.int32(done[0]),
+                done_hi=np.int32(done[1]))
+
+
+def finish(handle: jax.Array, after: jax.Array, part: tuple[int, int], width: int) -> jax.Array:
+    """Inside a jitted program: finish the started step of ``part`` (as :func:`swap`, starting nothing), after
+    what computes the float32 ``after`` (not read)."""
+    end = jax.ffi.ffi_call(FINISH, jax.ShapeDtypeStruct((part[1] - part[0], width), jnp.float32),
+                           has_side_effect=True)
+    return end(handle, after, lo=np.int32(part[0]), hi=np.int32(part[1]))

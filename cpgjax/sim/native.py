@@ -1,16 +1,16 @@
 """The Go1 in C MuJoCo on the CPU: the paper's trial (``cpgjax.trial.protocol``) with native physics.
 
-Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, in place, with MuJoCo's batch API
-(its persistent thread pool, one thread per core, one ``MjModel`` variant per instance from
-``go1_model.scenario_model``): through ``cpgjax.sim.ffi_step`` (C++, callable from a compiled program) or
-``mujoco.batch`` from Python; ``mujoco.rollout`` stepping stays as the reference both equal bit for bit. Its host
+Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, in place, on one thread per core
+with one ``MjModel`` variant per instance from ``go1_model.scenario_model``: through ``cpgjax.sim.ffi_step`` (C++
+on MuJoCo's batch API, callable from a compiled program) or ``mujoco.batch`` from Python; ``mujoco.rollout`` stepping stays as the reference both equal bit for bit. Its host
 arrays are allocated once and reused; the solver is warm-started from the previous step's acceleration as a
 persistent ``mj_step`` loop would be.
 
 Control: a jitted, vmapped tick for the whole batch runs the shared sensor model (``cpgjax.go1.sensors.observe``)
 and controller (``cpg.controller_step``) and writes the tick's record into a device buffer. With the ``ffi``
 stepping (the default where ``cpgjax.sim.ffi_step`` builds) the whole trial is one compiled program: a
-``lax.fori_loop`` whose body is the tick and the physics step, called through XLA's FFI. Otherwise the host calls
+``lax.fori_loop`` whose body is the tick and the physics step, called through XLA's FFI; with two threads or more
+the batch runs in two parts whose controller and physics overlap (``_run_ffi_overlapped``). Otherwise the host calls
 the tick once per control tick and steps the batch between calls, the buffer donated from call to call (updated in
 place). At the end of a trial the buffer is summarized by ``protocol.summarize``, so a record means the same thing
 whichever backend produced it.
@@ -460,6 +460,60 @@ def _run_ffi(advance: Callable, complete: Callable, num_steps: int, handle, cons
     return complete(consts, carry, host_in)
 
 
+def overlap_parts(batch_size: int, nthread: int) -> tuple[tuple[int, int], ...]:
+    """The instances [lo, hi) of each part of the batch that the compiled trial steps in turn: two halves where
+    there are two threads or more and two instances (the controller of one half runs while the threads step the
+    other), else the whole batch."""
+    if nthread < 2 or batch_size < 2:
+        return ((0, batch_size),)
+    half = (batch_size + 1) // 2
+    return ((0, half), (half, batch_size))
+
+
+def _run_ffi_overlapped(advance: Callable, complete: Callable, num_steps: int, parts, handle, consts,
+                        carry: _Carry, host_in) -> _Carry:
+    """``_run_ffi`` with the batch in two parts a and b (``overlap_parts``) whose controller and physics overlap:
+    while the stepper's threads step one part, the program computes the other part's tick.
+
+        a's control 0 · start a's step 0 ·
+        tick k:  b's control k · start b's step k, finish a's · a's control k+1 · start a's step k+1, finish b's
+
+    A finish steps on this thread what the other threads have not taken of its part, then of the part just
+    started (``ffi_step.swap``). Each part runs the same ``_advance`` on its instances (the batch axis of every
+    argument sliced): every instance sees the ticks of ``_run_ffi``. The order of the calls is fixed by data (each
+    takes what the last one gave)."""
+    (a, b), width = parts, host_in.shape[1]
+
+    def part(tree, lo_hi, axis=0):
+        return jax.tree.map(lambda x: jax.lax.slice_in_dim(x, *lo_hi, axis=axis), tree)
+
+    def carry_of(lo_hi):
+        return carry._replace(controller=part(carry.controller, lo_hi), pending=part(carry.pending, lo_hi),
+                              rows=part(carry.rows, lo_hi, axis=1))
+
+    consts_a, consts_b = part(consts, a), part(consts, b)
+    carry_a, torque_a = advance(consts_a, carry_of(a), host_in[a[0]:a[1]])
+    in_b = ffi_step.start(handle, torque_a, host_in[b[0]:b[1]], a)
+
+    def tick(_, loop):
+        carry_a, carry_b, in_b = loop
+        carry_b, torque_b = advance(consts_b, carry_b, in_b)
+        in_a = ffi_step.swap(handle, torque_b, b, a, width)
+        carry_a, torque_a = advance(consts_a, carry_a, in_a)
+        return carry_a, carry_b, ffi_step.swap(handle, torque_a, a, b, width)
+
+    carry_a, carry_b, in_b = jax.lax.fori_loop(0, num_steps - 1, tick, (carry_a, carry_of(b), in_b))
+    carry_b, torque_b = advance(consts_b, carry_b, in_b)  # the last tick: no control k+1 for a
+    in_a = ffi_step.swap(handle, torque_b, b, a, width)
+    carry_a = complete(consts_a, carry_a, in_a)
+    carry_b = complete(consts_b, carry_b, ffi_step.finish(handle, in_a, b, width))
+    both = functools.partial(jax.tree.map, lambda x, y: jnp.concatenate([x, y]))
+    return carry_a._replace(controller=both(carry_a.controller, carry_b.controller),
+                            pending=both(carry_a.pending, carry_b.pending),
+                            rows=jax.tree.map(lambda x, y: jnp.concatenate([x, y], axis=1), carry_a.rows,
+                                              carry_b.rows))
+
+
 def _summarize(trial_config: protocol.TrialConfig, dt_s: float, ticks: protocol.Tick,
                total_mass_kg) -> protocol.TrialRecord:
     """Trial records (B, ...) from the run's rows (N, B, ...) with ``protocol.summarize`` (steady phase, plus the
@@ -552,9 +606,11 @@ class NativeBackend(Backend):
                                pending=ravel_pytree(zeros(pending))[1], row=ravel_pytree(zeros(row))[1],
                                layout=p.layout, nsensordata=p.sensordata.shape[1])
             tick = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing, _store_rows)
-            run = functools.partial(_run_ffi, tick,
-                                    functools.partial(_complete, trial_config, recorder, packing, _store_rows),
-                                    trial_config.transition_steps + trial_config.steady_steps)
+            complete = functools.partial(_complete, trial_config, recorder, packing, _store_rows)
+            num_steps = trial_config.transition_steps + trial_config.steady_steps
+            parts = overlap_parts(self.batch_size, p.nthread)
+            run = (functools.partial(_run_ffi, tick, complete, num_steps) if len(parts) == 1 else
+                   functools.partial(_run_ffi_overlapped, tick, complete, num_steps, parts))
             flat_advance = functools.partial(_flat_advance, packing, functools.partial(
                 _advance, self.cpg_config, trial_config, recorder, packing, _store_flat_row))
             flat_complete = functools.partial(_flat_complete, packing, functools.partial(
