@@ -145,32 +145,32 @@ def test_the_step_called_inside_a_compiled_loop_equals_the_reference():
 
 
 @needs_ffi
-def test_the_overlapped_steps_of_two_parts_equal_the_reference():
-    """The calls of the overlapped trial (``native._run_ffi_overlapped``: ``ffi_step.start``, ``swap``,
-    ``finish``) in one jitted loop, parts [0, 2) and [2, 3), 100 random torques: every part's output of every step
-    is the reference's (the ``batch`` stepping from Python), and so are the states after, bit for bit, whichever
-    thread stepped an instance."""
-    scenario = _three_scenarios()
+def test_the_overlapped_steps_of_two_halves_equal_the_reference():
+    """The calls of the overlapped trial (``native._run_ffi_overlapped``: ``ffi_step.alternate`` each half-tick,
+    ``ffi_step.finish`` at the end) in one jitted loop, four instances in halves of two, 100 random torques: every
+    half's output of every step is the reference's (the ``batch`` stepping from Python), and so are the states
+    after, bit for bit, whichever thread stepped an instance."""
+    scenario = go1_model.make_scenarios(friction=[0.6, 0.3, 0.9, 0.45], slope_deg=[0.0, 5.0, -5.0, 2.5],
+                                        payload_kg=[0.0, 7.5, 15.0, 3.0], physics="paper")
     ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
-    torques = np.random.default_rng(1).normal(scale=3.0, size=(100, 3, 12)).astype(np.float32)
-    n, a, b, width = len(torques), (0, 2), (2, 3), new.layout.size + new.sensordata.shape[1] + 1
-
-    def after(x, y):  # x, computed from y: the calls' order in the program, as the controller fixes it there
-        return jax.numpy.where(jax.numpy.isfinite(y).all(), x, np.nan)
+    torques = np.random.default_rng(1).normal(scale=3.0, size=(100, 4, 12)).astype(np.float32)
+    n, half, width = len(torques), 2, new.layout.size + new.sensordata.shape[1] + 1
 
     @jax.jit
     def run(handle, torques):
-        in_b = ffi_step.start(handle, torques[0, :2], jax.numpy.zeros((1, width)), a)
+        def half_step(j, loop):
+            outputs, previous = loop
+            p = j % 2
+            torque = jax.lax.dynamic_slice_in_dim(torques[j // 2], p * half, half)
+            # computed from the last call's output, as the controller's torques are in the trial: the calls' order
+            torque = jax.numpy.where(jax.numpy.isfinite(previous).all(), torque, np.nan)
+            other = ffi_step.alternate(handle, torque, p, width)  # the other half after its step ⌊(j − 1)/2⌋
+            return jax.numpy.where(j == 0, outputs, outputs.at[(j - 1) // 2, 1 - p].set(other)), other
 
-        def step(k, loop):
-            outputs, in_b = loop
-            in_a = ffi_step.swap(handle, after(torques[k, 2:], in_b), b, a, width)
-            in_b = ffi_step.swap(handle, after(torques[k + 1, :2], in_a), a, b, width)
-            return outputs.at[k].set(jax.numpy.concatenate([in_a, in_b])), in_b
-
-        outputs, in_b = jax.lax.fori_loop(0, n - 1, step, (jax.numpy.zeros((n, 3, width)), in_b))
-        in_a = ffi_step.swap(handle, after(torques[n - 1, 2:], in_b), b, a, width)
-        return outputs.at[n - 1].set(jax.numpy.concatenate([in_a, ffi_step.finish(handle, in_a, b, width)]))
+        outputs, last = jax.lax.fori_loop(0, 2 * n, half_step, (jax.numpy.zeros((n, 2, half, width)),
+                                                                 jax.numpy.zeros((half, width))))
+        outputs = outputs.at[n - 1, 1].set(ffi_step.finish(handle, last, (half, 2 * half), width))
+        return outputs.reshape(n, 2 * half, width)
 
     outputs = np.asarray(run(new.ffi_handle, torques))
     for k, torque in enumerate(torques):
@@ -183,12 +183,13 @@ def test_the_overlapped_steps_of_two_parts_equal_the_reference():
 
 
 @needs_ffi
-def test_a_part_started_out_of_order_is_refused_in_one_line_and_the_stepper_goes_on():
-    physics = native_go1.BatchPhysics(_three_scenarios(), stepping="ffi")
-    start_last = jax.jit(lambda handle, torque: ffi_step.start(handle, torque, jax.numpy.zeros(1), (2, 3)))
-    with pytest.raises(jax.errors.JaxRuntimeError, match="cpgjax_step_start: a part published out of order"):
-        jax.block_until_ready(start_last(physics.ffi_handle, jax.numpy.zeros((1, 12))))
-    assert not physics.step(np.zeros((3, 12), np.float32)).any()
+def test_a_half_started_out_of_turn_is_refused_in_one_line_and_the_stepper_goes_on():
+    physics = native_go1.BatchPhysics(go1_model.make_scenarios(friction=[0.6, 0.3, 0.9, 0.45]), stepping="ffi")
+    width = physics.layout.size + physics.sensordata.shape[1] + 1
+    second_first = jax.jit(lambda handle, torque: ffi_step.alternate(handle, torque, 1, width))
+    with pytest.raises(jax.errors.JaxRuntimeError, match="cpgjax_step_alternate: a part published out of order"):
+        jax.block_until_ready(second_first(physics.ffi_handle, jax.numpy.zeros((2, 12))))
+    assert not physics.step(np.zeros((4, 12), np.float32)).any()
     physics.close()
 
 
@@ -198,7 +199,7 @@ def test_an_ffi_trial_follows_the_per_tick_trial_to_rounding_until_the_dynamics_
     """The session batch (nominal, 15 kg, uphill, μ = 0.1, coarse, nominal) from standing, 300 logged ticks with
     each stepping from the same state: every logged quantity (state, torques, foot forces and positions, CPG, foot
     targets, attitude) agrees within 1e-4 of its size (of 1 where smaller). Measured (the ffi trial in two
-    overlapped parts, ``native.overlap_parts``, on two cores): at most 8.3e-6 (torques), 6.0e-7 (velocities),
+    overlapped halves, ``native.overlapped``, on two cores): at most 1.0e-5 (torques), 1.0e-6 (velocities),
     1.2e-7 (positions); 3.3e-5 after 1,000 ticks. Over a trial the trajectories part further
     (contact decided a tick apart), as between the engines (docs/backends.md): the trials are samples of the same
     noisy objective."""

@@ -12,10 +12,10 @@
 // Threads: a queue of instance steps, taken one at a time by nthread - 1 workers and by the caller while it waits
 // for a result; each thread steps on its own one-thread MuJoCo batch (a lane), copying the instance's state row in
 // and out, so every instance's arithmetic is the same whichever thread runs it. The whole batch's step is one call
-// (cpgjax_batch_step). A part's step can instead be published and returned from at once (cpgjax_step_start,
-// cpgjax_step_swap), and finished later (cpgjax_step_swap, cpgjax_step_finish): in between the caller's program
-// computes the controller of the other part while the workers step this one, and in the finish the caller steps
-// what the workers have not taken, of this part and then of the part published after it.
+// (cpgjax_batch_step). With the batch in two halves, one call (cpgjax_step_alternate) publishes one half's step
+// and finishes the other's: between two such calls the caller's program computes the controller of the half just
+// finished while the workers step the other, and in a finish the caller steps what the workers have not taken, of
+// that half and then of the half just published (cpgjax_step_finish finishes the last).
 //
 // Built by cpgjax/sim/ffi_step.py against the headers of the installed mujoco and jaxlib wheels.
 
@@ -218,8 +218,14 @@ struct Stepper {
 
   int Finish(int first, int last, char* error, int error_sz) {
     const int lane = static_cast<int>(lanes.size()) - 1;
-    while (remaining[first].load(std::memory_order_acquire) > 0) {
-      if (!TakeOne(lane)) CpuPause();
+    for (int idle = 0; remaining[first].load(std::memory_order_acquire) > 0;) {
+      if (TakeOne(lane)) {
+        idle = 0;
+      } else if (++idle < 2000) {
+        CpuPause();
+      } else {
+        std::this_thread::yield();  // a worker holds its last instances: leave the core to it if it needs this one
+      }
     }
     int nerror = 0;
     for (int i = first; i < last; ++i) {
@@ -260,12 +266,11 @@ std::string CannotPublish(const Stepper* s, int32_t lo, int32_t hi, size_t ntorq
 
 // Why the part [lo, hi) cannot be finished into a buffer of `nhost_in` floats ("" if it can).
 std::string CannotFinish(const Stepper* s, int32_t lo, int32_t hi, size_t nhost_in) {
-  if (lo < 0 || hi > s->nsim || lo >= hi || s->part_of[lo] != lo) return "no step of these instances published";
+  if (lo < 0 || hi > s->nsim || lo >= hi) return "instances outside the batch";
   if (nhost_in != static_cast<size_t>(hi - lo) * s->width()) return "input rows not of the part's size";
   return "";
 }
 
-// The error of a call that cannot go on, once nothing it or an earlier call started is running.
 ffi::Error Failed(Stepper* s, const char* target, const std::string& why) {
   s->Drain();
   return ffi::Error::InvalidArgument(std::string(target) + ": " + why);
@@ -292,31 +297,25 @@ ffi::Error BatchStep(ffi::Buffer<ffi::U32> handle, ffi::Buffer<ffi::F32> torque,
   return ffi::Error::Success();
 }
 
-// Publish the step of the part [lo, hi) with torque ((hi - lo) x nact) and return at once; `through` is copied to
-// `through_out`, so that what reads it in the program runs after this call.
-ffi::Error StepStart(ffi::Buffer<ffi::U32> handle, ffi::Buffer<ffi::F32> torque, ffi::Buffer<ffi::F32> through,
-                     ffi::ResultBuffer<ffi::F32> through_out, int32_t lo, int32_t hi) {
+// The batch in two halves of `half` instances: publish the step of half `which` (0: instances [0, half), 1: the
+// rest) with torque (half x nact), then finish the other half's step, if one is published: its rows
+// [physics state | sensor data | failed] after its last step (half x width).
+ffi::Error StepAlternate(ffi::Buffer<ffi::U32> handle, ffi::Buffer<ffi::F32> torque, ffi::Buffer<ffi::S32> which,
+                         ffi::ResultBuffer<ffi::F32> host_in, int32_t half) {
   Stepper* s = FromHandle(handle);
-  std::string why = CannotPublish(s, lo, hi, torque.element_count());
-  if (through.element_count() != through_out->element_count()) why = "a pass-through of another size";
-  if (!why.empty()) return Failed(s, "cpgjax_step_start", why);
-  s->Publish(lo, hi, torque.typed_data());
-  std::memcpy(through_out->typed_data(), through.typed_data(), sizeof(float) * through.element_count());
-  return ffi::Error::Success();
-}
-
-// Publish the step of the part [lo, hi) with torque, then finish the step of the part [done_lo, done_hi) published
-// before it: its next controller input host_in ((done_hi - done_lo) x width).
-ffi::Error StepSwap(ffi::Buffer<ffi::U32> handle, ffi::Buffer<ffi::F32> torque, ffi::ResultBuffer<ffi::F32> host_in,
-                    int32_t lo, int32_t hi, int32_t done_lo, int32_t done_hi) {
-  Stepper* s = FromHandle(handle);
-  std::string why = CannotFinish(s, done_lo, done_hi, host_in->element_count());
-  if (why.empty()) why = CannotPublish(s, lo, hi, torque.element_count());
-  if (!why.empty()) return Failed(s, "cpgjax_step_swap", why);
-  s->Publish(lo, hi, torque.typed_data());
+  const int32_t part = which.typed_data()[0];
+  std::string why;
+  if (2 * half != s->nsim || (part != 0 && part != 1)) {
+    why = "not one of two halves of the batch";
+  } else {
+    why = CannotFinish(s, (1 - part) * half, (2 - part) * half, host_in->element_count());
+    if (why.empty()) why = CannotPublish(s, part * half, (part + 1) * half, torque.element_count());
+  }
+  if (!why.empty()) return Failed(s, "cpgjax_step_alternate", why);
+  s->Publish(part * half, (part + 1) * half, torque.typed_data());
   char error[1000] = "";
-  if (s->Finish(done_lo, done_hi, error, sizeof(error)) > 0) return MuJoCoError(s, error);
-  CopyRows(s, done_lo, done_hi, host_in->typed_data());
+  if (s->Finish((1 - part) * half, (2 - part) * half, error, sizeof(error)) > 0) return MuJoCoError(s, error);
+  CopyRows(s, (1 - part) * half, (2 - part) * half, host_in->typed_data());
   return ffi::Error::Success();
 }
 
@@ -341,24 +340,13 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(cpgjax_batch_step, BatchStep,
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Ret<ffi::Buffer<ffi::F32>>());
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(cpgjax_step_start, StepStart,
+XLA_FFI_DEFINE_HANDLER_SYMBOL(cpgjax_step_alternate, StepAlternate,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::Buffer<ffi::U32>>()
                                   .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
                                   .Ret<ffi::Buffer<ffi::F32>>()
-                                  .Attr<int32_t>("lo")
-                                  .Attr<int32_t>("hi"));
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(cpgjax_step_swap, StepSwap,
-                              ffi::Ffi::Bind()
-                                  .Arg<ffi::Buffer<ffi::U32>>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Ret<ffi::Buffer<ffi::F32>>()
-                                  .Attr<int32_t>("lo")
-                                  .Attr<int32_t>("hi")
-                                  .Attr<int32_t>("done_lo")
-                                  .Attr<int32_t>("done_hi"));
+                                  .Attr<int32_t>("half"));
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(cpgjax_step_finish, StepFinish,
                               ffi::Ffi::Bind()

@@ -6,9 +6,9 @@ errors), and does the step's host arithmetic of ``cpgjax.sim.native.BatchPhysics
 clock, the recovered warm start, the reset of a failed instance) in the same order and precision. Registered with
 ``jax.ffi``, it is called from inside a ``lax.fori_loop`` over the trial's ticks: the controller, the physics step
 and the record then alternate inside one XLA program, with no Python, dispatch or host copy between them. The
-whole batch steps in one call (:func:`call`), or a part of it is started and finished by two (:func:`start`,
-:func:`swap`, :func:`finish`), between which the program computes the other part's controller while the
-library's threads step this one (``native._run_ffi_overlapped``; docs/backends.md).
+whole batch steps in one call (:func:`call`), or in two halves, one started while the other is finished
+(:func:`alternate`, :func:`finish`): between two calls the program computes the controller of the half just
+finished while the library's threads step the other (``native._run_ffi_overlapped``; docs/backends.md).
 
 The library is compiled once per machine, with the system's C++ compiler, against the headers of the installed
 ``mujoco`` and ``jaxlib`` wheels, into a cache (``CPGJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/cpgjax``, else
@@ -39,8 +39,7 @@ log = logging.getLogger(__name__)
 
 SOURCE = pathlib.Path(__file__).with_name("batch_step.cc")
 TARGET = "cpgjax_batch_step"  # the FFI targets' names, as the library's symbols: the whole batch's step,
-START = "cpgjax_step_start"  # a part's step started,
-SWAP = "cpgjax_step_swap"  # a part's step started and an earlier one's finished,
+ALTERNATE = "cpgjax_step_alternate"  # one half's step started and the other's finished,
 FINISH = "cpgjax_step_finish"  # a part's step finished
 
 
@@ -116,7 +115,7 @@ def load() -> ctypes.CDLL | None:
     lib.cpgjax_stepper_step.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_char_p,
                                         ctypes.c_int]
     lib.cpgjax_stepper_delete.argtypes = [ctypes.c_void_p]
-    for target in (TARGET, START, SWAP, FINISH):
+    for target in (TARGET, ALTERNATE, FINISH):
         jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, target)), platform="cpu")
     return lib
 
@@ -135,8 +134,9 @@ class RowOffsets(ctypes.Structure):
 class Stepper:
     """B Go1s on ``nthread`` threads (the caller's and ``nthread`` − 1 workers, each with a MuJoCo batch of the B
     models: ``mjb_makeBatch`` on ``models[0]`` with one thread, ``mjb_setModels(models)``), stepped by :meth:`step`
-    from Python or by :func:`call` (or :func:`start`, :func:`swap`, :func:`finish`) inside a jitted program. ``rows`` (B, nstate) and ``sensordata``
-    (B, nsensordata) are views of the library's arrays: the state the next step starts from."""
+    from Python or by :func:`call` (or :func:`alternate`, :func:`finish`) inside a jitted program. ``rows``
+    (B, nstate) and ``sensordata`` (B, nsensordata) are views of the library's arrays: the state the next step
+    starts from."""
 
     def __init__(self, models: list[mujoco.MjModel], nthread: int, offsets: RowOffsets, actuator: np.ndarray,
                  standing_physics: np.ndarray, standing_sensordata: np.ndarray):
@@ -193,30 +193,20 @@ def call(handle: jax.Array, torque_nm: jax.Array, host_in_shape: tuple[int, int]
     return step(handle, torque_nm)
 
 
-def start(handle: jax.Array, torque_nm: jax.Array, through: jax.Array, part: tuple[int, int]) -> jax.Array:
-    """Inside a jitted program: start the step of the instances ``part`` = [lo, hi) with ``torque_nm``
-    (hi − lo, 12) on the stepper's threads and return at once, with a copy of the float32 ``through``: what reads
-    the copy runs after the start. Parts are started in their order in the batch, each after its last step
-    finished (:func:`swap`, :func:`finish`)."""
-    begin = jax.ffi.ffi_call(START, jax.ShapeDtypeStruct(through.shape, jnp.float32), has_side_effect=True)
-    return begin(handle, torque_nm, through, lo=np.int32(part[0]), hi=np.int32(part[1]))
-
-
-def swap(handle: jax.Array, torque_nm: jax.Array, part: tuple[int, int], done: tuple[int, int],
-         width: int) -> jax.Array:
-    """Inside a jitted program: start the step of ``part`` (as :func:`start`), then finish the step of the part
-    ``done`` started before it: step its instances that no thread has taken on this thread (then the new part's,
-    while its last ones run on the other threads) and return its next controller input (hi − lo, ``width``)
-    float32, as :func:`call`."""
-    step = jax.ffi.ffi_call(SWAP, jax.ShapeDtypeStruct((done[1] - done[0], width), jnp.float32),
-                            has_side_effect=True)
-    return step(handle, torque_nm, lo=np.int32(part[0]), hi=np.int32(part[1]), done_lo=np.int32(done[0]),
-                done_hi=np.int32(done[1]))
+def alternate(handle: jax.Array, torque_nm: jax.Array, which: jax.Array, width: int) -> jax.Array:
+    """Inside a jitted program, the batch in two halves of H instances: start the step of half ``which`` (int, 0
+    or 1; traced) with ``torque_nm`` (H, 12) on the stepper's threads, then finish the other half's step if one is
+    started (step on this thread what the threads have not taken, of that half, then of this one) and return the
+    other half's controller input after its last step (H, ``width``) float32, as :func:`call`. Halves are started
+    in turn, 0 first."""
+    half = torque_nm.shape[0]
+    step = jax.ffi.ffi_call(ALTERNATE, jax.ShapeDtypeStruct((half, width), jnp.float32), has_side_effect=True)
+    return step(handle, torque_nm, jnp.asarray(which, jnp.int32), half=np.int32(half))
 
 
 def finish(handle: jax.Array, after: jax.Array, part: tuple[int, int], width: int) -> jax.Array:
-    """Inside a jitted program: finish the started step of ``part`` (as :func:`swap`, starting nothing), after
-    what computes the float32 ``after`` (not read)."""
+    """Inside a jitted program: finish the started step of the instances ``part`` = [lo, hi) (as
+    :func:`alternate`, starting nothing), after what computes the float32 ``after`` (not read)."""
     end = jax.ffi.ffi_call(FINISH, jax.ShapeDtypeStruct((part[1] - part[0], width), jnp.float32),
                            has_side_effect=True)
     return end(handle, after, lo=np.int32(part[0]), hi=np.int32(part[1]))

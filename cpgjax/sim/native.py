@@ -2,18 +2,18 @@
 
 Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, in place, on one thread per core
 with one ``MjModel`` variant per instance from ``go1_model.scenario_model``: through ``cpgjax.sim.ffi_step`` (C++
-on MuJoCo's batch API, callable from a compiled program) or ``mujoco.batch`` from Python; ``mujoco.rollout`` stepping stays as the reference both equal bit for bit. Its host
-arrays are allocated once and reused; the solver is warm-started from the previous step's acceleration as a
-persistent ``mj_step`` loop would be.
+on MuJoCo's batch API, callable from a compiled program) or ``mujoco.batch`` from Python; ``mujoco.rollout``
+stepping stays as the reference both equal bit for bit. Its host arrays are allocated once and reused; the solver
+is warm-started from the previous step's acceleration as a persistent ``mj_step`` loop would be.
 
 Control: a jitted, vmapped tick for the whole batch runs the shared sensor model (``cpgjax.go1.sensors.observe``)
 and controller (``cpg.controller_step``) and writes the tick's record into a device buffer. With the ``ffi``
 stepping (the default where ``cpgjax.sim.ffi_step`` builds) the whole trial is one compiled program: a
 ``lax.fori_loop`` whose body is the tick and the physics step, called through XLA's FFI; with two threads or more
-the batch runs in two parts whose controller and physics overlap (``_run_ffi_overlapped``). Otherwise the host calls
-the tick once per control tick and steps the batch between calls, the buffer donated from call to call (updated in
-place). At the end of a trial the buffer is summarized by ``protocol.summarize``, so a record means the same thing
-whichever backend produced it.
+an even batch runs in two halves whose controller and physics overlap (``_run_ffi_overlapped``). Otherwise the
+host calls the tick once per control tick and steps the batch between calls, the buffer donated from call to call
+(updated in place). At the end of a trial the buffer is summarized by ``protocol.summarize``, so a record means the
+same thing whichever backend produced it.
 
 Tick k is, as in the MJX backend (``cpgjax.mjx_go1``): observe S_k → controller → torque_k → physics step → S_{k+1}
 → record k.
@@ -460,58 +460,64 @@ def _run_ffi(advance: Callable, complete: Callable, num_steps: int, handle, cons
     return complete(consts, carry, host_in)
 
 
-def overlap_parts(batch_size: int, nthread: int) -> tuple[tuple[int, int], ...]:
-    """The instances [lo, hi) of each part of the batch that the compiled trial steps in turn: two halves where
-    there are two threads or more and two instances (the controller of one half runs while the threads step the
-    other), else the whole batch."""
-    if nthread < 2 or batch_size < 2:
-        return ((0, batch_size),)
-    half = (batch_size + 1) // 2
-    return ((0, half), (half, batch_size))
+def overlapped(batch_size: int, nthread: int) -> bool:
+    """Whether the compiled trial runs the batch in two halves whose controller and physics overlap
+    (``_run_ffi_overlapped``): with two threads or more and an even batch (an odd one runs whole)."""
+    return nthread >= 2 and batch_size >= 2 and batch_size % 2 == 0
 
 
-def _run_ffi_overlapped(advance: Callable, complete: Callable, num_steps: int, parts, handle, consts,
-                        carry: _Carry, host_in) -> _Carry:
-    """``_run_ffi`` with the batch in two parts a and b (``overlap_parts``) whose controller and physics overlap:
-    while the stepper's threads step one part, the program computes the other part's tick.
+def _run_ffi_overlapped(advance: Callable, complete: Callable, num_steps: int, handle, consts, carry: _Carry,
+                        host_in) -> _Carry:
+    """``_run_ffi`` with the batch in two halves a and b whose controller and physics overlap: while the stepper's
+    threads step one half, the program computes the other half's tick. ``advance`` and ``complete`` are
+    ``_advance`` and ``_complete`` without their row store.
 
-        a's control 0 · start a's step 0 ·
-        tick k:  b's control k · start b's step k, finish a's · a's control k+1 · start a's step k+1, finish b's
+        half-tick j = 0, 1, …, 2N − 1:  the control of half j mod 2, tick ⌊j/2⌋ · start its step, finish the other's
 
-    A finish steps on this thread what the other threads have not taken of its part, then of the part just
-    started (``ffi_step.swap``). Each part runs the same ``_advance`` on its instances (the batch axis of every
-    argument sliced): every instance sees the ticks of ``_run_ffi``. The order of the calls is fixed by data (each
-    takes what the last one gave)."""
-    (a, b), width = parts, host_in.shape[1]
+    (``ffi_step.alternate``; the first finishes nothing). A finish steps on this thread what the threads have not
+    taken of its half, then of the half just started. Both halves run one ``_advance`` (the loop's body, compiled
+    once), on their slices of every batched argument: every instance sees the ticks of ``_run_ffi``. The order of
+    the calls is fixed by data (each takes the torques computed from the last one's output)."""
+    half, width = host_in.shape[0] // 2, host_in.shape[1]
 
-    def part(tree, lo_hi, axis=0):
-        return jax.tree.map(lambda x: jax.lax.slice_in_dim(x, *lo_hi, axis=axis), tree)
+    def halves(x, axis=0):  # the batch axis split into (2, half)
+        return x.reshape(*x.shape[:axis], 2, half, *x.shape[axis + 1:])
 
-    def carry_of(lo_hi):
-        return carry._replace(controller=part(carry.controller, lo_hi), pending=part(carry.pending, lo_hi),
-                              rows=part(carry.rows, lo_hi, axis=1))
+    def store(p):  # tick k's row of half p into rows (N, 2, half, ...)
+        return lambda rows, k, row: jax.tree.map(lambda r, x: r.at[k, p].set(x), rows, row)
 
-    consts_a, consts_b = part(consts, a), part(consts, b)
-    carry_a, torque_a = advance(consts_a, carry_of(a), host_in[a[0]:a[1]])
-    in_b = ffi_step.start(handle, torque_a, host_in[b[0]:b[1]], a)
+    def of_half(tree, p):
+        return jax.tree.map(lambda x: x[p], tree)
 
-    def tick(_, loop):
-        carry_a, carry_b, in_b = loop
-        carry_b, torque_b = advance(consts_b, carry_b, in_b)
-        in_a = ffi_step.swap(handle, torque_b, b, a, width)
-        carry_a, torque_a = advance(consts_a, carry_a, in_a)
-        return carry_a, carry_b, ffi_step.swap(handle, torque_a, a, b, width)
+    consts, in_halves = jax.tree.map(halves, consts), halves(host_in)
+    carry = carry._replace(controller=jax.tree.map(halves, carry.controller),
+                           pending=jax.tree.map(halves, carry.pending),
+                           rows=jax.tree.map(functools.partial(halves, axis=1), carry.rows))
 
-    carry_a, carry_b, in_b = jax.lax.fori_loop(0, num_steps - 1, tick, (carry_a, carry_of(b), in_b))
-    carry_b, torque_b = advance(consts_b, carry_b, in_b)  # the last tick: no control k+1 for a
-    in_a = ffi_step.swap(handle, torque_b, b, a, width)
-    carry_a = complete(consts_a, carry_a, in_a)
-    carry_b = complete(consts_b, carry_b, ffi_step.finish(handle, in_a, b, width))
-    both = functools.partial(jax.tree.map, lambda x, y: jnp.concatenate([x, y]))
-    return carry_a._replace(controller=both(carry_a.controller, carry_b.controller),
-                            pending=both(carry_a.pending, carry_b.pending),
-                            rows=jax.tree.map(lambda x, y: jnp.concatenate([x, y], axis=1), carry_a.rows,
-                                              carry_b.rows))
+    def half_tick(j, loop):
+        carry, in_p = loop
+        p = j % 2
+        tick = carry._replace(controller=of_half(carry.controller, p), pending=of_half(carry.pending, p), step=j // 2)
+        tick, torque = advance(store(p), of_half(consts, p), tick, in_p)
+        in_other = jnp.where(j == 0, in_halves[1], ffi_step.alternate(handle, torque, p, width))
+        put = functools.partial(jax.tree.map, lambda whole, x: whole.at[p].set(x))
+        return carry._replace(controller=put(carry.controller, tick.controller),
+                              pending=put(carry.pending, tick.pending), rows=tick.rows), in_other
+
+    carry, in_a = jax.lax.fori_loop(0, 2 * num_steps, half_tick, (carry, in_halves[0]))
+    ends = []
+    for p, in_p in ((0, in_a), (1, None)):  # the last rows; b's step finishes after a's row is written
+        if in_p is None:
+            in_p = ffi_step.finish(handle, in_a, (half, 2 * half), width)
+        end = complete(store(p), of_half(consts, p), carry._replace(
+            controller=of_half(carry.controller, p), pending=of_half(carry.pending, p), step=jnp.int32(num_steps)),
+            in_p)
+        carry = carry._replace(rows=end.rows)
+        ends.append(end.controller)
+    whole = functools.partial(jax.tree.map, lambda x: x.reshape(-1, *x.shape[2:]))
+    return carry._replace(controller=whole(jax.tree.map(lambda *x: jnp.stack(x), *ends)),
+                          pending=whole(carry.pending), step=jnp.int32(num_steps),
+                          rows=jax.tree.map(lambda x: x.reshape(x.shape[0], -1, *x.shape[3:]), carry.rows))
 
 
 def _summarize(trial_config: protocol.TrialConfig, dt_s: float, ticks: protocol.Tick,
@@ -605,16 +611,15 @@ class NativeBackend(Backend):
             packing = _Packing(consts=ravel_pytree(consts)[1], controller=ravel_pytree(self._reset)[1],
                                pending=ravel_pytree(zeros(pending))[1], row=ravel_pytree(zeros(row))[1],
                                layout=p.layout, nsensordata=p.sensordata.shape[1])
-            tick = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing, _store_rows)
-            complete = functools.partial(_complete, trial_config, recorder, packing, _store_rows)
+            advance = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing)
+            complete = functools.partial(_complete, trial_config, recorder, packing)
+            tick = functools.partial(advance, _store_rows)
             num_steps = trial_config.transition_steps + trial_config.steady_steps
-            parts = overlap_parts(self.batch_size, p.nthread)
-            run = (functools.partial(_run_ffi, tick, complete, num_steps) if len(parts) == 1 else
-                   functools.partial(_run_ffi_overlapped, tick, complete, num_steps, parts))
-            flat_advance = functools.partial(_flat_advance, packing, functools.partial(
-                _advance, self.cpg_config, trial_config, recorder, packing, _store_flat_row))
-            flat_complete = functools.partial(_flat_complete, packing, functools.partial(
-                _complete, trial_config, recorder, packing, _store_flat_row))
+            run = (functools.partial(_run_ffi_overlapped, advance, complete, num_steps)
+                   if overlapped(self.batch_size, p.nthread) else
+                   functools.partial(_run_ffi, tick, functools.partial(complete, _store_rows), num_steps))
+            flat_advance = functools.partial(_flat_advance, packing, functools.partial(advance, _store_flat_row))
+            flat_complete = functools.partial(_flat_complete, packing, functools.partial(complete, _store_flat_row))
             self._compiled[key] = _Program(
                 packing=packing, pending=pending, row=row, tick=tick, run=jax.jit(run, donate_argnums=(2,)),
                 advance=jax.jit(flat_advance, donate_argnums=(1,)),
