@@ -5,9 +5,10 @@ batch size.
 With the ``ffi`` stepping (the default where it builds) the closed loop is one compiled program per trial, whose
 ticks run the controller and call the physics step through XLA's FFI; its controller is the "controller in a scan"
 column below, and the rest is what the loop, the FFI calls and the alternation (caches, the two kinds of threads)
-add. With the ``batch`` stepping (``--stepping batch``) the host calls the controller once per tick ("controller
-call") and steps the batch between calls; the rest is then the glue (record completion, packing the host input,
-the loop) and the alternation.
+add, less what the overlap hides: with two threads and an even batch, one half's controller runs while the other
+half steps (``native.overlapped``), and the rest is then negative. With the ``batch`` stepping (``--stepping
+batch``) the host calls the controller once per tick ("controller call") and steps the batch between calls; the
+rest is then the glue (record completion, packing the host input, the loop) and the alternation.
 
 Each part is timed on its own over as many calls as the trial has ticks, with the inputs the closed-loop trial gave
 it, tick by tick (the controller with the host inputs the trial packed, the physics with the torques it applied),
