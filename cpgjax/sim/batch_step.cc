@@ -200,9 +200,6 @@ struct Stepper {
     }
   }
 
-  // Take items on the caller's lane until the part [first, last) is stepped (the items of a part published after
-  // it as well, while its last ones run on workers); returns the number of its instances in which MuJoCo raised
-  // an error (the first one's message in error).
   // Take items on the caller's lane until every published one is stepped, then start the queue again at the
   // batch's first instance: after an error nothing is left running while the caller reads or writes the rows, and
   // the next program's parts are published in order again.
@@ -216,6 +213,9 @@ struct Stepper {
     done.store(whole);
   }
 
+  // Take items on the caller's lane until the part [first, last) is stepped (the items of a part published after
+  // it as well, while its last ones run on workers); returns the number of its instances in which MuJoCo raised
+  // an error (the first one's message in error).
   int Finish(int first, int last, char* error, int error_sz) {
     const int lane = static_cast<int>(lanes.size()) - 1;
     for (int idle = 0; remaining[first].load(std::memory_order_acquire) > 0;) {

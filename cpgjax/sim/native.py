@@ -505,19 +505,18 @@ def _run_ffi_overlapped(advance: Callable, complete: Callable, num_steps: int, h
                               pending=put(carry.pending, tick.pending), rows=tick.rows), in_other
 
     carry, in_a = jax.lax.fori_loop(0, 2 * num_steps, half_tick, (carry, in_halves[0]))
-    ends = []
-    for p, in_p in ((0, in_a), (1, None)):  # the last rows; b's step finishes after a's row is written
-        if in_p is None:
-            in_p = ffi_step.finish(handle, in_a, (half, 2 * half), width)
-        end = complete(store(p), of_half(consts, p), carry._replace(
-            controller=of_half(carry.controller, p), pending=of_half(carry.pending, p), step=jnp.int32(num_steps)),
-            in_p)
-        carry = carry._replace(rows=end.rows)
-        ends.append(end.controller)
-    whole = functools.partial(jax.tree.map, lambda x: x.reshape(-1, *x.shape[2:]))
-    return carry._replace(controller=whole(jax.tree.map(lambda *x: jnp.stack(x), *ends)),
-                          pending=whole(carry.pending), step=jnp.int32(num_steps),
-                          rows=jax.tree.map(lambda x: x.reshape(x.shape[0], -1, *x.shape[3:]), carry.rows))
+
+    def last_row(p, rows, in_p):  # half p's row of the last tick, from the state after its last step
+        return complete(store(p), of_half(consts, p), carry._replace(
+            controller=of_half(carry.controller, p), pending=of_half(carry.pending, p), rows=rows,
+            step=jnp.int32(num_steps)), in_p)
+
+    end_a = last_row(0, carry.rows, in_a)
+    end_b = last_row(1, end_a.rows, ffi_step.finish(handle, in_a, (half, 2 * half), width))
+    return _Carry(controller=jax.tree.map(lambda x, y: jnp.concatenate([x, y]), end_a.controller, end_b.controller),
+                  pending=jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), carry.pending),
+                  step=jnp.int32(num_steps),
+                  rows=jax.tree.map(lambda x: x.reshape(x.shape[0], -1, *x.shape[3:]), end_b.rows))
 
 
 def _summarize(trial_config: protocol.TrialConfig, dt_s: float, ticks: protocol.Tick,
