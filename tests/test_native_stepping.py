@@ -58,6 +58,18 @@ def _three_scenarios():
                                     payload_kg=[0.0, 7.5, 15.0], physics="paper")
 
 
+def _assert_the_reference_steps_so(ref, new, torques, outputs):
+    """Each step's controller input in ``outputs`` (float32 [physics | sensor data | failed]) is what ``ref``
+    gives stepped from Python with the same torques, and ``new`` (closed) ends in ``ref``'s state, bit for bit."""
+    for k, torque in enumerate(torques):
+        failed = ref.step(torque)
+        expected = np.concatenate([ref.physics, ref.sensordata, failed[:, None]], axis=1).astype(np.float32)
+        np.testing.assert_array_equal(outputs[k], expected)
+    for a, b in zip(new.get_state(), ref.get_state(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    new.close()
+
+
 def _run(engine: ablation.Engine, stepping: str, out, monkeypatch):
     """The whole study with ``stepping``; one engine for both steppings (its optimizer compiles once), whose
     simulator is made afresh for each run (``Engine.simulator`` keeps it from trial to trial)."""
@@ -134,14 +146,7 @@ def test_the_step_called_inside_a_compiled_loop_equals_the_reference():
             return outputs.at[k].set(ffi_step.call(handle, torques[k], shape))
         return jax.lax.fori_loop(0, len(torques), step, jax.numpy.zeros((len(torques), *shape)))
 
-    outputs = np.asarray(run(new.ffi_handle, torques))
-    for k, torque in enumerate(torques):
-        failed = ref.step(torque)
-        expected = np.concatenate([ref.physics, ref.sensordata, failed[:, None]], axis=1).astype(np.float32)
-        np.testing.assert_array_equal(outputs[k], expected)
-    for a, b in zip(new.get_state(), ref.get_state(), strict=True):
-        np.testing.assert_array_equal(a, b)
-    new.close()
+    _assert_the_reference_steps_so(ref, new, torques, np.asarray(run(new.ffi_handle, torques)))
 
 
 @needs_ffi
@@ -172,14 +177,7 @@ def test_the_overlapped_steps_of_two_halves_equal_the_reference():
         outputs = outputs.at[n - 1, 1].set(ffi_step.finish(handle, last, (half, 2 * half), width))
         return outputs.reshape(n, 2 * half, width)
 
-    outputs = np.asarray(run(new.ffi_handle, torques))
-    for k, torque in enumerate(torques):
-        failed = ref.step(torque)
-        expected = np.concatenate([ref.physics, ref.sensordata, failed[:, None]], axis=1).astype(np.float32)
-        np.testing.assert_array_equal(outputs[k], expected)
-    for x, y in zip(new.get_state(), ref.get_state(), strict=True):
-        np.testing.assert_array_equal(x, y)
-    new.close()
+    _assert_the_reference_steps_so(ref, new, torques, np.asarray(run(new.ffi_handle, torques)))
 
 
 @needs_ffi
