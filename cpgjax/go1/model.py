@@ -241,15 +241,23 @@ def scenario_dependent_fields() -> tuple[str, ...]:
     return tuple(names)
 
 
+@functools.cache
+def _standing_legs_rad() -> np.ndarray:
+    """The 12 joint angles [rad] of the standing pose (feet under the hips), computed once per process."""
+    feet = np.stack([np.full(4, STAND_FOOT_X_M), np.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M,
+                     np.full(4, STAND_FOOT_Z_M)], axis=-1)
+    with jax.ensure_compile_time_eval():  # a constant, also when first called while tracing
+        q_legs = jax.jit(kinematics.legs_ik)(feet, np.asarray(kinematics.SIDE_SIGN))
+    q_legs = np.asarray(q_legs, np.float64).reshape(12)
+    q_legs.flags.writeable = False
+    return q_legs
+
+
 def standing_qpos(model: mujoco.MjModel | None = None) -> np.ndarray:
     """qpos of the robot standing on flat ground at the origin, heading +x, feet under the hips."""
     m = load_model() if model is None else model
     ids = indices()
-    feet = np.stack([np.full(4, STAND_FOOT_X_M), np.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M,
-                     np.full(4, STAND_FOOT_Z_M)], axis=-1)
-    with jax.ensure_compile_time_eval():  # a constant, also when called while tracing
-        q_legs = np.asarray(kinematics.legs_ik(feet, kinematics.SIDE_SIGN), np.float64).reshape(12)
     qpos = np.array(m.qpos0, np.float64)
     qpos[ids.root_qpos:ids.root_qpos + 7] = [0.0, 0.0, -STAND_FOOT_Z_M + FOOT_RADIUS_M, 1.0, 0.0, 0.0, 0.0]
-    qpos[ids.joint_qpos] = q_legs
+    qpos[ids.joint_qpos] = _standing_legs_rad()
     return qpos

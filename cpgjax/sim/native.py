@@ -287,6 +287,17 @@ class _Controller(NamedTuple):
     io: physics_profiles.ActuatorSensorState
 
 
+@jax.jit
+def _rest_controller(qpos, qvel, sensordata, gravity_mps2) -> _Controller:
+    """The batch's controller at rest on its standing states (B, ...): a trial's start and a fallen instance's
+    reset. One program, not one per operation."""
+    obs = jax.vmap(sensors.observe)(qpos, qvel, sensordata, gravity_mps2)
+    return _Controller(jax.vmap(cpg.init_state)(obs), jax.vmap(physics_profiles.init_state)(obs.foot_force_n))
+
+
+_where_batch = jax.jit(protocol.where_batch)  # one program, not one per leaf
+
+
 class _Constants(NamedTuple):
     """Per-trial inputs of the jitted tick, each with a leading batch axis."""
 
@@ -420,6 +431,14 @@ def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, s
     return _Carry(controller=controller, pending=pending, step=carry.step + 1, rows=carry.rows), torque
 
 
+def _unravel(tree) -> Callable:
+    """``ravel_pytree``'s unravel function for ``tree`` (arrays or ``jax.ShapeDtypeStruct``): found by tracing, so
+    nothing is computed or compiled. (The function depends on the leaves' shapes and dtypes only.)"""
+    found = []
+    jax.eval_shape(lambda t: found.append(ravel_pytree(t)[1]), tree)
+    return found[0]
+
+
 def _flat_size(shapes) -> int:
     """The length of ``ravel_pytree``'s vector for a pytree of ``jax.ShapeDtypeStruct``."""
     return sum(int(np.prod(s.shape)) for s in jax.tree.leaves(shapes))
@@ -551,12 +570,9 @@ class NativeBackend(Backend):
         self.physics = BatchPhysics(scenario, nthread=nthread, stepping=stepping)
         self._gravity = jnp.asarray(self.physics.gravity_mps2, jnp.float32)
         self._total_mass = jnp.asarray(self.physics.total_mass_kg, jnp.float32)
-        lay = self.physics.layout
-        standing = jnp.asarray(self.physics.standing_physics, jnp.float32)
-        obs = jax.vmap(sensors.observe)(standing[:, lay.qpos], standing[:, lay.qvel],
-                                        jnp.asarray(self.physics.standing_sensordata, jnp.float32), self._gravity)
-        self._reset = _Controller(jax.vmap(cpg.init_state)(obs),
-                                  jax.vmap(physics_profiles.init_state)(obs.foot_force_n))
+        lay, standing = self.physics.layout, self.physics.standing_physics.astype(np.float32)
+        self._reset = _rest_controller(standing[:, lay.qpos], standing[:, lay.qvel],
+                                       self.physics.standing_sensordata.astype(np.float32), self._gravity)
         self._profile = jax.tree.map(jnp.asarray, physics_profiles.batch_arrays(
             scenario.physics, scenario.latency_ticks, scenario.noise_scale, scenario.noise_seed))
         self._host_in = np.zeros((self.batch_size, lay.size + self.physics.sensordata.shape[1] + 1), np.float32)
@@ -606,10 +622,8 @@ class NativeBackend(Backend):
                 return pending, row
 
             pending, row = jax.eval_shape(one_tick, consts)
-            zeros = functools.partial(jax.tree.map, lambda s: jnp.zeros(s.shape, s.dtype))
-            packing = _Packing(consts=ravel_pytree(consts)[1], controller=ravel_pytree(self._reset)[1],
-                               pending=ravel_pytree(zeros(pending))[1], row=ravel_pytree(zeros(row))[1],
-                               layout=p.layout, nsensordata=p.sensordata.shape[1])
+            packing = _Packing(consts=_unravel(consts), controller=_unravel(self._reset), pending=_unravel(pending),
+                               row=_unravel(row), layout=p.layout, nsensordata=p.sensordata.shape[1])
             advance = functools.partial(_advance, self.cpg_config, trial_config, recorder, packing)
             complete = functools.partial(_complete, trial_config, recorder, packing)
             tick = functools.partial(advance, _store_rows)
@@ -641,9 +655,9 @@ class NativeBackend(Backend):
             return _Carry(controller=ravel_pytree(controller)[0], pending=jnp.zeros(_flat_size(program.pending)),
                           step=jnp.int32(0), rows=jnp.zeros((num_steps, _flat_size(program.row))))
         return _Carry(controller=jax.tree.map(jnp.array, controller),  # a copy: the run updates it in place
-                      pending=jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), program.pending),
-                      step=jnp.int32(0),
-                      rows=jax.tree.map(lambda s: jnp.zeros((num_steps, *s.shape), s.dtype), program.row))
+                      pending=jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), program.pending),
+                      step=np.int32(0),
+                      rows=jax.tree.map(lambda s: np.zeros((num_steps, *s.shape), s.dtype), program.row))
 
     def _run(self, state: NativeState, recorder: _Recorder, trial_config: protocol.TrialConfig,
              consts: _Constants) -> tuple[_Controller, object]:
@@ -679,7 +693,7 @@ class NativeBackend(Backend):
         record = self._program(TRIAL_RECORDER, self.trial_config).summarize(ticks, self._total_mass)
         fell = np.asarray(record.fell) > 0
         self.physics.reset(fell)
-        controller = protocol.where_batch(jnp.asarray(fell), self._reset, controller)
+        controller = _where_batch(fell, self._reset, controller)
         return NativeState(*self.physics.get_state(), cpg=controller.cpg, params=new_params, io=controller.io), record
 
     def rollout(self, state: NativeState, params, gates: cpg.Gates,
