@@ -295,9 +295,6 @@ def _rest_controller(qpos, qvel, sensordata, gravity_mps2) -> _Controller:
     return _Controller(jax.vmap(cpg.init_state)(obs), jax.vmap(physics_profiles.init_state)(obs.foot_force_n))
 
 
-_where_batch = jax.jit(protocol.where_batch)  # one program, not one per leaf
-
-
 class _Constants(NamedTuple):
     """Per-trial inputs of the jitted tick, each with a leading batch axis."""
 
@@ -693,7 +690,7 @@ class NativeBackend(Backend):
         record = self._program(TRIAL_RECORDER, self.trial_config).summarize(ticks, self._total_mass)
         fell = np.asarray(record.fell) > 0
         self.physics.reset(fell)
-        controller = _where_batch(fell, self._reset, controller)
+        controller = protocol.where_batch(fell, self._reset, controller)
         return NativeState(*self.physics.get_state(), cpg=controller.cpg, params=new_params, io=controller.io), record
 
     def rollout(self, state: NativeState, params, gates: cpg.Gates,

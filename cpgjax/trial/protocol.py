@@ -234,6 +234,7 @@ def transition_params(previous, new, fraction):
     return previous + fraction * (new - previous)
 
 
+@jax.jit  # one program for the whole tree where called eagerly (a backend's or the engine's host step)
 def where_batch(mask, a, b):
     """Pytree ``a`` where ``mask`` else ``b``, leaf by leaf; ``mask`` has the leading batch axes of every leaf
     (a scalar mask selects whole trees) and is broadcast over the trailing axes."""
