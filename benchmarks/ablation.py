@@ -13,6 +13,10 @@ Target (issue 4): full study ≤ 5 minutes on 2 CPU cores, i.e. a real-time fact
 real-time factor and where the time goes (simulation, optimizer = propose + observe incl. GP refits, host
 transfers, checkpoints, and with several processes the per-trial exchange of trial logs). The last line of the
 output is a JSON object of the figures (process 0's).
+
+Like the ``cpgjax`` command, the benchmark keeps its compiled programs and loads those of an earlier run
+(``cpgjax/compile_cache.py``); the JSON counts them (``compiled_programs``). The first run on
+a machine, or ``JAX_ENABLE_COMPILATION_CACHE=false python benchmarks/ablation.py``, compiles everything.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ cpu_dispatch.request_inline()  # before any JAX computation
 
 import jax  # noqa: E402
 
-from cpgjax import ablation, cpg, provenance  # noqa: E402
+from cpgjax import ablation, compile_cache, cpg, provenance  # noqa: E402
 from cpgjax.sim import backends  # noqa: E402
 from cpgjax.studies import launch as study_launch  # noqa: E402
 from cpgjax.studies import registry  # noqa: E402
@@ -56,6 +60,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.backend != "mjx":
         cpu_dispatch.request_one_pool_thread()  # as the cpgjax commands: the cores for MuJoCo's threads
+    compile_cache.enable()  # as the cpgjax commands
     if args.processes is not None:
         if args.processes < 1 or args.distributed:
             parser.error(f"--processes {args.processes}: need at least 1, and no --distributed")
@@ -120,7 +125,7 @@ def run_once(args, physics: str | None) -> float:
         observe_s=fig["observe_s"], transfer_s=fig["transfer_s"], checkpoint_s=fig["checkpoint_s"],
         processes=jax.process_count(), exchange_s=fig["exchange_s"],
         exchange_ms_per_trial=round(1e3 * fig["exchange_s"] / max(len(result.trials.objective), 1), 1),
-        physics=spec.physics[0],
+        physics=spec.physics[0], compiled_programs=compile_cache.counts(),
         load_avg_1min_end=round(os.getloadavg()[0], 2), jax=jax.__version__)
     print(json.dumps(summary))
     return fig["wall_s"]

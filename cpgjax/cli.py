@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 import cpgjax
-from cpgjax import ablation, cpg, provenance
+from cpgjax import ablation, compile_cache, cpg, provenance
 from cpgjax.deployment import calibrate, deploy, tick_log
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.robot import cpu_dispatch, foot_force
@@ -253,7 +253,8 @@ def _walk(args) -> int:
         pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
         meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
                     git_commit=provenance.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
-                    backend=backends.resolve_backend(args.backend), **timing, environment=provenance.environment())
+                    backend=backends.resolve_backend(args.backend), **timing, environment=provenance.environment(),
+                    compiled_programs=compile_cache.counts())
         (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
         print(f"outputs in {args.out}/ (walk.parquet: every trial, docs/outputs.md)")
     return 0
@@ -1121,6 +1122,8 @@ def main(argv=None) -> int:
     cpu_dispatch.request_inline()
     if getattr(args, "backend", "auto") != "mjx":
         cpu_dispatch.request_one_pool_thread()
+    if as_command:  # the next run loads this one's compiled programs (a caller from Python decides for its process)
+        compile_cache.enable()
     with _CtrlC() as args.ctrl_c:  # study, optimize, demo: check it after every trial
         code = args.func(args)
     if args.ctrl_c.requested and code == 0:  # lost after the last trial's check: the outputs are written

@@ -296,6 +296,36 @@ ablation.Engine(spec, backend="native").run({str(out)!r})
         ablation.Engine(tiny_spec(seeds=(0, 1, 2)), backend="native").run(out, resume=True)
 
 
+def test_programs_loaded_from_an_earlier_runs_cache_give_the_same_study(tmp_path, uninterrupted):
+    """Two processes run the study with the cache of compiled programs (``compile_cache.enable``): the first
+    compiles and keeps its programs, the second loads every one of them and compiles none (``metadata.json``), and
+    both give the trial logs of this process's own compilation (no cache) bit for bit."""
+    code = SPEC_SOURCE + """
+import sys
+from cpgjax import compile_cache
+from cpgjax.study import files as study_io
+compile_cache.enable()
+result = ablation.Engine(spec, backend="native").run()
+study_io.write_trials(result, sys.argv[1] + "/trials.parquet")
+study_io.write_metadata(result, sys.argv[1] + "/metadata.json")
+"""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(tmp_path / "programs"))
+    counts = []
+    for run in ("first", "second"):
+        (tmp_path / run).mkdir()
+        done = subprocess.run([sys.executable, "-c", code, str(tmp_path / run)], env=env, capture_output=True,
+                              text=True, timeout=240, cwd=pathlib.Path(__file__).resolve().parents[1])
+        assert done.returncode == 0, done.stderr[-2000:]
+        counts.append(json.loads((tmp_path / run / "metadata.json").read_text())["compiled_programs"])
+        columns = study_io.read_trials(tmp_path / run / "trials.parquet")
+        for column, field in (("objective", "objective"), ("cost_of_transport", "cot"), ("energy_j", "energy_j"),
+                              ("distance_m", "distance_m")):
+            np.testing.assert_array_equal(columns[column], getattr(uninterrupted.trials, field), f"{run}: {column}")
+    assert counts[0]["compiled"] > 0 and counts[0]["loaded"] == 0, counts
+    assert counts[1] == {"loaded": counts[0]["compiled"], "compiled": 0}, counts
+    assert (tmp_path / "first" / "trials.parquet").read_bytes() == (tmp_path / "second" / "trials.parquet").read_bytes()
+
+
 def test_max_trials_is_the_capacity_of_the_papers_optimizer():
     assert StudySpec("s", num_trials=12).optimizer_config().capacity == 12
     assert StudySpec("s", num_trials=12, max_trials=40).optimizer_config().capacity == 40

@@ -11,10 +11,10 @@ whole batch steps in one call (:func:`call`), or in two halves, one started whil
 finished while the library's threads step the other (``native._run_ffi_overlapped``; docs/backends.md).
 
 The library is compiled once per machine, with the system's C++ compiler, against the headers of the installed
-``mujoco`` and ``jaxlib`` wheels, into a cache (``CPGJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/cpgjax``, else
-``~/.cache/cpgjax``), under a name that hashes the source, the compiler and both wheels' versions. Without a
-compiler (or if the build fails) :func:`load` logs why in one line and returns None, and the native backend steps
-tick by tick from Python instead (``native.default_stepping``).
+``mujoco`` and ``jaxlib`` wheels, into cpgjax's cache folder (``compile_cache.directory``), under a name that hashes
+the source, the compiler and both wheels' versions. Without a compiler (or if the build fails) :func:`load` logs why
+in one line and returns None, and the native backend steps tick by tick from Python instead
+(``native.default_stepping``).
 """
 
 from __future__ import annotations
@@ -35,18 +35,14 @@ import jaxlib
 import mujoco
 import numpy as np
 
+from cpgjax import compile_cache
+
 log = logging.getLogger(__name__)
 
 SOURCE = pathlib.Path(__file__).with_name("batch_step.cc")
 TARGET = "cpgjax_batch_step"  # the FFI targets' names, as the library's symbols: the whole batch's step,
 ALTERNATE = "cpgjax_step_alternate"  # one half's step started and the other's finished,
 FINISH = "cpgjax_step_finish"  # a part's step finished
-
-
-def cache_dir() -> pathlib.Path:
-    if os.environ.get("CPGJAX_CACHE_DIR"):
-        return pathlib.Path(os.environ["CPGJAX_CACHE_DIR"])
-    return pathlib.Path(os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache") / "cpgjax"
 
 
 def _compiler() -> str | None:
@@ -72,7 +68,7 @@ def library_path(compiler: str) -> pathlib.Path:
     digest = hashlib.sha256()
     for part in (SOURCE.read_bytes(), compiler.encode(), mujoco.__version__.encode(), jaxlib.__version__.encode()):
         digest.update(part)
-    return cache_dir() / f"batch_step-{digest.hexdigest()[:16]}.so"
+    return compile_cache.directory() / f"batch_step-{digest.hexdigest()[:16]}.so"
 
 
 def _build(compiler: str, path: pathlib.Path) -> None:

@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 import cpgjax
-from cpgjax import provenance
+from cpgjax import compile_cache, provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
@@ -596,13 +596,16 @@ def run_figures(result) -> dict[str, float]:
 
 
 def write_metadata(result, path, extra: dict | None = None, command: str | None = None) -> dict:
-    """``metadata.json``: the study, how it was run (``command``: the exact command line) and its run figures."""
+    """``metadata.json``: the study, how it was run (``command``: the exact command line) and its run figures
+    (``compiled_programs``: how many of the process's programs were loaded from the cache of compiled programs and
+    how many compiled, which the first trial's time depends on; null without the cache)."""
     meta = dict(study=result.spec.name, command=command, cpgjax_version=cpgjax.__version__,
                 git_commit=provenance.git_commit(),
                 instances=len(result.labels), trials=int(result.trials.objective.shape[0]),
                 backend=result.backend, sharded_over=result.devices, spec=repr(result.spec),
                 optimizer=dataclasses.asdict(result.spec.optimizer_config()),
-                **run_figures(result), environment=provenance.environment(), **(extra or {}))
+                **run_figures(result), environment=provenance.environment(),
+                compiled_programs=compile_cache.counts(), **(extra or {}))
     pathlib.Path(path).write_text(json.dumps(meta, indent=2, default=str))
     return meta
 
