@@ -5,7 +5,9 @@ in the same run.
 The native backend's limit (``native_limit``): the torques its closed loop applied, recorded, then replayed open
 loop on the same per-instance models from the same start, one thread, C MuJoCo's own ``mj_step`` loop
 (``mujoco.rollout`` with the whole control sequence, one instance after the other: no Python per step). The closed
-loop is reported as a fraction of cores × that rate, the most its physics could give on this machine's cores.
+loop is reported as a fraction of cores × that rate, the most its physics could give on this machine's cores. The
+same replay on every core (MuJoCo's thread pool, instances split between the threads) says how much of that limit
+the physics alone reaches.
 
 Two bare baselines (``measure``): *replay*, ``mjx.step`` driven by the torques the closed loop applied, which is the
 same physics bit for bit and so isolates what the controller, the sensors and the bookkeeping add; and *constant
@@ -178,17 +180,23 @@ def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: 
     control = np.zeros((batch, steps, models[0].nu))
     control[..., go1_model.indices().actuator] = np.asarray(log.torque_nm)
     replayed = np.empty((batch, steps, phys.layout.size))
-    pool = mj_rollout.Rollout(nthread=0)  # the calling thread only
-    data = mujoco.MjData(models[0])
-
-    def replay():
-        t0 = time.perf_counter()
-        pool.rollout(models, [data], phys.standing_physics, control, control_spec=mujoco.mjtState.mjSTATE_CTRL.value,
-                     skip_checks=True, nstep=steps, state=replayed)
-        return time.perf_counter() - t0
-
-    best = _interleaved_best({**runs, "replay": replay}, repeats)
     cores = native_go1.available_cores()
+
+    def replay(nthread: int):
+        pool = mj_rollout.Rollout(nthread=nthread)  # 0: the calling thread only
+        data = [mujoco.MjData(models[0]) for _ in range(max(nthread, 1))]
+
+        def run():
+            t0 = time.perf_counter()
+            pool.rollout(models, data, phys.standing_physics, control,
+                         control_spec=mujoco.mjtState.mjSTATE_CTRL.value, skip_checks=True, nstep=steps,
+                         state=replayed)
+            return time.perf_counter() - t0
+        return run
+
+    # The same replay on every core (MuJoCo's pool, instances split between the threads): how much of the limit
+    # the physics alone reaches, with no controller to run.
+    best = _interleaved_best({**runs, "replay": replay(0), "replay_all_cores": replay(cores)}, repeats)
     rate = {k: batch * steps / v for k, v in best.items()}
     # The replay warm-starts with MuJoCo's own qacc, the backend with the same qacc recovered from the states: the
     # trajectories agree to the solver's sensitivity to that rounding.
@@ -196,6 +204,7 @@ def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: 
     for s in sims.values():
         s.physics.close()
     return {"replay_one_thread_env_steps_per_s": rate["replay"], "cores": cores, "replay_max_abs_qpos_diff": diff,
+            "replay_all_cores_fraction_of_limit": rate["replay_all_cores"] / (cores * rate["replay"]),
             **{f"closed_loop_env_steps_per_s_{name}": rate[name] for name in steppings},
             **{f"fraction_of_limit_{name}": rate[name] / (cores * rate["replay"]) for name in steppings}}
 
@@ -275,20 +284,24 @@ def main() -> None:
     print(f"# native backend ({args.physics} physics, {provenance.machine()}, load average {os.getloadavg()[0]:.1f}): "
           "closed loop against the one-thread replay of its torques")
     print("| batch | stepping | native closed loop [env-steps/s] | replay, 1 thread [env-steps/s] | cores "
-          "| closed loop / (cores × replay) | replay max abs Δqpos [m or rad] |\n|---|---|---|---|---|---|---|")
+          "| closed loop / (cores × replay) | replay on every core / (cores × replay) "
+          "| replay max abs Δqpos [m or rad] |\n|---|---|---|---|---|---|---|---|")
     native_figures = {}
     for b in batches:
         r = native_limit(b, steps, repeats, args.physics, args.steppings)
         for name in args.steppings:
             print(f"| {b} | {name} | {r[f'closed_loop_env_steps_per_s_{name}']:,.0f} "
                   f"| {r['replay_one_thread_env_steps_per_s']:,.0f} | {r['cores']} "
-                  f"| {r[f'fraction_of_limit_{name}']:.2f} | {r['replay_max_abs_qpos_diff']:.1e} |", flush=True)
+                  f"| {r[f'fraction_of_limit_{name}']:.2f} | {r['replay_all_cores_fraction_of_limit']:.2f} "
+                  f"| {r['replay_max_abs_qpos_diff']:.1e} |", flush=True)
             native_figures.update({
                 f"native_{name}_closed_loop_env_steps_per_s_b{b}": round(r[f"closed_loop_env_steps_per_s_{name}"]),
                 f"native_{name}_fraction_of_limit_b{b}": round(r[f"fraction_of_limit_{name}"], 3)})
         native_figures.update({f"native_replay_one_thread_env_steps_per_s_b{b}":
                                round(r["replay_one_thread_env_steps_per_s"]),
-                               f"native_replay_max_abs_qpos_diff_b{b}": r["replay_max_abs_qpos_diff"]})
+                               f"native_replay_max_abs_qpos_diff_b{b}": r["replay_max_abs_qpos_diff"],
+                               f"native_replay_all_cores_fraction_of_limit_b{b}":
+                               round(r["replay_all_cores_fraction_of_limit"], 3)})
     if args.native_only:
         print(json.dumps({"benchmark": "rollout_native", "machine": provenance.machine(), "physics": args.physics,
                           "steps_per_instance": steps, "repeats": repeats, "cores": native_go1.available_cores(),
