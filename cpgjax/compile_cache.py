@@ -25,7 +25,8 @@ log = logging.getLogger(__name__)
 
 _REQUESTS = "/jax/compilation_cache/compile_requests_use_cache"  # JAX's monitoring events: a program looked up,
 _HITS = "/jax/compilation_cache/cache_hits"  # and found
-_events: collections.Counter = collections.Counter()
+_events: collections.Counter = collections.Counter()  # counted once enable() listens
+_listening = False
 
 # Programs of any compile time are kept: the trial, propose and observe programs take about a second of XLA each on
 # two cores, and the many small ones a study's setup compiles add up to as much (benchmarks/RESULTS.md).
@@ -71,9 +72,10 @@ def enable() -> pathlib.Path | None:
         folder = str(path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
     jax.config.update("jax_compilation_cache_max_size", MAX_SIZE_BYTES)
-    if not _events:
-        _events["enabled"] = 1
+    global _listening
+    if not _listening:
         jax.monitoring.register_event_listener(_count)
+        _listening = True
     log.debug("compiled programs kept in %s", folder)
     return pathlib.Path(folder)
 
@@ -86,6 +88,6 @@ def _count(event: str, **_) -> None:
 def counts() -> dict[str, int] | None:
     """Since :func:`enable`: the programs this process loaded from the cache and those it compiled; None where the
     cache is not in use."""
-    if not _events or not jax.config.jax_enable_compilation_cache:
+    if not _listening or not jax.config.jax_enable_compilation_cache:
         return None
     return {"loaded": _events[_HITS], "compiled": _events[_REQUESTS] - _events[_HITS]}
