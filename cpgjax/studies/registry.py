@@ -735,7 +735,7 @@ def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = No
         study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
         filmed = study_video.write_videos(out, gaits, logs, notify)
         # filmed: the videos written, for a prefix of the gaits (none where no OpenGL backend works)
-        strips = {g.group: study_video.filmstrip(info["path"]) for g, info in zip(gaits, filmed, strict=False)}
+        strips = {g.group: list(info["strip"]) for g, info in zip(gaits, filmed, strict=False)}
         study_figures.summary(out / "summary.png", result, text, gaits, strips,
                               study.paper_marks(result))
     return text

@@ -27,6 +27,7 @@ GL_HELP = {
     "glx": f"it needs a display (DISPLAY); without one set MUJOCO_GL=osmesa and {_OSMESA}",
     "glfw": f"it needs a display (DISPLAY); without one set MUJOCO_GL=osmesa and {_OSMESA}",
 }
+STRIP_FRAMES = 4  # frames of each video kept for a figure's filmstrip
 CAMERA_DISTANCE_M = 1.4
 CAMERA_AZIMUTH_DEG = 120.0  # from the robot's left and front, looking back at it
 CAMERA_ELEVATION_DEG = -18.0
@@ -82,21 +83,25 @@ def render_frames(qpos, slope_deg: float, width: int, height: int):
         renderer.close()
 
 
-def _encode(path: str, frames, fps: int) -> int:
+def _encode(path: str, frames, fps: int, keep: np.ndarray) -> tuple[int, np.ndarray]:
+    """Encode ``frames`` into the MP4 ``path``; returns their count and the frames at indices ``keep``."""
     import imageio.v2 as imageio
 
-    count = 0
+    count, kept = 0, {}
     with imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7,
                             pixelformat="yuv420p", macro_block_size=16) as writer:
         for frame in frames:
             writer.append_data(frame)
+            if count in keep:
+                kept[count] = frame
             count += 1
-    return count
+    return count, np.stack([kept[k] for k in keep])
 
 
 def render_jobs(jobs_file: str) -> int:
-    """Each video of the jobs file (written by ``video.render_videos``), one JSON line per finished one on stdout;
-    MuJoCo's OpenGL backend is loaded."""
+    """Each video of the jobs file (written by ``video.render_videos``), one JSON line per finished one on stdout,
+    and its filmstrip (:data:`STRIP_FRAMES` frames spread over it, as rendered) in a ``.npy`` file beside the jobs
+    file; MuJoCo's OpenGL backend is loaded."""
     with np.load(jobs_file) as z:
         slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
         paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
@@ -107,8 +112,12 @@ def render_jobs(jobs_file: str) -> int:
             first = next(frames)
         except Exception as err:  # the GL backends fail with many types (ImportError, OSError, GL errors...)
             return unavailable(err)
-        count = _encode(path, itertools.chain([first], frames), fps)
-        print(json.dumps(dict(frames=count, render_s=round(time.perf_counter() - t0, 3))), flush=True)
+        keep = np.linspace(0, len(qpos[k]) - 1, STRIP_FRAMES).astype(int)
+        count, strip = _encode(path, itertools.chain([first], frames), fps, keep)
+        strip_file = pathlib.Path(jobs_file).with_name(f"strip_{k}.npy")
+        np.save(strip_file, strip)
+        print(json.dumps(dict(frames=count, render_s=round(time.perf_counter() - t0, 3), strip=str(strip_file))),
+              flush=True)
     return 0
 
 

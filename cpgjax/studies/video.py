@@ -122,7 +122,8 @@ class Job(NamedTuple):
 def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height: int = HEIGHT) -> list[dict]:
     """Render every ``frame_ticks`` row of each job's qpos to its MP4 in one child process (each written to a
     temporary name, then renamed). Returns per job {path, frames, rollout_s, render_s (in the child, without its
-    start), backend}.
+    start), backend, strip: ``renderer.STRIP_FRAMES`` frames (H, W, 3) spread over the video, as rendered, for a
+    figure}.
 
     Raises:
       RenderUnavailable: no OpenGL backend here (one line: the backend tried and what to install); nothing written.
@@ -141,7 +142,9 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
                  height=height, paths=np.array(tmps), **arrays)
         child = subprocess.run([sys.executable, "-m", "cpgjax.studies.renderer", str(frames_file)], env=env,
                                capture_output=True, text=True)
-    done = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
+        done = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
+        for info in done:
+            info["strip"] = np.load(info["strip"])
     last = (child.stderr.strip().splitlines() or [""])[-1]
     infos = []
     for job, tmp, info in zip(jobs, tmps, done, strict=False):  # done: the videos the child finished, a prefix
@@ -171,11 +174,3 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
                f"{gait.slope_deg:g}°, payload {gait.payload_kg:g} kg; {info['frames']} frames rendered in "
                f"{info['render_s']:.1f} s ({info['backend']})")
     return infos
-
-
-def filmstrip(path, count: int = 4) -> list[np.ndarray]:
-    """``count`` frames spread over the MP4 ``path`` (for a figure)."""
-    import imageio.v3 as iio
-
-    frames = iio.imread(path)
-    return [frames[k] for k in np.linspace(0, len(frames) - 1, count).astype(int)]
