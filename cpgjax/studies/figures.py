@@ -180,10 +180,19 @@ def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
     return path
 
 
+def _first_table(text: str) -> list[str]:
+    """The rows of the first Markdown table in ``text`` (its header too, not its rule): the study's main table,
+    whose rows fit the page's width; the comparisons after it stay in table.md."""
+    lines = text.splitlines()
+    start = next((i for i, line in enumerate(lines) if line.startswith("|")), len(lines))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    return [line for line in lines[start:end] if not line.startswith("|---")]
+
+
 def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict,
             paper_marks: list[PaperMark] = ()) -> pathlib.Path:
     """One page: the objective J per trial (mean ± std per group) with the paper's values (``paper_marks``: dashed
-    segments, a band for the paper's std; the title says where the paper gives none), the study's table, and a
+    segments, a band for the paper's std; the title says where the paper gives none), the study's main table, and a
     filmstrip of each group's best gait (``frames``: group → a few video frames (H, W, 3); a group without them gets
     a line saying so)."""
     plt = _plt()
@@ -219,8 +228,8 @@ def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict,
                  f"{paper}", fontsize=9)
     panel = fig.add_subplot(grid[1, :])
     panel.axis("off")
-    table = [line for line in table_text.splitlines() if line.startswith("|") and not line.startswith("|---")]
-    panel.annotate("\n".join(table[:12]), (0, 1), xycoords="axes fraction", family="monospace", fontsize=5.5, va="top")
+    panel.annotate("\n".join(_first_table(table_text)[:12]), (0, 1), xycoords="axes fraction", family="monospace",
+                   fontsize=5.5, va="top")
     for r, gait in enumerate(gaits):
         strip = frames.get(gait.group, [])
         for c in range(4):
