@@ -300,21 +300,18 @@ def test_programs_loaded_from_an_earlier_runs_cache_give_the_same_study(tmp_path
     """Two processes run the study with the cache of compiled programs (``compile_cache.enable``): the first
     compiles and keeps its programs, the second loads every one of them and compiles none (``metadata.json``), and
     both give the trial logs of this process's own compilation (no cache) bit for bit."""
-    code = SPEC_SOURCE + """
-import sys
+    counts = []
+    for run in ("first", "second"):
+        (tmp_path / run).mkdir()
+        code = SPEC_SOURCE + f"""
 from cpgjax import compile_cache
 from cpgjax.study import files as study_io
 compile_cache.enable()
 result = ablation.Engine(spec, backend="native").run()
-study_io.write_trials(result, sys.argv[1] + "/trials.parquet")
-study_io.write_metadata(result, sys.argv[1] + "/metadata.json")
+study_io.write_trials(result, {str(tmp_path / run / "trials.parquet")!r})
+study_io.write_metadata(result, {str(tmp_path / run / "metadata.json")!r})
 """
-    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(tmp_path / "programs"))
-    counts = []
-    for run in ("first", "second"):
-        (tmp_path / run).mkdir()
-        done = subprocess.run([sys.executable, "-c", code, str(tmp_path / run)], env=env, capture_output=True,
-                              text=True, timeout=240, cwd=pathlib.Path(__file__).resolve().parents[1])
+        done = _run_subprocess(code, {"JAX_COMPILATION_CACHE_DIR": str(tmp_path / "programs")})
         assert done.returncode == 0, done.stderr[-2000:]
         counts.append(json.loads((tmp_path / run / "metadata.json").read_text())["compiled_programs"])
         columns = study_io.read_trials(tmp_path / run / "trials.parquet")
