@@ -649,8 +649,9 @@ class NativeBackend(Backend):
     def _first_carry(program: _Program, controller: _Controller, num_steps: int, flat: bool) -> _Carry:
         """The carry of a run's first tick: pytrees for the compiled trial, flat for the per-tick calls."""
         if flat:
-            return _Carry(controller=ravel_pytree(controller)[0], pending=jnp.zeros(_flat_size(program.pending)),
-                          step=jnp.int32(0), rows=jnp.zeros((num_steps, _flat_size(program.row))))
+            return _Carry(controller=ravel_pytree(controller)[0],
+                          pending=np.zeros(_flat_size(program.pending), np.float32), step=np.int32(0),
+                          rows=np.zeros((num_steps, _flat_size(program.row)), np.float32))
         return _Carry(controller=jax.tree.map(jnp.array, controller),  # a copy: the run updates it in place
                       pending=jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), program.pending),
                       step=np.int32(0),
