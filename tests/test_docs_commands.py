@@ -53,11 +53,15 @@ def test_the_docs_name_commands():
     assert len(COMMANDS) >= 15 and any("deploy --robot sim --optimize" in c for _, c in COMMANDS)
 
 
+def _files_as_plain_paths(monkeypatch) -> None:
+    """The parser's file arguments taken as plain paths: nothing is read or checked on disk while parsing."""
+    for name in ("_params_file", "_calibration_file", "_output_path"):
+        monkeypatch.setattr(cli, name, pathlib.Path)
+
+
 @pytest.mark.parametrize("doc, command", COMMANDS, ids=[c for _, c in COMMANDS])
 def test_a_documented_command_parses(doc, command, monkeypatch, capsys):
-    monkeypatch.setattr(cli, "_params_file", pathlib.Path)
-    monkeypatch.setattr(cli, "_calibration_file", pathlib.Path)
-    monkeypatch.setattr(cli, "_output_path", pathlib.Path)
+    _files_as_plain_paths(monkeypatch)
     argv = shlex.split(command)[1:]
     try:
         args = cli.build_parser().parse_args(argv)
@@ -91,9 +95,8 @@ def shortened(argv: list[str]) -> list[str] | None:
 @pytest.mark.slow
 @pytest.mark.parametrize("doc", [d for d in DOCS if commands_in_order(d)], ids=lambda d: d.name)
 def test_the_documented_commands_run_in_a_fresh_folder(doc, tmp_path, monkeypatch):
-    for name in ("_params_file", "_calibration_file", "_output_path"):
-        monkeypatch.setattr(cli, name, pathlib.Path)
-    # One parser (files as plain paths) for every line: what it makes of two lines that differ only in an option
+    _files_as_plain_paths(monkeypatch)
+    # One parser for every line: what it makes of two lines that differ only in an option
     # given again later (the last given wins) compares equal.
     parser = cli.build_parser()
     ran, run_options = [], []
