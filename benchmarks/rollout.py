@@ -179,10 +179,10 @@ def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: 
     models, phys = sim.physics.models, sim.physics
     control = np.zeros((batch, steps, models[0].nu))
     control[..., go1_model.indices().actuator] = np.asarray(log.torque_nm)
-    replayed = np.empty((batch, steps, phys.layout.size))
+    replayed = np.empty((batch, steps, phys.layout.size))  # the one-thread replay's states, compared below
     cores = native_go1.available_cores()
 
-    def replay(nthread: int):
+    def replay(nthread: int, states: np.ndarray):
         pool = mj_rollout.Rollout(nthread=nthread)  # 0: the calling thread only
         data = [mujoco.MjData(models[0]) for _ in range(max(nthread, 1))]
 
@@ -190,13 +190,14 @@ def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: 
             t0 = time.perf_counter()
             pool.rollout(models, data, phys.standing_physics, control,
                          control_spec=mujoco.mjtState.mjSTATE_CTRL.value, skip_checks=True, nstep=steps,
-                         state=replayed)
+                         state=states)
             return time.perf_counter() - t0
         return run
 
     # The same replay on every core (MuJoCo's pool, instances split between the threads): how much of the limit
     # the physics alone reaches, with no controller to run.
-    best = _interleaved_best({**runs, "replay": replay(0), "replay_all_cores": replay(cores)}, repeats)
+    runs.update(replay=replay(0, replayed), replay_all_cores=replay(cores, np.empty_like(replayed)))
+    best = _interleaved_best(runs, repeats)
     rate = {k: batch * steps / v for k, v in best.items()}
     # The replay warm-starts with MuJoCo's own qacc, the backend with the same qacc recovered from the states: the
     # trajectories agree to the solver's sensitivity to that rounding.
