@@ -67,3 +67,46 @@ def test_one_pool_thread_is_asked_for_before_the_client_and_a_preset_size_is_kep
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == (["True", "1", "False", "1"] if preset is None else ["False", "3", "False", "3"])
+
+
+def test_mujoco_timers_are_off_while_a_stepper_exists_and_the_callback_found_comes_back():
+    """In a fresh interpreter (the callback is process-wide): a Go1 stepped with MuJoCo's timers on, then while a
+    native backend's stepper exists (the bindings' clock, then a Python clock set before it), then after it is
+    closed. While it exists no timer adds time and the clock set before it is not called; the trajectories are the
+    same bit for bit; after it the clock found is back."""
+    if not ffi_step.available():
+        pytest.skip("the native physics step cannot be built on this machine")
+    code = """
+import mujoco, numpy as np
+from cpgjax.go1 import model as go1_model
+from cpgjax.sim import native
+scenario = go1_model.make_scenarios(friction=np.array([0.6, 0.6]))
+m = go1_model.scenario_model(scenario, 0)
+def run():  # (time the step timer added, final qpos) over 50 steps from standing, torques on every motor
+    d = mujoco.MjData(m)
+    d.qpos[:] = go1_model.standing_qpos(m)
+    d.ctrl[:] = 1.0
+    for _ in range(50):
+        mujoco.mj_step(m, d)
+    return d.timer[mujoco.mjtTimer.mjTIMER_STEP].duration, d.qpos.copy()
+calls = []
+def clock():
+    calls.append(1)
+    return float(len(calls))
+on, q_on = run()
+physics = native.BatchPhysics(scenario, stepping="ffi")
+off, q_off = run()
+mujoco.set_mjcb_time(clock)
+physics.close()
+physics = native.BatchPhysics(scenario, stepping="ffi")
+before = len(calls)
+off_again, _ = run()
+calls_during = len(calls) - before
+physics.close()
+after, _ = run()
+print(on > 0, off, off_again, calls_during, after > 0, len(calls) > 0, np.array_equal(q_on, q_off))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env=os.environ | {"JAX_PLATFORMS": "cpu"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["True", "0.0", "0.0", "0", "True", "True", "True"]

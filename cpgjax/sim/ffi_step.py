@@ -49,7 +49,7 @@ def _compiler() -> str | None:
     return shutil.which(os.environ.get("CXX", "c++")) or shutil.which("g++") or shutil.which("clang++")
 
 
-def _mujoco_library() -> pathlib.Path:
+def mujoco_library() -> pathlib.Path:
     """The libmujoco shared library of the installed wheel (the one the ``mujoco`` module has loaded)."""
     found = sorted(pathlib.Path(mujoco.__file__).parent.glob("libmujoco.so*"))
     if not found:
@@ -58,7 +58,7 @@ def _mujoco_library() -> pathlib.Path:
 
 
 def _command(compiler: str, output: pathlib.Path) -> list[str]:
-    lib = _mujoco_library()
+    lib = mujoco_library()
     return [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-w", f"-I{jax.ffi.include_dir()}",
             f"-I{lib.parent / 'include'}", str(SOURCE), "-o", str(output), f"-L{lib.parent}", f"-l:{lib.name}",
             f"-Wl,-rpath,{lib.parent}"]
