@@ -14,6 +14,18 @@ real-time factor and where the time goes (simulation, optimizer = propose + obse
 transfers, checkpoints, and with several processes the per-trial exchange of trial logs). The last line of the
 output is a JSON object of the figures (process 0's).
 
+The physics limit of the study's own steps (native backend, one process): the start states and parameters of
+``--limit-trials`` trials spread over the study (5 by default; 0 skips it) are kept, and after the study each is run
+again with the trial's recorder swapped for the rollout log's (the same controller, transition and physics), and its
+torques are replayed open loop from the trial's start state by the same FFI physics step on one thread (every instance
+stepped by the calling thread, with the step's host arithmetic: the same trajectories, bit for bit, which
+``mujoco.rollout`` would not give, its warm start differing in the last bits and the study's trials amplifying that
+within a few thousand steps; the step's copies and host arithmetic make it about 3 % slower than ``mujoco.rollout`` on
+the torques of a walking trial, where the two agree): the single-core physics time of the study's steps is its env-
+steps at that replay's rate, and the JSON gives the study's wall time as a fraction of it (the issue's target: ≤ 0.8).
+The trials of a study are not the rollout benchmark's walking robot (random parameters at first, falls, the open-loop
+controller), and their steps cost what they cost.
+
 Like the ``cpgjax`` command, the benchmark keeps its compiled programs and loads those of an earlier run
 (``cpgjax/compile_cache.py``); the JSON counts them (``compiled_programs``). The first run on
 a machine, or ``JAX_ENABLE_COMPILATION_CACHE=false python benchmarks/ablation.py``, compiles everything.
@@ -23,11 +35,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import sys
 import tempfile
 import time
+from typing import NamedTuple
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
@@ -36,9 +50,12 @@ from cpgjax.robot import cpu_dispatch  # noqa: E402
 cpu_dispatch.request_inline()  # before any JAX computation
 
 import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
 from cpgjax import ablation, compile_cache, cpg, provenance  # noqa: E402
-from cpgjax.sim import backends  # noqa: E402
+from cpgjax.sim import backends, ffi_step  # noqa: E402
+from cpgjax.sim import native as native_go1  # noqa: E402
 from cpgjax.studies import launch as study_launch  # noqa: E402
 from cpgjax.studies import registry  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
@@ -56,11 +73,15 @@ def main() -> None:
     parser.add_argument("--distributed", action="store_true", help="one of several processes: jax.distributed."
                         "initialize() first (coordinator, count and rank from the environment or Slurm)")
     parser.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes")
+    parser.add_argument("--limit-trials", type=int, default=5, help="trials replayed for the physics limit of the "
+                        "study's own steps (native backend, one process; 0: none)")
     backends.add_backend_argument(parser)
     args = parser.parse_args()
     if args.backend != "mjx":
         cpu_dispatch.request_one_pool_thread()  # as the cpgjax commands: the cores for MuJoCo's threads
     compile_cache.enable()  # as the cpgjax commands
+    if args.limit_trials < 0:
+        parser.error(f"--limit-trials {args.limit_trials}: need 0 or more")
     if args.processes is not None:
         if args.processes < 1 or args.distributed:
             parser.error(f"--processes {args.processes}: need at least 1, and no --distributed")
@@ -100,6 +121,8 @@ def run_once(args, physics: str | None) -> float:
         spec = dataclasses.replace(spec, physics=(physics,))
     t0 = time.perf_counter()
     engine = ablation.Engine(spec, backend=args.backend)
+    sampled = _sample_trials(engine, spec.num_trials, args.limit_trials) if (
+        args.limit_trials and engine.backend_name == "native" and jax.process_count() == 1) else None
     last = [None]
 
     def progress(p):
@@ -127,8 +150,93 @@ def run_once(args, physics: str | None) -> float:
         exchange_ms_per_trial=round(1e3 * fig["exchange_s"] / max(len(result.trials.objective), 1), 1),
         physics=spec.physics[0], compiled_programs=compile_cache.counts(),
         load_avg_1min_end=round(os.getloadavg()[0], 2), jax=jax.__version__)
+    if sampled:
+        rate, diff, steps = _replay_rate(sampled)
+        single_core_s = fig["env_steps"] / rate
+        print(f"physics limit of the study's own steps: {len(sampled)} trials ({steps:,} env-steps) replayed on one "
+              f"thread at {rate:,.0f} env-steps/s (max |Δstate| against the logged run {diff:.1e}); the study's "
+              f"{fig['env_steps']:,} env-steps take {single_core_s:.1f} s of single-core physics, its wall time "
+              f"{fig['wall_s'] / single_core_s:.2f} of that")
+        summary.update(limit_trials=len(sampled), replay_one_thread_env_steps_per_s=round(rate),
+                       replay_max_abs_state_diff=diff, single_core_physics_s=round(single_core_s, 2),
+                       wall_over_single_core_physics=round(fig["wall_s"] / single_core_s, 3))
     print(json.dumps(summary))
     return fig["wall_s"]
+
+
+class _Sample(NamedTuple):
+    """What a sampled trial started from: its backend's scenario and configs, state, parameters and gates."""
+
+    sim: native_go1.NativeBackend
+    state: native_go1.NativeState
+    new_params: np.ndarray
+    gates: cpg.Gates
+
+
+def _sample_trials(engine: ablation.Engine, num_trials: int, count: int) -> list[_Sample]:
+    """Keep the start of ``count`` trials spread over the study (filled in as the engine runs them)."""
+    chosen = set(np.linspace(0, num_trials - 1, min(count, num_trials)).round().astype(int).tolist())
+    sampled, seen, simulator, kept = [], [0], engine.simulator, set()
+
+    def keeping(sim):
+        trial = sim.trial
+
+        def run(state, new_params, gates):
+            if seen[0] in chosen:
+                host = jax.tree.map(np.array, state)
+                sampled.append(_Sample(sim, host, np.array(new_params), jax.tree.map(np.array, gates)))
+            seen[0] += 1
+            return trial(state, new_params, gates)
+        return run
+
+    def wrapped(t):
+        sim = simulator(t)
+        if id(sim) not in kept:
+            sim.trial = keeping(sim)
+            kept.add(id(sim))
+        return sim
+
+    engine.simulator = wrapped
+    return sampled
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _replay(handle, torque_nm, width: int):
+    """Step the stepper ``handle`` names with ``torque_nm`` (N, B, 12), tick after tick (``ffi_step.call``)."""
+    batch = torque_nm.shape[1]
+    return jax.lax.fori_loop(0, torque_nm.shape[0], lambda k, _: ffi_step.call(handle, torque_nm[k], (batch, width)),
+                             jnp.zeros((batch, width), jnp.float32))
+
+
+def _replay_rate(sampled: list[_Sample]) -> tuple[float, float, int]:
+    """One-thread env-steps/s of the sampled trials' physics: each trial run again with the rollout log's recorder
+    (the same controller and physics), then its torques replayed from the trial's start state by the same FFI step on
+    one thread (a ``BatchPhysics`` with ``nthread=1``: every instance stepped by the calling thread, with the step's
+    host arithmetic) inside one compiled loop; also the largest |Δ| between the replay's final states and the logged
+    run's (0: the same trajectories), and the env-steps replayed."""
+    backends_of = {}  # the study's backend → one like it (the study's may be closed by now)
+    seconds, diff, steps = 0.0, 0.0, 0
+    for s in sampled:
+        if id(s.sim) not in backends_of:
+            backends_of[id(s.sim)] = native_go1.NativeBackend(s.sim.scenario, s.sim.cpg_config, s.sim.trial_config)
+        again = backends_of[id(s.sim)]
+        consts = again._constants(s.state.params, s.new_params, s.gates)
+        _, rows = again._run(s.state, native_go1.LOG_RECORDER, again.trial_config, consts)
+        logged_end = again.physics.physics.copy()
+        torque = jax.block_until_ready(jnp.asarray(rows.torque_nm))  # (N, B, 12) float32, as applied
+        one = native_go1.BatchPhysics(again.scenario, nthread=1, stepping="ffi")
+        one.set_state(s.state.physics, s.state.warmstart, s.state.sensordata)
+        width = one.layout.size + one.sensordata.shape[1] + 1
+        compiled = _replay.lower(one.ffi_handle, torque, width).compile()
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(one.ffi_handle, torque))
+        seconds += time.perf_counter() - t0
+        steps += torque.shape[0] * torque.shape[1]
+        diff = max(diff, float(np.max(np.abs(one.physics - logged_end))))
+        one.close()
+    for again in backends_of.values():
+        again.physics.close()
+    return steps / seconds, diff, steps
 
 
 if __name__ == "__main__":
