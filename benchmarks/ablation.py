@@ -14,17 +14,17 @@ real-time factor and where the time goes (simulation, optimizer = propose + obse
 transfers, checkpoints, and with several processes the per-trial exchange of trial logs). The last line of the
 output is a JSON object of the figures (process 0's).
 
-The physics limit of the study's own steps (native backend, one process): the start states and parameters of
-``--limit-trials`` trials spread over the study (5 by default; 0 skips it) are kept, and after the study each is run
-again with the trial's recorder swapped for the rollout log's (the same controller, transition and physics), and its
-torques are replayed open loop from the trial's start state by the same FFI physics step on one thread (every instance
-stepped by the calling thread, with the step's host arithmetic: the same trajectories, bit for bit, which
-``mujoco.rollout`` would not give, its warm start differing in the last bits and the study's trials amplifying that
-within a few thousand steps; the step's copies and host arithmetic make it about 3 % slower than ``mujoco.rollout`` on
-the torques of a walking trial, where the two agree): the single-core physics time of the study's steps is its env-
-steps at that replay's rate, and the JSON gives the study's wall time as a fraction of it (the issue's target: ≤ 0.8).
-The trials of a study are not the rollout benchmark's walking robot (random parameters at first, falls, the open-loop
-controller), and their steps cost what they cost.
+The physics limit of the study's own steps (native backend, one process, not with ``--sweep``): the start states and
+parameters of ``--limit-trials`` trials spread over the study (5 by default; 0 skips it) are kept, and after the study
+each is run again with the trial's recorder swapped for the rollout log's (the same controller, transition and
+physics), and its torques are replayed open loop from the trial's start state by the same FFI physics step on one
+thread (every instance stepped by the calling thread, with the step's host arithmetic: the same trajectories, bit for
+bit, which ``mujoco.rollout`` would not give, its warm start differing in the last bits and the study's trials
+amplifying that within a few thousand steps; the step's copies and host arithmetic make it about 3 % slower than
+``mujoco.rollout`` on the torques of a walking trial, where the two agree): the single-core physics time of the
+study's steps is its env- steps at that replay's rate, and the JSON gives the study's wall time as a fraction of it
+(the issue's target: ≤ 0.8). The trials of a study are not the rollout benchmark's walking robot (random parameters at
+first, falls, the open-loop controller), and their steps cost what they cost.
 
 Like the ``cpgjax`` command, the benchmark keeps its compiled programs and loads those of an earlier run
 (``cpgjax/compile_cache.py``); the JSON counts them (``compiled_programs``). The first run on
@@ -122,7 +122,7 @@ def run_once(args, physics: str | None) -> float:
     t0 = time.perf_counter()
     engine = ablation.Engine(spec, backend=args.backend)
     sampled = _sample_trials(engine, spec.num_trials, args.limit_trials) if (
-        args.limit_trials and engine.backend_name == "native" and jax.process_count() == 1) else None
+        args.limit_trials and not args.sweep and engine.backend_name == "native" and jax.process_count() == 1) else None
     last = [None]
 
     def progress(p):
