@@ -214,27 +214,28 @@ def _replay_rate(sampled: list[_Sample]) -> tuple[float, float, int]:
     one thread (a ``BatchPhysics`` with ``nthread=1``: every instance stepped by the calling thread, with the step's
     host arithmetic) inside one compiled loop; also the largest |Δ| between the replay's final states and the logged
     run's (0: the same trajectories), and the env-steps replayed."""
-    backends_of = {}  # the study's backend → one like it (the study's may be closed by now)
+    replayers = {}  # the study's backend → (one like it, the one-thread physics, its compiled replay by shape)
     seconds, diff, steps = 0.0, 0.0, 0
     for s in sampled:
-        if id(s.sim) not in backends_of:
-            backends_of[id(s.sim)] = native_go1.NativeBackend(s.sim.scenario, s.sim.cpg_config, s.sim.trial_config)
-        again = backends_of[id(s.sim)]
+        if id(s.sim) not in replayers:
+            again = native_go1.NativeBackend(s.sim.scenario, s.sim.cpg_config, s.sim.trial_config)
+            replayers[id(s.sim)] = (again, native_go1.BatchPhysics(again.scenario, nthread=1, stepping="ffi"), {})
+        again, one, compiled = replayers[id(s.sim)]
         consts = again._constants(s.state.params, s.new_params, s.gates)
         _, rows = again._run(s.state, native_go1.LOG_RECORDER, again.trial_config, consts)
         logged_end = again.physics.physics.copy()
         torque = jax.block_until_ready(jnp.asarray(rows.torque_nm))  # (N, B, 12) float32, as applied
-        one = native_go1.BatchPhysics(again.scenario, nthread=1, stepping="ffi")
         one.set_state(s.state.physics, s.state.warmstart, s.state.sensordata)
-        width = one.layout.size + one.sensordata.shape[1] + 1
-        compiled = _replay.lower(one.ffi_handle, torque, width).compile()
+        width = again._host_in.shape[1]  # the controller's input row: [physics state | sensor data | failed]
+        if torque.shape not in compiled:
+            compiled[torque.shape] = _replay.lower(one.ffi_handle, torque, width).compile()
         t0 = time.perf_counter()
-        jax.block_until_ready(compiled(one.ffi_handle, torque))
+        jax.block_until_ready(compiled[torque.shape](one.ffi_handle, torque))
         seconds += time.perf_counter() - t0
         steps += torque.shape[0] * torque.shape[1]
         diff = max(diff, float(np.max(np.abs(one.physics - logged_end))))
+    for again, one, _ in replayers.values():
         one.close()
-    for again in backends_of.values():
         again.physics.close()
     return steps / seconds, diff, steps
 

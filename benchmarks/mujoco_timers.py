@@ -60,15 +60,17 @@ def main() -> None:
                  "nothing to compare")
 
     rng = np.random.default_rng(0)
+
+    def drawn():  # parameters drawn from the box for every instance
+        return param_space.from_unit(rng.uniform(size=(args.batch, param_space.NUM_PARAMS)))
+
     gates = protocol.batch_gates([c for c in cpg.CONTROLLERS for _ in range(args.batch // 4)])
-    state = sim.reset(param_space.from_unit(rng.uniform(size=(args.batch, param_space.NUM_PARAMS))))
-    state, _ = sim.trial(state, param_space.from_unit(rng.uniform(size=(args.batch, param_space.NUM_PARAMS))),
-                         gates)  # compiles
+    state, _ = sim.trial(sim.reset(drawn()), drawn(), gates)  # compiles
     seconds = {"clock": [], "stepper": []}
     for k in range(args.trials):
         kind = "clock" if k % 2 == 0 else "stepper"
         callback.value = clock if kind == "clock" else stepper_set
-        params = param_space.from_unit(rng.uniform(size=(args.batch, param_space.NUM_PARAMS)))
+        params = drawn()
         t0 = time.perf_counter()
         state, _ = sim.trial(state, params, gates)
         seconds[kind].append(time.perf_counter() - t0)
