@@ -418,8 +418,9 @@ def _advance(cpg_config, trial_config, recorder: _Recorder, packing: _Packing, s
              carry: _Carry, host_in) -> tuple[_Carry, jax.Array]:
     """The whole host-side tick: finish row k−1, then observe and control tick k.
 
-    On the first tick of a run there is no row k−1; the row it writes at index −1 (the last) is overwritten by the
-    run's real last row.
+    On the first tick of a run there is no row k−1; the row it writes for k − 1 = −1 is overwritten: by the run's
+    real last row where ``store`` indexes from the end (``_store_rows``, ``_store_flat_row``), by row 0 at the next
+    tick where it clamps to the first (the overlapped trial's).
     """
     carry = _complete(trial_config, recorder, packing, store, consts, carry, host_in)
     qpos, qvel, sensordata, _ = _host_inputs(packing, host_in)
@@ -499,11 +500,14 @@ def _run_ffi_overlapped(advance: Callable, complete: Callable, num_steps: int, h
     def halves(x, axis=0):  # the batch axis split into (2, half)
         return x.reshape(*x.shape[:axis], 2, half, *x.shape[axis + 1:])
 
-    def store(p):  # tick k's row of half p into rows (N, 2, half, ...)
-        return lambda rows, k, row: jax.tree.map(lambda r, x: r.at[k, p].set(x), rows, row)
+    # Slices and updates by lax's dynamic ops, which clamp their indices: unlike indexing and .at[].set on a traced
+    # index, they put no index normalization and no bounds select into the loop's body (fewer of XLA's thunks).
+    def store(p):  # tick k's row of half p into rows (N, 2, half, ...); k = −1 (the first tick) clamps to row 0
+        return lambda rows, k, row: jax.tree.map(
+            lambda r, x: jax.lax.dynamic_update_slice(r, x[None, None], (k, p) + (0,) * x.ndim), rows, row)
 
     def of_half(tree, p):
-        return jax.tree.map(lambda x: x[p], tree)
+        return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, p, keepdims=False), tree)
 
     consts, in_halves = jax.tree.map(halves, consts), halves(host_in)
     carry = carry._replace(controller=jax.tree.map(halves, carry.controller),
@@ -516,7 +520,7 @@ def _run_ffi_overlapped(advance: Callable, complete: Callable, num_steps: int, h
         tick = carry._replace(controller=of_half(carry.controller, p), pending=of_half(carry.pending, p), step=j // 2)
         tick, torque = advance(store(p), of_half(consts, p), tick, in_p)
         in_other = jnp.where(j == 0, in_halves[1], ffi_step.alternate(handle, torque, p, width))
-        put = functools.partial(jax.tree.map, lambda whole, x: whole.at[p].set(x))
+        put = functools.partial(jax.tree.map, lambda whole, x: jax.lax.dynamic_update_index_in_dim(whole, x, p, 0))
         return carry._replace(controller=put(carry.controller, tick.controller),
                               pending=put(carry.pending, tick.pending), rows=tick.rows), in_other
 
