@@ -22,7 +22,7 @@ thread (every instance stepped by the calling thread, with the step's host arith
 bit, which ``mujoco.rollout`` would not give, its warm start differing in the last bits and the study's trials
 amplifying that within a few thousand steps; the step's copies and host arithmetic make it about 3 % slower than
 ``mujoco.rollout`` on the torques of a walking trial, where the two agree): the single-core physics time of the
-study's steps is its env- steps at that replay's rate, and the JSON gives the study's wall time as a fraction of it
+study's steps is its env-steps at that replay's rate, and the JSON gives the study's wall time as a fraction of it
 (the issue's target: ≤ 0.8). The trials of a study are not the rollout benchmark's walking robot (random parameters at
 first, falls, the open-loop controller), and their steps cost what they cost.
 
