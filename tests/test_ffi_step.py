@@ -53,20 +53,25 @@ def test_without_a_working_compiler_one_line_says_so_and_the_backend_steps_tick_
 def test_one_pool_thread_is_asked_for_before_the_client_and_a_preset_size_is_kept(preset):
     """In a fresh interpreter: ``request_one_pool_thread`` before any computation sets NPROC=1 and XLA's CPU client
     then has one pool thread (``tf_XLAEigen``); after a computation it reports False. A size the environment sets is
-    kept (3 threads, although this machine may have fewer cores)."""
+    kept (3 threads, although this machine may have fewer cores). It appends the depth-first schedule to XLA_FLAGS,
+    which XLA accepts (it aborts the process on a flag it does not know), unless XLA_FLAGS already name it."""
     code = ("import glob, os\n"
             "from cpgjax.robot import cpu_dispatch\n"
             "first = cpu_dispatch.request_one_pool_thread()\n"
             "import jax.numpy as jnp\n"
             "(jnp.ones((256, 256)) @ jnp.ones((256, 256))).block_until_ready()\n"
             "names = [open(f).read().strip() for f in glob.glob('/proc/self/task/*/comm')]\n"
-            "print(first, os.environ['NPROC'], cpu_dispatch.request_one_pool_thread(), names.count('tf_XLAEigen'))\n")
-    env = {k: v for k, v in os.environ.items() if k != "NPROC"} | {"JAX_PLATFORMS": "cpu"}
-    if preset:
-        env["NPROC"] = preset
+            "print(first, os.environ['NPROC'], cpu_dispatch.request_one_pool_thread(), names.count('tf_XLAEigen'))\n"
+            "print(os.environ['XLA_FLAGS'])\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("NPROC", "XLA_FLAGS")} | {"JAX_PLATFORMS": "cpu"}
+    if preset:  # a size and a schedule of the user's, beside another flag
+        env |= {"NPROC": preset, "XLA_FLAGS": "--xla_cpu_enable_fast_min_max=true "
+                                              "--xla_cpu_enable_concurrency_optimized_scheduler=true"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.split() == (["True", "1", "False", "1"] if preset is None else ["False", "3", "False", "3"])
+    threads, flags = out.stdout.splitlines()
+    assert threads.split() == (["True", "1", "False", "1"] if preset is None else ["False", "3", "False", "3"])
+    assert flags == ("--xla_cpu_enable_concurrency_optimized_scheduler=false" if preset is None else env["XLA_FLAGS"])
 
 
 def test_mujoco_timers_are_off_while_a_stepper_exists_and_the_callback_found_comes_back():
