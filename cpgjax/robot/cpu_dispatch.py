@@ -52,9 +52,9 @@ def request_one_pool_thread() -> bool:
 
     It also asks XLA for the depth-first order of each program's kernels (``SCHEDULE_FLAG_NAME`` false, appended to
     XLA_FLAGS unless they name it). The controller called once per tick from Python (the ``batch`` stepping, where
-    the native step cannot be built) then takes 96-98 µs a call instead of 191-198 µs at batch 16 on 2 cores, with
-    the same results bit for bit; the trial compiled as one program (the ``ffi`` stepping) runs as fast either way
-    (docs/backends.md).
+    the native step cannot be built) then takes about half as long (96 against 191-231 µs a call at batch 16 on
+    2 cores), with the same results bit for bit; the trial compiled as one program (the ``ffi`` stepping) runs as
+    fast either way (docs/backends.md).
     """
     if jax_internals.cpu_client_exists():
         return False
