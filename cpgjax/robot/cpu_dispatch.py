@@ -1,5 +1,6 @@
 """Run JAX's CPU computations on the calling thread (``jax_cpu_enable_async_dispatch = False``), and give XLA's CPU
-thread pool one thread where C MuJoCo's threads need the cores (:func:`request_one_pool_thread`).
+thread pool one thread, with the kernel order that suits it, where C MuJoCo's threads need the cores
+(:func:`request_one_pool_thread`).
 
 Two parts of cpgjax make one small JAX call per 1 ms control tick: the native backend's controller step and the
 robot loop's compiled controller. With JAX's default asynchronous CPU dispatch each call is handed to an XLA worker
