@@ -22,8 +22,11 @@ thread (every instance stepped by the calling thread, with the step's host arith
 bit, which ``mujoco.rollout`` would not give, its warm start differing in the last bits and the study's trials
 amplifying that within a few thousand steps; the step's copies and host arithmetic make it about 3 % slower than
 ``mujoco.rollout`` on the torques of a walking trial, where the two agree): the single-core physics time of the
-study's steps is its env-steps at that replay's rate, and the JSON gives the study's wall time as a fraction of it
-(the issue's target: ≤ 0.8). The trials of a study are not the rollout benchmark's walking robot (random parameters at
+study's steps is its env-steps at that replay's rate (each trial's replay timed ``REPLAY_REPEATS`` times, the fastest
+kept, as ``benchmarks/rollout.py`` keeps the best of its rounds: a moment of other load on the machine slows one
+replay, not the limit), and the JSON gives the study's wall time as a fraction of it (the issue's target: ≤ 0.8). A
+fraction below 1 / cores, faster than the cores could step the physics, says the replay was still slowed, and the
+run says so. The trials of a study are not the rollout benchmark's walking robot (random parameters at
 first, falls, the open-loop controller), and their steps cost what they cost.
 
 Like the ``cpgjax`` command, the benchmark keeps its compiled programs and loads those of an earlier run
@@ -61,6 +64,7 @@ from cpgjax.studies import registry  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
 
 PAPER_SEEDS = 5  # the paper's controller table: 4 controllers × 5 seeds = 20 instances
+REPLAY_REPEATS = 2  # times each sampled trial's torques are replayed for the physics limit (the fastest is kept)
 
 
 def main() -> None:
@@ -157,6 +161,10 @@ def run_once(args, physics: str | None) -> float:
               f"thread at {rate:,.0f} env-steps/s (max |Δstate| against the logged run {diff:.1e}); the study's "
               f"{fig['env_steps']:,} env-steps take {single_core_s:.1f} s of single-core physics, its wall time "
               f"{fig['wall_s'] / single_core_s:.2f} of that")
+        cores = native_go1.available_cores()
+        if fig["wall_s"] / single_core_s < 1 / cores:
+            print(f"# the study took less than 1/{cores} of that single-core physics time on {cores} cores: the "
+                  "replay was slowed by other load on the machine, and this fraction is not the code's")
         summary.update(limit_trials=len(sampled), replay_one_thread_env_steps_per_s=round(rate),
                        replay_max_abs_state_diff=diff, single_core_physics_s=round(single_core_s, 2),
                        wall_over_single_core_physics=round(fig["wall_s"] / single_core_s, 3))
@@ -213,7 +221,8 @@ def _replay_rate(sampled: list[_Sample]) -> tuple[float, float, int]:
     (the same controller and physics), then its torques replayed from the trial's start state by the same FFI step on
     one thread (a ``BatchPhysics`` with ``nthread=1``: every instance stepped by the calling thread, with the step's
     host arithmetic) inside one compiled loop; also the largest |Δ| between the replay's final states and the logged
-    run's (0: the same trajectories), and the env-steps replayed."""
+    run's (0: the same trajectories), and the env-steps replayed. Each trial's replay is timed ``REPLAY_REPEATS``
+    times from its start state, the fastest kept."""
     replayers = {}  # the study's backend → (one like it, the one-thread physics, its compiled replay by shape)
     seconds, diff, steps = 0.0, 0.0, 0
     for s in sampled:
@@ -225,15 +234,18 @@ def _replay_rate(sampled: list[_Sample]) -> tuple[float, float, int]:
         _, rows = again._run(s.state, native_go1.LOG_RECORDER, again.trial_config, consts)
         logged_end = again.physics.physics.copy()
         torque = jax.block_until_ready(jnp.asarray(rows.torque_nm))  # (N, B, 12) float32, as applied
-        one.set_state(s.state.physics, s.state.warmstart, s.state.sensordata)
         width = again._host_in.shape[1]  # the controller's input row: [physics state | sensor data | failed]
         if torque.shape not in compiled:
             compiled[torque.shape] = _replay.lower(one.ffi_handle, torque, width).compile()
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled[torque.shape](one.ffi_handle, torque))
-        seconds += time.perf_counter() - t0
+        fastest = np.inf
+        for _ in range(REPLAY_REPEATS):
+            one.set_state(s.state.physics, s.state.warmstart, s.state.sensordata)
+            t0 = time.perf_counter()
+            jax.block_until_ready(compiled[torque.shape](one.ffi_handle, torque))
+            fastest = min(fastest, time.perf_counter() - t0)
+            diff = max(diff, float(np.max(np.abs(one.physics - logged_end))))
+        seconds += fastest
         steps += torque.shape[0] * torque.shape[1]
-        diff = max(diff, float(np.max(np.abs(one.physics - logged_end))))
     for again, one, _ in replayers.values():
         one.close()
         again.physics.close()
