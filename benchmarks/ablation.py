@@ -157,17 +157,18 @@ def run_once(args, physics: str | None) -> float:
     if sampled:
         rate, diff, steps = _replay_rate(sampled)
         single_core_s = fig["env_steps"] / rate
+        fraction = fig["wall_s"] / single_core_s
         print(f"physics limit of the study's own steps: {len(sampled)} trials ({steps:,} env-steps) replayed on one "
               f"thread at {rate:,.0f} env-steps/s (max |Δstate| against the logged run {diff:.1e}); the study's "
               f"{fig['env_steps']:,} env-steps take {single_core_s:.1f} s of single-core physics, its wall time "
-              f"{fig['wall_s'] / single_core_s:.2f} of that")
+              f"{fraction:.2f} of that")
         cores = native_go1.available_cores()
-        if fig["wall_s"] / single_core_s < 1 / cores:
+        if fraction < 1 / cores:
             print(f"# the study took less than 1/{cores} of that single-core physics time on {cores} cores: the "
                   "replay was slowed by other load on the machine, and this fraction is not the code's")
         summary.update(limit_trials=len(sampled), replay_one_thread_env_steps_per_s=round(rate),
                        replay_max_abs_state_diff=diff, single_core_physics_s=round(single_core_s, 2),
-                       wall_over_single_core_physics=round(fig["wall_s"] / single_core_s, 3))
+                       wall_over_single_core_physics=round(fraction, 3))
     print(json.dumps(summary))
     return fig["wall_s"]
 
