@@ -23,7 +23,15 @@ tick to tick as in the trial: with one input for every tick, XLA hoists the obse
 the scan then times a part of the controller only (about 0.6 of it at batch 64).
 
     JAX_PLATFORMS=cpu python benchmarks/native_tick.py [--batch-sizes 16,20,64] [--steps 400] [--repeats 3]
-                                                        [--stepping ffi|batch]
+                                                        [--stepping ffi|batch] [--accounts]
+
+``--accounts`` (the ``ffi`` stepping) loads the physics library built with each thread's accounts
+(``ffi_step.request_accounts``) and splits the closed loop's best run by thread, inside the loop itself: per tick, the
+instances each thread stepped, what a step cost it (and its ``mj_step``), what the first step after other work cost
+(the caller's first of each finish, after the controller's kernels), how long a worker was idle, and what the calling
+thread spent outside the library (the controller's program, XLA's runtime, the trial's set-up) and waiting in it for
+a worker's last instances; beside it, what a step cost in the physics-alone run, with no controller between. Counting
+reads the clock a few times per step, so the closed loop is a little slower with it than without.
 
 The last line of the output is a JSON object of the figures.
 """
@@ -31,6 +39,7 @@ The last line of the output is a JSON object of the figures.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -51,6 +60,7 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 from cpgjax import provenance  # noqa: E402
 from cpgjax.go1 import model as go1_model  # noqa: E402
 from cpgjax.go1 import physics as physics_profiles  # noqa: E402
+from cpgjax.sim import ffi_step  # noqa: E402
 from cpgjax.sim import native as native_go1  # noqa: E402
 from cpgjax.trial import params as param_space  # noqa: E402
 from cpgjax.trial import protocol  # noqa: E402
@@ -60,8 +70,30 @@ def _best(run, repeats: int) -> float:
     return min(run() for _ in range(repeats))
 
 
+def _lanes(accounts: np.ndarray, seconds: float, steps: int) -> dict:
+    """Per-thread figures of an accounted run of ``steps`` ticks over ``seconds`` (the module docstring): worker t
+    as ``w{t}_``, the caller as ``caller_``."""
+    f = {name: accounts[:, k] for k, name in enumerate(ffi_step.ACCOUNT_FIELDS)}
+    out = {}
+    for t in range(accounts.shape[0]):
+        who = "caller" if t == accounts.shape[0] - 1 else f"w{t}"
+        n = max(int(f["steps"][t]), 1)
+        out.update({f"{who}_instances_per_tick": round(f["steps"][t] / steps, 2),
+                    f"{who}_step_us": round(f["step_ns"][t] / n / 1e3, 2),
+                    f"{who}_mj_step_us": round(f["mj_step_ns"][t] / n / 1e3, 2),
+                    f"{who}_first_step_us": round(f["first_step_ns"][t] / max(int(f["first_steps"][t]), 1) / 1e3, 2)})
+        if who == "caller":
+            out["caller_waited_us_per_tick"] = round(f["wait_ns"][t] / steps / 1e3, 1)
+            out["caller_outside_us_per_tick"] = round((seconds * 1e9 - f["step_ns"][t] - f["wait_ns"][t])
+                                                      / steps / 1e3, 1)
+        else:  # a worker's wait is counted when it ends, so one that began before the run counts: wall − steps
+            out[f"{who}_idle_us_per_tick"] = round((seconds * 1e9 - f["step_ns"][t]) / steps / 1e3, 1)
+    return out
+
+
 def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str) -> dict:
-    """µs per tick of the closed loop, its controller call and its physics step (see the module docstring)."""
+    """µs per tick of the closed loop, its controller call and its physics step (see the module docstring); with
+    accounts, the closed loop's best run and the physics alone split by thread."""
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
     sim = native_go1.NativeBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics),
@@ -69,6 +101,19 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
 
+    best = {}  # the accounted runs with the fewest seconds: "closed_loop" / "physics" → (seconds, accounts)
+
+    def accounted(name: str, run):
+        def timed():
+            sim.physics.accounts(reset=True)
+            seconds = run()
+            accounts = sim.physics.accounts()
+            if accounts is not None and seconds < best.get(name, (np.inf,))[0]:
+                best[name] = (seconds, accounts)
+            return seconds
+        return timed
+
+    @functools.partial(accounted, "closed_loop")
     def closed_loop():
         state = sim.reset(p)
         t0 = time.perf_counter()
@@ -121,6 +166,7 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
         jax.block_until_ready(scanned(carry, host_inputs_device))
         return time.perf_counter() - t0
 
+    @functools.partial(accounted, "physics")
     def physics_steps():
         sim.physics.set_state(state.physics, state.warmstart, state.sensordata)
         t0 = time.perf_counter()
@@ -134,8 +180,32 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
     controller = per_tick["controller_scan" if stepping == "ffi" else "controller"]  # what the closed loop runs
     per_tick["rest"] = per_tick["closed_loop"] - controller - per_tick["physics"]
     sim.physics.close()
+    lanes = {}
+    if "closed_loop" in best:
+        lanes = _lanes(best["closed_loop"][1], best["closed_loop"][0], steps)
+        alone = best["physics"][1]
+        alone_steps = max(int(alone[:, ffi_step.ACCOUNT_FIELDS.index("steps")].sum()), 1)
+        lanes["physics_alone_step_us"] = round(alone[:, ffi_step.ACCOUNT_FIELDS.index("step_ns")].sum()
+                                               / alone_steps / 1e3, 2)
     return {**{f"{k}_us": round(v, 1) for k, v in per_tick.items()},
-            "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]), "threads": sim.physics.nthread}
+            "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]), "threads": sim.physics.nthread, **lanes}
+
+
+def _print_lanes(lanes: list[tuple[int, dict]]) -> None:
+    print("\n# the closed loop's best run by thread (accounts; µs per tick unless said)\n"
+          "| batch | thread | instances stepped | µs per step (its mj_step) | first step after other work [µs] "
+          "| idle | outside the library | waiting in a finish | µs per step, physics alone |\n"
+          "|---|---|---|---|---|---|---|---|---|")
+    for b, r in lanes:
+        threads = sorted({k.split("_", 1)[0] for k in r if k.endswith("_instances_per_tick")}, key="caller".__eq__)
+        for who in threads:
+            caller = who == "caller"
+            idle = "" if caller else f"{r[who + '_idle_us_per_tick']:.1f}"
+            outside = f"{r['caller_outside_us_per_tick']:.1f}" if caller else ""
+            waited = f"{r['caller_waited_us_per_tick']:.1f}" if caller else ""
+            print(f"| {b} | {who} | {r[who + '_instances_per_tick']:.2f} | {r[who + '_step_us']:.1f} "
+                  f"({r[who + '_mj_step_us']:.1f}) | {r[who + '_first_step_us']:.1f} | {idle} | {outside} | {waited} "
+                  f"| {r['physics_alone_step_us']:.1f} |")
 
 
 def main() -> None:
@@ -146,8 +216,16 @@ def main() -> None:
     parser.add_argument("--physics", default=physics_profiles.PAPER_STUDIES_PROFILE, choices=physics_profiles.PROFILES)
     parser.add_argument("--stepping", choices=("ffi", "batch"), default=None,
                         help="the native backend's stepping (default: native.default_stepping())")
+    parser.add_argument("--accounts", action="store_true",
+                        help="split the closed loop by thread, from the physics library's accounts (ffi stepping)")
     args = parser.parse_args()
+    if args.accounts:
+        if args.stepping == "batch":
+            parser.error("--accounts: the ffi stepping's library keeps the accounts, not --stepping batch")
+        ffi_step.request_accounts()
     stepping = args.stepping or native_go1.default_stepping()
+    if args.accounts and stepping != "ffi":
+        parser.error("--accounts: the ffi stepping is not available on this machine (see the log)")
     if min(args.batch_sizes) < 1 or args.steps < 4 or args.repeats < 1:
         parser.error(f"--batch-sizes {args.batch_sizes}, --steps {args.steps}, --repeats {args.repeats}: need "
                      "batch sizes ≥ 1, steps ≥ 4, repeats ≥ 1")
@@ -156,6 +234,7 @@ def main() -> None:
           f"stepping, {args.steps} ticks, best of {args.repeats}, load average {load_start:.1f}")
     print("| batch | threads | closed loop [µs/tick] | controller call [µs] | controller in a scan [µs/tick] "
           "| physics step [µs] | rest [µs] | env-steps/s |\n|---|---|---|---|---|---|---|---|")
+    lanes = []
     figures = {"benchmark": "native_tick", "machine": provenance.machine(), "physics": args.physics,
                "stepping": stepping, "steps": args.steps, "repeats": args.repeats}
     for b in args.batch_sizes:
@@ -164,6 +243,10 @@ def main() -> None:
               f"| {r['controller_scan_us']:.0f} | {r['physics_us']:.0f} | {r['rest_us']:.0f} "
               f"| {r['env_steps_per_s']:,} |", flush=True)
         figures.update({f"{k}_b{b}": v for k, v in r.items()})
+        if args.accounts:
+            lanes.append((b, r))
+    if lanes:
+        _print_lanes(lanes)
     figures.update(load_avg_1min_start=round(load_start, 2), load_avg_1min_end=round(os.getloadavg()[0], 2))
     print(json.dumps(figures))
 

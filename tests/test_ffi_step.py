@@ -115,3 +115,47 @@ print(on > 0, off, off_again, calls_during, after > 0, len(calls) > 0, np.array_
                          env=os.environ | {"JAX_PLATFORMS": "cpu"})
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["True", "0.0", "0.0", "0", "True", "True", "True"]
+
+
+def test_the_accounts_build_counts_every_step_and_steps_the_same_physics():
+    """In fresh interpreters (the library a process loads is the one it keeps): 2 Go1s on 2 threads stepped 30 times
+    from Python with the accounts build (``ffi_step.request_accounts``) and with the plain one. The accounts count
+    every instance step once, a finish per step on the caller's thread, no more time in mj_step than in the steps;
+    the plain build counts nothing (None); the states are the same bytes."""
+    if not ffi_step.available():
+        pytest.skip("the native physics step cannot be built on this machine")
+    code = """
+import sys, numpy as np
+from cpgjax.sim import ffi_step
+if sys.argv[1] == "accounts":
+    ffi_step.request_accounts()
+from cpgjax.go1 import model as go1_model
+from cpgjax.sim import native
+physics = native.BatchPhysics(go1_model.make_scenarios(friction=np.array([0.4, 0.9])), nthread=2, stepping="ffi")
+torque = np.linspace(-2.0, 2.0, 24, dtype=np.float32).reshape(2, 12)
+for _ in range(30):
+    physics.step(torque)
+accounts = physics.accounts(reset=True)
+if accounts is None:
+    print("none", physics.physics.tobytes().hex())
+else:
+    f = dict(zip(ffi_step.ACCOUNT_FIELDS, accounts.T))
+    print(accounts.shape, int(f["steps"].sum()), int(f["finishes"][-1]), int(f["finishes"][0]),
+          bool(np.all(f["step_ns"] >= f["mj_step_ns"])), bool(f["mj_step_ns"].sum() > 0),
+          int(physics.accounts().sum()), physics.physics.tobytes().hex())
+"""
+    env = os.environ | {"JAX_PLATFORMS": "cpu"}
+    out = {build: subprocess.run([sys.executable, "-c", code, build], capture_output=True, text=True, timeout=300,
+                                 env=env) for build in ("accounts", "plain")}
+    for build, done in out.items():
+        assert done.returncode == 0, (build, done.stderr[-2000:])
+    counted, plain = out["accounts"].stdout.split("\n")[0], out["plain"].stdout.split()
+    assert counted.rsplit(" ", 1)[0] == "(2, 7) 60 30 0 True True 0"  # zeroed by the reset read
+    assert plain[0] == "none" and counted.rsplit(" ", 1)[1] == plain[1]
+
+
+def test_accounts_are_refused_once_the_plain_library_is_loaded():
+    if not ffi_step.available():
+        pytest.skip("the native physics step cannot be built on this machine")
+    with pytest.raises(RuntimeError, match="loaded already"):
+        ffi_step.request_accounts()

@@ -23,6 +23,12 @@
 // would replace with their clock at the next MjData they make); the callback found is put back when the last stepper
 // goes. The results are the same bit for bit; the step is cheaper by the clock reads.
 //
+// Accounts: built with CPGJAX_STEPPER_ACCOUNTS defined (ffi_step.request_accounts), each thread counts what it did
+// (LaneAccount): the steps it took, the time in them and in their mj_step, the time it waited, and apart the first
+// step it took after other work (the caller: the first of each finish, after the program's own kernels; a worker: the
+// first after a wait). A wait is counted when it ends. cpgjax_stepper_accounts reads them. Without the define the
+// counting compiles to nothing.
+//
 // Built by cpgjax/sim/ffi_step.py against the headers of the installed mujoco and jaxlib wheels.
 
 #include <atomic>
@@ -93,6 +99,40 @@ class TimersOff {
   static inline mjfTime saved_ = nullptr;
 };
 
+#ifdef CPGJAX_STEPPER_ACCOUNTS
+constexpr bool kAccounts = true;
+#else
+constexpr bool kAccounts = false;
+#endif
+
+int64_t NowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
+// What one thread did (see the top of this file). Written by its thread only; read after the steps are finished.
+struct alignas(64) LaneAccount {
+  enum Field { kSteps, kStepNs, kMjStepNs, kWaitNs, kFirstSteps, kFirstStepNs, kFinishes, kFields };
+  std::atomic<int64_t> field[kFields] = {};
+  bool first = true;  // the next step is the first after other work
+
+  void Add(Field f, int64_t v) {
+    if constexpr (kAccounts) field[f].store(field[f].load(std::memory_order_relaxed) + v, std::memory_order_relaxed);
+  }
+  void Step(int64_t step_ns, int64_t mj_step_ns) {
+    Add(kSteps, 1);
+    Add(kStepNs, step_ns);
+    Add(kMjStepNs, mj_step_ns);
+    if (first) {
+      Add(kFirstSteps, 1);
+      Add(kFirstStepNs, step_ns);
+      first = false;
+    }
+  }
+};
+
+int64_t AccountNow() { return kAccounts ? NowNs() : 0; }
+
 // One thread's MuJoCo batch: every instance's model, one mjData, run on the calling thread only.
 struct Lane {
   mjBatch* batch = nullptr;
@@ -130,6 +170,7 @@ struct Stepper {
   std::vector<uint8_t> status;               // MuJoCo raised an error during the step (nsim)
   std::vector<std::string> errors;           // its message (nsim)
   std::vector<Lane> lanes;                   // one per thread; the caller's is the last
+  std::unique_ptr<LaneAccount[]> accounts;   // one per lane
 
   // The queue of instance steps: item k steps instance k mod nsim. Parts of the batch are published in their
   // order in the batch, so that the items of a part are the instances of the part.
@@ -146,17 +187,27 @@ struct Stepper {
 
   int width() const { return at.nphysics + at.nsensordata + 1; }
 
-  // Instance i's step on lane t.
+  // Instance i's step on lane t, counted in its account.
   void StepOne(int t, int i) {
+    const int64_t start_ns = AccountNow();
+    const int64_t mj_step_ns = StepInstance(t, i);
+    if constexpr (kAccounts) accounts[t].Step(NowNs() - start_ns, mj_step_ns);
+  }
+
+  // Instance i's step on lane t; returns the duration of its mj_step in ns (0 without accounts).
+  int64_t StepInstance(int t, int i) {
     Lane& lane = lanes[t];
     mjtNum* row = rows.data() + static_cast<size_t>(i) * nstate;
     mjWarningStat* warn = warning.data() + static_cast<size_t>(i) * mjNWARNING;
     std::memcpy(lane.state + static_cast<size_t>(i) * nstate, row, sizeof(mjtNum) * nstate);
     std::memcpy(lane.warning + static_cast<size_t>(i) * mjNWARNING, warn, sizeof(mjWarningStat) * mjNWARNING);
-    if (mjb_step(lane.batch, &i, 1, 1, mjSTAGE_NONE) > 0) {
+    const int64_t mj_start_ns = AccountNow();
+    const int nerror = mjb_step(lane.batch, &i, 1, 1, mjSTAGE_NONE);
+    const int64_t mj_step_ns = AccountNow() - mj_start_ns;
+    if (nerror > 0) {
       status[i] = 1;
       errors[i] = mjb_error(lane.batch, i);
-      return;
+      return mj_step_ns;
     }
     std::memcpy(row, lane.state + static_cast<size_t>(i) * nstate, sizeof(mjtNum) * nstate);
     std::memcpy(warn, lane.warning + static_cast<size_t>(i) * mjNWARNING, sizeof(mjWarningStat) * mjNWARNING);
@@ -179,6 +230,7 @@ struct Stepper {
     for (int k = 0; k < at.nphysics; ++k) out[k] = static_cast<float>(row[k]);
     for (int k = 0; k < at.nsensordata; ++k) out[at.nphysics + k] = static_cast<float>(sd[k]);
     out[width() - 1] = fail ? 1.0f : 0.0f;
+    return mj_step_ns;
   }
 
   // Take the next item if there is one and step it on lane t; returns whether there was one.
@@ -203,11 +255,16 @@ struct Stepper {
       auto ready = [this] {
         return stop.load(std::memory_order_acquire) || next.load() < published.load();
       };
+      const int64_t wait_start_ns = AccountNow();
       if (!SpinUntil(ready)) {
         std::unique_lock<std::mutex> lock(mu);
         parked.fetch_add(1);
         wake.wait(lock, ready);
         parked.fetch_sub(1);
+      }
+      if constexpr (kAccounts) {
+        accounts[t].Add(LaneAccount::kWaitNs, NowNs() - wait_start_ns);
+        accounts[t].first = true;
       }
     }
   }
@@ -250,6 +307,10 @@ struct Stepper {
   // an error (the first one's message in error).
   int Finish(int first, int last, char* error, int error_sz) {
     const int lane = static_cast<int>(lanes.size()) - 1;
+    LaneAccount& account = accounts[lane];
+    const int64_t start_ns = AccountNow();
+    const int64_t stepped_before_ns = kAccounts ? account.field[LaneAccount::kStepNs].load() : 0;
+    if constexpr (kAccounts) account.first = true;
     for (int idle = 0; remaining[first].load(std::memory_order_acquire) > 0;) {
       if (TakeOne(lane)) {
         idle = 0;
@@ -258,6 +319,11 @@ struct Stepper {
       } else {
         std::this_thread::yield();  // a worker holds its last instances: leave the core to it if it needs this one
       }
+    }
+    if constexpr (kAccounts) {
+      const int64_t stepped_ns = account.field[LaneAccount::kStepNs].load(std::memory_order_relaxed);
+      account.Add(LaneAccount::kWaitNs, NowNs() - start_ns - (stepped_ns - stepped_before_ns));
+      account.Add(LaneAccount::kFinishes, 1);
     }
     int nerror = 0;
     for (int i = first; i < last; ++i) {
@@ -434,6 +500,7 @@ void* cpgjax_stepper_new(const mjModel* const* models, int nsim, int nthread, co
   s->errors.resize(nsim);
   s->part_of.assign(nsim, -1);
   s->remaining.reset(new std::atomic<int>[nsim]);
+  s->accounts.reset(new LaneAccount[nthread]);
   for (int i = 0; i < nsim; ++i) s->remaining[i].store(0);
   for (int t = 0; t < nthread - 1; ++t) s->workers.emplace_back([s, t] { s->Worker(t); });
   return s;
@@ -456,6 +523,23 @@ int cpgjax_stepper_step(void* p, const float* torque, uint8_t* failed, char* err
   int nfailed = 0;
   for (int i = 0; i < s->nsim; ++i) nfailed += failed[i] = s->failed[i];
   return nfailed;
+}
+
+// Each lane's account (see the top of this file) into out (nlanes x LaneAccount::kFields: steps, ns in steps, ns in
+// their mj_step, ns waiting, first steps after other work, ns in them, finishes; the caller's lane last), then zeroed
+// if reset. Returns the number of lanes, or 0 where the library counts nothing (built without accounts). Read while
+// no step runs.
+int cpgjax_stepper_accounts(void* p, int64_t* out, int reset) {
+  if (!kAccounts) return 0;
+  auto* s = static_cast<Stepper*>(p);
+  const int nlanes = static_cast<int>(s->lanes.size());
+  for (int t = 0; t < nlanes; ++t) {
+    for (int f = 0; f < LaneAccount::kFields; ++f) {
+      out[t * LaneAccount::kFields + f] = s->accounts[t].field[f].load();
+      if (reset) s->accounts[t].field[f].store(0);
+    }
+  }
+  return nlanes;
 }
 
 void cpgjax_stepper_delete(void* s) { delete static_cast<Stepper*>(s); }

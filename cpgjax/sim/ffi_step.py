@@ -15,6 +15,11 @@ The library is compiled once per machine, with the system's C++ compiler, agains
 the source, the compiler and both wheels' versions. Without a compiler (or if the build fails) :func:`load` logs why
 in one line and returns None, and the native backend steps tick by tick from Python instead
 (``native.default_stepping``).
+
+A process that calls :func:`request_accounts` before the library loads gets it built with each thread's accounts
+(the steps it took, the time in them and in their ``mj_step``, the time it waited; :meth:`Stepper.accounts`), for
+``benchmarks/native_tick.py --accounts``. Counting reads the clock a few times per step; without the request the
+counting compiles to nothing.
 """
 
 from __future__ import annotations
@@ -43,6 +48,13 @@ SOURCE = pathlib.Path(__file__).with_name("batch_step.cc")
 TARGET = "cpgjax_batch_step"  # the FFI targets' names, as the library's symbols: the whole batch's step,
 ALTERNATE = "cpgjax_step_alternate"  # one half's step started and the other's finished,
 FINISH = "cpgjax_step_finish"  # a part's step finished
+ACCOUNT_FIELDS = ("steps", "step_ns", "mj_step_ns", "wait_ns", "first_steps", "first_step_ns", "finishes")
+"""What each thread's account counts (``LaneAccount`` in batch_step.cc): the instance steps it took, the time in them
+(the lane's copies and the step's host arithmetic included) and in their ``mj_step``, the time it waited for work,
+apart the first step it took after other work (the caller: the first of each finish, after the program's own
+kernels; a worker: the first after a wait) and the time in those, and the finishes the caller ran."""
+
+_accounts = False
 
 
 def _compiler() -> str | None:
@@ -57,9 +69,18 @@ def mujoco_library() -> pathlib.Path:
     return found[-1]
 
 
+def request_accounts() -> None:
+    """Build and load the library with each thread's accounts (:data:`ACCOUNT_FIELDS`); before it loads."""
+    global _accounts
+    if load.cache_info().currsize and not _accounts:
+        raise RuntimeError("the native physics library is loaded already: request accounts before the first backend")
+    _accounts = True
+
+
 def _command(compiler: str, output: pathlib.Path) -> list[str]:
     lib = mujoco_library()
-    return [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-w", f"-I{jax.ffi.include_dir()}",
+    accounts = ["-DCPGJAX_STEPPER_ACCOUNTS"] if _accounts else []
+    return [compiler, "-O2", "-std=c++17", *accounts, "-shared", "-fPIC", "-w", f"-I{jax.ffi.include_dir()}",
             f"-I{lib.parent / 'include'}", str(SOURCE), "-o", str(output), f"-L{lib.parent}", f"-l:{lib.name}",
             f"-Wl,-rpath,{lib.parent}"]
 
@@ -68,7 +89,7 @@ def library_path(compiler: str) -> pathlib.Path:
     digest = hashlib.sha256()
     for part in (SOURCE.read_bytes(), compiler.encode(), mujoco.__version__.encode(), jaxlib.__version__.encode()):
         digest.update(part)
-    return compile_cache.directory() / f"batch_step-{digest.hexdigest()[:16]}.so"
+    return compile_cache.directory() / f"batch_step-{'accounts-' if _accounts else ''}{digest.hexdigest()[:16]}.so"
 
 
 def _build(compiler: str, path: pathlib.Path) -> None:
@@ -110,6 +131,7 @@ def load() -> ctypes.CDLL | None:
     lib.cpgjax_stepper_nstate.argtypes = [ctypes.c_void_p]
     lib.cpgjax_stepper_step.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_char_p,
                                         ctypes.c_int]
+    lib.cpgjax_stepper_accounts.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
     lib.cpgjax_stepper_delete.argtypes = [ctypes.c_void_p]
     for target in (TARGET, ALTERNATE, FINISH):
         jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, target)), platform="cpu")
@@ -154,6 +176,7 @@ class Stepper:
                                               standing_sensordata.ctypes.data, error, len(error))
         if not self._handle:
             raise RuntimeError(f"the native physics step refused the batch: {error.value.decode()}")
+        self.nthread = max(1, min(nthread, batch))  # as the library counts them
         self.rows = np.ctypeslib.as_array(lib.cpgjax_stepper_rows(self._handle),
                                           shape=(batch, lib.cpgjax_stepper_nstate(self._handle)))
         self.sensordata = np.ctypeslib.as_array(lib.cpgjax_stepper_sensordata(self._handle),
@@ -171,6 +194,13 @@ class Stepper:
                                          len(self._error)) < 0:
             raise RuntimeError(f"MuJoCo: {self._error.value.decode()}")
         return self._failed.copy()
+
+    def accounts(self, reset: bool = False) -> np.ndarray | None:
+        """Each thread's account since the stepper was made or last reset, (threads, len(ACCOUNT_FIELDS)) int64, the
+        caller's thread last; None where the library was built without accounts (:func:`request_accounts`). Read
+        between steps, after the program that steps has finished."""
+        out = np.zeros((self.nthread, len(ACCOUNT_FIELDS)), np.int64)
+        return out if self._lib.cpgjax_stepper_accounts(self._handle, out.ctypes.data, int(reset)) else None
 
     def close(self) -> None:
         """Free the batch and its threads; ``rows`` and ``sensordata`` must not be used after."""

@@ -195,6 +195,11 @@ class BatchPhysics:
         """The stepper's name for ``ffi_step.call`` (the ``ffi`` stepping only)."""
         return self._stepper.handle
 
+    def accounts(self, reset: bool = False) -> np.ndarray | None:
+        """The ``ffi`` stepper's per-thread accounts (``ffi_step.Stepper.accounts``); None for the other steppings
+        or where the library counts nothing (``ffi_step.request_accounts``)."""
+        return self._stepper.accounts(reset) if self.stepping == "ffi" else None
+
     def set_state(self, physics: np.ndarray, warmstart: np.ndarray, sensordata: np.ndarray) -> None:
         np.copyto(self.physics, physics)
         np.copyto(self.warmstart, warmstart)
