@@ -30,8 +30,8 @@ the scan then times a part of the controller only (about 0.6 of it at batch 64).
 instances each thread stepped, what a step cost it (and its ``mj_step``), what the first step after other work cost
 (the caller's first of each finish, after the controller's kernels), how long a worker was idle, and what the calling
 thread spent outside the library (the controller's program, XLA's runtime, the trial's set-up) and waiting in it for
-a worker's last instances; beside it, what a step cost in the physics-alone run, with no controller between. Counting
-reads the clock a few times per step, so the closed loop is a little slower with it than without.
+a worker's last instances; beside it, what a step cost in the physics-alone run, with no controller between. The
+counting reads the clock four times a step and twice a wait or a finish.
 
 The last line of the output is a JSON object of the figures.
 """
