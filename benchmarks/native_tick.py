@@ -70,10 +70,15 @@ def _best(run, repeats: int) -> float:
     return min(run() for _ in range(repeats))
 
 
+def _fields(accounts: np.ndarray) -> dict:
+    """The accounts (threads, fields) by field name (``ffi_step.ACCOUNT_FIELDS``): each a (threads,) array."""
+    return {name: accounts[:, k] for k, name in enumerate(ffi_step.ACCOUNT_FIELDS)}
+
+
 def _lanes(accounts: np.ndarray, seconds: float, steps: int) -> dict:
     """Per-thread figures of an accounted run of ``steps`` ticks over ``seconds`` (the module docstring): worker t
     as ``w{t}_``, the caller as ``caller_``."""
-    f = {name: accounts[:, k] for k, name in enumerate(ffi_step.ACCOUNT_FIELDS)}
+    f = _fields(accounts)
     out = {}
     for t in range(accounts.shape[0]):
         who = "caller" if t == accounts.shape[0] - 1 else f"w{t}"
@@ -183,10 +188,8 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
     lanes = {}
     if "closed_loop" in best:
         lanes = _lanes(best["closed_loop"][1], best["closed_loop"][0], steps)
-        alone = best["physics"][1]
-        alone_steps = max(int(alone[:, ffi_step.ACCOUNT_FIELDS.index("steps")].sum()), 1)
-        lanes["physics_alone_step_us"] = round(alone[:, ffi_step.ACCOUNT_FIELDS.index("step_ns")].sum()
-                                               / alone_steps / 1e3, 2)
+        alone = _fields(best["physics"][1])
+        lanes["physics_alone_step_us"] = round(alone["step_ns"].sum() / max(int(alone["steps"].sum()), 1) / 1e3, 2)
     return {**{f"{k}_us": round(v, 1) for k, v in per_tick.items()},
             "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]), "threads": sim.physics.nthread, **lanes}
 

@@ -507,6 +507,7 @@ void* cpgjax_stepper_new(const mjModel* const* models, int nsim, int nthread, co
 }
 
 int cpgjax_stepper_nstate(void* s) { return static_cast<Stepper*>(s)->nstate; }
+int cpgjax_stepper_nthread(void* s) { return static_cast<int>(static_cast<Stepper*>(s)->lanes.size()); }
 double* cpgjax_stepper_rows(void* s) { return static_cast<Stepper*>(s)->rows.data(); }
 double* cpgjax_stepper_sensordata(void* s) { return static_cast<Stepper*>(s)->sensordata.data(); }
 

@@ -128,7 +128,8 @@ def load() -> ctypes.CDLL | None:
     for name in ("cpgjax_stepper_rows", "cpgjax_stepper_sensordata"):
         getattr(lib, name).restype = ctypes.POINTER(ctypes.c_double)
         getattr(lib, name).argtypes = [ctypes.c_void_p]
-    lib.cpgjax_stepper_nstate.argtypes = [ctypes.c_void_p]
+    for name in ("cpgjax_stepper_nstate", "cpgjax_stepper_nthread"):
+        getattr(lib, name).argtypes = [ctypes.c_void_p]
     lib.cpgjax_stepper_step.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_char_p,
                                         ctypes.c_int]
     lib.cpgjax_stepper_accounts.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
@@ -176,7 +177,7 @@ class Stepper:
                                               standing_sensordata.ctypes.data, error, len(error))
         if not self._handle:
             raise RuntimeError(f"the native physics step refused the batch: {error.value.decode()}")
-        self.nthread = max(1, min(nthread, batch))  # as the library counts them
+        self.nthread = lib.cpgjax_stepper_nthread(self._handle)  # its threads, as it clamped them
         self.rows = np.ctypeslib.as_array(lib.cpgjax_stepper_rows(self._handle),
                                           shape=(batch, lib.cpgjax_stepper_nstate(self._handle)))
         self.sensordata = np.ctypeslib.as_array(lib.cpgjax_stepper_sensordata(self._handle),
