@@ -1,4 +1,5 @@
-"""Session-wide compiled simulators, shared by the tests so each batch shape compiles once."""
+"""Session-wide compiled simulators, shared by the tests so each batch shape compiles once per test process (once in
+each pytest-xdist worker under `make test`)."""
 
 import numpy as np
 import pytest
