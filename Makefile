@@ -15,8 +15,8 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	JAX_PLATFORMS=cpu $(VENV)/bin/cpgjax demo
 
-# The test files spread over one pytest-xdist worker per core (at most 4), each file's tests in one worker, so a
-# module's compiled fixtures are built once.
+# The test files spread over one pytest-xdist worker per CPU (-n auto, at most 4), each file's tests in one worker,
+# so that a module's compiled fixtures are built once.
 test: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile
 
