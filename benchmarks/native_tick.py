@@ -75,6 +75,11 @@ def _fields(accounts: np.ndarray) -> dict:
     return {name: accounts[:, k] for k, name in enumerate(ffi_step.ACCOUNT_FIELDS)}
 
 
+def _us_each(ns, count) -> float:
+    """µs per counted event: ``ns`` over ``count`` events (at least one)."""
+    return round(ns / max(int(count), 1) / 1e3, 2)
+
+
 def _lanes(accounts: np.ndarray, seconds: float, steps: int) -> dict:
     """Per-thread figures of an accounted run of ``steps`` ticks over ``seconds`` (the module docstring): worker t
     as ``w{t}_``, the caller as ``caller_``."""
@@ -82,11 +87,10 @@ def _lanes(accounts: np.ndarray, seconds: float, steps: int) -> dict:
     out = {}
     for t in range(accounts.shape[0]):
         who = "caller" if t == accounts.shape[0] - 1 else f"w{t}"
-        n = max(int(f["steps"][t]), 1)
         out.update({f"{who}_instances_per_tick": round(f["steps"][t] / steps, 2),
-                    f"{who}_step_us": round(f["step_ns"][t] / n / 1e3, 2),
-                    f"{who}_mj_step_us": round(f["mj_step_ns"][t] / n / 1e3, 2),
-                    f"{who}_first_step_us": round(f["first_step_ns"][t] / max(int(f["first_steps"][t]), 1) / 1e3, 2)})
+                    f"{who}_step_us": _us_each(f["step_ns"][t], f["steps"][t]),
+                    f"{who}_mj_step_us": _us_each(f["mj_step_ns"][t], f["steps"][t]),
+                    f"{who}_first_step_us": _us_each(f["first_step_ns"][t], f["first_steps"][t])})
         if who == "caller":
             out["caller_waited_us_per_tick"] = round(f["wait_ns"][t] / steps / 1e3, 1)
             out["caller_outside_us_per_tick"] = round((seconds * 1e9 - f["step_ns"][t] - f["wait_ns"][t])
@@ -189,7 +193,7 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
     if "closed_loop" in best:
         lanes = _lanes(best["closed_loop"][1], best["closed_loop"][0], steps)
         alone = _fields(best["physics"][1])
-        lanes["physics_alone_step_us"] = round(alone["step_ns"].sum() / max(int(alone["steps"].sum()), 1) / 1e3, 2)
+        lanes["physics_alone_step_us"] = _us_each(alone["step_ns"].sum(), alone["steps"].sum())
     return {**{f"{k}_us": round(v, 1) for k, v in per_tick.items()},
             "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]), "threads": sim.physics.nthread, **lanes}
 
