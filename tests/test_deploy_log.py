@@ -102,21 +102,35 @@ def test_a_killed_deploy_keeps_its_logged_batches(tmp_path):
     assert "ended: unknown: no run.json" in summary and f"{table.num_rows} ticks" in summary
 
 
+# A parameter file's parameters and what they were tuned for, none of them deploy's defaults.
+REPLAYED = {"ground_clearance_m": 0.085, "ground_penetration_m": 0.012, "omega_swing_rad_s": 20.5,
+            "omega_stance_rad_s": 12.0, "amplitude_mu": 1.2, "x_offset_front_m": -0.03, "x_offset_hind_m": -0.04,
+            "sigma_n": 0.2}
+TUNED_FOR = dict(controller="tegotae", physics="paper", friction=0.8, slope_deg=2.0, payload_kg=1.5,
+                 target_velocity_mps=0.4)
+
+
 def test_a_replay_on_the_simulated_go1_logs_its_true_state_beside_the_estimate(tmp_path):
-    """``deploy --robot sim`` writes the simulated Go1's true trunk state per physics step (sim_truth.parquet) and
-    each trial's true velocity and distance beside the robot's leg-odometry estimate, in trials.parquet, run.json and
-    the printed lines. The true distance is checked against the trunk's displacement read from the file directly."""
+    """``deploy --robot sim --params FILE`` writes the simulated Go1's true trunk state per physics step
+    (sim_truth.parquet) and each trial's true velocity and distance beside the robot's leg-odometry estimate, in
+    trials.parquet, run.json and the printed lines. The true distance is checked against the trunk's displacement
+    read from the file directly. run.json's ``ran`` holds what was walked: the file's parameters, its controller,
+    physics and conditions, but the friction given on the command line."""
     import pyarrow.parquet as pq
 
+    params_file = tmp_path / "tuned.json"
+    params_file.write_text(json.dumps({"params": REPLAYED, **TUNED_FOR}))
+    run_dir = tmp_path / "run"
     out = subprocess.run([sys.executable, "-m", "cpgjax.cli", "deploy", "--robot", "sim", "--sim-pacing", "lockstep",
-                          "--duration-s", "9.5", "--log-dir", str(tmp_path)], capture_output=True, text=True,
-                         timeout=300, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+                          "--params", str(params_file), "--friction", "0.9", "--duration-s", "9.5", "--log-dir",
+                          str(run_dir)], capture_output=True, text=True, timeout=300,
+                         env=dict(os.environ, JAX_PLATFORMS="cpu"))
     assert out.returncode == 0, out.stderr[-2000:]
-    truth = pq.read_table(tmp_path / deploy.TRUTH_FILE)
+    truth = pq.read_table(run_dir / deploy.TRUTH_FILE)
     assert undocumented("sim_truth.parquet", truth.column_names) == []
-    ticks, _ = tick_log.read_tick_log(tmp_path / tick_log.FILE_NAME)
+    ticks, _ = tick_log.read_tick_log(run_dir / tick_log.FILE_NAME)
     assert truth.num_rows >= ticks.num_rows - 2  # a physics step for every loop tick (lockstep)
-    rows = pq.read_table(tmp_path / "trials.parquet").to_pylist()
+    rows = pq.read_table(run_dir / "trials.parquet").to_pylist()
     assert [r["trial"] for r in rows] == [0, 1]
     assert undocumented("robot trials.parquet", rows[0]) == []
     run_ticks = ticks["robot_tick_ms"].to_numpy()[ticks["phase"].to_numpy() == hio.RUN]
@@ -126,7 +140,10 @@ def test_a_replay_on_the_simulated_go1_logs_its_true_state_beside_the_estimate(t
         assert r["true_distance_m"] == pytest.approx(x[last] - x[first], rel=0.05, abs=0.02)
         assert r["true_velocity_x_mps"] == pytest.approx(r["true_distance_m"] / 3.0, rel=1e-3)
         assert r["velocity_x_mps"] == pytest.approx(r["true_velocity_x_mps"], rel=0.25)  # odometry: an estimate
-    run = json.loads((tmp_path / "run.json").read_text())
+    run = json.loads((run_dir / "run.json").read_text())
     assert run["trials"][1]["true_velocity_x_mps"] == pytest.approx(rows[1]["true_velocity_x_mps"])
     assert undocumented("run.json", run) == []
+    assert run["ran"] == {**TUNED_FOR, "friction": 0.9, "mode": "replay", "robot": "sim", "transition_s": 1.5,
+                          "steady_s": 3.0, "duration_s": 9.5, "num_trials": None, "optimizer": None, "seed": 0,
+                          "params_file": str(params_file), "params": REPLAYED, "trial_params": None}
     assert "(the simulated Go1's truth: v_x" in out.stderr + out.stdout

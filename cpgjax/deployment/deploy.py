@@ -118,9 +118,7 @@ def run(args) -> int:
     end, 2 after a safety trip."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     gates = cpg.controller_gates(args.controller)
-    # Replay: --params or the middle of the box. Optimizing: --params as trial 0, else the optimizer's first random
-    # proposal (docs/decisions.md §16).
-    params = args.params if args.params is not None or args.optimize else param_space.midpoint()
+    params, timing = first_params(args), trial_timing(args)
     loop, safety = loop_and_safety(args)
     args.log_dir.mkdir(parents=True, exist_ok=True)
     calibration = sim_calibration() if args.calibration is None else foot_force.check_calibration(args.calibration)
@@ -135,12 +133,11 @@ def run(args) -> int:
             spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
                                  robot_mass_kg(args.payload_kg), str(args.log_dir), tuned_for(args),
                                  safe=args.safe)
-            timing = protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
             result, rows, windows = online_optimization(transport, controller, calibration, gates, spec, params,
                                                         args.trials, timing, loop, safety, ticks, hint,
                                                         recover=stand_up(server))
         else:
-            replay = ReplayTrials(params, round(args.duration_s * 1000))
+            replay = ReplayTrials(params, round(args.duration_s * 1000), timing)
             result = hio.run_loop(transport, controller, replay, calibration, gates, loop, safety, ticks, hint)
             windows = replay.steady_windows
         truth = None
@@ -160,6 +157,38 @@ def run(args) -> int:
 
 
 TRUTH_FILE = "sim_truth.parquet"
+
+
+def first_params(args) -> np.ndarray | None:
+    """The parameters the run walks first: a replay's --params, else the middle of the box; an optimization's
+    --params as trial 0, else None (the optimizer's first random proposal, docs/decisions.md §16)."""
+    return args.params if args.params is not None or args.optimize else param_space.midpoint()
+
+
+def trial_timing(args) -> protocol.TrialConfig:
+    """Each trial's timing in loop ticks (1 ms): --transition-s and --steady-s with --optimize; a replay's run is cut
+    into the protocol's trials (1.5 s settling, 3 s measured)."""
+    if args.optimize:
+        return protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
+    return protocol.TrialConfig()
+
+
+def what_ran(args, rows: list[dict]) -> dict:
+    """What the run walked, from its options after a --params file's tuned-for values filled those the command line
+    did not give: replay or optimization, the robot, the controller, the physics profile ("robot" on the Go1), the
+    conditions (friction and slope the simulated Go1's, null on the Go1), v*, each trial's timing, the parameter
+    file, the first parameters by name (:func:`first_params`) and each trial's (``rows``) with --optimize."""
+    timing, params = trial_timing(args), first_params(args)
+    return {"mode": "optimize" if args.optimize else "replay", "robot": args.robot, **tuned_for(args),
+            "physics": args.physics if args.robot == "sim" else "robot",
+            "transition_s": timing.transition_steps / 1000, "steady_s": timing.steady_steps / 1000,
+            "duration_s": None if args.optimize else args.duration_s,
+            "num_trials": args.trials if args.optimize else None,
+            "optimizer": args.optimizer if args.optimize else None, "seed": args.seed,
+            "params_file": getattr(args, "params_path", None),
+            "params": None if params is None else param_space.as_dict(params),
+            "trial_params": [{"trial": row["trial"], **{name: row[name] for name in param_space.PARAM_NAMES}}
+                             for row in rows] if args.optimize else None}
 
 
 def stand_up(server: sim.SimGo1Client | None):
@@ -230,18 +259,19 @@ def walked_line(row: dict) -> str:
 
 
 def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | None = None) -> int:
-    """Write ``run.json`` (how the run ended, how the robot walked in each complete trial, its timing, and what ran
-    it: the command line, cpgjax's version and commit, the machine) and print how the run ended, each trial's J,
-    velocity, distance and CoT (from the robot's own sensors) and the timing. Returns the exit status: 0 after a
-    clean end, 130 after Ctrl-C (a stop), 2 after a safety trip. ``truth``: the simulated Go1's true trunk
-    position before and after the loop (its own state, beside the robot's estimate), None on the robot."""
+    """Write ``run.json`` (how the run ended, how the robot walked in each complete trial, its timing, what it walked
+    (:func:`what_ran`), and what ran it: the command line, cpgjax's version and commit, the machine) and print how
+    the run ended, each trial's J, velocity, distance and CoT (from the robot's own sensors) and the timing. Returns
+    the exit status: 0 after a clean end, 130 after Ctrl-C (a stop), 2 after a safety trip. ``truth``: the
+    simulated Go1's true trunk position before and after the loop (its own state, beside the robot's estimate),
+    None on the robot."""
     lockstep = args.robot == "sim" and args.sim_pacing == "lockstep"
     summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events,
                "safety_stops": [{"tick": tick, "reason": reason} for tick, reason in result.safety_stops],
                "realtime": result.realtime,
                "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
                "trials": [{k: _finite_or_none(row[k]) for k in (*WALKED, *TRUE) if k in row} for row in rows],
-               "sim_truth": truth,
+               "sim_truth": truth, "ran": what_ran(args, rows),
                "timing": result.timing(), "command": getattr(args, "command_line", None),
                "cpgjax_version": cpgjax.__version__, "git_commit": provenance.git_commit(),
                "environment": provenance.environment()}
