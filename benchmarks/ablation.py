@@ -59,8 +59,8 @@ import numpy as np  # noqa: E402
 from cpgjax import ablation, compile_cache, cpg, provenance  # noqa: E402
 from cpgjax.sim import backends, ffi_step  # noqa: E402
 from cpgjax.sim import native as native_go1  # noqa: E402
+from cpgjax.studies import driver as study_driver  # noqa: E402
 from cpgjax.studies import launch as study_launch  # noqa: E402
-from cpgjax.studies import registry  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
 
 PAPER_SEEDS = 5  # the paper's controller table: 4 controllers × 5 seeds = 20 instances
@@ -112,14 +112,14 @@ def run_once(args, physics: str | None) -> float:
     """One study run (the physics profile replaced when given); prints its figures, returns its study wall time."""
     if args.sweep:
         seeds = -(-args.sweep // len(cpg.CONTROLLERS))
-        spec = registry.ablation_spec(seeds=seeds, trials=args.trials or 40)
+        spec = study_driver.read("controller_ablation", seeds=seeds, trials=args.trials or 40).spec
         mode = "sweep"
     elif args.quick:
         # the full batch (20 instances), 4 trials
-        spec = registry.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials or 4)
+        spec = study_driver.read("controller_ablation", seeds=PAPER_SEEDS, trials=args.trials or 4).spec
         mode = "quick"
     else:
-        spec = registry.ablation_spec(seeds=PAPER_SEEDS, trials=args.trials)
+        spec = study_driver.read("controller_ablation", seeds=PAPER_SEEDS, trials=args.trials).spec
         mode = "full"
     if physics is not None:
         spec = dataclasses.replace(spec, physics=(physics,))

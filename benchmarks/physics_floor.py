@@ -2,7 +2,7 @@
 at the speed its closed loop runs now, on this machine.
 
 Each study's physics is its env-steps, instances × trials × ticks per trial, from its default spec
-(``cpgjax.studies.registry.make_spec``: 20 seeds). The physics limit is ``rollout.native_limit``'s: the closed
+(their study files, ``studies/*.toml``: 20 seeds). The physics limit is ``rollout.native_limit``'s: the closed
 loop's torques replayed open loop on the same per-instance models, one thread, times the cores this process may
 use. The same run times the closed loop, so the two figures share the machine's speed of the moment (on a VM it
 drifts by up to 2× between hours). Both rates are those of one batch (``--batch``, midpoint parameters on flat
@@ -26,7 +26,8 @@ from cpgjax import provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.robot import cpu_dispatch
 from cpgjax.sim import native as native_go1
-from cpgjax.studies import registry
+from cpgjax.studies import driver as study_driver
+from cpgjax.studies import transfer
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import protocol
 
@@ -38,8 +39,10 @@ def study_env_steps() -> dict[str, int]:
     timing = protocol.TrialConfig()
     ticks = timing.transition_steps + timing.steady_steps
     steps = {}
-    for name in registry.STUDIES:
-        spec = registry.make_spec(name)
+    for name in study_driver.paper_studies():
+        if name == transfer.NAME:  # its arms are three studies
+            continue
+        spec = study_driver.read(name).spec
         steps[name] = len(study_spec.instances(spec)) * spec.num_trials * ticks
     return steps
 

@@ -26,8 +26,10 @@ from cpgjax.robot import cpu_dispatch, foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
 from cpgjax.sim import backends, walk
+from cpgjax.studies import driver as study_driver
+from cpgjax.studies import gaits as study_gaits
 from cpgjax.studies import launch as study_launch
-from cpgjax.studies import registry, transfer
+from cpgjax.studies import transfer
 from cpgjax.studies import video as study_video
 from cpgjax.studies import viewer as study_viewer
 from cpgjax.study import files as study_io
@@ -215,7 +217,7 @@ def _walk_video(args) -> int:
     gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
                             args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
                             trial.steady_steps, args.target_velocity_mps)
-    (log,) = registry.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
+    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
     try:
         (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg)])
     except (study_video.RenderUnavailable, RuntimeError) as err:
@@ -344,12 +346,42 @@ def _without_processes(argv: list[str]) -> list[str]:
     return out
 
 
+def _study_template(args) -> int:
+    """``cpgjax study --template PATH``: a commented study file of every key, to copy and edit."""
+    try:
+        path = study_io.claim_file(args.template, overwrite=args.overwrite)
+    except study_spec.StudyError as err:
+        print(f"cpgjax study: {err}", file=sys.stderr)
+        return 2
+    path.write_text(study_spec.template())
+    print(f"wrote {path}: edit it, then run `cpgjax study {shlex.quote(str(path))}` (docs/studies.md)")
+    return 0
+
+
 def _study(args) -> int:
+    if args.template is not None:
+        return _study_template(args)
+    if args.name is None:
+        print("cpgjax study: name a paper study (" + ", ".join(study_driver.paper_studies()) + ") or a study file "
+              "(PATH.toml), or write one with --template PATH", file=sys.stderr)
+        return 2
+    try:
+        study = study_driver.read(args.name, quick=args.quick, seeds=args.seeds, trials=args.trials,
+                                  physics=args.physics, safe=args.safe, max_trials=args.max_trials)
+        if study.arms and (args.physics is not None or args.max_trials is not None):
+            raise study_spec.StudyError(f"{study.path}: its arms set their own physics and are not extended: drop "
+                                        "--physics and --max-trials")
+    except study_spec.StudyError as err:
+        print(f"cpgjax study: {err}", file=sys.stderr)
+        return 2
+    if args.print:
+        print(study.text, end="")
+        return 0
     if args.processes is not None or args.distributed:
         problem = ("--processes and --distributed exclude each other (--processes starts --distributed processes)"
                    if args.processes is not None and args.distributed
-                   else f"{transfer.NAME} runs its arms one after another in one process: drop --processes / "
-                   "--distributed" if args.name == transfer.NAME else None)
+                   else f"{study.spec.name} runs its arms one after another in one process: drop --processes / "
+                   "--distributed" if study.arms else None)
         if problem:
             print(f"cpgjax study: {problem}", file=sys.stderr)
             return 2
@@ -361,14 +393,12 @@ def _study(args) -> int:
         return outcome.returncode
     if args.distributed and not args.dry_run:
         ablation.initialize_distributed()
-    name = args.name
-    run = transfer.run if name == transfer.NAME else functools.partial(registry.run, name)
-    out = registry.output_folder(name, args.out)
+    out = study_io.output_folder(study.spec.name, args.out)
     try:
-        text, out = run(seeds=args.seeds, trials=args.trials, quick=args.quick, out=out, resume=args.resume,
-                        overwrite=args.overwrite, backend=args.backend, physics=args.physics,
-                        command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c),
-                        safe=args.safe, dry_run=args.dry_run, max_trials=args.max_trials)
+        text, out, _ = study_driver.run_file(
+            study, out, resume=args.resume, overwrite=args.overwrite, backend=args.backend,
+            command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c),
+            dry_run=args.dry_run)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -380,8 +410,8 @@ def _study(args) -> int:
         sys.stdout.flush()
         os._exit(3)  # not through jax.distributed's shutdown barrier, which would wait for the lost process
     except KeyboardInterrupt:
-        arm = next((out / s.name for s in reversed(transfer.specs(args.seeds, args.trials, args.quick))
-                    if study_io.checkpoint_files(out / s.name)), None) if name == transfer.NAME else out
+        arm = next((out / s.name for s in reversed(transfer.specs(study))
+                    if study_io.checkpoint_files(out / s.name)), None) if study.arms else out
         return _interrupted(args.command_line, args, arm)
     print(text)
     print("nothing computed (--dry-run)" if args.dry_run else f"outputs in {out}/")
@@ -400,8 +430,9 @@ def _demo(args) -> int:
           "v* = 0.5 m/s, all runs batched in lockstep on the CPU (quick variant: 2 seeds × 12 trials; the first "
           f"trial compiles). Outputs replace those in {DEMO_OUT}/.", flush=True)
     try:
-        text, out = registry.run("controller_ablation", quick=True, out=DEMO_OUT, overwrite=True,
-                                command=args.command_line, progress=_progress_printer(ctrl_c=args.ctrl_c))
+        text, out, _ = study_driver.run_file(study_driver.read("controller_ablation", quick=True), DEMO_OUT,
+                                             overwrite=True, command=args.command_line,
+                                             progress=_progress_printer(ctrl_c=args.ctrl_c))
     except KeyboardInterrupt:
         print("\ncpgjax demo: interrupted", file=sys.stderr)
         return INTERRUPTED
@@ -455,7 +486,7 @@ def _optimize(args) -> int:
         start = study_io.open_run(out, spec, backends.resolve_backend(args.backend), resume=args.resume,
                                   overwrite=args.overwrite)
         if start:
-            _notice(registry.resume_notice(out, start, spec.num_trials))
+            _notice(study_io.resume_notice(out, start, spec.num_trials))
         engine = ablation.Engine(spec, backend=args.backend)
         result = engine.run(out, resume=args.resume, progress=_progress_printer(ctrl_c=args.ctrl_c))
     except study_spec.StudyError as err:
@@ -503,7 +534,7 @@ RRD_FOOTER = b"RRF2FOOT"  # rerun's footer, 12 bytes before the end of a recordi
 
 # What each file cpgjax writes holds, as `cpgjax show` lists it (docs/outputs.md has every column).
 FILE_KINDS = {
-    "table.md": "the study's table, ours beside the paper's",
+    "table.md": "the study's table (a paper study's: ours beside the paper's)",
     "trials.parquet": "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls",
     "walk.parquet": "one row per trial of each walk: conditions, parameters, J, velocity, CoT, falls",
     "metadata.json": "how the run was made: command, version, commit, optimizer, machine, run figures",
@@ -763,7 +794,7 @@ def _show_video(args) -> int:
     for gait in gaits:
         if study_video.video_file(out, gait.group).exists():
             _notice(f"replacing {study_video.video_file(out, gait.group)}")
-    logs = registry.gait_rollouts(gaits, args.backend, steps=int(round(args.video_s * 1000)))
+    logs = study_gaits.gait_rollouts(gaits, args.backend, steps=int(round(args.video_s * 1000)))
     return 0 if study_video.write_videos(out, gaits, logs, _notice) else 1
 
 
@@ -820,6 +851,7 @@ def _deploy(parser: argparse.ArgumentParser, args) -> int:
         print(f"cpgjax deploy: {err}", file=sys.stderr)
         return 2
     _use_tuned(args)
+    args.params_path = None if args.params is None else str(args.params.path)  # run.json records the file
     args.params = None if args.params is None else args.params.params
     _notice(f"cpgjax deploy: writing to {args.log_dir}/")
     return deploy.run(args)
@@ -972,17 +1004,19 @@ MAX_TRIALS_HELP = ("the trials the run can later be extended to with --resume --
 
 
 def _add_study(sub) -> None:
-    s = sub.add_parser("study", help="run a paper study (batched online optimization) and write results/<study>/",
-                       formatter_class=_HelpFormatter)
-    descriptions = {k: v.description for k, v in registry.STUDIES.items()}
-    descriptions[transfer.NAME] = transfer.DESCRIPTION
-    s.add_argument("name", choices=sorted(descriptions), help="; ".join(f"{k}: {v}" for k, v in descriptions.items()))
+    s = sub.add_parser("study", help="run a study file (PATH.toml) or a paper study by name and write "
+                       "results/<study>/", formatter_class=_HelpFormatter)
+    s.add_argument("name", nargs="?", help="a study file (PATH.toml, docs/studies.md) or a paper study: "
+                   + ", ".join(study_driver.paper_studies()) + " (each the file studies/<name>.toml)")
+    s.add_argument("--print", action="store_true", help="print the study's file (to copy and edit) and stop")
+    s.add_argument("--template", type=pathlib.Path, help="write a commented study file of every key, its default, "
+                   "unit and range to this path and stop (with --overwrite: replace an existing file)")
     s.add_argument("--seeds", type=_count(1, maximum=limits.MAX_SEEDS, maximum_reason=limits.MAX_SEEDS_REASON),
-                   default=None,
-                   help=f"seeds per group (default: {registry.DEFAULT_SEEDS}; --quick {registry.QUICK_SEEDS})")
+                   default=None, help="seeds 0 … N-1 per group (default: the file's seeds; --quick its [quick] seeds)")
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
-                   help="trials per run; condition changes scale with it (default: the study's)")
-    s.add_argument("--quick", action="store_true", help="fewer seeds and trials")
+                   help="trials per run; condition changes scale with it (default: the file's trials; --quick its "
+                   "[quick] trials)")
+    s.add_argument("--quick", action="store_true", help="the file's [quick] values: fewer seeds and trials")
     s.add_argument("--max-trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help=MAX_TRIALS_HELP)
     s.add_argument("--safe", action="store_true", help=SAFE_HELP)

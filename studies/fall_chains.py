@@ -30,7 +30,8 @@ import numpy as np
 from cpgjax import ablation
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import backends
-from cpgjax.studies import registry, stats
+from cpgjax.studies import driver as study_driver
+from cpgjax.studies import stats
 from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
@@ -78,7 +79,7 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
             cases.append((t + 1, b, params[walked[-1], b]))
     if not cases:
         return f"{folder}: no trial after a fall with an earlier walk on its condition"
-    spec = registry.make_spec(study)
+    spec = study_driver.read(study).spec
     engine = ablation.Engine(spec, backend="native")
     scenario = go1_model.Scenario(*(np.stack([getattr(engine.scenario(t), f)[b] for t, b, _ in cases])
                                     for f in go1_model.Scenario._fields))

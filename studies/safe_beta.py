@@ -17,14 +17,14 @@ import pathlib
 import sys
 
 from cpgjax import ablation
-from cpgjax.studies import registry
+from cpgjax.studies import driver as study_driver
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("study", help="a registry study: " + ", ".join(registry.STUDIES))
+    parser.add_argument("study", help="a study file or a paper study: " + ", ".join(study_driver.paper_studies()))
     parser.add_argument("out", type=pathlib.Path, help="output folder")
     parser.add_argument("--safe-beta", type=float, required=True, help="β_s, the margin LCB multiplier (>= 0)")
     parser.add_argument("--resume", action="store_true", help="continue the run in OUT")
@@ -32,7 +32,7 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="the study's quick variant (2 seeds, fewer trials)")
     args = parser.parse_args()
     try:
-        spec = registry.make_spec(args.study, quick=args.quick, safe=True)
+        spec = study_driver.read(args.study, quick=args.quick, safe=True).spec
         optimizer = dataclasses.replace(spec.optimizer_config(), safe_beta=args.safe_beta)
     except (study_spec.StudyError, ValueError) as err:
         print(f"safe_beta.py: {err}", file=sys.stderr)

@@ -22,7 +22,7 @@ from cpgjax.deployment import calibrate, deploy, tick_log
 from cpgjax.robot import foot_force, sim_server
 from cpgjax.robot import safety as go1_safety
 from cpgjax.sim import walk
-from cpgjax.studies import registry
+from cpgjax.studies import driver as study_driver
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
@@ -557,9 +557,9 @@ def test_extending_a_run_needs_its_optimizers_capacity_and_its_conditions(tmp_pa
         study_io.resume_point(out, _optimize_spec(trials=40), "native")
     # a study whose condition changes scale with its trials: another length is another study
     studies = tmp_path / "load"
-    _checkpoint_of(studies, registry.load_spec(seeds=1, trials=24), 24)
+    _checkpoint_of(studies, study_driver.read("load_adaptation", seeds=1, trials=24).spec, 24)
     with pytest.raises(study_spec.StudyError, match=r"schedules .* \(its condition changes scale with --trials"):
-        study_io.resume_point(studies, registry.load_spec(seeds=1, trials=30), "native")
+        study_io.resume_point(studies, study_driver.read("load_adaptation", seeds=1, trials=30).spec, "native")
     # a schedule written with trial numbers that stay: the conditions of the trials done must be those they ran under
     fixed = dataclasses.replace(_optimize_spec(trials=12), max_trials=30,
                                 schedules=(study_spec.Schedule("s", (study_spec.Change(8, "payload_kg", 5.0),)),))
@@ -630,14 +630,14 @@ def test_a_ctrl_c_lost_in_a_callback_still_stops_after_the_trial(tmp_path, capsy
 def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, monkeypatch):
     """Lost after the last trial's check, the request still makes the exit status 130 once the outputs are
     written (the run finished: nothing to resume)."""
-    def finishes_after_a_lost_interrupt(name, **kwargs):
+    def finishes_after_a_lost_interrupt(study, out, **kwargs):
         try:
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.1)
         except KeyboardInterrupt:
             pass
-        return "the table", kwargs["out"]
-    monkeypatch.setattr(registry, "run", finishes_after_a_lost_interrupt)
+        return study_driver.StudyRun("the table", out, None)
+    monkeypatch.setattr(study_driver, "run_file", finishes_after_a_lost_interrupt)
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         assert cli.main(["study", "friction", "--quick", "--out", str(tmp_path / "s")]) == 130
@@ -649,10 +649,10 @@ def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, mo
 def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypatch):
     out = tmp_path / "study"
 
-    def interrupted(name, **kwargs):
-        _fake_checkpoint(kwargs["out"], registry.make_spec(name, quick=True), 3, "native")
+    def interrupted(study, out, **kwargs):
+        _fake_checkpoint(out, study.spec, 3, "native")
         raise KeyboardInterrupt
-    monkeypatch.setattr(registry, "run", interrupted)
+    monkeypatch.setattr(study_driver, "run_file", interrupted)
     assert cli.main(["study", "friction", "--quick", "--out", str(out)]) == 130
     err = capsys.readouterr().err
     assert f"trials 0…2 are saved in {out / study_io.CHECKPOINT}" in err and "Traceback" not in err
@@ -881,7 +881,7 @@ def test_a_study_dry_run_checks_everything_and_touches_nothing(tmp_path, capsys)
     assert f"controller_ablation: 8 instances (4 controllers, 2 seeds) × 12 trials of 4.5 s: {8 * 12 * 4500:,} " \
            "env-steps" in text and "nothing computed (--dry-run)" in text
     assert not out.exists()
-    spec = registry.make_spec("controller_ablation", quick=True)
+    spec = study_driver.read("controller_ablation", quick=True).spec
     _fake_checkpoint(out, spec, 3, "native")
     assert cli.main(["study", "controller_ablation", "--quick", "--out", str(out), "--dry-run"]) == 2
     assert "is not empty (checkpoint.npz): pass --resume" in capsys.readouterr().err

@@ -2,7 +2,8 @@
 
 - **Parsed**: each parses with today's parser and passes the checks that span options (no option of the other robot
   or mode), its files replaced by plain paths: a renamed, removed or refused option fails here.
-- **Run**: each is then run, in the order its document gives it, in a fresh folder per document (so a command that
+- **Run**: each is then run, in the order its document gives it, in a fresh folder per document, where the files
+  the document shows (a TOML block whose first line is `# file: NAME`) are saved first (so a command that
   reads what an earlier one wrote, `deploy --params sim-opt/best_params.json` after `deploy --optimize --log-dir
   sim-opt`, finds it or fails), made short by options appended after the documented ones (the last given
   wins): a study with `--dry-run` (every check of the run, its output folder included, without computing: the paper
@@ -43,6 +44,11 @@ def commands_in_order(path: pathlib.Path) -> list[str]:
                 if command not in found:
                     found.append(command)
     return found
+
+
+def files_in(path: pathlib.Path) -> dict[str, str]:
+    """The files a document writes out for its commands: each TOML block whose first line is `# file: NAME`."""
+    return {m.group(1): m.group(2) for m in re.finditer(r"```toml\n# file: (\S+)\n(.*?)```", path.read_text(), re.S)}
 
 
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -99,6 +105,8 @@ def test_the_documented_commands_run_in_a_fresh_folder(doc, tmp_path, monkeypatc
     # One parser for every line: what it makes of two lines that differ only in an option
     # given again later (the last given wins) compares equal.
     parser = cli.build_parser()
+    for name, text in files_in(doc).items():  # a study file the document shows, as its reader would save it
+        (tmp_path / name).write_text(text)
     ran, run_options = [], []
     for command in commands_in_order(doc):
         argv = shortened(shlex.split(command)[1:])

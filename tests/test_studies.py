@@ -14,7 +14,9 @@ import pytest
 
 import cpgjax
 from cpgjax import ablation, cli, cpg
+from cpgjax.studies import driver as study_driver
 from cpgjax.studies import figures as study_figures
+from cpgjax.studies import gaits as study_gaits
 from cpgjax.studies import registry
 from cpgjax.studies import video as study_video
 from cpgjax.study import files as study_io
@@ -26,18 +28,26 @@ from tests.test_outputs_doc import undocumented
 
 # ----------------------------------------------------------------------------------------------- specifications
 
+def _spec(name, **overrides):
+    return study_driver.read(name, **overrides).spec
+
+
+PAPER_STUDIES = [n for n in study_driver.paper_studies() if n != "transfer"]
+TRANSFER_ARMS = study_driver.read("transfer").arms
+ABLATION_REPORT = registry.REPORTS["controller_ablation"]
+
 def test_specs_follow_the_paper():
-    spec = registry.make_spec("controller_ablation")
+    spec = _spec("controller_ablation")
     assert spec.controllers == cpg.CONTROLLERS and spec.seeds == tuple(range(20)) and spec.num_trials == 40
     assert spec.target_velocity_mps == (0.5,) and spec.trial == protocol.TrialConfig()  # 1.5 s + 3 s at 1 kHz
     assert len(study_spec.instances(spec)) * spec.num_trials * 4.5 == 14400.0  # robot-seconds: 20 seeds, not 5
-    cond = study_spec.conditions(registry.make_spec("load_adaptation"))
+    cond = study_spec.conditions(_spec("load_adaptation"))
     np.testing.assert_array_equal(registry.phase_starts(cond.payload_kg[0]), [0, 36, 58])  # paper: trials 36, 58
     np.testing.assert_array_equal(cond.payload_kg[0, [0, 36, 58]], [0.0, 7.5, 15.0])
-    cond = study_spec.conditions(registry.make_spec("multi_velocity"))
+    cond = study_spec.conditions(_spec("multi_velocity"))
     assert cond.target_velocity_mps.shape[1] == 140
     np.testing.assert_array_equal(np.unique(cond.target_velocity_mps[0]), [0.3, 0.6, 0.8])
-    spec = registry.make_spec("slope_adaptation")
+    spec = _spec("slope_adaptation")
     cond = study_spec.conditions(spec)
     learn = int(np.argmax(cond.inference[0]))
     assert [cond.slope_deg[0, t] for t in registry.phase_starts(cond.slope_deg[0, :learn])] == [0.0, 10.0, 12.5]
@@ -45,8 +55,8 @@ def test_specs_follow_the_paper():
     ramp = int(np.argmax(cond.ramp[0]))  # then the continuous ramp, 10° → 17.5°, 12 trials in inference mode
     assert ramp == learn + 12 == spec.num_trials - 12 and cond.ramp[0, ramp:].all() and not cond.ramp[0, :ramp].any()
     assert spec.ramp.start_deg == 10.0 and spec.ramp.end_deg == 17.5
-    assert registry.make_spec("friction").friction == (0.3, 0.6, 0.9)
-    spec = registry.make_spec("paper_hardware")  # the paper's hardware experiments under the go1 profile
+    assert _spec("friction").friction == (0.3, 0.6, 0.9)
+    spec = _spec("paper_hardware")  # the paper's hardware experiments under the go1 profile
     cond = study_spec.conditions(spec)
     labels = [lab["schedule"] for lab in study_spec.instances(spec)]
     assert spec.physics == ("go1",) and len(set(labels)) == 5
@@ -61,19 +71,18 @@ def test_specs_follow_the_paper():
     load = cond.payload_kg[by["0→5→10→15 kg"]]
     assert [load[t] for t in registry.phase_starts(load)] == [0.0, 5.0, 10.0, 15.0]
     assert registry.phase_starts(load)[1] == 30
-    for name in registry.STUDIES:  # every quick variant is a valid, smaller study
-        quick = registry.make_spec(name, quick=True)
-        assert quick.num_trials < registry.make_spec(name).num_trials and len(quick.seeds) == 2
+    for name in PAPER_STUDIES:  # every quick variant is a valid, smaller study
+        quick = _spec(name, quick=True)
+        assert quick.num_trials < _spec(name).num_trials and len(quick.seeds) == 2
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    (dict(name="nope"), "unknown study 'nope'"),
-    (dict(name="friction", seeds=0), "--seeds 0"),
-    (dict(name="friction", trials=3), "--trials 3"),
+@pytest.mark.parametrize("name, message", [
+    ("nope", "unknown study 'nope': the paper's studies are controller_ablation, friction"),
+    ("nope.toml", "study file nope.toml does not exist"),
 ])
-def test_bad_study_options(kwargs, message):
+def test_bad_study_names(name, message):
     with pytest.raises(study_spec.StudyError, match=message):
-        registry.make_spec(**kwargs)
+        study_driver.read(name)
 
 
 def test_cli_rejects_bad_options_before_compute(capsys, tmp_path):
@@ -108,12 +117,12 @@ def test_last_mean_and_phase_starts():
 
 @pytest.fixture(scope="module")
 def tiny_ablation(tmp_path_factory):
-    spec = dataclasses.replace(registry.ablation_spec(seeds=1, trials=4), optimizer=small_optimizer(4),
+    spec = dataclasses.replace(_spec("controller_ablation", seeds=1, trials=4), optimizer=small_optimizer(4),
                                trial=protocol.TrialConfig(transition_steps=100, steady_steps=200))
     out = tmp_path_factory.mktemp("controller_ablation")
     engine = ablation.Engine(spec, backend="native")
     result = engine.run(out)
-    text = registry.write_outputs(result, out, "native")
+    text = study_driver.write_outputs(result, out, "native", ABLATION_REPORT)
     return result, out, text
 
 
@@ -123,7 +132,7 @@ def test_a_machine_without_video_still_gets_every_other_output(tiny_ablation, tm
     result, _, _ = tiny_ablation
     monkeypatch.setenv("MUJOCO_GL", "no-such-backend")
     lines = []
-    registry.write_outputs(result, tmp_path, "native", notify=lines.append)
+    study_driver.write_outputs(result, tmp_path, "native", ABLATION_REPORT, notify=lines.append)
     (said,) = [line for line in lines if line.startswith("no video")]
     assert "'no-such-backend' OpenGL backend" in said and "RuntimeError" in said and "\n" not in said
     assert (tmp_path / "summary.png").read_bytes()[:4] == b"\x89PNG" and (tmp_path / "table.md").exists()
@@ -185,33 +194,44 @@ def test_cli_show_prints_the_table(tiny_ablation, capsys):
 
 def test_best_gaits_are_each_groups_best_run_and_trial(tiny_ablation):
     result, _, _ = tiny_ablation
-    gaits = registry.best_gaits(result)
+    gaits = study_gaits.best_gaits(result)
     assert [g.group for g in gaits] == list(cpg.CONTROLLERS)  # one per controller, the study's groups
     n = result.trials.objective.shape[0]
     for gait in gaits:
         runs = [b for b, lab in enumerate(result.labels) if lab["controller"] == gait.group]
-        b = max(runs, key=lambda i: result.trials.objective[n - 5:, i].mean())
-        t = int(np.argmax(result.trials.objective[:, b]))
+        # a trial walked: it did not fall, and its J is above the floor of standing still (-1); one phase here
+        ok = (result.trials.fell == 0) & (result.trials.objective > -1.0)
+        walked = [b for b in runs if ok[:, b].any()]
+        b = max(walked or runs, key=lambda i: result.trials.objective[n - 5:, i].mean())
+        j = np.where(ok[:, b] | (not walked), result.trials.objective[:, b], -np.inf)
+        t = int(np.argmax(j))
+        assert gait.walked == bool(walked) and gait.phase.startswith(f"trials 0–{n - 1}: μ 0.6, 0°, 0 kg")
         assert (gait.instance, gait.trial, gait.controller) == (b, t, gait.group)
         np.testing.assert_array_equal(gait.params, result.trials.params[t, b])
-    (log,) = registry.gait_rollouts(gaits[:1], "native", steps=250)
+    (log,) = study_gaits.gait_rollouts(gaits[:1], "native", steps=250)
     assert log.qpos.shape[0] == 250 and log.phase_rad.shape == (250, 4) and np.all(np.isfinite(log.qpos))
 
 
 def test_group_names_are_file_names():
-    assert registry.group_name({"controller": "vmc_tegotae", "seed": 0}, ("controller",)) == "vmc_tegotae"
-    assert registry.group_name({"friction": 0.3}, ("friction",)) == "friction0.3"
-    assert registry.group_name({"schedule": "0→7.5→15 kg"}, ("schedule",)) == "schedule0-7.5-15kg"
-    assert registry.group_name({"schedule": "0→10→12.5° + inference 10…17.5°"}, ("schedule",)) == \
-        "schedule0-10-12.5inference1017.5"
-    assert registry.group_name({"data_reuse": True, "controller": "vmc"}, ("controller", "data_reuse")) == \
-        "vmc_data_reuseTrue"
+    def named(labels, group_by, schedules=None):
+        schedules = schedules or (study_spec.Schedule("constant"),)
+        return study_gaits.group_name(labels, study_spec.StudySpec("s", group_by=group_by, schedules=schedules))
+    assert named({"controller": "vmc_tegotae", "seed": 0}, ("controller",)) == "vmc_tegotae"
+    assert named({"friction": 0.3}, ("friction",)) == "friction0.3"
+    assert named({"schedule": "0→7.5→15 kg"}, ("schedule",), (study_spec.Schedule("0→7.5→15 kg"),)) == \
+        "schedule0-7.5-15kg"  # a schedule without a name: its label
+    assert named({"data_reuse": True, "controller": "vmc"}, ("controller", "data_reuse")) == "vmc_data_reuseTrue"
+    # a study file names its schedules: the quick slope study's group is a word, not its label
+    slope = _spec("slope_adaptation", quick=True)
+    assert named({"schedule": slope.schedules[0].label}, ("schedule",), slope.schedules) == \
+        "slope_0_10_12.5deg_inference_ramp"
 
 
 def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tiny_ablation):
-    """best_params/<c>.json: the group's best gait, read from trials.parquet: the run with the best mean J over its
-    last trials, its highest-J trial (one condition phase here), that run's controller, physics and the trial's
-    conditions; `deploy --params` reads it back, and it is the gait the study films."""
+    """best_params/<c>.json: the group's best gait, read from trials.parquet: of the runs with a trial that walked,
+    the run with the best mean J over its last trials, its highest-J trial that walked (one condition phase here),
+    that run's controller, physics and the trial's conditions; `deploy --params` reads it back, and it is the gait
+    the study films."""
     _, out, _ = tiny_ablation
     table = pq.read_table(out / "trials.parquet").to_pandas()
     last = table.trial.max() - registry.LAST_TRIALS
@@ -220,8 +240,12 @@ def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tin
         path = out / study_io.BEST_PARAMS / f"{c}.json"
         saved = json.loads(path.read_text())
         runs = table[table.controller == c]
-        run = runs[runs.trial > last].groupby("instance").objective.mean().idxmax()
-        best = runs[runs.instance == run].sort_values("objective").iloc[-1]
+        ok = ~runs.fell & (runs.objective > -1.0)  # a best gait is one that walked (no fall, J above -1), if any did
+        walking = runs[ok] if ok.any() else runs
+        final = runs[runs.trial > last].groupby("instance").objective.mean()
+        run = final[final.index.isin(walking.instance)].idxmax()
+        best = walking[walking.instance == run].sort_values("objective", kind="stable").iloc[::-1].iloc[0]
+        assert saved["walked"] == bool(ok.any())
         assert (saved["instance"], saved["trial"], saved["objective"]) == (run, best.trial,
                                                                           pytest.approx(best.objective))
         assert {k: saved[k] for k in tuned.TUNED_FOR} == dict(
@@ -243,7 +267,7 @@ def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp
     with pytest.raises(study_io.OutputError, match=r"writing the study's figures in .* failed \(OSError: "
                        r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, table.md, "
                        r"trials.parquet"):
-        registry.write_outputs(result, tmp_path, "native")
+        study_driver.write_outputs(result, tmp_path, "native", ABLATION_REPORT)
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 16 and (tmp_path / "metadata.json").exists()
     table = (tmp_path / "table.md").read_text()
     assert "| vmc_tegotae |" in table and "Safety during optimization" in table and "\nRun: " in table
@@ -257,18 +281,19 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
     from cpgjax.studies import transfer
 
     real_specs = transfer.specs
+    study = study_driver.read("transfer", seeds=1, trials=4)
 
-    def tiny(seeds=None, trials=None, quick=False, safe=False):
+    def tiny(study=study):
         return [dataclasses.replace(s, optimizer=small_optimizer(4),
                                     trial=protocol.TrialConfig(transition_steps=100, steady_steps=200))
-                for s in real_specs(seeds=1, trials=4, safe=safe)]
+                for s in real_specs(study)]
 
     monkeypatch.setattr(transfer, "specs", tiny)
     lines = []
-    text, out = transfer.run(out=tmp_path / "transfer", backend="native", notify=lines.append)
+    text, out = transfer.run(study, out=tmp_path / "transfer", backend="native", notify=lines.append)
     assert (out / "table.md").read_text() == text
     filmed = [line for line in lines if ".mp4: " in line]
-    for (arm, home, _), spec in zip(transfer.ARMS, tiny(), strict=True):
+    for (arm, home, _), spec in zip(study.arms, tiny(), strict=True):
         gaits = {g.group: g for g in study_video.load_gaits(out / spec.name)}
         assert sorted(gaits) == sorted(cpg.CONTROLLERS), arm
         assert {tuned.load(study_video.gait_file(out / spec.name, c)).tuned_for["physics"] for c in gaits} == {home}
@@ -276,7 +301,7 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
             assert all(len(iio.imread(study_video.video_file(out / spec.name, c))) == 5 for c in gaits)
     assert filmed or any(line.startswith("no video: ") for line in lines), lines
     # every run × evaluation environment, documented; the table's J at home is their mean
-    for (arm, home, randomized), spec in zip(transfer.ARMS, tiny(), strict=True):
+    for (arm, home, randomized), spec in zip(study.arms, tiny(), strict=True):
         rows = pq.read_table(out / spec.name / "evaluations.parquet").to_pydict()
         assert undocumented("evaluations.parquet", rows) == []
         environments = transfer.Environments(home).names
@@ -302,9 +327,9 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
     environments = len(fixed) + transfer.EVALUATION_DRAWS
     labels = [{"controller": c} for c in cpg.CONTROLLERS for _ in range(seeds)]
     rng = np.random.default_rng(3)
-    results = {arm: type("Result", (), {"labels": labels}) for arm, _, _ in transfer.ARMS}
+    results = {arm: type("Result", (), {"labels": labels}) for arm, _, _ in TRANSFER_ARMS}
     evaluations = {arm: tuple(rng.normal(2.0, 0.3, (len(labels), environments)) for _ in range(3))
-                   + (rng.random((len(labels), environments)) < 0.08,) for arm, _, _ in transfer.ARMS}
+                   + (rng.random((len(labels), environments)) < 0.08,) for arm, _, _ in TRANSFER_ARMS}
 
     def drops(arm, home, controller):
         j = evaluations[arm][0][[lab["controller"] == controller for lab in labels]]
@@ -313,10 +338,10 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
         worst = away[int(np.argmin(j[:, away].mean(axis=0)))]
         return j[:, h], j[:, worst] - j[:, h], j[:, len(fixed):].mean(axis=1) - j[:, h]
 
-    text, falls = transfer.comparisons(results, evaluations).split("\n\n")
+    text, falls = transfer.comparisons(TRANSFER_ARMS, results, evaluations).split("\n\n")
     rows = {tuple(cell.strip() for cell in line.split("|")[1:3]): line for line in text.splitlines()[2:]}
     assert len(rows) == 3 * 3 * 2 + 4 * 2
-    for arm, home, randomized in transfer.ARMS:
+    for arm, home, randomized in TRANSFER_ARMS:
         label = home + (" + randomization" if randomized else "")
         for c in cpg.CONTROLLERS[1:]:
             for k, quantity in ((1, "drop: worst fixed"), (2, "drop: randomized")):
@@ -337,7 +362,7 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
     a, b = fell[[lab["controller"] == "tegotae" for lab in labels]], fell[:seeds]
     p = sp.fisher_exact([[a.sum(), seeds - a.sum()], [b.sum(), seeds - b.sum()]]).pvalue
     assert f"| go1 | tegotae | {a.sum()}/{seeds} | {b.sum()}/{seeds} | {p:.2g} |" in falls.splitlines()
-    table = transfer.table(results, evaluations)
+    table = transfer.table(TRANSFER_ARMS, results, evaluations)
     home, worst, randomized = drops("go1", "go1", "vmc")
     line = next(r for r in table.splitlines() if r.startswith("| vmc | go1 |"))
     half = sp.t.ppf(0.975, seeds - 1) * worst.std(ddof=1) / np.sqrt(seeds)
@@ -356,7 +381,7 @@ def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     ablation_marks = {m.group: m for m in registry.ablation_paper_marks(result)}
     assert (ablation_marks["tegotae"].first_trial, ablation_marks["tegotae"].last_trial) == (75, 79)
     assert (ablation_marks["tegotae"].objective, ablation_marks["tegotae"].std) == (2.153, 0.042)
-    assert registry.STUDIES["friction"].paper_marks(result) == []
+    assert registry.REPORTS["friction"].paper_marks(result) == []
 
 
 def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk(tmp_path):

@@ -51,11 +51,13 @@ def _runs_per_curve(labels: np.ndarray) -> str:
 
 
 def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), target=None,
-                    context_index: int = 1) -> pathlib.Path:
+                    context_index: int = 1, groups: list[str] | None = None) -> pathlib.Path:
     """Velocity, CoT, J and one context component per trial, mean ± std over the instances of each group.
 
     Args:
-      group_key: instance label whose values form the groups (lines).
+      group_key: instance label whose values form the groups (lines); or, with ``groups``, what the legend calls
+        them.
+      groups: each instance's group name (default: its ``group_key`` label).
       changes: trials at which the conditions change (red arrows on the J row).
       target: (N,) target velocity per trial, drawn on the velocity row (default: the first instance's).
       context_index: 0 = c_load, 1 = c_slope.
@@ -66,7 +68,7 @@ def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), t
     trials = np.arange(n)  # numbered from 0, as in trials.parquet, the schedules and the progress lines
     rows = (("velocity $v_x$ [m/s]", tr.velocity_xy_mps[..., 0]), ("CoT", tr.cot), ("objective J", tr.objective),
             (CONTEXT_LABELS[context_index], tr.context[..., context_index]))
-    labels = np.array([str(lab[group_key]) for lab in result.labels])
+    labels = np.array(groups if groups is not None else [str(lab[group_key]) for lab in result.labels])
     fig, axes = plt.subplots(len(rows), 1, figsize=(6.5, 8.0), sharex=True)
     for ax, (name, values) in zip(axes, rows, strict=True):
         for group in dict.fromkeys(labels):

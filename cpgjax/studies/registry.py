@@ -1,34 +1,24 @@
-"""The paper's simulation results as studies of the lockstep engine (``cpgjax.ablation``): one entry per result.
+"""The hand-written reports of the paper's studies (``REPORTS``, by the name a study file's ``report`` key gives):
+each sets the paper's figures beside ours and tests what the paper claims. The studies themselves are files
+(``studies/*.toml``); a study without such a report gets the generic one (``cpgjax.studies.generic``).
 
 ======================  =======================================================================================
-``controller_ablation`` 4 controllers × 20 seeds × 40 trials at v* = 0.5 m/s: the controller table (mean of the
-                        last 5 trials, mean and 95 % CI over seeds, tests against the paper's table and between
-                        controllers) and the roll–pitch figure of the best parameters
-``load_adaptation``     payload 0 → 7.5 kg (trial 36) → 15 kg (trial 58): the load table, before/after adaptation
-``friction``            friction 0.3 / 0.6 / 0.9 learning curves (paper Fig. sim_overview a)
-``multi_velocity``      target 0.8 → 0.3 → 0.6 m/s with and without data reuse (Fig. sim_overview b)
-``slope_adaptation``    slope 0° → 10° → 12.5° with contextual BO, then inference mode (β = 1e-6) on 10°…17.5°
-                        and up the continuous 10° → 17.5° ramp (Fig. sim_overview c, Fig. slope_setting)
-``paper_hardware``      the paper's hardware experiments predicted under the ``go1`` profile: v* = 0.4 m/s on flat
-                        and on slippery ground (taped feet), 0.6 → 0.3 → 0.5 → 0.6 m/s, a 10° slope, 5 / 10 / 15 kg
+``controller_ablation`` the controller table (mean of the last 5 trials, mean and 95 % CI over seeds, tests against
+                        the paper's table and between controllers) and the roll–pitch figure of the best parameters
+``load_adaptation``     the load table, before/after adaptation, with the flat-ground optimum re-run loaded
+``friction``            friction learning curves (paper Fig. sim_overview a)
+``multi_velocity``      trials to track each target with and without data reuse (Fig. sim_overview b)
+``slope_adaptation``    the slopes learned, inference mode on 10°…17.5° and the continuous ramp (Fig. sim_overview
+                        c, Fig. slope_setting)
+``paper_hardware``      the paper's hardware experiments predicted under the ``go1`` profile, per phase
 ======================  =======================================================================================
 
-The paper used 5 seeds; the studies default to 20 (``DEFAULT_SEEDS``), and every figure is a mean with its 95 %
-confidence interval over seeds (``cpgjax.studies.stats``).
-
-Each writes to its output folder: ``table.md`` (the paper's numbers beside ours), PNG figures (the study's own and
-``optimization_progress.png``: the best J so far and the parameters per group), ``trials.parquet``,
-``recording.rrd`` (with each group's best gait, full body), ``metadata.json`` and the engine's ``checkpoint.npz``
-(``cpgjax.study.files``), each group's best gait of its final phase, ``best_params/<group>.json`` (what a replay
-runs), and its video ``best_<group>.mp4`` (``cpgjax.studies.video``).
+Every figure is a mean with its 95 % confidence interval over seeds (``cpgjax.studies.stats``).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import pathlib
-import re
-import sys
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -37,20 +27,12 @@ import numpy as np
 
 from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
 from cpgjax.studies import figures as study_figures
 from cpgjax.studies import stats
-from cpgjax.studies import video as study_video
-from cpgjax.study import files as study_io
-from cpgjax.study import scene as study_scene
-from cpgjax.study import spec as study_spec
-from cpgjax.study.spec import Change, Schedule, StudySpec
-from cpgjax.trial import limits, objective, protocol
+from cpgjax.trial import objective, protocol
 
-DEFAULT_SEEDS = 20  # the paper used 5 (its tables' std is over 5 seeds: PAPER_SEEDS)
-PAPER_SEEDS = 5
-QUICK_SEEDS = 2
+PAPER_SEEDS = 5  # the paper's tables' std is over 5 seeds
 LAST_TRIALS = 5  # "averaging the outcomes of the last five trials"
 TRACKING_TOLERANCE_MPS = 0.05  # a target counts as tracked from the first trial with |v_x − v*| ≤ this, no fall
 
@@ -67,100 +49,11 @@ PAPER_LOAD_TABLE = {  # load kg: (velocity, CoT, J) after adaptation, (same) wit
 }
 
 
-PHYSICS = (physics_profiles.PAPER_STUDIES_PROFILE,)  # the paper's Gazebo-like physics (docs/physics.md)
-
-
-def _scaled(trial: int, paper_total: int, total: int) -> int:
-    """A schedule's change trial scaled from the paper's run length to ours."""
-    return int(round(trial * total / paper_total))
-
-
-def seed_range(seeds: int | None, quick: bool, default: int = DEFAULT_SEEDS) -> tuple[int, ...]:
-    """The seeds 0 … n − 1 of a study: n = ``seeds`` if given, else ``QUICK_SEEDS`` with ``quick``, else ``default``."""
-    return tuple(range(seeds if seeds is not None else (QUICK_SEEDS if quick else default)))
-
-
-# ----------------------------------------------------------------------------------------------- specs
-
-def ablation_spec(seeds=None, trials=None, quick=False) -> StudySpec:
-    return StudySpec("controller_ablation", num_trials=trials or (12 if quick else 40), controllers=cpg.CONTROLLERS,
-                     seeds=seed_range(seeds, quick), target_velocity_mps=(0.5,), physics=PHYSICS)
-
-
-def load_spec(seeds=None, trials=None, quick=False) -> StudySpec:
-    n = trials or (24 if quick else 80)
-    schedule = Schedule("0→7.5→15 kg", (Change(_scaled(36, 80, n), "payload_kg", 7.5),
-                                         Change(_scaled(58, 80, n), "payload_kg", 15.0)))
-    return StudySpec("load_adaptation", num_trials=n, seeds=seed_range(seeds, quick), schedules=(schedule,),
-                     group_by=("schedule",), physics=PHYSICS)
-
-
-def friction_spec(seeds=None, trials=None, quick=False) -> StudySpec:
-    return StudySpec("friction", num_trials=trials or (12 if quick else 40), seeds=seed_range(seeds, quick),
-                     friction=(0.3, 0.6, 0.9), group_by=("friction",), physics=PHYSICS)
-
-
-def multi_velocity_spec(seeds=None, trials=None, quick=False) -> StudySpec:
-    n = trials or (42 if quick else 140)
-    schedule = Schedule("0.8→0.3→0.6 m/s", (Change(_scaled(40, 140, n), "target_velocity_mps", 0.3),
-                                             Change(_scaled(90, 140, n), "target_velocity_mps", 0.6)))
-    return StudySpec("multi_velocity", num_trials=n, seeds=seed_range(seeds, quick), target_velocity_mps=(0.8,),
-                     schedules=(schedule,), data_reuse=(True, False), group_by=("data_reuse",), physics=PHYSICS)
-
-
-INFERENCE_SLOPES_DEG = (10.0, 12.5, 15.0, 17.5)
-# The paper's continuous ramp (Fig. slope_setting) rises from 10° to 17.5°; the paper gives no length. 12 m: a gait
-# that tracks v* = 0.5 m/s reaches the top in about 5 of its 12 trials there, one at 0.25 m/s by the last.
-RAMP = study_spec.Ramp(start_deg=10.0, end_deg=17.5, length_m=12.0)
-
-
-def slope_spec(seeds=None, trials=None, quick=False) -> StudySpec:
-    n = trials or (36 if quick else 104)
-    per_slope = 1 if quick else 3  # inference mode: this many trials on each slope, then 4 × as many on the ramp
-    ramp = n - 4 * per_slope
-    learn = ramp - 4 * per_slope
-    if learn < 4:
-        raise study_spec.StudyError(f"--trials {n}: the slope study needs at least {8 * per_slope + 4} trials (its "
-                                    f"last {8 * per_slope} are in inference mode)")
-    changes = [Change(_scaled(40, 80, learn), "slope_deg", 10.0), Change(_scaled(60, 80, learn), "slope_deg", 12.5),
-               Change(learn, "inference", 1.0)]
-    changes += [Change(learn + k * per_slope, "slope_deg", s) for k, s in enumerate(INFERENCE_SLOPES_DEG)]
-    changes += [Change(ramp, "ramp", 1.0)]
-    return StudySpec("slope_adaptation", num_trials=n, seeds=seed_range(seeds, quick),
-                     schedules=(Schedule("0→10→12.5° + inference 10…17.5° + ramp", tuple(changes)),),
-                     group_by=("schedule",), physics=PHYSICS, ramp=RAMP)
-
-
-HARDWARE_TARGET_MPS = 0.4  # the paper's hardware experiments track 0.4 m/s (except the velocity schedule)
-# The paper's "slippery terrain (i.e. taped feet)" gives no μ: ours is the paper's slippery floor in simulation (0.3).
-TAPED_FEET_FRICTION = 0.3
-HARDWARE_VELOCITIES_MPS = (0.6, 0.3, 0.5, 0.6)
-HARDWARE_LOADS_KG = (0.0, 5.0, 10.0, 15.0)
 PAPER_HARDWARE_COT = {  # paper Sec. "Hardware Experiments": CoT ≈ these once tracked
     "flat 0.4 m/s": 0.8, "taped feet 0.4 m/s": 0.95,
     "0.6→0.3→0.5→0.6 m/s": {0.6: 0.95, 0.3: 0.70, 0.5: 0.90},
 }
 PAPER_HARDWARE_SLOPE_TRIALS = 20  # "stabilizes around this target once more within approximately 20 trials"
-
-
-def hardware_spec(seeds=None, trials=None, quick=False) -> StudySpec:
-    """The paper's hardware experiments as one study under the ``go1`` profile: a prediction of the robot. Flat
-    ground and taped feet at 0.4 m/s; 0.6 → 0.3 → 0.5 → 0.6 m/s in equal phases; flat, then 10° from the middle on
-    (the robot learned flat ground first); flat, then 5, 10 and 15 kg added in equal phases over the second half."""
-    n = trials or (24 if quick else 60)
-    quarter, half = n // 4, n // 2
-    loads = [Change(half + k * (n - half) // 3, "payload_kg", kg) for k, kg in enumerate(HARDWARE_LOADS_KG[1:])]
-    schedules = (
-        Schedule("flat 0.4 m/s"),
-        Schedule("taped feet 0.4 m/s", (Change(0, "friction", TAPED_FEET_FRICTION),)),
-        Schedule("0.6→0.3→0.5→0.6 m/s", tuple(Change(k * quarter, "target_velocity_mps", v)
-                                              for k, v in enumerate(HARDWARE_VELOCITIES_MPS))),
-        Schedule("flat → 10°", (Change(half, "slope_deg", 10.0),)),
-        Schedule("0→5→10→15 kg", tuple(loads)),
-    )
-    return StudySpec("paper_hardware", num_trials=n, seeds=seed_range(seeds, quick),
-                     target_velocity_mps=(HARDWARE_TARGET_MPS,), schedules=schedules, group_by=("schedule",),
-                     physics=(physics_profiles.ROBOT_PROFILE,))
 
 
 # ----------------------------------------------------------------------------------------------- analysis helpers
@@ -214,65 +107,6 @@ def best_params(result, mask: np.ndarray, stop: int | None = None) -> tuple[np.n
     j = np.where(mask[None, :], result.trials.objective[:stop], -np.inf)
     t, b = np.unravel_index(np.argmax(j), j.shape)
     return result.trials.params[t, b], int(b), float(j[t, b])
-
-
-def _best_run(result, mask: np.ndarray) -> tuple[int, int]:
-    """(instance, trial): among the instances in ``mask``, the run with the best final objective (mean of its last
-    trials), and its best trial of the final condition phase; the trials on a ramp do not count (their slopes differ
-    by instance and trial)."""
-    tr, cond = result.trials, result.conditions
-    n = ramp_start(result)
-    b = int(np.argmax(np.where(mask, last_mean(tr.objective, n), -np.inf)))
-    fields = (cond.friction[b], cond.slope_deg[b], cond.payload_kg[b], cond.target_velocity_mps[b])
-    start = max(max(phase_starts(f[:n])) for f in fields)
-    return b, start + int(np.argmax(tr.objective[start:n, b]))
-
-
-def group_name(labels: dict, group_by) -> str:
-    """A group's name in file names: its label values (a controller by name, other labels as label + value), joined
-    by ``_``, arrows as ``-`` and anything else but letters, digits, ``.``, ``-`` and ``_`` dropped."""
-    parts = [str(labels[k]) if k == "controller" else f"{k}{labels[k]}" for k in group_by]
-    return re.sub(r"[^A-Za-z0-9._-]", "", "_".join(parts).replace("→", "-"))
-
-
-def best_gaits(result) -> list[study_video.Gait]:
-    """Per group of the study (``spec.group_by``): the best parameters of :func:`_best_run` among its instances, in
-    the conditions of the last trial before a ramp."""
-    tr, cond = result.trials, result.conditions
-    n = ramp_start(result)
-    names = np.array([group_name(lab, result.spec.group_by) for lab in result.labels])
-    gaits = []
-    for name in dict.fromkeys(names):
-        b, t = _best_run(result, names == name)
-        gaits.append(study_video.Gait(
-            group=str(name), params=np.asarray(tr.params[t, b], np.float64), controller=result.labels[b]["controller"],
-            friction=float(cond.friction[b, n - 1]), slope_deg=float(cond.slope_deg[b, n - 1]),
-            payload_kg=float(cond.payload_kg[b, n - 1]), physics=str(result.labels[b]["physics"]),
-            transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
-            target_velocity_mps=float(cond.target_velocity_mps[b, n - 1]), objective=float(tr.objective[t, b]),
-            instance=b, trial=t))
-    return gaits
-
-
-def save_best_gaits(out: pathlib.Path, result) -> list[study_video.Gait]:
-    """Each group's :func:`best_gaits` as ``out/best_params/<group>.json``, what ``deploy --params`` and
-    ``walk --params`` replay as tuned and what the study films (``best_<group>.mp4``)."""
-    gaits = best_gaits(result)
-    for gait in gaits:
-        study_video.save_gait(out, gait, seed=int(result.labels[gait.instance]["seed"]), study=result.spec.name)
-    return gaits
-
-
-def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None = None) -> list:
-    """The per-step logs of ``gaits`` (one batch): a settling trial of the gaits' lengths, then ``steps`` ticks
-    (default: the steady phase's length, 3 s in the paper's trial)."""
-    config = protocol.TrialConfig(transition_steps=gaits[0].transition_steps, steady_steps=gaits[0].steady_steps)
-    if any((g.transition_steps, g.steady_steps) != (config.transition_steps, config.steady_steps) for g in gaits):
-        raise study_spec.StudyError("the gaits were found with different trial lengths; film them one at a time")
-    scenario = go1_model.make_scenarios(friction=[g.friction for g in gaits], slope_deg=[g.slope_deg for g in gaits],
-                                        payload_kg=[g.payload_kg for g in gaits], physics=[g.physics for g in gaits])
-    return rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config, backend,
-                    config.steady_steps if steps is None else steps)
 
 
 # ----------------------------------------------------------------------------------------------- reports
@@ -568,9 +402,18 @@ def report_hardware(result, backend: str) -> str:
     text = (f"The paper's hardware experiments predicted under the `{result.labels[0]['physics']}` profile; per phase: "
             f"mean [95 % CI] of its last {LAST_TRIALS} trials over {len(result.spec.seeds)} seeds; tracked: the first "
             f"trial with |v_x − v*| ≤ {TRACKING_TOLERANCE_MPS} m/s and no fall. Taped feet: floor μ "
-            f"{TAPED_FEET_FRICTION:g} (the paper gives none). The paper's figures are from one robot run each.\n\n"
+            f"{_taped_feet_friction(result)} (the paper gives none). The paper's figures are from one robot run "
+            "each.\n\n"
             + "\n".join(rows) + "\n")
     return text
+
+
+def _taped_feet_friction(result) -> str:
+    """The floor μ of the hardware study's taped-feet schedule (its study file's)."""
+    for lab, mu in zip(result.labels, result.conditions.friction[:, 0], strict=True):
+        if lab["schedule"].startswith("taped feet"):
+            return f"{mu:g}"
+    return "(no taped-feet schedule)"
 
 
 def _figure(name: str, group_key: str, changes_of=None, **kwargs):
@@ -638,154 +481,22 @@ def load_paper_marks(result) -> list[study_figures.PaperMark]:
             for start, stop in zip(starts[:-1], starts[1:], strict=True) if float(payload[start]) in PAPER_LOAD_TABLE]
 
 
-class Study(NamedTuple):
-    name: str
-    make_spec: Callable[..., StudySpec]
+class Report(NamedTuple):
+    """A hand-written report, which a study file names (``report = "<name>"``)."""
+
     report: Callable[..., str]  # (result, backend) → the table text; writes no file
     figures: Callable[..., str]  # (result, out, backend) → the study's figures; returns text the table gains
-    description: str
     # (result) → the paper's J values that summary.png marks; none where the paper gives no J for the result
     paper_marks: Callable[..., list] = lambda result: []
 
 
-STUDIES = {s.name: s for s in (
-    Study("controller_ablation", ablation_spec, report_ablation, figures_ablation,
-          "4 controllers × seeds × 40 trials, v* = 0.5 m/s", ablation_paper_marks),
-    Study("load_adaptation", load_spec, report_load,
-          _figure("load_adaptation.png", "schedule", lambda r: phase_starts(r.conditions.payload_kg[0])[1:],
-                  context_index=0),
-          "payload 0 → 7.5 → 15 kg with contextual BO", load_paper_marks),
-    Study("friction", friction_spec, report_friction, _figure("friction.png", "friction"),
-          "friction 0.3 / 0.6 / 0.9 learning curves"),
-    Study("multi_velocity", multi_velocity_spec, report_multi_velocity, figures_multi_velocity,
-          "0.8 → 0.3 → 0.6 m/s, with/without reuse"),
-    Study("slope_adaptation", slope_spec, report_slope,
-          _figure("slope_adaptation.png", "schedule", lambda r: _slope_phases(r)[1:], context_index=1),
-          "0° → 10° → 12.5°, then inference mode on 10°…17.5° and up the 10° → 17.5° ramp"),
-    Study("paper_hardware", hardware_spec, report_hardware, _figure("paper_hardware.png", "schedule"),
-          "the hardware experiments under go1: flat, taped feet, 0.6→0.3→0.5→0.6 m/s, 10°, 5/10/15 kg"),
-
-)}
-
-
-def make_spec(name: str, *, seeds=None, trials=None, quick=False, physics: str | None = None,
-              safe: bool = False, max_trials: int | None = None) -> StudySpec:
-    if name not in STUDIES:
-        raise study_spec.StudyError(f"unknown study {name!r}; available: {', '.join(STUDIES)}")
-    if seeds is not None and seeds < 1:
-        raise study_spec.StudyError(f"--seeds {seeds}: need at least 1")
-    if trials is not None and trials < limits.MIN_STUDY_TRIALS:
-        raise study_spec.StudyError(f"--trials {trials}: need at least {limits.MIN_STUDY_TRIALS} "
-                                    f"({limits.MIN_STUDY_TRIALS_REASON})")
-    spec = STUDIES[name].make_spec(seeds=seeds, trials=trials, quick=quick)
-    if physics is not None:
-        spec = dataclasses.replace(spec, physics=(physics,))
-    if safe:
-        spec = dataclasses.replace(spec, safe=True)
-    if max_trials is not None:
-        if max_trials < spec.num_trials:
-            raise study_spec.StudyError(f"--max-trials {max_trials}: need at least the run's {spec.num_trials} trials")
-        spec = dataclasses.replace(spec, max_trials=max_trials)
-    study_spec.validate(spec)
-    return spec
-
-
-def notify_stderr(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
-
-
-def write_outputs(result, out: pathlib.Path, backend: str, name: str | None = None, command: str | None = None,
-                  notify: Callable[[str], None] = notify_stderr) -> str:
-    """Every file of a finished study; returns the table text. The trial table, the metadata and each group's best
-    gait (``best_params/<group>.json``, :func:`save_best_gaits`) first (they cannot fail but for the disk), then
-    table.md, then the study's figures (the ablation's table then gains the attitude rows its figure walks), the
-    recording, and last the gaits' figures and videos (``best_<group>.mp4``,
-    :mod:`cpgjax.studies.video`), with a line to ``notify`` per video, or one saying why there is none.
-
-    Raises:
-      study_io.OutputError: a file could not be written; the message names it and what was kept.
-    """
-    out.mkdir(parents=True, exist_ok=True)
-    with study_io.writing(out, "trials.parquet"):
-        study_io.write_trials(result, out / "trials.parquet")
-    with study_io.writing(out, "metadata.json"):
-        study_io.write_metadata(result, out / "metadata.json", command=command)
-    with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
-        gaits = save_best_gaits(out, result)
-    study = STUDIES[name or result.spec.name]
-    report = study.report(result, backend)
-    tail = f"{safety_summary(result)}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
-    with study_io.writing(out, "table.md"):
-        text = f"# {result.spec.name}\n\n{report}{tail}"
-        (out / "table.md").write_text(text)
-    with study_io.writing(out, "the study's figures"):
-        extra = study.figures(result, out, backend)
-        study_figures.optimization_progress(out / "optimization_progress.png", result, [
-            group_name(lab, result.spec.group_by) for lab in result.labels])
-    if extra:
-        with study_io.writing(out, "table.md"):
-            text = f"# {result.spec.name}\n\n{report}{extra}{tail}"
-            (out / "table.md").write_text(text)
-    logs = gait_rollouts(gaits, backend)
-    with study_io.writing(out, "recording.rrd"):
-        study_io.write_recording(result, out / "recording.rrd", [
-            study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction,
-                                g.slope_deg, g.payload_kg) for g, log in zip(gaits, logs, strict=True)])
-    with study_io.writing(out, "the best gaits' figures and videos"):
-        study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
-        filmed = study_video.write_videos(out, gaits, logs, notify)
-        # filmed: the videos written, for a prefix of the gaits (none where no OpenGL backend works)
-        strips = {g.group: list(info["strip"]) for g, info in zip(gaits, filmed, strict=False)}
-        study_figures.summary(out / "summary.png", result, text, gaits, strips,
-                              study.paper_marks(result))
-    return text
-
-
-def output_folder(name: str, out=None) -> pathlib.Path:
-    """A study's output folder: ``out``, by default ``results/<name>``."""
-    return pathlib.Path(out or pathlib.Path("results") / name)
-
-
-def run_plan(spec, out_dir, backend: str, start: int) -> str:
-    """One line on what a study run would compute (``--dry-run``): instances, trials, env-steps, where it writes."""
-    batch = len(study_spec.instances(spec))
-    steps = spec.trial.transition_steps + spec.trial.steady_steps
-    remaining = batch * (spec.num_trials - start) * steps
-    axes = ", ".join(f"{len(getattr(spec, a))} {a}" for a in ("controllers", "seeds", "friction", "slope_deg",
-                                                               "payload_kg", "target_velocity_mps", "schedules",
-                                                               "data_reuse", "physics") if len(getattr(spec, a)) > 1)
-    where = f"resuming {out_dir} at trial {start}" if start else f"writing {out_dir}/"
-    return (f"{spec.name}: {batch} instances ({axes or 'one'}) × {spec.num_trials} trials of {steps * 0.001:g} s"
-            f"{', safe' if spec.safe else ''}: {remaining:,} env-steps ({remaining * 0.001 / 3600:.2f} robot-hours) "
-            f"on the {backend} backend, {where}")
-
-
-def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
-    return f"resuming {out} at trial {start} (trials are numbered from 0; {start} of {num_trials} are done)"
-
-
-def run(name: str, *, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
-        progress=None, physics: str | None = None, command: str | None = None,
-        notify: Callable[[str], None] | None = None, safe: bool = False, dry_run: bool = False,
-        max_trials: int | None = None) -> tuple[str, pathlib.Path]:
-    """Run (or resume) a study and write its outputs; returns (table text, output folder). ``physics``: the
-    profile every instance simulates (default: the study's own); ``safe``: safe optimization (docs/decisions.md §17);
-    ``max_trials``: the trials the run can later be extended to (``StudySpec.max_trials``).
-    The output folder is checked first
-    (:func:`study_io.open_run`: a non-empty one needs ``resume`` or ``overwrite``); ``notify`` gets the line that
-    says where a resume starts; ``command`` goes into ``metadata.json``. ``dry_run``: every check, then the run's
-    plan (:func:`run_plan`) as the text, nothing computed or written."""
-    spec = make_spec(name, seeds=seeds, trials=trials, quick=quick, physics=physics, safe=safe,
-                     max_trials=max_trials)
-    out = output_folder(name, out)
-    backend_name = backends.resolve_backend(backend)
-    start = study_io.open_run(out, spec, backend_name, resume=resume, overwrite=overwrite, dry_run=dry_run)
-    if dry_run:
-        return run_plan(spec, out, backend_name, start), out
-    if start and notify is not None and jax.process_index() == 0:
-        notify(resume_notice(out, start, spec.num_trials))
-    engine = ablation.Engine(spec, backend=backend)
-    result = engine.run(out, resume=resume, progress=progress)
-    if jax.process_index() > 0:  # one process writes the study's files (docs/scaling.md)
-        return f"process {jax.process_index()}: instances {result.rows[0]}–{result.rows[1] - 1} done", out
-    return write_outputs(result, out, engine.backend_name, name, command, notify or notify_stderr), out
+REPORTS = {
+    "controller_ablation": Report(report_ablation, figures_ablation, ablation_paper_marks),
+    "load_adaptation": Report(report_load, _figure("load_adaptation.png", "schedule", lambda r: phase_starts(
+        r.conditions.payload_kg[0])[1:], context_index=0), load_paper_marks),
+    "friction": Report(report_friction, _figure("friction.png", "friction")),
+    "multi_velocity": Report(report_multi_velocity, figures_multi_velocity),
+    "slope_adaptation": Report(report_slope, _figure("slope_adaptation.png", "schedule",
+                                                     lambda r: _slope_phases(r)[1:], context_index=1)),
+    "paper_hardware": Report(report_hardware, _figure("paper_hardware.png", "schedule")),
+}

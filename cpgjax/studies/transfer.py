@@ -20,6 +20,8 @@ video (``best_<group>.mp4``).
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import pathlib
 from collections.abc import Callable
 from typing import NamedTuple
@@ -30,29 +32,23 @@ from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
+from cpgjax.studies import gaits as study_gaits
 from cpgjax.studies import registry, stats
 from cpgjax.studies import video as study_video
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
-from cpgjax.trial import limits
 
 NAME = "transfer"
-DESCRIPTION = "optimize under one physics profile, walk the best gaits under the others"
-TARGET_MPS = 0.5
-ARMS = (("paper", "paper", False), ("go1", "go1", False), ("paper_randomized", "paper", True))  # name, home, DR
-TRAINING_RANDOMIZATION = study_spec.Randomization(seed=0)
 EVALUATION_RANDOMIZATION = study_spec.Randomization(seed=1)
 EVALUATION_DRAWS = 8
 
 
-def specs(seeds=None, trials=None, quick=False, safe=False) -> list[study_spec.StudySpec]:
-    """One study spec per arm (``safe``: safe optimization in every arm)."""
-    n = trials or (12 if quick else 40)
-    seeds = registry.seed_range(seeds, quick)  # 20 seeds took 17 min on 2 vCPUs (docs/REPRODUCTION.md)
-    return [study_spec.StudySpec(f"transfer_{name}", num_trials=n, controllers=cpg.CONTROLLERS, seeds=seeds,
-                                 target_velocity_mps=(TARGET_MPS,), physics=(home,),
-                                 randomize=TRAINING_RANDOMIZATION if randomized else None, safe=safe)
-            for name, home, randomized in ARMS]
+def specs(study: study_spec.StudyFile) -> list[study_spec.StudySpec]:
+    """One study spec per arm of the study file ``study``: its study with the arm's name, physics profile and, for a
+    randomized arm, the file's [randomize] ranges."""
+    return [dataclasses.replace(study.spec, name=f"transfer_{arm.name}", physics=(arm.physics,),
+                                randomize=(study.spec.randomize or study_spec.Randomization()) if arm.randomized
+                                else None) for arm in study.arms]
 
 
 class Environments:
@@ -70,9 +66,10 @@ class Environments:
         self.noise_scale = [-1.0] * fixed + draws["noise_scale"][:, 0].tolist()
 
 
-def evaluate(params: np.ndarray, controllers: list[str], env: Environments, trial_config, backend: str):
-    """Every run's parameters (R, 8) in every environment (E), a settling trial then the measured one:
-    (J, v_x, CoT, fell), each (R, E)."""
+def evaluate(params: np.ndarray, controllers: list[str], env: Environments, trial_config, backend: str,
+             target_mps: float):
+    """Every run's parameters (R, 8) in every environment (E), a settling trial then the measured one, J for the
+    target ``target_mps``: (J, v_x, CoT, fell), each (R, E)."""
     runs, count = params.shape[0], len(env.names)
     scenario = go1_model.make_scenarios(
         friction=np.tile(env.friction, runs), payload_kg=np.tile(env.payload_kg, runs),
@@ -80,7 +77,7 @@ def evaluate(params: np.ndarray, controllers: list[str], env: Environments, tria
         latency_ticks=np.tile(env.latency_ticks, runs), noise_scale=np.tile(env.noise_scale, runs))
     repeated = [c for c in controllers for _ in range(count)]
     v, cot, j, fell = registry.evaluate(np.repeat(params, count, axis=0), repeated, scenario, trial_config, backend,
-                                        TARGET_MPS)
+                                        target_mps)
     return tuple(a.reshape(runs, count) for a in (j, v, cot, fell))
 
 
@@ -156,7 +153,7 @@ def _transfer(result, evaluation: tuple, controller: str, home: str) -> _Transfe
                      fell_away=np.delete(fell, home_col, axis=1).any(axis=1))
 
 
-def table(arm_results: dict, evaluations: dict) -> str:
+def table(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations: dict) -> str:
     """The transfer table: per controller and arm, at home and away (J, v_x, CoT, falls) and the drop of J, means
     with 95 % intervals over seeds where they are compared (``stats.mean_ci``)."""
     fixed = list(physics_profiles.PROFILES)
@@ -165,7 +162,7 @@ def table(arm_results: dict, evaluations: dict) -> str:
             "CoT home / randomized | falls away |")
     rows = [head, "|" + "---|" * (len(fixed) + 9)]
     for c in cpg.CONTROLLERS:
-        for arm, home, randomized in ARMS:
+        for arm, home, randomized in arms:
             result, (j, v, cot, fell) = arm_results[arm], evaluations[arm]
             m = _runs(result, c)
             home_col = fixed.index(home)
@@ -186,7 +183,7 @@ def _signed(interval: stats.Interval) -> str:
     return f"{interval.mean:+.3f} [{interval.low:+.3f}, {interval.high:+.3f}]"
 
 
-def comparisons(arm_results: dict, evaluations: dict) -> str:
+def comparisons(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations: dict) -> str:
     """The table's differences tested over seeds (``stats.compare``: Welch's t and Mann–Whitney's U; the runs of
     two controllers or two arms are independent optimizations):
 
@@ -205,23 +202,25 @@ def comparisons(arm_results: dict, evaluations: dict) -> str:
                     f"{d.rank_p:.2g} | {d.n_a} / {d.n_b} |")
 
     per_arm = {arm: {c: _transfer(arm_results[arm], evaluations[arm], c, home) for c in cpg.CONTROLLERS}
-               for arm, home, _ in ARMS}
+               for arm, home, _ in arms}
     baseline = cpg.CONTROLLERS[0]
-    for arm, home, randomized in ARMS:
+    for arm, home, randomized in arms:
         label = _arm_label(home, randomized)
         for c in cpg.CONTROLLERS[1:]:
             a, b = per_arm[arm][c], per_arm[arm][baseline]
             row(f"{c} − {baseline}, optimized under {label}", "drop: worst fixed", a.drop_worst_fixed,
                 b.drop_worst_fixed)
             row(f"{c} − {baseline}, optimized under {label}", "drop: randomized", a.drop_randomized, b.drop_randomized)
-    (plain, _, _), (dr, _, _) = ARMS[0], ARMS[2]
-    for c in cpg.CONTROLLERS:
+    # a randomized arm against the arm at home under its profile without randomization
+    pairs = [(dr.name, plain.name, dr.physics) for dr in arms if dr.randomized for plain in arms
+             if not plain.randomized and plain.physics == dr.physics][:1]
+    for (dr, plain, home), c in itertools.product(pairs, cpg.CONTROLLERS):
         a, b = per_arm[dr][c], per_arm[plain][c]
-        row(f"{c}: paper + randomization − paper", "J at home", a.home, b.home)
-        row(f"{c}: paper + randomization − paper", "drop: randomized", a.drop_randomized, b.drop_randomized)
+        row(f"{c}: {home} + randomization − {home}", "J at home", a.home, b.home)
+        row(f"{c}: {home} + randomization − {home}", "drop: randomized", a.drop_randomized, b.drop_randomized)
     falls = ["| optimized under | controller | seeds whose gait fell away | open loop's | Fisher p |",
              "|---|---|---|---|---|"]
-    for arm, home, randomized in ARMS:
+    for arm, home, randomized in arms:
         label = _arm_label(home, randomized)
         b = per_arm[arm][baseline].fell_away
         for c in cpg.CONTROLLERS[1:]:
@@ -231,24 +230,14 @@ def comparisons(arm_results: dict, evaluations: dict) -> str:
     return "\n".join(rows) + "\n\n" + "\n".join(falls) + "\n"
 
 
-def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwrite=False, backend="auto",
-        progress=None, physics=None, command: str | None = None,
-        notify: Callable[[str], None] | None = None, safe: bool = False, dry_run: bool = False,
-        max_trials: int | None = None) -> tuple[str, pathlib.Path]:
-    """Every arm (its own engine run and folder), then the evaluations and the table; returns (text, folder).
-    Output folders, ``resume``, ``overwrite``, ``command``, ``notify`` and ``dry_run`` (each arm's plan) as in
-    :func:`registry.run`; a resume continues the arms that have a checkpoint and starts the others."""
-    if physics is not None:
-        raise study_spec.StudyError("the transfer study sets each arm's physics itself; drop --physics")
-    if max_trials is not None:
-        raise study_spec.StudyError(f"{NAME}: --max-trials {max_trials}: its arms are not extended; drop it")
-    if seeds is not None and seeds < 1:
-        raise study_spec.StudyError(f"{NAME}: --seeds {seeds}: need at least 1")
-    if trials is not None and trials < limits.MIN_STUDY_TRIALS:
-        raise study_spec.StudyError(f"{NAME}: --trials {trials}: need at least {limits.MIN_STUDY_TRIALS} "
-                                    f"({limits.MIN_STUDY_TRIALS_REASON})")
-    out = registry.output_folder(NAME, out)
-    arm_specs = specs(seeds, trials, quick, safe)
+def run(study: study_spec.StudyFile, *, out=None, resume=False, overwrite=False, backend="auto", progress=None,
+        command: str | None = None, notify: Callable[[str], None], dry_run: bool = False) -> tuple[str, pathlib.Path]:
+    """Every arm of the study file ``study`` (its own engine run and folder), then the evaluations and the table;
+    returns (text, folder). Output folders, ``resume``, ``overwrite``, ``command``, ``notify`` and ``dry_run`` (each
+    arm's plan) as in ``cpgjax.studies.driver.run_spec``; a resume continues the arms that have a checkpoint and
+    starts the others."""
+    out = study_io.output_folder(study.spec.name, out)
+    arm_specs = specs(study)
     for spec in arm_specs:
         study_spec.validate(spec)
     resumed = {}
@@ -262,44 +251,46 @@ def run(*, seeds=None, trials=None, quick=False, out=None, resume=False, overwri
         start = study_io.open_run(out / spec.name, spec, backend_name, resume=spec.name in resumed,
                                   overwrite=overwrite, dry_run=dry_run)
         if dry_run:
-            plans.append(registry.run_plan(spec, out / spec.name, backend_name, start))
-        elif start and notify is not None:
-            notify(registry.resume_notice(out / spec.name, start, spec.num_trials))
+            plans.append(study_io.run_plan(spec, out / spec.name, backend_name, start))
+        elif start:
+            notify(study_io.resume_notice(out / spec.name, start, spec.num_trials))
     if dry_run:
         return "\n".join(plans) + "\nthen each arm's best gaits walked in every evaluation environment", out
+    target = study.spec.target_velocity_mps[0]
     arm_results, evaluations, gaits, wall = {}, {}, {}, 0.0
-    for (arm, home, _), spec in zip(ARMS, arm_specs, strict=True):
+    for (arm, home, _), spec in zip(study.arms, arm_specs, strict=True):
         engine = ablation.Engine(spec, backend=backend)
         result = engine.run(out / spec.name, resume=spec.name in resumed, progress=progress)
         with study_io.writing(out / spec.name, "trials.parquet, metadata.json and best_params/"):
             study_io.write_trials(result, out / spec.name / "trials.parquet")
-            study_io.write_metadata(result, out / spec.name / "metadata.json", command=command)
-            gaits[arm] = registry.save_best_gaits(out / spec.name, result)
+            study_io.write_metadata(result, out / spec.name / "metadata.json", study.metadata(), command=command)
+            gaits[arm] = study_gaits.save_best_gaits(out / spec.name, result)
         arm_results[arm] = result
         env = Environments(home)
         evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels], env, spec.trial,
-                                    engine.backend_name)
+                                    engine.backend_name, target)
         with study_io.writing(out / spec.name, "evaluations.parquet"):
             write_evaluations(out / spec.name / "evaluations.parquet", result, env, evaluations[arm])
         wall += result.wall_s
-    env, fixed = Environments("paper"), len(physics_profiles.PROFILES)
+    env, fixed = Environments(study.arms[0].physics), len(physics_profiles.PROFILES)
     draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}" for f, p, s, lat, z in zip(
         env.friction[fixed:], env.payload_kg[fixed:], env.mass_scale[fixed:], env.latency_ticks[fixed:],
         env.noise_scale[fixed:], strict=True))
     n, runs = arm_specs[0].num_trials, len(arm_specs[0].seeds)
     text = (f"# transfer\n\nEach controller optimized online for {n} trials ({runs} seeds) under one physics profile "
-            f"(or under randomized paper physics), then its best parameters walked — one settling trial, one measured "
-            f"trial, v* = {TARGET_MPS} m/s — under every fixed profile (flat, μ 0.6) and under {EVALUATION_DRAWS} "
+            f"(or under randomized physics), then its best parameters walked — one settling trial, one measured "
+            f"trial, v* = {target:g} m/s — under every fixed profile (flat, μ 0.6) and under {EVALUATION_DRAWS} "
             f"randomized physics ({draws}, on the arm's home profile). J at home, J randomized and the drops: mean "
             f"[95 % interval] over seeds; the profiles' J: means; drop: J away − J at home (the worst other fixed "
-            f"profile by its mean; the mean over the randomized draws).\n\n" + table(arm_results, evaluations)
-            + (f"\n## Differences, tested over {runs} seeds\n\n" + comparisons(arm_results, evaluations)
+            f"profile by its mean; the mean over the randomized draws).\n\n"
+            + table(study.arms, arm_results, evaluations)
+            + (f"\n## Differences, tested over {runs} seeds\n\n" + comparisons(study.arms, arm_results, evaluations)
                if runs >= 2 else "\nOne seed: no differences are tested.\n")
             + f"\nOptimization wall time {wall:.0f} s (all arms).\n")
     out.mkdir(parents=True, exist_ok=True)
     (out / "table.md").write_text(text)
-    for (arm, _, _), spec in zip(ARMS, arm_specs, strict=True):  # after the table: filming never costs a result
+    for (arm, _, _), spec in zip(study.arms, arm_specs, strict=True):  # after the table: filming never costs a result
         with study_io.writing(out / spec.name, "the best gaits' videos"):
-            logs = registry.gait_rollouts(gaits[arm], engine.backend_name)
-            study_video.write_videos(out / spec.name, gaits[arm], logs, notify or registry.notify_stderr)
+            logs = study_gaits.gait_rollouts(gaits[arm], engine.backend_name)
+            study_video.write_videos(out / spec.name, gaits[arm], logs, notify)
     return text, out

@@ -44,7 +44,7 @@ class Gait(NamedTuple):
     file, which ``cpgjax deploy --params`` and ``cpgjax walk --params`` replay as tuned) and films it as
     ``best_<group>.mp4``."""
 
-    group: str  # the group's name in file names (``registry.group_name``)
+    group: str  # the group's name in file names (``cpgjax.studies.gaits.group_name``)
     params: np.ndarray  # (8,) physical units
     controller: str
     friction: float
@@ -57,6 +57,8 @@ class Gait(NamedTuple):
     objective: float | None = None  # J of the trial the parameters come from
     instance: int | None = None
     trial: int | None = None
+    phase: str | None = None  # the phase of the study the trial is from (``cpgjax.studies.gaits.phase_text``)
+    walked: bool | None = None  # false: no trial of its group walked (``cpgjax.studies.gaits``)
 
 
 # A gait file's fields besides what the parameters were tuned for (tuned.TUNED_FOR), required to film it again.

@@ -11,10 +11,10 @@
 * ``recording.rrd`` — rerun: optimization progress (J, velocity, CoT, context per trial and instance) and each
   group's best gait, full body (``cpgjax.study.scene``: every body and its geoms, the floor at the slope, contact
   forces as arrows, CPG phases and amplitudes).
-* ``best_params/<group>.json`` — per group of the study (``registry.group_name`` of its ``group_by`` labels, e.g.
-  ``tegotae``) the best gait of its final phase (``registry.best_gaits``): its parameters with what they were tuned
-  for (:mod:`cpgjax.trial.tuned`), which ``cpgjax deploy --params`` and ``cpgjax walk --params`` replay, and the
-  trial lengths the study films it with (``best_<group>.mp4``, :mod:`cpgjax.studies.video`).
+* ``best_params/<group>.json`` — per group of the study (``studies.gaits.group_name`` of its ``group_by`` labels,
+  e.g. ``tegotae``) its best gait, one that walked (``studies.gaits.best_gaits``): its parameters with what they
+  were tuned for (:mod:`cpgjax.trial.tuned`), which ``cpgjax deploy --params`` and ``cpgjax walk --params``
+  replay, and the trial lengths the study films it with (``best_<group>.mp4``, :mod:`cpgjax.studies.video`).
 * ``metadata.json`` — the command line, cpgjax's version and git commit, the optimizer's settings, versions,
   devices, backend, wall time, env-steps/s and real-time factor.
 
@@ -576,6 +576,31 @@ def writing(out_dir, what: str):
         kept = ", ".join(_entries(out)) if out.is_dir() else "nothing"
         raise OutputError(f"writing {what} in {out} failed ({type(err).__name__}: {err}); kept: {kept}. Every trial "
                           f"is in its checkpoint: the same command with --resume writes the outputs again") from err
+
+
+# --------------------------------------------------------------------------------------- a run's folder and plan
+
+def output_folder(name: str, out=None) -> pathlib.Path:
+    """A study's output folder: ``out``, by default ``results/<name>``."""
+    return pathlib.Path(out or pathlib.Path("results") / name)
+
+
+def run_plan(spec, out_dir, backend: str, start: int) -> str:
+    """One line on what a study run would compute (``--dry-run``): instances, trials, env-steps, where it writes."""
+    batch = len(study_spec.instances(spec))
+    steps = spec.trial.transition_steps + spec.trial.steady_steps
+    remaining = batch * (spec.num_trials - start) * steps
+    axes = ", ".join(f"{len(getattr(spec, a))} {a}" for a in ("controllers", "seeds", "friction", "slope_deg",
+                                                               "payload_kg", "target_velocity_mps", "schedules",
+                                                               "data_reuse", "physics") if len(getattr(spec, a)) > 1)
+    where = f"resuming {out_dir} at trial {start}" if start else f"writing {out_dir}/"
+    return (f"{spec.name}: {batch} instances ({axes or 'one'}) × {spec.num_trials} trials of {steps * 0.001:g} s"
+            f"{', safe' if spec.safe else ''}: {remaining:,} env-steps ({remaining * 0.001 / 3600:.2f} robot-hours) "
+            f"on the {backend} backend, {where}")
+
+
+def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
+    return f"resuming {out} at trial {start} (trials are numbered from 0; {start} of {num_trials} are done)"
 
 
 # ----------------------------------------------------------------------------------------------- metadata

@@ -9,7 +9,11 @@ that runs a study is :mod:`cpgjax.ablation`.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import itertools
+import pathlib
+import re
+import tomllib
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -67,10 +71,17 @@ class Ramp(NamedTuple):
 
 
 class Schedule(NamedTuple):
-    """A named sequence of condition changes, one grid axis of a study."""
+    """A named sequence of condition changes, one grid axis of a study. ``label`` is the schedule's value in the
+    trial table and the reports; ``name``, a word, names its group in file names (``best_<name>.mp4``; empty: the
+    label stands there)."""
 
     label: str
     changes: tuple[Change, ...] = ()
+    name: str = ""
+
+    def __repr__(self) -> str:  # without a name, the repr of a schedule before names existed (study.files.fingerprint)
+        name = f", name={self.name!r}" if self.name else ""
+        return f"Schedule(label={self.label!r}, changes={self.changes!r}{name})"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -262,3 +273,494 @@ def validate(spec: StudySpec) -> Conditions:
     except ValueError as err:
         fail(f"trial {t}: {err}")
     return cond
+
+
+# ----------------------------------------------------------------------------------------------- study files
+#
+# A study file (TOML, docs/studies.md) states a StudySpec and what its report needs beyond it. Every key is read by
+# one function below, which names the file and the key's path (``grid.friction[2]``) in its refusal; the defaults
+# are StudySpec's own.
+
+GRID_AXES = {  # a study file's [grid] key → (StudySpec field, element kind, allowed values)
+    "controllers": ("controllers", "str", cpg.CONTROLLERS),
+    "friction": ("friction", "float", limits.FRICTION),
+    "slope_deg": ("slope_deg", "float", limits.SLOPE_DEG),
+    "payload_kg": ("payload_kg", "float", limits.PAYLOAD_KG),
+    "target_velocity_mps": ("target_velocity_mps", "float", limits.TARGET_VELOCITY_MPS),
+    "physics": ("physics", "str", tuple(physics_profiles.PROFILES)),
+    "data_reuse": ("data_reuse", "bool", (True, False)),
+}
+SCHEDULE_RANGES = {"friction": limits.FRICTION, "slope_deg": limits.SLOPE_DEG, "payload_kg": limits.PAYLOAD_KG,
+                   "target_velocity_mps": limits.TARGET_VELOCITY_MPS}  # inference and ramp: true or false
+TOP_KEYS = ("name", "description", "report", "trials", "max_trials", "seeds", "group_by", "safe", "comparisons",
+            "grid", "schedules", "ramp", "randomize", "trial", "quick", "paper", "transfer")
+QUICK_KEYS = ("trials", "seeds", "max_trials", "schedules")
+STUDY_FILE_SUFFIX = ".toml"
+TICK_S = 0.001  # a trial's timing in a file is in seconds, run in 1 kHz control ticks (cpg.CPGConfig.dt_s)
+WORD = r"[A-Za-z0-9._-]+"  # a schedule's name: it becomes part of file names
+
+
+class Contrast(NamedTuple):
+    """A comparison a study's report makes: the groups whose ``axis`` label is ``a`` against those where it is
+    ``b``, in each combination of the other ``group_by`` labels."""
+
+    axis: str
+    a: Any
+    b: Any
+
+
+class Arm(NamedTuple):
+    """One arm of a study whose report runs several engine runs (the transfer study): its own folder ``name``, its
+    physics profile, and whether its trials draw their physics (the file's ``[randomize]`` ranges)."""
+
+    name: str
+    physics: str
+    randomized: bool
+
+
+class StudyFile(NamedTuple):
+    """A study file, read: the study it defines and what the file says beyond it."""
+
+    spec: StudySpec
+    path: Any  # pathlib.Path of the file
+    text: str  # the file as written
+    description: str
+    report: str  # the name of a hand-written report (cpgjax.studies.registry.REPORTS); "" for the generic one
+    contrasts: tuple[Contrast, ...]  # the comparisons to report; () for every pair of groups differing in one label
+    paper: dict  # the paper's reference figures ([paper]), for the report to set beside ours
+    arms: tuple[Arm, ...]  # [transfer] arms; () for a study of one engine run
+
+    def metadata(self) -> dict:
+        """What a run's ``metadata.json`` records of its study file: the path and the text as it was run."""
+        return {"study_file": str(self.path), "study_file_text": self.text}
+
+
+def scaled_trial(trial: int, written: int, run: int) -> int:
+    """A schedule's change trial, written for a run of ``written`` trials, in a run of ``run`` trials."""
+    return int(round(trial * run / written))
+
+
+class _Reader:
+    """Reads one study file's values, each by its key path, refusing the first bad one with the file and path."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def fail(self, key: str, message: str):
+        raise StudyError(f"{self.path}: {key}: {message}")
+
+    def table(self, value, key: str, allowed: tuple[str, ...], required: tuple[str, ...] = ()) -> dict:
+        if not isinstance(value, dict):
+            self.fail(key, f"need a table, got {_kind(value)}")
+        for k in value:
+            if k not in allowed:
+                close = difflib.get_close_matches(k, allowed, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                where = f"{key}.{k}" if key else k
+                raise StudyError(f"{self.path}: unknown key {where!r}{hint}; allowed{' in ' + key if key else ''}: "
+                                 f"{', '.join(allowed)}")
+        for k in required:
+            if k not in value:
+                self.fail(f"{key}.{k}" if key else k, "missing (required)")
+        return value
+
+    def integer(self, value, key: str, low: int = 0, high: int | None = None, reason: str = "") -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            self.fail(key, f"need an integer, got {_kind(value)} {value!r}")
+        if value < low or (high is not None and value > high):
+            bounds = f"in [{low}, {high}]" if high is not None else f">= {low}"
+            self.fail(key, f"{value} is outside the allowed range: need an integer {bounds}"
+                           + (f" ({reason})" if reason else ""))
+        return value
+
+    def number(self, value, key: str, allowed: limits.Range | None = None) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            self.fail(key, f"need a number, got {_kind(value)} {value!r}")
+        if allowed is not None:
+            try:
+                allowed.check(value, key)
+            except ValueError as err:
+                raise StudyError(f"{self.path}: {err}") from None
+        elif not np.isfinite(value):
+            self.fail(key, f"{value!r}: need a finite number")
+        return float(value)
+
+    def boolean(self, value, key: str) -> bool:
+        if not isinstance(value, bool):
+            self.fail(key, f"need true or false, got {_kind(value)} {value!r}")
+        return value
+
+    def string(self, value, key: str, allowed: tuple[str, ...] | None = None, pattern: str | None = None) -> str:
+        if not isinstance(value, str):
+            self.fail(key, f"need a string, got {_kind(value)} {value!r}")
+        if allowed is not None and value not in allowed:
+            self.fail(key, f"{value!r} is not allowed; allowed: {', '.join(map(str, allowed))}")
+        if pattern is not None and not re.fullmatch(pattern, value):
+            self.fail(key, f"{value!r}: need a word of letters, digits, '.', '-' and '_' (it names files)")
+        return value
+
+    def array(self, value, key: str, allow_scalar: bool = False) -> list:
+        if allow_scalar and not isinstance(value, (list, dict)):
+            return [value]
+        if not isinstance(value, list):
+            self.fail(key, f"need a list, got {_kind(value)} {value!r}")
+        return value
+
+    def element(self, value, key: str, kind: str, allowed):
+        if kind == "float":
+            return self.number(value, key, allowed)
+        if kind == "bool":
+            return self.boolean(value, key)
+        return self.string(value, key, allowed)
+
+    def axis(self, value, key: str, kind: str, allowed) -> tuple:
+        values = [self.element(v, f"{key}[{i}]", kind, allowed) for i, v in enumerate(self.array(value, key, True))]
+        if not values:
+            self.fail(key, "empty; an axis needs at least one value")
+        for i, v in enumerate(values):
+            if v in values[:i]:
+                self.fail(f"{key}[{i}]", f"{v!r} is already in the axis at [{values.index(v)}]")
+        return tuple(values)
+
+    def seeds(self, value, key: str) -> tuple[int, ...]:
+        if isinstance(value, list):
+            seeds = tuple(self.integer(v, f"{key}[{i}]", 0) for i, v in enumerate(value))
+            if not seeds:
+                self.fail(key, "empty; need at least one seed")
+            if len(set(seeds)) != len(seeds):
+                self.fail(key, f"duplicate seeds in {list(seeds)}")
+            return seeds
+        return tuple(range(self.integer(value, key, 1, limits.MAX_SEEDS, limits.MAX_SEEDS_REASON)))
+
+    def fields(self, entry: dict, key: str) -> list[tuple[str, float]]:
+        """A change's or phase's condition values, in the file's order: (field, value) with inference and ramp as
+        1.0 / 0.0."""
+        out = []
+        for field, value in entry.items():
+            if field in SCHEDULE_RANGES:
+                out.append((field, self.number(value, f"{key}.{field}", SCHEDULE_RANGES[field])))
+            elif field in ("inference", "ramp"):
+                out.append((field, 1.0 if self.boolean(value, f"{key}.{field}") else 0.0))
+        return out
+
+    def schedule(self, value, key: str, written: int, run: int) -> Schedule:
+        """One [[schedules]] entry, its change trials scaled from a run of ``written`` trials to one of ``run``."""
+        entry = self.table(value, key, ("name", "label", "changes", "phases"), ("name",))
+        name = self.string(entry["name"], f"{key}.name", pattern=WORD)
+        label = self.string(entry.get("label", name), f"{key}.label")
+        if ("changes" in entry) == ("phases" in entry):
+            self.fail(key, "give either changes (by trial number) or phases (named stretches of given lengths)")
+        changes = []
+        if "changes" in entry:
+            for i, change in enumerate(self.array(entry["changes"], f"{key}.changes")):
+                where = f"{key}.changes[{i}]"
+                change = self.table(change, where, ("trial", *SCHEDULE_FIELDS), ("trial",))
+                trial = self.integer(change["trial"], f"{where}.trial", 0, written - 1,
+                                     f"the trials are numbered 0 … {written - 1}, trials = {written}")
+                values = self.fields(change, where)
+                if not values:
+                    self.fail(where, f"changes nothing; give one of {', '.join(SCHEDULE_FIELDS)}")
+                changes += [Change(scaled_trial(trial, written, run), f, v) for f, v in values]
+        else:
+            phases = self.array(entry["phases"], f"{key}.phases")
+            lengths, fixed, values = [], [], []
+            for i, phase in enumerate(phases):
+                where = f"{key}.phases[{i}]"
+                phase = self.table(phase, where, ("name", "trials", "fixed", *SCHEDULE_FIELDS), ("trials",))
+                if "name" in phase:
+                    self.string(phase["name"], f"{where}.name")
+                lengths.append(self.integer(phase["trials"], f"{where}.trials", 1, limits.MAX_TRIALS))
+                fixed.append(self.boolean(phase.get("fixed", False), f"{where}.fixed"))
+                values.append(self.fields(phase, where))
+            if not phases:
+                self.fail(f"{key}.phases", "empty; need at least one phase")
+            if sum(lengths) != written:
+                self.fail(f"{key}.phases", f"the phases' trials add up to {sum(lengths)}, the study has {written}")
+            for start, v in zip(_phase_starts(lengths, fixed, run, self, key), values, strict=True):
+                changes += [Change(start, f, x) for f, x in v]
+        return Schedule(label, tuple(changes), name)
+
+    def schedules(self, value, key: str, written: int, run: int) -> tuple[Schedule, ...]:
+        entries = self.array(value, key)
+        if not entries:
+            self.fail(key, "empty; leave the key out for one constant schedule")
+        out = tuple(self.schedule(e, f"{key}[{i}]", written, run) for i, e in enumerate(entries))
+        for i, s in enumerate(out):
+            for j, other in enumerate(out[:i]):
+                if s.name == other.name or s.label == other.label:
+                    self.fail(f"{key}[{i}]", f"name or label the same as {key}[{j}]'s; each schedule is a group")
+        return out
+
+
+def _phase_starts(lengths: list[int], fixed: list[bool], run: int, reader: _Reader, key: str) -> list[int]:
+    """The first trial of each phase in a run of ``run`` trials: fixed phases keep their lengths, the others share
+    the rest in proportion to theirs (``scaled_trial`` of their running total)."""
+    fixed_total = sum(n for n, f in zip(lengths, fixed, strict=True) if f)
+    scaled_total, left = sum(lengths) - fixed_total, run - fixed_total
+    if (scaled_total == 0 and left != 0) or (scaled_total > 0 and left < sum(not f for f in fixed)):
+        reader.fail(f"{key}.phases", f"a run of {run} trials: the fixed phases hold {fixed_total} trials and each "
+                                     f"other phase needs at least one")
+    starts, fixed_before, scaled_before = [], 0, 0
+    for n, f in zip(lengths, fixed, strict=True):
+        starts.append(fixed_before + (scaled_trial(scaled_before, scaled_total, left) if scaled_total else 0))
+        fixed_before, scaled_before = fixed_before + (n if f else 0), scaled_before + (0 if f else n)
+    for i in range(1, len(starts)):
+        if starts[i] <= starts[i - 1]:
+            reader.fail(f"{key}.phases[{i - 1}]", f"empty in a run of {run} trials")
+    return starts
+
+
+def _kind(value) -> str:
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "a list",
+            dict: "a table"}.get(type(value), type(value).__name__)
+
+
+def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | None = None,
+         physics: str | None = None, safe: bool = False, max_trials: int | None = None) -> StudyFile:
+    """Read and check the study file ``path`` with the command line's overrides (each as ``cpgjax study``'s
+    option: ``quick`` the file's [quick] values, ``seeds`` seeds 0 … n − 1, ``trials`` the run's length with every
+    change trial scaled to it, ``physics`` one profile for every instance, ``safe``, ``max_trials``).
+
+    Raises:
+      StudyError: the message names the file, the key's path and what is allowed; before any compute.
+    """
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise StudyError(f"{path}: cannot read the study file ({err})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise StudyError(f"{path}: not valid TOML ({err})") from None
+    r = _Reader(path)
+    r.table(data, "", TOP_KEYS, ("name",))
+    quick_table = r.table(data["quick"], "quick", QUICK_KEYS) if "quick" in data else {}
+    level = {**data, **quick_table} if quick else data
+
+    def at(key: str) -> str:  # a key's path where this run reads it
+        return f"quick.{key}" if quick and key in quick_table else key
+
+    name = r.string(data["name"], "name", pattern=WORD)
+    default = StudySpec(name)
+    length = {k: r.integer(t.get("trials", default.num_trials), f"{k}trials", 1, limits.MAX_TRIALS,
+                           limits.MAX_TRIALS_REASON) for k, t in (("", data), ("quick.", quick_table))}
+    run = length["quick." if quick and "trials" in quick_table else ""] if trials is None else trials
+    # a schedule's trial numbers are those of a run of the trials beside it
+    written = length["quick." if quick and {"schedules", "trials"} <= set(quick_table) else ""]
+    fields: dict[str, Any] = {"num_trials": run}
+    grid = r.table(data.get("grid", {}), "grid", tuple(GRID_AXES))
+    for key, (field, kind, allowed) in GRID_AXES.items():
+        if key in grid:
+            fields[field] = r.axis(grid[key], f"grid.{key}", kind, allowed)
+    if seeds is not None:
+        fields["seeds"] = tuple(range(seeds))
+    elif "seeds" in level:
+        fields["seeds"] = r.seeds(level["seeds"], at("seeds"))
+    if "schedules" in level:
+        fields["schedules"] = r.schedules(level["schedules"], at("schedules"), written, run)
+    if "max_trials" in level:
+        fields["max_trials"] = r.integer(level["max_trials"], at("max_trials"), 1, limits.MAX_TRIALS,
+                                         limits.MAX_TRIALS_REASON)
+    if max_trials is not None:
+        if max_trials < run:
+            raise StudyError(f"--max-trials {max_trials}: need at least the run's {run} trials")
+        fields["max_trials"] = max_trials
+    if "group_by" in data:
+        fields["group_by"] = tuple(r.string(g, f"group_by[{i}]", LABELS)
+                                   for i, g in enumerate(r.array(data["group_by"], "group_by", True)))
+        if not fields["group_by"]:
+            r.fail("group_by", f"empty; name one or more of {', '.join(LABELS)}")
+    fields["safe"] = safe or r.boolean(data.get("safe", False), "safe")
+    if "ramp" in data:
+        ramp = r.table(data["ramp"], "ramp", Ramp._fields, Ramp._fields)
+        fields["ramp"] = Ramp(r.number(ramp["start_deg"], "ramp.start_deg", limits.SLOPE_DEG),
+                              r.number(ramp["end_deg"], "ramp.end_deg", limits.SLOPE_DEG),
+                              r.number(ramp["length_m"], "ramp.length_m", _RAMP_LENGTH_M))
+    if "randomize" in data:
+        fields["randomize"] = _randomization(r, data["randomize"])
+    if "trial" in data:
+        timing = r.table(data["trial"], "trial", ("transition_s", "steady_s"))
+        base = default.trial
+        fields["trial"] = base._replace(**{
+            f"{k}_steps": int(round(r.number(timing[f"{k}_s"], f"trial.{k}_s", allowed) / TICK_S))
+            for k, allowed in (("transition", limits.TRANSITION_S), ("steady", limits.STEADY_S)) if f"{k}_s" in timing})
+    if physics is not None:
+        fields["physics"] = (physics,)
+    spec = StudySpec(name, **fields)
+    contrasts = _contrasts(r, data.get("comparisons", []), spec)
+    arms = ()
+    if "transfer" in data:
+        transfer = r.table(data["transfer"], "transfer", ("arms",), ("arms",))
+        arms = tuple(_arm(r, a, f"transfer.arms[{i}]") for i, a in enumerate(r.array(transfer["arms"],
+                                                                                      "transfer.arms")))
+        if not arms:
+            r.fail("transfer.arms", "empty; need at least one arm")
+    paper = r.table(data.get("paper", {}), "paper", tuple(data.get("paper", {})))
+    try:
+        validate(spec)
+    except StudyError as err:
+        raise StudyError(f"{path}: {err}") from None
+    return StudyFile(spec, path, text, r.string(data.get("description", ""), "description"),
+                     r.string(data.get("report", ""), "report"), contrasts, paper, arms)
+
+
+def load(path, **overrides) -> StudySpec:
+    """The study the file ``path`` defines (:func:`read`, with the same overrides)."""
+    return read(path, **overrides).spec
+
+
+_RAMP_LENGTH_M = limits.Range(0.0, 1000.0, "the ramp's length of climb", low_open=True)
+
+
+def _randomization(r: _Reader, value) -> Randomization:
+    table = r.table(value, "randomize", Randomization._fields)
+    out = {}
+    for field in ("friction", "payload_kg", "mass_scale", "noise_scale", "latency_ticks"):
+        if field not in table:
+            continue
+        key = f"randomize.{field}"
+        pair = r.array(table[field], key)
+        if len(pair) != 2:
+            r.fail(key, f"need [low, high], got {pair!r}")
+        if field == "latency_ticks":
+            low, high = (r.integer(v, f"{key}[{i}]", 0, 100, "ticks of 1 ms") for i, v in enumerate(pair))
+        else:
+            allowed = {"friction": limits.FRICTION, "payload_kg": limits.PAYLOAD_KG}.get(field, _SCALE)
+            low, high = (r.number(v, f"{key}[{i}]", allowed) for i, v in enumerate(pair))
+        if low > high:
+            r.fail(key, f"[{low}, {high}]: need low <= high")
+        out[field] = (low, high)
+    if "seed" in table:
+        out["seed"] = r.integer(table["seed"], "randomize.seed", 0)
+    return Randomization(**out)
+
+
+_SCALE = limits.Range(0.0, 10.0, "a multiple of the model's own value")
+
+
+def _contrasts(r: _Reader, value, spec: StudySpec) -> tuple[Contrast, ...]:
+    values_of = dict(zip(LABELS, (spec.controllers, spec.seeds, spec.friction, spec.slope_deg, spec.payload_kg,
+                                  spec.target_velocity_mps, [s.label for s in spec.schedules], spec.data_reuse,
+                                  spec.physics), strict=True))
+    schedule_names = {s.name: s.label for s in spec.schedules if s.name}
+    out = []
+    for i, entry in enumerate(r.array(value, "comparisons")):
+        key = f"comparisons[{i}]"
+        entry = r.table(entry, key, Contrast._fields, Contrast._fields)
+        axis = r.string(entry["axis"], f"{key}.axis", spec.group_by)
+        allowed = tuple(values_of[axis])
+        pair = []
+        for side in ("a", "b"):
+            v = schedule_names.get(entry[side], entry[side]) if axis == "schedule" else entry[side]
+            match = [x for x in allowed if x == v and type(x) is not bool or x is v]
+            if not match:
+                r.fail(f"{key}.{side}", f"{v!r} is not a value of the study's {axis} axis; allowed: "
+                                        f"{', '.join(map(str, allowed))}")
+            pair.append(match[0])
+        if pair[0] == pair[1]:
+            r.fail(key, "a and b are the same group")
+        out.append(Contrast(axis, *pair))
+    return tuple(out)
+
+
+def _arm(r: _Reader, value, key: str) -> Arm:
+    arm = r.table(value, key, ("name", "physics", "randomize"), ("name", "physics"))
+    return Arm(r.string(arm["name"], f"{key}.name", pattern=WORD),
+               r.string(arm["physics"], f"{key}.physics", tuple(physics_profiles.PROFILES)),
+               r.boolean(arm.get("randomize", False), f"{key}.randomize"))
+
+
+def template() -> str:
+    """A study file of every key with its default, unit and allowed range, as comments beside the values a new
+    study starts from (``cpgjax study --template PATH``); it runs as written."""
+    d, r = StudySpec("my_study"), Randomization()
+    grid = "\n".join(f"# {key}: {kind}s in {_allowed_text(allowed)}; default {list(getattr(d, field))}\n"
+                     f"{key} = {_toml(list(getattr(d, field)))}" for key, (field, kind, allowed) in GRID_AXES.items())
+    fields = ", ".join(SCHEDULE_RANGES)
+    ranges = "; ".join(f"{k} in {v}" for k, v in SCHEDULE_RANGES.items())
+    timing = f"{d.trial.transition_steps * TICK_S:g} s of transition, {d.trial.steady_steps * TICK_S:g} s measured"
+    return f'''# A cpgjax study file (docs/studies.md): `cpgjax study THIS_FILE.toml`. Every key but `name` may be left
+# out; each comment gives the key's default, unit and allowed range. An instance is one element of the product of the
+# [grid] axes × the seeds × the schedules; each instance optimizes its gait online, trial by trial.
+
+name = "my_study"  # a word (letters, digits, . - _): the output folder results/<name>/ and the metadata
+description = ""  # one line on what the study asks
+trials = {d.num_trials}  # trials per run (each {timing}); in [1, {limits.MAX_TRIALS}]
+seeds = 5  # seeds 0 … N-1 per group, or a list such as [0, 3, 7]; default {list(d.seeds)}; at most {limits.MAX_SEEDS}
+# max_trials = 80  # the trials the run can later be extended to (--resume --trials N); default: trials
+group_by = {_toml(list(d.group_by))}  # labels whose combinations are the report's groups: {", ".join(LABELS)}
+safe = false  # safe optimization: proposals only where a second GP certifies the safety margin >= 0
+# report = ""  # a hand-written report of the paper's studies; left out: the generic report of any study
+
+# The comparisons the report makes (default: every pair of groups that differ in one label): the groups whose `axis`
+# label is `a` against those where it is `b`, in each combination of the other group_by labels.
+# comparisons = [{{ axis = "controller", a = "tegotae", b = "open_loop" }}]
+
+[grid]
+{grid}
+
+# Schedules of condition changes, one group each (a grid axis; default: one constant schedule). Each has a `name`
+# (a word: it names the group's files) and a `label` (the trial table's and the report's, default the name), and
+# either `changes` by trial number (numbered from 0) or `phases` of given lengths that add up to `trials`. A
+# change or phase sets any of {fields} ({ranges}), inference (true: β = 1e-6, no exploration) and ramp (true:
+# walk the [ramp]). A run of another length (--trials) scales the trial numbers; a phase with fixed = true keeps its
+# length and the others share the rest.
+#
+# [[schedules]]
+# name = "load"
+# label = "0→10 kg"
+# changes = [{{ trial = 20, payload_kg = 10.0 }}]
+#
+# [[schedules]]
+# name = "slope_then_inference"
+# phases = [
+#   {{ name = "learn flat", trials = 30 }},
+#   {{ name = "learn 10°", trials = 5, slope_deg = 10.0 }},
+#   {{ name = "inference 10°", trials = 5, fixed = true, inference = true }},
+# ]
+
+# The continuous ramp that trials with ramp = true walk: from start_deg to end_deg over length_m of climb.
+# [ramp]
+# start_deg = 10.0  # [deg], in {limits.SLOPE_DEG}
+# end_deg = 17.5  # [deg], in {limits.SLOPE_DEG}
+# length_m = 12.0  # [m], in {_RAMP_LENGTH_M}
+
+# Domain randomization: every trial draws its physics uniformly from [low, high] (the table's presence turns it on).
+# [randomize]
+# friction = {list(r.friction)}  # in {limits.FRICTION}
+# payload_kg = {list(r.payload_kg)}  # [kg], in {limits.PAYLOAD_KG}
+# mass_scale = {list(r.mass_scale)}  # the links' masses × this, in {_SCALE}
+# latency_ticks = {list(r.latency_ticks)}  # actuation latency [1 ms ticks], integers, both ends included
+# noise_scale = {list(r.noise_scale)}  # sensor noise × the robot's, in {_SCALE}
+# seed = {r.seed}  # the draws' seed
+
+# Trial timing (the paper's: 1.5 s of transition, 3 s measured).
+# [trial]
+# transition_s = {d.trial.transition_steps * TICK_S:g}  # [s], in {limits.TRANSITION_S}
+# steady_s = {d.trial.steady_steps * TICK_S:g}  # [s], in {limits.STEADY_S}
+
+# What --quick runs instead: trials, seeds, max_trials and schedules.
+[quick]
+trials = 12
+seeds = 2
+
+# The paper's figures to set beside ours, as the report lists them (any keys).
+# [paper]
+# J = "2.17 ± 0.07 (VMC+Tegotae, 5 seeds)"
+'''
+
+
+def _allowed_text(allowed) -> str:
+    return str(allowed) if isinstance(allowed, limits.Range) else ", ".join(map(_toml, allowed))
+
+
+def _toml(value) -> str:
+    """A value in TOML."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    return f"{value!r}"

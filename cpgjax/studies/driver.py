@@ -1,0 +1,187 @@
+"""Running a study: a study file (or a paper study by name) or a :class:`~cpgjax.study.spec.StudySpec`, into a folder
+of results (docs/studies.md, docs/outputs.md).
+
+:func:`run_spec` is the Python API: it runs a ``StudySpec`` with the lockstep engine (``cpgjax.ablation``), writes
+every output file and returns a :class:`StudyRun`. :func:`run_file` runs what a study file defines, with its report
+(a hand-written one of ``registry.REPORTS``, or the generic one, ``cpgjax.studies.generic``); ``cpgjax study`` calls
+it. :func:`find` turns a paper study's name or a file's path into the file.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+
+from cpgjax import ablation
+from cpgjax.sim import backends
+from cpgjax.studies import figures as study_figures
+from cpgjax.studies import gaits as study_gaits
+from cpgjax.studies import generic, registry, transfer
+from cpgjax.studies import video as study_video
+from cpgjax.study import files as study_io
+from cpgjax.study import scene as study_scene
+from cpgjax.study import spec as study_spec
+
+STUDY_FOLDER = pathlib.Path(__file__).resolve().parents[2] / "studies"  # the paper's studies, one file each
+
+
+class StudyRun(NamedTuple):
+    """What a study run left: its table text, its folder, and the engine's result (None after a dry run, and in
+    every process of a multi-process run but the first)."""
+
+    text: str
+    out: pathlib.Path
+    result: Any  # ablation.StudyResult (transfer: the arms' results by arm name)
+
+
+def paper_studies() -> list[str]:
+    """The names of the studies shipped in ``studies/`` (each ``<name>.toml``)."""
+    return sorted(p.stem for p in STUDY_FOLDER.glob(f"*{study_spec.STUDY_FILE_SUFFIX}"))
+
+
+def find(name_or_path) -> pathlib.Path:
+    """The study file of a paper study's name (``studies/<name>.toml``) or of a path.
+
+    Raises:
+      StudyError: no such file (the message lists the paper's studies).
+    """
+    text = str(name_or_path)
+    path = pathlib.Path(text)
+    if path.suffix == study_spec.STUDY_FILE_SUFFIX or "/" in text:
+        if not path.is_file():
+            raise study_spec.StudyError(f"study file {path} does not exist")
+        return path
+    if (STUDY_FOLDER / f"{text}{study_spec.STUDY_FILE_SUFFIX}").is_file():
+        return STUDY_FOLDER / f"{text}{study_spec.STUDY_FILE_SUFFIX}"
+    raise study_spec.StudyError(f"unknown study {text!r}: the paper's studies are {', '.join(paper_studies())}; or "
+                                f"give a study file (PATH{study_spec.STUDY_FILE_SUFFIX}, docs/studies.md)")
+
+
+def read(name_or_path, **overrides) -> study_spec.StudyFile:
+    """The study file of ``name_or_path`` (:func:`find`) read with ``cpgjax study``'s overrides
+    (:func:`cpgjax.study.spec.read`), and its report's name checked.
+
+    Raises:
+      StudyError: the file, the key and what is allowed.
+    """
+    study = study_spec.read(find(name_or_path), **overrides)
+    known = (*registry.REPORTS, transfer.NAME)
+    if study.report and study.report not in known:
+        raise study_spec.StudyError(f"{study.path}: report: {study.report!r} is not a report; allowed: "
+                                    f"{', '.join(known)}, or leave it out for the generic report")
+    if (study.report == transfer.NAME) != bool(study.arms):
+        raise study_spec.StudyError(f"{study.path}: a [transfer] table with its arms goes with report = "
+                                    f"{transfer.NAME!r}, and only with it")
+    return study
+
+
+def notify_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Report | None = None,
+                  command: str | None = None, notify: Callable[[str], None] = notify_stderr,
+                  metadata: dict | None = None) -> str:
+    """Every file of a finished study; returns the table text. The trial table, the metadata and each group's best
+    gait (``best_params/<group>.json``, ``gaits.save_best_gaits``; a line to ``notify`` for a group none of whose
+    trials walked) first (they cannot fail but for the disk), then table.md (``report``'s text; by default the
+    generic report's), then the study's figures (the ablation's table then gains the attitude rows its figure
+    walks), the recording, and last the gaits' figures and videos (``best_<group>.mp4``,
+    :mod:`cpgjax.studies.video`), with a line to ``notify`` per video, or one saying why there is none.
+
+    Raises:
+      study_io.OutputError: a file could not be written; the message names it and what was kept.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    with study_io.writing(out, "trials.parquet"):
+        study_io.write_trials(result, out / "trials.parquet")
+    with study_io.writing(out, "metadata.json"):
+        study_io.write_metadata(result, out / "metadata.json", metadata, command=command)
+    with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
+        gaits = study_gaits.save_best_gaits(out, result)
+    for gait in gaits:
+        if not gait.walked:
+            notify(f"best gait of {gait.group}: no trial of the group walked (every one fell or stood still); its "
+                   "file holds the best of its final phase")
+    study = report or generic.report_for()
+    report = study.report(result, backend)
+    tail = f"{registry.safety_summary(result)}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
+    with study_io.writing(out, "table.md"):
+        text = f"# {result.spec.name}\n\n{report}{tail}"
+        (out / "table.md").write_text(text)
+    with study_io.writing(out, "the study's figures"):
+        extra = study.figures(result, out, backend)
+        study_figures.optimization_progress(out / "optimization_progress.png", result, [
+            study_gaits.group_name(lab, result.spec) for lab in result.labels])
+    if extra:
+        with study_io.writing(out, "table.md"):
+            text = f"# {result.spec.name}\n\n{report}{extra}{tail}"
+            (out / "table.md").write_text(text)
+    logs = study_gaits.gait_rollouts(gaits, backend)
+    with study_io.writing(out, "recording.rrd"):
+        study_io.write_recording(result, out / "recording.rrd", [
+            study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction,
+                                g.slope_deg, g.payload_kg) for g, log in zip(gaits, logs, strict=True)])
+    with study_io.writing(out, "the best gaits' figures and videos"):
+        study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
+        filmed = study_video.write_videos(out, gaits, logs, notify)
+        # filmed: the videos written, for a prefix of the gaits (none where no OpenGL backend works)
+        strips = {g.group: list(info["strip"]) for g, info in zip(gaits, filmed, strict=False)}
+        study_figures.summary(out / "summary.png", result, text, gaits, strips,
+                              study.paper_marks(result))
+    return text
+
+
+def run_spec(spec: study_spec.StudySpec, out=None, *, report: registry.Report | None = None, backend: str = "auto",
+             resume: bool = False, overwrite: bool = False, progress=None, command: str | None = None,
+             notify: Callable[[str], None] | None = None, dry_run: bool = False,
+             metadata: dict | None = None) -> StudyRun:
+    """Run (or resume) the study ``spec`` into ``out`` (default ``results/<spec.name>``) and write its outputs.
+
+    Args:
+      report: the table's report (default: the generic one of ``cpgjax.studies.generic``).
+      backend: the simulation backend (``cpgjax.sim.backends``).
+      resume, overwrite: a non-empty ``out`` needs one of them (``cpgjax.study.files.open_run``).
+      progress: called after every trial (``cpgjax.ablation.Engine.run``).
+      command: the command line, recorded in ``metadata.json``.
+      notify: gets the line where a resume starts and one per video.
+      dry_run: every check, then the run's plan as the text; nothing computed or written.
+      metadata: more keys for ``metadata.json`` (a study file's path and text).
+
+    Raises:
+      StudyError: the study or the folder cannot run (before any compute).
+      OutputError: a file could not be written (the checkpoint keeps every trial).
+    """
+    study_spec.validate(spec)
+    out = study_io.output_folder(spec.name, out)
+    backend_name = backends.resolve_backend(backend)
+    start = study_io.open_run(out, spec, backend_name, resume=resume, overwrite=overwrite, dry_run=dry_run)
+    if dry_run:
+        return StudyRun(study_io.run_plan(spec, out, backend_name, start), out, None)
+    if start and notify is not None and jax.process_index() == 0:
+        notify(study_io.resume_notice(out, start, spec.num_trials))
+    engine = ablation.Engine(spec, backend=backend)
+    result = engine.run(out, resume=resume, progress=progress)
+    if jax.process_index() > 0:  # one process writes the study's files (docs/scaling.md)
+        return StudyRun(f"process {jax.process_index()}: instances {result.rows[0]}–{result.rows[1] - 1} done", out,
+                        None)
+    return StudyRun(write_outputs(result, out, engine.backend_name, report, command, notify or notify_stderr,
+                                  metadata), out, result)
+
+
+def report_of(study: study_spec.StudyFile) -> registry.Report:
+    """A study file's report: the hand-written one it names, or the generic one with its comparisons."""
+    return registry.REPORTS.get(study.report) or generic.report_for(study.contrasts, study.paper, study.description)
+
+
+def run_file(study: study_spec.StudyFile, out=None, **options) -> StudyRun:
+    """Run what the study file ``study`` (:func:`read`) defines, with its report; ``options`` as :func:`run_spec`'s
+    (without ``report``). A study with arms (the transfer study) runs each arm in its own folder below ``out``."""
+    if study.arms:
+        return StudyRun(*transfer.run(study, out=out, notify=options.pop("notify", None) or notify_stderr,
+                                      **options), None)
+    return run_spec(study.spec, out, report=report_of(study), metadata=study.metadata(), **options)

@@ -1,0 +1,108 @@
+"""Each group's best gait of a finished study: the gait a replay runs (``best_params/<group>.json``), a video films
+and the recording shows, and the per-step logs of such gaits walked again.
+
+A best gait is one that walked: a trial that did not fall and whose J is above the objective's floor
+(``objective.MIN_OBJECTIVE``, where a trial that stood still or walked backwards ends). Per group: the latest phase
+(the stretch between two condition changes, before a ramp) in which some run has a trial that walked; of the runs
+with one, the run with the best final objective, and its best trial there that walked. Only where no trial of the
+group walked is another picked, and the gait's file says so (``walked``: false).
+"""
+
+from __future__ import annotations
+
+import pathlib
+import re
+
+import numpy as np
+
+from cpgjax.go1 import model as go1_model
+from cpgjax.studies import registry
+from cpgjax.studies import video as study_video
+from cpgjax.study import spec as study_spec
+from cpgjax.trial import objective, protocol
+
+
+def group_name(labels: dict, spec: study_spec.StudySpec) -> str:
+    """A group's name in file names: its ``group_by`` label values joined by ``_`` (a controller by name, a schedule
+    by its name where the study gives one, other labels as label + value), arrows as ``-`` and anything else but
+    letters, digits, ``.``, ``-`` and ``_`` dropped."""
+    names = {s.label: s.name for s in spec.schedules if s.name}
+    parts = [str(labels[k]) if k == "controller" else names[labels[k]] if k == "schedule" and labels[k] in names
+             else f"{k}{labels[k]}" for k in spec.group_by]
+    return re.sub(r"[^A-Za-z0-9._-]", "", "_".join(parts).replace("→", "-"))
+
+
+def phases(result, b: int, stop: int) -> list[tuple[int, int]]:
+    """Instance ``b``'s phases before trial ``stop``: (first, last + 1) of each stretch of trials under the same
+    conditions (the randomized ones, drawn per trial, left out)."""
+    cond = result.conditions
+    fields = [cond.slope_deg, cond.target_velocity_mps, cond.inference]
+    if result.spec.randomize is None:
+        fields += [cond.friction, cond.payload_kg]
+    starts = sorted({t for f in fields for t in registry.phase_starts(np.asarray(f[b, :stop]))})
+    return list(zip(starts, starts[1:] + [stop], strict=True))
+
+
+def phase_text(result, b: int, phase: tuple[int, int]) -> str:
+    """A phase as the reports write it: its trials and conditions."""
+    cond, (start, stop) = result.conditions, phase
+    mode = ", inference mode" if cond.inference[b, start] else ""
+    return (f"trials {start}–{stop - 1}: μ {cond.friction[b, start]:g}, {cond.slope_deg[b, start]:g}°, "
+            f"{cond.payload_kg[b, start]:g} kg, v* {cond.target_velocity_mps[b, start]:g} m/s{mode}")
+
+
+def best_run(result, mask: np.ndarray) -> tuple[int, int, tuple[int, int], bool]:
+    """(instance, trial, phase, walked) of the group ``mask``'s best gait (the module's rule); the trials on a ramp
+    do not count (their slopes differ by instance and trial)."""
+    tr = result.trials
+    stop = registry.ramp_start(result)
+    final = registry.last_mean(tr.objective, stop)
+    runs = {int(b): phases(result, int(b), stop) for b in np.flatnonzero(mask)}
+    for k in range(1, max(len(p) for p in runs.values()) + 1):
+        walking = {b: [t for t in range(*p[-k]) if tr.fell[t, b] == 0 and tr.objective[t, b] > objective.MIN_OBJECTIVE]
+                   for b, p in runs.items() if len(p) >= k}
+        walking = {b: ts for b, ts in walking.items() if ts}
+        if walking:
+            b = max(walking, key=lambda b: final[b])
+            return b, max(walking[b], key=lambda t: tr.objective[t, b]), runs[b][-k], True
+    b = max(runs, key=lambda b: final[b])
+    start, end = runs[b][-1]
+    return b, start + int(np.argmax(tr.objective[start:end, b])), runs[b][-1], False
+
+
+def best_gaits(result) -> list[study_video.Gait]:
+    """Per group of the study (``spec.group_by``): its best gait (:func:`best_run`) in the conditions of its trial."""
+    tr, cond = result.trials, result.conditions
+    names = np.array([group_name(lab, result.spec) for lab in result.labels])
+    gaits = []
+    for name in dict.fromkeys(names):
+        b, t, phase, walked = best_run(result, names == name)
+        gaits.append(study_video.Gait(
+            group=str(name), params=np.asarray(tr.params[t, b], np.float64), controller=result.labels[b]["controller"],
+            friction=float(cond.friction[b, t]), slope_deg=float(cond.slope_deg[b, t]),
+            payload_kg=float(cond.payload_kg[b, t]), physics=str(result.labels[b]["physics"]),
+            transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
+            target_velocity_mps=float(cond.target_velocity_mps[b, t]), objective=float(tr.objective[t, b]),
+            instance=b, trial=t, phase=phase_text(result, b, phase), walked=walked))
+    return gaits
+
+
+def save_best_gaits(out: pathlib.Path, result) -> list[study_video.Gait]:
+    """Each group's :func:`best_gaits` as ``out/best_params/<group>.json``, what ``deploy --params`` and
+    ``walk --params`` replay as tuned and what the study films (``best_<group>.mp4``)."""
+    gaits = best_gaits(result)
+    for gait in gaits:
+        study_video.save_gait(out, gait, seed=int(result.labels[gait.instance]["seed"]), study=result.spec.name)
+    return gaits
+
+
+def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None = None) -> list:
+    """The per-step logs of ``gaits`` (one batch): a settling trial of the gaits' lengths, then ``steps`` ticks
+    (default: the steady phase's length, 3 s in the paper's trial)."""
+    config = protocol.TrialConfig(transition_steps=gaits[0].transition_steps, steady_steps=gaits[0].steady_steps)
+    if any((g.transition_steps, g.steady_steps) != (config.transition_steps, config.steady_steps) for g in gaits):
+        raise study_spec.StudyError("the gaits were found with different trial lengths; film them one at a time")
+    scenario = go1_model.make_scenarios(friction=[g.friction for g in gaits], slope_deg=[g.slope_deg for g in gaits],
+                                        payload_kg=[g.payload_kg for g in gaits], physics=[g.physics for g in gaits])
+    return registry.rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config,
+                             backend, config.steady_steps if steps is None else steps)

@@ -1,0 +1,154 @@
+"""The report of any study, made from its definition: what a study file without a hand-written report gets.
+
+Per group (the study's ``group_by``) and per phase (the stretches between the schedule's condition changes):
+v_x, CoT, J and the falls, each as mean [95 % CI] over the group's seeds of each run's last ``LAST_TRIALS`` trials
+of the phase (and the phase's falls of all its trials); the trials to a prospective solution; then the comparisons
+the study file names (or every pair of groups that differ in one label) with Welch's t and Mann–Whitney's U on the
+seeds (``cpgjax.studies.stats``), and the learning curves of every group (``learning_curves.png``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import pathlib
+
+import numpy as np
+
+from cpgjax.studies import figures as study_figures
+from cpgjax.studies import gaits as study_gaits
+from cpgjax.studies import registry, stats
+from cpgjax.study import spec as study_spec
+
+LAST_TRIALS = registry.LAST_TRIALS
+PROSPECTIVE_FRACTION = 0.9  # a prospective solution: a trial that walked with J ≥ this × the run's final J
+
+
+def group_names(result) -> np.ndarray:
+    """(B,) each instance's group name (``gaits.group_name``)."""
+    return np.array([study_gaits.group_name(lab, result.spec) for lab in result.labels])
+
+
+def schedule_phases(result, b: int) -> list[tuple[int, int]]:
+    """Instance ``b``'s phases: (first, last + 1) of each stretch between its schedule's changes (the study's
+    conditions without randomization, so a drawn friction or a ramp's slope starts no phase)."""
+    cond = study_spec.conditions(dataclasses.replace(result.spec, randomize=None))
+    n = result.trials.objective.shape[0]
+    fields = (cond.friction, cond.slope_deg, cond.payload_kg, cond.target_velocity_mps, cond.inference, cond.ramp)
+    starts = sorted({t for f in fields for t in registry.phase_starts(np.asarray(f[b, :n]))})
+    return list(zip(starts, starts[1:] + [n], strict=True))
+
+
+def _final(values: np.ndarray, runs: np.ndarray, phase: tuple[int, int]) -> np.ndarray:
+    """(R,) each run's mean of its last LAST_TRIALS trials of ``phase`` of (N, B) ``values``."""
+    start, stop = phase
+    return np.asarray(values)[max(stop - LAST_TRIALS, start):stop][:, runs].mean(axis=0)
+
+
+def trials_to_prospective(objective: np.ndarray, fell: np.ndarray, phase: tuple[int, int]) -> float:
+    """Trials from the phase's start to its first trial that walked with J ≥ PROSPECTIVE_FRACTION × the run's final
+    J (the mean of its last LAST_TRIALS trials of the phase); NaN where the final J is not positive or no trial
+    reaches it."""
+    start, stop = phase
+    final = objective[max(stop - LAST_TRIALS, start):stop].mean()
+    ok = (objective[start:stop] >= PROSPECTIVE_FRACTION * final) & (fell[start:stop] == 0)
+    return float(np.argmax(ok) + 1) if final > 0 and ok.any() else np.nan
+
+
+def _metrics(result) -> dict[str, np.ndarray]:
+    tr = result.trials
+    return {"v_x [m/s]": tr.velocity_xy_mps[..., 0], "CoT": tr.cot, "J": tr.objective}
+
+
+def group_table(result) -> str:
+    """Per group and phase: v_x, CoT, J, falls and trials to a prospective solution."""
+    tr, cond, names = result.trials, result.conditions, group_names(result)
+    rows = [f"| group | phase | v_x [m/s] | CoT | J | falls in the last {LAST_TRIALS} trials | falls / trials | trials "
+            "to a prospective solution (runs never reaching one) |", "|---|---|---|---|---|---|---|---|"]
+    for name in dict.fromkeys(names):
+        runs = np.flatnonzero(names == name)
+        for phase in schedule_phases(result, runs[0]):
+            start, stop = phase
+            cells = [str(stats.mean_ci(_final(v, runs, phase))) for v in _metrics(result).values()]
+            cells.append(str(stats.mean_ci(_final(tr.fell, runs, phase) * min(LAST_TRIALS, stop - start))))
+            counts = np.array([trials_to_prospective(tr.objective[:, b], tr.fell[:, b], phase) for b in runs])
+            never = int(np.isnan(counts).sum())
+            reached = f"{stats.mean_ci(counts)} ({never})" if never < counts.size else f"– ({never})"
+            falls = tr.fell[start:stop][:, runs]
+            ramp = ", on the ramp" if cond.ramp[runs[0], start] else ""
+            rows.append(f"| {name} | {study_gaits.phase_text(result, runs[0], phase)}{ramp} | " + " | ".join(cells)
+                        + f" | {int(falls.sum())}/{falls.size} | {reached} |")
+    return "\n".join(rows) + "\n"
+
+
+def contrasts(result, given: tuple[study_spec.Contrast, ...]) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, runs a, runs b) of each comparison: ``given`` in every combination of the other ``group_by`` labels,
+    or by default every pair of groups whose labels differ in one."""
+    group_by, labels = result.spec.group_by, result.labels
+    keys = [tuple(lab[k] for k in group_by) for lab in labels]
+    groups = list(dict.fromkeys(keys))
+    runs = {g: np.array([i for i, k in enumerate(keys) if k == g]) for g in groups}
+    names = dict(zip(keys, group_names(result), strict=True))
+    pairs = []
+    if given:
+        for c in given:
+            axis = group_by.index(c.axis)
+            for g in groups:
+                if g[axis] == c.a:
+                    other = g[:axis] + (c.b,) + g[axis + 1:]
+                    if other in runs:
+                        pairs.append((g, other))
+    else:
+        pairs = [(a, b) for a, b in itertools.combinations(groups, 2)
+                 if sum(x != y for x, y in zip(a, b, strict=True)) == 1]
+    return [(f"{names[a]} − {names[b]}", runs[a], runs[b]) for a, b in pairs]
+
+
+def comparison_table(result, given: tuple[study_spec.Contrast, ...]) -> str:
+    """Each comparison per phase (both groups' phases where they have the same ones, else the final phase): J and
+    CoT, a − b with its 95 % interval, Welch's and Mann–Whitney's p."""
+    rows = ["| comparison | phase | J: a − b | CoT: a − b |", "|---|---|---|---|"]
+    tr = result.trials
+    pairs = contrasts(result, given)
+    for name, a, b in pairs:
+        pa, pb = schedule_phases(result, a[0]), schedule_phases(result, b[0])
+        for phase in pa if pa == pb else pa[-1:]:
+            cells = [str(stats.compare(_final(v, a, phase), _final(v, b, phase))) if min(a.size, b.size) >= 2
+                     else f"too few seeds to test ({a.size} and {b.size})" for v in (tr.objective, tr.cot)]
+            rows.append(f"| {name} | trials {phase[0]}–{phase[1] - 1} | {cells[0]} | {cells[1]} |")
+    if not pairs:
+        return "\nNo two groups differ in one label: nothing to compare.\n"
+    return ("\nComparisons (Welch's t and Mann–Whitney U, two-sided, on the seeds' final values; not corrected for "
+            "multiple comparisons):\n\n" + "\n".join(rows) + "\n")
+
+
+def paper_lines(paper: dict) -> str:
+    """The study file's [paper] figures, as given."""
+    if not paper:
+        return ""
+    return "\nThe paper (the study file's [paper] table):\n\n" + "\n".join(
+        f"- {key}: {value}" for key, value in paper.items()) + "\n"
+
+
+def report_for(given: tuple[study_spec.Contrast, ...] = (), paper: dict | None = None,
+               description: str = "") -> registry.Report:
+    """The generic report of a study whose file names ``given`` comparisons, ``paper`` figures and a
+    ``description``."""
+    def report(result, backend: str) -> str:
+        del backend  # the generic report simulates nothing
+        n = result.trials.objective.shape[0]
+        head = f"{description}\n\n" if description else ""
+        return (head + f"{result.spec.name}: per group and phase, each run's mean of its last {LAST_TRIALS} trials "
+                f"of the phase, then mean [95 % CI] over {len(result.spec.seeds)} seeds; a prospective solution: the "
+                f"first trial of the phase that walked with J ≥ {PROSPECTIVE_FRACTION:g} × the run's final J. {n} "
+                f"trials per run.\n\n" + group_table(result) + comparison_table(result, given)
+                + paper_lines(paper or {}))
+
+    def figures(result, out: pathlib.Path, backend: str) -> str:
+        del backend
+        changes = sorted({s for b in range(len(result.labels)) for s, _ in schedule_phases(result, b)} - {0})
+        study_figures.learning_curves(out / "learning_curves.png", result, "group", changes=changes,
+                                      groups=list(group_names(result)))
+        return ""
+
+    return registry.Report(report, figures)
