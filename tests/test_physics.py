@@ -263,7 +263,7 @@ def test_transfer_evaluates_every_run_in_every_environment():
     env = transfer.Environments("paper")
     assert env.names[:3] == ["soft", "paper", "go1"] and len(env.names) == 3 + transfer.EVALUATION_DRAWS
     j, v, cot, fell = transfer.evaluate(np.tile(params.midpoint(), (2, 1)), ["open_loop", "vmc_tegotae"], env,
-                                        protocol.TrialConfig(transition_steps=20, steady_steps=100), "native")
+                                        protocol.TrialConfig(transition_steps=20, steady_steps=100), "native", 0.5)
     assert j.shape == v.shape == cot.shape == fell.shape == (2, len(env.names))
     assert np.all(np.isfinite(j)) and np.all(j >= -1.0)
 

@@ -26,7 +26,15 @@ from cpgjax.study import files as study_io
 from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
 
-STUDY_FOLDER = pathlib.Path(__file__).resolve().parents[2] / "studies"  # the paper's studies, one file each
+
+def _study_folder() -> pathlib.Path:
+    """Where the paper's study files are: the source checkout's ``studies/`` (a checkout or an editable install),
+    else where a wheel installs them (pyproject.toml's data-files: ``<environment>/share/cpgjax/studies``)."""
+    checkout = pathlib.Path(__file__).resolve().parents[2] / "studies"
+    return checkout if checkout.is_dir() else pathlib.Path(sys.prefix) / "share" / "cpgjax" / "studies"
+
+
+STUDY_FOLDER = _study_folder()  # the paper's studies, one file each
 
 
 class StudyRun(NamedTuple):
