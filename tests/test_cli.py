@@ -486,6 +486,25 @@ def test_a_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
         study_io.CHECKPOINT]
 
 
+def test_ctrl_c_while_a_checkpoint_is_written_leaves_no_temporary_file(tmp_path, monkeypatch):
+    """Ctrl-C in the middle of writing trial 3's checkpoint: the interrupt goes on, the checkpoint of trial 2 is the
+    folder's only file, and it loads."""
+    spec = _optimize_spec(trials=4)
+    log = study_io.TrialLog(*(np.zeros(1) for _ in study_io.TrialLog._fields))
+    ckpt = study_io.Checkpoint(2, [np.zeros((1, 3))], [np.ones((1, 2))], np.zeros((1, 2)), [log, log], 1.0, {})
+    study_io.save_checkpoint(tmp_path, spec, ckpt, "native")
+
+    def interrupted(f, **arrays):
+        f.write(b"half a checkpoint")
+        raise KeyboardInterrupt
+    monkeypatch.setattr(np, "savez", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        study_io.save_checkpoint(tmp_path, spec, ckpt._replace(trial=3, logs=[log] * 3), "native")
+    monkeypatch.undo()
+    assert sorted(os.listdir(tmp_path)) == [study_io.CHECKPOINT]
+    assert study_io.load_checkpoint(tmp_path, spec).trial == 2
+
+
 @pytest.mark.parametrize("damage", ["garbage", "empty", "truncated", "pickled"])
 def test_a_corrupt_checkpoint_is_named(damage, tmp_path, capsys, no_engine):
     out = tmp_path / "out"

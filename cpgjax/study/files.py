@@ -218,6 +218,9 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard 
         kept = f"trials 0…{ckpt.trial - 2} are kept in its checkpoint" if ckpt.trial > 1 else "no trial is kept"
         raise OutputError(f"writing the checkpoint of trial {ckpt.trial - 1} in {out} failed ({err.strerror}); "
                           f"{kept}: free space, then the same command with --resume continues") from None
+    except BaseException:  # Ctrl-C while writing: the previous checkpoint is the run's, and no half file is left
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 
