@@ -941,7 +941,8 @@ def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool
 
 def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> None:
     """The options that choose and reach the robot (``cpgjax deploy`` and ``cpgjax deploy calibrate``)."""
-    p.add_argument("--robot", choices=("sim", "go1"), required=robot_required,
+    p.add_argument_group("required").add_argument(
+        "--robot", choices=("sim", "go1"), required=robot_required,
                    help="required; sim: start the simulated Go1 on 127.0.0.1; go1: the robot (low-level mode, EDU)")
     p.add_argument("--transport", choices=("udp", "sdk"), help="(default: sdk for go1, udp for sim)")
     p.add_argument("--robot-ip", type=_ip_address, default=go1_transport.GO1_ROBOT_IP, action=_Given, help="go1 only")
@@ -1014,9 +1015,10 @@ def _add_study(sub) -> None:
     s.add_argument("--seeds", type=_count(1, maximum=limits.MAX_SEEDS, maximum_reason=limits.MAX_SEEDS_REASON),
                    default=None, help="seeds 0 … N-1 per group (default: the file's seeds; --quick its [quick] seeds)")
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
-                   help="trials per run; condition changes scale with it (default: the file's trials; --quick its "
-                   "[quick] trials)")
-    s.add_argument("--quick", action="store_true", help="the file's [quick] values: fewer seeds and trials")
+                   help=f"trials per run, at least {limits.MIN_STUDY_TRIALS}; condition changes scale with it "
+                   "(default: the file's trials; --quick its [quick] trials)")
+    s.add_argument("--quick", action="store_true", help="the file's [quick] values: fewer seeds and trials (the "
+                   "paper's studies: 2 seeds, 12 to 42 trials; `--print` shows a study's)")
     s.add_argument("--max-trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help=MAX_TRIALS_HELP)
     s.add_argument("--safe", action="store_true", help=SAFE_HELP)
@@ -1075,6 +1077,9 @@ def _add_show(sub) -> None:
 
 def _add_demo(sub) -> None:
     d = sub.add_parser("demo", help=f"`make demo`: the controller ablation's quick variant, afresh, into {DEMO_OUT}/",
+                       description="The paper's controller ablation, quick variant: online optimization of the "
+                       "four CPG controllers at v* = 0.5 m/s, 2 seeds × 12 trials, batched on the CPU, written afresh "
+                       f"into {DEMO_OUT}/ (the full study: cpgjax study controller_ablation).",
                        formatter_class=_HelpFormatter)
     d.set_defaults(func=_demo)
 

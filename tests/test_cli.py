@@ -25,8 +25,8 @@ from cpgjax.sim import walk
 from cpgjax.studies import driver as study_driver
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
+from cpgjax.trial import limits, tuned
 from cpgjax.trial import params as param_space
-from cpgjax.trial import tuned
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
@@ -908,3 +908,23 @@ def test_a_study_dry_run_checks_everything_and_touches_nothing(tmp_path, capsys)
     assert (out / study_io.CHECKPOINT).exists()
     assert cli.main(["study", "controller_ablation", "--quick", "--out", str(out), "--dry-run", "--resume"]) == 0
     assert f"resuming {out} at trial 3" in capsys.readouterr().out
+
+
+def _help(argv, capsys) -> str:
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([*argv, "--help"])
+    assert exit_.value.code == 0
+    return " ".join(capsys.readouterr().out.split())
+
+
+def test_the_help_says_what_the_defaults_and_requirements_are(capsys):
+    """`demo --help` says what the demo runs, `deploy --help` lists --robot under "required", and `study --help`
+    gives the minimum of --trials and what --quick runs in the paper's studies (their files' [quick] tables)."""
+    assert "online optimization of the four CPG controllers" in _help(["demo"], capsys)
+    assert "required: --robot {sim,go1}" in _help(["deploy"], capsys)
+    text = _help(["study"], capsys)
+    assert f"at least {limits.MIN_STUDY_TRIALS};" in text
+    quick = [study_driver.read(name, quick=True).spec for name in study_driver.paper_studies()]
+    assert {len(s.seeds) for s in quick} == {2}
+    low, high = min(s.num_trials for s in quick), max(s.num_trials for s in quick)
+    assert f"2 seeds, {low} to {high} trials" in text
