@@ -798,6 +798,9 @@ def _show_video(args) -> int:
     return 0 if study_video.write_videos(out, gaits, logs, _notice) else 1
 
 
+WRITES_RESULTS = ("study", "optimize", "demo", "walk")  # the commands whose Ctrl-C after the last trial is news
+
+
 def _show_web(args) -> int:
     """``cpgjax show DIR --web``: rerun's web viewer on the folder's recording, on 127.0.0.1, until Ctrl-C."""
     recording = pathlib.Path(args.results) / "recording.rrd"
@@ -818,6 +821,7 @@ def _show_web(args) -> int:
     try:
         return proc.wait()
     except KeyboardInterrupt:
+        _notice("cpgjax show: the viewer is stopped")
         return 0
     finally:
         study_viewer.stop(proc)
@@ -1165,7 +1169,8 @@ def main(argv=None) -> int:
         compile_cache.enable()
     with _CtrlC() as args.ctrl_c:  # study, optimize, demo: check it after every trial
         code = args.func(args)
-    if args.ctrl_c.requested and code == 0:  # lost after the last trial's check: the outputs are written
+    if args.ctrl_c.requested and code == 0 and args.command in WRITES_RESULTS:
+        # lost after the last trial's check: the outputs are written
         _notice(f"cpgjax {args.command}: interrupted as it finished; its outputs are written")
         code = INTERRUPTED
     if as_command and args.ctrl_c.installed:

@@ -354,7 +354,20 @@ def test_an_unwritable_folder_is_refused_before_anything_runs(argv, tmp_path, ca
     assert cli.main([*argv, str(target)]) == 2
     written_in = tmp_path if "calibrate" in argv else target  # calibrate's --out is a file
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and f"cannot write in {written_in}: Read-only file system" in err
+    assert err.count("\n") == 1
+    assert f"cannot write in {written_in}: it takes no new files (Read-only file system)" in err
+
+
+@pytest.mark.skipif(not pathlib.Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_a_folder_in_a_file_system_that_takes_none_names_it(capsys, no_engine):
+    """/proc exists but takes no new folder (mkdir fails with ENOENT): the line says that of /proc, not that a
+    file is missing."""
+    assert cli.main(["walk", "--out", "/proc/cpgjax-out", "--trials", "1"]) == 2
+    assert capsys.readouterr().err == ("cpgjax walk: cannot create the folder /proc/cpgjax-out: /proc takes no new "
+                                       "folders (No such file or directory)\n")
+    assert cli.main(["study", "friction", "--quick", "--out", "/proc/cpgjax-out", "--dry-run"]) == 2
+    assert capsys.readouterr().err == ("cpgjax study: cannot write in /proc: it takes no new files (No such file "
+                                       "or directory)\n")
 
 
 def test_a_non_empty_folder_is_not_overwritten(tmp_path, capsys, no_engine):
@@ -928,3 +941,30 @@ def test_the_help_says_what_the_defaults_and_requirements_are(capsys):
     assert {len(s.seeds) for s in quick} == {2}
     low, high = min(s.num_trials for s in quick), max(s.num_trials for s in quick)
     assert f"2 seeds, {low} to {high} trials" in text
+
+
+def test_ctrl_c_stopping_the_web_viewer_says_so_not_that_outputs_are_written(tmp_path, capsys, monkeypatch):
+    """`show --web` runs until Ctrl-C: that ends it with exit 0 and one line saying the viewer stopped, not the
+    study's "interrupted as it finished; its outputs are written"."""
+    from cpgjax.studies import viewer as study_viewer
+
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    stopped = []
+
+    class Viewer:
+        pid = 1
+
+        def wait(self):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)
+            raise AssertionError("not interrupted")
+    monkeypatch.setattr(study_viewer, "serve", lambda recording, port: Viewer())
+    monkeypatch.setattr(study_viewer, "stop", stopped.append)
+    monkeypatch.setattr(cli, "_show", lambda args: 0)  # the folder's listing, checked by the tests of show
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert cli.main(["show", str(tmp_path), "--web"]) == 0
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    err = capsys.readouterr().err
+    assert "the viewer is stopped" in err and "outputs are written" not in err and len(stopped) == 1

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import os
 import pathlib
@@ -441,7 +442,10 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resum
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise StudyError(f"cannot create the folder {folder}: {err.strerror}") from None
+        parent = next(p for p in folder.absolute().parents if p.exists())
+        why = (f"{parent} takes no new folders ({err.strerror})" if err.errno == errno.ENOENT and parent.is_dir()
+               else err.strerror)
+        raise StudyError(f"cannot create the folder {folder}: {why}") from None
     check_writable(folder)
     return folder
 
@@ -458,7 +462,7 @@ def check_writable(folder: pathlib.Path) -> None:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as err:
-        raise StudyError(f"cannot write in {folder}: {err.strerror}") from None
+        raise StudyError(f"cannot write in {folder}: it takes no new files ({err.strerror})") from None
 
 
 def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
