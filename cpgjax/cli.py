@@ -368,14 +368,11 @@ def _study(args) -> int:
     try:
         study = study_driver.read(args.name, quick=args.quick, seeds=args.seeds, trials=args.trials,
                                   physics=args.physics, safe=args.safe, max_trials=args.max_trials)
-        if study.arms and (args.physics is not None or args.max_trials is not None):
-            raise study_spec.StudyError(f"{study.path}: its arms set their own physics and are not extended: drop "
-                                        "--physics and --max-trials")
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
     if args.print:
-        print(study.text, end="")
+        print(study.source, end="")
         return 0
     if args.processes is not None or args.distributed:
         problem = ("--processes and --distributed exclude each other (--processes starts --distributed processes)"

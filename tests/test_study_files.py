@@ -291,3 +291,11 @@ def test_the_generic_report_per_group_and_phase_matches_numpy_and_scipy():
     row = next(line for line in generic.comparison_table(result, given).splitlines()
                if line.startswith(f"| {name} | trials 7–11"))
     assert f"Δ = {ja.mean() - jb.mean():+.3f}" in row and f"Welch p = {welch:.2g}" in row
+
+
+def test_a_study_with_arms_refuses_one_physics_and_an_extension():
+    """The transfer study's arms set their own physics and are not extended: --physics and --max-trials are refused
+    in one line, from the command line and the Python API alike."""
+    for overrides in (dict(physics="go1"), dict(max_trials=50)):
+        with pytest.raises(study_spec.StudyError, match="its arms set their own physics and are not extended"):
+            study_driver.read("transfer", **overrides)

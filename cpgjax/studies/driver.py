@@ -38,10 +38,10 @@ STUDY_FOLDER = _study_folder()  # the paper's studies, one file each
 
 
 class StudyRun(NamedTuple):
-    """What a study run left: its table text, its folder, and the engine's result (None after a dry run, and in
-    every process of a multi-process run but the first)."""
+    """What a study run left: its table (the text of table.md; a dry run's plan), its folder, and the engine's result
+    (None after a dry run, and in every process of a multi-process run but the first)."""
 
-    text: str
+    table: str
     out: pathlib.Path
     result: Any  # ablation.StudyResult (transfer: the arms' results by arm name)
 
@@ -84,6 +84,9 @@ def read(name_or_path, **overrides) -> study_spec.StudyFile:
     if (study.report == transfer.NAME) != bool(study.arms):
         raise study_spec.StudyError(f"{study.path}: a [transfer] table with its arms goes with report = "
                                     f"{transfer.NAME!r}, and only with it")
+    if study.arms and (overrides.get("physics") is not None or overrides.get("max_trials") is not None):
+        raise study_spec.StudyError(f"{study.path}: its arms set their own physics and are not extended: drop "
+                                    "--physics and --max-trials")
     return study
 
 
@@ -123,8 +126,8 @@ def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Repo
         (out / "table.md").write_text(text)
     with study_io.writing(out, "the study's figures"):
         extra = study.figures(result, out, backend)
-        study_figures.optimization_progress(out / "optimization_progress.png", result, [
-            study_gaits.group_name(lab, result.spec) for lab in result.labels])
+        study_figures.optimization_progress(out / "optimization_progress.png", result,
+                                            list(study_gaits.group_names(result)))
     if extra:
         with study_io.writing(out, "table.md"):
             text = f"# {result.spec.name}\n\n{report}{extra}{tail}"

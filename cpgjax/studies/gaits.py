@@ -10,6 +10,7 @@ group walked is another picked, and the gait's file says so (``walked``: false).
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import re
 
@@ -32,18 +33,31 @@ def group_name(labels: dict, spec: study_spec.StudySpec) -> str:
     return re.sub(r"[^A-Za-z0-9._-]", "", "_".join(parts).replace("→", "-"))
 
 
-def phases(result, b: int, stop: int) -> list[tuple[int, int]]:
-    """Instance ``b``'s phases before trial ``stop``: (first, last + 1) of each stretch of trials under the same
-    conditions (the randomized ones, drawn per trial, left out)."""
-    cond = result.conditions
-    fields = [cond.slope_deg, cond.target_velocity_mps, cond.inference]
+Phase = tuple[int, int]  # (first trial, last + 1)
+
+
+def group_names(result) -> np.ndarray:
+    """(B,) each instance's group name (:func:`group_name`)."""
+    return np.array([group_name(lab, result.spec) for lab in result.labels])
+
+
+def phases(result) -> list[list[Phase]]:
+    """Each instance's phases: (first, last + 1) of each stretch between its schedule's condition changes, from the
+    study's own conditions (a ramp's slopes and, with domain randomization, the drawn friction and payload start no
+    phase)."""
+    cond = study_spec.conditions(dataclasses.replace(result.spec, randomize=None))
+    n = result.trials.objective.shape[0]
+    fields = [cond.slope_deg, cond.target_velocity_mps, cond.inference, cond.ramp]
     if result.spec.randomize is None:
         fields += [cond.friction, cond.payload_kg]
-    starts = sorted({t for f in fields for t in registry.phase_starts(np.asarray(f[b, :stop]))})
-    return list(zip(starts, starts[1:] + [stop], strict=True))
+    out = []
+    for b in range(len(result.labels)):
+        starts = sorted({t for f in fields for t in registry.phase_starts(np.asarray(f[b, :n]))})
+        out.append(list(zip(starts, starts[1:] + [n], strict=True)))
+    return out
 
 
-def phase_text(result, b: int, phase: tuple[int, int]) -> str:
+def phase_text(result, b: int, phase: Phase) -> str:
     """A phase as the reports write it: its trials and conditions."""
     cond, (start, stop) = result.conditions, phase
     mode = ", inference mode" if cond.inference[b, start] else ""
@@ -51,13 +65,13 @@ def phase_text(result, b: int, phase: tuple[int, int]) -> str:
             f"{cond.payload_kg[b, start]:g} kg, v* {cond.target_velocity_mps[b, start]:g} m/s{mode}")
 
 
-def best_run(result, mask: np.ndarray) -> tuple[int, int, tuple[int, int], bool]:
-    """(instance, trial, phase, walked) of the group ``mask``'s best gait (the module's rule); the trials on a ramp
-    do not count (their slopes differ by instance and trial)."""
+def best_run(result, mask: np.ndarray, all_phases: list[list[Phase]]) -> tuple[int, int, Phase, bool]:
+    """(instance, trial, phase, walked) of the group ``mask``'s best gait (the module's rule), given every instance's
+    :func:`phases`; the trials on a ramp do not count (their slopes differ by instance and trial)."""
     tr = result.trials
     stop = registry.ramp_start(result)
     final = registry.last_mean(tr.objective, stop)
-    runs = {int(b): phases(result, int(b), stop) for b in np.flatnonzero(mask)}
+    runs = {int(b): [(s, min(e, stop)) for s, e in all_phases[b] if s < stop] for b in np.flatnonzero(mask)}
     for k in range(1, max(len(p) for p in runs.values()) + 1):
         walking = {b: [t for t in range(*p[-k]) if tr.fell[t, b] == 0 and tr.objective[t, b] > objective.MIN_OBJECTIVE]
                    for b, p in runs.items() if len(p) >= k}
@@ -73,10 +87,10 @@ def best_run(result, mask: np.ndarray) -> tuple[int, int, tuple[int, int], bool]
 def best_gaits(result) -> list[study_video.Gait]:
     """Per group of the study (``spec.group_by``): its best gait (:func:`best_run`) in the conditions of its trial."""
     tr, cond = result.trials, result.conditions
-    names = np.array([group_name(lab, result.spec) for lab in result.labels])
+    names, all_phases = group_names(result), phases(result)
     gaits = []
     for name in dict.fromkeys(names):
-        b, t, phase, walked = best_run(result, names == name)
+        b, t, phase, walked = best_run(result, names == name, all_phases)
         gaits.append(study_video.Gait(
             group=str(name), params=np.asarray(tr.params[t, b], np.float64), controller=result.labels[b]["controller"],
             friction=float(cond.friction[b, t]), slope_deg=float(cond.slope_deg[b, t]),

@@ -9,7 +9,6 @@ seeds (``cpgjax.studies.stats``), and the learning curves of every group (``lear
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import pathlib
 
@@ -18,25 +17,10 @@ import numpy as np
 from cpgjax.studies import figures as study_figures
 from cpgjax.studies import gaits as study_gaits
 from cpgjax.studies import registry, stats
+from cpgjax.studies.registry import LAST_TRIALS
 from cpgjax.study import spec as study_spec
 
-LAST_TRIALS = registry.LAST_TRIALS
 PROSPECTIVE_FRACTION = 0.9  # a prospective solution: a trial that walked with J ≥ this × the run's final J
-
-
-def group_names(result) -> np.ndarray:
-    """(B,) each instance's group name (``gaits.group_name``)."""
-    return np.array([study_gaits.group_name(lab, result.spec) for lab in result.labels])
-
-
-def schedule_phases(result, b: int) -> list[tuple[int, int]]:
-    """Instance ``b``'s phases: (first, last + 1) of each stretch between its schedule's changes (the study's
-    conditions without randomization, so a drawn friction or a ramp's slope starts no phase)."""
-    cond = study_spec.conditions(dataclasses.replace(result.spec, randomize=None))
-    n = result.trials.objective.shape[0]
-    fields = (cond.friction, cond.slope_deg, cond.payload_kg, cond.target_velocity_mps, cond.inference, cond.ramp)
-    starts = sorted({t for f in fields for t in registry.phase_starts(np.asarray(f[b, :n]))})
-    return list(zip(starts, starts[1:] + [n], strict=True))
 
 
 def _final(values: np.ndarray, runs: np.ndarray, phase: tuple[int, int]) -> np.ndarray:
@@ -62,12 +46,13 @@ def _metrics(result) -> dict[str, np.ndarray]:
 
 def group_table(result) -> str:
     """Per group and phase: v_x, CoT, J, falls and trials to a prospective solution."""
-    tr, cond, names = result.trials, result.conditions, group_names(result)
+    tr, cond = result.trials, result.conditions
+    names, all_phases = study_gaits.group_names(result), study_gaits.phases(result)
     rows = [f"| group | phase | v_x [m/s] | CoT | J | falls in the last {LAST_TRIALS} trials | falls / trials | trials "
             "to a prospective solution (runs never reaching one) |", "|---|---|---|---|---|---|---|---|"]
     for name in dict.fromkeys(names):
         runs = np.flatnonzero(names == name)
-        for phase in schedule_phases(result, runs[0]):
+        for phase in all_phases[runs[0]]:
             start, stop = phase
             cells = [str(stats.mean_ci(_final(v, runs, phase))) for v in _metrics(result).values()]
             cells.append(str(stats.mean_ci(_final(tr.fell, runs, phase) * min(LAST_TRIALS, stop - start))))
@@ -88,7 +73,7 @@ def contrasts(result, given: tuple[study_spec.Contrast, ...]) -> list[tuple[str,
     keys = [tuple(lab[k] for k in group_by) for lab in labels]
     groups = list(dict.fromkeys(keys))
     runs = {g: np.array([i for i, k in enumerate(keys) if k == g]) for g in groups}
-    names = dict(zip(keys, group_names(result), strict=True))
+    names = dict(zip(keys, study_gaits.group_names(result), strict=True))
     pairs = []
     if given:
         for c in given:
@@ -108,10 +93,10 @@ def comparison_table(result, given: tuple[study_spec.Contrast, ...]) -> str:
     """Each comparison per phase (both groups' phases where they have the same ones, else the final phase): J and
     CoT, a − b with its 95 % interval, Welch's and Mann–Whitney's p."""
     rows = ["| comparison | phase | J: a − b | CoT: a − b |", "|---|---|---|---|"]
-    tr = result.trials
+    tr, all_phases = result.trials, study_gaits.phases(result)
     pairs = contrasts(result, given)
     for name, a, b in pairs:
-        pa, pb = schedule_phases(result, a[0]), schedule_phases(result, b[0])
+        pa, pb = all_phases[a[0]], all_phases[b[0]]
         for phase in pa if pa == pb else pa[-1:]:
             cells = [str(stats.compare(_final(v, a, phase), _final(v, b, phase))) if min(a.size, b.size) >= 2
                      else f"too few seeds to test ({a.size} and {b.size})" for v in (tr.objective, tr.cot)]
@@ -146,9 +131,9 @@ def report_for(given: tuple[study_spec.Contrast, ...] = (), paper: dict | None =
 
     def figures(result, out: pathlib.Path, backend: str) -> str:
         del backend
-        changes = sorted({s for b in range(len(result.labels)) for s, _ in schedule_phases(result, b)} - {0})
+        changes = sorted({s for p in study_gaits.phases(result) for s, _ in p} - {0})
         study_figures.learning_curves(out / "learning_curves.png", result, "group", changes=changes,
-                                      groups=list(group_names(result)))
+                                      groups=list(study_gaits.group_names(result)))
         return ""
 
     return registry.Report(report, figures)

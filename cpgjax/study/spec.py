@@ -323,7 +323,7 @@ class StudyFile(NamedTuple):
 
     spec: StudySpec
     path: Any  # pathlib.Path of the file
-    text: str  # the file as written
+    source: str  # the file as written
     description: str
     report: str  # the name of a hand-written report (cpgjax.studies.registry.REPORTS); "" for the generic one
     contrasts: tuple[Contrast, ...]  # the comparisons to report; () for every pair of groups differing in one label
@@ -332,7 +332,7 @@ class StudyFile(NamedTuple):
 
     def metadata(self) -> dict:
         """What a run's ``metadata.json`` records of its study file: the path and the text as it was run."""
-        return {"study_file": str(self.path), "study_file_text": self.text}
+        return {"study_file": str(self.path), "study_file_text": self.source}
 
 
 def scaled_trial(trial: int, written: int, run: int) -> int:
