@@ -364,7 +364,7 @@ class Engine:
         first, stop = self.placement.rows
         scenario = go1_model.Scenario(*(field[first:stop] for field in self.scenario(trial)))
         if self._sim is None:
-            self._sim = backends.make_backend(scenario, self.backend_name, trial_config=self.spec.trial,
+            self._sim = backends.make_backend(scenario, self.backend_name, self.spec.cpg_config(), self.spec.trial,
                                               devices=self.placement.local_devices)
         elif any(not np.array_equal(a, b) for a, b in zip(scenario, self._sim.scenario, strict=True)):
             self._sim = self._sim.with_scenario(scenario)

@@ -243,7 +243,8 @@ def _walk(args) -> int:
                                       payload_kg=args.payload_kg, num_trials=args.trials,
                                       params=None if args.params is None else args.params.params,
                                       target_velocity_mps=args.target_velocity_mps, backend=args.backend,
-                                      physics=args.physics, progress=_notice)  # stderr: stdout holds the table
+                                      physics=args.physics, progress=_notice,  # stderr: stdout holds the table
+                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup))
     print(walk.trials_table(trials))
     pace = timing["env_steps_per_s"]
     print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
@@ -255,7 +256,8 @@ def _walk(args) -> int:
         pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
         meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
                     git_commit=provenance.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
-                    backend=backends.resolve_backend(args.backend), **timing, environment=provenance.environment(),
+                    backend=backends.resolve_backend(args.backend), startup=args.startup, **timing,
+                    environment=provenance.environment(),
                     compiled_programs=compile_cache.counts())
         (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
         print(f"outputs in {args.out}/ (walk.parquet: every trial, docs/outputs.md)")
@@ -367,7 +369,8 @@ def _study(args) -> int:
         return 2
     try:
         study = study_driver.read(args.name, quick=args.quick, seeds=args.seeds, trials=args.trials,
-                                  physics=args.physics, safe=args.safe, max_trials=args.max_trials)
+                                  physics=args.physics, safe=args.safe, max_trials=args.max_trials,
+                                  startup=args.startup)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -468,7 +471,8 @@ def optimize_spec(args) -> study_spec.StudySpec:
     return study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,),
                                 seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
                                 payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
-                                physics=(args.physics,), safe=args.safe, max_trials=args.max_trials)
+                                physics=(args.physics,), safe=args.safe, max_trials=args.max_trials,
+                                startup=None if args.startup == cpg.DEFAULT_STARTUP else args.startup)
 
 
 def _optimize(args) -> int:
@@ -940,6 +944,14 @@ def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool
                        help="physics profile" + ("" if default else " (default: the study's own)"))
 
 
+def _add_startup_arg(p: argparse.ArgumentParser, default: str | None) -> None:
+    """``--startup``: how the controller starts from standing (docs/decisions.md §18)."""
+    p.add_argument("--startup", choices=tuple(cpg.STARTUPS), default=default,
+                   help="how the robot starts from standing, at the first trial and after a fall: paper (the "
+                   "paper's start) or lean_ramp (stand leaning into the slope, amplitude ramped over 3 s)"
+                   + ("" if default else " (default: the study's own)"))
+
+
 def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> None:
     """The options that choose and reach the robot (``cpgjax deploy`` and ``cpgjax deploy calibrate``)."""
     p.add_argument_group("required").add_argument(
@@ -983,6 +995,7 @@ def _add_walk(sub) -> None:
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
     _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
+    _add_startup_arg(w, cpg.DEFAULT_STARTUP)
     w.add_argument("--out", type=_output_path, help="write walk.parquet (every trial) and metadata.json into this "
                    "folder, missing or empty (default: print the table only)")
     w.add_argument("--overwrite", action="store_true", help="replace the files of a previous walk in --out and an "
@@ -1034,6 +1047,7 @@ def _add_study(sub) -> None:
                    "(coordinator on 127.0.0.1), e.g. to check a multi-process run before a cluster (default: one "
                    "process)")
     _add_physics_arg(s, None)
+    _add_startup_arg(s, None)
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
 
@@ -1050,6 +1064,7 @@ def _add_optimize(sub) -> None:
     o.add_argument("--safe", action="store_true", help=SAFE_HELP)
     _add_output_args(o, "results/optimize")
     _add_physics_arg(o, physics_profiles.PAPER_STUDIES_PROFILE)
+    _add_startup_arg(o, cpg.DEFAULT_STARTUP)
     backends.add_backend_argument(o)
     o.set_defaults(func=_optimize)
 
@@ -1106,6 +1121,7 @@ def _add_deploy(sub) -> None:
                    "margin is the tilt stop's, from the IMU")
     d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", action=_Given,
                    help="the CPG controller (with --params: the file's)")
+    _add_startup_arg(d, cpg.DEFAULT_STARTUP)
     _add_target_arg(d)
     d.add_argument("--duration-s", type=_in(limits.RUN_DURATION_S), default=10.0, action=_Given,
                    help=f"replay only: run time [s], in {limits.RUN_DURATION_S}")

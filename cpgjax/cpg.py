@@ -53,6 +53,31 @@ class CPGConfig(NamedTuple):
     # docs/decisions.md §1 (switch): "paper" integrates α(μ² − r²)r (r → μ); "sqrt" integrates α(μ − r²)r (r → √μ),
     # the form of the lab's public code.
     amplitude_form: str = "paper"
+    # The start from standing (docs/decisions.md §18); every default is the paper's start: r from 0.1 converging at
+    # α, trot phases, the standing posture, VMC from the first tick.
+    start_ramp_s: float = 0.0  # the amplitude target of eq. (1) rises linearly from 0 to μ over this long
+    start_lean: bool = False  # stand leaning into the slope (feet at h·tan(pitch) in x), blended out over the ramp
+    start_vmc_delay_s: float = 0.0  # VMC acts only this long after the start
+    start_phase_rad: float = 0.0  # added to every oscillator's phase at the start
+
+
+# Named start-ups (docs/decisions.md §18): the CPGConfig fields each sets. "paper" is the paper's start; "lean_ramp"
+# stands leaning into the slope from the IMU's pitch and blends the lean out while the amplitude target ramps up
+# over 3 s (the 1.5 s transition and the first half of the steady phase).
+STARTUPS = {
+    "paper": {},
+    "lean_ramp": dict(start_ramp_s=3.0, start_lean=True),
+}
+DEFAULT_STARTUP = "paper"
+
+
+def with_startup(config: CPGConfig, name: str) -> CPGConfig:
+    """``config`` with the start-up ``name`` of :data:`STARTUPS` (its other start fields at the paper's)."""
+    if name not in STARTUPS:
+        raise ValueError(f"unknown start-up {name!r}; allowed: {', '.join(STARTUPS)}")
+    paper = CPGConfig()
+    return config._replace(**{f: getattr(paper, f) for f in CPGConfig._fields if f.startswith("start_")},
+                           **STARTUPS[name])
 
 
 class Gates(NamedTuple):
@@ -75,6 +100,12 @@ class CPGState(NamedTuple):
     amplitude: jax.Array  # r_i, (4,)
     phase_rad: jax.Array  # θ_i in [0, 2π), (4,)
     heading_ref_rad: jax.Array  # ψ_des, heading at the start of the run, ()
+    start_s: jax.Array  # time since the start, saturating at START_CLOCK_MAX_S, ()
+    start_pitch_rad: jax.Array  # the IMU pitch at the start (the lean's), ()
+
+
+START_CLOCK_MAX_S = 60.0
+"""Where :attr:`CPGState.start_s` stops counting: every start-up phase is shorter (float32 keeps 1 ms steps there)."""
 
 
 class Diagnostics(NamedTuple):
@@ -89,7 +120,8 @@ class Diagnostics(NamedTuple):
     saturated: jax.Array  # (12,) 1.0 where the commanded torque was clipped to the motor limit
 
 
-def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_gate, config: CPGConfig):
+def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_gate, config: CPGConfig,
+                           mu_scale=1.0):
     """(ṙ, θ̇) of the four coupled oscillators, eqs. (1)-(3) and the Tegotae term of eq. (6).
 
     Args:
@@ -97,8 +129,9 @@ def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_g
       params: the 8 physical parameters (see ``cpgjax.trial.params``).
       foot_force_n: N_i, (4,).
       tegotae_gate: 1.0 adds −σ_N N_i cos θ_i (eq. 6), 0.0 gives the open-loop phase of eq. (2).
+      mu_scale: the amplitude target is μ · mu_scale (the start's ramp, :func:`start_ramp`; 1 after it).
     """
-    mu, sigma_n = params[4], params[7]
+    mu, sigma_n = params[4] * mu_scale, params[7]
     omega_swing, omega_stance = params[2], params[3]
     target = mu * mu if config.amplitude_form == "paper" else mu
     d_amplitude = config.alpha * (target - amplitude * amplitude) * amplitude  # eq. (1)
@@ -109,10 +142,11 @@ def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_g
     return d_amplitude, omega + coupling + feedback
 
 
-def foot_targets(amplitude, phase_rad, params, config: CPGConfig) -> jax.Array:
-    """Leg-frame foot targets (4, 3) [m] from the oscillator states, eqs. (4)-(5)."""
+def foot_targets(amplitude, phase_rad, params, config: CPGConfig, lean_x_m=0.0) -> jax.Array:
+    """Leg-frame foot targets (4, 3) [m] from the oscillator states, eqs. (4)-(5); ``lean_x_m`` is added to every
+    foot's x (the start's lean, :func:`lean_x_m`)."""
     g_c, g_p = params[0], params[1]
-    x_offset = jnp.where(kinematics.FRONT_SIGN > 0, params[5], params[6])
+    x_offset = jnp.where(kinematics.FRONT_SIGN > 0, params[5], params[6]) + lean_x_m
     sin_phase = jnp.sin(phase_rad)
     x = x_offset - config.step_length_m * amplitude * jnp.cos(phase_rad)  # eq. (4)
     z = -config.body_height_m + jnp.where(sin_phase > 0.0, g_c, g_p) * sin_phase  # eq. (5)
@@ -137,15 +171,31 @@ def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConf
     return jnp.einsum("lij,li->lj", jac, force).reshape(12)
 
 
-def init_state(obs: sensors.Observation, initial_amplitude: float = 0.1) -> CPGState:
-    """Controller state at the start of a run: small amplitude, trot phases θ = φ_0j, heading reference = heading
-    now."""
-    phase = jnp.mod(jnp.asarray(TROT_PHASE_LAG_RAD[0], jnp.float32), 2.0 * jnp.pi)
+def init_state(obs: sensors.Observation, config: CPGConfig = CPGConfig(), initial_amplitude: float = 0.1) -> CPGState:
+    """Controller state at the start of a run: small amplitude, trot phases θ = φ_0j (+ ``config.start_phase_rad``),
+    heading reference = heading now, the start's clock at 0 and the IMU pitch now (the lean's)."""
+    phase = jnp.mod(jnp.asarray(TROT_PHASE_LAG_RAD[0] + config.start_phase_rad, jnp.float32), 2.0 * jnp.pi)
+    rpy = attitude.quat_to_rpy(obs.imu_quat_wxyz).astype(jnp.float32)
     return CPGState(
         amplitude=jnp.full((4,), initial_amplitude, jnp.float32),
         phase_rad=phase,
-        heading_ref_rad=attitude.quat_to_rpy(obs.imu_quat_wxyz)[2].astype(jnp.float32),
+        heading_ref_rad=rpy[2],
+        start_s=jnp.float32(0.0),
+        start_pitch_rad=rpy[1],
     )
+
+
+def start_ramp(config: CPGConfig, start_s) -> jax.Array:
+    """The start's progress in [0, 1] at ``start_s`` after it: t / ``start_ramp_s``, 1 without a ramp."""
+    if config.start_ramp_s <= 0.0:
+        return jnp.ones_like(start_s)
+    return jnp.minimum(1.0, start_s / config.start_ramp_s)
+
+
+def lean_x_m(config: CPGConfig, pitch_rad) -> jax.Array:
+    """The feet's x shift [m] that puts the centre of mass over the feet on a slope: h · tan(pitch) with the IMU
+    pitch (nose-down positive; uphill: negative, the feet move back under the trunk). 0 unless ``start_lean``."""
+    return config.body_height_m * jnp.tan(pitch_rad) * float(config.start_lean)
 
 
 def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates: Gates,
@@ -158,18 +208,22 @@ def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates
     """
     if params.shape[-1] != NUM_PARAMS:
         raise ValueError(f"params must have {NUM_PARAMS} entries, got shape {params.shape}")
+    start_s = jnp.minimum(state.start_s + config.dt_s, START_CLOCK_MAX_S)
+    progress = start_ramp(config, start_s)
     d_amp, d_phase = oscillator_derivatives(state.amplitude, state.phase_rad, params, obs.foot_force_n,
-                                            gates.tegotae, config)
+                                            gates.tegotae, config, mu_scale=progress)
     amplitude = state.amplitude + config.dt_s * d_amp
     phase = jnp.mod(state.phase_rad + config.dt_s * d_phase, 2.0 * jnp.pi)
 
-    targets = foot_targets(amplitude, phase, params, config)
+    targets = foot_targets(amplitude, phase, params, config, (1.0 - progress) * lean_x_m(config,
+                                                                                          state.start_pitch_rad))
     q_des = kinematics.legs_ik(targets, kinematics.SIDE_SIGN).reshape(12)
     tau_ref = config.kp_nm_rad * (q_des - obs.joint_pos_rad) - config.kd_nm_s_rad * obs.joint_vel_rad_s
 
     rpy = attitude.quat_to_rpy(obs.imu_quat_wxyz)
     stance = ((jnp.sin(phase) <= 0.0) & (obs.foot_force_n > config.vmc_contact_force_n)).astype(tau_ref.dtype)
-    tau_vmc = gates.vmc * vmc_torques(obs.joint_pos_rad, rpy, state.heading_ref_rad, stance, config)
+    vmc_on = gates.vmc * (start_s > config.start_vmc_delay_s)
+    tau_vmc = vmc_on * vmc_torques(obs.joint_pos_rad, rpy, state.heading_ref_rad, stance, config)
 
     tau_cmd = tau_ref + tau_vmc
     limit = jnp.asarray(constants.TORQUE_LIMIT_NM, tau_cmd.dtype)
@@ -177,4 +231,4 @@ def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates
     diagnostics = Diagnostics(
         foot_target_m=targets, joint_target_rad=q_des, tau_ref_nm=tau_ref, tau_vmc_nm=tau_vmc, stance=stance,
         rpy_rad=rpy, saturated=(jnp.abs(tau_cmd) > limit).astype(tau_cmd.dtype))
-    return CPGState(amplitude, phase, state.heading_ref_rad), torque, diagnostics
+    return state._replace(amplitude=amplitude, phase_rad=phase, start_s=start_s), torque, diagnostics

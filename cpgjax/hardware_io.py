@@ -576,6 +576,8 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
             if phase == CONNECT:
                 if fresh:
                     hold_q_rad = np.clip(state.q_rad, JOINT_LOWER_RAD, JOINT_UPPER_RAD)
+                    if controller is not None:  # the start-up's standing pose (leaning into a slope)
+                        stand_q_rad = controller.standing_pose_rad(state.quaternion_wxyz)
                     phase, phase_tick = _enter_phase(events, k, HOLD, "first robot state; holding the measured pose")
                 elif k * period_s > loop.connect_timeout_s:
                     reason = f"no robot state within {loop.connect_timeout_s} s"

@@ -28,9 +28,9 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cpgjax import cpg
+from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
-from cpgjax.go1 import sensors
 from cpgjax.sim.base import Backend
 from cpgjax.trial import protocol
 
@@ -111,15 +111,24 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
 
 # ----------------------------------------------------------------------------------------------- one instance
 
-def _standing_data(model: mjx.Model) -> mjx.Data:
-    data = mjx.make_data(model).replace(qpos=jnp.asarray(go1_model.standing_qpos(), jnp.float32))
-    return mjx.forward(model, data)
+def _standing_data(model: mjx.Model, foot_x_shift_m: jax.Array | None = None) -> mjx.Data:
+    qpos = jnp.asarray(go1_model.standing_qpos(), jnp.float32)
+    if foot_x_shift_m is not None:  # the start's lean
+        qpos = qpos.at[go1_model.indices().joint_qpos].set(go1_model.standing_legs_rad(foot_x_shift_m))
+    return mjx.forward(model, mjx.make_data(model).replace(qpos=qpos))
 
 
-def _reset(model: mjx.Model, params: jax.Array) -> SimState:
+def _reset(cpg_config: cpg.CPGConfig, model: mjx.Model, params: jax.Array) -> SimState:
+    """Standing, the controller at rest; with the start's lean the robot reads its IMU's pitch standing and stands
+    leaning (``cpg.lean_x_m``), as the robot's soft start does."""
     data = _standing_data(model)
     obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
-    return SimState(data=data, cpg=cpg.init_state(obs), params=params, io=physics_profiles.init_state(obs.foot_force_n))
+    if cpg_config.start_lean:
+        pitch_rad = attitude.quat_to_rpy(obs.imu_quat_wxyz)[1]  # = go1_model.standing_imu_pitch_rad(slope)
+        data = _standing_data(model, cpg.lean_x_m(cpg_config, pitch_rad))
+        obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
+    return SimState(data=data, cpg=cpg.init_state(obs, cpg_config), params=params,
+                    io=physics_profiles.init_state(obs.foot_force_n))
 
 
 def _control(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics_profiles.ProfileArrays, data: mjx.Data,
@@ -160,7 +169,7 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model:
            profile: physics_profiles.ProfileArrays, state: SimState, new_params: jax.Array,
            gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
     """One trial of one instance: transition (linear interpolation) then steady phase; reset after a fall."""
-    reset = _reset(model, new_params)
+    reset = _reset(cpg_config, model, new_params)
     tick = functools.partial(_tick, cpg_config, trial_config, model, profile, gates, reset)
     n_transition = trial_config.transition_steps
 
@@ -250,7 +259,7 @@ class MJXBackend(Backend):
         self.mesh = _batch_mesh(scenario.batch_size, devices)
         self.batch = self._placed(make_batch_model(scenario))
         axes = self.batch.in_axes
-        self._reset = jax.jit(per_shard(_reset, (axes, 0), self.mesh))
+        self._reset = jax.jit(per_shard(functools.partial(_reset, cpg_config), (axes, 0), self.mesh))
         trial = functools.partial(_trial, cpg_config, trial_config)
         self._trial = jax.jit(per_shard(trial, (axes, 0, 0, 0, 0), self.mesh), donate_argnums=(2,))
         self._rollouts = {}  # num_steps → compiled rollout, on first use

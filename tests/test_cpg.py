@@ -40,7 +40,8 @@ def test_oscillator_derivatives_match_numpy(form):
 
 @jax.jit
 def _run_steps(p, force, gate_tegotae):
-    state = cpg.CPGState(jnp.full(4, 0.1), jnp.array([0.0, np.pi, np.pi, 0.0]), jnp.float32(0.0))
+    state = cpg.CPGState(jnp.full(4, 0.1), jnp.array([0.0, np.pi, np.pi, 0.0]), jnp.float32(0.0), jnp.float32(0.0),
+                         jnp.float32(0.0))
     gates = cpg.Gates(vmc=jnp.float32(0.0), tegotae=gate_tegotae)
     obs = observation(force)
 
@@ -63,7 +64,8 @@ def test_two_second_integration_matches_numpy():
 
 
 def _settle(p, config, steps=6000):
-    state = cpg.CPGState(jnp.full(4, 0.1), jnp.array([0.3, 1.0, 2.5, 4.0]), jnp.float32(0.0))  # far from trot
+    state = cpg.CPGState(jnp.full(4, 0.1), jnp.array([0.3, 1.0, 2.5, 4.0]), jnp.float32(0.0), jnp.float32(0.0),
+                         jnp.float32(0.0))  # far from trot
     gates = cpg.Gates(vmc=jnp.float32(0.0), tegotae=jnp.float32(0.0))
 
     def body(s, _):
@@ -145,8 +147,8 @@ def test_jacobian_matches_finite_differences():
 
 def _one_step(gates, force, quat, p=None):
     p = jnp.asarray(param_space.midpoint() if p is None else p, jnp.float32)
-    state = cpg.CPGState(jnp.full(4, 1.0), jnp.array([0.6, 3.9, 3.9, 0.6]),
-                         jnp.float32(0.0))
+    state = cpg.CPGState(jnp.full(4, 1.0), jnp.array([0.6, 3.9, 3.9, 0.6]), jnp.float32(0.0),
+                         jnp.float32(0.0), jnp.float32(0.0))
     return cpg.controller_step(cpg.CPGConfig(), state, p, gates, observation(force, quat))
 
 

@@ -51,7 +51,7 @@ def test_each_paper_study_file_defines_the_study_of_the_code_it_replaced():
             continue
         study = study_driver.read(name, **options)
         specs = transfer.specs(study) if study.arms else [study.spec]
-        assert [repr(_nameless(s)) for s in specs] == want, key
+        assert [repr(_nameless(s)).replace(", startup=None)", ")") for s in specs] == want, key  # a later field
 
 
 def _sha256(path: pathlib.Path) -> str:

@@ -127,7 +127,7 @@ def run(args) -> int:
     calibration.save(args.log_dir / "calibration.json")
     hint = stale_hint(args)
     with connect(args) as (transport, server), tick_log_writer(args.log_dir / tick_log.FILE_NAME, loop) as ticks:
-        controller = compiled_controller.CompiledController()
+        controller = compiled_controller.CompiledController(cpg.with_startup(cpg.CPGConfig(), args.startup))
         start_xy = None if server is None else server.stats()["trunk_xy_m"]
         if args.optimize:
             spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
@@ -180,7 +180,7 @@ def what_ran(args, rows: list[dict]) -> dict:
     file, the first parameters by name (:func:`first_params`) and each trial's (``rows``) with --optimize."""
     timing, params = trial_timing(args), first_params(args)
     return {"mode": "optimize" if args.optimize else "replay", "robot": args.robot, **tuned_for(args),
-            "physics": args.physics if args.robot == "sim" else "robot",
+            "physics": args.physics if args.robot == "sim" else "robot", "startup": args.startup,
             "transition_s": timing.transition_steps / 1000, "steady_s": timing.steady_steps / 1000,
             "duration_s": None if args.optimize else args.duration_s,
             "num_trials": args.trials if args.optimize else None,

@@ -11,6 +11,7 @@ from importlib import resources
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -241,23 +242,37 @@ def scenario_dependent_fields() -> tuple[str, ...]:
     return tuple(names)
 
 
+def standing_legs_rad(foot_x_shift_m=0.0) -> jax.Array:
+    """The 12 joint angles [rad] of the standing pose: feet at STAND_FOOT_X_M + ``foot_x_shift_m`` in x (the
+    start's lean, ``cpg.lean_x_m``), under the hips in y, STAND_FOOT_Z_M below them. JAX (traceable)."""
+    x = jnp.full(4, STAND_FOOT_X_M) + foot_x_shift_m
+    feet = jnp.stack([x, jnp.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M, jnp.full(4, STAND_FOOT_Z_M)],
+                     axis=-1)
+    return kinematics.legs_ik(feet, jnp.asarray(kinematics.SIDE_SIGN)).reshape(12)
+
+
 @functools.cache
-def _standing_legs_rad() -> np.ndarray:
-    """The 12 joint angles [rad] of the standing pose (feet under the hips), computed once per process."""
-    feet = np.stack([np.full(4, STAND_FOOT_X_M), np.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M,
-                     np.full(4, STAND_FOOT_Z_M)], axis=-1)
+def _standing_legs_rad(foot_x_shift_m: float = 0.0) -> np.ndarray:
+    """:func:`standing_legs_rad` as a read-only NumPy constant, computed once per process and shift."""
     with jax.ensure_compile_time_eval():  # a constant, also when first called while tracing
-        q_legs = jax.jit(kinematics.legs_ik)(feet, np.asarray(kinematics.SIDE_SIGN))
-    q_legs = np.asarray(q_legs, np.float64).reshape(12)
+        q_legs = jax.jit(standing_legs_rad)(np.float64(foot_x_shift_m))
+    q_legs = np.asarray(q_legs, np.float64)
     q_legs.flags.writeable = False
     return q_legs
 
 
-def standing_qpos(model: mujoco.MjModel | None = None) -> np.ndarray:
-    """qpos of the robot standing on flat ground at the origin, heading +x, feet under the hips."""
+def standing_imu_pitch_rad(slope_deg) -> np.ndarray:
+    """The IMU pitch [rad] of the trunk standing parallel to a floor of slope ``slope_deg`` (§4: the IMU reads
+    against gravity, nose-down positive): −slope, nose up uphill."""
+    return -np.radians(np.asarray(slope_deg, np.float64))
+
+
+def standing_qpos(model: mujoco.MjModel | None = None, foot_x_shift_m: float = 0.0) -> np.ndarray:
+    """qpos of the robot standing on the floor at the origin, heading +x, feet under the hips (shifted by
+    ``foot_x_shift_m`` in x: the start's lean)."""
     m = load_model() if model is None else model
     ids = indices()
     qpos = np.array(m.qpos0, np.float64)
     qpos[ids.root_qpos:ids.root_qpos + 7] = [0.0, 0.0, -STAND_FOOT_Z_M + FOOT_RADIUS_M, 1.0, 0.0, 0.0, 0.0]
-    qpos[ids.joint_qpos] = _standing_legs_rad()
+    qpos[ids.joint_qpos] = _standing_legs_rad(float(foot_x_shift_m))
     return qpos

@@ -16,6 +16,7 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import attitude, kinematics, sensors
+from cpgjax.go1 import model as go1_model
 from cpgjax.go1.constants import TORQUE_LIMIT_NM
 from cpgjax.layout import FlatLayout
 from cpgjax.robot import cpu_dispatch, wire
@@ -57,7 +58,7 @@ class ControllerOutput(NamedTuple):
 
 
 OBSERVATION = FlatLayout(sensors.Observation(_zeros(12), _zeros(12), _zeros(4), _zeros(3), _zeros(4)))
-STATE = FlatLayout(cpg.CPGState(_zeros(4), _zeros(4), _zeros()))
+STATE = FlatLayout(cpg.CPGState(_zeros(4), _zeros(4), _zeros(), _zeros(), _zeros()))
 INPUT = FlatLayout(ControllerInput(OBSERVATION.unravel(OBSERVATION.zeros()), _zeros(8), cpg.Gates(_zeros(), _zeros()),
                                    STATE.unravel(STATE.zeros())))
 OUTPUT = FlatLayout(ControllerOutput(_zeros(12), STATE.unravel(STATE.zeros()), _zeros(3), _zeros(4), _zeros(2),
@@ -91,10 +92,17 @@ def flat_step(config: cpg.CPGConfig, x: jax.Array) -> jax.Array:
         finite=jnp.all(jnp.isfinite(torque)).astype(torque.dtype)))
 
 
-def flat_initial_state(x_obs: jax.Array) -> jax.Array:
+def flat_initial_state(config: cpg.CPGConfig, x_obs: jax.Array) -> jax.Array:
     """``cpg.init_state`` for the flat observation x_obs (:data:`OBSERVATION`), as the flat CPG state
     (:data:`STATE`, ``x[INPUT.slices.state]``)."""
-    return STATE.ravel(cpg.init_state(OBSERVATION.unravel(x_obs)))
+    return STATE.ravel(cpg.init_state(OBSERVATION.unravel(x_obs), config))
+
+
+def standing_pose_rad(config: cpg.CPGConfig, imu_quat_wxyz: jax.Array) -> jax.Array:
+    """The standing joint angles (12,) the start-up begins from: the standing pose, with the start's lean the feet
+    shifted by ``cpg.lean_x_m`` of the IMU's pitch (the simulators' reset stands the same way)."""
+    pitch_rad = attitude.quat_to_rpy(imu_quat_wxyz)[1]
+    return go1_model.standing_legs_rad(cpg.lean_x_m(config, pitch_rad))
 
 
 class CompiledController:
@@ -114,16 +122,24 @@ class CompiledController:
         x = INPUT.zeros()
         INPUT.unravel(x).obs.imu_quat_wxyz[0] = 1.0  # identity quaternion
         self._step = jax.jit(lambda v: flat_step(config, v)).lower(x).compile()
-        self._init = jax.jit(flat_initial_state).lower(x[INPUT.slices.obs]).compile()
+        self._init = jax.jit(lambda v: flat_initial_state(config, v)).lower(x[INPUT.slices.obs]).compile()
+        self._stand = jax.jit(lambda q: standing_pose_rad(config, q)).lower(np.float32([1, 0, 0, 0])).compile()
         for _ in range(warmup_calls):
             self.step(x)
         self.initial_state(x[INPUT.slices.obs])
+        self.standing_pose_rad(np.array([1.0, 0.0, 0.0, 0.0]))
 
     def step(self, x: np.ndarray) -> np.ndarray:
         return np.asarray(self._step(x))
 
     def initial_state(self, x_obs: np.ndarray) -> np.ndarray:
         return np.asarray(self._init(x_obs))
+
+    def standing_pose_rad(self, imu_quat_wxyz: np.ndarray) -> np.ndarray:
+        """The soft start's standing joint angles (12,) for the IMU's orientation (:func:`standing_pose_rad`)."""
+        if not self.config.start_lean:
+            return go1_model.standing_qpos()[go1_model.indices().joint_qpos]
+        return np.asarray(self._stand(np.asarray(imu_quat_wxyz, np.float32)), np.float64)
 
 
 def pack_observation(state: wire.RobotState, calibration: FootForceCalibration, obs: sensors.Observation) -> None:

@@ -121,7 +121,8 @@ class BatchPhysics:
     steps its own ``mj_step``).
     """
 
-    def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None, stepping: str | None = None):
+    def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None, stepping: str | None = None,
+                 stand_foot_shift_m: np.ndarray | None = None):
         stepping = default_stepping() if stepping is None else stepping
         if stepping not in STEPPINGS:
             raise ValueError(f"stepping {stepping!r}: allowed {STEPPINGS}")
@@ -143,9 +144,10 @@ class BatchPhysics:
         self.total_mass_kg = np.array([mi.body_subtreemass[go1_model.indices().trunk_body] for mi in self.models])
         self.standing_physics = np.empty((batch, self.layout.size))
         self.standing_sensordata = np.empty((batch, m.nsensordata))
+        shift = np.zeros(batch) if stand_foot_shift_m is None else np.broadcast_to(stand_foot_shift_m, (batch,))
         for i, mi in enumerate(self.models):  # once per backend, not per tick
             d = mujoco.MjData(mi)
-            d.qpos[:] = go1_model.standing_qpos(mi)
+            d.qpos[:] = go1_model.standing_qpos(mi, shift[i])
             mujoco.mj_forward(mi, d)
             d.time = CLOCK_START_S
             mujoco.mj_getState(mi, d, self.standing_physics[i], _PHYSICS_SPEC)
@@ -292,12 +294,13 @@ class _Controller(NamedTuple):
     io: physics_profiles.ActuatorSensorState
 
 
-@jax.jit
-def _rest_controller(qpos, qvel, sensordata, gravity_mps2) -> _Controller:
+@functools.partial(jax.jit, static_argnums=0)
+def _rest_controller(cpg_config: cpg.CPGConfig, qpos, qvel, sensordata, gravity_mps2) -> _Controller:
     """The batch's controller at rest on its standing states (B, ...): a trial's start and a fallen instance's
     reset. One program, not one per operation."""
     obs = jax.vmap(sensors.observe)(qpos, qvel, sensordata, gravity_mps2)
-    return _Controller(jax.vmap(cpg.init_state)(obs), jax.vmap(physics_profiles.init_state)(obs.foot_force_n))
+    return _Controller(jax.vmap(functools.partial(cpg.init_state, config=cpg_config))(obs),
+                       jax.vmap(physics_profiles.init_state)(obs.foot_force_n))
 
 
 class _Constants(NamedTuple):
@@ -573,11 +576,12 @@ class NativeBackend(Backend):
         self.scenario = scenario
         self.cpg_config = cpg_config
         self.trial_config = trial_config
-        self.physics = BatchPhysics(scenario, nthread=nthread, stepping=stepping)
+        lean_m = np.asarray(cpg.lean_x_m(cpg_config, go1_model.standing_imu_pitch_rad(scenario.slope_deg)))
+        self.physics = BatchPhysics(scenario, nthread=nthread, stepping=stepping, stand_foot_shift_m=lean_m)
         self._gravity = jnp.asarray(self.physics.gravity_mps2, jnp.float32)
         self._total_mass = jnp.asarray(self.physics.total_mass_kg, jnp.float32)
         lay, standing = self.physics.layout, self.physics.standing_physics.astype(np.float32)
-        self._reset = _rest_controller(standing[:, lay.qpos], standing[:, lay.qvel],
+        self._reset = _rest_controller(cpg_config, standing[:, lay.qpos], standing[:, lay.qvel],
                                        self.physics.standing_sensordata.astype(np.float32), self._gravity)
         self._profile = jax.tree.map(jnp.asarray, physics_profiles.batch_arrays(
             scenario.physics, scenario.latency_ticks, scenario.noise_scale, scenario.noise_seed))

@@ -60,10 +60,12 @@ class WalkTrial(NamedTuple):
 def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload_kg=(0.0,), params=None,
                 num_trials: int = 2, target_velocity_mps: float = 0.5,
                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
-                physics=(physics_profiles.DEFAULT_PROFILE,), progress=print) -> tuple[list[WalkTrial], dict]:
+                physics=(physics_profiles.DEFAULT_PROFILE,), progress=print,
+                cpg_config: cpg.CPGConfig = cpg.CPGConfig()) -> tuple[list[WalkTrial], dict]:
     """Every combination of controller × friction × slope × payload × physics profile, ``num_trials`` trials back to
     back with the same parameters (default: the middle of the paper's ranges) on ``backend``
-    (:func:`backends.make_backend`); returns every trial of every walk, walk-major, and the timing.
+    (:func:`backends.make_backend`) with the controller's ``cpg_config`` (its start-up); returns every trial of every
+    walk, walk-major, and the timing.
 
     Raises:
       ValueError: ``num_trials`` < 1 or a target velocity outside ``limits.TARGET_VELOCITY_MPS``, before any compute.
@@ -75,7 +77,7 @@ def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), 
                                         payload_kg=[g[3] for g in grid], physics=[g[4] for g in grid])
     p = np.tile(param_space.midpoint() if params is None else params, (len(grid), 1))
     gates = protocol.batch_gates([g[0] for g in grid])
-    sim = backends.make_backend(scenario, backend, trial_config=trial_config)
+    sim = backends.make_backend(scenario, backend, cpg_config, trial_config)
     figures = jax.vmap(lambda r: (objective.objective(r, target_velocity_mps), objective.mean_velocity(r),
                                   objective.cost_of_transport(r)))
     t0 = time.perf_counter()

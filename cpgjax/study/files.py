@@ -111,7 +111,7 @@ def checkpoint_files(out_dir) -> list[pathlib.Path]:
 
 # Fields a study sets only where it uses them; unset (None), they are not part of its definition, so a study without
 # them keeps the fingerprint of its other fields (and the checkpoints written before the fields existed resume).
-_UNSET_UNLESS_GIVEN = ("max_trials", "ramp")
+_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup")
 
 
 def definition(spec) -> dict[str, str]:
@@ -360,8 +360,13 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
 
 # ----------------------------------------------------------------------------------------------- output paths
 
+_WRITE_PROBE = ".cpgjax-write-check-"  # the name of check_writable's file, before the process id
+
+
 def _entries(folder: pathlib.Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir())
+    """The folder's entries, less the probes of :func:`check_writable` (another process of the same run may be
+    checking the folder at this moment)."""
+    return sorted(p.name for p in folder.iterdir() if not p.name.startswith(_WRITE_PROBE))
 
 
 # Every file name a cpgjax command writes into its output folder (studies, optimize, walk and, written by
@@ -457,7 +462,7 @@ def check_writable(folder: pathlib.Path) -> None:
     Raises:
       StudyError: the file cannot be written; the message names the folder and the reason.
     """
-    probe = pathlib.Path(folder) / f".cpgjax-write-check-{os.getpid()}"
+    probe = pathlib.Path(folder) / f"{_WRITE_PROBE}{os.getpid()}"
     try:
         probe.write_bytes(b"")
         probe.unlink()

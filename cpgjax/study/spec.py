@@ -106,6 +106,8 @@ class StudySpec:
         depends on its padded size, so a run computes each trial exactly as another run of the same ``max_trials``
         does, whatever their ``num_trials``: a finished run can be extended up to ``max_trials`` trials with the
         results of a run of that many (``cpgjax.study.files.extension_of``).
+      startup: how the controller starts from standing, at trial 0 and after every fall (``cpg.STARTUPS``,
+        docs/decisions.md §18; None: the paper's start).
     """
 
     name: str
@@ -124,8 +126,13 @@ class StudySpec:
     trial: protocol.TrialConfig = protocol.TrialConfig()
     optimizer: optimizer_config.OptimizerConfig | None = None
     safe: bool = False
-    max_trials: int | None = None  # max_trials and ramp: unset unless given, see study.files.fingerprint
+    max_trials: int | None = None  # max_trials, ramp, startup: unset unless given, see study.files.fingerprint
     ramp: Ramp | None = None
+    startup: str | None = None
+
+    def cpg_config(self) -> cpg.CPGConfig:
+        """The controller's constants with the study's start-up (``cpg.STARTUPS``; None: the paper's)."""
+        return cpg.with_startup(cpg.CPGConfig(), self.startup or cpg.DEFAULT_STARTUP)
 
     def optimizer_config(self) -> optimizer_config.OptimizerConfig:
         """``optimizer``, or the paper's setting with capacity ``max_trials`` (default ``num_trials``) and the c_load
@@ -292,8 +299,8 @@ GRID_AXES = {  # a study file's [grid] key → (StudySpec field, element kind, a
 }
 SCHEDULE_RANGES = {"friction": limits.FRICTION, "slope_deg": limits.SLOPE_DEG, "payload_kg": limits.PAYLOAD_KG,
                    "target_velocity_mps": limits.TARGET_VELOCITY_MPS}  # inference and ramp: true or false
-TOP_KEYS = ("name", "description", "report", "trials", "max_trials", "seeds", "group_by", "safe", "comparisons",
-            "grid", "schedules", "ramp", "randomize", "trial", "quick", "paper", "transfer")
+TOP_KEYS = ("name", "description", "report", "trials", "max_trials", "seeds", "group_by", "safe", "startup",
+            "comparisons", "grid", "schedules", "ramp", "randomize", "trial", "quick", "paper", "transfer")
 QUICK_KEYS = ("trials", "seeds", "max_trials", "schedules")
 STUDY_FILE_SUFFIX = ".toml"
 TICK_S = 0.001  # a trial's timing in a file is in seconds, run in 1 kHz control ticks (cpg.CPGConfig.dt_s)
@@ -516,10 +523,11 @@ def _kind(value) -> str:
 
 
 def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | None = None,
-         physics: str | None = None, safe: bool = False, max_trials: int | None = None) -> StudyFile:
+         physics: str | None = None, safe: bool = False, max_trials: int | None = None,
+         startup: str | None = None) -> StudyFile:
     """Read and check the study file ``path`` with the command line's overrides (each as ``cpgjax study``'s
     option: ``quick`` the file's [quick] values, ``seeds`` seeds 0 … n − 1, ``trials`` the run's length with every
-    change trial scaled to it, ``physics`` one profile for every instance, ``safe``, ``max_trials``).
+    change trial scaled to it, ``physics`` one profile for every instance, ``safe``, ``max_trials``, ``startup``).
 
     Raises:
       StudyError: the message names the file, the key's path and what is allowed; before any compute.
@@ -572,6 +580,9 @@ def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | N
         if not fields["group_by"]:
             r.fail("group_by", f"empty; name one or more of {', '.join(LABELS)}")
     fields["safe"] = safe or r.boolean(data.get("safe", False), "safe")
+    chosen = startup or (r.string(data["startup"], "startup", tuple(cpg.STARTUPS)) if "startup" in data else None)
+    if chosen is not None and chosen != cpg.DEFAULT_STARTUP:
+        fields["startup"] = chosen
     if "ramp" in data:
         ramp = r.table(data["ramp"], "ramp", Ramp._fields, Ramp._fields)
         fields["ramp"] = Ramp(r.number(ramp["start_deg"], "ramp.start_deg", limits.SLOPE_DEG),
@@ -691,6 +702,7 @@ seeds = 5  # seeds 0 … N-1 per group, or a list such as [0, 3, 7]; default {li
 # max_trials = 80  # the trials the run can later be extended to (--resume --trials N); default: trials
 group_by = {_toml(list(d.group_by))}  # labels whose combinations are the report's groups: {", ".join(LABELS)}
 safe = false  # safe optimization: proposals only where a second GP certifies the safety margin >= 0
+startup = "{cpg.DEFAULT_STARTUP}"  # how the robot starts standing (trial 0, after a fall): {", ".join(cpg.STARTUPS)}
 # report = ""  # a hand-written report of the paper's studies; left out: the generic report of any study
 
 # The comparisons the report makes (default: every pair of groups that differ in one label): the groups whose `axis`
