@@ -76,8 +76,8 @@ def with_startup(config: CPGConfig, name: str) -> CPGConfig:
     if name not in STARTUPS:
         raise ValueError(f"unknown start-up {name!r}; allowed: {', '.join(STARTUPS)}")
     paper = CPGConfig()
-    return config._replace(**{f: getattr(paper, f) for f in CPGConfig._fields if f.startswith("start_")},
-                           **STARTUPS[name])
+    return config._replace(**({f: getattr(paper, f) for f in CPGConfig._fields if f.startswith("start_")}
+                              | STARTUPS[name]))
 
 
 class Gates(NamedTuple):
