@@ -56,7 +56,8 @@ class CPGConfig(NamedTuple):
     # The start from standing (docs/decisions.md §18); every default is the paper's start: r from 0.1 converging at
     # α, trot phases, the standing posture, VMC from the first tick.
     start_ramp_s: float = 0.0  # the amplitude target of eq. (1) rises linearly from 0 to μ over this long
-    start_lean: bool = False  # stand leaning into the slope (feet at h·tan(pitch) in x), blended out over the ramp
+    start_lean: bool = False  # stand leaning into the slope: feet at h·tan(pitch) in x
+    start_lean_s: float = 0.0  # the lean is blended out of the foot targets over this long (0: the stance only)
     start_vmc_delay_s: float = 0.0  # VMC acts only this long after the start
     start_phase_rad: float = 0.0  # added to every oscillator's phase at the start
 
@@ -66,7 +67,7 @@ class CPGConfig(NamedTuple):
 # over 3 s (the 1.5 s transition and the first half of the steady phase).
 STARTUPS = {
     "paper": {},
-    "lean_ramp": dict(start_ramp_s=3.0, start_lean=True),
+    "lean_ramp": dict(start_ramp_s=3.0, start_lean=True, start_lean_s=3.0),
 }
 DEFAULT_STARTUP = "paper"
 
@@ -185,11 +186,11 @@ def init_state(obs: sensors.Observation, config: CPGConfig = CPGConfig(), initia
     )
 
 
-def start_ramp(config: CPGConfig, start_s) -> jax.Array:
-    """The start's progress in [0, 1] at ``start_s`` after it: t / ``start_ramp_s``, 1 without a ramp."""
-    if config.start_ramp_s <= 0.0:
+def start_ramp(duration_s: float, start_s) -> jax.Array:
+    """A start phase's progress in [0, 1] at ``start_s`` after the start: t / ``duration_s``, 1 if it lasts 0."""
+    if duration_s <= 0.0:
         return jnp.ones_like(start_s)
-    return jnp.minimum(1.0, start_s / config.start_ramp_s)
+    return jnp.minimum(1.0, start_s / duration_s)
 
 
 def lean_x_m(config: CPGConfig, pitch_rad) -> jax.Array:
@@ -209,14 +210,13 @@ def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates
     if params.shape[-1] != NUM_PARAMS:
         raise ValueError(f"params must have {NUM_PARAMS} entries, got shape {params.shape}")
     start_s = jnp.minimum(state.start_s + config.dt_s, START_CLOCK_MAX_S)
-    progress = start_ramp(config, start_s)
     d_amp, d_phase = oscillator_derivatives(state.amplitude, state.phase_rad, params, obs.foot_force_n,
-                                            gates.tegotae, config, mu_scale=progress)
+                                            gates.tegotae, config, mu_scale=start_ramp(config.start_ramp_s, start_s))
     amplitude = state.amplitude + config.dt_s * d_amp
     phase = jnp.mod(state.phase_rad + config.dt_s * d_phase, 2.0 * jnp.pi)
 
-    targets = foot_targets(amplitude, phase, params, config, (1.0 - progress) * lean_x_m(config,
-                                                                                          state.start_pitch_rad))
+    lean_weight = 1.0 - start_ramp(config.start_lean_s, start_s)
+    targets = foot_targets(amplitude, phase, params, config, lean_weight * lean_x_m(config, state.start_pitch_rad))
     q_des = kinematics.legs_ik(targets, kinematics.SIDE_SIGN).reshape(12)
     tau_ref = config.kp_nm_rad * (q_des - obs.joint_pos_rad) - config.kd_nm_s_rad * obs.joint_vel_rad_s
 

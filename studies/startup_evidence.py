@@ -1,19 +1,22 @@
-"""Where a restart from standing on a slope goes wrong, and which start-up fixes it (docs/decisions.md §18): the
-gaits that walked a slope in a finished slope study, each restarted from standing on that slope under one change of
-the start at a time.
+"""Where a restart from standing on a slope (or under a load) goes wrong, and which start-up fixes it
+(docs/decisions.md §18): the gaits that walked a condition in a finished study, each restarted from standing on that
+condition under one change of the start at a time.
 
-    python studies/startup_evidence.py results/slope_adaptation [--backend native|mjx] [--variants paper,ramp_lean]
+    python studies/startup_evidence.py results/slope_adaptation [--backend native|mjx] [--variants paper,lean_ramp]
+        [--limit N]
+    python studies/startup_evidence.py results/load_adaptation --study load_adaptation
 
-Two sets of gaits per slope, from the folder's ``trials.parquet`` (optimized trials, the slopes > 0):
+Two sets of gaits per condition (a slope > 0 or a payload > 0, with the other), from the folder's
+``trials.parquet`` (optimized trials):
 
-* ``after a fall``: the instance's last gait that walked the slope before a fall (the restarts the study could not
-  avoid, as ``studies/fall_chains.py --rewalk`` picks them), each gait once;
-* ``walked``: every distinct gait that walked the slope.
+* ``after a fall``: the instance's last gait that walked the condition before a fall (the restarts the study could
+  not avoid, as ``studies/fall_chains.py --rewalk`` picks them), each gait once;
+* ``walked``: every distinct gait that walked the condition.
 
-Each gait then runs one trial (1.5 s transition + 3 s, the study's timing and physics) from standing on its slope,
-the transition from the gait itself (no blend) unless a variant says otherwise; it "starts" if the trial does not
-fall. The table gives, per variant, set and slope, the starts out of the gaits with the Clopper–Pearson 95 %
-interval, and Fisher's exact p against the paper's start.
+Each gait then runs one trial (1.5 s transition + 3 s, the study's timing and physics) from standing on its
+condition, the transition from the gait itself (no blend) unless a variant says otherwise; it "starts" if the trial
+does not fall. The table gives, per variant, set and condition, the starts out of the gaits with the
+Clopper–Pearson 95 % interval, and Fisher's exact p against the paper's start.
 """
 
 from __future__ import annotations
@@ -57,9 +60,11 @@ VARIANTS = (
     Variant("vmc_delay", "VMC off for the first 1.5 s", PAPER._replace(start_vmc_delay_s=1.5)),
     Variant("kp", "K_p 70 → 100 N·m/rad (everywhere)", PAPER._replace(kp_nm_rad=100.0)),
     Variant("ramp_lean", "lean, blended out over a 1.5 s amplitude ramp",
-            PAPER._replace(start_ramp_s=1.5, start_lean=True)),
+            PAPER._replace(start_ramp_s=1.5, start_lean=True, start_lean_s=1.5)),
     Variant("ramp_lean_phase", "lean blended out over a 1.5 s ramp, initial phases + π/2",
-            PAPER._replace(start_ramp_s=1.5, start_lean=True, start_phase_rad=float(np.pi / 2))),
+            PAPER._replace(start_ramp_s=1.5, start_lean=True, start_lean_s=1.5, start_phase_rad=float(np.pi / 2))),
+    Variant("lean_blend", "lean, blended out over 3 s; the amplitude as the paper's",
+            PAPER._replace(start_lean=True, start_lean_s=3.0)),
     Variant("lean_ramp", "cpgjax's lean_ramp start-up: lean, blended out over a 3 s amplitude ramp",
             cpg.with_startup(PAPER, "lean_ramp")),
 )
@@ -71,30 +76,37 @@ class Gaits(NamedTuple):
     params: np.ndarray  # (n, 8)
     instance: np.ndarray  # (n,) the study's instance
     trial: np.ndarray  # (n,) the trial it walked (its scenario)
-    slope_deg: np.ndarray  # (n,)
+    condition: np.ndarray  # (n,) str: its slope and payload, as the table's column
     controller: np.ndarray  # (n,) str
+
+
+def condition_labels(columns: dict[str, np.ndarray]) -> np.ndarray:
+    """Each trial's condition (T, B) as a label, "" on level ground without a load."""
+    slope, payload = columns["slope_deg"], columns["payload_kg"]
+    label = np.vectorize(lambda s, m: ", ".join(([f"{s:g}°"] if s else []) + ([f"{m:g} kg"] if m else [])))
+    return label(slope, payload)
 
 
 def gait_sets(columns: dict[str, np.ndarray]) -> dict[str, Gaits]:
     """The two sets of the module docstring from a study's trials (``study_io.read_trials``)."""
     fell = (columns["fell"] > 0) | (columns["failed"] > 0)
     optimized = columns["inference"] == 0
-    slope = columns["slope_deg"]
+    condition = condition_labels(columns)
     params = np.stack([columns[name] for name in param_space.PARAM_NAMES], axis=-1)
     after_fall, walked = {}, {}
-    for t, b in zip(*np.nonzero(fell[:-1] & optimized[:-1] & optimized[1:] & (slope[1:] == slope[:-1])
-                                & (slope[:-1] > 0)), strict=True):
-        earlier = [k for k in range(t) if not fell[k, b] and slope[k, b] == slope[t, b]]
+    for t, b in zip(*np.nonzero(fell[:-1] & optimized[:-1] & optimized[1:] & (condition[1:] == condition[:-1])
+                                & (condition[:-1] != "")), strict=True):
+        earlier = [k for k in range(t) if not fell[k, b] and condition[k, b] == condition[t, b]]
         if earlier:
             k = earlier[-1]
             after_fall.setdefault(params[k, b].tobytes(), (k, b))
-    for k, b in zip(*np.nonzero(optimized & ~fell & (slope > 0)), strict=True):
+    for k, b in zip(*np.nonzero(optimized & ~fell & (condition != "")), strict=True):
         walked.setdefault(params[k, b].tobytes(), (k, b))
 
     def gaits(found: dict) -> Gaits:
         kb = np.array(list(found.values()), int).reshape(-1, 2)
         k, b = kb[:, 0], kb[:, 1]
-        return Gaits(params=params[k, b], instance=b, trial=k, slope_deg=slope[k, b],
+        return Gaits(params=params[k, b], instance=b, trial=k, condition=condition[k, b],
                      controller=np.asarray(columns["controller"])[k, b])
     return {"after a fall": gaits(after_fall), "walked": gaits(walked)}
 
@@ -112,22 +124,31 @@ def restart(engine: ablation.Engine, gaits: Gaits, variant: Variant, backend: st
     return (np.asarray(record.fell) > 0) | (np.asarray(record.failed) > 0)
 
 
-def table(folder: pathlib.Path, study: str, variants: tuple[Variant, ...], backend: str) -> str:
-    """The markdown table of the module docstring."""
+def evenly(gaits: Gaits, limit: int | None) -> Gaits:
+    """At most ``limit`` of the gaits, evenly spaced in the set's order (all of them without a limit)."""
+    if limit is None or len(gaits.params) <= limit:
+        return gaits
+    keep = np.linspace(0, len(gaits.params) - 1, limit).round().astype(int)
+    return Gaits(*(field[keep] for field in gaits))
+
+
+def table(folder: pathlib.Path, study: str, variants: tuple[Variant, ...], backend: str,
+          limit: int | None = None) -> str:
+    """The markdown table of the module docstring (at most ``limit`` gaits per set, :func:`evenly`)."""
     from cpgjax.studies import driver as study_driver  # the study's scenarios (its file)
 
     engine = ablation.Engine(study_driver.read(study).spec, backend="native")
-    sets = gait_sets(study_io.read_trials(folder / "trials.parquet"))
-    slopes = sorted(set(np.concatenate([g.slope_deg for g in sets.values()]).tolist()))
-    head = " | ".join(f"{name}, {s:g}°" for name in sets for s in slopes)
-    lines = [f"| start-up | change | {head} |", "|---|---|" + "---|" * (len(sets) * len(slopes))]
+    sets = {name: evenly(g, limit) for name, g in gait_sets(study_io.read_trials(folder / "trials.parquet")).items()}
+    conditions = sorted(set(np.concatenate([g.condition for g in sets.values()]).tolist()))
+    head = " | ".join(f"{name}, {s}" for name in sets for s in conditions)
+    lines = [f"| start-up | change | {head} |", "|---|---|" + "---|" * (len(sets) * len(conditions))]
     paper = {}
     for variant in variants:
         cells = []
         for name, gaits in sets.items():
             fell = restart(engine, gaits, variant, backend)
-            for s in slopes:
-                here = gaits.slope_deg == s
+            for s in conditions:
+                here = gaits.condition == s
                 starts, n = int((~fell[here]).sum()), int(here.sum())
                 cell = f"{starts}/{n} ({stats.proportion_ci(starts, n)})"
                 if variant.name == "paper":
@@ -141,18 +162,20 @@ def table(folder: pathlib.Path, study: str, variants: tuple[Variant, ...], backe
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("folder", type=pathlib.Path, help="a slope study's output folder (with trials.parquet)")
+    parser.add_argument("folder", type=pathlib.Path, help="a study's output folder (with trials.parquet)")
     parser.add_argument("--study", default="slope_adaptation", help="the study the folder ran (a name or a file)")
     parser.add_argument("--backend", default="native", choices=backends.BACKENDS)
     parser.add_argument("--variants", default=",".join(v.name for v in VARIANTS),
                         help="comma-separated, from: " + ", ".join(v.name for v in VARIANTS))
+    parser.add_argument("--limit", type=int, default=None, help="at most this many gaits per set, evenly spaced "
+                        "(MJX on a CPU: 64 per batch at most, docs/scaling.md)")
     args = parser.parse_args(argv)
     by_name = {v.name: v for v in VARIANTS}
     chosen = args.variants.split(",")
     unknown = [n for n in chosen if n not in by_name]
     if unknown:
         parser.error(f"--variants: unknown {', '.join(unknown)}; allowed: {', '.join(by_name)}")
-    print(table(args.folder, args.study, tuple(by_name[n] for n in chosen), args.backend))
+    print(table(args.folder, args.study, tuple(by_name[n] for n in chosen), args.backend, args.limit))
 
 
 if __name__ == "__main__":
