@@ -143,7 +143,8 @@ def test_a_replay_on_the_simulated_go1_logs_its_true_state_beside_the_estimate(t
     run = json.loads((run_dir / "run.json").read_text())
     assert run["trials"][1]["true_velocity_x_mps"] == pytest.approx(rows[1]["true_velocity_x_mps"])
     assert undocumented("run.json", run) == []
-    assert run["ran"] == {**TUNED_FOR, "friction": 0.9, "mode": "replay", "robot": "sim", "transition_s": 1.5,
-                          "steady_s": 3.0, "duration_s": 9.5, "num_trials": None, "optimizer": None, "seed": 0,
+    assert run["ran"] == {**TUNED_FOR, "friction": 0.9, "mode": "replay", "robot": "sim", "startup": "paper",
+                          "transition_s": 1.5, "steady_s": 3.0, "duration_s": 9.5, "num_trials": None,
+                          "optimizer": None, "seed": 0,
                           "params_file": str(params_file), "params": REPLAYED, "trial_params": None}
     assert "(the simulated Go1's truth: v_x" in out.stderr + out.stdout

@@ -242,21 +242,29 @@ def scenario_dependent_fields() -> tuple[str, ...]:
     return tuple(names)
 
 
+# Leg-frame feet (4, 3) of the standing pose: STAND_FOOT_X_M in x, under the hips in y, STAND_FOOT_Z_M below them.
+_STANDING_FEET_M = np.stack([np.full(4, STAND_FOOT_X_M), np.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M,
+                             np.full(4, STAND_FOOT_Z_M)], axis=-1)
+
+
 def standing_legs_rad(foot_x_shift_m=0.0) -> jax.Array:
-    """The 12 joint angles [rad] of the standing pose: feet at STAND_FOOT_X_M + ``foot_x_shift_m`` in x (the
-    start's lean, ``cpg.lean_x_m``), under the hips in y, STAND_FOOT_Z_M below them. JAX (traceable)."""
-    x = jnp.full(4, STAND_FOOT_X_M) + foot_x_shift_m
-    feet = jnp.stack([x, jnp.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M, jnp.full(4, STAND_FOOT_Z_M)],
-                     axis=-1)
+    """The 12 joint angles [rad] of the standing pose, the feet shifted by ``foot_x_shift_m`` in x (the start's lean,
+    ``cpg.lean_x_m``). JAX (traceable)."""
+    feet = jnp.asarray(_STANDING_FEET_M, jnp.float32).at[:, 0].add(foot_x_shift_m)
     return kinematics.legs_ik(feet, jnp.asarray(kinematics.SIDE_SIGN)).reshape(12)
+
+
+_legs_ik = jax.jit(kinematics.legs_ik)
 
 
 @functools.cache
 def _standing_legs_rad(foot_x_shift_m: float = 0.0) -> np.ndarray:
     """:func:`standing_legs_rad` as a read-only NumPy constant, computed once per process and shift."""
+    feet = _STANDING_FEET_M.copy()
+    feet[:, 0] += foot_x_shift_m
     with jax.ensure_compile_time_eval():  # a constant, also when first called while tracing
-        q_legs = jax.jit(standing_legs_rad)(np.float64(foot_x_shift_m))
-    q_legs = np.asarray(q_legs, np.float64)
+        q_legs = _legs_ik(feet, np.asarray(kinematics.SIDE_SIGN))
+    q_legs = np.asarray(q_legs, np.float64).reshape(12)
     q_legs.flags.writeable = False
     return q_legs
 
