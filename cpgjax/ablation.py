@@ -353,10 +353,17 @@ class Engine:
     # -- pieces ---------------------------------------------------------------------------------------------
 
     def scenario(self, trial: int) -> go1_model.Scenario:
+        """Every instance's scenario of trial ``trial`` (padded batch)."""
+        return self.scenario_at(trial, slice(None))
+
+    def scenario_at(self, trials, instances) -> go1_model.Scenario:
+        """The scenarios of (trial, instance) pairs (NumPy indices into the padded conditions, broadcast together):
+        one batch of them, e.g. the trials a study's analysis walks again."""
         c = self.padded
-        return go1_model.make_scenarios(c.friction[:, trial], c.slope_deg[:, trial], c.payload_kg[:, trial],
-                                        self.physics, c.mass_scale[:, trial], c.latency_ticks[:, trial],
-                                        c.noise_scale[:, trial], self.seeds)  # one noise stream per seed
+        return go1_model.make_scenarios(c.friction[instances, trials], c.slope_deg[instances, trials],
+                                        c.payload_kg[instances, trials], self.physics[instances],
+                                        c.mass_scale[instances, trials], c.latency_ticks[instances, trials],
+                                        c.noise_scale[instances, trials], self.seeds[instances])  # noise per seed
 
     def simulator(self, trial: int) -> Backend:
         """The backend of this process's instances for trial ``trial``'s scenario, on this process's devices; rebuilt

@@ -28,7 +28,6 @@ import pathlib
 import numpy as np
 
 from cpgjax import ablation
-from cpgjax.go1 import model as go1_model
 from cpgjax.sim import backends
 from cpgjax.studies import driver as study_driver
 from cpgjax.studies import stats
@@ -81,8 +80,7 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
         return f"{folder}: no trial after a fall with an earlier walk on its condition"
     spec = study_driver.read(study).spec
     engine = ablation.Engine(spec, backend="native")
-    scenario = go1_model.Scenario(*(np.stack([getattr(engine.scenario(t), f)[b] for t, b, _ in cases])
-                                    for f in go1_model.Scenario._fields))
+    scenario = engine.scenario_at(np.array([t for t, _, _ in cases]), np.array([b for _, b, _ in cases]))
     level = scenario._replace(slope_deg=np.zeros_like(scenario.slope_deg),
                               payload_kg=np.zeros_like(scenario.payload_kg))
     gates = protocol.batch_gates([str(columns["controller"][t, b]) for t, b, _ in cases])

@@ -28,7 +28,6 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax import ablation, cpg
-from cpgjax.go1 import model as go1_model
 from cpgjax.sim import backends
 from cpgjax.studies import stats
 from cpgjax.study import files as study_io
@@ -113,10 +112,7 @@ def gait_sets(columns: dict[str, np.ndarray]) -> dict[str, Gaits]:
 
 def restart(engine: ablation.Engine, gaits: Gaits, variant: Variant, backend: str) -> np.ndarray:
     """(n,) bool: the gait fell in its trial from standing under ``variant``."""
-    fields = [getattr(engine.scenario(int(t)), f)[int(b)] for t, b in zip(gaits.trial, gaits.instance, strict=True)
-              for f in go1_model.Scenario._fields]
-    width = len(go1_model.Scenario._fields)
-    scenario = go1_model.Scenario(*(np.array(fields[i::width]) for i in range(width)))
+    scenario = engine.scenario_at(gaits.trial, gaits.instance)
     sim = backends.make_backend(scenario, backend, variant.config, engine.spec.trial)
     start = np.tile(param_space.midpoint(), (len(gaits.params), 1)) if variant.blend_from_midpoint else gaits.params
     _, record = sim.trial(sim.reset(start), gaits.params, protocol.batch_gates(list(gaits.controller)))
