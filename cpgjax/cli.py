@@ -472,7 +472,7 @@ def optimize_spec(args) -> study_spec.StudySpec:
                                 seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
                                 payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
                                 physics=(args.physics,), safe=args.safe, max_trials=args.max_trials,
-                                startup=None if args.startup == cpg.DEFAULT_STARTUP else args.startup)
+                                startup=study_spec.startup_field(args.startup))
 
 
 def _optimize(args) -> int:
@@ -948,7 +948,8 @@ def _add_startup_arg(p: argparse.ArgumentParser, default: str | None) -> None:
     """``--startup``: how the controller starts from standing (docs/decisions.md §18)."""
     p.add_argument("--startup", choices=tuple(cpg.STARTUPS), default=default,
                    help="how the robot starts from standing, at the first trial and after a fall: paper (the "
-                   "paper's start) or lean_ramp (stand leaning into the slope, amplitude ramped over 3 s)"
+                   "paper's start) or lean_ramp (stand leaning into the slope, amplitude ramped over "
+                   f"{cpg.STARTUPS['lean_ramp']['start_ramp_s']:g} s)"
                    + ("" if default else " (default: the study's own)"))
 
 

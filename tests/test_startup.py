@@ -130,6 +130,8 @@ def test_a_study_file_chooses_its_startup(tmp_path):
     path.write_text('name = "s"\ntrials = 4\nstartup = "lean"\n')
     with pytest.raises(study_spec.StudyError, match=r"startup: 'lean' is not allowed; allowed: paper, lean_ramp"):
         study_spec.read(path)
+    with pytest.raises(study_spec.StudyError, match=r"unknown startup 'lean'; allowed: paper, lean_ramp"):
+        study_spec.validate(study_spec.StudySpec("s", startup="lean"))  # the Python API, before any compute
 
 
 def test_the_loopback_go1_starts_a_tuned_gait_on_10_degrees():

@@ -123,7 +123,9 @@ class CompiledController:
         INPUT.unravel(x).obs.imu_quat_wxyz[0] = 1.0  # identity quaternion
         self._step = jax.jit(lambda v: flat_step(config, v)).lower(x).compile()
         self._init = jax.jit(lambda v: flat_initial_state(config, v)).lower(x[INPUT.slices.obs]).compile()
-        self._stand = jax.jit(lambda q: standing_pose_rad(config, q)).lower(np.float32([1, 0, 0, 0])).compile()
+        # Without the lean the standing pose is the constant one: nothing to compile.
+        self._stand = (jax.jit(lambda q: standing_pose_rad(config, q)).lower(np.float32([1, 0, 0, 0])).compile()
+                       if config.start_lean else None)
         for _ in range(warmup_calls):
             self.step(x)
         self.initial_state(x[INPUT.slices.obs])
@@ -137,7 +139,7 @@ class CompiledController:
 
     def standing_pose_rad(self, imu_quat_wxyz: np.ndarray) -> np.ndarray:
         """The soft start's standing joint angles (12,) for the IMU's orientation (:func:`standing_pose_rad`)."""
-        if not self.config.start_lean:
+        if self._stand is None:
             return go1_model.standing_qpos()[go1_model.indices().joint_qpos]
         return np.asarray(self._stand(np.asarray(imu_quat_wxyz, np.float32)), np.float64)
 

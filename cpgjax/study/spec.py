@@ -143,6 +143,11 @@ class StudySpec:
         return dataclasses.replace(config, safe=True) if self.safe and not config.safe else config
 
 
+def startup_field(name: str | None) -> str | None:
+    """A start-up's name (``cpg.STARTUPS``) as :attr:`StudySpec.startup` holds it: the paper's, the default, unset."""
+    return None if name == cpg.DEFAULT_STARTUP else name
+
+
 LABELS = ("controller", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
           "data_reuse", "physics")
 
@@ -227,6 +232,8 @@ def validate(spec: StudySpec) -> Conditions:
     for c in spec.controllers:
         if c not in cpg.CONTROLLERS:
             fail(f"unknown controller {c!r}; allowed: {cpg.CONTROLLERS}")
+    if spec.startup is not None and spec.startup not in cpg.STARTUPS:
+        fail(f"unknown startup {spec.startup!r}; allowed: {', '.join(cpg.STARTUPS)}")
     for name in spec.physics:
         if name not in physics_profiles.PROFILES:
             fail(f"unknown physics profile {name!r}; allowed: {tuple(physics_profiles.PROFILES)}")
@@ -580,8 +587,9 @@ def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | N
         if not fields["group_by"]:
             r.fail("group_by", f"empty; name one or more of {', '.join(LABELS)}")
     fields["safe"] = safe or r.boolean(data.get("safe", False), "safe")
-    chosen = startup or (r.string(data["startup"], "startup", tuple(cpg.STARTUPS)) if "startup" in data else None)
-    if chosen is not None and chosen != cpg.DEFAULT_STARTUP:
+    chosen = startup_field(startup or (r.string(data["startup"], "startup", tuple(cpg.STARTUPS))
+                                       if "startup" in data else None))
+    if chosen is not None:
         fields["startup"] = chosen
     if "ramp" in data:
         ramp = r.table(data["ramp"], "ramp", Ramp._fields, Ramp._fields)
