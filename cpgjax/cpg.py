@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax.go1 import attitude, constants, kinematics, sensors
+from cpgjax.go1 import model as go1_model
 from cpgjax.trial.params import NUM_PARAMS
 
 # Trot phase lags φ_ij (eq. 3), leg order FR, FL, RR, RL.
@@ -197,6 +198,13 @@ def lean_x_m(config: CPGConfig, pitch_rad) -> jax.Array:
     """The feet's x shift [m] that puts the centre of mass over the feet on a slope: h · tan(pitch) with the IMU
     pitch (nose-down positive; uphill: negative, the feet move back under the trunk). 0 unless ``start_lean``."""
     return config.body_height_m * jnp.tan(pitch_rad) * float(config.start_lean)
+
+
+def standing_pose_rad(config: CPGConfig, imu_quat_wxyz: jax.Array) -> jax.Array:
+    """The standing joint angles (12,) a start begins from: the standing pose, with the start's lean the feet shifted
+    by :func:`lean_x_m` of the IMU's pitch (MJX's reset and the robot's soft start; the native backend's reset stands
+    at the lean of its scenario's slope, the same pitch)."""
+    return go1_model.standing_legs_rad(lean_x_m(config, attitude.quat_to_rpy(imu_quat_wxyz)[1]))
 
 
 def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates: Gates,

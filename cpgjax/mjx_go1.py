@@ -28,9 +28,9 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cpgjax import cpg
-from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1 import sensors
 from cpgjax.sim.base import Backend
 from cpgjax.trial import protocol
 
@@ -111,10 +111,10 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
 
 # ----------------------------------------------------------------------------------------------- one instance
 
-def _standing_data(model: mjx.Model, foot_x_shift_m: jax.Array | None = None) -> mjx.Data:
+def _standing_data(model: mjx.Model, legs_rad: jax.Array | None = None) -> mjx.Data:
     qpos = jnp.asarray(go1_model.standing_qpos(), jnp.float32)
-    if foot_x_shift_m is not None:  # the start's lean
-        qpos = qpos.at[go1_model.indices().joint_qpos].set(go1_model.standing_legs_rad(foot_x_shift_m))
+    if legs_rad is not None:  # the start's leaning pose
+        qpos = qpos.at[go1_model.indices().joint_qpos].set(legs_rad)
     return mjx.forward(model, mjx.make_data(model).replace(qpos=qpos))
 
 
@@ -124,8 +124,7 @@ def _reset(cpg_config: cpg.CPGConfig, model: mjx.Model, params: jax.Array) -> Si
     data = _standing_data(model)
     obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
     if cpg_config.start_lean:
-        pitch_rad = attitude.quat_to_rpy(obs.imu_quat_wxyz)[1]  # = go1_model.standing_imu_pitch_rad(slope)
-        data = _standing_data(model, cpg.lean_x_m(cpg_config, pitch_rad))
+        data = _standing_data(model, cpg.standing_pose_rad(cpg_config, obs.imu_quat_wxyz))
         obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
     return SimState(data=data, cpg=cpg.init_state(obs, cpg_config), params=params,
                     io=physics_profiles.init_state(obs.foot_force_n))

@@ -115,7 +115,7 @@ def test_both_backends_and_the_robots_soft_start_stand_alike():
     mjx_q = np.asarray(mjx_go1.MJXBackend(scenario, LEAN_RAMP).reset(np.tile(param_space.midpoint(), (2, 1)))
                        .data.qpos)[:, ids.joint_qpos]
     np.testing.assert_allclose(mjx_q, native_q, atol=2e-5)
-    robot = np.stack([np.asarray(compiled_controller.standing_pose_rad(LEAN_RAMP, _pitch_quat(-np.radians(s))))
+    robot = np.stack([np.asarray(cpg.standing_pose_rad(LEAN_RAMP, _pitch_quat(-np.radians(s))))
                       for s in (12.5, 0.0)])
     np.testing.assert_allclose(robot, native_q, atol=2e-5)
     np.testing.assert_allclose(native_q[1], go1_model.standing_qpos()[ids.joint_qpos], atol=2e-6)  # level: no lean

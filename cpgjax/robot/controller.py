@@ -98,13 +98,6 @@ def flat_initial_state(config: cpg.CPGConfig, x_obs: jax.Array) -> jax.Array:
     return STATE.ravel(cpg.init_state(OBSERVATION.unravel(x_obs), config))
 
 
-def standing_pose_rad(config: cpg.CPGConfig, imu_quat_wxyz: jax.Array) -> jax.Array:
-    """The standing joint angles (12,) the start-up begins from: the standing pose, with the start's lean the feet
-    shifted by ``cpg.lean_x_m`` of the IMU's pitch (the simulators' reset stands the same way)."""
-    pitch_rad = attitude.quat_to_rpy(imu_quat_wxyz)[1]
-    return go1_model.standing_legs_rad(cpg.lean_x_m(config, pitch_rad))
-
-
 class CompiledController:
     """The controller step compiled ahead of time (``jit(...).lower(...).compile()``) and warmed up.
 
@@ -124,7 +117,7 @@ class CompiledController:
         self._step = jax.jit(lambda v: flat_step(config, v)).lower(x).compile()
         self._init = jax.jit(lambda v: flat_initial_state(config, v)).lower(x[INPUT.slices.obs]).compile()
         # Without the lean the standing pose is the constant one: nothing to compile.
-        self._stand = (jax.jit(lambda q: standing_pose_rad(config, q)).lower(np.float32([1, 0, 0, 0])).compile()
+        self._stand = (jax.jit(lambda q: cpg.standing_pose_rad(config, q)).lower(np.float32([1, 0, 0, 0])).compile()
                        if config.start_lean else None)
         for _ in range(warmup_calls):
             self.step(x)
@@ -138,7 +131,7 @@ class CompiledController:
         return np.asarray(self._init(x_obs))
 
     def standing_pose_rad(self, imu_quat_wxyz: np.ndarray) -> np.ndarray:
-        """The soft start's standing joint angles (12,) for the IMU's orientation (:func:`standing_pose_rad`)."""
+        """The soft start's standing joint angles (12,) for the IMU's orientation (``cpg.standing_pose_rad``)."""
         if self._stand is None:
             return go1_model.standing_qpos()[go1_model.indices().joint_qpos]
         return np.asarray(self._stand(np.asarray(imu_quat_wxyz, np.float32)), np.float64)
