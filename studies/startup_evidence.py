@@ -29,6 +29,7 @@ import numpy as np
 
 from cpgjax import ablation, cpg
 from cpgjax.sim import backends
+from cpgjax.studies import driver as study_driver
 from cpgjax.studies import stats
 from cpgjax.study import files as study_io
 from cpgjax.trial import params as param_space
@@ -47,14 +48,14 @@ class Variant(NamedTuple):
 
 
 VARIANTS = (
-    Variant("paper", "the paper's start: r = 0.1 → μ at α = 50, trot phases, feet under the hips, VMC at once"),
+    Variant("paper", "the paper's start: r = 0.1 → μ at α = 50, trot phases, feet 3.5 cm behind the hips, VMC at once"),
     Variant("blend", "the 1.5 s blend starts from the box midpoint (as after a fall, from another gait)",
             blend_from_midpoint=True),
     Variant("ramp", "amplitude target ramps 0 → μ over 1.5 s", PAPER._replace(start_ramp_s=1.5)),
     Variant("ramp_3s", "amplitude target ramps 0 → μ over 3 s", PAPER._replace(start_ramp_s=3.0)),
     Variant("phase", "initial phases + π/2 (the first pair starts mid-swing)",
             PAPER._replace(start_phase_rad=float(np.pi / 2))),
-    Variant("lean", "standing posture leans into the slope: feet at h·tan(pitch) in x",
+    Variant("lean", "standing posture leans into the slope: feet shifted by h·tan(pitch) in x",
             PAPER._replace(start_lean=True)),
     Variant("vmc_delay", "VMC off for the first 1.5 s", PAPER._replace(start_vmc_delay_s=1.5)),
     Variant("kp", "K_p 70 → 100 N·m/rad (everywhere)", PAPER._replace(kp_nm_rad=100.0)),
@@ -131,8 +132,6 @@ def evenly(gaits: Gaits, limit: int | None) -> Gaits:
 def table(folder: pathlib.Path, study: str, variants: tuple[Variant, ...], backend: str,
           limit: int | None = None) -> str:
     """The markdown table of the module docstring (at most ``limit`` gaits per set, :func:`evenly`)."""
-    from cpgjax.studies import driver as study_driver  # the study's scenarios (its file)
-
     engine = ablation.Engine(study_driver.read(study).spec, backend="native")
     sets = {name: evenly(g, limit) for name, g in gait_sets(study_io.read_trials(folder / "trials.parquet")).items()}
     conditions = sorted(set(np.concatenate([g.condition for g in sets.values()]).tolist()))
@@ -164,8 +163,10 @@ def main(argv=None) -> None:
     parser.add_argument("--variants", default=",".join(v.name for v in VARIANTS),
                         help="comma-separated, from: " + ", ".join(v.name for v in VARIANTS))
     parser.add_argument("--limit", type=int, default=None, help="at most this many gaits per set, evenly spaced "
-                        "(MJX on a CPU: 64 per batch at most, docs/scaling.md)")
+                        "(a smaller batch for MJX on a CPU, where it is slow)")
     args = parser.parse_args(argv)
+    if args.limit is not None and args.limit < 1:
+        parser.error(f"--limit {args.limit}: need at least 1 gait per set")
     by_name = {v.name: v for v in VARIANTS}
     chosen = args.variants.split(",")
     unknown = [n for n in chosen if n not in by_name]
