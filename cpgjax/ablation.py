@@ -31,6 +31,7 @@ devices. The state is checkpointed after every trial (``cpgjax.study.files``) an
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import logging
 import os
@@ -315,7 +316,8 @@ class Engine:
         targets = self.padded.target_velocity_mps
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
         config = self.optimizer_config = spec.optimizer_config()
-        self.optimizer = (bo.make_optimizer(config, objective.objective, _record_template(spec.trial))
+        score = functools.partial(objective.objective, floor=spec.switch_values().objective_floor)
+        self.optimizer = (bo.make_optimizer(config, score, _record_template(spec.trial))
                           if self.uses_records else bo.make_optimizer(config))
         opt = self.optimizer
         init = (lambda a, t: opt.init(active_dims=a, target_velocity=t)) if self.uses_records else \
@@ -332,7 +334,7 @@ class Engine:
         self._keys = self._per_instance(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
                                         in_axes=(0, None))
         self._summary = jax.jit(jax.vmap(lambda r, v: (
-            objective.objective(r, v), objective.context(r), objective.mean_velocity(r),
+            score(r, v), objective.context(r), objective.mean_velocity(r),
             objective.cost_of_transport(r))))
         self._sim = None
 

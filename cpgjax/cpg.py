@@ -31,6 +31,7 @@ from cpgjax.trial.params import NUM_PARAMS
 TROT_PHASE_LAG_RAD = np.pi * np.array([[0, 1, 1, 0], [-1, 0, 0, -1], [-1, 0, 0, -1], [0, 1, 1, 0]], dtype=np.float64)
 
 CONTROLLERS = ("open_loop", "vmc", "tegotae", "vmc_tegotae")
+AMPLITUDE_FORMS = ("paper", "sqrt")  # CPGConfig.amplitude_form
 
 
 class CPGConfig(NamedTuple):
@@ -48,7 +49,7 @@ class CPGConfig(NamedTuple):
     k_dir_n_rad: float = 300.0  # VMC heading gain k_dir
     # VMC acts on legs in stance: CPG stance phase (sin θ ≤ 0) *and* foot loaded beyond this normal force. A virtual
     # force on a foot in the air only swings the leg (measured: lateral velocity std 0.11 m/s with the phase alone,
-    # vs 0.06 with VMC alone, mid-range parameters).
+    # vs 0.06 with VMC alone, mid-range parameters). −inf: the stance phase alone (docs/decisions.md §7's switch).
     vmc_contact_force_n: float = 10.0
     dt_s: float = 0.001  # control period (1 kHz)
     # docs/decisions.md §1 (switch): "paper" integrates α(μ² − r²)r (r → μ); "sqrt" integrates α(μ − r²)r (r → √μ),
@@ -135,7 +136,7 @@ def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_g
     """
     mu, sigma_n = params[4] * mu_scale, params[7]
     omega_swing, omega_stance = params[2], params[3]
-    target = mu * mu if config.amplitude_form == "paper" else mu
+    target = mu * mu if config.amplitude_form == "paper" else mu  # AMPLITUDE_FORMS
     d_amplitude = config.alpha * (target - amplitude * amplitude) * amplitude  # eq. (1)
     omega = jnp.where(jnp.sin(phase_rad) > 0.0, omega_swing, omega_stance)  # eq. (3)
     phase_diff = phase_rad[None, :] - phase_rad[:, None] - TROT_PHASE_LAG_RAD  # [i, j] = θ_j − θ_i − φ_ij

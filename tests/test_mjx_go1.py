@@ -25,11 +25,31 @@ def test_model_names_and_mass():
     assert m.opt.timestep == pytest.approx(0.001)
     assert [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n))
             for n in go1_model.JOINT_NAMES] == list(go1_model.JOINT_NAMES)
-    assert m.body_subtreemass[ids.trunk_body] == pytest.approx(12.74, abs=0.01)  # docs/go1-model.md: ≈ 12.7 kg
+    assert m.body_subtreemass[ids.trunk_body] == pytest.approx(13.10, abs=0.01)  # docs/go1-model.md: 13.10 kg
     np.testing.assert_allclose(m.actuator_ctrlrange[ids.actuator, 1], constants.TORQUE_LIMIT_NM)
     heavy = go1_model.model_with_payload(15.0)
-    assert heavy.body_subtreemass[ids.trunk_body] == pytest.approx(12.74 + 15.0, abs=0.01)
+    assert heavy.body_subtreemass[ids.trunk_body] == pytest.approx(13.10 + 15.0, abs=0.01)
 
+
+def test_the_trunk_carries_the_four_hip_rotors_as_gazebo_lumps_them():
+    """The trunk link of unitree_ros const.xacro (commit 5dee20c: mass, centre of mass, full inertia) and its four
+    fixed hip rotors, lumped by MuJoCo's compiler (fusestatic), against go1.xml's trunk (docs/go1-model.md)."""
+    rotors = "".join(
+        f'<body pos="{0.11215 * sx} {0.04675 * sy} 0"><inertial pos="0 0 0" mass="0.089" '
+        f'fullinertia="0.000111842 0.000059647 0.000059647 0 0 0"/></body>'
+        for sx in (1, -1) for sy in (1, -1))
+    lumped = mujoco.MjModel.from_xml_string(
+        '<mujoco><compiler fusestatic="true" inertiafromgeom="false"/><worldbody><body><freejoint/>'
+        '<inertial pos="0.0223 0.002 -0.0005" mass="5.204" fullinertia="0.0168128557 0.063009565 0.0716547275 '
+        f'-0.0002296769 -0.0002945293 -0.0000418731"/>{rotors}</body></worldbody></mujoco>')
+    assert lumped.nbody == 2  # the rotors are inside the trunk
+    m = go1_model.load_model()
+    trunk = go1_model.indices().trunk_body
+    assert m.body_mass[trunk] == pytest.approx(lumped.body_mass[1], abs=1e-9)
+    np.testing.assert_allclose(m.body_ipos[trunk], lumped.body_ipos[1], atol=1e-8)
+    np.testing.assert_allclose(m.body_inertia[trunk], lumped.body_inertia[1], rtol=1e-5)
+    # The same principal axes (a quaternion and its negative are one rotation).
+    assert abs(np.dot(m.body_iquat[trunk], lumped.body_iquat[1])) == pytest.approx(1.0, abs=1e-6)
 
 def test_c_mujoco_agrees_with_mjx_over_a_short_closed_loop_rollout(short_sim):
     """MJX (float32, JAX) and C MuJoCo (float64) driven by the same jitted controller for 300 ticks (0.3 s)."""
@@ -79,12 +99,12 @@ def test_scenarios_have_their_physical_effect(two_trials):
     load = np.asarray(record.c_load_n)
     slope = np.asarray(record.c_slope_rad)
     nominal, heavy, uphill = 0, 1, 2
-    # c_load ≈ m g / 4 per foot: 12.74 kg → 31 N, +15 kg → 68 N.
-    assert load[nominal] == pytest.approx(12.74 * 9.81 / 4, rel=0.1)
-    assert load[heavy] == pytest.approx(27.74 * 9.81 / 4, rel=0.1)
+    # c_load ≈ m g / 4 per foot: 13.10 kg → 32 N, +15 kg → 69 N.
+    assert load[nominal] == pytest.approx(13.10 * 9.81 / 4, rel=0.1)
+    assert load[heavy] == pytest.approx(28.10 * 9.81 / 4, rel=0.1)
     # Uphill along +x reads as nose-up, i.e. negative pitch, ≈ −6° = −0.105 rad.
     assert slope[uphill] < slope[nominal] - 0.07
-    np.testing.assert_allclose(np.asarray(record.total_mass_kg)[[nominal, heavy]], [12.74, 27.74], atol=0.01)
+    np.testing.assert_allclose(np.asarray(record.total_mass_kg)[[nominal, heavy]], [13.10, 28.10], atol=0.01)
 
 
 def test_low_friction_floor_makes_the_feet_slip(short_sim):

@@ -152,10 +152,10 @@ def test_trial_figures_agree_statistically_over_random_parameters(short_sim, nat
 def test_scenarios_have_their_physical_effect(native_two_trials):
     _, record = native_two_trials
     load, slope = np.asarray(record.c_load_n), np.asarray(record.c_slope_rad)
-    assert load[NOMINAL] == pytest.approx(12.74 * 9.81 / 4, rel=0.1)
-    assert load[HEAVY] == pytest.approx(27.74 * 9.81 / 4, rel=0.1)
+    assert load[NOMINAL] == pytest.approx(13.10 * 9.81 / 4, rel=0.1)
+    assert load[HEAVY] == pytest.approx(28.10 * 9.81 / 4, rel=0.1)
     assert slope[UPHILL] < slope[NOMINAL] - 0.05  # nose-up on the 10° slope
-    np.testing.assert_allclose(np.asarray(record.total_mass_kg)[[NOMINAL, HEAVY]], [12.74, 27.74], atol=0.01)
+    np.testing.assert_allclose(np.asarray(record.total_mass_kg)[[NOMINAL, HEAVY]], [13.10, 28.10], atol=0.01)
     v = np.asarray(objective.mean_velocity(record))
     assert 0.3 < v[NOMINAL, 0] < 0.8 and abs(v[NOMINAL, 1]) < 0.1
 
@@ -184,5 +184,5 @@ def test_a_new_scenario_reuses_the_compiled_tick():
     heavier = sim.with_scenario(go1_model.make_scenarios(friction=[0.3, 0.9], payload_kg=[0.0, 15.0]))
     assert heavier._compiled is sim._compiled
     _, record = heavier.trial(heavier.reset(params), params, gates)
-    np.testing.assert_allclose(np.asarray(record.total_mass_kg), [12.74, 27.74], atol=0.01)
+    np.testing.assert_allclose(np.asarray(record.total_mass_kg), [13.10, 28.10], atol=0.01)
     assert heavier.physics.models[0].geom_friction[go1_model.indices().floor_geom, 0] == 0.3

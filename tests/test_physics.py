@@ -253,7 +253,7 @@ def test_domain_randomization_draws_each_trials_physics_and_the_engine_simulates
                                 optimizer=optimizer_setting.paper_config(capacity=3))
     result = ablation.Engine(spec, backend="native").run()
     cond = result.conditions
-    urdf_mass_kg = 12.74  # docs/go1-model.md: the model's total mass
+    urdf_mass_kg = 13.10  # docs/go1-model.md: the model's total mass
     np.testing.assert_allclose(result.trials.total_mass_kg[:, 0],
                                urdf_mass_kg * cond.mass_scale[0] + cond.payload_kg[0], atol=0.01)
     assert len(set(cond.friction[0].tolist())) == 3

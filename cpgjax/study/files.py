@@ -111,7 +111,7 @@ def checkpoint_files(out_dir) -> list[pathlib.Path]:
 
 # Fields a study sets only where it uses them; unset (None), they are not part of its definition, so a study without
 # them keeps the fingerprint of its other fields (and the checkpoints written before the fields existed resume).
-_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup")
+_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup", "switches")
 
 
 def definition(spec) -> dict[str, str]:

@@ -21,8 +21,9 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.optim import acquisition
 from cpgjax.optim import config as optimizer_config
-from cpgjax.trial import limits, optimizer_setting, protocol
+from cpgjax.trial import limits, objective, optimizer_setting, protocol
 from cpgjax.trial import params as param_space
 
 CONDITION_FIELDS = ("friction", "slope_deg", "payload_kg", "target_velocity_mps")
@@ -84,6 +85,37 @@ class Schedule(NamedTuple):
         return f"Schedule(label={self.label!r}, changes={self.changes!r}{name})"
 
 
+VMC_GATES = ("loaded", "phase")  # Switches.vmc_gate
+
+
+class Switches(NamedTuple):
+    """The readings of the paper it leaves open, one switch each (docs/decisions.md); every default is the reading the
+    reproduction uses, so a study that sets one switch is a one-change run of it.
+
+    Attributes:
+      amplitude_form: eq. (1) as printed ("paper": r → μ) or as the lab's public code ("sqrt": r → √μ), §1.
+      ucb_form: eq. (8) as printed ("paper": m + β·σ) or as BoTorch computes it ("botorch": m + √β·σ), §2.
+      vmc_gate: VMC on the legs in the CPG's stance phase with a loaded foot ("loaded", > 10 N) or in the stance
+        phase alone ("phase"), §7.
+      objective_floor: J's lower bound, and the J of a fall (``trial.limits.OBJECTIVE_FLOOR``), §10.
+    """
+
+    amplitude_form: str = "paper"
+    ucb_form: str = "paper"
+    vmc_gate: str = "loaded"
+    objective_floor: float = objective.MIN_OBJECTIVE
+
+    def cpg_config(self, config: cpg.CPGConfig) -> cpg.CPGConfig:
+        """``config`` with the controller's switches."""
+        gate = config.vmc_contact_force_n if self.vmc_gate == "loaded" else -np.inf
+        return config._replace(amplitude_form=self.amplitude_form, vmc_contact_force_n=gate)
+
+
+SWITCH_VALUES: dict[str, tuple[str, ...] | limits.Range] = {
+    "amplitude_form": cpg.AMPLITUDE_FORMS, "ucb_form": acquisition.UCB_FORMS, "vmc_gate": VMC_GATES,
+    "objective_floor": limits.OBJECTIVE_FLOOR}
+
+
 @dataclasses.dataclass(frozen=True)
 class StudySpec:
     """A batch of online optimizations: the grid of instances, their schedules, and the static structure.
@@ -108,6 +140,7 @@ class StudySpec:
         results of a run of that many (``cpgjax.study.files.extension_of``).
       startup: how the controller starts from standing, at trial 0 and after every fall (``cpg.STARTUPS``,
         docs/decisions.md §18; None: the paper's start).
+      switches: the paper's open readings (:class:`Switches`; None: every default).
     """
 
     name: str
@@ -126,13 +159,18 @@ class StudySpec:
     trial: protocol.TrialConfig = protocol.TrialConfig()
     optimizer: optimizer_config.OptimizerConfig | None = None
     safe: bool = False
-    max_trials: int | None = None  # max_trials, ramp, startup: unset unless given, see study.files.fingerprint
+    max_trials: int | None = None  # max_trials … switches: unset unless given, see study.files.fingerprint
     ramp: Ramp | None = None
     startup: str | None = None
+    switches: Switches | None = None
+
+    def switch_values(self) -> Switches:
+        """``switches``, or every default."""
+        return self.switches or Switches()
 
     def cpg_config(self) -> cpg.CPGConfig:
-        """The controller's constants with the study's start-up (``cpg.STARTUPS``; None: the paper's)."""
-        return cpg.with_startup(cpg.CPGConfig(), self.startup or cpg.DEFAULT_STARTUP)
+        """The controller's constants with the study's start-up (``cpg.STARTUPS``; None: the paper's) and switches."""
+        return self.switch_values().cpg_config(cpg.with_startup(cpg.CPGConfig(), self.startup or cpg.DEFAULT_STARTUP))
 
     def optimizer_config(self) -> optimizer_config.OptimizerConfig:
         """``optimizer``, or the paper's setting with capacity ``max_trials`` (default ``num_trials``) and the c_load
@@ -140,7 +178,10 @@ class StudySpec:
         agree); safe with ``safe``."""
         config = (self.optimizer if self.optimizer is not None
                   else optimizer_setting.profile_config(self.physics[0], capacity=self.max_trials or self.num_trials))
-        return dataclasses.replace(config, safe=True) if self.safe and not config.safe else config
+        config = dataclasses.replace(config, safe=True) if self.safe and not config.safe else config
+        if self.switches is None or config.ucb_form == self.switches.ucb_form:
+            return config
+        return dataclasses.replace(config, ucb_form=self.switches.ucb_form)
 
 
 def startup_field(name: str | None) -> str | None:
@@ -234,6 +275,13 @@ def validate(spec: StudySpec) -> Conditions:
             fail(f"unknown controller {c!r}; allowed: {cpg.CONTROLLERS}")
     if spec.startup is not None and spec.startup not in cpg.STARTUPS:
         fail(f"unknown startup {spec.startup!r}; allowed: {', '.join(cpg.STARTUPS)}")
+    for key, value in spec.switch_values()._asdict().items():
+        allowed = SWITCH_VALUES[key]
+        if isinstance(allowed, limits.Range):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not allowed.contains(value):
+                fail(f"switch {key} = {value!r}; allowed: a number in {allowed} ({allowed.reason})")
+        elif value not in allowed:
+            fail(f"switch {key} = {value!r}; allowed: {', '.join(allowed)}")
     for name in spec.physics:
         if name not in physics_profiles.PROFILES:
             fail(f"unknown physics profile {name!r}; allowed: {tuple(physics_profiles.PROFILES)}")
@@ -307,7 +355,7 @@ GRID_AXES = {  # a study file's [grid] key → (StudySpec field, element kind, a
 SCHEDULE_RANGES = {"friction": limits.FRICTION, "slope_deg": limits.SLOPE_DEG, "payload_kg": limits.PAYLOAD_KG,
                    "target_velocity_mps": limits.TARGET_VELOCITY_MPS}  # inference and ramp: true or false
 TOP_KEYS = ("name", "description", "report", "trials", "max_trials", "seeds", "group_by", "safe", "startup",
-            "comparisons", "grid", "schedules", "ramp", "randomize", "trial", "quick", "paper", "transfer")
+            "switches", "comparisons", "grid", "schedules", "ramp", "randomize", "trial", "quick", "paper", "transfer")
 QUICK_KEYS = ("trials", "seeds", "max_trials", "schedules")
 STUDY_FILE_SUFFIX = ".toml"
 TICK_S = 0.001  # a trial's timing in a file is in seconds, run in 1 kHz control ticks (cpg.CPGConfig.dt_s)
@@ -591,6 +639,14 @@ def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | N
                                        if "startup" in data else None))
     if chosen is not None:
         fields["startup"] = chosen
+    if "switches" in data:
+        switches = r.table(data["switches"], "switches", Switches._fields, ())
+        def switch(key, value):
+            allowed = SWITCH_VALUES[key]
+            return (r.number(value, f"switches.{key}", allowed) if isinstance(allowed, limits.Range)
+                    else r.string(value, f"switches.{key}", allowed))
+
+        fields["switches"] = Switches(**{key: switch(key, value) for key, value in switches.items()})
     if "ramp" in data:
         ramp = r.table(data["ramp"], "ramp", Ramp._fields, Ramp._fields)
         fields["ramp"] = Ramp(r.number(ramp["start_deg"], "ramp.start_deg", limits.SLOPE_DEG),
@@ -712,6 +768,13 @@ group_by = {_toml(list(d.group_by))}  # labels whose combinations are the report
 safe = false  # safe optimization: proposals only where a second GP certifies the safety margin >= 0
 startup = "{cpg.DEFAULT_STARTUP}"  # how the robot starts standing (trial 0, after a fall): {", ".join(cpg.STARTUPS)}
 # report = ""  # a hand-written report of the paper's studies; left out: the generic report of any study
+
+# The readings the paper leaves open (docs/decisions.md §1, §2, §7, §10); set one to run a one-change study of it.
+# [switches]
+# amplitude_form = "paper"  # eq. (1): "paper" (r → μ) or "sqrt" (r → √μ, the lab's public code)
+# ucb_form = "paper"  # eq. (8): "paper" (m + β·σ) or "botorch" (m + √β·σ)
+# vmc_gate = "loaded"  # VMC on stance legs: "loaded" (stance phase and foot force > 10 N) or "phase" (phase alone)
+# objective_floor = -1.0  # J's lower bound and the J of a fall; in [-20, -0.5]
 
 # The comparisons the report makes (default: every pair of groups that differ in one label): the groups whose `axis`
 # label is `a` against those where it is `b`, in each combination of the other group_by labels.

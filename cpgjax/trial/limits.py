@@ -59,6 +59,7 @@ STEADY_S = Range(0.001, 600.0, "each trial's measured phase: at least one 1 ms t
 MEASURE_S = Range(0.001, 600.0, "a measuring window: at least one 1 ms tick")
 SETTLE_S = Range(0.0, 60.0, "holding the pose before measuring")
 LIFT_M = Range(0.0, 1.0, "how high the simulated Go1 is hung up", low_open=True)
+OBJECTIVE_FLOOR = Range(-20.0, -0.5, "J's lower bound and a fall's J, below every walking gait's J (1.5 … 2.3)")
 
 MIN_TRIALS = 1
 MAX_TRIALS = 1000

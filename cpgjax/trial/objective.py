@@ -37,12 +37,12 @@ def velocity_reward(record: TrialRecord, target_velocity_mps) -> jax.Array:
     return VELOCITY_WEIGHT * STEADY_DT_S * jnp.sum(per_step, axis=-1)
 
 
-def objective(record: TrialRecord, target_velocity_mps) -> jax.Array:
-    """J of eq. (9) for target velocity v_x*, always finite and ≥ MIN_OBJECTIVE; MIN_OBJECTIVE after a fall or a
-    non-finite simulation (docs/decisions.md §10)."""
+def objective(record: TrialRecord, target_velocity_mps, floor: float = MIN_OBJECTIVE) -> jax.Array:
+    """J of eq. (9) for target velocity v_x*, always finite and ≥ ``floor``; ``floor`` after a fall or a non-finite
+    simulation (docs/decisions.md §10; a study's ``objective_floor`` switch moves it)."""
     j = velocity_reward(record, target_velocity_mps) - COT_WEIGHT * cost_of_transport(record)
     degenerate = (record.fell > 0) | (record.failed > 0) | ~jnp.isfinite(j)
-    return jnp.where(degenerate, MIN_OBJECTIVE, jnp.maximum(j, MIN_OBJECTIVE))
+    return jnp.where(degenerate, floor, jnp.maximum(j, floor))
 
 
 def mean_velocity(record: TrialRecord) -> jax.Array:
