@@ -5,8 +5,10 @@ walking trials measured (docs/decisions.md §11).
     python studies/fall_chains.py results/slope_adaptation [more folders]
     python studies/fall_chains.py results/slope_adaptation --rewalk slope_adaptation
 
-Reads each folder's ``trials.parquet``. Per condition (the rates differ between conditions), the two probabilities
-come with Clopper–Pearson 95 % intervals and a two-sided Fisher exact test of their difference.
+Reads each folder's ``trials.parquet``. Per condition (the rates differ between conditions): the two probabilities
+pooled over the runs, and their difference with a 95 % interval from a cluster bootstrap over the runs (each run's
+trials resampled together: the trials of one seed depend on each other, so a test that counts them as independent,
+such as Fisher's on the pooled counts, overstates the evidence), with the number of runs that hold the falls.
 
 ``--rewalk STUDY`` (the registry name the folder ran) asks why a trial after a fall falls. After a fall the robot
 is reset to standing (docs/decisions.md §8), so that trial starts from rest on the condition. For every such trial
@@ -55,8 +57,13 @@ def chains(columns: dict[str, np.ndarray]) -> dict:
         label = ", ".join(f"{CONDITIONS[i]} {v:g}" for i, v in zip(varying, values, strict=True)) or "all"
         after_fall, after_walk = (fell[1:][pairs & here[1:] & fell[:-1]], fell[1:][pairs & here[1:] & ~fell[:-1]])
         fallen, walked = here & optimized & fell, here & optimized & ~fell
+        after_fall_at, after_walk_at = pairs & here[1:] & fell[:-1], pairs & here[1:] & ~fell[:-1]
+        per_run = [(int((fell[1:, b] & after_fall_at[:, b]).sum()), int(after_fall_at[:, b].sum()),
+                    int((fell[1:, b] & after_walk_at[:, b]).sum()), int(after_walk_at[:, b].sum()))
+                   for b in range(fell.shape[1])]
         out[label] = dict(after_fall=(int(after_fall.sum()), after_fall.size),
-                          after_walk=(int(after_walk.sum()), after_walk.size),
+                          after_walk=(int(after_walk.sum()), after_walk.size), per_run=per_run,
+                          runs_with_falls=int(np.sum(np.any(fallen, axis=0))),
                           falls=int(fallen.sum()), trials=int((here & optimized).sum()),
                           contexts={name: tuple(float(np.median(columns[name][m])) if m.any() else np.nan
                                                 for m in (fallen, walked)) for name in ("c_load_n", "c_slope_rad")})
@@ -109,16 +116,24 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
             f"({stats.proportion_ci(int((arriving & ~flat_fell).sum()), m)}).")
 
 
+def chain_difference(per_run: list) -> float:
+    """P(fall | the trial before fell) − P(fall | it walked), pooled over the runs given (NaN where either has no
+    case)."""
+    k_f, n_f, k_w, n_w = np.sum(np.asarray(per_run, np.float64).reshape(-1, 4), axis=0)
+    return k_f / n_f - k_w / n_w if n_f > 0 and n_w > 0 else np.nan
+
+
 def report(folder: pathlib.Path) -> str:
     lines = []
     for label, c in chains(study_io.read_trials(folder / "trials.parquet")).items():
         (k_f, n_f), (k_w, n_w) = c["after_fall"], c["after_walk"]
-        p = stats.fisher_p(k_f, n_f, k_w, n_w)
+        difference = stats.cluster_bootstrap(c["per_run"], chain_difference)
         contexts = "; ".join(f"{name} median {fallen:.3g} fallen, {walked:.3g} walking"
                              for name, (fallen, walked) in c["contexts"].items())
-        lines.append(f"{folder}, {label}: {c['falls']} falls in {c['trials']} optimized trials. A fall after a fall: "
-                     f"{k_f}/{n_f} ({stats.proportion_ci(k_f, n_f)}); after a walk: {k_w}/{n_w} "
-                     f"({stats.proportion_ci(k_w, n_w)}); Fisher p = {p:.2g}. Measured contexts: {contexts}.")
+        lines.append(f"{folder}, {label}: {c['falls']} falls in {c['trials']} optimized trials, in "
+                     f"{c['runs_with_falls']} of {len(c['per_run'])} runs. A fall after a fall: {k_f}/{n_f}; after a "
+                     f"walk: {k_w}/{n_w}; difference {difference.mean:+.3f} [{difference.low:+.3f}, "
+                     f"{difference.high:+.3f}] (95 %, bootstrap over the runs). Measured contexts: {contexts}.")
     return "\n".join(lines)
 
 

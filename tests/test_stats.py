@@ -67,3 +67,48 @@ def test_proportion_interval_is_clopper_pearson():
 def test_too_few_values_are_refused_with_the_counts():
     with pytest.raises(ValueError, match="at least 2 finite values per group, got 1 and 3"):
         stats.compare([1.0], [1.0, 2.0, 3.0])
+
+
+def test_effect_tests_equal_scipys_shifted_one_sided_tests():
+    """TOST is two one-sided Welch tests of the difference shifted by ±margin (SciPy's ttest_ind_from_stats with
+    ``alternative``); the one-sample forms are SciPy's ttest_1samp."""
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(0.52, 0.03, 20), rng.normal(0.50, 0.05, 5)
+    effect = stats.effect_to_summary(a, b.mean(), b.std(ddof=1), b.size)
+    margin = 0.04
+
+    def welch(shift, alternative):
+        return scipy_stats.ttest_ind_from_stats(a.mean() - shift, a.std(ddof=1), a.size, b.mean(), b.std(ddof=1),
+                                                b.size, equal_var=False, alternative=alternative).pvalue
+
+    assert effect.two_sided_p() == pytest.approx(welch(0.0, "two-sided"), rel=1e-9)
+    tost = max(welch(-margin, "greater"), welch(margin, "less"))
+    assert effect.equivalence_p(margin) == pytest.approx(tost, rel=1e-9)
+    assert effect.below_p(0.01) == pytest.approx(welch(0.01, "less"), rel=1e-9)
+    assert effect.above_p(-0.01) == pytest.approx(welch(-0.01, "greater"), rel=1e-9)
+    low, high = effect.interval()
+    one = stats.effect_to_value(a, 0.5)
+    assert one.two_sided_p() == pytest.approx(scipy_stats.ttest_1samp(a, 0.5).pvalue, rel=1e-9)
+    assert one.below_p(0.0) == pytest.approx(scipy_stats.ttest_1samp(a, 0.5, alternative="less").pvalue, rel=1e-9)
+    ci = scipy_stats.ttest_1samp(a, 0.5).confidence_interval(0.95)
+    assert one.interval() == (pytest.approx(ci.low - 0.5, rel=1e-9), pytest.approx(ci.high - 0.5, rel=1e-9))
+    assert low < effect.difference < high
+
+
+def test_holm_against_the_textbook_example():
+    """Holm (1979) step-down: sorted p 0.01, 0.02, 0.03, 0.04 of m = 4 → 0.04, 0.06, 0.06, 0.06 (each max(previous,
+    (m − rank)·p)), returned in the input's order; NaN is left out of the family."""
+    adjusted = stats.holm([0.03, 0.01, np.nan, 0.04, 0.02])
+    np.testing.assert_allclose(adjusted, [0.06, 0.04, np.nan, 0.06, 0.06])
+    np.testing.assert_allclose(stats.holm([0.5, 0.9]), [1.0, 1.0])  # capped at 1
+
+
+def test_the_cluster_bootstrap_resamples_seeds_not_trials():
+    """Ten seeds, one of which holds every fall: a pooled binomial interval of the fall rate is narrow, the cluster
+    bootstrap's reaches down to 0 (a resample without that seed) and covers the pooled rate."""
+    clusters = [np.zeros(50)] * 9 + [np.ones(50)]
+    rate = stats.cluster_bootstrap(clusters, lambda cs: np.concatenate(cs).mean(), draws=2000)
+    pooled = stats.proportion_ci(50, 500)
+    assert rate.mean == pytest.approx(0.1) and rate.n == 10
+    assert rate.low == 0.0 and rate.high > 0.25
+    assert pooled.high - pooled.low < 0.06

@@ -102,7 +102,7 @@ def test_trials_to_track_counts_from_the_change():
     fell = np.array([0, 0, 0, 0, 0, 1, 0])
     assert registry.trials_to_track(v, target, fell, 0, 3) == 3.0
     assert registry.trials_to_track(v, target, fell, 3, 7) == 2.0  # 0.35 is within 0.05 of 0.3
-    assert np.isnan(registry.trials_to_track(v, target, fell, 3, 4))
+    assert registry.trials_to_track(v, target, fell, 3, 4) == 2.0  # never within the 1-trial phase: its length + 1
     assert registry.trials_to_track(v, target, np.array([0, 0, 0, 0, 1, 1, 0]), 3, 7) == 4.0  # falls don't count
 
 
@@ -413,3 +413,7 @@ def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk(tmp_path):
     assert steep["after_fall"] == (0, 1) and steep["after_walk"] == (0, 0)
     assert (level["falls"], level["trials"], steep["falls"], steep["trials"]) == (2, 7, 1, 2)
     assert level["contexts"]["c_load_n"] == (1.0, 21.0) and steep["contexts"]["c_load_n"] == (1.0, 24.0)
+    # per run (after a fall: falls, cases; after a walk: falls, cases), and the pooled difference they give
+    assert level["per_run"] == [(1, 2, 1, 1), (0, 0, 0, 2)] and level["runs_with_falls"] == 1
+    assert fall_chains.chain_difference(level["per_run"]) == pytest.approx(1 / 2 - 1 / 3)
+    assert np.isnan(fall_chains.chain_difference(steep["per_run"]))

@@ -268,13 +268,10 @@ def _versus(result, labels: np.ndarray, reference, name: str) -> str:
 
 
 def trials_to_track(velocity: np.ndarray, target: np.ndarray, fell: np.ndarray, start: int, stop: int) -> float:
-    """Trials from ``start`` until the first with |v − v*| ≤ tolerance and no fall (NaN if never before stop)."""
+    """Trials from ``start`` until the first with |v − v*| ≤ tolerance and no fall; a run that never tracks before
+    ``stop`` counts as the phase's length + 1 (censored: the least it could have taken), so the mean keeps it."""
     ok = (np.abs(velocity[start:stop] - target[start:stop]) <= TRACKING_TOLERANCE_MPS) & (fell[start:stop] == 0)
-    return float(np.argmax(ok) + 1) if ok.any() else np.nan
-
-
-def _finite_counts(counts: np.ndarray) -> np.ndarray:
-    return counts[np.isfinite(counts)]
+    return float(np.argmax(ok) + 1) if ok.any() else float(stop - start + 1)
 
 
 def report_multi_velocity(result, backend: str) -> str:
@@ -282,8 +279,9 @@ def report_multi_velocity(result, backend: str) -> str:
     n = tr.objective.shape[0]
     starts = phase_starts(cond.target_velocity_mps[0]) + [n]
     reuse = _labels(result, "data_reuse")
-    rows = ["| target [m/s] (trials) | data reuse | trials to track (mean [95 % CI] of the runs that track, "
-            "never-tracked runs) | final velocity | final CoT |", "|---|---|---|---|---|"]
+    rows = ["| target [m/s] (trials) | data reuse | trials to track (mean [95 % CI]; a run that never tracks counts "
+            "as the phase's length + 1) | runs never tracking | final velocity | final CoT |",
+            "|---|---|---|---|---|---|"]
     tracked = {}
     for s, e in zip(starts[:-1], starts[1:], strict=True):
         target = float(cond.target_velocity_mps[0, s])
@@ -291,10 +289,10 @@ def report_multi_velocity(result, backend: str) -> str:
             bs = np.flatnonzero(reuse == flag)
             counts = np.array([trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b],
                                                s, e) for b in bs])
-            never = int(np.isnan(counts).sum())
+            never = int(np.sum(counts > e - s))
             tracked[(s, flag)] = counts
             rows.append(f"| {target:g} ({s}–{e - 1}) | {'yes' if flag else 'no (restart)'} | "
-                        f"{stats.mean_ci(counts)} ({never}) | "
+                        f"{stats.mean_ci(counts)} | {never} | "
                         f"{mean_ci(last_mean(tr.velocity_xy_mps[:, bs, 0], e))} | "
                         f"{mean_ci(last_mean(tr.cot[:, bs], e))} |")
     text = (f"Multi-velocity tracking: a target counts as tracked from the first trial with |v_x − v*| ≤ "
@@ -302,10 +300,11 @@ def report_multi_velocity(result, backend: str) -> str:
             f"{len(result.spec.seeds)} seeds. Paper: fewer trials after each change with data reuse (figure only).\n\n"
             + "\n".join(rows) + "\n")
     if set(result.spec.data_reuse) == {True, False}:
-        lines = ["", "Trials to track, reuse − restart (runs that track; Welch's t and Mann–Whitney U):", ""]
+        lines = ["", "Trials to track, reuse − restart (every run, the never-tracking ones censored as above; Welch's "
+                 "t and Mann–Whitney U):", ""]
         for s in starts[1:-1]:
-            a, b = _finite_counts(tracked[(s, True)]), _finite_counts(tracked[(s, False)])
-            verdict = stats.compare(a, b) if min(a.size, b.size) >= 2 else "too few tracking runs"
+            a, b = tracked[(s, True)], tracked[(s, False)]
+            verdict = stats.compare(a, b) if min(a.size, b.size) >= 2 else "fewer than 2 runs per group"
             lines.append(f"- {float(cond.target_velocity_mps[0, s]):g} m/s (from trial {s}): {verdict}")
         text += "\n".join(lines) + "\n"
     return text
@@ -375,8 +374,9 @@ def report_hardware(result, backend: str) -> str:
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
     schedules = _labels(result, "schedule")
-    rows = ["| schedule | phase (trials) | v* [m/s] | v_x [m/s] | CoT | J | falls | trials to track after the change "
-            "(runs never tracking) | paper |", "|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| schedule | phase (trials) | v* [m/s] | v_x [m/s] | CoT | J | falls | trials to track after the change, "
+            "a run never tracking counted as the phase's length + 1 (runs never tracking) | paper |",
+            "|---|---|---|---|---|---|---|---|---|"]
     for label in dict.fromkeys(schedules):
         bs = np.flatnonzero(schedules == label)
         b0 = bs[0]
@@ -388,8 +388,8 @@ def report_hardware(result, backend: str) -> str:
                      f"({s}–{e - 1})")
             counts = np.array([trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b],
                                                s, e) for b in bs])
-            never = int(np.isnan(counts).sum())
-            track = f"{stats.mean_ci(counts)} ({never})" if never < len(counts) else f"— ({never})"
+            never = int(np.sum(counts > e - s))
+            track = f"{stats.mean_ci(counts)} ({never})"
             paper = PAPER_HARDWARE_COT.get(label)
             if isinstance(paper, dict):
                 paper = paper.get(target)

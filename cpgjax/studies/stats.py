@@ -8,6 +8,11 @@ comparisons with an effect size, its confidence interval and a test (SciPy's).
   Welch's test from the two summaries.
 * :func:`paired` — one change on the same instances (e.g. one physics component swapped): the mean paired difference
   with its t interval and the Wilcoxon signed-rank test.
+* :class:`Effect` — a difference with its standard error and degrees of freedom (:func:`effect_to_summary`,
+  :func:`effect_to_value`, :func:`effect_between`), and the tests a verdict needs: two-sided, equivalence within a
+  margin (TOST) and one-sided; :func:`holm` corrects a family of p-values.
+* :func:`cluster_bootstrap` — an interval of a statistic of clustered data (trials within seeds) that resamples the
+  clusters, so trials that depend on each other within a seed are not counted as independent.
 """
 
 from __future__ import annotations
@@ -140,3 +145,103 @@ def fisher_p(successes_a: int, trials_a: int, successes_b: int, trials_b: int) -
         return np.nan
     table = [[int(successes_a), int(trials_a - successes_a)], [int(successes_b), int(trials_b - successes_b)]]
     return float(stats.fisher_exact(table).pvalue)
+
+
+class Effect(NamedTuple):
+    """A difference of means ``difference`` (ours − theirs) with its standard error and the t distribution's degrees
+    of freedom (Welch–Satterthwaite for two groups, n − 1 for one)."""
+
+    difference: float
+    se: float
+    dof: float
+
+    def interval(self, confidence: float = CONFIDENCE) -> tuple[float, float]:
+        half = float(stats.t.ppf(0.5 + confidence / 2, self.dof) * self.se)
+        return self.difference - half, self.difference + half
+
+    def two_sided_p(self) -> float:
+        """H0: no difference."""
+        return float(2.0 * stats.t.sf(abs(self.difference) / self.se, self.dof)) if self.se > 0 else float(
+            self.difference == 0.0)
+
+    def equivalence_p(self, margin: float) -> float:
+        """The two one-sided tests (TOST) of H0: |difference| ≥ margin; p < α shows equivalence within ±margin (the
+        (1 − 2α) interval lies inside it)."""
+        if self.se == 0.0:
+            return float(abs(self.difference) >= margin)
+        lower = stats.t.sf((self.difference + margin) / self.se, self.dof)  # H0: difference ≤ −margin
+        upper = stats.t.cdf((self.difference - margin) / self.se, self.dof)  # H0: difference ≥ +margin
+        return float(max(lower, upper))
+
+    def below_p(self, bound: float) -> float:
+        """One-sided test of H0: difference ≥ bound (p < α shows difference < bound)."""
+        if self.se == 0.0:
+            return float(self.difference >= bound)
+        return float(stats.t.cdf((self.difference - bound) / self.se, self.dof))
+
+    def above_p(self, bound: float) -> float:
+        """One-sided test of H0: difference ≤ bound (p < α shows difference > bound)."""
+        if self.se == 0.0:
+            return float(self.difference <= bound)
+        return float(stats.t.sf((self.difference - bound) / self.se, self.dof))
+
+
+def _welch_effect(mean_a, var_a, n_a, mean_b, var_b, n_b) -> Effect:
+    se2 = var_a / n_a + var_b / n_b
+    if se2 == 0.0:
+        return Effect(float(mean_a - mean_b), 0.0, float(n_a + n_b - 2))
+    dof = se2 ** 2 / ((var_a / n_a) ** 2 / (n_a - 1) + (var_b / n_b) ** 2 / (n_b - 1))
+    return Effect(float(mean_a - mean_b), float(np.sqrt(se2)), float(dof))
+
+
+def effect_to_summary(a, mean_b: float, std_b: float, n_b: int) -> Effect:
+    """Our samples ``a`` − a published mean ± std over ``n_b`` seeds (Welch from the summaries)."""
+    x = _finite(a)
+    if x.size < 2 or n_b < 2:
+        raise ValueError(f"effect_to_summary needs at least 2 values per group, got {x.size} and {n_b}")
+    return _welch_effect(x.mean(), x.var(ddof=1), x.size, mean_b, std_b ** 2, n_b)
+
+
+def effect_to_value(a, value: float) -> Effect:
+    """Our samples ``a`` − a fixed value (one-sample t)."""
+    x = _finite(a)
+    if x.size < 2:
+        raise ValueError(f"effect_to_value needs at least 2 values, got {x.size}")
+    return Effect(float(x.mean() - value), float(np.std(x, ddof=1) / np.sqrt(x.size)), float(x.size - 1))
+
+
+def effect_between(a, b) -> Effect:
+    """mean(a) − mean(b) of two independent samples (Welch)."""
+    x, y = _finite(a), _finite(b)
+    if x.size < 2 or y.size < 2:
+        raise ValueError(f"effect_between needs at least 2 finite values per group, got {x.size} and {y.size}")
+    return _welch_effect(x.mean(), x.var(ddof=1), x.size, y.mean(), y.var(ddof=1), y.size)
+
+
+def holm(pvalues) -> np.ndarray:
+    """Holm's step-down adjustment of one family's p-values (same order; NaN stays NaN and does not count): the k-th
+    smallest of m becomes max over j ≤ k of min(1, (m − j + 1)·p_(j))."""
+    p = np.asarray(pvalues, np.float64)
+    out = np.full(p.shape, np.nan)
+    keep = np.flatnonzero(np.isfinite(p))
+    order = keep[np.argsort(p[keep], kind="stable")]
+    m, running = order.size, 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        out[i] = running
+    return out
+
+
+def cluster_bootstrap(clusters: list, statistic, draws: int = 10_000, seed: int = 0) -> Interval:
+    """``statistic(list of clusters)`` with the percentile 95 % interval of ``draws`` resamples of the clusters with
+    replacement (each cluster whole: the trials of one seed stay together). Resamples where the statistic is not
+    finite (e.g. no trial after a fall drawn) are left out; ``n`` is the number of clusters."""
+    rng = np.random.default_rng(seed)
+    value = float(statistic(clusters))
+    picks = rng.integers(0, len(clusters), size=(draws, len(clusters)))
+    boot = np.array([statistic([clusters[i] for i in row]) for row in picks], np.float64)
+    boot = boot[np.isfinite(boot)]
+    if boot.size == 0:
+        return Interval(value, np.nan, np.nan, len(clusters))
+    low, high = np.quantile(boot, [ALPHA / 2, 1.0 - ALPHA / 2])
+    return Interval(value, float(low), float(high), len(clusters))
