@@ -83,6 +83,10 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     ``opt.gravity``; payload and physics profile → every field they change, recomputed by ``mj_setConst`` once per
     distinct (payload, profile).
     """
+    fine = sorted({str(name) for name in scenario.physics if physics_profiles.get(str(name)).physics_substeps != 1})
+    if fine:
+        raise ValueError(f"physics profile {fine[0]!r} steps its physics more than once per control tick, which the "
+                         "MJX backend does not: use the native backend")
     ids = go1_model.indices()
     base = go1_model.load_model().__copy__()
     # Every joint carries friction-loss rows whatever the profiles of this batch (a profile without joint friction

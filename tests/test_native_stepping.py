@@ -52,10 +52,10 @@ def _spec(study: str, batch: int) -> StudySpec:
     return StudySpec(study, seeds=tuple(range(batch)), schedules=(payload,), group_by=("schedule",), **common)
 
 
-def _three_scenarios():
+def _three_scenarios(physics: str = "paper"):
     """The physics tests' batch: three floors, slopes and payloads under the paper profile."""
     return go1_model.make_scenarios(friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0],
-                                    payload_kg=[0.0, 7.5, 15.0], physics="paper")
+                                    payload_kg=[0.0, 7.5, 15.0], physics=physics)
 
 
 def _assert_the_reference_steps_so(ref, new, torques, outputs):
@@ -96,13 +96,15 @@ def test_a_study_writes_the_same_bytes_with_either_stepping(study, batch, tmp_pa
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("physics", ["paper", "paper_5khz"])
 @pytest.mark.parametrize("stepping", ["batch", pytest.param("ffi", marks=needs_ffi)])
-def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(stepping, tmp_path, monkeypatch):
-    """The physics alone, 200 PD-driven steps of three scenarios with instance 1 sent to an infinite velocity at
-    step 50: every array equal bit for bit after every step, and the diverged instance flagged once and back to
-    standing."""
+def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(stepping, physics, tmp_path,
+                                                                             monkeypatch):
+    """The physics alone, 200 PD-driven ticks of three scenarios with instance 1 sent to an infinite velocity at
+    tick 50: every array equal bit for bit after every tick, and the diverged instance flagged once and back to
+    standing; under ``paper_5khz`` a tick is five physics steps of 0.2 ms, the torques held."""
     monkeypatch.chdir(tmp_path)  # MuJoCo logs its instability warning to ./MUJOCO_LOG.TXT
-    scenario = _three_scenarios()
+    scenario = _three_scenarios(physics)
     ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("rollout", stepping))
     ids = go1_model.indices()
     q_stand = go1_model.standing_qpos()[ids.joint_qpos]
@@ -120,6 +122,8 @@ def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(st
             np.testing.assert_array_equal(a, b)
         flagged += [k] * int(failed_new[1])
     assert flagged == [50]
+    assert new.substeps == ref.substeps == (5 if physics == "paper_5khz" else 1)
+    assert new.physics[0, new.layout.time] == pytest.approx(native_go1.CLOCK_START_S + 200 * 0.001)
     ref.close()
     new.close()
 

@@ -194,7 +194,8 @@ def test_profiles_set_the_sources_values():
 
 
 def test_unknown_profile_is_refused_with_the_allowed_names():
-    with pytest.raises(ValueError, match=r"physics = 'gazebo' \(instance 1\).*allowed: \('soft', 'paper', 'go1'\)"):
+    with pytest.raises(ValueError, match=r"physics = 'gazebo' \(instance 1\).*allowed: \('soft', 'paper', 'go1', "
+                                         r"'paper_5khz'\)"):
         go1_model.make_scenarios(physics=["soft", "gazebo"])
 
 
@@ -348,3 +349,19 @@ def test_go1_sensor_noise_is_uniform_within_its_amplitudes_and_a_pure_function_o
     _, expected = physics.actuate(profile, io, command, truth.joint_vel_rad_s)
     np.testing.assert_array_equal(np.asarray(c.torque_nm), np.asarray(expected))
     assert not np.allclose(np.asarray(c.obs.joint_vel_rad_s), np.asarray(truth.joint_vel_rad_s))
+
+
+def test_paper_5khz_is_paper_at_unitree_ros_physics_rate():
+    """unitree_gazebo earth.world steps ODE every 0.2 ms (docs/physics.md): the profile is `paper` with five physics
+    steps of 0.2 ms per 1 ms control tick, every other field the same; one batch steps at one rate, and MJX refuses
+    it in one line."""
+    fine, paper = physics.get("paper_5khz"), physics.get("paper")
+    assert fine._replace(physics_substeps=1) == paper and fine.physics_substeps == 5
+    assert go1_model.model_with_payload(0.0, "paper_5khz").opt.timestep == pytest.approx(0.0002)
+    assert go1_model.model_with_payload(0.0, "paper").opt.timestep == pytest.approx(0.001)
+    mixed = go1_model.make_scenarios(friction=[0.6, 0.6], physics=["paper", "paper_5khz"])
+    with pytest.raises(ValueError, match=r"one batch steps its physics at one rate: profiles \['paper', "
+                                         r"'paper_5khz'\] take \[1, 5\] physics steps per tick"):
+        native_go1.BatchPhysics(mixed)
+    with pytest.raises(ValueError, match="'paper_5khz' steps its physics more than once per control tick"):
+        mjx_go1.make_batch_model(go1_model.make_scenarios(friction=[0.6], physics="paper_5khz"))

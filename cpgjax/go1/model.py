@@ -206,7 +206,9 @@ def model_with_payload(payload_kg: float, physics: str = physics_profiles.DEFAUL
     masses, inverse weights, actuator_acc0, ...). Cached per (payload, profile, mass scale)."""
     m = load_model().__copy__()
     ids = indices()
-    physics_profiles.apply_to_model(m, physics_profiles.get(physics), ids.floor_geom, ids.joint_dof)
+    profile = physics_profiles.get(physics)
+    physics_profiles.apply_to_model(m, profile, ids.floor_geom, ids.joint_dof)
+    m.opt.timestep /= profile.physics_substeps  # the control tick stays the file's 1 ms
     links = np.array([b for b in range(1, m.nbody) if b != ids.payload_body])
     m.body_mass[links] *= mass_scale
     m.body_inertia[links] *= mass_scale

@@ -66,6 +66,9 @@ class PhysicsProfile(NamedTuple):
     gyro_noise_rad_s: float = 0.0  # each gyro axis
     tilt_noise_rad: float = 0.0  # the IMU orientation, turned about the trunk's x and y axes by this much at most
     foot_force_noise_n: float = 0.0  # each foot force, before it is counted
+    # Physics steps per 1 ms control tick, the tick's torques held (the model's timestep is 1 ms / this); the
+    # native backend only, and one value per batch.
+    physics_substeps: int = 1
 
 
 _MUJOCO_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)  # MuJoCo XML reference, geom/solimp default
@@ -114,6 +117,9 @@ PROFILES: dict[str, PhysicsProfile] = {
         joint_pos_noise_rad=0.01, joint_vel_noise_rad_s=1.5, gyro_noise_rad_s=0.2, tilt_noise_rad=0.05,
         foot_force_noise_n=0.5),
 }
+# `paper` with unitree_ros's physics rate: earth.world steps ODE every 0.2 ms (max_step_size 0.0002, commit 7325aa5
+# of 2022-02-09 to this day) where `paper` steps every 1 ms; the one-change run of the step (docs/physics.md).
+PROFILES["paper_5khz"] = PROFILES["paper"]._replace(physics_substeps=5)
 DEFAULT_PROFILE = "soft"  # what the Python API simulates when a call names no profile
 PAPER_STUDIES_PROFILE = "paper"  # the five paper studies, cpgjax walk and cpgjax optimize
 ROBOT_PROFILE = "go1"  # the loopback simulated Go1 (cpgjax deploy --robot sim)

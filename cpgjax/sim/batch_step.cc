@@ -3,9 +3,9 @@
 //
 // The step is the arithmetic of cpgjax.sim.native.BatchPhysics.step, in the same order and precision, instance by
 // instance:
-//   controls <- torques (float32 -> float64), one mj_step of the instance's state (mjb_step on a one-thread
-//   MuJoCo batch, which traps MuJoCo's errors), the failure test on the clock, the warm start recovered as
-//   (qvel' - qvel) * (1/h), a failed instance put back to standing;
+//   controls <- torques (float32 -> float64), then `substeps` physics steps each: one mj_step of the instance's
+//   state (mjb_step on a one-thread MuJoCo batch, which traps MuJoCo's errors), the failure test on the clock, the
+//   warm start recovered as (qvel' - qvel) * (1/h); a failed instance put back to standing;
 // then the controller's input row [physics state | sensor data | failed] as float32, as
 // cpgjax.sim.native.NativeBackend packs it on the host.
 //
@@ -69,6 +69,7 @@ struct Offsets {
   int warmstart_at;  // qacc_warmstart
   int ctrl_at;
   int nsensordata;
+  int substeps;  // physics steps per step (each of the models' timestep), the controls held
 };
 }
 
@@ -194,31 +195,35 @@ struct Stepper {
     if constexpr (kAccounts) accounts[t].Step(NowNs() - start_ns, mj_step_ns);
   }
 
-  // Instance i's step on lane t; returns the duration of its mj_step in ns (0 without accounts).
+  // Instance i's step on lane t (its substeps); returns the duration of its mj_steps in ns (0 without accounts).
   int64_t StepInstance(int t, int i) {
     Lane& lane = lanes[t];
     mjtNum* row = rows.data() + static_cast<size_t>(i) * nstate;
     mjWarningStat* warn = warning.data() + static_cast<size_t>(i) * mjNWARNING;
-    std::memcpy(lane.state + static_cast<size_t>(i) * nstate, row, sizeof(mjtNum) * nstate);
-    std::memcpy(lane.warning + static_cast<size_t>(i) * mjNWARNING, warn, sizeof(mjWarningStat) * mjNWARNING);
-    const int64_t mj_start_ns = AccountNow();
-    const int nerror = mjb_step(lane.batch, &i, 1, 1, mjSTAGE_NONE);
-    const int64_t mj_step_ns = AccountNow() - mj_start_ns;
-    if (nerror > 0) {
-      status[i] = 1;
-      errors[i] = mjb_error(lane.batch, i);
-      return mj_step_ns;
-    }
-    std::memcpy(row, lane.state + static_cast<size_t>(i) * nstate, sizeof(mjtNum) * nstate);
-    std::memcpy(warn, lane.warning + static_cast<size_t>(i) * mjNWARNING, sizeof(mjWarningStat) * mjNWARNING);
     mjtNum* sd = sensordata.data() + static_cast<size_t>(i) * at.nsensordata;
-    std::memcpy(sd, lane.sensordata + static_cast<size_t>(i) * at.nsensordata, sizeof(mjtNum) * at.nsensordata);
-
+    mjtNum* prev = before.data() + static_cast<size_t>(i) * at.nphysics;
     const double h = timestep_s;
     const double inv_h = 1.0 / h;
-    const mjtNum* prev = before.data() + static_cast<size_t>(i) * at.nphysics;
-    const bool fail = std::fabs(row[0] - prev[0] - h) > 0.5 * h;
-    for (int k = 0; k < at.nv; ++k) row[at.warmstart_at + k] = (row[at.qvel_at + k] - prev[at.qvel_at + k]) * inv_h;
+    int64_t mj_step_ns = 0;
+    bool fail = false;
+    for (int sub = 0; sub < at.substeps && !fail; ++sub) {
+      if (sub > 0) std::memcpy(prev, row, sizeof(mjtNum) * at.nphysics);
+      std::memcpy(lane.state + static_cast<size_t>(i) * nstate, row, sizeof(mjtNum) * nstate);
+      std::memcpy(lane.warning + static_cast<size_t>(i) * mjNWARNING, warn, sizeof(mjWarningStat) * mjNWARNING);
+      const int64_t mj_start_ns = AccountNow();
+      const int nerror = mjb_step(lane.batch, &i, 1, 1, mjSTAGE_NONE);
+      mj_step_ns += AccountNow() - mj_start_ns;
+      if (nerror > 0) {
+        status[i] = 1;
+        errors[i] = mjb_error(lane.batch, i);
+        return mj_step_ns;
+      }
+      std::memcpy(row, lane.state + static_cast<size_t>(i) * nstate, sizeof(mjtNum) * nstate);
+      std::memcpy(warn, lane.warning + static_cast<size_t>(i) * mjNWARNING, sizeof(mjWarningStat) * mjNWARNING);
+      std::memcpy(sd, lane.sensordata + static_cast<size_t>(i) * at.nsensordata, sizeof(mjtNum) * at.nsensordata);
+      fail = std::fabs(row[0] - prev[0] - h) > 0.5 * h;
+      for (int k = 0; k < at.nv; ++k) row[at.warmstart_at + k] = (row[at.qvel_at + k] - prev[at.qvel_at + k]) * inv_h;
+    }
     failed[i] = fail;
     if (fail) {
       std::memcpy(row, standing_physics.data() + static_cast<size_t>(i) * at.nphysics, sizeof(mjtNum) * at.nphysics);

@@ -147,7 +147,8 @@ class RowOffsets(ctypes.Structure):
     """Where a ``mujoco.batch`` state row keeps what the step reads and writes (``Offsets`` in batch_step.cc)."""
 
     _fields_ = [("nphysics", ctypes.c_int), ("qvel_at", ctypes.c_int), ("nv", ctypes.c_int),
-                ("warmstart_at", ctypes.c_int), ("ctrl_at", ctypes.c_int), ("nsensordata", ctypes.c_int)]
+                ("warmstart_at", ctypes.c_int), ("ctrl_at", ctypes.c_int), ("nsensordata", ctypes.c_int),
+                ("substeps", ctypes.c_int)]
 
 
 class Stepper:

@@ -135,7 +135,13 @@ class BatchPhysics:
         self.models = [unique[key] for key in keys]
         m = self.models[0]
         self.layout = physics_layout(m)
-        self.timestep_s = float(m.opt.timestep)
+        substeps = {physics_profiles.get(str(name)).physics_substeps for name in scenario.physics}
+        if len(substeps) > 1:
+            names = sorted(set(scenario.physics.tolist()))
+            raise ValueError(f"one batch steps its physics at one rate: profiles {names} take {sorted(substeps)} "
+                             "physics steps per tick")
+        self.substeps = substeps.pop()  # physics steps per step() (per control tick), the torques held
+        self.timestep_s = float(m.opt.timestep)  # of one physics step
         self.actuator = go1_model.indices().actuator
         batch = scenario.batch_size
         self.nthread = max(min(available_cores() if nthread is None else nthread, batch), 1)
@@ -157,7 +163,7 @@ class BatchPhysics:
             rows = _RowLayout.of(m, mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_INTEGRATION.value))
             offsets = ffi_step.RowOffsets(nphysics=self.layout.size, qvel_at=self.layout.qvel.start, nv=m.nv,
                                           warmstart_at=rows.warmstart.start, ctrl_at=rows.ctrl.start,
-                                          nsensordata=m.nsensordata)
+                                          nsensordata=m.nsensordata, substeps=self.substeps)
             self._stepper = ffi_step.Stepper(self.models, self.nthread, offsets, self.actuator, self.standing_physics,
                                              self.standing_sensordata)
             self.physics = self._stepper.rows[:, rows.physics]  # views of the library's arrays
@@ -220,13 +226,22 @@ class BatchPhysics:
         self.warmstart[mask] = 0.0
 
     def step(self, torque_nm) -> np.ndarray:
-        """One physics step of every instance with joint torques (B, 12) [N·m] in motor order.
+        """One control tick of every instance with joint torques (B, 12) [N·m] in motor order: ``substeps`` physics
+        steps, the torques held.
 
         Returns the (B,) bool mask of instances that diverged during the step; they are already reset to standing.
         """
         if self.stepping == "ffi":
             return self._stepper.step(torque_nm)
         self._ctrl[:, self.actuator] = torque_nm
+        failed = np.zeros(self.batch_size, bool)
+        for _ in range(self.substeps):
+            failed |= self._physics_step(~failed)
+        return failed
+
+    def _physics_step(self, live: np.ndarray) -> np.ndarray:
+        """One physics step; the instances not ``live`` (failed in an earlier substep, already standing) are stepped
+        and put back to standing again. Returns the mask of the instances that failed in it."""
         if self.stepping == "batch":
             before, after = self._before, self.physics
             np.copyto(before, after)
@@ -247,9 +262,9 @@ class BatchPhysics:
         # here, and this replaces it): one formula for both steppings keeps their results equal bit for bit.
         np.subtract(after[:, lay.qvel], before[:, lay.qvel], out=self.warmstart)
         self.warmstart *= 1.0 / self.timestep_s
-        if failed.any():
-            self.reset(failed)
-        return failed
+        if failed.any() or not live.all():
+            self.reset(failed | ~live)
+        return failed & live
 
     def close(self) -> None:
         """Release the thread pool (the batch's goes with the object)."""

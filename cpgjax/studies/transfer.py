@@ -41,6 +41,9 @@ from cpgjax.study import spec as study_spec
 NAME = "transfer"
 EVALUATION_RANDOMIZATION = study_spec.Randomization(seed=1)
 EVALUATION_DRAWS = 8
+# The fixed profiles every run is evaluated under: those that step the physics at the control tick (one batch steps
+# at one rate; `paper_5khz` is `paper` at a finer step, not another robot).
+ENVIRONMENT_PROFILES = tuple(name for name, p in physics_profiles.PROFILES.items() if p.physics_substeps == 1)
 
 
 def specs(study: study_spec.StudyFile) -> list[study_spec.StudySpec]:
@@ -55,10 +58,10 @@ class Environments:
     """Where the best parameters are evaluated: each fixed profile, then the randomized draws."""
 
     def __init__(self, home: str):
-        self.names = list(physics_profiles.PROFILES) + [f"randomized {k}" for k in range(EVALUATION_DRAWS)]
+        self.names = list(ENVIRONMENT_PROFILES) + [f"randomized {k}" for k in range(EVALUATION_DRAWS)]
         draws = study_spec.randomized(EVALUATION_RANDOMIZATION, EVALUATION_DRAWS, 1)
-        fixed = len(physics_profiles.PROFILES)
-        self.physics = list(physics_profiles.PROFILES) + [home] * EVALUATION_DRAWS
+        fixed = len(ENVIRONMENT_PROFILES)
+        self.physics = list(ENVIRONMENT_PROFILES) + [home] * EVALUATION_DRAWS
         self.friction = [0.6] * fixed + draws["friction"][:, 0].tolist()
         self.payload_kg = [0.0] * fixed + draws["payload_kg"][:, 0].tolist()
         self.mass_scale = [1.0] * fixed + draws["mass_scale"][:, 0].tolist()
@@ -143,7 +146,7 @@ def _runs(result, controller: str) -> np.ndarray:
 
 
 def _transfer(result, evaluation: tuple, controller: str, home: str) -> _Transfer:
-    fixed = list(physics_profiles.PROFILES)
+    fixed = list(ENVIRONMENT_PROFILES)
     runs = _runs(result, controller)
     jm, fell = evaluation[0][runs], evaluation[3][runs]
     home_col = fixed.index(home)
@@ -156,7 +159,7 @@ def _transfer(result, evaluation: tuple, controller: str, home: str) -> _Transfe
 def table(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations: dict) -> str:
     """The transfer table: per controller and arm, at home and away (J, v_x, CoT, falls) and the drop of J, means
     with 95 % intervals over seeds where they are compared (``stats.mean_ci``)."""
-    fixed = list(physics_profiles.PROFILES)
+    fixed = list(ENVIRONMENT_PROFILES)
     head = ("| controller | optimized under | J at home | " + " | ".join(f"J {p}" for p in fixed)
             + " | J randomized | drop: worst fixed | drop: randomized | v_x home / randomized [m/s] | "
             "CoT home / randomized | falls away |")
@@ -272,7 +275,7 @@ def run(study: study_spec.StudyFile, *, out=None, resume=False, overwrite=False,
         with study_io.writing(out / spec.name, "evaluations.parquet"):
             write_evaluations(out / spec.name / "evaluations.parquet", result, env, evaluations[arm])
         wall += result.wall_s
-    env, fixed = Environments(study.arms[0].physics), len(physics_profiles.PROFILES)
+    env, fixed = Environments(study.arms[0].physics), len(ENVIRONMENT_PROFILES)
     draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}" for f, p, s, lat, z in zip(
         env.friction[fixed:], env.payload_kg[fixed:], env.mass_scale[fixed:], env.latency_ticks[fixed:],
         env.noise_scale[fixed:], strict=True))
