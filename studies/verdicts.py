@@ -47,6 +47,7 @@ from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
 
 ALPHA = stats.ALPHA
+LAST_TRIALS = registry.LAST_TRIALS
 FIGURES = {"v_x": "velocity_x_mps", "CoT": "cost_of_transport", "J": "objective"}
 UNITS = {"v_x": " m/s", "CoT": "", "J": ""}
 # The margins (docs/REPRODUCTION.md, "Criteria"): the paper's own seed-to-seed std of the figure where it gives one;
@@ -59,6 +60,13 @@ HARDWARE_TRIALS_MARGIN = 5.0  # "within approximately 20 trials"
 RAMP_MARGIN_DEG = 1.25  # half the 2.5° step between the slopes the paper tests
 FRICTION_TRIALS_BOUND = 10.0  # "prospective solutions within less than 10 trials"
 PROSPECTIVE = 0.9  # a prospective solution: J ≥ this × the group's mean final J
+# The paper's same-context tolerances t·r (its appendix: t_load 0.2 × r_load 40 N, t_slope 0.1 × r_slope 0.5 rad):
+# "each estimator is capable of providing consistent contextual information".
+CONTEXT_TOLERANCE = {"c_load_n": 0.2 * 40.0, "c_slope_rad": 0.1 * 0.5}
+# The paper's hardware 10° adaptation (Sec. "Hardware Experiments"): "a decrease in ω_swing, x_offset,front and g_p;
+# an increase in ω_stance, g_c, σ_N and x_offset,hind" from the flat optimum to the slope's.
+HARDWARE_SLOPE_SHIFTS = {"omega_swing_rad_s": -1, "x_offset_front_m": -1, "ground_penetration_m": -1,
+                         "omega_stance_rad_s": +1, "ground_clearance_m": +1, "sigma_n": +1, "x_offset_hind_m": +1}
 
 
 class Row(NamedTuple):
@@ -131,6 +139,23 @@ def controller_rows(cols: dict) -> list[Row]:
     return rows + claims
 
 
+def context_rows(cols: dict, family: str, field: str, phases: list[tuple[int, int]], label) -> list[Row]:
+    """Per phase, each run's std of the context ``field`` over its walking (not fallen) trials, against the paper's
+    same-context tolerance: the claim that the estimator is consistent (a spread below it)."""
+    rows = []
+    bound = CONTEXT_TOLERANCE[field]
+    for start, stop in phases:
+        values = np.where(cols["fell"][start:stop] | cols["failed"][start:stop], np.nan, cols[field][start:stop])
+        enough = np.sum(np.isfinite(values), axis=0) >= 2
+        spread = np.nanstd(values[:, enough], axis=0, ddof=1)
+        if spread.size < 2:
+            continue
+        rows.append(Row(family, f"{label(start)}: {field} spread within a run < t·r = {bound:g}", f"< {bound:g}",
+                        _cell(spread), stats.effect_to_value(spread, bound), 0.0, "the tolerance itself",
+                        "claim_below", f"{int(enough.sum())} runs with 2 or more walking trials"))
+    return rows
+
+
 def _phases(values: np.ndarray) -> list[tuple[int, int]]:
     starts = registry.phase_starts(values) + [values.shape[0]]
     return list(zip(starts[:-1], starts[1:], strict=True))
@@ -172,7 +197,8 @@ def load_rows(cols: dict, trial_config) -> list[Row]:
                                 _cell(ours, UNITS[name]),
                                 stats.effect_to_summary(ours, before[k], std, registry.PAPER_SEEDS), std,
                                 "the paper's VMC+Tegotae std (flat)", "figure"))
-    return rows
+    return rows + context_rows(cols, "load table", "c_load_n", phases,
+                               lambda start: f"{cols['payload_kg'][start, 0]:g} kg")
 
 
 def prospective_trials(j: np.ndarray, threshold: float) -> np.ndarray:
@@ -209,7 +235,9 @@ def slope_rows(cols: dict) -> list[Row]:
     ramp_at = int(np.argmax(ramp)) if ramp.any() else ramp.size
     everyone = np.ones(cols["objective"].shape[1], bool)
     target = float(cols["target_velocity_mps"][0, 0])
-    for start, stop in _phases(cols["slope_deg"][:learn, 0]):
+    learning = _phases(cols["slope_deg"][:learn, 0])
+    rows += context_rows(cols, "slope", "c_slope_rad", learning, lambda start: f"{cols['slope_deg'][start, 0]:g}°")
+    for start, stop in learning:
         slope = float(cols["slope_deg"][start, 0])
         if slope == 0.0:
             continue
@@ -265,6 +293,17 @@ def multi_velocity_rows(cols: dict) -> list[Row]:
                         f"{np.mean(a):.2f} vs {np.mean(b):.2f}", stats.effect_between(a, b), 0.0, "no effect",
                         "claim_below", f"never tracked (counted as {stop - start + 1}): {never[0]} with reuse, "
                                        f"{never[1]} without"))
+    first = _phases(cols["target_velocity_mps"][:, 0])[1][0]  # the paper's trials 40–60 begin at the first change
+    window = min(20, cols["objective"].shape[0] - first)
+    if window >= 2 * LAST_TRIALS and reuse.sum() >= 2:
+        cot = cols["cost_of_transport"][first:first + window][:, reuse]
+        walked = ~(cols["fell"] | cols["failed"])[first:first + window][:, reuse]
+        early = np.nanmean(np.where(walked[:LAST_TRIALS], cot[:LAST_TRIALS], np.nan), axis=0)
+        late = np.nanmean(np.where(walked[-LAST_TRIALS:], cot[-LAST_TRIALS:], np.nan), axis=0)
+        change = late - early
+        rows.append(Row("multi-velocity", f"CoT falls over trials {first}–{first + window - 1} (reuse): last 5 − "
+                        "first 5 < 0", "falls (figure)", _cell(change), stats.effect_to_value(change, 0.0), 0.0,
+                        "no effect", "claim_below", "walking trials only"))
     return rows
 
 
@@ -294,6 +333,27 @@ def hardware_rows(cols: dict) -> list[Row]:
                                 _cell(counts), stats.effect_to_value(counts, paper_trials), HARDWARE_TRIALS_MARGIN,
                                 "\"approximately\"", "figure",
                                 f"never tracked (counted as {e - s + 1}): {int(np.sum(counts > e - s))}"))
+                rows += parameter_shift_rows(cols, m, s, e)
+    return rows
+
+
+def parameter_shift_rows(cols: dict, mask: np.ndarray, change: int, stop: int) -> list[Row]:
+    """Per parameter the paper names, each run's change from its best flat gait (trials < ``change``) to its best
+    gait on the slope (trials ``change`` … ``stop``), in the paper's direction (claims in the units of the
+    parameter)."""
+    def best(lo, hi):
+        j = np.where(cols["fell"][lo:hi] | cols["failed"][lo:hi], -np.inf, cols["objective"][lo:hi])[:, mask]
+        return lo + np.argmax(j, axis=0)
+
+    flat, slope = best(0, change), best(change, stop)
+    runs = np.flatnonzero(mask)
+    rows = []
+    for name, sign in HARDWARE_SLOPE_SHIFTS.items():
+        shift = cols[name][slope, runs] - cols[name][flat, runs]
+        rows.append(Row("hardware (go1)", f"10°: {name} {'decreases' if sign < 0 else 'increases'}",
+                        "decreases" if sign < 0 else "increases", _cell(shift), stats.effect_to_value(shift, 0.0), 0.0,
+                        "no effect", "claim_below" if sign < 0 else "claim_above",
+                        "best slope gait − best flat gait, per run"))
     return rows
 
 

@@ -60,14 +60,16 @@ def _sha256(path: pathlib.Path) -> str:
 
 
 @pytest.mark.slow
-def test_each_quick_paper_study_from_its_file_writes_the_trials_of_the_code_it_replaced(tmp_path):
-    """Each paper study run from its file at --quick writes a trials.parquet byte for byte the one 54cbbd9's
-    registry wrote (`cpgjax study NAME --quick`, recorded before the definitions moved; the parquet writer records
-    its version in the file, so this compares files written by the same pyarrow)."""
+def test_each_quick_paper_study_writes_the_trials_of_the_reproductions_commit(tmp_path):
+    """Each paper study run from its file at --quick writes a trials.parquet byte for byte the one written at the
+    commit of the reproduction's runs (a03d360, `cpgjax study NAME --quick`; docs/REPRODUCTION.md): a change that
+    moves any trial of the paper studies' default path shows here, and one that must not (the switches, a new
+    profile) is checked not to. The parquet writer records its version in the file, so this compares files written
+    by the same pyarrow."""
     recorded = json.loads((DATA / "quick_trials_sha256.json").read_text())
     if recorded["pyarrow"] != pyarrow.__version__:
         pytest.fail(f"the recorded files were written by pyarrow {recorded['pyarrow']}, this is "
-                    f"{pyarrow.__version__}: record them again at 54cbbd9 with this pyarrow")
+                    f"{pyarrow.__version__}: record them again at {recorded['commit']} with this pyarrow")
     found = {}
     for name in PAPER_STUDIES:
         study = study_driver.read(name, quick=True)
