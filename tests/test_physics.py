@@ -365,3 +365,10 @@ def test_paper_5khz_is_paper_at_unitree_ros_physics_rate():
         native_go1.BatchPhysics(mixed)
     with pytest.raises(ValueError, match="'paper_5khz' steps its physics more than once per control tick"):
         mjx_go1.make_batch_model(go1_model.make_scenarios(friction=[0.6], physics="paper_5khz"))
+    # The loopback Go1 steps five times per 1 ms tick too: its clock keeps the tick.
+    from cpgjax.robot import sim_server
+    go1 = sim_server.Go1Physics(physics="paper_5khz")
+    start = go1.data.time
+    for _ in range(10):
+        go1.step(sim_server.COMMAND.zeros())
+    assert go1.data.time - start == pytest.approx(0.010)

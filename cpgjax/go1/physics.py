@@ -67,7 +67,7 @@ class PhysicsProfile(NamedTuple):
     tilt_noise_rad: float = 0.0  # the IMU orientation, turned about the trunk's x and y axes by this much at most
     foot_force_noise_n: float = 0.0  # each foot force, before it is counted
     # Physics steps per 1 ms control tick, the tick's torques held (the model's timestep is 1 ms / this); the
-    # native backend only, and one value per batch.
+    # native backend and the loopback Go1 (not MJX), one value per batch.
     physics_substeps: int = 1
 
 

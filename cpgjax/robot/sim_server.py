@@ -151,6 +151,7 @@ class Go1Physics:
         scenario = go1_model.make_scenarios(friction, slope_deg, payload_kg, physics, noise_seed=noise_seed)
         self.model = go1_model.scenario_model(scenario, 0)
         self.data = mujoco.MjData(self.model)
+        self._substeps = physics_profiles.get(physics).physics_substeps  # physics steps per 1 ms tick
         self.ids = go1_model.indices()
         self._standing = go1_model.standing_qpos(self.model)
         gravity = jax.numpy.asarray(self.model.opt.gravity, jax.numpy.float32)
@@ -202,9 +203,10 @@ class Go1Physics:
         self.held_root_qpos[2] += height_m
 
     def step(self, cmd: np.ndarray, push_roll_nm: float = 0.0) -> np.ndarray:
-        """Apply a motor command (:func:`command_vector`) for one 1 ms physics step [and an external roll torque on
-        the trunk]: the motor law (:func:`motor_torque`), then the physics profile's motors (latency, torque-speed
-        envelope, velocity limit). Returns the motor law's torque (12,) [N·m]."""
+        """Apply a motor command (:func:`command_vector`) for one 1 ms tick [and an external roll torque on the
+        trunk]: the motor law (:func:`motor_torque`), then the physics profile's motors (latency, torque-speed
+        envelope, velocity limit), held over the profile's physics steps of the tick. Returns the motor law's torque
+        (12,) [N·m]."""
         if self.held_root_qpos is not None:
             root, dof = self.ids.root_qpos, self.ids.root_dof
             self.data.qpos[root:root + 7] = self.held_root_qpos
@@ -218,7 +220,7 @@ class Go1Physics:
         self._io = out[out_of.slices.io]
         self.data.ctrl[self.ids.actuator] = out[out_of.slices.applied_torque_nm]
         self.data.xfrc_applied[self.ids.trunk_body, 3:] = (push_roll_nm, 0.0, 0.0)
-        mujoco.mj_step(self.model, self.data)
+        mujoco.mj_step(self.model, self.data, nstep=self._substeps)
         return out[out_of.slices.law_torque_nm].astype(np.float64)
 
     def sense(self) -> np.ndarray:
