@@ -124,7 +124,7 @@ def controller_rows(cols: dict) -> list[Row]:
             ours = _final(cols, column, n, m)
             rows.append(Row("controller table", f"{c} {name}", f"{mean:.3f} ± {std:.3f} (n = 5)",
                             _cell(ours, UNITS[name]), stats.effect_to_summary(ours, mean, std, registry.PAPER_SEEDS),
-                            std, "the paper's std", "figure"))
+                            std, "the paper's std", "figure", _falls_note(cols, 0, n, m) if name == "J" else ""))
     claims = []
     cot = {c: _final(cols, "cost_of_transport", n, controller == c) for c in cpg.CONTROLLERS
            if (controller == c).sum() >= 2}
@@ -180,7 +180,7 @@ def load_rows(cols: dict, trial_config) -> list[Row]:
     loads = [float(cols["payload_kg"][s, 0]) for s, _ in phases]
     flat = _flat_optimum(cols, phases[1][0], [x for x in loads if x > 0], trial_config) if len(phases) > 1 else {}
     everyone = np.ones(cols["objective"].shape[1], bool)
-    for load, (_, stop) in zip(loads, phases, strict=True):
+    for load, (start, stop) in zip(loads, phases, strict=True):
         after, before = registry.PAPER_LOAD_TABLE.get(load, (None, None))
         if after is None:
             continue
@@ -189,7 +189,8 @@ def load_rows(cols: dict, trial_config) -> list[Row]:
             std = LOAD_STD[name]
             rows.append(Row("load table", f"{load:g} kg {name} adapted", f"{after[k]:.3f}", _cell(ours, UNITS[name]),
                             stats.effect_to_summary(ours, after[k], std, registry.PAPER_SEEDS), std,
-                            "the paper's VMC+Tegotae std (flat)", "figure"))
+                            "the paper's VMC+Tegotae std (flat)", "figure",
+                            _falls_note(cols, start, stop) if name == "J" else ""))
             if before is not None and load in flat:
                 ours = flat[load][k]
                 rows.append(Row("load table", f"{load:g} kg {name} flat optimum", f"{before[k]:.3f}",
@@ -265,10 +266,14 @@ def slope_rows(cols: dict) -> list[Row]:
     return rows
 
 
-def _falls_note(cols: dict, start: int, stop: int) -> str:
+def _falls_note(cols: dict, start: int, stop: int, mask: np.ndarray | None = None) -> str:
+    """The phase's falls, the seeds that hold them and the fall rate with a bootstrap over seeds."""
     fell = (cols["fell"][start:stop] | cols["failed"][start:stop]).astype(np.float64)
+    if mask is not None:
+        fell = fell[:, mask]
     rate = stats.cluster_bootstrap(list(fell.T), lambda cs: float(np.mean(np.concatenate(cs))))
-    return (f"falls {int(fell.sum())}/{fell.size} in {int(np.sum(fell.sum(axis=0) > 0))} seeds, rate "
+    seeds = int(np.sum(fell.sum(axis=0) > 0))
+    return (f"falls {int(fell.sum())}/{fell.size}, in {seeds} of {fell.shape[1]} seeds; rate "
             f"{rate.mean:.3f} [{rate.low:.3f}, {rate.high:.3f}] (seed bootstrap)")
 
 

@@ -320,10 +320,9 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
     test of the seeds whose gait fell away from home)."""
     from scipy import stats as sp
 
-    from cpgjax.go1 import physics as physics_profiles
     from cpgjax.studies import transfer
 
-    seeds, fixed = 4, list(physics_profiles.PROFILES)
+    seeds, fixed = 4, list(transfer.ENVIRONMENT_PROFILES)
     environments = len(fixed) + transfer.EVALUATION_DRAWS
     labels = [{"controller": c} for c in cpg.CONTROLLERS for _ in range(seeds)]
     rng = np.random.default_rng(3)
