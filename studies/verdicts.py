@@ -434,7 +434,8 @@ def paired_changes(base: pathlib.Path, changed: pathlib.Path, name: str) -> str:
     """Per headline figure (the per-seed finals of the figure rows), the paired difference one change − base."""
     ca, cb = _objective_at_paper_floor(_columns(base)), _objective_at_paper_floor(_columns(changed))
     n = ca["objective"].shape[0]
-    groups = {"controller_ablation": "controller", "load_adaptation": "payload_kg"}.get(name)
+    groups = {"controller_ablation": "controller", "load_adaptation": "payload_kg",
+              "slope_adaptation": "slope_deg"}.get(name)
     if groups is None:
         return ""
     out = ["", "| group | figure | one change − base, paired over seeds [95 % CI] | paired t p | Holm |",
@@ -446,6 +447,22 @@ def paired_changes(base: pathlib.Path, changed: pathlib.Path, name: str) -> str:
             if m.sum() >= 2:
                 for fig, column in FIGURES.items():
                     entries.append((c, fig, _final(ca, column, n, m), _final(cb, column, n, m)))
+    elif groups == "slope_deg":
+        inference = ca["inference"][:, 0]
+        learn = int(np.argmax(inference)) if inference.any() else inference.size
+        ramp = ca["ramp"][:, 0]
+        ramp_at = int(np.argmax(ramp)) if ramp.any() else ramp.size
+        everyone = np.ones(ca["objective"].shape[1], bool)
+        for start, stop in _phases(ca["slope_deg"][:learn, 0]):
+            for fig, column in FIGURES.items():
+                entries.append((f"{ca['slope_deg'][start, 0]:g}°", fig, _final(ca, column, stop, everyone),
+                                _final(cb, column, stop, everyone)))
+        for start, stop in _phases(ca["slope_deg"][learn:ramp_at, 0]):
+            start, stop = start + learn, stop + learn
+            entries.append((f"inference {ca['slope_deg'][start, 0]:g}°", "v_x",
+                            *(c["velocity_x_mps"][start:stop].mean(axis=0) for c in (ca, cb))))
+        entries.append(("all", "falls per run", (ca["fell"] | ca["failed"]).sum(axis=0).astype(np.float64),
+                        (cb["fell"] | cb["failed"]).sum(axis=0).astype(np.float64)))
     else:
         everyone = np.ones(ca["objective"].shape[1], bool)
         for start, stop in _phases(ca["payload_kg"][:, 0]):

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from scipy import stats as scipy_stats
 
-from cpgjax import cli
+from cpgjax import ablation
+from cpgjax.studies import driver as study_driver
 from cpgjax.studies import registry, stats
 from cpgjax.study import files as study_io
 
@@ -57,13 +58,15 @@ def test_censored_counts_keep_the_runs_that_never_get_there():
 
 @pytest.mark.slow
 def test_the_script_on_a_tiny_controller_study(tmp_path, capsys):
-    """A 2-seed, 8-trial controller ablation run by `cpgjax study`, then `verdicts.py` on its folder: every figure of
-    the paper's controller table and the three CoT claims, with the effect and p-values SciPy gives on the trial
-    table's last-5-trial means."""
-    (tmp_path / "results").mkdir()
+    """A 2-seed, 8-trial controller ablation (its study file at --quick, 8 trials) run by the engine, its trial table
+    and metadata written as `cpgjax study` writes them, then `verdicts.py` on the folder: every figure of the paper's
+    controller table and the three CoT claims, with the effect and p-values SciPy gives on the trial table's
+    last-5-trial means."""
     out = tmp_path / "results" / "controller_ablation"
-    assert cli.main(["study", "controller_ablation", "--quick", "--trials", "8", "--out", str(out)]) == 0
-    capsys.readouterr()
+    out.mkdir(parents=True)
+    result = ablation.Engine(study_driver.read("controller_ablation", quick=True, trials=8).spec).run()
+    study_io.write_trials(result, out / "trials.parquet")
+    study_io.write_metadata(result, out / "metadata.json")
     assert verdicts.main([str(tmp_path / "results")]) == 0
     text = capsys.readouterr().out
     lines = [line for line in text.splitlines() if line.startswith("| controller")]
