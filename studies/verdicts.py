@@ -228,11 +228,16 @@ def friction_rows(cols: dict) -> list[Row]:
     return rows
 
 
+def _slope_parts(cols: dict) -> tuple[int, int]:
+    """The slope study's first inference-mode trial and its first ramp trial (the trial count where there is none)."""
+    inference, ramp = cols["inference"][:, 0], cols["ramp"][:, 0]
+    return (int(np.argmax(inference)) if inference.any() else inference.size,
+            int(np.argmax(ramp)) if ramp.any() else ramp.size)
+
+
 def slope_rows(cols: dict) -> list[Row]:
     rows = []
-    inference, ramp = cols["inference"][:, 0], cols["ramp"][:, 0]
-    learn = int(np.argmax(inference)) if inference.any() else inference.size
-    ramp_at = int(np.argmax(ramp)) if ramp.any() else ramp.size
+    learn, ramp_at = _slope_parts(cols)
     everyone = np.ones(cols["objective"].shape[1], bool)
     target = float(cols["target_velocity_mps"][0, 0])
     learning = _phases(cols["slope_deg"][:learn, 0])
@@ -254,7 +259,7 @@ def slope_rows(cols: dict) -> list[Row]:
         rows.append(Row("slope", f"inference {slope:g}°: v_x at v* = {target:g} m/s", f"{target:g} (walks)",
                         _cell(ours, " m/s"), stats.effect_to_value(ours, target), VELOCITY_MARGIN_MPS,
                         "the tracking tolerance", "figure", _falls_note(cols, start, stop)))
-    if ramp_at < ramp.size:
+    if ramp_at < cols["ramp"].shape[0]:
         slope = cols["slope_deg"][ramp_at:]
         fell = cols["fell"][ramp_at:] | cols["failed"][ramp_at:]
         steepest = np.where(~fell, slope, -np.inf).max(axis=0)
@@ -448,10 +453,7 @@ def paired_changes(base: pathlib.Path, changed: pathlib.Path, name: str) -> str:
                 for fig, column in FIGURES.items():
                     entries.append((c, fig, _final(ca, column, n, m), _final(cb, column, n, m)))
     elif groups == "slope_deg":
-        inference = ca["inference"][:, 0]
-        learn = int(np.argmax(inference)) if inference.any() else inference.size
-        ramp = ca["ramp"][:, 0]
-        ramp_at = int(np.argmax(ramp)) if ramp.any() else ramp.size
+        learn, ramp_at = _slope_parts(ca)
         everyone = np.ones(ca["objective"].shape[1], bool)
         for start, stop in _phases(ca["slope_deg"][:learn, 0]):
             for fig, column in FIGURES.items():

@@ -80,14 +80,8 @@ def mean_ci(values) -> Interval:
 
 def _welch(mean_a, var_a, n_a, mean_b, var_b, n_b) -> tuple[float, float, float, float]:
     """(difference, low, high, p) of Welch's test from the groups' means, sample variances and sizes."""
-    se2 = var_a / n_a + var_b / n_b
-    diff = mean_a - mean_b
-    if se2 == 0.0:
-        return diff, diff, diff, (1.0 if diff == 0.0 else 0.0)
-    dof = se2 ** 2 / ((var_a / n_a) ** 2 / (n_a - 1) + (var_b / n_b) ** 2 / (n_b - 1))
-    half = float(stats.t.ppf(1.0 - ALPHA / 2, dof) * np.sqrt(se2))
-    p = float(2.0 * stats.t.sf(abs(diff) / np.sqrt(se2), dof))
-    return diff, diff - half, diff + half, p
+    effect = _welch_effect(mean_a, var_a, n_a, mean_b, var_b, n_b)
+    return (effect.difference, *effect.interval(), effect.two_sided_p())
 
 
 def compare(a, b) -> Comparison:
@@ -187,6 +181,8 @@ class Effect(NamedTuple):
 
 
 def _welch_effect(mean_a, var_a, n_a, mean_b, var_b, n_b) -> Effect:
+    """The Welch–Satterthwaite :class:`Effect` of mean_a − mean_b from the groups' means, sample variances and
+    sizes."""
     se2 = var_a / n_a + var_b / n_b
     if se2 == 0.0:
         return Effect(float(mean_a - mean_b), 0.0, float(n_a + n_b - 2))
