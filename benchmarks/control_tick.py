@@ -43,7 +43,7 @@ def tick_inputs(batch: int):
                                                              noise_seed=np.arange(batch)))
     obs = jax.vmap(sensors.observe)(qpos, qvel, sens, gravity)
     return (profile, jax.vmap(physics.init_state)(obs.foot_force_n), jax.vmap(cpg.init_state)(obs),
-            rep(params.midpoint()), cpg.Gates(jnp.ones(batch), jnp.ones(batch)), qpos, qvel, sens, gravity)
+            rep(params.midpoint()), protocol.batch_gates(["vmc_tegotae"] * batch), qpos, qvel, sens, gravity)
 
 
 def time_tick(args, calls: int, repeats: int) -> float:

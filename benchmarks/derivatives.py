@@ -28,7 +28,7 @@ from timing import median_seconds
 
 from cpgjax import cpg, gp, provenance
 from cpgjax.go1 import kinematics, sensors
-from cpgjax.trial import params
+from cpgjax.trial import params, protocol
 
 CONTEXT_DIMS = 2
 INPUT_DIMS = 8 + CONTEXT_DIMS
@@ -77,7 +77,7 @@ def controller_pair(batch: int):
                               jnp.zeros((batch, 12)), jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0]), (batch, 1)),
                               jnp.zeros((batch, 3)), jnp.full((batch, 4), 30.0))
     state = jax.vmap(cpg.init_state)(obs)
-    gates = cpg.Gates(jnp.ones(batch), jnp.ones(batch))
+    gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     step = jax.vmap(lambda s, p, g, o: cpg.controller_step(cpg.CPGConfig(), s, p, g, o)[1])
     args = (state, mid, gates, obs)
     hand_written = traced(step, args)

@@ -306,7 +306,8 @@ class Engine:
         size = self.placement.padded_size
         self.padded = Conditions(*(_pad(c, size) for c in self.conditions))
         controllers = _pad(np.array([lab["controller"] for lab in self.labels]), size)
-        self.gates = protocol.batch_gates(controllers.tolist())
+        gaits = _pad(np.array([lab["gait"] for lab in self.labels]), size)
+        self.gates = protocol.batch_gates(controllers.tolist(), gaits.tolist())
         first, stop = self.placement.rows
         self.local_gates = jax.tree.map(lambda g: g[first:stop], self.gates)
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
@@ -485,7 +486,7 @@ class Engine:
         with _timed(timing, "simulation_s"):
             self._walk_the_ramp(t, run.logs)
             sim = self.simulator(t)
-            sim_state = sim.reset(x) if run.sim_state is None else run.sim_state
+            sim_state = sim.reset(x, self.local_gates) if run.sim_state is None else run.sim_state
             sim_state, record = sim.trial(sim_state, x, self.local_gates)
             record = jax.block_until_ready(record)
         with _timed(timing, "transfer_s"):

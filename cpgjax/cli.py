@@ -183,7 +183,7 @@ def _use_tuned(args, many: bool = False) -> None:
     given = getattr(args, "given", set())
     overrides = []
     for name, value in args.params.tuned_for.items():
-        dest = "controllers" if many and name == "controller" else name
+        dest = {"controller": "controllers", "gait": "gaits"}.get(name, name) if many else name
         wanted = (value,) if many and name != "target_velocity_mps" else value
         if dest not in given:
             setattr(args, dest, wanted)
@@ -199,7 +199,8 @@ def _use_tuned(args, many: bool = False) -> None:
 
 def _walk_video(args) -> int:
     """``cpgjax walk --video FILE``: the walk's one combination, after a settling trial, filmed for --video-s."""
-    combos = [(name, len(v)) for name, v in (("--controllers", args.controllers), ("--friction", args.friction),
+    combos = [(name, len(v)) for name, v in (("--controllers", args.controllers), ("--gaits", args.gaits),
+                                             ("--friction", args.friction),
                                              ("--slope-deg", args.slope_deg), ("--payload-kg", args.payload_kg),
                                              ("--physics", args.physics)) if len(v) != 1]
     if combos:
@@ -216,7 +217,7 @@ def _walk_video(args) -> int:
     params = param_space.midpoint() if args.params is None else np.asarray(args.params.params)
     gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
                             args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
-                            trial.steady_steps, args.target_velocity_mps)
+                            trial.steady_steps, args.target_velocity_mps, gait=args.gaits[0])
     (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
     try:
         (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg)])
@@ -239,7 +240,8 @@ def _walk(args) -> int:
         print("cpgjax walk: error: --overwrite applies to --out and --video only", file=sys.stderr)
         return 2
     _use_tuned(args, many=True)
-    trials, timing = walk.walk_trials(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
+    trials, timing = walk.walk_trials(controllers=args.controllers, gaits=args.gaits, friction=args.friction,
+                                      slope_deg=args.slope_deg,
                                       payload_kg=args.payload_kg, num_trials=args.trials,
                                       params=None if args.params is None else args.params.params,
                                       target_velocity_mps=args.target_velocity_mps, backend=args.backend,
@@ -370,7 +372,7 @@ def _study(args) -> int:
     try:
         study = study_driver.read(args.name, quick=args.quick, seeds=args.seeds, trials=args.trials,
                                   physics=args.physics, safe=args.safe, max_trials=args.max_trials,
-                                  startup=args.startup)
+                                  startup=args.startup, gaits=args.gaits)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -469,6 +471,7 @@ def replay_hint(params_path: pathlib.Path) -> str:
 def optimize_spec(args) -> study_spec.StudySpec:
     """The one-instance study of ``cpgjax optimize``'s options."""
     return study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,),
+                                gaits=None if args.gait == cpg.DEFAULT_GAIT else (args.gait,),
                                 seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
                                 payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
                                 physics=(args.physics,), safe=args.safe, max_trials=args.max_trials,
@@ -944,6 +947,26 @@ def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool
                        help="physics profile" + ("" if default else " (default: the study's own)"))
 
 
+def _gait_names(text: str) -> tuple[str, ...]:
+    names = tuple(text.split(","))
+    for name in names:
+        if name not in cpg.GAITS:
+            raise argparse.ArgumentTypeError(f"unknown gait {name!r}; allowed: {', '.join(cpg.GAITS)}")
+    return names
+
+
+def _add_gait_arg(p: argparse.ArgumentParser, default: str | None, many: bool = False, help_suffix: str = "") -> None:
+    """``--gait`` (``--gaits``: a comma list): the CPG's coupling pattern, ``cpg.GAITS`` (docs/gaits.md)."""
+    allowed = ", ".join(cpg.GAITS)
+    what = (f"the CPG's gait (coupling phase lags, docs/gaits.md): {allowed}"
+            + ("" if default else "; default: the study's own") + help_suffix)
+    if many:
+        p.add_argument("--gaits", type=_gait_names, default=default if default is None else (default,),
+                       action=_Given, help=f"comma list of gaits; {what}")
+    else:
+        p.add_argument("--gait", choices=tuple(cpg.GAITS), default=default, action=_Given, help=what)
+
+
 def _add_startup_arg(p: argparse.ArgumentParser, default: str | None) -> None:
     """``--startup``: how the controller starts from standing (docs/decisions.md §18)."""
     p.add_argument("--startup", choices=tuple(cpg.STARTUPS), default=default,
@@ -992,6 +1015,7 @@ def _add_walk(sub) -> None:
                        formatter_class=_HelpFormatter)
     w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS), action=_Given,
                    help="comma list of controllers")
+    _add_gait_arg(w, cpg.DEFAULT_GAIT, many=True)
     _add_scenario_args(w, many=True)
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
     _add_target_arg(w)
@@ -1049,6 +1073,7 @@ def _add_study(sub) -> None:
                    "process)")
     _add_physics_arg(s, None)
     _add_startup_arg(s, None)
+    _add_gait_arg(s, None, many=True)
     backends.add_backend_argument(s)
     s.set_defaults(func=_study)
 
@@ -1057,6 +1082,7 @@ def _add_optimize(sub) -> None:
     o = sub.add_parser("optimize", help="one online optimization (Algorithm 1) with a controller, scenario, target",
                        formatter_class=_HelpFormatter)
     o.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", help="the CPG controller")
+    _add_gait_arg(o, cpg.DEFAULT_GAIT)
     _add_scenario_args(o)
     _add_target_arg(o)
     o.add_argument("--trials", type=_count(), default=40, help="trials of 1.5 s + 3 s")
@@ -1122,6 +1148,7 @@ def _add_deploy(sub) -> None:
                    "margin is the tilt stop's, from the IMU")
     d.add_argument("--controller", choices=cpg.CONTROLLERS, default="vmc_tegotae", action=_Given,
                    help="the CPG controller (with --params: the file's)")
+    _add_gait_arg(d, cpg.DEFAULT_GAIT, help_suffix=" (with --params: the file's)")
     _add_startup_arg(d, cpg.DEFAULT_STARTUP)
     _add_target_arg(d)
     d.add_argument("--duration-s", type=_in(limits.RUN_DURATION_S), default=10.0, action=_Given,

@@ -7,7 +7,7 @@ to the Go1 motor limits. The same ``controller_step`` runs in MJX, in C MuJoCo a
 Equation numbers follow the paper's displayed equations in order:
   (1) ṙ_i = α(μ² − r_i²) r_i                               amplitude
   (2) θ̇_i = ω_i + Σ_j r_j w_ij sin(θ_j − θ_i − φ_ij)        phase, open loop
-  (3) ω_i = ω_swing if sin θ_i > 0 else ω_stance; Φ (trot)
+  (3) ω_i = ω_swing if sin θ_i > 0 else ω_stance; Φ, the gait's phase lags φ_ij (:data:`GAITS`; the paper's: trot)
   (4) x_i,foot = x_i,offset − d_step r_i cos θ_i
   (5) z_i,foot = −h + g_c sin θ_i (swing) | −h + g_p sin θ_i (stance)
   (6) θ̇_i = (2) − σ_N N_i cos θ_i                          Tegotae force feedback
@@ -27,8 +27,33 @@ from cpgjax.go1 import attitude, constants, kinematics, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.trial.params import NUM_PARAMS
 
-# Trot phase lags φ_ij (eq. 3), leg order FR, FL, RR, RL.
-TROT_PHASE_LAG_RAD = np.pi * np.array([[0, 1, 1, 0], [-1, 0, 0, -1], [-1, 0, 0, -1], [0, 1, 1, 0]], dtype=np.float64)
+# The gaits' phase offsets [rad] of the legs FR, FL, RR, RL (cpgjax.go1.constants.LEG_NAMES), FR at 0: the coupling
+# of the CPG-RL code of the same lab (Bellegarda & Ijspeert, "CPG-RL: Learning Central Pattern Generators for
+# Quadruped Locomotion", RA-L 2022; docs/gaits.md), whose leg order is ours. The phase lag of eq. (3) is
+# φ_ij = offset_j − offset_i, so that the coupled oscillators settle at θ_j − θ_i = φ_ij. A leg with a larger offset
+# is ahead: it touches down (θ reaches π) earlier in the cycle. "walk" is the lateral-sequence walk (hind foot, then
+# the fore foot of the same side: RL, FL, RR, FR); "walk_diagonal" is the code's own walk, the diagonal sequence
+# (RR, FL, RL, FR), its offsets negated.
+GAITS = {
+    "trot": (0.0, np.pi, np.pi, 0.0),  # diagonal pairs FR+RL, FL+RR (the paper's)
+    "pace": (0.0, np.pi, 0.0, np.pi),  # lateral pairs FR+RR, FL+RL
+    "bound": (0.0, 0.0, np.pi, np.pi),  # front pair, then hind pair
+    "walk": (0.0, np.pi, np.pi / 2, 3 * np.pi / 2),  # four beats, lateral sequence
+    "walk_diagonal": (0.0, np.pi, 3 * np.pi / 2, np.pi / 2),  # four beats, diagonal sequence
+    "pronk": (0.0, 0.0, 0.0, 0.0),  # all four together
+}
+DEFAULT_GAIT = "trot"
+
+
+def gait_phase_lags(name: str) -> np.ndarray:
+    """φ_ij (4, 4) [rad] of eq. (3) for the gait ``name`` of :data:`GAITS`: offset_j − offset_i."""
+    if name not in GAITS:
+        raise ValueError(f"unknown gait {name!r}; allowed: {', '.join(GAITS)}")
+    offsets = np.asarray(GAITS[name], np.float64)
+    return offsets[None, :] - offsets[:, None]
+
+
+TROT_PHASE_LAG_RAD = gait_phase_lags("trot")
 
 CONTROLLERS = ("open_loop", "vmc", "tegotae", "vmc_tegotae")
 AMPLITUDE_FORMS = ("paper", "sqrt")  # CPGConfig.amplitude_form
@@ -84,17 +109,20 @@ def with_startup(config: CPGConfig, name: str) -> CPGConfig:
 
 
 class Gates(NamedTuple):
-    """Per-instance controller variant as data: 1.0 enables a module, 0.0 disables it. Shape () each."""
+    """Per-instance controller variant as data: the modules (1.0 enables one, 0.0 disables it; shape () each) and
+    the gait's phase lags φ_ij of eq. (3) (4, 4), so that one compiled batch mixes controllers and gaits."""
 
     vmc: jax.Array
     tegotae: jax.Array
+    phase_lag_rad: jax.Array = TROT_PHASE_LAG_RAD
 
 
-def controller_gates(name: str) -> Gates:
-    """Gates of one of CONTROLLERS: 'open_loop', 'vmc', 'tegotae', 'vmc_tegotae'."""
+def controller_gates(name: str, gait: str = DEFAULT_GAIT) -> Gates:
+    """Gates of one of CONTROLLERS ('open_loop', 'vmc', 'tegotae', 'vmc_tegotae') walking one of :data:`GAITS`."""
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}; allowed: {CONTROLLERS}")
-    return Gates(vmc=np.float32("vmc" in name), tegotae=np.float32("tegotae" in name))
+    return Gates(vmc=np.float32("vmc" in name), tegotae=np.float32("tegotae" in name),
+                 phase_lag_rad=gait_phase_lags(gait).astype(np.float32))
 
 
 class CPGState(NamedTuple):
@@ -124,7 +152,7 @@ class Diagnostics(NamedTuple):
 
 
 def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_gate, config: CPGConfig,
-                           mu_scale=1.0):
+                           mu_scale=1.0, phase_lag_rad=TROT_PHASE_LAG_RAD):
     """(ṙ, θ̇) of the four coupled oscillators, eqs. (1)-(3) and the Tegotae term of eq. (6).
 
     Args:
@@ -133,13 +161,14 @@ def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_g
       foot_force_n: N_i, (4,).
       tegotae_gate: 1.0 adds −σ_N N_i cos θ_i (eq. 6), 0.0 gives the open-loop phase of eq. (2).
       mu_scale: the amplitude target is μ · mu_scale (the start's ramp, :func:`start_ramp`; 1 after it).
+      phase_lag_rad: φ_ij (4, 4), the gait (:func:`gait_phase_lags`).
     """
     mu, sigma_n = params[4] * mu_scale, params[7]
     omega_swing, omega_stance = params[2], params[3]
     target = mu * mu if config.amplitude_form == "paper" else mu  # AMPLITUDE_FORMS
     d_amplitude = config.alpha * (target - amplitude * amplitude) * amplitude  # eq. (1)
     omega = jnp.where(jnp.sin(phase_rad) > 0.0, omega_swing, omega_stance)  # eq. (3)
-    phase_diff = phase_rad[None, :] - phase_rad[:, None] - TROT_PHASE_LAG_RAD  # [i, j] = θ_j − θ_i − φ_ij
+    phase_diff = phase_rad[None, :] - phase_rad[:, None] - phase_lag_rad  # [i, j] = θ_j − θ_i − φ_ij
     coupling = jnp.sum(amplitude[None, :] * config.coupling_weight * jnp.sin(phase_diff), axis=1)  # eq. (2)
     feedback = -tegotae_gate * sigma_n * foot_force_n * jnp.cos(phase_rad)  # eq. (6)
     return d_amplitude, omega + coupling + feedback
@@ -174,10 +203,12 @@ def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConf
     return jnp.einsum("lij,li->lj", jac, force).reshape(12)
 
 
-def init_state(obs: sensors.Observation, config: CPGConfig = CPGConfig(), initial_amplitude: float = 0.1) -> CPGState:
-    """Controller state at the start of a run: small amplitude, trot phases θ = φ_0j (+ ``config.start_phase_rad``),
-    heading reference = heading now, the start's clock at 0 and the IMU pitch now (the lean's)."""
-    phase = jnp.mod(jnp.asarray(TROT_PHASE_LAG_RAD[0] + config.start_phase_rad, jnp.float32), 2.0 * jnp.pi)
+def init_state(obs: sensors.Observation, config: CPGConfig = CPGConfig(), initial_amplitude: float = 0.1,
+               phase_lag_rad=TROT_PHASE_LAG_RAD) -> CPGState:
+    """Controller state at the start of a run: small amplitude, the gait's phases θ_j = φ_0j of ``phase_lag_rad``
+    (+ ``config.start_phase_rad``), heading reference = heading now, the start's clock at 0 and the IMU pitch now
+    (the lean's)."""
+    phase = initial_phase_rad(config, phase_lag_rad)
     rpy = attitude.quat_to_rpy(obs.imu_quat_wxyz).astype(jnp.float32)
     return CPGState(
         amplitude=jnp.full((4,), initial_amplitude, jnp.float32),
@@ -186,6 +217,12 @@ def init_state(obs: sensors.Observation, config: CPGConfig = CPGConfig(), initia
         start_s=jnp.float32(0.0),
         start_pitch_rad=rpy[1],
     )
+
+
+def initial_phase_rad(config: CPGConfig, phase_lag_rad) -> jax.Array:
+    """The oscillators' phases (4,) at a start: the gait's φ_0j (``phase_lag_rad`` (4, 4)) + ``config.start_phase_rad``,
+    in [0, 2π)."""
+    return jnp.mod(jnp.asarray(phase_lag_rad, jnp.float32)[0] + jnp.float32(config.start_phase_rad), 2.0 * jnp.pi)
 
 
 def start_ramp(duration_s: float, start_s) -> jax.Array:
@@ -220,7 +257,8 @@ def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates
         raise ValueError(f"params must have {NUM_PARAMS} entries, got shape {params.shape}")
     start_s = jnp.minimum(state.start_s + config.dt_s, START_CLOCK_MAX_S)
     d_amp, d_phase = oscillator_derivatives(state.amplitude, state.phase_rad, params, obs.foot_force_n,
-                                            gates.tegotae, config, mu_scale=start_ramp(config.start_ramp_s, start_s))
+                                            gates.tegotae, config, mu_scale=start_ramp(config.start_ramp_s, start_s),
+                                            phase_lag_rad=gates.phase_lag_rad)
     amplitude = state.amplitude + config.dt_s * d_amp
     phase = jnp.mod(state.phase_rad + config.dt_s * d_phase, 2.0 * jnp.pi)
 

@@ -424,6 +424,7 @@ def _controller_input(gates: cpg.Gates) -> tuple[np.ndarray, ControllerInput]:
     x = INPUT.zeros()
     views = INPUT.unravel(x)
     views.gates.vmc[...], views.gates.tegotae[...] = float(gates.vmc), float(gates.tegotae)
+    views.gates.phase_lag_rad[...] = np.asarray(gates.phase_lag_rad, np.float32)
     return x, views
 
 
@@ -598,7 +599,7 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 ts = time.perf_counter()
                 pack_observation(last_state, calibration, inputs.obs)
                 if run_tick == 0:  # start the CPG from the observation of its first tick (as the simulator)
-                    x[INPUT.slices.state] = controller.initial_state(x[INPUT.slices.obs])
+                    x[INPUT.slices.state] = controller.initial_state(x[INPUT.slices.obs], x[INPUT.slices.gates])
                 inputs.params[:] = schedule.params(run_tick)
                 out = controller.step(x)
                 x[INPUT.slices.state] = out[OUTPUT.slices.state]

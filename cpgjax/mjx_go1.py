@@ -122,15 +122,15 @@ def _standing_data(model: mjx.Model, legs_rad: jax.Array | None = None) -> mjx.D
     return mjx.forward(model, mjx.make_data(model).replace(qpos=qpos))
 
 
-def _reset(cpg_config: cpg.CPGConfig, model: mjx.Model, params: jax.Array) -> SimState:
-    """Standing, the controller at rest; with the start's lean the robot reads its IMU's pitch standing and stands
-    leaning (``cpg.lean_x_m``), as the robot's soft start does."""
+def _reset(cpg_config: cpg.CPGConfig, model: mjx.Model, params: jax.Array, phase_lag_rad: jax.Array) -> SimState:
+    """Standing, the controller at rest in its gait's phases (``phase_lag_rad``); with the start's lean the robot
+    reads its IMU's pitch standing and stands leaning (``cpg.lean_x_m``), as the robot's soft start does."""
     data = _standing_data(model)
     obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
     if cpg_config.start_lean:
         data = _standing_data(model, cpg.standing_pose_rad(cpg_config, obs.imu_quat_wxyz))
         obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
-    return SimState(data=data, cpg=cpg.init_state(obs, cpg_config), params=params,
+    return SimState(data=data, cpg=cpg.init_state(obs, cpg_config, phase_lag_rad=phase_lag_rad), params=params,
                     io=physics_profiles.init_state(obs.foot_force_n))
 
 
@@ -172,7 +172,7 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model:
            profile: physics_profiles.ProfileArrays, state: SimState, new_params: jax.Array,
            gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
     """One trial of one instance: transition (linear interpolation) then steady phase; reset after a fall."""
-    reset = _reset(cpg_config, model, new_params)
+    reset = _reset(cpg_config, model, new_params, gates.phase_lag_rad)
     tick = functools.partial(_tick, cpg_config, trial_config, model, profile, gates, reset)
     n_transition = trial_config.transition_steps
 
@@ -262,7 +262,7 @@ class MJXBackend(Backend):
         self.mesh = _batch_mesh(scenario.batch_size, devices)
         self.batch = self._placed(make_batch_model(scenario))
         axes = self.batch.in_axes
-        self._reset = jax.jit(per_shard(functools.partial(_reset, cpg_config), (axes, 0), self.mesh))
+        self._reset = jax.jit(per_shard(functools.partial(_reset, cpg_config), (axes, 0, 0), self.mesh))
         trial = functools.partial(_trial, cpg_config, trial_config)
         self._trial = jax.jit(per_shard(trial, (axes, 0, 0, 0, 0), self.mesh), donate_argnums=(2,))
         self._rollouts = {}  # num_steps → compiled rollout, on first use
@@ -285,9 +285,12 @@ class MJXBackend(Backend):
     def _put(self, tree):
         return jax.device_put(tree, self.sharding)
 
-    def reset(self, params) -> SimState:
-        """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
-        return self._reset(self.batch.model, self._put(protocol.check_params(params, self.batch_size)))
+    def reset(self, params, gates: cpg.Gates | None = None) -> SimState:
+        """Every instance standing at the origin with its CPG at rest in its gait's phases (``gates``; None: trot);
+        ``params`` become the 'previous' set."""
+        gates = protocol.check_gates(cpg.Gates(0.0, 0.0) if gates is None else gates, self.batch_size)
+        return self._reset(self.batch.model, self._put(protocol.check_params(params, self.batch_size)),
+                           self._put(gates.phase_lag_rad))
 
     def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
         """One trial for every instance (the input state is consumed). Returns the next state and the records."""

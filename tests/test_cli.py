@@ -220,7 +220,7 @@ class _Log(NamedTuple):
     params: np.ndarray
 
 
-TUNED = dict(controller="tegotae", physics="paper", friction=0.3, slope_deg=5.0, payload_kg=2.5,
+TUNED = dict(controller="tegotae", gait="pace", physics="paper", friction=0.3, slope_deg=5.0, payload_kg=2.5,
              target_velocity_mps=0.7)
 
 
@@ -255,8 +255,8 @@ def test_deploy_params_replays_what_was_tuned_unless_overridden(tmp_path, capsys
     assert {k: getattr(args, k) for k in TUNED} == TUNED
     np.testing.assert_allclose(args.params, param_space.from_unit(np.full(8, 0.3)))
     err = capsys.readouterr().err
-    assert f"{path} tuned for controller tegotae, physics paper, friction 0.3, slope 5°, payload 2.5 kg, v* 0.7 m/s" \
-        in err and "overrides" not in err
+    assert (f"{path} tuned for controller tegotae, gait pace, physics paper, friction 0.3, slope 5°, payload 2.5 kg, "
+            "v* 0.7 m/s") in err and "overrides" not in err
     assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--friction", "0.9", "--controller",
                      "tegotae", "--log-dir", str(tmp_path / "b")]) == 0
     args = ran[-1]
@@ -272,7 +272,7 @@ def test_a_robot_tuned_file_keeps_the_replays_own_scenario(tmp_path, capsys, mon
     path = _tuned_file(tmp_path, physics=None, friction=None, slope_deg=None)
     assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--log-dir", str(tmp_path / "a")]) == 0
     assert (ran[-1].physics, ran[-1].friction, ran[-1].slope_deg, ran[-1].controller) == ("go1", 0.6, 0.0, "tegotae")
-    assert "tuned for controller tegotae, payload 2.5 kg, v* 0.7 m/s" in capsys.readouterr().err
+    assert "tuned for controller tegotae, gait pace, payload 2.5 kg, v* 0.7 m/s" in capsys.readouterr().err
 
 
 def test_walk_params_walks_what_was_tuned(tmp_path, capsys, monkeypatch):
@@ -286,14 +286,16 @@ def test_walk_params_walks_what_was_tuned(tmp_path, capsys, monkeypatch):
     with pytest.raises(SystemExit):
         cli.main(["walk", "--params", str(path), "--payload-kg", "0,5"])
     asked = walks[-1]
-    assert (asked["controllers"], asked["physics"], asked["friction"], asked["slope_deg"], asked["payload_kg"],
-            asked["target_velocity_mps"]) == (("tegotae",), ("paper",), (0.3,), (5.0,), (0.0, 5.0), 0.7)
+    assert (asked["controllers"], asked["gaits"], asked["physics"], asked["friction"], asked["slope_deg"],
+            asked["payload_kg"], asked["target_velocity_mps"]) == (("tegotae",), ("pace",), ("paper",), (0.3,), (5.0,),
+                                                                   (0.0, 5.0), 0.7)
     np.testing.assert_allclose(asked["params"], param_space.from_unit(np.full(8, 0.3)))
     assert "; --payload-kg 0,5 overrides it" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("field, value, message", [
     ("controller", "cpg9", "controller 'cpg9' is not one of open_loop"),
+    ("gait", "gallop", "gait 'gallop' is not one of trot, pace, bound, walk, walk_diagonal, pronk"),
     ("physics", "moon", "physics 'moon' is not one of"),
     ("friction", 7.0, "friction = 7.0 is outside the allowed range [0.1, 1.5]"),
     ("target_velocity_mps", "fast", "target_velocity_mps 'fast' is not a number"),

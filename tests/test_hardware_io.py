@@ -323,7 +323,7 @@ def _rollout_torques(obs_sequence: np.ndarray, p: np.ndarray) -> np.ndarray:
         return jax.lax.scan(body, state0, obs_seq)[1]
 
     batched = jax.jit(jax.vmap(rollout))(jnp.asarray(obs_sequence)[None], jnp.asarray(p, jnp.float32)[None],
-                                         cpg.Gates(jnp.array([GATES.vmc]), jnp.array([GATES.tegotae])))
+                                         protocol.check_gates(GATES, 1))
     return np.asarray(batched[0])
 
 

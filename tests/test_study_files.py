@@ -51,7 +51,7 @@ def test_each_paper_study_file_defines_the_study_of_the_code_it_replaced():
             continue
         study = study_driver.read(name, **options)
         specs = transfer.specs(study) if study.arms else [study.spec]
-        later = ", startup=None, switches=None)"  # fields added after the record
+        later = ", startup=None, switches=None, gaits=None)"  # fields added after the record
         assert [repr(_nameless(s)).replace(later, ")") for s in specs] == want, key
 
 
@@ -114,7 +114,7 @@ changes = [{ trial = 5, payload_kg = 12.0 }]
     (("friction = [0.4, 0.8]", "friction = []"), "grid.friction: empty", "at least one value"),
     (("friction = [0.4, 0.8]", "friction = [0.4, 0.4]"), "grid.friction[1]: 0.4 is already in the axis", ""),
     (('group_by = ["controller", "friction"]', 'group_by = ["controller", "mass"]'),
-     "group_by[1]: 'mass' is not allowed", "allowed: controller, seed, friction"),
+     "group_by[1]: 'mass' is not allowed", "allowed: controller, gait, seed, friction"),
     (("controllers = [\"open_loop\", \"tegotae\"]", "controllers = [\"open_loop\", \"cpg\"]"),
      "grid.controllers[1]: 'cpg' is not allowed", "open_loop, vmc, tegotae, vmc_tegotae"),
     (("changes = [{ trial = 5, payload_kg = 12.0 }]", "phases = [{ trials = 4 }, { trials = 5, payload_kg = 12.0 }]"),

@@ -117,7 +117,7 @@ def run(args) -> int:
     :class:`foot_force.FootForceCalibration` or None, ``log_dir`` a folder it may write). Returns 0 after a clean
     end, 2 after a safety trip."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    gates = cpg.controller_gates(args.controller)
+    gates = cpg.controller_gates(args.controller, args.gait)
     params, timing = first_params(args), trial_timing(args)
     loop, safety = loop_and_safety(args)
     args.log_dir.mkdir(parents=True, exist_ok=True)
@@ -231,7 +231,8 @@ def tuned_for(args) -> dict:
     """What a run's ``best_params.json`` records it was tuned for (:mod:`cpgjax.trial.tuned`): on the simulated Go1
     its physics profile and scenario; on the robot only the payload, the floor's friction and slope being unknown."""
     sim_only = dict(physics=args.physics, friction=args.friction, slope_deg=args.slope_deg)
-    return dict(controller=args.controller, target_velocity_mps=args.target_velocity_mps, payload_kg=args.payload_kg,
+    return dict(controller=args.controller, gait=args.gait, target_velocity_mps=args.target_velocity_mps,
+                payload_kg=args.payload_kg,
                 **(sim_only if args.robot == "sim" else dict.fromkeys(sim_only)))
 
 

@@ -59,7 +59,8 @@ class ControllerOutput(NamedTuple):
 
 OBSERVATION = FlatLayout(sensors.Observation(_zeros(12), _zeros(12), _zeros(4), _zeros(3), _zeros(4)))
 STATE = FlatLayout(cpg.CPGState(_zeros(4), _zeros(4), _zeros(), _zeros(), _zeros()))
-INPUT = FlatLayout(ControllerInput(OBSERVATION.unravel(OBSERVATION.zeros()), _zeros(8), cpg.Gates(_zeros(), _zeros()),
+GATES = FlatLayout(cpg.Gates(_zeros(), _zeros(), _zeros(4, 4)))
+INPUT = FlatLayout(ControllerInput(OBSERVATION.unravel(OBSERVATION.zeros()), _zeros(8), GATES.unravel(GATES.zeros()),
                                    STATE.unravel(STATE.zeros())))
 OUTPUT = FlatLayout(ControllerOutput(_zeros(12), STATE.unravel(STATE.zeros()), _zeros(3), _zeros(4), _zeros(2),
                                      _zeros(), _zeros(), _zeros(), _zeros(12), _zeros()))
@@ -92,17 +93,18 @@ def flat_step(config: cpg.CPGConfig, x: jax.Array) -> jax.Array:
         finite=jnp.all(jnp.isfinite(torque)).astype(torque.dtype)))
 
 
-def flat_initial_state(config: cpg.CPGConfig, x_obs: jax.Array) -> jax.Array:
-    """``cpg.init_state`` for the flat observation x_obs (:data:`OBSERVATION`), as the flat CPG state
-    (:data:`STATE`, ``x[INPUT.slices.state]``)."""
-    return STATE.ravel(cpg.init_state(OBSERVATION.unravel(x_obs), config))
+def flat_initial_state(config: cpg.CPGConfig, x_obs: jax.Array, x_gates: jax.Array) -> jax.Array:
+    """``cpg.init_state`` for the flat observation x_obs (:data:`OBSERVATION`) in the gait of the flat gates x_gates
+    (:data:`GATES`), as the flat CPG state (:data:`STATE`, ``x[INPUT.slices.state]``)."""
+    gates = GATES.unravel(x_gates)
+    return STATE.ravel(cpg.init_state(OBSERVATION.unravel(x_obs), config, phase_lag_rad=gates.phase_lag_rad))
 
 
 class CompiledController:
     """The controller step compiled ahead of time (``jit(...).lower(...).compile()``) and warmed up.
 
     ``step(x)`` takes the flat float32 input (:data:`INPUT`) and returns the flat output (:data:`OUTPUT`) as NumPy;
-    ``initial_state(x_obs)`` gives the flat CPG state (``x[INPUT.slices.state]``) to start from.
+    ``initial_state(x_obs, x_gates)`` gives the flat CPG state (``x[INPUT.slices.state]``) to start from.
     """
 
     def __init__(self, config: cpg.CPGConfig = cpg.CPGConfig(), warmup_calls: int = 200):
@@ -115,20 +117,21 @@ class CompiledController:
         x = INPUT.zeros()
         INPUT.unravel(x).obs.imu_quat_wxyz[0] = 1.0  # identity quaternion
         self._step = jax.jit(lambda v: flat_step(config, v)).lower(x).compile()
-        self._init = jax.jit(lambda v: flat_initial_state(config, v)).lower(x[INPUT.slices.obs]).compile()
+        self._init = jax.jit(lambda v, g: flat_initial_state(config, v, g)).lower(
+            x[INPUT.slices.obs], x[INPUT.slices.gates]).compile()
         # Without the lean the standing pose is the constant one: nothing to compile.
         self._stand = (jax.jit(lambda q: cpg.standing_pose_rad(config, q)).lower(np.float32([1, 0, 0, 0])).compile()
                        if config.start_lean else None)
         for _ in range(warmup_calls):
             self.step(x)
-        self.initial_state(x[INPUT.slices.obs])
+        self.initial_state(x[INPUT.slices.obs], x[INPUT.slices.gates])
         self.standing_pose_rad(np.array([1.0, 0.0, 0.0, 0.0]))
 
     def step(self, x: np.ndarray) -> np.ndarray:
         return np.asarray(self._step(x))
 
-    def initial_state(self, x_obs: np.ndarray) -> np.ndarray:
-        return np.asarray(self._init(x_obs))
+    def initial_state(self, x_obs: np.ndarray, x_gates: np.ndarray) -> np.ndarray:
+        return np.asarray(self._init(x_obs, x_gates))
 
     def standing_pose_rad(self, imu_quat_wxyz: np.ndarray) -> np.ndarray:
         """The soft start's standing joint angles (12,) for the IMU's orientation (``cpg.standing_pose_rad``)."""

@@ -13,7 +13,8 @@ What holds for every member:
 * Parameters are (B, 8) in physical units, ordered as ``cpgjax.trial.params.PARAM_NAMES``. They are validated on
   entry (``protocol.check_params``): a wrong shape, a non-finite value or one outside the box raises ``ValueError``
   before any simulation.
-* Gates are a ``cpg.Gates`` of (B,) arrays (``protocol.batch_gates``), which select the controller per instance.
+* Gates are a ``cpg.Gates`` of (B,) module gates and (B, 4, 4) phase lags (``protocol.batch_gates``), which select
+  the controller and the gait per instance.
 * The simulator state is the backend's own pytree, opaque to callers but for what the engine's checkpoint needs: every
   leaf is an array with the leading batch axis, and a leaf that is a NumPy array in the state ``reset`` returns is one
   in every state (a checkpointed state is restored into ``reset``'s structure, NumPy leaves as NumPy and the others as
@@ -53,9 +54,10 @@ class Backend(Protocol):
         """B, the number of instances (``scenario.batch_size``)."""
 
     @abc.abstractmethod
-    def reset(self, params) -> Any:
-        """Every instance standing at rest at the origin with its CPG at rest; ``params`` (B, 8) become the previous
-        parameters, which the next trial's transition starts from. Returns the state."""
+    def reset(self, params, gates: cpg.Gates | None = None) -> Any:
+        """Every instance standing at rest at the origin with its CPG at rest in its gait's phases (``gates``' phase
+        lags; None: the trot); ``params`` (B, 8) become the previous parameters, which the next trial's transition
+        starts from. Returns the state."""
 
     @abc.abstractmethod
     def trial(self, state, new_params, gates: cpg.Gates) -> tuple[Any, protocol.TrialRecord]:

@@ -318,6 +318,12 @@ def _rest_controller(cpg_config: cpg.CPGConfig, qpos, qvel, sensordata, gravity_
                        jax.vmap(physics_profiles.init_state)(obs.foot_force_n))
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _initial_phases(cpg_config: cpg.CPGConfig, phase_lag_rad) -> jax.Array:
+    """The batch's oscillator phases at a start (B, 4) from its gaits' phase lags (B, 4, 4)."""
+    return jax.vmap(functools.partial(cpg.initial_phase_rad, cpg_config))(phase_lag_rad)
+
+
 class _Constants(NamedTuple):
     """Per-trial inputs of the jitted tick, each with a leading batch axis."""
 
@@ -617,17 +623,24 @@ class NativeBackend(Backend):
         self.physics.close()
         return other
 
-    def reset(self, params) -> NativeState:
-        """Every instance standing at the origin with its CPG at rest; ``params`` become the 'previous' set."""
+    def reset(self, params, gates: cpg.Gates | None = None) -> NativeState:
+        """Every instance standing at the origin with its CPG at rest in its gait's phases (``gates``; None: trot);
+        ``params`` become the 'previous' set."""
         params = protocol.check_params(params, self.batch_size)
         p = self.physics
+        rest = self._rest(protocol.check_gates(cpg.Gates(0.0, 0.0) if gates is None else gates, self.batch_size))
         return NativeState(physics=p.standing_physics.copy(), warmstart=np.zeros_like(p.warmstart),
-                           sensordata=p.standing_sensordata.copy(), cpg=self._reset.cpg, params=params,
-                           io=self._reset.io)
+                           sensordata=p.standing_sensordata.copy(), cpg=rest.cpg, params=params, io=rest.io)
+
+    def _rest(self, gates: cpg.Gates) -> _Controller:
+        """The controller at rest (a start's, a fall's reset) with the phases of the instances' gaits."""
+        phase = _initial_phases(self.cpg_config, gates.phase_lag_rad)
+        return self._reset._replace(cpg=self._reset.cpg._replace(phase_rad=phase))
 
     def _constants(self, prev_params, new_params, gates) -> _Constants:
-        return _Constants(self._gravity, self._reset, jnp.asarray(prev_params, jnp.float32), new_params,
-                          protocol.check_gates(gates, self.batch_size), self._profile)
+        gates = protocol.check_gates(gates, self.batch_size)
+        return _Constants(self._gravity, self._rest(gates), jnp.asarray(prev_params, jnp.float32), new_params, gates,
+                          self._profile)
 
     def _program(self, recorder: _Recorder, trial_config: protocol.TrialConfig) -> _Program:
         """The run's compiled pieces (:class:`_Program`), compiled once per recorder and trial timing."""
@@ -719,7 +732,7 @@ class NativeBackend(Backend):
         record = self._program(TRIAL_RECORDER, self.trial_config).summarize(ticks, self._total_mass)
         fell = np.asarray(record.fell) > 0
         self.physics.reset(fell)
-        controller = protocol.where_batch(fell, self._reset, controller)
+        controller = protocol.where_batch(fell, consts.reset, controller)
         return NativeState(*self.physics.get_state(), cpg=controller.cpg, params=new_params, io=controller.io), record
 
     def rollout(self, state: NativeState, params, gates: cpg.Gates,

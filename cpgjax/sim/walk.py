@@ -45,6 +45,7 @@ class WalkTrial(NamedTuple):
     walk: int  # the walk's row in the grid
     trial: int
     controller: str
+    gait: str  # cpg.GAITS
     friction: float
     slope_deg: float
     payload_kg: float
@@ -57,13 +58,14 @@ class WalkTrial(NamedTuple):
     cot: float
 
 
-def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload_kg=(0.0,), params=None,
+def walk_trials(controllers=cpg.CONTROLLERS, gaits=(cpg.DEFAULT_GAIT,), friction=(0.6,), slope_deg=(0.0,),
+                payload_kg=(0.0,), params=None,
                 num_trials: int = 2, target_velocity_mps: float = 0.5,
                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
                 physics=(physics_profiles.DEFAULT_PROFILE,), progress=print,
                 cpg_config: cpg.CPGConfig = cpg.CPGConfig()) -> tuple[list[WalkTrial], dict]:
-    """Every combination of controller × friction × slope × payload × physics profile, ``num_trials`` trials back to
-    back with the same parameters (default: the middle of the paper's ranges) on ``backend``
+    """Every combination of controller × gait × friction × slope × payload × physics profile, ``num_trials`` trials
+    back to back with the same parameters (default: the middle of the paper's ranges) on ``backend``
     (:func:`backends.make_backend`) with the controller's ``cpg_config`` (its start-up); returns every trial of every
     walk, walk-major, and the timing.
 
@@ -72,16 +74,16 @@ def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), 
     """
     limits.check_count(num_trials, "num_trials")
     limits.TARGET_VELOCITY_MPS.check(target_velocity_mps, "target_velocity_mps")
-    grid = list(itertools.product(controllers, friction, slope_deg, payload_kg, physics))
-    scenario = go1_model.make_scenarios(friction=[g[1] for g in grid], slope_deg=[g[2] for g in grid],
-                                        payload_kg=[g[3] for g in grid], physics=[g[4] for g in grid])
+    grid = list(itertools.product(controllers, gaits, friction, slope_deg, payload_kg, physics))
+    scenario = go1_model.make_scenarios(friction=[g[2] for g in grid], slope_deg=[g[3] for g in grid],
+                                        payload_kg=[g[4] for g in grid], physics=[g[5] for g in grid])
     p = np.tile(param_space.midpoint() if params is None else params, (len(grid), 1))
-    gates = protocol.batch_gates([g[0] for g in grid])
+    gates = protocol.batch_gates([g[0] for g in grid], [g[1] for g in grid])
     sim = backends.make_backend(scenario, backend, cpg_config, trial_config)
     figures = jax.vmap(lambda r: (objective.objective(r, target_velocity_mps), objective.mean_velocity(r),
                                   objective.cost_of_transport(r)))
     t0 = time.perf_counter()
-    state = sim.reset(p)
+    state = sim.reset(p, gates)
     records = []
     compile_s = None
     for k in range(num_trials):
@@ -93,9 +95,9 @@ def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), 
         progress(f"{k + 1}/{num_trials} trials done ({time.perf_counter() - t0:.1f} s)")
     run_s = time.perf_counter() - t1
     steps = len(grid) * (num_trials - 1) * (trial_config.transition_steps + trial_config.steady_steps)
-    trials = [WalkTrial(i, k, c, float(f), float(s), float(m), ph, float(target_velocity_mps), p[i],
+    trials = [WalkTrial(i, k, c, g, float(f), float(s), float(m), ph, float(target_velocity_mps), p[i],
                         protocol.TrialRecord(*(field[i] for field in record)), float(j[i]), v[i], float(cot[i]))
-              for i, (c, f, s, m, ph) in enumerate(grid) for k, (record, j, v, cot) in enumerate(records)]
+              for i, (c, g, f, s, m, ph) in enumerate(grid) for k, (record, j, v, cot) in enumerate(records)]
     timing = {"compile_and_first_trial_s": compile_s, "env_steps_per_s": steps / run_s if num_trials > 1 else None}
     return trials, timing
 
@@ -127,7 +129,7 @@ def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
     """``walk.parquet``'s columns (docs/outputs.md): one row per (walk, trial); floats float64."""
     cols: dict[str, np.ndarray] = {
         "walk": np.array([t.walk for t in trials], np.int64), "trial": np.array([t.trial for t in trials], np.int64)}
-    for name in ("controller", "physics"):
+    for name in ("controller", "gait", "physics"):
         cols[name] = np.array([getattr(t, name) for t in trials])
     for name in ("friction", "slope_deg", "payload_kg", "target_velocity_mps"):
         cols[name] = np.array([getattr(t, name) for t in trials], np.float64)
@@ -149,11 +151,11 @@ def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
 
 def trials_table(trials: list[WalkTrial]) -> str:
     """Every trial of every walk as a markdown table, labeled by walk and trial (numbered from 0)."""
-    head = ("| walk | trial | controller | friction | slope [°] | payload [kg] | physics | v_x [m/s] | CoT "
+    head = ("| walk | trial | controller | gait | friction | slope [°] | payload [kg] | physics | v_x [m/s] | CoT "
             f"| J (v*={trials[0].target_velocity_mps:g} m/s) | c_load [N] | c_slope [rad] | fell |")
-    lines = [head, "|" + "---|" * 13]
+    lines = [head, "|" + "---|" * 14]
     for t in trials:
-        lines.append(f"| {t.walk} | {t.trial} | {t.controller} | {t.friction:.1f} | {t.slope_deg:.1f} "
+        lines.append(f"| {t.walk} | {t.trial} | {t.controller} | {t.gait} | {t.friction:.1f} | {t.slope_deg:.1f} "
                      f"| {t.payload_kg:.1f} | {t.physics} | {t.velocity_xy_mps[0]:.3f} | {t.cot:.3f} "
                      f"| {t.objective:.3f} | {float(t.record.c_load_n):.1f} | {float(t.record.c_slope_rad):.3f} "
                      f"| {bool(t.record.fell > 0)} |")

@@ -97,7 +97,8 @@ def best_gaits(result) -> list[study_video.Gait]:
             payload_kg=float(cond.payload_kg[b, t]), physics=str(result.labels[b]["physics"]),
             transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
             target_velocity_mps=float(cond.target_velocity_mps[b, t]), objective=float(tr.objective[t, b]),
-            instance=b, trial=t, phase=phase_text(result, b, phase), walked=walked))
+            instance=b, trial=t, phase=phase_text(result, b, phase), walked=walked,
+            gait=str(result.labels[b]["gait"])))
     return gaits
 
 
@@ -119,4 +120,4 @@ def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None
     scenario = go1_model.make_scenarios(friction=[g.friction for g in gaits], slope_deg=[g.slope_deg for g in gaits],
                                         payload_kg=[g.payload_kg for g in gaits], physics=[g.physics for g in gaits])
     return registry.rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config,
-                             backend, config.steady_steps if steps is None else steps)
+                             backend, config.steady_steps if steps is None else steps, [g.gait for g in gaits])

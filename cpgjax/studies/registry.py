@@ -92,11 +92,13 @@ def evaluate(params: np.ndarray, controllers, scenario: go1_model.Scenario, tria
             np.asarray(j), fell)
 
 
-def rollouts(params: np.ndarray, controllers, scenario, trial_config, backend: str, steps: int = 3000) -> list:
-    """Per-step logs (``protocol.StepLog`` of NumPy (T, ...)) of fixed parameters after one settling trial."""
+def rollouts(params: np.ndarray, controllers, scenario, trial_config, backend: str, steps: int = 3000,
+             gaits=None) -> list:
+    """Per-step logs (``protocol.StepLog`` of NumPy (T, ...)) of fixed parameters after one settling trial, each
+    instance with its controller and gait (``gaits`` None: the trot)."""
     sim = backends.make_backend(scenario, backend, trial_config=trial_config)
-    gates = protocol.batch_gates(list(controllers))
-    state, _ = sim.trial(sim.reset(params), params, gates)
+    gates = protocol.batch_gates(list(controllers), gaits)
+    state, _ = sim.trial(sim.reset(params, gates), params, gates)
     _, log = sim.rollout(state, params, gates, steps)
     log = ablation.fetch(log)
     return [type(log)(*(field[b] for field in log)) for b in range(params.shape[0])]

@@ -23,6 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cpgjax import cpg
 from cpgjax.studies import renderer
 from cpgjax.study.files import BEST_PARAMS
 from cpgjax.study.spec import StudyError
@@ -59,6 +60,7 @@ class Gait(NamedTuple):
     trial: int | None = None
     phase: str | None = None  # the phase of the study the trial is from (``cpgjax.studies.gaits.phase_text``)
     walked: bool | None = None  # false: no trial of its group walked (``cpgjax.studies.gaits``)
+    gait: str = cpg.DEFAULT_GAIT  # the CPG's coupling pattern (``cpg.GAITS``)
 
 
 # A gait file's fields besides what the parameters were tuned for (tuned.TUNED_FOR), required to film it again.
@@ -96,7 +98,8 @@ def load_gaits(out) -> list[Gait]:
         try:
             read = tuned.load(path)
             data = json.loads(path.read_text())
-            missing = [k for k in (*tuned.TUNED_FOR, *_FILM_FIELDS) if data.get(k) is None]
+            missing = ([k for k in tuned.TUNED_FOR if k not in read.tuned_for]
+                       + [k for k in _FILM_FIELDS if data.get(k) is None])
             if missing:
                 raise StudyError(f"{path} is not a study's gait file (missing key {missing[0]!r}); run the study "
                                  "again")

@@ -111,7 +111,7 @@ def checkpoint_files(out_dir) -> list[pathlib.Path]:
 
 # Fields a study sets only where it uses them; unset (None), they are not part of its definition, so a study without
 # them keeps the fingerprint of its other fields (and the checkpoints written before the fields existed resume).
-_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup", "switches")
+_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup", "switches", "gaits")
 
 
 def definition(spec) -> dict[str, str]:
@@ -526,7 +526,8 @@ def trial_columns(result) -> dict[str, np.ndarray]:
         return np.swapaxes(x, 0, 1).reshape((batch * n,) + x.shape[2:])
 
     cols: dict[str, np.ndarray] = {"instance": inst, "trial": trial}
-    for label in ("controller", "seed", "schedule", "data_reuse", "physics"):
+    gait = ("gait",) if result.spec.gaits is not None else ()  # a study of the trot alone: the table as before gaits
+    for label in ("controller", *gait, "seed", "schedule", "data_reuse", "physics"):
         cols[label] = np.array([lab[label] for lab in result.labels])[inst]
     for field in ("friction", "slope_deg", "payload_kg", "target_velocity_mps", "inference", "ramp", "mass_scale"):
         cols[field] = np.asarray(getattr(cond, field))[:, :n].reshape(-1)

@@ -1,9 +1,9 @@
 """A study's definition: the grid of instances, their condition schedules, and validation before any compute.
 
-A study (:class:`StudySpec`) is the product of its grid axes — controller × seed × friction × slope × payload ×
-target velocity × schedule × data reuse — and each instance's conditions per trial follow its :class:`Schedule`
-(:func:`conditions`). :func:`validate` rejects a bad option with a :class:`StudyError` naming it. The lockstep engine
-that runs a study is :mod:`cpgjax.ablation`.
+A study (:class:`StudySpec`) is the product of its grid axes — controller × gait × seed × friction × slope × payload
+× target velocity × schedule × data reuse × physics — and each instance's conditions per trial follow its
+:class:`Schedule` (:func:`conditions`). :func:`validate` rejects a bad option with a :class:`StudyError` naming it.
+The lockstep engine that runs a study is :mod:`cpgjax.ablation`.
 """
 
 from __future__ import annotations
@@ -124,8 +124,8 @@ class StudySpec:
       name: the study's name (output folder, metadata).
       num_trials: trials per instance (each 1.5 s + 3 s at the paper's timing).
       controllers, seeds, friction, slope_deg, payload_kg, target_velocity_mps, schedules, data_reuse, physics:
-        grid axes; an instance is one element of their product, in this order (physics: profile names of
-        ``cpgjax.go1.physics.PROFILES``).
+        grid axes; an instance is one element of their product, in this order, with the gaits after the
+        controllers (physics: profile names of ``cpgjax.go1.physics.PROFILES``).
       group_by: instance labels whose combinations form the groups of the progress display and the summaries.
       randomize: domain randomization of every trial's physics (None: the grid's fixed values).
       trial: trial timing (static).
@@ -141,6 +141,8 @@ class StudySpec:
       startup: how the controller starts from standing, at trial 0 and after every fall (``cpg.STARTUPS``,
         docs/decisions.md §18; None: the paper's start).
       switches: the paper's open readings (:class:`Switches`; None: every default).
+      gaits: a grid axis of gaits (``cpg.GAITS``; None: the paper's trot alone, and the trial table has no gait
+        column, as before gaits existed).
     """
 
     name: str
@@ -163,6 +165,15 @@ class StudySpec:
     ramp: Ramp | None = None
     startup: str | None = None
     switches: Switches | None = None
+    gaits: tuple[str, ...] | None = None
+
+    def gait_values(self) -> tuple[str, ...]:
+        """``gaits``, or the paper's trot."""
+        return self.gaits or (cpg.DEFAULT_GAIT,)
+
+    def axis(self, field: str) -> tuple:
+        """The values of the grid axis ``field`` (a field name; ``gaits`` through :meth:`gait_values`)."""
+        return self.gait_values() if field == "gaits" else getattr(self, field)
 
     def switch_values(self) -> Switches:
         """``switches``, or every default."""
@@ -189,15 +200,20 @@ def startup_field(name: str | None) -> str | None:
     return None if name == cpg.DEFAULT_STARTUP else name
 
 
-LABELS = ("controller", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
+LABELS = ("controller", "gait", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
           "data_reuse", "physics")
+
+
+def label_values(spec: StudySpec) -> dict[str, tuple]:
+    """Each label of :data:`LABELS` → the values its grid axis takes, in batch order."""
+    return dict(zip(LABELS, (spec.controllers, spec.gait_values(), spec.seeds, spec.friction, spec.slope_deg,
+                             spec.payload_kg, spec.target_velocity_mps, tuple(s.label for s in spec.schedules),
+                             spec.data_reuse, spec.physics), strict=True))
 
 
 def instances(spec: StudySpec) -> list[dict[str, Any]]:
     """The labels of every instance of the grid, in batch order."""
-    axes = (spec.controllers, spec.seeds, spec.friction, spec.slope_deg, spec.payload_kg, spec.target_velocity_mps,
-            [s.label for s in spec.schedules], spec.data_reuse, spec.physics)
-    return [dict(zip(LABELS, combo, strict=True)) for combo in itertools.product(*axes)]
+    return [dict(zip(LABELS, combo, strict=True)) for combo in itertools.product(*label_values(spec).values())]
 
 
 class Conditions(NamedTuple):
@@ -263,9 +279,9 @@ def validate(spec: StudySpec) -> Conditions:
                                         or not spec.num_trials <= spec.max_trials <= limits.MAX_TRIALS):
         fail(f"max_trials = {spec.max_trials!r}; need an integer in [num_trials = {spec.num_trials}, "
              f"{limits.MAX_TRIALS}]")
-    for axis in ("controllers", "seeds", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedules",
-                 "data_reuse", "physics"):
-        values = getattr(spec, axis)
+    for axis in ("controllers", "gaits", "seeds", "friction", "slope_deg", "payload_kg", "target_velocity_mps",
+                 "schedules", "data_reuse", "physics"):
+        values = spec.axis(axis)
         if len(values) == 0:
             fail(f"grid axis {axis} is empty")
         if len(set(values)) != len(values):
@@ -273,6 +289,9 @@ def validate(spec: StudySpec) -> Conditions:
     for c in spec.controllers:
         if c not in cpg.CONTROLLERS:
             fail(f"unknown controller {c!r}; allowed: {cpg.CONTROLLERS}")
+    for g in spec.gait_values():
+        if g not in cpg.GAITS:
+            fail(f"unknown gait {g!r}; allowed: {', '.join(cpg.GAITS)}")
     if spec.startup is not None and spec.startup not in cpg.STARTUPS:
         fail(f"unknown startup {spec.startup!r}; allowed: {', '.join(cpg.STARTUPS)}")
     for key, value in spec.switch_values()._asdict().items():
@@ -345,6 +364,7 @@ def validate(spec: StudySpec) -> Conditions:
 
 GRID_AXES = {  # a study file's [grid] key → (StudySpec field, element kind, allowed values)
     "controllers": ("controllers", "str", cpg.CONTROLLERS),
+    "gaits": ("gaits", "str", tuple(cpg.GAITS)),
     "friction": ("friction", "float", limits.FRICTION),
     "slope_deg": ("slope_deg", "float", limits.SLOPE_DEG),
     "payload_kg": ("payload_kg", "float", limits.PAYLOAD_KG),
@@ -579,10 +599,11 @@ def _kind(value) -> str:
 
 def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | None = None,
          physics: str | None = None, safe: bool = False, max_trials: int | None = None,
-         startup: str | None = None) -> StudyFile:
+         startup: str | None = None, gaits: tuple[str, ...] | None = None) -> StudyFile:
     """Read and check the study file ``path`` with the command line's overrides (each as ``cpgjax study``'s
     option: ``quick`` the file's [quick] values, ``seeds`` seeds 0 … n − 1, ``trials`` the run's length with every
-    change trial scaled to it, ``physics`` one profile for every instance, ``safe``, ``max_trials``, ``startup``).
+    change trial scaled to it, ``physics`` one profile for every instance, ``safe``, ``max_trials``, ``startup``,
+    ``gaits`` the grid's gaits axis).
 
     Raises:
       StudyError: the message names the file, the key's path and what is allowed; before any compute.
@@ -662,6 +683,8 @@ def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | N
             for k, allowed in (("transition", limits.TRANSITION_S), ("steady", limits.STEADY_S)) if f"{k}_s" in timing})
     if physics is not None:
         fields["physics"] = (physics,)
+    if gaits is not None:
+        fields["gaits"] = tuple(gaits)
     spec = StudySpec(name, **fields)
     contrasts = _contrasts(r, data.get("comparisons", []), spec)
     arms = ()
@@ -715,9 +738,7 @@ _SCALE = limits.Range(0.0, 10.0, "a multiple of the model's own value")
 
 
 def _contrasts(r: _Reader, value, spec: StudySpec) -> tuple[Contrast, ...]:
-    values_of = dict(zip(LABELS, (spec.controllers, spec.seeds, spec.friction, spec.slope_deg, spec.payload_kg,
-                                  spec.target_velocity_mps, [s.label for s in spec.schedules], spec.data_reuse,
-                                  spec.physics), strict=True))
+    values_of = label_values(spec)
     schedule_names = {s.name: s.label for s in spec.schedules if s.name}
     out = []
     for i, entry in enumerate(r.array(value, "comparisons")):
@@ -750,8 +771,10 @@ def template() -> str:
     """A study file of every key with its default, unit and allowed range, as comments beside the values a new
     study starts from (``cpgjax study --template PATH``); it runs as written."""
     d, r = StudySpec("my_study"), Randomization()
-    grid = "\n".join(f"# {key}: {kind}s in {_allowed_text(allowed)}; default {list(getattr(d, field))}\n"
-                     f"{key} = {_toml(list(getattr(d, field)))}" for key, (field, kind, allowed) in GRID_AXES.items())
+    # the gaits axis, unset, keeps the trial table of the trot alone (StudySpec.gaits): left as a comment
+    grid = "\n".join(f"# {key}: {kind}s in {_allowed_text(allowed)}; default {list(d.axis(field))}\n"
+                     f"{'# ' if field == 'gaits' else ''}{key} = {_toml(list(d.axis(field)))}"
+                     for key, (field, kind, allowed) in GRID_AXES.items())
     fields = ", ".join(SCHEDULE_RANGES)
     ranges = "; ".join(f"{k} in {v}" for k, v in SCHEDULE_RANGES.items())
     timing = f"{d.trial.transition_steps * TICK_S:g} s of transition, {d.trial.steady_steps * TICK_S:g} s measured"

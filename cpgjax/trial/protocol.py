@@ -252,14 +252,18 @@ def check_params(params, batch_size: int) -> jax.Array:
 
 
 def check_gates(gates: cpg.Gates, batch_size: int) -> cpg.Gates:
-    """Gates broadcast to (batch_size,) float32 each."""
-    return cpg.Gates(*(jnp.broadcast_to(jnp.asarray(g, jnp.float32), (batch_size,)) for g in gates))
+    """Gates broadcast to the batch as float32: the modules (batch_size,), the phase lags (batch_size, 4, 4)."""
+    def batched(g, shape):
+        return jnp.broadcast_to(jnp.asarray(g, jnp.float32), (batch_size,) + shape)
+    return cpg.Gates(batched(gates.vmc, ()), batched(gates.tegotae, ()), batched(gates.phase_lag_rad, (4, 4)))
 
 
-def batch_gates(controllers) -> cpg.Gates:
-    """Gates (each (B,)) for a sequence of controller names (see ``cpg.CONTROLLERS``)."""
-    gates = [cpg.controller_gates(c) for c in controllers]
-    return cpg.Gates(vmc=np.array([g.vmc for g in gates]), tegotae=np.array([g.tegotae for g in gates]))
+def batch_gates(controllers, gaits=None) -> cpg.Gates:
+    """Gates (modules (B,), phase lags (B, 4, 4)) for a sequence of controller names (``cpg.CONTROLLERS``) and
+    their gaits (``cpg.GAITS``; None: every instance the paper's trot)."""
+    gaits = [cpg.DEFAULT_GAIT] * len(controllers) if gaits is None else list(gaits)
+    gates = [cpg.controller_gates(c, g) for c, g in zip(controllers, gaits, strict=True)]
+    return cpg.Gates(*(np.stack([getattr(g, f) for g in gates]) for f in cpg.Gates._fields))
 
 
 class StepLog(NamedTuple):

@@ -2,10 +2,11 @@
 
 Written by ``cpgjax optimize``, ``cpgjax deploy --optimize`` and every study (one file per group), read back by
 ``cpgjax deploy --params`` and ``cpgjax walk --params``. Besides the 8 parameters (``params``, by name) a file
-records the run it came from (:data:`TUNED_FOR`): the controller, the physics profile, the scenario (friction, slope,
-payload) and the target velocity. A replay uses those unless an option overrides one. A null value means the run did
-not know it (a real robot's floor has no simulated friction or slope, and no physics profile); the replay then keeps
-its own option. A plain JSON list of 8 numbers is read as parameters with nothing recorded.
+records the run it came from (:data:`TUNED_FOR`): the controller, its gait (``cpg.GAITS``), the physics profile, the
+scenario (friction, slope, payload) and the target velocity. A replay uses those unless an option overrides one. A
+null value means the run did not know it (a real robot's floor has no simulated friction or slope, and no physics
+profile); the replay then keeps its own option. A file without a gait walked the trot (it was written before gaits
+were a choice). A plain JSON list of 8 numbers is read as parameters with nothing recorded.
 """
 
 from __future__ import annotations
@@ -22,10 +23,10 @@ from cpgjax.trial import limits
 from cpgjax.trial import params as param_space
 
 # What a run was tuned for, in the order a replay names them; the numeric ones with their allowed ranges.
-TUNED_FOR = ("controller", "physics", "friction", "slope_deg", "payload_kg", "target_velocity_mps")
+TUNED_FOR = ("controller", "gait", "physics", "friction", "slope_deg", "payload_kg", "target_velocity_mps")
 RANGES = {"friction": limits.FRICTION, "slope_deg": limits.SLOPE_DEG, "payload_kg": limits.PAYLOAD_KG,
           "target_velocity_mps": limits.TARGET_VELOCITY_MPS}
-NAMES = {"controller": cpg.CONTROLLERS, "physics": tuple(physics_profiles.PROFILES)}
+NAMES = {"controller": cpg.CONTROLLERS, "gait": tuple(cpg.GAITS), "physics": tuple(physics_profiles.PROFILES)}
 
 
 class ParamsFile(NamedTuple):
@@ -50,7 +51,7 @@ def save(path, params: np.ndarray, tuned_for: dict[str, Any], **info) -> None:
 def _checked(path, data: dict) -> dict[str, Any]:
     tuned = {}
     for name in TUNED_FOR:
-        value = data.get(name)
+        value = data.get(name, cpg.DEFAULT_GAIT if name == "gait" else None)
         if value is None:
             continue
         if name in NAMES:
@@ -92,7 +93,8 @@ def load(path) -> ParamsFile:
 
 
 def describe(tuned_for: dict[str, Any]) -> str:
-    """'controller tegotae, physics paper, friction 0.6, slope 0°, payload 0 kg, v* 0.5 m/s' (the recorded ones)."""
-    shown = {"controller": "controller {}", "physics": "physics {}", "friction": "friction {:g}",
+    """'controller tegotae, gait trot, physics paper, friction 0.6, slope 0°, payload 0 kg, v* 0.5 m/s' (the
+    recorded ones)."""
+    shown = {"controller": "controller {}", "gait": "gait {}", "physics": "physics {}", "friction": "friction {:g}",
              "slope_deg": "slope {:g}°", "payload_kg": "payload {:g} kg", "target_velocity_mps": "v* {:g} m/s"}
     return ", ".join(shown[name].format(tuned_for[name]) for name in TUNED_FOR if name in tuned_for) or "nothing"
