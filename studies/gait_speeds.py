@@ -2,7 +2,8 @@
 
     python studies/gait_speeds.py results/gaits [--figure PATH]
 
-Per gait and target v*, each seed's final values, the mean of its last 5 trials (as every report): v_x and CoT. A
+Per gait and target v*, each seed's final values, the mean of its last 5 trials (as every report): v_x and CoT, and
+the share of its trials that fell (a seed's trials depend on each other: the interval resamples seeds). A
 seed *tracks* v* when its final |v_x − v*| ≤ 0.05 m/s (the tracking tolerance of docs/REPRODUCTION.md's criteria)
 with no fall in those trials; a gait *walks* v* when at least half its seeds track it. CoT is compared over the
 tracking seeds only (the cost of a gait at a speed it does not walk is no cost of that speed), with a seed bootstrap
@@ -41,6 +42,7 @@ class Cell(NamedTuple):
     velocity_mps: np.ndarray  # (seeds,) final v_x
     cot: np.ndarray  # (seeds,) final CoT
     tracks: np.ndarray  # (seeds,) bool
+    fall_fraction: np.ndarray  # (seeds,) the share of the seed's trials that fell
 
     @property
     def walks(self) -> bool:
@@ -52,14 +54,15 @@ def cells(columns: dict[str, np.ndarray]) -> list[Cell]:
     last = slice(-FINAL_TRIALS, None)
     velocity = columns["velocity_x_mps"][last].mean(axis=0)
     cot = columns["cost_of_transport"][last].mean(axis=0)
-    fell = (columns["fell"][last] | columns["failed"][last]).any(axis=0)
+    falls = columns["fell"] | columns["failed"]
+    fell = falls[last].any(axis=0)
     gait, target = columns["gait"][0], columns["target_velocity_mps"][0]
     tracks = (np.abs(velocity - target) <= TRACKING_TOLERANCE_MPS) & ~fell
     out = []
     for g in dict.fromkeys(gait):
         for v in np.unique(target):
             here = (gait == g) & (target == v)
-            out.append(Cell(str(g), float(v), velocity[here], cot[here], tracks[here]))
+            out.append(Cell(str(g), float(v), velocity[here], cot[here], tracks[here], falls[:, here].mean(axis=0)))
     return out
 
 
@@ -118,14 +121,14 @@ def effect_n(best: Cheapest, gait: str, all_cells: list[Cell]) -> str:
 def table(all_cells: list[Cell]) -> str:
     """Markdown: each cell's tracking seeds, v_x and CoT; then the cheapest gait at each v* with its tests."""
     lines = ["| gait | v* [m/s] | seeds tracking | final v_x [m/s] (all seeds) | final CoT (tracking seeds, "
-             "bootstrap CI) |",
-             "|---|---|---|---|---|"]
+             "bootstrap CI) | falls / trials per seed (bootstrap CI) |",
+             "|---|---|---|---|---|---|"]
     for c in all_cells:
         cot = bootstrap_ci(c.cot[c.tracks])
         shown = ("–" if not c.tracks.any() else f"{cot.mean:.3f} (no interval below {MIN_SEEDS} seeds)"
                  if np.isnan(cot.low) else str(cot))
         lines.append(f"| {c.gait} | {c.target_mps:g} | {int(c.tracks.sum())}/{c.tracks.size} "
-                     f"| {stats.mean_ci(c.velocity_mps)} | {shown} |")
+                     f"| {stats.mean_ci(c.velocity_mps)} | {shown} | {bootstrap_ci(c.fall_fraction)} |")
     best, holm = cheapest_by_speed(all_cells)
     lines += ["", "| v* [m/s] | cheapest walking gait | CoT difference to each other walking gait: cheapest − it, "
               "Welch 95 % CI, Welch p (Holm), Mann–Whitney p (n) | verdict |", "|---|---|---|---|"]
