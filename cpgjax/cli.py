@@ -22,6 +22,7 @@ import cpgjax
 from cpgjax import ablation, compile_cache, cpg, provenance
 from cpgjax.deployment import calibrate, deploy, tick_log
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1 import terrain as terrains
 from cpgjax.robot import cpu_dispatch, foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
@@ -206,6 +207,10 @@ def _walk_video(args) -> int:
         print(f"cpgjax walk: --video films one walk; {combos[0][0]} has {combos[0][1]} values (give one)",
               file=sys.stderr)
         return 2
+    if args.terrain != terrains.FLAT:
+        print(f"cpgjax walk: --video films flat ground only (the video does not draw --terrain {args.terrain} yet)",
+              file=sys.stderr)
+        return 2
     try:
         path = study_io.claim_file(args.video, overwrite=args.overwrite)
     except study_spec.StudyError as err:
@@ -239,12 +244,15 @@ def _walk(args) -> int:
         print("cpgjax walk: error: --overwrite applies to --out and --video only", file=sys.stderr)
         return 2
     _use_tuned(args, many=True)
+    ground = _terrain(args)
+    if ground is None:
+        return 2
     trials, timing = walk.walk_trials(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
                                       payload_kg=args.payload_kg, num_trials=args.trials,
                                       params=None if args.params is None else args.params.params,
                                       target_velocity_mps=args.target_velocity_mps, backend=args.backend,
                                       physics=args.physics, progress=_notice,  # stderr: stdout holds the table
-                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup))
+                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup), terrain=ground)
     print(walk.trials_table(trials))
     pace = timing["env_steps_per_s"]
     print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
@@ -256,7 +264,8 @@ def _walk(args) -> int:
         pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
         meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
                     git_commit=provenance.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
-                    backend=backends.resolve_backend(args.backend), startup=args.startup, **timing,
+                    backend=backends.resolve_backend(args.backend), startup=args.startup,
+                    terrain=ground._asdict(), **timing,
                     environment=provenance.environment(),
                     compiled_programs=compile_cache.counts())
         (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
@@ -911,6 +920,31 @@ def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bo
                        help=f"{on_robot if robot else ''}{what}{text} in {allowed}")
 
 
+def _add_terrain_args(p: argparse.ArgumentParser) -> None:
+    """``--terrain``, ``--terrain-amplitude`` and ``--terrain-seed``: the ground of every walk (docs/physics.md,
+    "Terrain")."""
+    p.add_argument("--terrain", choices=terrains.TERRAINS, default=terrains.FLAT,
+                   help="sim only: the ground, flat (the plane) or rough (a periodic height field of random heights)")
+    p.add_argument("--terrain-amplitude", type=_in(limits.TERRAIN_AMPLITUDE_M), default=None,
+                   help=f"--terrain rough: peak-to-peak height [m] in {limits.TERRAIN_AMPLITUDE_M}")
+    p.add_argument("--terrain-seed", type=_integer_in(range(2 ** 32), "the stream of the rough heights"), default=0,
+                   help="--terrain rough: the seed of its heights (the same seed, the same ground)")
+
+
+def _terrain(args) -> walk.Terrain | None:
+    """The ground of ``args``, or None after saying in one line why the options do not make one."""
+    if args.terrain == terrains.FLAT:
+        if args.terrain_amplitude is not None:
+            print(f"cpgjax {args.command}: --terrain-amplitude applies to --terrain rough only", file=sys.stderr)
+            return None
+        return walk.Terrain()
+    if args.terrain_amplitude is None:
+        print(f"cpgjax {args.command}: --terrain {args.terrain} needs --terrain-amplitude (peak-to-peak [m] in "
+              f"{limits.TERRAIN_AMPLITUDE_M})", file=sys.stderr)
+        return None
+    return walk.Terrain(args.terrain, args.terrain_amplitude, args.terrain_seed)
+
+
 def _add_target_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--target-velocity-mps", type=_in(limits.TARGET_VELOCITY_MPS), default=0.5, action=_Given,
                    help=f"target velocity v_x* [m/s] of the objective J, in {limits.TARGET_VELOCITY_MPS}")
@@ -993,6 +1027,7 @@ def _add_walk(sub) -> None:
     w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS), action=_Given,
                    help="comma list of controllers")
     _add_scenario_args(w, many=True)
+    _add_terrain_args(w)
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
     _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
