@@ -207,9 +207,8 @@ def _walk_video(args) -> int:
         print(f"cpgjax walk: --video films one walk; {combos[0][0]} has {combos[0][1]} values (give one)",
               file=sys.stderr)
         return 2
-    if args.terrain != terrains.FLAT:
-        print(f"cpgjax walk: --video films flat ground only (the video does not draw --terrain {args.terrain} yet)",
-              file=sys.stderr)
+    ground = _ground(args)
+    if ground is None:
         return 2
     try:
         path = study_io.claim_file(args.video, overwrite=args.overwrite)
@@ -222,9 +221,9 @@ def _walk_video(args) -> int:
     gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
                             args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
                             trial.steady_steps, args.target_velocity_mps)
-    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
+    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)), ground=ground)
     try:
-        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg)])
+        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground)])
     except (study_video.RenderUnavailable, RuntimeError) as err:
         print(f"cpgjax walk: {err}", file=sys.stderr)
         return code or 1
@@ -244,7 +243,7 @@ def _walk(args) -> int:
         print("cpgjax walk: error: --overwrite applies to --out and --video only", file=sys.stderr)
         return 2
     _use_tuned(args, many=True)
-    ground = _terrain(args)
+    ground = _ground(args)
     if ground is None:
         return 2
     trials, timing = walk.walk_trials(controllers=args.controllers, friction=args.friction, slope_deg=args.slope_deg,
@@ -252,7 +251,7 @@ def _walk(args) -> int:
                                       params=None if args.params is None else args.params.params,
                                       target_velocity_mps=args.target_velocity_mps, backend=args.backend,
                                       physics=args.physics, progress=_notice,  # stderr: stdout holds the table
-                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup), terrain=ground)
+                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup), ground=ground)
     print(walk.trials_table(trials))
     pace = timing["env_steps_per_s"]
     print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
@@ -931,18 +930,18 @@ def _add_terrain_args(p: argparse.ArgumentParser) -> None:
                    help="--terrain rough: the seed of its heights (the same seed, the same ground)")
 
 
-def _terrain(args) -> walk.Terrain | None:
+def _ground(args) -> terrains.Ground | None:
     """The ground of ``args``, or None after saying in one line why the options do not make one."""
     if args.terrain == terrains.FLAT:
         if args.terrain_amplitude is not None:
             print(f"cpgjax {args.command}: --terrain-amplitude applies to --terrain rough only", file=sys.stderr)
             return None
-        return walk.Terrain()
+        return terrains.FLAT_GROUND
     if args.terrain_amplitude is None:
         print(f"cpgjax {args.command}: --terrain {args.terrain} needs --terrain-amplitude (peak-to-peak [m] in "
               f"{limits.TERRAIN_AMPLITUDE_M})", file=sys.stderr)
         return None
-    return walk.Terrain(args.terrain, args.terrain_amplitude, args.terrain_seed)
+    return terrains.Ground(args.terrain, args.terrain_amplitude, args.terrain_seed)
 
 
 def _add_target_arg(p: argparse.ArgumentParser) -> None:

@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+import rerun as rr
+from rerun.chunk import RrdReader
 
 from cpgjax import cli, mjx_go1
 from cpgjax.go1 import constants, sensors
@@ -15,6 +17,8 @@ from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
 from cpgjax.sim import native as native_go1
 from cpgjax.sim import walk
+from cpgjax.studies import video
+from cpgjax.study import scene
 from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
 from tests import test_outputs_doc
@@ -267,7 +271,7 @@ def test_a_trial_that_ends_beyond_the_central_period_is_moved_back(rough_pair):
     assert np.all((x > -4.8) & (x < -3.8)) and not np.asarray(record.fell).any()
 
 
-def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys, tmp_path):
+def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys):
     walks = []
 
     def fake_walk(**kwargs):
@@ -276,10 +280,10 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys, tmp_p
     monkeypatch.setattr(walk, "walk_trials", fake_walk)
     with pytest.raises(SystemExit):
         cli.main(["walk", "--terrain", "rough", "--terrain-amplitude", "0.04", "--terrain-seed", "3"])
-    assert walks[-1]["terrain"] == walk.Terrain("rough", 0.04, 3)
+    assert walks[-1]["ground"] == terrains.Ground("rough", 0.04, 3)
     with pytest.raises(SystemExit):
         cli.main(["walk"])
-    assert walks[-1]["terrain"] == walk.Terrain("flat", 0.0, 0)
+    assert walks[-1]["ground"] == terrains.Ground("flat", 0.0, 0)
     assert cli.main(["walk", "--terrain-amplitude", "0.04"]) == 2
     assert "cpgjax walk: --terrain-amplitude applies to --terrain rough only" in capsys.readouterr().err
     assert cli.main(["walk", "--terrain", "rough"]) == 2
@@ -290,16 +294,65 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys, tmp_p
         with pytest.raises(SystemExit) as exit_:
             cli.main(["walk", *argv])
         assert exit_.value.code == 2 and message in capsys.readouterr().err
-    assert cli.main(["walk", "--controllers", "vmc", "--terrain", "rough", "--terrain-amplitude", "0.04", "--video",
-                     str(tmp_path / "walk.mp4")]) == 2
-    assert "--video films flat ground only" in capsys.readouterr().err
     assert len(walks) == 2  # nothing refused reached the walk
 
 
 def test_walk_parquet_names_the_terrain():
     record = protocol.TrialRecord(*(np.zeros(()) for _ in protocol.TrialRecord._fields))
     trial = walk.WalkTrial(0, 0, "vmc", 0.6, 0.0, 0.0, "soft", 0.5, param_space.midpoint(), record, 0.0,
-                           np.zeros(2), 0.0, walk.Terrain("rough", 0.04, 3))
+                           np.zeros(2), 0.0, terrains.Ground("rough", 0.04, 3))
     cols = walk.trial_columns([trial])
     assert (cols["terrain"][0], cols["terrain_amplitude_m"][0], cols["terrain_seed"][0]) == ("rough", 0.04, 3)
     assert not test_outputs_doc.undocumented("walk.parquet", cols)
+
+
+def test_a_video_draws_the_terrain(tmp_path):
+    """The same standing robot off the pad, filmed on flat ground and twice on the same rough ground: the rough
+    frames differ from the flat ones (the height field is drawn, shaded by its slopes: the ground's brightness
+    varies more) and equal each other (the same seed, the same ground)."""
+    stand = go1_model.standing_qpos(go1_model.load_visual_model())
+    stand[go1_model.indices().root_qpos] = 1.5
+    qpos = np.tile(stand, (40, 1))
+    rough = terrains.Ground("rough", 0.04, 3)
+    jobs = [video.Job(tmp_path / "flat.mp4", qpos), video.Job(tmp_path / "rough.mp4", qpos, 0.0, rough),
+            video.Job(tmp_path / "again.mp4", qpos, 0.0, rough)]
+    try:
+        flat, bumpy, again = (info["strip"][0].astype(float) for info in video.render_videos(jobs, width=320,
+                                                                                              height=240))
+    except video.RenderUnavailable as err:
+        pytest.skip(f"no OpenGL backend: {err}")
+    np.testing.assert_array_equal(bumpy, again)
+    ground = slice(160, 240)  # the lower third of the picture: the ground in front of the camera
+    assert np.abs(bumpy - flat)[ground].mean() > 5
+    assert bumpy[ground].std() > flat[ground].std()
+
+
+def test_a_recording_draws_the_field_under_the_path(tmp_path):
+    """A rollout recorded on rough ground: its floor is a mesh whose vertices lie on the ground
+    (``terrain.ground_height_m`` of the model's heights) and which covers the trunk's path with the slab's margin."""
+    ids = go1_model.indices()
+    ticks = 50
+    qpos = np.tile(go1_model.standing_qpos(), (ticks, 1))
+    qpos[:, ids.root_qpos] = np.linspace(1.0, 1.4, ticks)
+    zeros = {name: np.zeros((ticks, 4)) for name in ("foot_force_n", "amplitude", "phase_rad")}
+    log = protocol.StepLog(qpos=qpos, qvel=np.zeros((ticks, 18)), torque_nm=np.zeros((ticks, 12)),
+                           foot_pos_m=np.zeros((ticks, 4, 3)), foot_target_m=np.zeros((ticks, 4, 3)),
+                           rpy_rad=np.zeros((ticks, 3)), **zeros)
+    ground = terrains.Ground("rough", 0.04, 3)
+    path = tmp_path / "rough.rrd"
+    rec = rr.RecordingStream("test_terrain")
+    rec.save(str(path))
+    base = scene.log_rollout(rec, scene.Rollout(log, "rough", "vmc", 0, 0.6, 0.0, 0.0, ground))
+    rec.flush()
+    rec.disconnect()
+    vertices = [row for chunk in RrdReader(path).stream() if chunk.entity_path == f"/{base}/world/floor"
+                for batch in [chunk.to_record_batch()] if "Mesh3D:vertex_positions" in batch.schema.names
+                for row in batch.column("Mesh3D:vertex_positions").to_pylist()]
+    points = np.array(vertices[0], float)
+    data = jnp.asarray(go1_model.scenario_model(go1_model.make_scenarios(**ground._asdict()), 0).hfield_data,
+                       jnp.float32)
+    heights = jax.vmap(terrains.ground_height_m, in_axes=(None, 0, 0))(data, points[:, 0], points[:, 1])
+    np.testing.assert_allclose(points[:, 2], np.asarray(heights), atol=2e-5)
+    assert points[:, 0].min() <= 1.0 - scene.FLOOR_MARGIN_M and points[:, 0].max() >= 1.4 + scene.FLOOR_MARGIN_M
+    assert points[:, 1].min() <= -scene.FLOOR_MARGIN_M and points[:, 1].max() >= scene.FLOOR_MARGIN_M
+    assert np.ptp(points[:, 2]) > 0.03

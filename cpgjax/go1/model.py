@@ -103,6 +103,21 @@ def load_terrain_model() -> mujoco.MjModel:
 
 
 @functools.cache
+def _visual_terrain_model() -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_string(_with_terrain(_model_xml()))
+
+
+def visual_model(ground: terrains.Ground = terrains.FLAT_GROUND) -> mujoco.MjModel:
+    """The model a video or a recording draws on ``ground``: :func:`load_visual_model` on flat ground (cached: copy
+    before editing), else a fresh copy of it with the terrain model's height field carrying the ground's heights."""
+    if ground.terrain == terrains.FLAT:
+        return load_visual_model()
+    m = _visual_terrain_model().__copy__()
+    m.hfield_data[:] = terrains.hfield_data(ground.terrain, ground.terrain_amplitude_m, ground.terrain_seed)
+    return m
+
+
+@functools.cache
 def load_visual_model() -> mujoco.MjModel:
     """go1.xml as written, visual geoms included (group ``VISUAL_GROUP``): the model that videos and recordings
     draw, with the same bodies, joints and qpos layout as :func:`load_model`. Cached: copy before editing."""

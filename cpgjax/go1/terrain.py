@@ -16,6 +16,7 @@ whole periods (:func:`wrap_xy_m`), which leaves the ground under it, and hence i
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +42,17 @@ BASE_M = 0.05
 # The flat pad at every period's origin: the standing robot's feet (x ∈ [−0.23, 0.16] m, |y| ≤ 0.13 m) with a
 # cell of margin.
 PAD_HALF_M = (0.35, 0.25)
+
+
+class Ground(NamedTuple):
+    """One instance's terrain, as ``go1_model.make_scenarios`` takes it (``**ground._asdict()``)."""
+
+    terrain: str = FLAT
+    terrain_amplitude_m: float = 0.0
+    terrain_seed: int = 0
+
+
+FLAT_GROUND = Ground()
 
 
 def check_terrain(terrain, amplitude_m, seed) -> None:

@@ -40,17 +40,6 @@ class WalkRow(NamedTuple):
     falls: int  # trials (of all run) in which the robot fell
 
 
-class Terrain(NamedTuple):
-    """The ground every walk of a run walks on (``go1_model.make_scenarios``'s terrain fields)."""
-
-    terrain: str = terrains.FLAT
-    terrain_amplitude_m: float = 0.0
-    terrain_seed: int = 0
-
-
-FLAT_GROUND = Terrain()
-
-
 class WalkTrial(NamedTuple):
     """One trial of one walk (one combination of the grid): its conditions, parameters and trial figures."""
 
@@ -67,7 +56,7 @@ class WalkTrial(NamedTuple):
     objective: float
     velocity_xy_mps: np.ndarray  # (2,) steady-phase mean
     cot: float
-    terrain: Terrain
+    ground: terrains.Ground
 
 
 def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), payload_kg=(0.0,), params=None,
@@ -75,8 +64,8 @@ def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), 
                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
                 physics=(physics_profiles.DEFAULT_PROFILE,), progress=print,
                 cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                terrain: Terrain = FLAT_GROUND) -> tuple[list[WalkTrial], dict]:
-    """Every combination of controller × friction × slope × payload × physics profile on ``terrain``, ``num_trials``
+                ground: terrains.Ground = terrains.FLAT_GROUND) -> tuple[list[WalkTrial], dict]:
+    """Every combination of controller × friction × slope × payload × physics profile on ``ground``, ``num_trials``
     trials back to back with the same parameters (default: the middle of the paper's ranges) on ``backend``
     (:func:`backends.make_backend`) with the controller's ``cpg_config`` (its start-up); returns every trial of every
     walk, walk-major, and the timing.
@@ -90,7 +79,7 @@ def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), 
     grid = list(itertools.product(controllers, friction, slope_deg, payload_kg, physics))
     scenario = go1_model.make_scenarios(friction=[g[1] for g in grid], slope_deg=[g[2] for g in grid],
                                         payload_kg=[g[3] for g in grid], physics=[g[4] for g in grid],
-                                        **terrain._asdict())
+                                        **ground._asdict())
     p = np.tile(param_space.midpoint() if params is None else params, (len(grid), 1))
     gates = protocol.batch_gates([g[0] for g in grid])
     sim = backends.make_backend(scenario, backend, cpg_config, trial_config)
@@ -111,7 +100,7 @@ def walk_trials(controllers=cpg.CONTROLLERS, friction=(0.6,), slope_deg=(0.0,), 
     steps = len(grid) * (num_trials - 1) * (trial_config.transition_steps + trial_config.steady_steps)
     trials = [WalkTrial(i, k, c, float(f), float(s), float(m), ph, float(target_velocity_mps), p[i],
                         protocol.TrialRecord(*(field[i] for field in record)), float(j[i]), v[i], float(cot[i]),
-                        terrain)
+                        ground)
               for i, (c, f, s, m, ph) in enumerate(grid) for k, (record, j, v, cot) in enumerate(records)]
     timing = {"compile_and_first_trial_s": compile_s, "env_steps_per_s": steps / run_s if num_trials > 1 else None}
     return trials, timing
@@ -148,9 +137,9 @@ def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
         cols[name] = np.array([getattr(t, name) for t in trials])
     for name in ("friction", "slope_deg", "payload_kg", "target_velocity_mps"):
         cols[name] = np.array([getattr(t, name) for t in trials], np.float64)
-    cols["terrain"] = np.array([t.terrain.terrain for t in trials])
-    cols["terrain_amplitude_m"] = np.array([t.terrain.terrain_amplitude_m for t in trials], np.float64)
-    cols["terrain_seed"] = np.array([t.terrain.terrain_seed for t in trials], np.int64)
+    cols["terrain"] = np.array([t.ground.terrain for t in trials])
+    cols["terrain_amplitude_m"] = np.array([t.ground.terrain_amplitude_m for t in trials], np.float64)
+    cols["terrain_seed"] = np.array([t.ground.terrain_seed for t in trials], np.int64)
     params = np.array([t.params for t in trials], np.float64).reshape(len(trials), param_space.NUM_PARAMS)
     for i, name in enumerate(param_space.PARAM_NAMES):
         cols[name] = params[:, i]
