@@ -925,7 +925,8 @@ def _add_terrain_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--terrain", choices=terrains.TERRAINS, default=terrains.FLAT,
                    help="sim only: the ground, flat (the plane) or rough (a periodic height field of random heights)")
     p.add_argument("--terrain-amplitude", type=_in(limits.TERRAIN_AMPLITUDE_M), default=None,
-                   help=f"--terrain rough: peak-to-peak height [m] in {limits.TERRAIN_AMPLITUDE_M}")
+                   help=f"--terrain rough: peak-to-peak height [m] in {limits.TERRAIN_AMPLITUDE_M} (required with "
+                   "rough; default: none, the plane)")
     p.add_argument("--terrain-seed", type=_integer_in(range(2 ** 32), "the stream of the rough heights"), default=0,
                    help="--terrain rough: the seed of its heights (the same seed, the same ground)")
 
