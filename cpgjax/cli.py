@@ -22,6 +22,7 @@ import cpgjax
 from cpgjax import ablation, compile_cache, cpg, provenance
 from cpgjax.deployment import calibrate, deploy, tick_log
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1 import terrain as terrains
 from cpgjax.robot import cpu_dispatch, foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
@@ -207,6 +208,9 @@ def _walk_video(args) -> int:
         print(f"cpgjax walk: --video films one walk; {combos[0][0]} has {combos[0][1]} values (give one)",
               file=sys.stderr)
         return 2
+    ground = _ground(args)
+    if ground is None:
+        return 2
     try:
         path = study_io.claim_file(args.video, overwrite=args.overwrite)
     except study_spec.StudyError as err:
@@ -218,9 +222,9 @@ def _walk_video(args) -> int:
     gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
                             args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
                             trial.steady_steps, args.target_velocity_mps, gait=args.gaits[0])
-    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
+    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)), ground=ground)
     try:
-        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg)])
+        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground)])
     except (study_video.RenderUnavailable, RuntimeError) as err:
         print(f"cpgjax walk: {err}", file=sys.stderr)
         return code or 1
@@ -240,13 +244,16 @@ def _walk(args) -> int:
         print("cpgjax walk: error: --overwrite applies to --out and --video only", file=sys.stderr)
         return 2
     _use_tuned(args, many=True)
+    ground = _ground(args)
+    if ground is None:
+        return 2
     trials, timing = walk.walk_trials(controllers=args.controllers, gaits=args.gaits, friction=args.friction,
                                       slope_deg=args.slope_deg,
                                       payload_kg=args.payload_kg, num_trials=args.trials,
                                       params=None if args.params is None else args.params.params,
                                       target_velocity_mps=args.target_velocity_mps, backend=args.backend,
                                       physics=args.physics, progress=_notice,  # stderr: stdout holds the table
-                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup))
+                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup), ground=ground)
     print(walk.trials_table(trials))
     pace = timing["env_steps_per_s"]
     print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
@@ -258,7 +265,8 @@ def _walk(args) -> int:
         pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
         meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
                     git_commit=provenance.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
-                    backend=backends.resolve_backend(args.backend), startup=args.startup, **timing,
+                    backend=backends.resolve_backend(args.backend), startup=args.startup,
+                    terrain=ground._asdict(), **timing,
                     environment=provenance.environment(),
                     compiled_programs=compile_cache.counts())
         (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
@@ -914,6 +922,32 @@ def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bo
                        help=f"{on_robot if robot else ''}{what}{text} in {allowed}")
 
 
+def _add_terrain_args(p: argparse.ArgumentParser) -> None:
+    """``--terrain``, ``--terrain-amplitude`` and ``--terrain-seed``: the ground of every walk (docs/physics.md,
+    "Terrain")."""
+    p.add_argument("--terrain", choices=terrains.TERRAINS, default=terrains.FLAT,
+                   help="sim only: the ground, flat (the plane) or rough (a periodic height field of random heights)")
+    p.add_argument("--terrain-amplitude", type=_in(limits.TERRAIN_AMPLITUDE_M), default=None,
+                   help=f"--terrain rough: peak-to-peak height [m] in {limits.TERRAIN_AMPLITUDE_M} (required with "
+                   "rough; default: none, the plane)")
+    p.add_argument("--terrain-seed", type=_integer_in(range(2 ** 32), "the stream of the rough heights"), default=0,
+                   help="--terrain rough: the seed of its heights (the same seed, the same ground)")
+
+
+def _ground(args) -> terrains.Ground | None:
+    """The ground of ``args``, or None after saying in one line why the options do not make one."""
+    if args.terrain == terrains.FLAT:
+        if args.terrain_amplitude is not None:
+            print(f"cpgjax {args.command}: --terrain-amplitude applies to --terrain rough only", file=sys.stderr)
+            return None
+        return terrains.FLAT_GROUND
+    if args.terrain_amplitude is None:
+        print(f"cpgjax {args.command}: --terrain {args.terrain} needs --terrain-amplitude (peak-to-peak [m] in "
+              f"{limits.TERRAIN_AMPLITUDE_M})", file=sys.stderr)
+        return None
+    return terrains.Ground(args.terrain, args.terrain_amplitude, args.terrain_seed)
+
+
 def _add_target_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--target-velocity-mps", type=_in(limits.TARGET_VELOCITY_MPS), default=0.5, action=_Given,
                    help=f"target velocity v_x* [m/s] of the objective J, in {limits.TARGET_VELOCITY_MPS}")
@@ -1017,6 +1051,7 @@ def _add_walk(sub) -> None:
                    help="comma list of controllers")
     _add_gait_arg(w, cpg.DEFAULT_GAIT, many=True)
     _add_scenario_args(w, many=True)
+    _add_terrain_args(w)
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
     _add_target_arg(w)
     _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)

@@ -31,6 +31,7 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import sensors
+from cpgjax.go1 import terrain as terrains
 from cpgjax.sim.base import Backend
 from cpgjax.trial import protocol
 
@@ -81,21 +82,24 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     Floor friction → ``geom_friction[floor, 0]`` (the floor has priority, docs/decisions.md §5; under the profile's
     friction rule, ``physics_profiles.floor_friction``); slope →
     ``opt.gravity``; payload and physics profile → every field they change, recomputed by ``mj_setConst`` once per
-    distinct (payload, profile).
+    distinct (payload, profile); terrain → the terrain model (``go1_model.load_terrain_model``) when some instance
+    is not flat, its ``hfield_data`` per instance (a flat batch keeps the plane and its program).
     """
     fine = sorted({str(name) for name in scenario.physics if physics_profiles.get(str(name)).physics_substeps != 1})
     if fine:
         raise ValueError(f"physics profile {fine[0]!r} steps its physics more than once per control tick, which the "
                          "MJX backend does not: use the native backend")
     ids = go1_model.indices()
-    base = go1_model.load_model().__copy__()
+    terrain = go1_model.has_terrain(scenario)
+    base = (go1_model.load_terrain_model() if terrain else go1_model.load_model()).__copy__()
     # Every joint carries friction-loss rows whatever the profiles of this batch (a profile without joint friction
     # has a zero bound there), so that switching profiles never changes the compiled program.
     base.dof_frictionloss[ids.joint_dof] = 1.0
     mx = mjx.put_model(base)
     batch = scenario.batch_size
     fields = [f for f in go1_model.scenario_dependent_fields() if hasattr(mx, f)]
-    keys = list(zip(scenario.payload_kg.tolist(), scenario.physics.tolist(), scenario.mass_scale.tolist(), strict=True))
+    keys = list(zip(scenario.payload_kg.tolist(), scenario.physics.tolist(), scenario.mass_scale.tolist(),
+                    [terrain] * batch, strict=True))
     per_key = {k: go1_model.model_with_payload(*k) for k in dict.fromkeys(keys)}
     updates = {f: jnp.asarray(np.stack([getattr(per_key[k], f) for k in keys]), dtype=getattr(mx, f).dtype)
                for f in fields}
@@ -107,6 +111,11 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
                                       for name, mu in zip(scenario.physics, scenario.friction, strict=True)]
     updates["geom_friction"] = jnp.asarray(friction, mx.geom_friction.dtype)
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
+    if terrain:
+        updates["hfield_data"] = jnp.asarray(np.stack([
+            terrains.hfield_data(str(kind), float(amplitude), int(seed)) for kind, amplitude, seed in zip(
+                scenario.terrain, scenario.terrain_amplitude_m, scenario.terrain_seed, strict=True)]),
+            mx.hfield_data.dtype)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})
     return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario,
                       profile=physics_profiles.batch_arrays(scenario.physics, scenario.latency_ticks,
@@ -154,6 +163,23 @@ def _reset_tick_state_where(cond, reset: mjx.Data, data: mjx.Data) -> mjx.Data:
     return data.replace(**{f: jnp.where(cond, getattr(reset, f), getattr(data, f)) for f in _TICK_STATE_FIELDS})
 
 
+def _ground_under_trunk_m(model: mjx.Model, qpos: jax.Array) -> jax.Array | None:
+    """The ground's height under the trunk origin on the terrain model's height field; None on the plane."""
+    if model.nhfield == 0:
+        return None
+    r = go1_model.indices().root_qpos
+    return terrains.ground_height_m(model.hfield_data, qpos[r], qpos[r + 1])
+
+
+def _wrapped(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """On the terrain model, ``data`` with the trunk moved by whole periods of the terrain into its central period
+    (``terrain.wrap_xy_m``: the ground under it is the same); on the plane, ``data``."""
+    if model.nhfield == 0:
+        return data
+    r = go1_model.indices().root_qpos
+    return data.replace(qpos=data.qpos.at[r:r + 2].set(terrains.wrap_xy_m(data.qpos[r:r + 2])))
+
+
 def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model,
           profile: physics_profiles.ProfileArrays, gates: cpg.Gates, reset: SimState, state: SimState,
           params_now: jax.Array) -> tuple[SimState, protocol.Tick]:
@@ -164,14 +190,15 @@ def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: 
     cpg_state = protocol.where_batch(failed, reset.cpg, c.cpg)
     io = protocol.where_batch(failed, reset.io, c.io)
     pre = protocol.pre_step(c.obs, c.torque_nm, c.diag, c.joint_vel_rad_s)
-    row = protocol.tick_row(trial_config, pre, data.qpos, data.qvel, failed)
+    row = protocol.tick_row(trial_config, pre, data.qpos, data.qvel, failed, _ground_under_trunk_m(model, data.qpos))
     return state._replace(data=data, cpg=cpg_state, io=io), row
 
 
 def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model,
            profile: physics_profiles.ProfileArrays, state: SimState, new_params: jax.Array,
            gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
-    """One trial of one instance: transition (linear interpolation) then steady phase; reset after a fall."""
+    """One trial of one instance: transition (linear interpolation) then steady phase; reset after a fall; on a
+    terrain, the trunk moved back into the terrain's central period at the end (``_wrapped``)."""
     reset = _reset(cpg_config, model, new_params, gates.phase_lag_rad)
     tick = functools.partial(_tick, cpg_config, trial_config, model, profile, gates, reset)
     n_transition = trial_config.transition_steps
@@ -191,7 +218,7 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model:
 
     total_mass = model.body_subtreemass[go1_model.indices().trunk_body]
     record = protocol.summarize(ticks, total_mass, cpg_config.dt_s, transition)
-    end = s._replace(params=new_params)
+    end = s._replace(data=_wrapped(model, s.data), params=new_params)
     return protocol.where_batch((record.fell > 0) | (record.failed > 0), reset, end), record
 
 
@@ -304,6 +331,7 @@ class MJXBackend(Backend):
         the lockstep engine (``cpgjax.ablation``) uses it when a payload, slope or friction schedule changes."""
         if scenario.batch_size != self.batch_size:
             raise ValueError(f"scenario batch {scenario.batch_size} != backend batch {self.batch_size}")
+        go1_model.check_same_model(self.scenario, scenario)
         other = copy.copy(self)
         other.scenario = scenario
         other.batch = self._placed(make_batch_model(scenario))

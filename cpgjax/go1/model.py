@@ -1,5 +1,6 @@
-"""cpgjax's Go1 model: loading, names resolved to indices, scenarios (friction, slope, payload) as per-instance models,
-and the standing pose. Shared by every physics backend (MJX, C MuJoCo) so they simulate the same robot.
+"""cpgjax's Go1 model: loading, names resolved to indices, scenarios (friction, slope, payload, terrain) as
+per-instance models, and the standing pose. Shared by every physics backend (MJX, C MuJoCo) so they simulate the
+same robot.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 
 from cpgjax.go1 import constants, kinematics
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1 import terrain as terrains
 
 MODEL_FILE = "go1.xml"
 JOINT_NAMES = tuple(f"{leg}_{part}_joint" for leg in constants.LEG_NAMES for part in constants.JOINT_PARTS)
@@ -30,10 +32,43 @@ STAND_FOOT_X_M = -0.035
 STAND_FOOT_Z_M = -0.30
 FOOT_RADIUS_M = 0.02
 VISUAL_GROUP = 2  # the geom group of the geoms that are only seen (go1.xml's classes visual_*)
+# The terrain model (:func:`load_terrain_model`): the contacts each foot sensor sums. A foot sphere (radius 0.02 m)
+# on cells of terrain.CELL_M = 0.075 m overlaps at most 2 × 2 cells, 8 of the height field's triangular prisms, and
+# MuJoCo makes at most one contact per prism (MJX at most 4 per pair).
+FOOT_CONTACT_SLOTS = 8
+# The terrain model's collision bits: the feet against the height field, the rest of the robot against a plane at
+# the field's lowest level (a box against a height field costs 16x a plane in MJX: docs/physics.md, "Terrain").
+_FEET_BIT, _BODY_BIT = 2, 1
 
 
 def _model_xml() -> str:
     return resources.files("cpgjax.go1.assets").joinpath(MODEL_FILE).read_text()
+
+
+def _with_terrain(xml: str) -> str:
+    """go1.xml with the floor a height field (``terrain``, the geom keeping the name and index ``floor``): the feet
+    collide with it, every other robot geom with the plane ``floor_below`` at the field's lowest level (on a static
+    body after the robot, so that no body's or geom's index changes), and each foot sensor reports up to
+    FOOT_CONTACT_SLOTS contacts, deepest first. The heights are the model's ``hfield_data`` (``terrain``)."""
+    root = ElementTree.fromstring(xml)
+    nrow = ncol = str(terrains.FIELD_VERTICES)
+    ElementTree.SubElement(root.find("asset"), "hfield", name="terrain", nrow=nrow, ncol=ncol,
+                           size=" ".join(repr(v) for v in terrains.hfield_size()))
+    world = root.find("worldbody")
+    floor = world.find("geom[@name='floor']")
+    low_m = -terrains.MAX_AMPLITUDE_M / 2.0
+    floor.attrib.update(type="hfield", hfield="terrain", pos=f"0 0 {low_m!r}", contype=str(_FEET_BIT))
+    floor.attrib.pop("size")
+    below = ElementTree.SubElement(world, "body", name="floor_below", pos=f"0 0 {low_m!r}")
+    ElementTree.SubElement(below, "geom", name="floor_below", type="plane", size="0 0 0.05", contype=str(_BODY_BIT),
+                           conaffinity="0", priority=floor.get("priority"), friction=floor.get("friction"),
+                           group="3")
+    for geom in root.iter("geom"):
+        if geom.get("name", "").endswith("_foot"):
+            geom.set("conaffinity", str(_FEET_BIT))
+    for sensor in root.find("sensor").iter("contact"):
+        sensor.set("num", str(FOOT_CONTACT_SLOTS))
+    return ElementTree.tostring(root, encoding="unicode")
 
 
 def model_xml_without_visual_geoms() -> str:
@@ -58,6 +93,31 @@ def load_model() -> mujoco.MjModel:
 
 
 @functools.cache
+def load_terrain_model() -> mujoco.MjModel:
+    """:func:`load_model` with the floor a height field of flat heights (``_with_terrain``): the model of a batch
+    with a terrain other than flat. Bodies, joints, geoms and actuators keep their indices; the foot sensors have
+    FOOT_CONTACT_SLOTS slots each (:func:`foot_contact_slots`). Cached: copy before editing."""
+    m = mujoco.MjModel.from_xml_string(_with_terrain(model_xml_without_visual_geoms()))
+    m.hfield_data[:] = terrains.hfield_data(terrains.FLAT, 0.0, 0)
+    return m
+
+
+@functools.cache
+def _visual_terrain_model() -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_string(_with_terrain(_model_xml()))
+
+
+def visual_model(ground: terrains.Ground = terrains.FLAT_GROUND) -> mujoco.MjModel:
+    """The model a video or a recording draws on ``ground``: :func:`load_visual_model` on flat ground (cached: copy
+    before editing), else a fresh copy of it with the terrain model's height field carrying the ground's heights."""
+    if ground.terrain == terrains.FLAT:
+        return load_visual_model()
+    m = _visual_terrain_model().__copy__()
+    m.hfield_data[:] = terrains.hfield_data(ground.terrain, ground.terrain_amplitude_m, ground.terrain_seed)
+    return m
+
+
+@functools.cache
 def load_visual_model() -> mujoco.MjModel:
     """go1.xml as written, visual geoms included (group ``VISUAL_GROUP``): the model that videos and recordings
     draw, with the same bodies, joints and qpos layout as :func:`load_model`. Cached: copy before editing."""
@@ -78,6 +138,7 @@ class Go1Indices:
     actuator: np.ndarray  # (12,) actuator id driving each leg joint
     foot_force_sensor: np.ndarray  # (4,) sensordata address of each foot's contact force (normal component first)
     foot_contact_data: np.ndarray  # (4, 9) sensordata addresses of each foot's (force | normal | tangent) slots
+    #                                (the flat model's; the terrain model's: foot_contact_slots)
     calf_body: np.ndarray  # (4,) calf bodies (the foot sphere's body)
     foot_geom: np.ndarray  # (4,) foot sphere geoms
 
@@ -124,6 +185,9 @@ class Scenario(NamedTuple):
     latency_ticks: np.ndarray  # int, actuation latency replacing the profile's (−1: the profile's own)
     noise_scale: np.ndarray  # sensor noise as a multiple of the robot's (go1 profile's); −1: the profile's own
     noise_seed: np.ndarray  # int, the instance's sensor-noise stream
+    terrain: np.ndarray  # str, the ground (cpgjax.go1.terrain.TERRAINS; "flat": the plane)
+    terrain_amplitude_m: np.ndarray  # rough: the heights' peak-to-peak range [m] (0 on flat)
+    terrain_seed: np.ndarray  # int, the stream that draws the rough heights
 
     @property
     def batch_size(self) -> int:
@@ -131,21 +195,26 @@ class Scenario(NamedTuple):
 
 
 def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_profiles.DEFAULT_PROFILE,
-                   mass_scale=1.0, latency_ticks=-1, noise_scale=-1.0, noise_seed=0) -> Scenario:
+                   mass_scale=1.0, latency_ticks=-1, noise_scale=-1.0, noise_seed=0, terrain=terrains.FLAT,
+                   terrain_amplitude_m=0.0, terrain_seed=0) -> Scenario:
     """Broadcast scalars or sequences to a batch of scenarios and validate them.
 
     Raises:
       ValueError: a non-finite value, friction ≤ 0, |slope| ≥ 45°, a negative payload, an unknown physics profile, a
         mass scale outside [0.5, 1.5], a latency outside −1 … MAX_LATENCY_TICKS, a noise scale neither −1 nor in
-        [0, 5], or a noise seed that is not an integer in [0, 2³²); the message names the field, the value, the
-        instance and the allowed range.
+        [0, 5], a noise seed that is not an integer in [0, 2³²), or a terrain, amplitude or terrain seed that
+        ``terrain.check_terrain`` refuses; the message names the field, the value, the instance and the allowed
+        range.
     """
     numbers = [np.atleast_1d(np.asarray(v, np.float64)) for v in (friction, slope_deg, payload_kg)]
     arrays = np.broadcast_arrays(*numbers, np.atleast_1d(np.asarray(physics, str)),
                                  np.atleast_1d(np.asarray(mass_scale, np.float64)),
                                  np.atleast_1d(np.asarray(latency_ticks, np.float64)),
                                  np.atleast_1d(np.asarray(noise_scale, np.float64)),
-                                 np.atleast_1d(np.asarray(noise_seed, np.float64)))
+                                 np.atleast_1d(np.asarray(noise_seed, np.float64)),
+                                 np.atleast_1d(np.asarray(terrain, str)),
+                                 np.atleast_1d(np.asarray(terrain_amplitude_m, np.float64)),
+                                 np.atleast_1d(np.asarray(terrain_seed, np.float64)))
     scenario = Scenario(*(np.array(a) for a in arrays))
     if scenario.friction.ndim != 1:
         raise ValueError(f"scenario fields must be scalars or 1-D sequences, got shape {scenario.friction.shape}")
@@ -169,8 +238,10 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
             i = int(np.argmax(bad))
             raise ValueError(f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range "
                              f"{allowed}")
+    terrains.check_terrain(scenario.terrain, scenario.terrain_amplitude_m, scenario.terrain_seed)
     scenario = scenario._replace(latency_ticks=scenario.latency_ticks.astype(np.int64),
-                                 noise_seed=scenario.noise_seed.astype(np.int64))
+                                 noise_seed=scenario.noise_seed.astype(np.int64),
+                                 terrain_seed=scenario.terrain_seed.astype(np.int64))
     unknown = [i for i, name in enumerate(scenario.physics) if name not in physics_profiles.PROFILES]
     if unknown:
         i = unknown[0]
@@ -200,11 +271,12 @@ def payload_inertia(payload_kg: float) -> np.ndarray:
 
 @functools.lru_cache(maxsize=512)
 def model_with_payload(payload_kg: float, physics: str = physics_profiles.DEFAULT_PROFILE,
-                       mass_scale: float = 1.0) -> mujoco.MjModel:
-    """A copy of the nominal model carrying ``payload_kg`` under the ``physics`` profile's contact and joint fields,
-    its links' masses and inertias × ``mass_scale``, with every derived quantity recomputed (``mj_setConst``: subtree
-    masses, inverse weights, actuator_acc0, ...). Cached per (payload, profile, mass scale)."""
-    m = load_model().__copy__()
+                       mass_scale: float = 1.0, terrain: bool = False) -> mujoco.MjModel:
+    """A copy of the nominal model (the terrain model if ``terrain``) carrying ``payload_kg`` under the ``physics``
+    profile's contact and joint fields, its links' masses and inertias × ``mass_scale``, with every derived quantity
+    recomputed (``mj_setConst``: subtree masses, inverse weights, actuator_acc0, ...). Cached per (payload, profile,
+    mass scale, terrain)."""
+    m = (load_terrain_model() if terrain else load_model()).__copy__()
     ids = indices()
     profile = physics_profiles.get(physics)
     physics_profiles.apply_to_model(m, profile, ids.floor_geom, ids.joint_dof)
@@ -218,14 +290,46 @@ def model_with_payload(payload_kg: float, physics: str = physics_profiles.DEFAUL
     return m
 
 
+def foot_contact_slots(nsensordata: int) -> np.ndarray:
+    """The sensordata addresses of each foot's (force | normal | tangent) data in the model whose sensordata has
+    ``nsensordata`` entries: (4, 9) in the flat model (one contact, ``Go1Indices.foot_contact_data``), (4,
+    FOOT_CONTACT_SLOTS, 9) in the terrain model (the slots of a foot's contacts, empty ones zero)."""
+    if nsensordata == load_model().nsensordata:
+        return indices().foot_contact_data
+    m = load_terrain_model()
+    if nsensordata != m.nsensordata:
+        raise ValueError(f"sensordata of {nsensordata} entries: the Go1 models have {load_model().nsensordata} (flat) "
+                         f"or {m.nsensordata} (terrain)")
+    sensors = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SENSOR, n) for n in FOOT_SENSOR_NAMES]
+    return np.array([m.sensor_adr[s] + np.arange(FOOT_CONTACT_SLOTS * 9).reshape(FOOT_CONTACT_SLOTS, 9)
+                     for s in sensors])
+
+
+def has_terrain(scenario: Scenario) -> bool:
+    """Whether a batch runs the terrain model (:func:`load_terrain_model`): some instance is not on flat ground."""
+    return bool(np.any(scenario.terrain != terrains.FLAT))
+
+
+def check_same_model(scenario: Scenario, other: Scenario) -> None:
+    """Raise ValueError in one line where two batches run different models (the plane and the terrain model: their
+    states and compiled programs differ), so a backend cannot switch from one to the other."""
+    if has_terrain(scenario) != has_terrain(other):
+        raise ValueError("a batch cannot switch between all-flat terrain and some rough terrain (the model and its "
+                         "states differ): start a backend for the new scenarios")
+
+
 def scenario_model(scenario: Scenario, i: int) -> mujoco.MjModel:
     """The C-MuJoCo model of instance i: profile, payload, floor friction (under the profile's friction rule,
     ``physics.floor_friction``) and gravity applied (a fresh copy)."""
+    terrain = has_terrain(scenario)
     m = model_with_payload(float(scenario.payload_kg[i]), str(scenario.physics[i]),
-                           float(scenario.mass_scale[i])).__copy__()
+                           float(scenario.mass_scale[i]), terrain).__copy__()
     m.geom_friction[indices().floor_geom, 0] = physics_profiles.floor_friction(
         physics_profiles.get(str(scenario.physics[i])), scenario.friction[i])
     m.opt.gravity[:] = gravity_vector(scenario.slope_deg[i])
+    if terrain:
+        m.hfield_data[:] = terrains.hfield_data(str(scenario.terrain[i]), float(scenario.terrain_amplitude_m[i]),
+                                                int(scenario.terrain_seed[i]))
     return m
 
 

@@ -267,21 +267,34 @@ def calf_rotations(qpos: jax.Array, root_qpos: int, joint_qpos: np.ndarray) -> j
 
 
 def contact_force_world(contact_data: jax.Array) -> jax.Array:
-    """The force the floor exerts on each foot (4, 3) [N], floor frame, from the contact sensors' (force | normal |
-    tangent) slots (4, 9). The sensor's frame (normal, tangent, normal × tangent) points from the foot (the sensor's
+    """The force the floor exerts on a foot (..., 3) [N], floor frame, from a contact sensor slot's (force | normal |
+    tangent) data (..., 9). The sensor's frame (normal, tangent, normal × tangent) points from the foot (the sensor's
     first geom) into the floor, so its force is the foot's push on the floor: the reaction is its negative."""
-    force, normal, tangent = contact_data[:, 0:3], contact_data[:, 3:6], contact_data[:, 6:9]
+    force, normal, tangent = contact_data[..., 0:3], contact_data[..., 3:6], contact_data[..., 6:9]
     bitangent = jnp.cross(normal, tangent)
-    return -(force[:, 0:1] * normal + force[:, 1:2] * tangent + force[:, 2:3] * bitangent)
+    return -(force[..., 0:1] * normal + force[..., 1:2] * tangent + force[..., 2:3] * bitangent)
+
+
+def foot_normal_force(contact_data: jax.Array) -> jax.Array:
+    """Each foot's contact normal force (4,) [N] from its contact sensor data: (4, 9), the one contact of a foot on
+    the plane, or (4, K, 9), its K contact slots on a height field (empty slots zero), whose normal forces add (each
+    along its own contact's normal)."""
+    if contact_data.ndim == 3:
+        return jnp.sum(contact_data[..., 0], axis=1)
+    return contact_data[:, 0]
 
 
 def foot_force_signal(profile: ProfileArrays, qpos: jax.Array, contact_data: jax.Array, root_qpos: int,
                       joint_qpos: np.ndarray) -> jax.Array:
     """The profile's instantaneous foot-force signal (4,) [N]: the contact normal force, or the z component of the
-    contact force in the calf frame (noise-free, continuous)."""
-    normal = contact_data[:, 0]
-    calf = jnp.einsum("lji,lj->li", calf_rotations(qpos, root_qpos, joint_qpos),
-                      contact_force_world(contact_data))[:, 2]
+    contact force in the calf frame (noise-free, continuous). ``contact_data`` as :func:`foot_normal_force` takes
+    it; with several contacts per foot the normal forces add, and the calf-frame force is that of the sum of the
+    contacts' floor-frame forces."""
+    normal = foot_normal_force(contact_data)
+    world = contact_force_world(contact_data)
+    if contact_data.ndim == 3:
+        world = jnp.sum(world, axis=1)
+    calf = jnp.einsum("lji,lj->li", calf_rotations(qpos, root_qpos, joint_qpos), world)[:, 2]
     return jnp.where(profile.calf_frame, calf, normal)
 
 

@@ -32,7 +32,8 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
     """The controller's observation computed as the Go1's sensors would report it.
 
     IMU orientation relative to gravity (so a slope reads as pitch, docs/decisions.md §4), gyro in the trunk frame,
-    joint encoders, and each foot's contact normal force [N]. Works on MJX and C-MuJoCo arrays alike.
+    joint encoders, and each foot's contact normal force [N], summed over its contacts on a height field
+    (``physics.foot_normal_force``). Works on MJX and C-MuJoCo arrays alike, of the flat or the terrain model.
     """
     ids = go1_model.indices()
     r = ids.root_qpos
@@ -42,7 +43,8 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
         joint_vel_rad_s=qvel[ids.joint_dof],
         imu_quat_wxyz=attitude.quat_mul(attitude.gravity_frame_quat(gravity), quat_floor),
         gyro_rad_s=qvel[ids.root_dof + 3:ids.root_dof + 6],
-        foot_force_n=sensordata[ids.foot_force_sensor],
+        foot_force_n=physics_profiles.foot_normal_force(
+            sensordata[go1_model.foot_contact_slots(sensordata.shape[-1])]),
     )
 
 
@@ -51,17 +53,21 @@ def measure(profile: physics_profiles.ProfileArrays, io: physics_profiles.Actuat
             gravity: jax.Array) -> tuple[physics_profiles.ActuatorSensorState, Observation]:
     """The observation under a physics profile: :func:`observe` with the profile's foot-force signal (contact normal
     or calf-frame z), its sensor noise (uniform, drawn every tick), the force counted when the sensor counts, and
-    updated and held at the profile's rate (``physics_profiles.foot_sensor_update``)."""
+    updated and held at the profile's rate (``physics_profiles.foot_sensor_update``). On a height field a foot counts
+    as in contact for the profile's mean while it has a contact force (its contact layer is the plane's only)."""
     ids = go1_model.indices()
     obs = observe(qpos, qvel, sensordata, gravity)
     u = physics_profiles.noise_draws(profile, io.tick)
     amplitude = profile.noise
-    contact_data = sensordata[ids.foot_contact_data]
+    contact_data = sensordata[go1_model.foot_contact_slots(sensordata.shape[-1])]
     signal = physics_profiles.foot_force_signal(profile, qpos, contact_data, ids.root_qpos, ids.joint_qpos)
-    clearance = foot_positions(qpos)[:, 2] - go1_model.FOOT_RADIUS_M
+    if contact_data.ndim == 2:  # the plane z = 0
+        touching = physics_profiles.touching(profile, foot_positions(qpos)[:, 2] - go1_model.FOOT_RADIUS_M)
+    else:  # a height field: a foot touches while it has a contact force (the profile's contact layer is not modelled)
+        touching = obs.foot_force_n > 0.0
     io, held = physics_profiles.foot_sensor_update(profile, io,
                                           physics_profiles.count(profile, signal + amplitude.foot_force * u.foot_force),
-                                          physics_profiles.touching(profile, clearance))
+                                          touching)
     # The IMU's orientation turned in the trunk frame about x and y by the tilt noise (rotation vector → quaternion;
     # sin(θ/2)/θ = sinc(θ/2π)/2 is finite at θ = 0).
     turn = amplitude.tilt * jnp.concatenate([u.tilt, jnp.zeros(1, u.tilt.dtype)])

@@ -47,6 +47,7 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import sensors
+from cpgjax.go1 import terrain as terrains
 from cpgjax.sim import ffi_step
 from cpgjax.sim.base import Backend
 from cpgjax.trial import params as param_space
@@ -333,6 +334,7 @@ class _Constants(NamedTuple):
     new_params: jax.Array  # (8,)
     gates: cpg.Gates
     profile: physics_profiles.ProfileArrays
+    hfield_data: jax.Array | None  # (N,) the terrain model's heights (``terrain.hfield_data``); None on the plane
 
 
 class _Carry(NamedTuple):
@@ -352,7 +354,7 @@ class _Recorder(NamedTuple):
     """What a run records: the pre-step half of a row (at control time) and the row (after the physics step)."""
 
     pending: Callable  # (qpos, control: protocol.Control) -> pending
-    row: Callable  # (trial_config, pending, qpos, qvel, failed) -> row
+    row: Callable  # (trial_config, pending, qpos, qvel, failed, ground_height_m) -> row
 
 
 def _trial_pending(qpos, c: protocol.Control) -> protocol.PreStep:
@@ -366,9 +368,9 @@ def _log_pending(qpos, c: protocol.Control):
             c.diag.foot_target_m, c.diag.rpy_rad)
 
 
-def _log_row(trial_config, pending, qpos, qvel, failed) -> protocol.StepLog:
+def _log_row(trial_config, pending, qpos, qvel, failed, ground_height_m) -> protocol.StepLog:
     """``protocol.StepLog`` row with the MJX rollout's definitions (qpos, qvel after the step)."""
-    del trial_config, failed
+    del trial_config, failed, ground_height_m
     torque, force, feet, amplitude, phase, target, rpy = pending
     return protocol.StepLog(qpos=qpos, qvel=qvel, torque_nm=torque, foot_force_n=force,
                            foot_pos_m=feet, amplitude=amplitude, phase_rad=phase,
@@ -433,12 +435,21 @@ def _store_flat_row(rows, k: jax.Array, row):
     return rows.at[k].set(ravel_pytree(row)[0])
 
 
+def _ground_under_trunk_m(consts: _Constants, qpos: jax.Array) -> jax.Array | None:
+    """The ground's height under each trunk origin (B,) on the batch's height fields; None on the plane."""
+    if consts.hfield_data is None:
+        return None
+    r = go1_model.indices().root_qpos
+    return jax.vmap(terrains.ground_height_m)(consts.hfield_data, qpos[:, r], qpos[:, r + 1])
+
+
 def _complete(trial_config, recorder: _Recorder, packing: _Packing, store: Callable, consts: _Constants,
               carry: _Carry, host_in) -> _Carry:
     """Finish the last tick's row from the state after its step (already reset where it failed); ``store`` writes
     it into ``carry.rows`` (``_store_rows`` or ``_store_flat_row``)."""
     qpos, qvel, _, failed = _host_inputs(packing, host_in)
-    row = jax.vmap(functools.partial(recorder.row, trial_config))(carry.pending, qpos, qvel, failed)
+    row = jax.vmap(functools.partial(recorder.row, trial_config))(carry.pending, qpos, qvel, failed,
+                                                                  _ground_under_trunk_m(consts, qpos))
     controller = protocol.where_batch(failed, consts.reset, carry.controller)
     return carry._replace(controller=controller, rows=store(carry.rows, carry.step - 1, row))
 
@@ -607,6 +618,8 @@ class NativeBackend(Backend):
         self._profile = jax.tree.map(jnp.asarray, physics_profiles.batch_arrays(
             scenario.physics, scenario.latency_ticks, scenario.noise_scale, scenario.noise_seed))
         self._host_in = np.zeros((self.batch_size, lay.size + self.physics.sensordata.shape[1] + 1), np.float32)
+        self._hfield_data = (jnp.asarray(np.stack([m.hfield_data for m in self.physics.models]), jnp.float32)
+                             if go1_model.has_terrain(scenario) else None)
         self._compiled = {}
 
     @property
@@ -616,6 +629,7 @@ class NativeBackend(Backend):
     def with_scenario(self, scenario: go1_model.Scenario) -> NativeBackend:
         """This backend for another batch of scenarios; the compiled tick is reused when the batch size is the same
         (scenario values reach it as data). This backend's thread pool is released."""
+        go1_model.check_same_model(self.scenario, scenario)
         other = NativeBackend(scenario, self.cpg_config, self.trial_config, nthread=self.physics.nthread,
                               stepping=self.physics.stepping)
         if scenario.batch_size == self.batch_size:
@@ -640,7 +654,7 @@ class NativeBackend(Backend):
     def _constants(self, prev_params, new_params, gates) -> _Constants:
         gates = protocol.check_gates(gates, self.batch_size)
         return _Constants(self._gravity, self._rest(gates), jnp.asarray(prev_params, jnp.float32), new_params, gates,
-                          self._profile)
+                          self._profile, self._hfield_data)
 
     def _program(self, recorder: _Recorder, trial_config: protocol.TrialConfig) -> _Program:
         """The run's compiled pieces (:class:`_Program`), compiled once per recorder and trial timing."""
@@ -656,7 +670,8 @@ class NativeBackend(Backend):
                 qpos, qvel, _, failed = _host_inputs(p_layout, jnp.zeros(self._host_in.shape))
                 control = functools.partial(_control, self.cpg_config, recorder, 1, jnp.int32(0))
                 _, _, pending = jax.vmap(control)(consts, consts.reset, qpos, qvel, jnp.zeros(p.sensordata.shape))
-                row = jax.vmap(functools.partial(recorder.row, trial_config))(pending, qpos, qvel, failed)
+                row = jax.vmap(functools.partial(recorder.row, trial_config))(pending, qpos, qvel, failed,
+                                                                              _ground_under_trunk_m(consts, qpos))
                 return pending, row
 
             pending, row = jax.eval_shape(one_tick, consts)
@@ -732,6 +747,10 @@ class NativeBackend(Backend):
         record = self._program(TRIAL_RECORDER, self.trial_config).summarize(ticks, self._total_mass)
         fell = np.asarray(record.fell) > 0
         self.physics.reset(fell)
+        if self._hfield_data is not None:  # back into the terrain's central period: the same ground under the robot
+            root = self.physics.layout.qpos.start + go1_model.indices().root_qpos
+            xy = self.physics.physics[:, root:root + 2]  # a view: moved in place
+            xy[:] = terrains.wrap_xy_m(xy)
         controller = protocol.where_batch(fell, consts.reset, controller)
         return NativeState(*self.physics.get_state(), cpg=controller.cpg, params=new_params, io=controller.io), record
 

@@ -16,6 +16,7 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1 import terrain as terrains
 from cpgjax.sim import backends
 from cpgjax.trial import limits, objective, protocol
 from cpgjax.trial import params as param_space
@@ -56,6 +57,7 @@ class WalkTrial(NamedTuple):
     objective: float
     velocity_xy_mps: np.ndarray  # (2,) steady-phase mean
     cot: float
+    ground: terrains.Ground
 
 
 def walk_trials(controllers=cpg.CONTROLLERS, gaits=(cpg.DEFAULT_GAIT,), friction=(0.6,), slope_deg=(0.0,),
@@ -63,20 +65,24 @@ def walk_trials(controllers=cpg.CONTROLLERS, gaits=(cpg.DEFAULT_GAIT,), friction
                 num_trials: int = 2, target_velocity_mps: float = 0.5,
                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
                 physics=(physics_profiles.DEFAULT_PROFILE,), progress=print,
-                cpg_config: cpg.CPGConfig = cpg.CPGConfig()) -> tuple[list[WalkTrial], dict]:
-    """Every combination of controller × gait × friction × slope × payload × physics profile, ``num_trials`` trials
-    back to back with the same parameters (default: the middle of the paper's ranges) on ``backend``
+                cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
+                ground: terrains.Ground = terrains.FLAT_GROUND) -> tuple[list[WalkTrial], dict]:
+    """Every combination of controller × gait × friction × slope × payload × physics profile on ``ground``,
+    ``num_trials`` trials back to back with the same parameters (default: the middle of the paper's ranges) on
+    ``backend``
     (:func:`backends.make_backend`) with the controller's ``cpg_config`` (its start-up); returns every trial of every
     walk, walk-major, and the timing.
 
     Raises:
-      ValueError: ``num_trials`` < 1 or a target velocity outside ``limits.TARGET_VELOCITY_MPS``, before any compute.
+      ValueError: ``num_trials`` < 1, a target velocity outside ``limits.TARGET_VELOCITY_MPS`` or a terrain that
+        ``go1_model.make_scenarios`` refuses, before any compute.
     """
     limits.check_count(num_trials, "num_trials")
     limits.TARGET_VELOCITY_MPS.check(target_velocity_mps, "target_velocity_mps")
     grid = list(itertools.product(controllers, gaits, friction, slope_deg, payload_kg, physics))
     scenario = go1_model.make_scenarios(friction=[g[2] for g in grid], slope_deg=[g[3] for g in grid],
-                                        payload_kg=[g[4] for g in grid], physics=[g[5] for g in grid])
+                                        payload_kg=[g[4] for g in grid], physics=[g[5] for g in grid],
+                                        **ground._asdict())
     p = np.tile(param_space.midpoint() if params is None else params, (len(grid), 1))
     gates = protocol.batch_gates([g[0] for g in grid], [g[1] for g in grid])
     sim = backends.make_backend(scenario, backend, cpg_config, trial_config)
@@ -96,7 +102,8 @@ def walk_trials(controllers=cpg.CONTROLLERS, gaits=(cpg.DEFAULT_GAIT,), friction
     run_s = time.perf_counter() - t1
     steps = len(grid) * (num_trials - 1) * (trial_config.transition_steps + trial_config.steady_steps)
     trials = [WalkTrial(i, k, c, g, float(f), float(s), float(m), ph, float(target_velocity_mps), p[i],
-                        protocol.TrialRecord(*(field[i] for field in record)), float(j[i]), v[i], float(cot[i]))
+                        protocol.TrialRecord(*(field[i] for field in record)), float(j[i]), v[i], float(cot[i]),
+                        ground)
               for i, (c, g, f, s, m, ph) in enumerate(grid) for k, (record, j, v, cot) in enumerate(records)]
     timing = {"compile_and_first_trial_s": compile_s, "env_steps_per_s": steps / run_s if num_trials > 1 else None}
     return trials, timing
@@ -133,6 +140,9 @@ def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
         cols[name] = np.array([getattr(t, name) for t in trials])
     for name in ("friction", "slope_deg", "payload_kg", "target_velocity_mps"):
         cols[name] = np.array([getattr(t, name) for t in trials], np.float64)
+    cols["terrain"] = np.array([t.ground.terrain for t in trials])
+    cols["terrain_amplitude_m"] = np.array([t.ground.terrain_amplitude_m for t in trials], np.float64)
+    cols["terrain_seed"] = np.array([t.ground.terrain_seed for t in trials], np.int64)
     params = np.array([t.params for t in trials], np.float64).reshape(len(trials), param_space.NUM_PARAMS)
     for i, name in enumerate(param_space.PARAM_NAMES):
         cols[name] = params[:, i]

@@ -51,15 +51,16 @@ def unavailable(err: BaseException) -> int:
     return UNAVAILABLE
 
 
-def render_frames(qpos, slope_deg: float, width: int, height: int):
-    """Frames (height, width, 3) uint8 of the visual model at each qpos row (T, nq), camera following the trunk.
-    Needs a working OpenGL backend in this process (MUJOCO_GL)."""
+def render_frames(qpos, slope_deg: float, width: int, height: int, ground=None):
+    """Frames (height, width, 3) uint8 of the visual model at each qpos row (T, nq) on ``ground`` (a
+    ``terrain.Ground``; None: flat), camera following the trunk. Needs a working OpenGL backend in this process
+    (MUJOCO_GL)."""
     import mujoco
 
     from cpgjax.go1 import attitude
     from cpgjax.go1 import model as go1_model
 
-    m = go1_model.load_visual_model()
+    m = go1_model.load_visual_model() if ground is None else go1_model.visual_model(ground)
     d = mujoco.MjData(m)
     root = go1_model.indices().root_qpos
     tilt = go1_model.slope_quaternion(slope_deg)
@@ -102,12 +103,16 @@ def render_jobs(jobs_file: str) -> int:
     """Each video of the jobs file (written by ``video.render_videos``), one JSON line per finished one on stdout,
     and its filmstrip (:data:`STRIP_FRAMES` frames spread over it, as rendered) in a ``.npy`` file beside the jobs
     file; MuJoCo's OpenGL backend is loaded."""
+    from cpgjax.go1 import terrain as terrains
+
     with np.load(jobs_file) as z:
         slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
         paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
+        grounds = [terrains.Ground(str(kind), float(a), int(s)) for kind, a, s in zip(
+            z["terrain"], z["terrain_amplitude_m"], z["terrain_seed"], strict=True)]
     for k, path in enumerate(paths):
         t0 = time.perf_counter()
-        frames = render_frames(qpos[k], float(slopes[k]), width, height)
+        frames = render_frames(qpos[k], float(slopes[k]), width, height, grounds[k])
         try:
             first = next(frames)
         except Exception as err:  # the GL backends fail with many types (ImportError, OSError, GL errors...)

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax import cpg
+from cpgjax.go1 import terrain as terrains
 from cpgjax.studies import renderer
 from cpgjax.study.files import BEST_PARAMS
 from cpgjax.study.spec import StudyError
@@ -117,11 +118,13 @@ def frame_ticks(num_ticks: int, fps: int = FPS) -> np.ndarray:
 
 
 class Job(NamedTuple):
-    """One video to make: the MP4 ``path`` of ``qpos`` (T, nq; 1 ms ticks) on a floor of ``slope_deg``."""
+    """One video to make: the MP4 ``path`` of ``qpos`` (T, nq; 1 ms ticks) on a floor of ``slope_deg`` and
+    ``ground``."""
 
     path: pathlib.Path
     qpos: np.ndarray
     slope_deg: float = 0.0
+    ground: terrains.Ground = terrains.FLAT_GROUND
 
 
 def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height: int = HEIGHT) -> list[dict]:
@@ -143,8 +146,9 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
         frames_file = pathlib.Path(folder) / "jobs.npz"
         arrays = {f"qpos_{k}": np.asarray(j.qpos, np.float64)[frame_ticks(len(j.qpos), fps)]
                   for k, j in enumerate(jobs)}
+        grounds = {field: np.array([getattr(j.ground, field) for j in jobs]) for field in terrains.Ground._fields}
         np.savez(frames_file, slope_deg=np.array([float(j.slope_deg) for j in jobs]), fps=fps, width=width,
-                 height=height, paths=np.array(tmps), **arrays)
+                 height=height, paths=np.array(tmps), **grounds, **arrays)
         child = subprocess.run([sys.executable, "-m", "cpgjax.studies.renderer", str(frames_file)], env=env,
                                capture_output=True, text=True)
         done = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]

@@ -5,7 +5,8 @@ CPG's phase and amplitude per leg; the rollout's labels (group, controller, seed
 Entities below ``rollout/best_<group>/<controller>/seed=<seed>/<condition>``:
 
 * ``world`` — the floor frame (the simulation's; x uphill, docs/decisions.md §4), rotated so that the viewer's z is
-  against gravity; below it ``floor`` (a grey slab whose top is the floor, tilted with the frame), ``robot/<body>``
+  against gravity; below it ``floor`` (a grey slab whose top is the floor, tilted with the frame; on rough ground
+  the height field's surface as a mesh, lighter where higher), ``robot/<body>``
   (per-body transforms; the body's geoms as boxes, cylinders and spheres below) and ``contact_force/<leg>`` (arrows
   from each foot centre along the floor normal, ``FORCE_ARROW_M_PER_N`` long per newton).
 * ``cpg/phase_rad/<leg>``, ``cpg/amplitude/<leg>``, ``foot_force_n/<leg>``, ``attitude_rad/<axis>`` — scalars every
@@ -23,6 +24,7 @@ import numpy as np
 
 from cpgjax.go1 import constants
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import terrain as terrains
 
 TICK_STRIDE = 10  # body transforms and arrows at 100 Hz (the scalars every tick)
 FORCE_ARROW_M_PER_N = 0.004  # a foot carrying a quarter of the robot's weight (31 N): a 12 cm arrow
@@ -41,6 +43,7 @@ class Rollout(NamedTuple):
     friction: float
     slope_deg: float
     payload_kg: float
+    ground: terrains.Ground = terrains.FLAT_GROUND
 
 
 def entity_path(rollout: Rollout) -> str:
@@ -102,6 +105,25 @@ def _log_geoms(rec, base: str, m: mujoco.MjModel, body: int) -> None:
                          "cylinders and spheres are recorded")
 
 
+def field_mesh(ground: terrains.Ground, low_m: np.ndarray, high_m: np.ndarray) -> dict[str, np.ndarray]:
+    """The height field's surface over the floor-frame rectangle [low, high] (the cells that cover it) as a
+    triangle mesh: ``vertex_positions`` (N, 3) [m] at the field's vertices and heights, ``triangle_indices`` (M, 3)
+    split along each cell's diagonal from (c, r) to (c + 1, r + 1) as MuJoCo splits it."""
+    heights = terrains.field_heights_m(ground.terrain, ground.terrain_amplitude_m, ground.terrain_seed)
+    n = terrains.FIELD_VERTICES
+    first = np.clip(np.floor((np.asarray(low_m) + terrains.FIELD_HALF_M) / terrains.CELL_M).astype(int), 0, n - 2)
+    last = np.clip(np.ceil((np.asarray(high_m) + terrains.FIELD_HALF_M) / terrains.CELL_M).astype(int), 1, n - 1)
+    cols, rows = np.arange(first[0], last[0] + 1), np.arange(first[1], last[1] + 1)
+    c, r = np.meshgrid(cols, rows)  # (rows, cols)
+    vertices = np.stack([c * terrains.CELL_M - terrains.FIELD_HALF_M, r * terrains.CELL_M - terrains.FIELD_HALF_M,
+                         heights[r, c]], axis=-1).reshape(-1, 3)
+    width = len(cols)
+    at = (np.arange(len(rows) - 1)[:, None] * width + np.arange(width - 1)[None, :]).reshape(-1)  # cell (c, r)
+    triangles = np.concatenate([np.stack([at, at + 1, at + width + 1], -1),  # (0, 0), (1, 0), (1, 1)
+                                np.stack([at, at + width + 1, at + width], -1)])  # (0, 0), (1, 1), (0, 1)
+    return {"vertex_positions": vertices, "triangle_indices": triangles}
+
+
 def log_rollout(rec, rollout: Rollout) -> str:
     """Log one rollout (see the module's docstring) into the recording stream ``rec``; returns its entity path."""
     import rerun as rr
@@ -120,8 +142,13 @@ def log_rollout(rec, rollout: Rollout) -> str:
     rr.log(f"{base}/world", rr.Transform3D(quaternion=tilt), static=True, recording=rec)
     trunk_xy = qpos[:, go1_model.indices().root_qpos:go1_model.indices().root_qpos + 2]
     low, high = trunk_xy.min(axis=0) - FLOOR_MARGIN_M, trunk_xy.max(axis=0) + FLOOR_MARGIN_M
-    floor = rr.Boxes3D(mins=[[*low, -FLOOR_THICKNESS_M]], sizes=[[*(high - low), FLOOR_THICKNESS_M]],
-                       colors=[[190, 190, 185, 255]], fill_mode="solid")
+    if rollout.ground.terrain == terrains.FLAT:
+        floor = rr.Boxes3D(mins=[[*low, -FLOOR_THICKNESS_M]], sizes=[[*(high - low), FLOOR_THICKNESS_M]],
+                           colors=[[190, 190, 185, 255]], fill_mode="solid")
+    else:
+        mesh = field_mesh(rollout.ground, low, high)
+        shade = 150 + 80 * (mesh["vertex_positions"][:, 2] / terrains.MAX_AMPLITUDE_M + 0.5)  # lighter higher
+        floor = rr.Mesh3D(**mesh, vertex_colors=np.stack([shade, shade, 0.97 * shade], -1).astype(np.uint8))
     rr.log(f"{base}/world/floor", floor, static=True, recording=rec)
     pos, quat = body_poses(qpos[every])
     for body in range(1, m.nbody):

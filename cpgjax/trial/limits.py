@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from cpgjax.go1.model import MAX_ABS_SLOPE_DEG
+from cpgjax.go1.terrain import MAX_AMPLITUDE_M
 
 
 class Range(NamedTuple):
@@ -51,6 +52,8 @@ FRICTION = Range(0.1, 1.5, "Coulomb friction of the feet on the floor, from wet 
 SLOPE_DEG = Range(-MAX_ABS_SLOPE_DEG, MAX_ABS_SLOPE_DEG, "uphill along +x; the model's gravity tilt", low_open=True,
                   high_open=True)
 PAYLOAD_KG = Range(0.0, 20.0, "a load on the ~12 kg robot; the paper's heaviest is 15 kg")
+TERRAIN_AMPLITUDE_M = Range(0.0, MAX_AMPLITUDE_M, "rough ground's peak-to-peak height; at most the smallest swing "
+                            "clearance g_c", low_open=True)
 TARGET_VELOCITY_MPS = Range(0.0, 2.0, "forward walking; the paper's targets are 0.3…0.8 m/s", low_open=True)
 ROBOT_MASS_KG = Range(5.0, 40.0, "the Go1 weighs ~12 kg, with at most a 20 kg payload")
 RUN_DURATION_S = Range(0.0, 3600.0, "a run of at most an hour", low_open=True)

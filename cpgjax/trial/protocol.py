@@ -127,16 +127,20 @@ def safety_margin(trial_config: TrialConfig, imu_roll_rad, imu_pitch_rad, trunk_
     return margin
 
 
-def tick_row(trial_config: TrialConfig, pre: PreStep, qpos: jax.Array, qvel: jax.Array, failed: jax.Array) -> Tick:
+def tick_row(trial_config: TrialConfig, pre: PreStep, qpos: jax.Array, qvel: jax.Array, failed: jax.Array,
+             ground_height_m: jax.Array | None = None) -> Tick:
     """A tick's record from its pre-step half and the state after the step (and after a reset, if ``failed``).
 
-    Fall: trunk origin below ``fall_height_m`` or floor-frame |roll| or |pitch| above ``fall_tilt_rad``. A failed
+    Fall: trunk origin less than ``fall_height_m`` above the ground under it (``ground_height_m``, from
+    ``cpgjax.go1.terrain``; None: the plane z = 0) or floor-frame |roll| or |pitch| above ``fall_tilt_rad``. A failed
     tick contributes nothing to the sums (velocity, power, load, attitude are zeroed). The margin takes the IMU's
     angles of the state the controller saw (the pre-step half) and the trunk's height and floor-frame tilt after the
     step."""
     ids = go1_model.indices()
     floor_rpy = attitude.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])
     height_m = qpos[ids.root_qpos + 2]
+    if ground_height_m is not None:
+        height_m = height_m - ground_height_m
     fell = ((height_m < trial_config.fall_height_m)
             | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
             | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))

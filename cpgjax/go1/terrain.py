@@ -1,0 +1,135 @@
+"""Terrain under the simulated Go1: the kinds, the height field each instance stands on, the ground height under a
+point, and the periodic wrap that lets trials run back to back on a finite field (docs/physics.md, "Terrain").
+
+``flat`` is today's plane: a batch whose instances are all flat compiles no height field. ``rough`` is MuJoCo's
+height field (hfield) of white-noise heights, uniform in [−A/2, A/2] with A the peak-to-peak amplitude, drawn by
+NumPy's ``default_rng(seed)`` on one period of ``PERIOD_CELLS`` × ``PERIOD_CELLS`` cells and tiled ``PERIODS`` ×
+``PERIODS`` times, so the field is periodic in x and y with period ``PERIOD_M``. A flat pad of ``PAD_HALF_M``
+around every period's origin is where the robot stands after a reset. The height field's grid, its extent and its
+maximum height are compiled into the model and shared by a batch; the heights (``hfield_data``) are a per-instance
+model array.
+
+Trials run without resets: at the end of a trial an instance whose trunk left the central period is moved back by
+whole periods (:func:`wrap_xy_m`), which leaves the ground under it, and hence its motion, unchanged.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cpgjax.trial import params as param_space
+
+TERRAINS = ("flat", "rough")
+FLAT = "flat"
+# The largest peak-to-peak height: the smallest swing clearance g_c of the parameter box (0.06 m), so that the
+# swing apex of every parameter set clears the highest bump from the lowest hollow.
+MAX_AMPLITUDE_M = float(param_space.PARAM_LOWER[param_space.PARAM_NAMES.index("ground_clearance_m")])
+CELL_M = 0.075  # grid spacing: ~Playground's Go1 rough terrain (256 samples over 20 m, 0.078 m)
+PERIOD_CELLS = 128
+PERIOD_M = CELL_M * PERIOD_CELLS  # 9.6 m
+# Three periods per side: a trial starts within the central period (|x|, |y| ≤ PERIOD_M / 2) and walks at most
+# 4.5 s × ~1 m/s, which stays within ±(4.8 + 4.5 + the robot's 0.4) = ±9.7 m < 1.5 × PERIOD_M = 14.4 m.
+PERIODS = 3
+FIELD_VERTICES = PERIODS * PERIOD_CELLS + 1  # per side
+FIELD_HALF_M = PERIODS * PERIOD_M / 2.0
+# The hfield's prisms reach this far below its lowest point (MuJoCo's hfield base, size[3]).
+BASE_M = 0.05
+# The flat pad at every period's origin: the standing robot's feet (x ∈ [−0.23, 0.16] m, |y| ≤ 0.13 m) with a
+# cell of margin.
+PAD_HALF_M = (0.35, 0.25)
+
+
+class Ground(NamedTuple):
+    """One instance's terrain, as ``go1_model.make_scenarios`` takes it (``**ground._asdict()``)."""
+
+    terrain: str = FLAT
+    terrain_amplitude_m: float = 0.0
+    terrain_seed: int = 0
+
+
+FLAT_GROUND = Ground()
+
+
+def check_terrain(terrain, amplitude_m, seed) -> None:
+    """Raise ValueError in one line naming the field, the value, the instance and the allowed range: an unknown
+    terrain, an amplitude outside [0, MAX_AMPLITUDE_M] (0 for flat), or a seed that is not an integer in [0, 2³²)."""
+    for i, (kind, a, s) in enumerate(zip(terrain, amplitude_m, seed, strict=True)):
+        if kind not in TERRAINS:
+            raise ValueError(f"scenario terrain = {str(kind)!r} (instance {i}) is not a terrain; allowed: {TERRAINS}")
+        if not (np.isfinite(a) and 0.0 <= a <= MAX_AMPLITUDE_M):
+            raise ValueError(f"scenario terrain_amplitude_m = {float(a)!r} (instance {i}) is outside the allowed range "
+                             f"[0, {MAX_AMPLITUDE_M}]")
+        if kind == FLAT and a != 0.0:
+            raise ValueError(f"scenario terrain_amplitude_m = {float(a)!r} (instance {i}) on flat terrain: allowed 0 "
+                             "(give terrain rough for a height)")
+        if not (np.isfinite(s) and s == np.round(s) and 0 <= s < 2.0 ** 32):
+            raise ValueError(f"scenario terrain_seed = {float(s)!r} (instance {i}) is outside the allowed range "
+                             "an integer in [0, 2**32)")
+
+
+def _periodic_distance_m(coord_m: np.ndarray) -> np.ndarray:
+    """|coordinate| from the nearest multiple of PERIOD_M."""
+    return np.abs(coord_m - PERIOD_M * np.round(coord_m / PERIOD_M))
+
+
+@functools.lru_cache(maxsize=64)
+def period_heights_m(terrain: str, amplitude_m: float, seed: int) -> np.ndarray:
+    """Ground heights (PERIOD_CELLS, PERIOD_CELLS) [m] of one period, [row (y), column (x)], vertex (r, c) at
+    (c, r) · CELL_M from the period's origin: 0 for flat; white noise uniform in [−A/2, A/2] from
+    ``default_rng(seed)`` with the pad around the origin at 0 for rough. Read-only."""
+    heights = np.zeros((PERIOD_CELLS, PERIOD_CELLS))
+    if terrain != FLAT:
+        heights = amplitude_m * (np.random.default_rng(seed).random((PERIOD_CELLS, PERIOD_CELLS)) - 0.5)
+        coord = np.arange(PERIOD_CELLS) * CELL_M
+        pad = ((_periodic_distance_m(coord)[:, None] <= PAD_HALF_M[1])
+               & (_periodic_distance_m(coord)[None, :] <= PAD_HALF_M[0]))
+        heights[pad] = 0.0
+    heights.flags.writeable = False
+    return heights
+
+
+def field_heights_m(terrain: str, amplitude_m: float, seed: int) -> np.ndarray:
+    """Ground heights (FIELD_VERTICES, FIELD_VERTICES) [m] of the whole field, [row (y), column (x)], vertex (r, c)
+    at (c, r) · CELL_M − FIELD_HALF_M: the period repeated, the vertex at (x, y) being the period's vertex at
+    (x, y) modulo PERIOD_M."""
+    period = period_heights_m(terrain, float(amplitude_m), int(seed))
+    index = (np.arange(FIELD_VERTICES) - round(FIELD_HALF_M / CELL_M)) % PERIOD_CELLS
+    return period[np.ix_(index, index)]
+
+
+def hfield_data(terrain: str, amplitude_m: float, seed: int) -> np.ndarray:
+    """The model's ``hfield_data`` (FIELD_VERTICES²,) in [0, 1]: MuJoCo's height is data × MAX_AMPLITUDE_M above
+    the hfield geom, which sits at z = −MAX_AMPLITUDE_M / 2, so data 0.5 is the plane z = 0."""
+    return (0.5 + field_heights_m(terrain, amplitude_m, seed) / MAX_AMPLITUDE_M).reshape(-1)
+
+
+def hfield_size() -> tuple[float, float, float, float]:
+    """MuJoCo's hfield size: (x half-extent, y half-extent, maximum height, base) [m]."""
+    return (FIELD_HALF_M, FIELD_HALF_M, MAX_AMPLITUDE_M, BASE_M)
+
+
+def ground_height_m(hfield_data, x_m, y_m):
+    """The ground's height [m] at (x, y) on the field whose model ``hfield_data`` is given (FIELD_VERTICES²,), in
+    :func:`hfield_data`'s layout: linear on MuJoCo's triangles (each cell split along its diagonal from (c, r) to
+    (c + 1, r + 1)); beyond the field, the edge cell's plane. JAX."""
+    n = FIELD_VERTICES
+    u, v = (x_m + FIELD_HALF_M) / CELL_M, (y_m + FIELD_HALF_M) / CELL_M
+    c0, r0 = jnp.clip(jnp.floor(u), 0, n - 2), jnp.clip(jnp.floor(v), 0, n - 2)
+    fx, fy = u - c0, v - r0
+    at = r0.astype(jnp.int32) * n + c0.astype(jnp.int32)
+    h00, h10, h01, h11 = hfield_data[at], hfield_data[at + 1], hfield_data[at + n], hfield_data[at + n + 1]
+    upper = h00 + fx * (h11 - h01) + fy * (h01 - h00)  # triangle (0, 0), (1, 1), (0, 1)
+    lower = h00 + fx * (h10 - h00) + fy * (h11 - h10)  # triangle (0, 0), (1, 0), (1, 1)
+    return MAX_AMPLITUDE_M * (jnp.where(fy > fx, upper, lower) - 0.5)
+
+
+def wrap_xy_m(xy_m):
+    """Horizontal positions (..., 2) [m] moved by whole periods into the central one (|x|, |y| ≤ PERIOD_M / 2).
+    NumPy (float64 kept) or JAX."""
+    xp = jnp if isinstance(xy_m, jax.Array) else np
+    return xy_m - PERIOD_M * xp.round(xy_m / PERIOD_M)
