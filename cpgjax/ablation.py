@@ -53,6 +53,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cpgjax import jax_internals
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import terrain as terrains
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import backends
@@ -313,6 +314,8 @@ class Engine:
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
         self.physics = _pad(np.array([lab["physics"] for lab in self.labels]), size)
         self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
+        grounds = [study_spec.ground(lab) for lab in self.labels]
+        self.grounds = {f: _pad(np.array([getattr(g, f) for g in grounds]), size) for f in terrains.Ground._fields}
         self.active = param_space.active_parameters(self.gates.tegotae > 0)
         targets = self.padded.target_velocity_mps
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
@@ -366,7 +369,8 @@ class Engine:
         return go1_model.make_scenarios(c.friction[instances, trials], c.slope_deg[instances, trials],
                                         c.payload_kg[instances, trials], self.physics[instances],
                                         c.mass_scale[instances, trials], c.latency_ticks[instances, trials],
-                                        c.noise_scale[instances, trials], self.seeds[instances])  # noise per seed
+                                        c.noise_scale[instances, trials], self.seeds[instances],  # noise per seed
+                                        **{f: v[instances] for f, v in self.grounds.items()})
 
     def simulator(self, trial: int) -> Backend:
         """The backend of this process's instances for trial ``trial``'s scenario, on this process's devices; rebuilt

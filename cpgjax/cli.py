@@ -221,8 +221,8 @@ def _walk_video(args) -> int:
     params = param_space.midpoint() if args.params is None else np.asarray(args.params.params)
     gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
                             args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
-                            trial.steady_steps, args.target_velocity_mps, gait=args.gaits[0])
-    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)), ground=ground)
+                            trial.steady_steps, args.target_velocity_mps, gait=args.gaits[0], ground=ground)
+    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
     try:
         (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground)])
     except (study_video.RenderUnavailable, RuntimeError) as err:

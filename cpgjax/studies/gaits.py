@@ -99,7 +99,7 @@ def best_gaits(result) -> list[study_video.Gait]:
             transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
             target_velocity_mps=float(cond.target_velocity_mps[b, t]), objective=float(tr.objective[t, b]),
             instance=b, trial=t, phase=phase_text(result, b, phase), walked=walked,
-            gait=str(result.labels[b]["gait"])))
+            gait=str(result.labels[b]["gait"]), ground=study_spec.ground(result.labels[b])))
     return gaits
 
 
@@ -112,15 +112,14 @@ def save_best_gaits(out: pathlib.Path, result) -> list[study_video.Gait]:
     return gaits
 
 
-def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None = None,
-                  ground: terrains.Ground = terrains.FLAT_GROUND) -> list:
-    """The per-step logs of ``gaits`` (one batch) on ``ground``: a settling trial of the gaits' lengths, then
+def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None = None) -> list:
+    """The per-step logs of ``gaits`` (one batch), each on its ground: a settling trial of the gaits' lengths, then
     ``steps`` ticks (default: the steady phase's length, 3 s in the paper's trial)."""
     config = protocol.TrialConfig(transition_steps=gaits[0].transition_steps, steady_steps=gaits[0].steady_steps)
     if any((g.transition_steps, g.steady_steps) != (config.transition_steps, config.steady_steps) for g in gaits):
         raise study_spec.StudyError("the gaits were found with different trial lengths; film them one at a time")
     scenario = go1_model.make_scenarios(friction=[g.friction for g in gaits], slope_deg=[g.slope_deg for g in gaits],
                                         payload_kg=[g.payload_kg for g in gaits], physics=[g.physics for g in gaits],
-                                        **ground._asdict())
+                                        **{f: [getattr(g.ground, f) for g in gaits] for f in terrains.Ground._fields})
     return registry.rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config,
                              backend, config.steady_steps if steps is None else steps, [g.gait for g in gaits])

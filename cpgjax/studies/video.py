@@ -62,6 +62,7 @@ class Gait(NamedTuple):
     phase: str | None = None  # the phase of the study the trial is from (``cpgjax.studies.gaits.phase_text``)
     walked: bool | None = None  # false: no trial of its group walked (``cpgjax.studies.gaits``)
     gait: str = cpg.DEFAULT_GAIT  # the CPG's coupling pattern (``cpg.GAITS``)
+    ground: terrains.Ground = terrains.FLAT_GROUND  # the ground it walked (its file: the Ground's three fields)
 
 
 # A gait file's fields besides what the parameters were tuned for (tuned.TUNED_FOR), required to film it again.
@@ -81,7 +82,8 @@ def save_gait(out, gait: Gait, **info) -> pathlib.Path:
     objective, instance and trial, and ``info`` (e.g. seed, study)."""
     fields = gait._asdict()
     tuned_for = {name: fields[name] for name in tuned.TUNED_FOR}
-    rest = {k: v for k, v in fields.items() if k not in tuned.TUNED_FOR and k not in ("params", "group")}
+    rest = {k: v for k, v in fields.items() if k not in tuned.TUNED_FOR and k not in ("params", "group", "ground")}
+    rest.update(gait.ground._asdict())
     path = gait_file(out, gait.group)
     path.parent.mkdir(parents=True, exist_ok=True)
     tuned.save(path, gait.params, tuned_for, **rest, **info)
@@ -104,8 +106,11 @@ def load_gaits(out) -> list[Gait]:
             if missing:
                 raise StudyError(f"{path} is not a study's gait file (missing key {missing[0]!r}); run the study "
                                  "again")
-            fields = {k: data[k] for k in Gait._fields if k not in ("params", "group", *tuned.TUNED_FOR) and k in data}
-            gaits.append(Gait(group=path.stem, params=read.params, **read.tuned_for, **fields))
+            fields = {k: data[k] for k in Gait._fields if k not in ("params", "group", "ground", *tuned.TUNED_FOR)
+                      and k in data}
+            ground = terrains.Ground(**{k: data[k] for k in terrains.Ground._fields if k in data})
+            terrains.check_terrain([ground.terrain], [ground.terrain_amplitude_m], [ground.terrain_seed])
+            gaits.append(Gait(group=path.stem, params=read.params, **read.tuned_for, **fields, ground=ground))
         except ValueError as err:  # tuned.load's one line: unreadable, bad JSON, a value out of range
             raise StudyError(str(err)) from None
     return gaits
@@ -172,7 +177,7 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
     """``best_<group>.mp4`` of each gait from its rollout log (``protocol.StepLog``, arrays (T, ...)), a line to
     ``notify`` for each. Where no OpenGL backend works, one line says so and no video is written; another rendering
     failure is one line too. Either way the caller's other files are left as they are."""
-    jobs = [Job(video_file(out, g.group), log.qpos, g.slope_deg) for g, log in zip(gaits, logs, strict=True)]
+    jobs = [Job(video_file(out, g.group), log.qpos, g.slope_deg, g.ground) for g, log in zip(gaits, logs, strict=True)]
     try:
         infos = render_videos(jobs)
     except (RenderUnavailable, RuntimeError) as err:

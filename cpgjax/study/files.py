@@ -111,7 +111,7 @@ def checkpoint_files(out_dir) -> list[pathlib.Path]:
 
 # Fields a study sets only where it uses them; unset (None), they are not part of its definition, so a study without
 # them keeps the fingerprint of its other fields (and the checkpoints written before the fields existed resume).
-_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup", "switches", "gaits")
+_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup", "switches", "gaits", "terrain_amplitude_m", "terrain_seed")
 
 
 def definition(spec) -> dict[str, str]:
@@ -533,6 +533,10 @@ def trial_columns(result) -> dict[str, np.ndarray]:
         cols[field] = np.asarray(getattr(cond, field))[:, :n].reshape(-1)
     latency, noise = _resolved(cond, result.labels, n)
     cols["latency_ticks"], cols["noise_scale"] = latency.reshape(-1), noise.reshape(-1)
+    if result.spec.has_terrain():  # a study on the flat plane alone: the table as before terrains
+        grounds = [study_spec.ground(lab) for lab in result.labels]
+        for field in ("terrain", "terrain_amplitude_m", "terrain_seed"):
+            cols[field] = np.array([getattr(g, field) for g in grounds])[inst]
     params = per(tr.params)
     for i, name in enumerate(param_space.PARAM_NAMES):
         cols[name] = params[:, i]

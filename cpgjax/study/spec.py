@@ -1,9 +1,9 @@
 """A study's definition: the grid of instances, their condition schedules, and validation before any compute.
 
 A study (:class:`StudySpec`) is the product of its grid axes — controller × gait × seed × friction × slope × payload
-× target velocity × schedule × data reuse × physics — and each instance's conditions per trial follow its
-:class:`Schedule` (:func:`conditions`). :func:`validate` rejects a bad option with a :class:`StudyError` naming it.
-The lockstep engine that runs a study is :mod:`cpgjax.ablation`.
+× target velocity × schedule × data reuse × physics × roughness × terrain seed — and each instance's conditions per
+trial follow its :class:`Schedule` (:func:`conditions`). :func:`validate` rejects a bad option with a
+:class:`StudyError` naming it. The lockstep engine that runs a study is :mod:`cpgjax.ablation`.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import numpy as np
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1 import terrain as terrains
 from cpgjax.optim import acquisition
 from cpgjax.optim import config as optimizer_config
 from cpgjax.trial import limits, objective, optimizer_setting, protocol
@@ -143,6 +144,9 @@ class StudySpec:
       switches: the paper's open readings (:class:`Switches`; None: every default).
       gaits: a grid axis of gaits (``cpg.GAITS``; None: the paper's trot alone, and the trial table has no gait
         column, as before gaits existed).
+      terrain_amplitude_m, terrain_seed: grid axes of the ground (``cpgjax.go1.terrain``): a rough ground's
+        peak-to-peak height [m] (0: the flat plane) and the seed of its heights; None: the flat plane alone, and the
+        trial table has no terrain columns.
     """
 
     name: str
@@ -166,14 +170,21 @@ class StudySpec:
     startup: str | None = None
     switches: Switches | None = None
     gaits: tuple[str, ...] | None = None
+    terrain_amplitude_m: tuple[float, ...] | None = None
+    terrain_seed: tuple[int, ...] | None = None
 
     def gait_values(self) -> tuple[str, ...]:
         """``gaits``, or the paper's trot."""
         return self.gaits or (cpg.DEFAULT_GAIT,)
 
     def axis(self, field: str) -> tuple:
-        """The values of the grid axis ``field`` (a field name; ``gaits`` through :meth:`gait_values`)."""
-        return self.gait_values() if field == "gaits" else getattr(self, field)
+        """The values of the grid axis ``field`` (a field name); an unset one's default (:data:`UNSET_AXES`)."""
+        value = getattr(self, field)
+        return UNSET_AXES[field] if value is None and field in UNSET_AXES else value
+
+    def has_terrain(self) -> bool:
+        """Whether the study sets a ground axis (its trial table then names each instance's ground)."""
+        return self.terrain_amplitude_m is not None or self.terrain_seed is not None
 
     def switch_values(self) -> Switches:
         """``switches``, or every default."""
@@ -200,15 +211,27 @@ def startup_field(name: str | None) -> str | None:
     return None if name == cpg.DEFAULT_STARTUP else name
 
 
+UNSET_AXES = {"gaits": (cpg.DEFAULT_GAIT,), "terrain_amplitude_m": (0.0,), "terrain_seed": (0,)}
+"""The values of the grid axes a study leaves unset (None): the paper's trot on the flat plane."""
+
 LABELS = ("controller", "gait", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
-          "data_reuse", "physics")
+          "data_reuse", "physics", "terrain_amplitude_m", "terrain_seed")
 
 
 def label_values(spec: StudySpec) -> dict[str, tuple]:
     """Each label of :data:`LABELS` → the values its grid axis takes, in batch order."""
     return dict(zip(LABELS, (spec.controllers, spec.gait_values(), spec.seeds, spec.friction, spec.slope_deg,
                              spec.payload_kg, spec.target_velocity_mps, tuple(s.label for s in spec.schedules),
-                             spec.data_reuse, spec.physics), strict=True))
+                             spec.data_reuse, spec.physics, spec.axis("terrain_amplitude_m"),
+                             spec.axis("terrain_seed")), strict=True))
+
+
+def ground(labels: dict[str, Any]) -> terrains.Ground:
+    """An instance's ground from its labels: rough of its amplitude and seed, or the flat plane at amplitude 0."""
+    amplitude = float(labels["terrain_amplitude_m"])
+    if amplitude == 0.0:
+        return terrains.FLAT_GROUND
+    return terrains.Ground("rough", amplitude, int(labels["terrain_seed"]))
 
 
 def instances(spec: StudySpec) -> list[dict[str, Any]]:
@@ -280,7 +303,7 @@ def validate(spec: StudySpec) -> Conditions:
         fail(f"max_trials = {spec.max_trials!r}; need an integer in [num_trials = {spec.num_trials}, "
              f"{limits.MAX_TRIALS}]")
     for axis in ("controllers", "gaits", "seeds", "friction", "slope_deg", "payload_kg", "target_velocity_mps",
-                 "schedules", "data_reuse", "physics"):
+                 "schedules", "data_reuse", "physics", "terrain_amplitude_m", "terrain_seed"):
         values = spec.axis(axis)
         if len(values) == 0:
             fail(f"grid axis {axis} is empty")
@@ -346,11 +369,13 @@ def validate(spec: StudySpec) -> Conditions:
                 allowed.check(values[b, t], field)
             except ValueError as err:
                 fail(f"instance {b}, trial {t}: {err}")
+    grounds = [ground(lab) for lab in instances(spec)]
+    terrain = {f: [getattr(g, f) for g in grounds] for f in terrains.Ground._fields}
     try:
         for t in range(spec.num_trials):
             go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t],
                                      mass_scale=cond.mass_scale[:, t], latency_ticks=cond.latency_ticks[:, t],
-                                     noise_scale=cond.noise_scale[:, t])
+                                     noise_scale=cond.noise_scale[:, t], **terrain)
     except ValueError as err:
         fail(f"trial {t}: {err}")
     return cond
@@ -371,6 +396,8 @@ GRID_AXES = {  # a study file's [grid] key → (StudySpec field, element kind, a
     "target_velocity_mps": ("target_velocity_mps", "float", limits.TARGET_VELOCITY_MPS),
     "physics": ("physics", "str", tuple(physics_profiles.PROFILES)),
     "data_reuse": ("data_reuse", "bool", (True, False)),
+    "terrain_amplitude_m": ("terrain_amplitude_m", "float", limits.ROUGHNESS_M),
+    "terrain_seed": ("terrain_seed", "int", limits.TERRAIN_SEEDS),
 }
 SCHEDULE_RANGES = {"friction": limits.FRICTION, "slope_deg": limits.SLOPE_DEG, "payload_kg": limits.PAYLOAD_KG,
                    "target_velocity_mps": limits.TARGET_VELOCITY_MPS}  # inference and ramp: true or false
@@ -491,6 +518,8 @@ class _Reader:
     def element(self, value, key: str, kind: str, allowed):
         if kind == "float":
             return self.number(value, key, allowed)
+        if kind == "int":
+            return self.integer(value, key, 0, allowed - 1)
         if kind == "bool":
             return self.boolean(value, key)
         return self.string(value, key, allowed)
@@ -771,9 +800,9 @@ def template() -> str:
     """A study file of every key with its default, unit and allowed range, as comments beside the values a new
     study starts from (``cpgjax study --template PATH``); it runs as written."""
     d, r = StudySpec("my_study"), Randomization()
-    # the gaits axis, unset, keeps the trial table of the trot alone (StudySpec.gaits): left as a comment
+    # the axes a study may leave unset keep the trial table of the trot on the flat plane: left as comments
     grid = "\n".join(f"# {key}: {kind}s in {_allowed_text(allowed)}; default {list(d.axis(field))}\n"
-                     f"{'# ' if field == 'gaits' else ''}{key} = {_toml(list(d.axis(field)))}"
+                     f"{'# ' if field in UNSET_AXES else ''}{key} = {_toml(list(d.axis(field)))}"
                      for key, (field, kind, allowed) in GRID_AXES.items())
     fields = ", ".join(SCHEDULE_RANGES)
     ranges = "; ".join(f"{k} in {v}" for k, v in SCHEDULE_RANGES.items())
@@ -858,6 +887,8 @@ seeds = 2
 
 
 def _allowed_text(allowed) -> str:
+    if isinstance(allowed, int):  # an integer axis: 0 … allowed − 1
+        return f"0 … {allowed - 1}"
     return str(allowed) if isinstance(allowed, limits.Range) else ", ".join(map(_toml, allowed))
 
 

@@ -54,6 +54,9 @@ SLOPE_DEG = Range(-MAX_ABS_SLOPE_DEG, MAX_ABS_SLOPE_DEG, "uphill along +x; the m
 PAYLOAD_KG = Range(0.0, 20.0, "a load on the ~12 kg robot; the paper's heaviest is 15 kg")
 TERRAIN_AMPLITUDE_M = Range(0.0, MAX_AMPLITUDE_M, "rough ground's peak-to-peak height; at most the smallest swing "
                             "clearance g_c", low_open=True)
+ROUGHNESS_M = Range(0.0, MAX_AMPLITUDE_M, "a study's rough ground: its peak-to-peak height, 0 the flat plane; at most "
+                    "the smallest swing clearance g_c")
+TERRAIN_SEEDS = 2 ** 32  # a rough ground's seeds: the integers 0 … 2³² − 1
 TARGET_VELOCITY_MPS = Range(0.0, 2.0, "forward walking; the paper's targets are 0.3…0.8 m/s", low_open=True)
 ROBOT_MASS_KG = Range(5.0, 40.0, "the Go1 weighs ~12 kg, with at most a 20 kg payload")
 RUN_DURATION_S = Range(0.0, 3600.0, "a run of at most an hour", low_open=True)
