@@ -374,7 +374,8 @@ def _study(args) -> int:
     if args.template is not None:
         return _study_template(args)
     if args.name is None:
-        print("cpgjax study: name a paper study (" + ", ".join(study_driver.paper_studies()) + ") or a study file "
+        print("cpgjax study: name a shipped study (the paper's: " + ", ".join(study_driver.paper_studies())
+              + "; beyond it: " + ", ".join(study_driver.BEYOND_THE_PAPER) + ") or a study file "
               "(PATH.toml), or write one with --template PATH", file=sys.stderr)
         return 2
     try:
@@ -1082,7 +1083,8 @@ def _add_study(sub) -> None:
     s = sub.add_parser("study", help="run a study file (PATH.toml) or a paper study by name and write "
                        "results/<study>/", formatter_class=_HelpFormatter)
     s.add_argument("name", nargs="?", help="a study file (PATH.toml, docs/studies.md) or a paper study: "
-                   + ", ".join(study_driver.paper_studies()) + " (each the file studies/<name>.toml)")
+                   + ", ".join(study_driver.paper_studies()) + "; or one beyond it: "
+                   + ", ".join(study_driver.BEYOND_THE_PAPER) + " (each the file studies/<name>.toml)")
     s.add_argument("--print", action="store_true", help="print the study's file (to copy and edit) and stop")
     s.add_argument("--template", type=pathlib.Path, help="write a commented study file of every key, its default, "
                    "unit and range to this path and stop (with --overwrite: replace an existing file)")

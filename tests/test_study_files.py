@@ -32,6 +32,7 @@ def _nameless(spec: study_spec.StudySpec) -> study_spec.StudySpec:
 
 def test_the_paper_studies_are_the_files_of_the_studies_folder():
     assert tuple(study_driver.paper_studies()) == PAPER_STUDIES
+    assert study_driver.shipped_studies() == sorted(PAPER_STUDIES + study_driver.BEYOND_THE_PAPER)
     assert study_driver.find("friction") == study_driver.STUDY_FOLDER / "friction.toml"
 
 

@@ -11,6 +11,7 @@ import pytest
 from cpgjax import cli
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import terrain as terrains
 from cpgjax.studies import video
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
@@ -76,14 +77,15 @@ def test_no_gl_backend_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
 
 def test_gait_files_round_trip_and_refuse_damage(tmp_path):
     gait = video.Gait("friction0.3", param_space.midpoint(), "vmc_tegotae", 0.3, 5.0, 7.5, "paper", 1500, 3000,
-                      0.5, 1.9, 4, 11)
+                      0.5, 1.9, 4, 11, gait="bound", ground=terrains.Ground("rough", 0.04, 7))
     path = video.save_gait(tmp_path, gait, seed=3)
     assert path == tmp_path / "best_params" / "friction0.3.json"
     data = json.loads(path.read_text())
     assert list(data["params"]) == list(param_space.PARAM_NAMES) and data["seed"] == 3
+    assert (data["terrain"], data["terrain_amplitude_m"], data["terrain_seed"]) == ("rough", 0.04, 7)
     replayed = tuned.load(path)  # what `cpgjax deploy --params` and `walk --params` read
-    assert replayed.tuned_for == dict(controller="vmc_tegotae", physics="paper", friction=0.3, slope_deg=5.0,
-                                      payload_kg=7.5, target_velocity_mps=0.5)
+    assert replayed.tuned_for == dict(controller="vmc_tegotae", gait="bound", physics="paper", friction=0.3,
+                                      slope_deg=5.0, payload_kg=7.5, target_velocity_mps=0.5)
     (back,) = video.load_gaits(tmp_path)
     np.testing.assert_array_equal(back.params, gait.params)
     assert back._replace(params=None) == gait._replace(params=None)

@@ -46,16 +46,25 @@ class StudyRun(NamedTuple):
     result: Any  # ablation.StudyResult (transfer: the arms' results by arm name)
 
 
-def paper_studies() -> list[str]:
+BEYOND_THE_PAPER = ("gaits", "rough_terrain")
+"""The shipped studies that go past the paper, its future work (docs/REPRODUCTION.md "Beyond the paper")."""
+
+
+def shipped_studies() -> list[str]:
     """The names of the studies shipped in ``studies/`` (each ``<name>.toml``)."""
     return sorted(p.stem for p in STUDY_FOLDER.glob(f"*{study_spec.STUDY_FILE_SUFFIX}"))
 
 
+def paper_studies() -> list[str]:
+    """The shipped studies that reproduce the paper (all but :data:`BEYOND_THE_PAPER`)."""
+    return [name for name in shipped_studies() if name not in BEYOND_THE_PAPER]
+
+
 def find(name_or_path) -> pathlib.Path:
-    """The study file of a paper study's name (``studies/<name>.toml``) or of a path.
+    """The study file of a shipped study's name (``studies/<name>.toml``) or of a path.
 
     Raises:
-      StudyError: no such file (the message lists the paper's studies).
+      StudyError: no such file (the message lists the shipped studies).
     """
     text = str(name_or_path)
     path = pathlib.Path(text)
@@ -65,8 +74,9 @@ def find(name_or_path) -> pathlib.Path:
         return path
     if (STUDY_FOLDER / f"{text}{study_spec.STUDY_FILE_SUFFIX}").is_file():
         return STUDY_FOLDER / f"{text}{study_spec.STUDY_FILE_SUFFIX}"
-    raise study_spec.StudyError(f"unknown study {text!r}: the paper's studies are {', '.join(paper_studies())}; or "
-                                f"give a study file (PATH{study_spec.STUDY_FILE_SUFFIX}, docs/studies.md)")
+    raise study_spec.StudyError(f"unknown study {text!r}: the paper's studies are {', '.join(paper_studies())}, the "
+                                f"ones beyond it {', '.join(BEYOND_THE_PAPER)}; or give a study file "
+                                f"(PATH{study_spec.STUDY_FILE_SUFFIX}, docs/studies.md)")
 
 
 def read(name_or_path, **overrides) -> study_spec.StudyFile:
