@@ -249,8 +249,8 @@ def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tin
         assert (saved["instance"], saved["trial"], saved["objective"]) == (run, best.trial,
                                                                           pytest.approx(best.objective))
         assert {k: saved[k] for k in tuned.TUNED_FOR} == dict(
-            controller=c, gait="trot", physics=best.physics, friction=pytest.approx(best.friction), slope_deg=best.slope_deg,
-            payload_kg=best.payload_kg, target_velocity_mps=best.target_velocity_mps)
+            controller=c, gait="trot", physics=best.physics, friction=pytest.approx(best.friction),
+            slope_deg=best.slope_deg, payload_kg=best.payload_kg, target_velocity_mps=best.target_velocity_mps)
         read = tuned.load(path)
         np.testing.assert_allclose(read.params, [best[name] for name in param_space.PARAM_NAMES])
         np.testing.assert_array_equal(filmed[c].params, read.params)
