@@ -21,7 +21,8 @@ PACKAGE = ROOT / "cpgjax"
 LAYERS = (
     ("run provenance, flat layouts, JAX internals, compile cache", ("provenance", "layout", "jax_internals",
                                                                     "compile_cache")),
-    ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.model", "go1.sensors")),
+    ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.terrain", "go1.model",
+                   "go1.sensors")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
     ("trial", ("trial.limits", "trial.protocol", "trial.objective", "trial.tuned")),

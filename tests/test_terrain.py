@@ -42,6 +42,11 @@ def test_an_impossible_terrain_is_refused_in_one_line(fields, message):
         go1_model.make_scenarios(**fields)
 
 
+def test_the_highest_rough_ground_is_the_smallest_swing_clearance():
+    """terrain.MAX_AMPLITUDE_M, a literal in the Go1's facts, is the g_c lower bound of the parameter box."""
+    assert terrains.MAX_AMPLITUDE_M == param_space.PARAM_LOWER[param_space.PARAM_NAMES.index("ground_clearance_m")]
+
+
 def test_the_default_is_flat_and_runs_the_plane_model():
     scenario = go1_model.make_scenarios(friction=[0.3, 0.6])
     assert list(scenario.terrain) == ["flat", "flat"] and not go1_model.has_terrain(scenario)
