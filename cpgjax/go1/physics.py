@@ -291,10 +291,11 @@ def foot_force_signal(profile: ProfileArrays, qpos: jax.Array, contact_data: jax
     it; with several contacts per foot the normal forces add, and the calf-frame force is that of the sum of the
     contacts' floor-frame forces."""
     normal = foot_normal_force(contact_data)
+    rotations = calf_rotations(qpos, root_qpos, joint_qpos)
     world = contact_force_world(contact_data)
     if contact_data.ndim == 3:
         world = jnp.sum(world, axis=1)
-    calf = jnp.einsum("lji,lj->li", calf_rotations(qpos, root_qpos, joint_qpos), world)[:, 2]
+    calf = jnp.einsum("lji,lj->li", rotations, world)[:, 2]
     return jnp.where(profile.calf_frame, calf, normal)
 
 

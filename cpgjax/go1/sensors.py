@@ -43,9 +43,17 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
         joint_vel_rad_s=qvel[ids.joint_dof],
         imu_quat_wxyz=attitude.quat_mul(attitude.gravity_frame_quat(gravity), quat_floor),
         gyro_rad_s=qvel[ids.root_dof + 3:ids.root_dof + 6],
-        foot_force_n=physics_profiles.foot_normal_force(
-            sensordata[go1_model.foot_contact_slots(sensordata.shape[-1])]),
+        foot_force_n=foot_normal_force_n(sensordata),
     )
+
+
+def foot_normal_force_n(sensordata: jax.Array) -> jax.Array:
+    """Each foot's contact normal force (4,) [N] from the sensor data of the flat model (its one contact) or of the
+    terrain model (its contacts summed, ``physics.foot_normal_force``)."""
+    slots = go1_model.foot_contact_slots(sensordata.shape[-1])
+    if slots.ndim == 2:
+        return sensordata[go1_model.indices().foot_force_sensor]
+    return physics_profiles.foot_normal_force(sensordata[slots])
 
 
 def measure(profile: physics_profiles.ProfileArrays, io: physics_profiles.ActuatorSensorState, qpos: jax.Array,
@@ -61,13 +69,13 @@ def measure(profile: physics_profiles.ProfileArrays, io: physics_profiles.Actuat
     amplitude = profile.noise
     contact_data = sensordata[go1_model.foot_contact_slots(sensordata.shape[-1])]
     signal = physics_profiles.foot_force_signal(profile, qpos, contact_data, ids.root_qpos, ids.joint_qpos)
-    if contact_data.ndim == 2:  # the plane z = 0
-        touching = physics_profiles.touching(profile, foot_positions(qpos)[:, 2] - go1_model.FOOT_RADIUS_M)
-    else:  # a height field: a foot touches while it has a contact force (the profile's contact layer is not modelled)
-        touching = obs.foot_force_n > 0.0
-    io, held = physics_profiles.foot_sensor_update(profile, io,
-                                          physics_profiles.count(profile, signal + amplitude.foot_force * u.foot_force),
-                                          touching)
+    on_plane = contact_data.ndim == 2
+    if on_plane:
+        clearance = foot_positions(qpos)[:, 2] - go1_model.FOOT_RADIUS_M
+    force = physics_profiles.count(profile, signal + amplitude.foot_force * u.foot_force)
+    # On a height field a foot touches while it has a contact force (the profile's contact layer is the plane's).
+    touching = physics_profiles.touching(profile, clearance) if on_plane else obs.foot_force_n > 0.0
+    io, held = physics_profiles.foot_sensor_update(profile, io, force, touching)
     # The IMU's orientation turned in the trunk frame about x and y by the tilt noise (rotation vector → quaternion;
     # sin(θ/2)/θ = sinc(θ/2π)/2 is finite at θ = 0).
     turn = amplitude.tilt * jnp.concatenate([u.tilt, jnp.zeros(1, u.tilt.dtype)])
