@@ -184,7 +184,10 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
         notify(str(err))
         return []
     for gait, info in zip(gaits, infos, strict=True):
-        notify(f"{info['path']}: {info['rollout_s']:.1f} s of {gait.controller} at friction {gait.friction:g}, slope "
-               f"{gait.slope_deg:g}°, payload {gait.payload_kg:g} kg; {info['frames']} frames rendered in "
-               f"{info['render_s']:.1f} s ({info['backend']})")
+        g = gait.ground
+        ground = "" if g.terrain == terrains.FLAT else f", {g.terrain} ground {g.terrain_amplitude_m:g} m (seed " \
+            f"{g.terrain_seed})"
+        notify(f"{info['path']}: {info['rollout_s']:.1f} s of {gait.controller} ({gait.gait}) at friction "
+               f"{gait.friction:g}, slope {gait.slope_deg:g}°, payload {gait.payload_kg:g} kg{ground}; "
+               f"{info['frames']} frames rendered in {info['render_s']:.1f} s ({info['backend']})")
     return infos
