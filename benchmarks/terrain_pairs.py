@@ -39,7 +39,7 @@ def terrain_variant(on_field: set[str]) -> mujoco.MjModel:
         if geom.get("name") in on_field:
             geom.set("conaffinity", feet)
     m = mujoco.MjModel.from_xml_string(ElementTree.tostring(root, encoding="unicode"))
-    m.hfield_data[:] = terrains.hfield_data("rough", 0.04, 3)
+    m.hfield_data[:] = terrains.hfield_data(terrains.Ground("rough", 0.04, 3))
     return m
 
 

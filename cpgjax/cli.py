@@ -924,29 +924,39 @@ def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bo
 
 
 def _add_terrain_args(p: argparse.ArgumentParser) -> None:
-    """``--terrain``, ``--terrain-amplitude`` and ``--terrain-seed``: the ground of every walk (docs/physics.md,
-    "Terrain")."""
+    """``--terrain``, ``--terrain-amplitude``, ``--terrain-seed`` and ``--terrain-step``: the ground of every walk
+    (docs/physics.md, "Terrain")."""
     p.add_argument("--terrain", choices=terrains.TERRAINS, default=terrains.FLAT,
-                   help="sim only: the ground, flat (the plane) or rough (a periodic height field of random heights)")
+                   help="sim only: the ground, flat (the plane), rough (a periodic height field of random heights) or "
+                   "blocks (square blocks of random heights)")
     p.add_argument("--terrain-amplitude", type=_in(limits.TERRAIN_AMPLITUDE_M), default=None,
-                   help=f"--terrain rough: peak-to-peak height [m] in {limits.TERRAIN_AMPLITUDE_M} (required with "
-                   "rough; default: none, the plane)")
-    p.add_argument("--terrain-seed", type=_integer_in(range(2 ** 32), "the stream of the rough heights"), default=0,
-                   help="--terrain rough: the seed of its heights (the same seed, the same ground)")
+                   help=f"--terrain rough or blocks: peak-to-peak height [m] in {limits.TERRAIN_AMPLITUDE_M} "
+                   "(required with them; default: none, the plane)")
+    p.add_argument("--terrain-seed", type=_integer_in(range(2 ** 32), "the stream of the random heights"), default=0,
+                   help="--terrain rough or blocks: the seed of its heights (the same seed, the same ground)")
+    p.add_argument("--terrain-step", type=_in(limits.BLOCK_DEPTH_M), default=None,
+                   help=f"--terrain blocks: the blocks' depth [m] in {limits.BLOCK_DEPTH_M} (required with blocks)")
 
 
 def _ground(args) -> terrains.Ground | None:
     """The ground of ``args``, or None after saying in one line why the options do not make one."""
     if args.terrain == terrains.FLAT:
         if args.terrain_amplitude is not None:
-            print(f"cpgjax {args.command}: --terrain-amplitude applies to --terrain rough only", file=sys.stderr)
+            print(f"cpgjax {args.command}: --terrain-amplitude applies to --terrain rough or blocks only",
+                  file=sys.stderr)
             return None
         return terrains.FLAT_GROUND
     if args.terrain_amplitude is None:
         print(f"cpgjax {args.command}: --terrain {args.terrain} needs --terrain-amplitude (peak-to-peak [m] in "
               f"{limits.TERRAIN_AMPLITUDE_M})", file=sys.stderr)
         return None
-    return terrains.Ground(args.terrain, args.terrain_amplitude, args.terrain_seed)
+    if (args.terrain == terrains.BLOCKS) != (args.terrain_step is not None):
+        need = ("--terrain blocks needs --terrain-step (the blocks' depth [m] in "
+                f"{limits.BLOCK_DEPTH_M})" if args.terrain == terrains.BLOCKS
+                else "--terrain-step applies to --terrain blocks only")
+        print(f"cpgjax {args.command}: {need}", file=sys.stderr)
+        return None
+    return terrains.Ground(args.terrain, args.terrain_amplitude, args.terrain_seed, args.terrain_step or 0.0)
 
 
 def _add_target_arg(p: argparse.ArgumentParser) -> None:

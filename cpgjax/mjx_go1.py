@@ -113,8 +113,7 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
     if terrain:
         updates["hfield_data"] = jnp.asarray(np.stack([
-            terrains.hfield_data(str(kind), float(amplitude), int(seed)) for kind, amplitude, seed in zip(
-                scenario.terrain, scenario.terrain_amplitude_m, scenario.terrain_seed, strict=True)]),
+            terrains.hfield_data(go1_model.scenario_ground(scenario, i)) for i in range(batch)]),
             mx.hfield_data.dtype)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})
     return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario,

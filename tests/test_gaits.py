@@ -14,6 +14,7 @@ from cpgjax.studies import registry
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol, tuned
+from tests import test_outputs_doc
 
 # The phase offsets of FL, RR, RL behind FR [multiples of π], typed from the CPG-RL code of Bellegarda & Ijspeert
 # (leg order FR, FL, RR, RL, as cpgjax.go1.constants.LEG_NAMES): trot, pace, bound and its walk (a diagonal
@@ -82,6 +83,7 @@ group_by = ["gait"]
 controllers = ["open_loop"]
 gaits = {gaits}
 physics = ["paper"]
+terrain_amplitude_m = [0.0]
 [trial]
 transition_s = 0.0
 steady_s = 0.3
@@ -99,13 +101,15 @@ def _run(tmp_path, gaits):
 
 def test_a_gaits_axis_runs_each_gait_as_data_and_its_files_carry_it(tmp_path):
     """In one batch, each instance walks its own gait (its phase lags), the trot instance as it walks in a study of
-    the trot alone; the trial table has a gait column and each group's best_params names its gait."""
+    the trot alone; the trial table has a gait column (and, the study naming a ground axis, the ground's columns,
+    every one documented) and each group's best_params names its gait."""
     out, result = _run(tmp_path, ["trot", "bound"])
     engine = ablation.Engine(result.spec, backend="native")
     np.testing.assert_array_equal(engine.gates.phase_lag_rad[:2],
                                   np.float32([cpg.gait_phase_lags("trot"), cpg.gait_phase_lags("bound")]))
     table = pq.read_table(out / "trials.parquet").to_pydict()
-    assert table["gait"] == ["trot", "trot", "bound", "bound"]
+    assert table["gait"] == ["trot", "trot", "bound", "bound"] and set(table["terrain"]) == {"flat"}
+    assert test_outputs_doc.undocumented("study trials.parquet", table) == []
     for gait in ("trot", "bound"):
         assert tuned.load(out / "best_params" / f"gait{gait}.json").tuned_for["gait"] == gait
     _, alone = _run(tmp_path, ["trot"])

@@ -36,6 +36,10 @@ ROUGH = dict(terrain="rough", terrain_amplitude_m=0.04, terrain_seed=3)
     (dict(terrain_amplitude_m=0.02), r"terrain_amplitude_m = 0.02 \(instance 0\) on flat terrain: allowed 0"),
     (dict(terrain="rough", terrain_amplitude_m=0.02, terrain_seed=1.5),
      r"scenario terrain_seed = 1.5 \(instance 0\) is outside the allowed range an integer in \[0, 2\*\*32\)"),
+    (dict(terrain="blocks", terrain_amplitude_m=0.02, terrain_step_m=0.1),
+     r"scenario terrain_step_m = 0.1 \(instance 0\) is outside the allowed range \[0.15, 4.0\] \(the blocks' depth\)"),
+    (dict(terrain="rough", terrain_amplitude_m=0.02, terrain_step_m=0.3),
+     r"scenario terrain_step_m = 0.3 \(instance 0\) on rough terrain: allowed 0"),
 ])
 def test_an_impossible_terrain_is_refused_in_one_line(fields, message):
     with pytest.raises(ValueError, match=message):
@@ -57,7 +61,7 @@ def test_the_default_is_flat_and_runs_the_plane_model():
 
 
 def test_the_rough_heights_are_numpys_white_noise_periodic_with_a_flat_pad():
-    period = terrains.period_heights_m("rough", 0.04, 3)
+    period = terrains.period_heights_m(terrains.Ground("rough", 0.04, 3))
     u = np.random.default_rng(3).random((terrains.PERIOD_CELLS, terrains.PERIOD_CELLS))
     off_pad = period != 0.0
     np.testing.assert_array_equal(period[off_pad], 0.04 * (u[off_pad] - 0.5))
@@ -67,13 +71,31 @@ def test_the_rough_heights_are_numpys_white_noise_periodic_with_a_flat_pad():
     near = np.minimum(coord, terrains.PERIOD_M - coord)
     pad = (near[:, None] <= terrains.PAD_HALF_M[1]) & (near[None, :] <= terrains.PAD_HALF_M[0])
     np.testing.assert_array_equal(~off_pad, pad)
-    field = terrains.field_heights_m("rough", 0.04, 3)
+    field = terrains.field_heights_m(terrains.Ground("rough", 0.04, 3))
     n = terrains.PERIOD_CELLS
     np.testing.assert_array_equal(field[:-n, :], field[n:, :])
     np.testing.assert_array_equal(field[:, :-n], field[:, n:])
     centre = terrains.FIELD_VERTICES // 2  # the vertex at the origin
     assert field[centre, centre] == 0.0 and field[centre, centre + 10] == period[0, 10]
-    assert not np.array_equal(period, terrains.period_heights_m("rough", 0.04, 4))
+    assert not np.array_equal(period, terrains.period_heights_m(terrains.Ground("rough", 0.04, 4)))
+
+
+def test_the_blocks_are_numpys_heights_one_per_block_with_a_flat_pad():
+    """Blocks of 0.3 m (4 cells): every vertex off the pad has its block's height, the blocks' heights being
+    0.05 · (default_rng(5).random((32, 32)) − 0.5) in block order; the pad is flat; the field repeats by a period."""
+    ground = terrains.Ground("blocks", 0.05, 5, 0.3)
+    period = terrains.period_heights_m(ground)
+    coord = np.arange(terrains.PERIOD_CELLS) * terrains.CELL_M
+    block = (coord / 0.3 + 1e-9).astype(int)  # 9.6 m = 32 blocks of 0.3 m
+    tops = 0.05 * (np.random.default_rng(5).random((32, 32)) - 0.5)
+    near = np.minimum(coord, terrains.PERIOD_M - coord)
+    pad = (near[:, None] <= terrains.PAD_HALF_M[1]) & (near[None, :] <= terrains.PAD_HALF_M[0])
+    np.testing.assert_array_equal(period[~pad], tops[np.ix_(block, block)][~pad])
+    assert np.all(period[pad] == 0.0)
+    assert np.all(period[:4, 8:12] == period[0, 8])  # one block (x 0.6–0.9 m, y 0–0.3 m): a flat top
+    field = terrains.field_heights_m(ground)
+    n = terrains.PERIOD_CELLS
+    np.testing.assert_array_equal(field[:-n, :], field[n:, :])
 
 
 def test_the_ground_height_is_where_c_mujoco_finds_the_height_field():
@@ -99,7 +121,7 @@ def test_the_ground_height_is_where_c_mujoco_finds_the_height_field():
 
 
 def test_the_field_repeats_by_a_period_so_the_wrap_keeps_the_ground():
-    data = jnp.asarray(terrains.hfield_data(terrain="rough", amplitude_m=0.04, seed=3), jnp.float32)
+    data = jnp.asarray(terrains.hfield_data(terrains.Ground("rough", 0.04, 3)), jnp.float32)
     rng = np.random.default_rng(1)
     x, y = rng.uniform(-4.8, 4.8, 100), rng.uniform(-4.8, 4.8, 100)
     here = jax.vmap(terrains.ground_height_m, in_axes=(None, 0, 0))(data, x, y)
@@ -187,9 +209,11 @@ def test_a_fall_is_judged_against_the_ground_under_the_trunk():
 
 @pytest.fixture(scope="module")
 def rough_pair():
-    """Both backends on one batch: rough 4 cm (seed 3), rough 2 cm (seed 4), and flat ground in the terrain model."""
-    scenario = go1_model.make_scenarios(terrain=["rough", "rough", "flat"], terrain_amplitude_m=[0.04, 0.02, 0.0],
-                                        terrain_seed=[3, 4, 0])
+    """Both backends on one batch: rough 4 cm (seed 3), rough 2 cm (seed 4), flat ground in the terrain model, and
+    blocks of 0.3 m, 3 cm peak-to-peak (seed 5)."""
+    scenario = go1_model.make_scenarios(terrain=["rough", "rough", "flat", "blocks"],
+                                        terrain_amplitude_m=[0.04, 0.02, 0.0, 0.03], terrain_seed=[3, 4, 0, 5],
+                                        terrain_step_m=[0.0, 0.0, 0.0, 0.3])
     return (native_go1.NativeBackend(scenario, trial_config=SHORT_TRIAL),
             mjx_go1.MJXBackend(scenario, trial_config=SHORT_TRIAL))
 
@@ -202,8 +226,8 @@ def test_both_backends_walk_off_the_pad_onto_the_field(rough_pair):
     foot–field pair from its manifold, C MuJoCo one per prism it touches, each a soft constraint of its own), and
     the trunks part by millimetres within 0.3 s even on flat heights (measured: 1.9 mm on flat heights, 8.5 mm on
     4 cm, docs/backends.md); the trials are compared by their figures (the next test)."""
-    params = np.tile(param_space.midpoint(), (3, 1))
-    gates = protocol.batch_gates(["vmc_tegotae"] * 3)
+    params = np.tile(param_space.midpoint(), (4, 1))
+    gates = protocol.batch_gates(["vmc_tegotae"] * 4)
     native, mjx = rough_pair
     r = go1_model.indices().root_qpos
     state = native.reset(params)
@@ -219,7 +243,7 @@ def test_both_backends_walk_off_the_pad_onto_the_field(rough_pair):
 
 
 def test_native_and_mjx_trial_figures_agree_on_rough_terrain(rough_pair):
-    """Two back-to-back short trials (1.6 s each; the robot leaves the pad after ~0.5 s) with the mid-box
+    """Two back-to-back short trials (1.6 s each; the robot leaves the pad after ~0.5 s; 8 pairs) with the mid-box
     parameters: 6 paired trials. On rough ground the two engines' contact sets differ (MJX makes at most 4 contacts
     per foot–field pair, C MuJoCo one per prism), so trajectories part after some hundred ms, as the flat
     comparison's gaits on the edge of falling do; the criterion is that comparison's statistical one
@@ -227,8 +251,8 @@ def test_native_and_mjx_trial_figures_agree_on_rough_terrain(rough_pair):
     outcome in ≥ 2/3 of the pairs, ≥ 60 % of the pairs within 0.02 m/s, 5 % CoT, 2 % c_load, 0.01 rad c_slope, and
     the medians over the walked pairs within those. The flat instance in the terrain model reads the plane's
     load."""
-    params = np.tile(param_space.midpoint(), (3, 1))
-    gates = protocol.batch_gates(["vmc_tegotae"] * 3)
+    params = np.tile(param_space.midpoint(), (4, 1))
+    gates = protocol.batch_gates(["vmc_tegotae"] * 4)
     figures = []
     for sim in rough_pair:
         state = sim.reset(params)
@@ -259,8 +283,8 @@ def test_native_and_mjx_trial_figures_agree_on_rough_terrain(rough_pair):
 def test_a_trial_that_ends_beyond_the_central_period_is_moved_back(rough_pair):
     """The end state of a trial started at x = 4.7 m (0.1 m inside the central period's edge, 4.8 m) is one period
     back in both backends: the robot walks 0.3–1 m in the 1.6 s trial, so it ends within 1 m past −4.8 m; no fall."""
-    params = np.tile(param_space.midpoint(), (3, 1))
-    gates = protocol.batch_gates(["vmc_tegotae"] * 3)
+    params = np.tile(param_space.midpoint(), (4, 1))
+    gates = protocol.batch_gates(["vmc_tegotae"] * 4)
     r = go1_model.indices().root_qpos
     native, mjx = rough_pair
     state = native.reset(params)
@@ -290,7 +314,7 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys):
         cli.main(["walk"])
     assert walks[-1]["ground"] == terrains.Ground("flat", 0.0, 0)
     assert cli.main(["walk", "--terrain-amplitude", "0.04"]) == 2
-    assert "cpgjax walk: --terrain-amplitude applies to --terrain rough only" in capsys.readouterr().err
+    assert "cpgjax walk: --terrain-amplitude applies to --terrain rough or blocks only" in capsys.readouterr().err
     assert cli.main(["walk", "--terrain", "rough"]) == 2
     assert "--terrain rough needs --terrain-amplitude (peak-to-peak [m] in (0, 0.06])" in capsys.readouterr().err
     for argv, message in ((["--terrain-amplitude", "0.07"], "0.07 is outside the allowed range (0, 0.06]"),

@@ -98,7 +98,7 @@ def load_terrain_model() -> mujoco.MjModel:
     with a terrain other than flat. Bodies, joints, geoms and actuators keep their indices; the foot sensors have
     FOOT_CONTACT_SLOTS slots each (:func:`foot_contact_slots`). Cached: copy before editing."""
     m = mujoco.MjModel.from_xml_string(_with_terrain(model_xml_without_visual_geoms()))
-    m.hfield_data[:] = terrains.hfield_data(terrains.FLAT, 0.0, 0)
+    m.hfield_data[:] = terrains.hfield_data(terrains.FLAT_GROUND)
     return m
 
 
@@ -113,7 +113,7 @@ def visual_model(ground: terrains.Ground = terrains.FLAT_GROUND) -> mujoco.MjMod
     if ground.terrain == terrains.FLAT:
         return load_visual_model()
     m = _visual_terrain_model().__copy__()
-    m.hfield_data[:] = terrains.hfield_data(ground.terrain, ground.terrain_amplitude_m, ground.terrain_seed)
+    m.hfield_data[:] = terrains.hfield_data(ground)
     return m
 
 
@@ -188,6 +188,7 @@ class Scenario(NamedTuple):
     terrain: np.ndarray  # str, the ground (cpgjax.go1.terrain.TERRAINS; "flat": the plane)
     terrain_amplitude_m: np.ndarray  # rough: the heights' peak-to-peak range [m] (0 on flat)
     terrain_seed: np.ndarray  # int, the stream that draws the rough heights
+    terrain_step_m: np.ndarray  # blocks: their depth [m] (0 on the other grounds)
 
     @property
     def batch_size(self) -> int:
@@ -196,7 +197,7 @@ class Scenario(NamedTuple):
 
 def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_profiles.DEFAULT_PROFILE,
                    mass_scale=1.0, latency_ticks=-1, noise_scale=-1.0, noise_seed=0, terrain=terrains.FLAT,
-                   terrain_amplitude_m=0.0, terrain_seed=0) -> Scenario:
+                   terrain_amplitude_m=0.0, terrain_seed=0, terrain_step_m=0.0) -> Scenario:
     """Broadcast scalars or sequences to a batch of scenarios and validate them.
 
     Raises:
@@ -214,7 +215,8 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
                                  np.atleast_1d(np.asarray(noise_seed, np.float64)),
                                  np.atleast_1d(np.asarray(terrain, str)),
                                  np.atleast_1d(np.asarray(terrain_amplitude_m, np.float64)),
-                                 np.atleast_1d(np.asarray(terrain_seed, np.float64)))
+                                 np.atleast_1d(np.asarray(terrain_seed, np.float64)),
+                                 np.atleast_1d(np.asarray(terrain_step_m, np.float64)))
     scenario = Scenario(*(np.array(a) for a in arrays))
     if scenario.friction.ndim != 1:
         raise ValueError(f"scenario fields must be scalars or 1-D sequences, got shape {scenario.friction.shape}")
@@ -238,7 +240,8 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
             i = int(np.argmax(bad))
             raise ValueError(f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range "
                              f"{allowed}")
-    terrains.check_terrain(scenario.terrain, scenario.terrain_amplitude_m, scenario.terrain_seed)
+    terrains.check_terrain(scenario.terrain, scenario.terrain_amplitude_m, scenario.terrain_seed,
+                           scenario.terrain_step_m)
     scenario = scenario._replace(latency_ticks=scenario.latency_ticks.astype(np.int64),
                                  noise_seed=scenario.noise_seed.astype(np.int64),
                                  terrain_seed=scenario.terrain_seed.astype(np.int64))
@@ -318,6 +321,12 @@ def check_same_model(scenario: Scenario, other: Scenario) -> None:
                          "states differ): start a backend for the new scenarios")
 
 
+def scenario_ground(scenario: Scenario, i: int) -> terrains.Ground:
+    """Instance i's ground (its four terrain fields)."""
+    return terrains.Ground(str(scenario.terrain[i]), float(scenario.terrain_amplitude_m[i]),
+                           int(scenario.terrain_seed[i]), float(scenario.terrain_step_m[i]))
+
+
 def scenario_model(scenario: Scenario, i: int) -> mujoco.MjModel:
     """The C-MuJoCo model of instance i: profile, payload, floor friction (under the profile's friction rule,
     ``physics.floor_friction``) and gravity applied (a fresh copy)."""
@@ -328,8 +337,7 @@ def scenario_model(scenario: Scenario, i: int) -> mujoco.MjModel:
         physics_profiles.get(str(scenario.physics[i])), scenario.friction[i])
     m.opt.gravity[:] = gravity_vector(scenario.slope_deg[i])
     if terrain:
-        m.hfield_data[:] = terrains.hfield_data(str(scenario.terrain[i]), float(scenario.terrain_amplitude_m[i]),
-                                                int(scenario.terrain_seed[i]))
+        m.hfield_data[:] = terrains.hfield_data(scenario_ground(scenario, i))
     return m
 
 

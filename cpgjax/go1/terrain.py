@@ -22,8 +22,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-TERRAINS = ("flat", "rough")
+TERRAINS = ("flat", "rough", "blocks")
 FLAT = "flat"
+BLOCKS = "blocks"
+# Blocks' depth (their side, in x and y) [m]: from 0.15 m, two of the field's cells, so that a block has a top
+# between its edges, to 4 m; a foot's step (2 d_step μ ≤ 0.17 m) spans one edge at a time.
+BLOCK_DEPTH_M = (0.15, 4.0)
 # The largest peak-to-peak height: the smallest swing clearance g_c of the paper's parameter box (0.06 m,
 # cpgjax/trial/params.py; tests/test_terrain.py checks the two agree), so that the swing apex of every parameter
 # set clears the highest bump from the lowest hollow. A literal here: the Go1's facts sit below the parameters.
@@ -49,15 +53,18 @@ class Ground(NamedTuple):
     terrain: str = FLAT
     terrain_amplitude_m: float = 0.0
     terrain_seed: int = 0
+    terrain_step_m: float = 0.0  # blocks: their depth (0 on the other grounds)
 
 
 FLAT_GROUND = Ground()
 
 
-def check_terrain(terrain, amplitude_m, seed) -> None:
+def check_terrain(terrain, amplitude_m, seed, step_m=None) -> None:
     """Raise ValueError in one line naming the field, the value, the instance and the allowed range: an unknown
-    terrain, an amplitude outside [0, MAX_AMPLITUDE_M] (0 for flat), or a seed that is not an integer in [0, 2³²)."""
-    for i, (kind, a, s) in enumerate(zip(terrain, amplitude_m, seed, strict=True)):
+    terrain, an amplitude outside [0, MAX_AMPLITUDE_M] (0 for flat), a seed that is not an integer in [0, 2³²), or
+    a block depth outside BLOCK_DEPTH_M for blocks (0 on the other grounds; ``step_m`` None: 0 everywhere)."""
+    step_m = np.zeros(len(terrain)) if step_m is None else step_m
+    for i, (kind, a, s, d) in enumerate(zip(terrain, amplitude_m, seed, step_m, strict=True)):
         if kind not in TERRAINS:
             raise ValueError(f"scenario terrain = {str(kind)!r} (instance {i}) is not a terrain; allowed: {TERRAINS}")
         if not (np.isfinite(a) and 0.0 <= a <= MAX_AMPLITUDE_M):
@@ -69,6 +76,12 @@ def check_terrain(terrain, amplitude_m, seed) -> None:
         if not (np.isfinite(s) and s == np.round(s) and 0 <= s < 2.0 ** 32):
             raise ValueError(f"scenario terrain_seed = {float(s)!r} (instance {i}) is outside the allowed range "
                              "an integer in [0, 2**32)")
+        if kind == BLOCKS and not (np.isfinite(d) and BLOCK_DEPTH_M[0] <= d <= BLOCK_DEPTH_M[1]):
+            raise ValueError(f"scenario terrain_step_m = {float(d)!r} (instance {i}) is outside the allowed range "
+                             f"[{BLOCK_DEPTH_M[0]}, {BLOCK_DEPTH_M[1]}] (the blocks' depth)")
+        if kind != BLOCKS and d != 0.0:
+            raise ValueError(f"scenario terrain_step_m = {float(d)!r} (instance {i}) on {kind} terrain: allowed 0 "
+                             "(a depth is the blocks')")
 
 
 def _periodic_distance_m(coord_m: np.ndarray) -> np.ndarray:
@@ -77,14 +90,23 @@ def _periodic_distance_m(coord_m: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def period_heights_m(terrain: str, amplitude_m: float, seed: int) -> np.ndarray:
+def period_heights_m(ground: Ground) -> np.ndarray:
     """Ground heights (PERIOD_CELLS, PERIOD_CELLS) [m] of one period, [row (y), column (x)], vertex (r, c) at
-    (c, r) · CELL_M from the period's origin: 0 for flat; white noise uniform in [−A/2, A/2] from
-    ``default_rng(seed)`` with the pad around the origin at 0 for rough. Read-only."""
+    (c, r) · CELL_M from the period's origin: 0 for flat; for rough, white noise uniform in [−A/2, A/2] at every
+    vertex from ``default_rng(seed)``; for blocks, one such height per square block of side ``terrain_step_m``
+    (vertex (r, c) in block (⌊r · CELL_M / d⌋, ⌊c · CELL_M / d⌋), the last block of a period cut by it), each block's
+    top flat and its edges one cell wide (a height field interpolates between vertices). Rough and blocks have the pad
+    around the origin at 0. Read-only."""
+    terrain, amplitude_m, seed = ground.terrain, ground.terrain_amplitude_m, ground.terrain_seed
     heights = np.zeros((PERIOD_CELLS, PERIOD_CELLS))
-    if terrain != FLAT:
+    coord = np.arange(PERIOD_CELLS) * CELL_M
+    if terrain == BLOCKS:
+        block = np.floor(coord / ground.terrain_step_m + 1e-9).astype(int)
+        tops = amplitude_m * (np.random.default_rng(seed).random((block[-1] + 1, block[-1] + 1)) - 0.5)
+        heights = tops[np.ix_(block, block)]
+    elif terrain != FLAT:
         heights = amplitude_m * (np.random.default_rng(seed).random((PERIOD_CELLS, PERIOD_CELLS)) - 0.5)
-        coord = np.arange(PERIOD_CELLS) * CELL_M
+    if terrain != FLAT:
         pad = ((_periodic_distance_m(coord)[:, None] <= PAD_HALF_M[1])
                & (_periodic_distance_m(coord)[None, :] <= PAD_HALF_M[0]))
         heights[pad] = 0.0
@@ -92,19 +114,20 @@ def period_heights_m(terrain: str, amplitude_m: float, seed: int) -> np.ndarray:
     return heights
 
 
-def field_heights_m(terrain: str, amplitude_m: float, seed: int) -> np.ndarray:
+def field_heights_m(ground: Ground) -> np.ndarray:
     """Ground heights (FIELD_VERTICES, FIELD_VERTICES) [m] of the whole field, [row (y), column (x)], vertex (r, c)
     at (c, r) · CELL_M − FIELD_HALF_M: the period repeated, the vertex at (x, y) being the period's vertex at
     (x, y) modulo PERIOD_M."""
-    period = period_heights_m(terrain, float(amplitude_m), int(seed))
+    period = period_heights_m(Ground(str(ground.terrain), float(ground.terrain_amplitude_m), int(ground.terrain_seed),
+                                     float(ground.terrain_step_m)))
     index = (np.arange(FIELD_VERTICES) - round(FIELD_HALF_M / CELL_M)) % PERIOD_CELLS
     return period[np.ix_(index, index)]
 
 
-def hfield_data(terrain: str, amplitude_m: float, seed: int) -> np.ndarray:
+def hfield_data(ground: Ground) -> np.ndarray:
     """The model's ``hfield_data`` (FIELD_VERTICES²,) in [0, 1]: MuJoCo's height is data × MAX_AMPLITUDE_M above
     the hfield geom, which sits at z = −MAX_AMPLITUDE_M / 2, so data 0.5 is the plane z = 0."""
-    return (0.5 + field_heights_m(terrain, amplitude_m, seed) / MAX_AMPLITUDE_M).reshape(-1)
+    return (0.5 + field_heights_m(ground) / MAX_AMPLITUDE_M).reshape(-1)
 
 
 def hfield_size() -> tuple[float, float, float, float]:

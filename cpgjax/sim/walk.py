@@ -143,6 +143,7 @@ def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
     cols["terrain"] = np.array([t.ground.terrain for t in trials])
     cols["terrain_amplitude_m"] = np.array([t.ground.terrain_amplitude_m for t in trials], np.float64)
     cols["terrain_seed"] = np.array([t.ground.terrain_seed for t in trials], np.int64)
+    cols["terrain_step_m"] = np.array([t.ground.terrain_step_m for t in trials], np.float64)
     params = np.array([t.params for t in trials], np.float64).reshape(len(trials), param_space.NUM_PARAMS)
     for i, name in enumerate(param_space.PARAM_NAMES):
         cols[name] = params[:, i]

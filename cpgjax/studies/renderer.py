@@ -108,8 +108,8 @@ def render_jobs(jobs_file: str) -> int:
     with np.load(jobs_file) as z:
         slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
         paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
-        grounds = [terrains.Ground(str(kind), float(a), int(s)) for kind, a, s in zip(
-            z["terrain"], z["terrain_amplitude_m"], z["terrain_seed"], strict=True)]
+        grounds = [terrains.Ground(str(kind), float(a), int(s), float(d)) for kind, a, s, d in zip(
+            z["terrain"], z["terrain_amplitude_m"], z["terrain_seed"], z["terrain_step_m"], strict=True)]
     for k, path in enumerate(paths):
         t0 = time.perf_counter()
         frames = render_frames(qpos[k], float(slopes[k]), width, height, grounds[k])

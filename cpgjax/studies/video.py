@@ -109,7 +109,8 @@ def load_gaits(out) -> list[Gait]:
             fields = {k: data[k] for k in Gait._fields if k not in ("params", "group", "ground", *tuned.TUNED_FOR)
                       and k in data}
             ground = terrains.Ground(**{k: data[k] for k in terrains.Ground._fields if k in data})
-            terrains.check_terrain([ground.terrain], [ground.terrain_amplitude_m], [ground.terrain_seed])
+            terrains.check_terrain([ground.terrain], [ground.terrain_amplitude_m], [ground.terrain_seed],
+                                   [ground.terrain_step_m])
             gaits.append(Gait(group=path.stem, params=read.params, **read.tuned_for, **fields, ground=ground))
         except ValueError as err:  # tuned.load's one line: unreadable, bad JSON, a value out of range
             raise StudyError(str(err)) from None

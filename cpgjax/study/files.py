@@ -38,6 +38,7 @@ import numpy as np
 import cpgjax
 from cpgjax import compile_cache, provenance
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1 import terrain as terrains
 from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import StudyError
@@ -535,7 +536,7 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     cols["latency_ticks"], cols["noise_scale"] = latency.reshape(-1), noise.reshape(-1)
     if result.spec.has_terrain():  # a study on the flat plane alone: the table as before terrains
         grounds = [study_spec.ground(lab) for lab in result.labels]
-        for field in ("terrain", "terrain_amplitude_m", "terrain_seed"):
+        for field in terrains.Ground._fields:
             cols[field] = np.array([getattr(g, field) for g in grounds])[inst]
     params = per(tr.params)
     for i, name in enumerate(param_space.PARAM_NAMES):

@@ -109,7 +109,7 @@ def field_mesh(ground: terrains.Ground, low_m: np.ndarray, high_m: np.ndarray) -
     """The height field's surface over the floor-frame rectangle [low, high] (the cells that cover it) as a
     triangle mesh: ``vertex_positions`` (N, 3) [m] at the field's vertices and heights, ``triangle_indices`` (M, 3)
     split along each cell's diagonal from (c, r) to (c + 1, r + 1) as MuJoCo splits it."""
-    heights = terrains.field_heights_m(ground.terrain, ground.terrain_amplitude_m, ground.terrain_seed)
+    heights = terrains.field_heights_m(ground)
     n = terrains.FIELD_VERTICES
     first = np.clip(np.floor((np.asarray(low_m) + terrains.FIELD_HALF_M) / terrains.CELL_M).astype(int), 0, n - 2)
     last = np.clip(np.ceil((np.asarray(high_m) + terrains.FIELD_HALF_M) / terrains.CELL_M).astype(int), 1, n - 1)

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from cpgjax.go1.model import MAX_ABS_SLOPE_DEG
+from cpgjax.go1.terrain import BLOCK_DEPTH_M as BLOCK_DEPTH
 from cpgjax.go1.terrain import MAX_AMPLITUDE_M
 
 
@@ -54,6 +55,7 @@ SLOPE_DEG = Range(-MAX_ABS_SLOPE_DEG, MAX_ABS_SLOPE_DEG, "uphill along +x; the m
 PAYLOAD_KG = Range(0.0, 20.0, "a load on the ~12 kg robot; the paper's heaviest is 15 kg")
 TERRAIN_AMPLITUDE_M = Range(0.0, MAX_AMPLITUDE_M, "rough ground's peak-to-peak height; at most the smallest swing "
                             "clearance g_c", low_open=True)
+BLOCK_DEPTH_M = Range(*BLOCK_DEPTH, "blocks' side: two cells of the height field (a top between the edges) to 4 m")
 ROUGHNESS_M = Range(0.0, MAX_AMPLITUDE_M, "a study's rough ground: its peak-to-peak height, 0 the flat plane; at most "
                     "the smallest swing clearance g_c")
 TERRAIN_SEEDS = 2 ** 32  # a rough ground's seeds: the integers 0 … 2³² − 1
