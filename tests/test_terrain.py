@@ -313,6 +313,13 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys):
     with pytest.raises(SystemExit):
         cli.main(["walk"])
     assert walks[-1]["ground"] == terrains.Ground("flat", 0.0, 0)
+    with pytest.raises(SystemExit):
+        cli.main(["walk", "--terrain", "blocks", "--terrain-amplitude", "0.05", "--terrain-step", "0.3"])
+    assert walks[-1]["ground"] == terrains.Ground("blocks", 0.05, 0, 0.3)
+    assert cli.main(["walk", "--terrain", "blocks", "--terrain-amplitude", "0.05"]) == 2
+    assert "--terrain blocks needs --terrain-step (the blocks' depth [m] in [0.15, 4])" in capsys.readouterr().err
+    assert cli.main(["walk", "--terrain", "rough", "--terrain-amplitude", "0.05", "--terrain-step", "0.3"]) == 2
+    assert "--terrain-step applies to --terrain blocks only" in capsys.readouterr().err
     assert cli.main(["walk", "--terrain-amplitude", "0.04"]) == 2
     assert "cpgjax walk: --terrain-amplitude applies to --terrain rough or blocks only" in capsys.readouterr().err
     assert cli.main(["walk", "--terrain", "rough"]) == 2
@@ -323,7 +330,7 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys):
         with pytest.raises(SystemExit) as exit_:
             cli.main(["walk", *argv])
         assert exit_.value.code == 2 and message in capsys.readouterr().err
-    assert len(walks) == 2  # nothing refused reached the walk
+    assert len(walks) == 3  # nothing refused reached the walk
 
 
 def test_walk_parquet_names_the_terrain():
