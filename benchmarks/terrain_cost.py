@@ -3,13 +3,13 @@
 For each backend (native C MuJoCo, MJX) four batches of the same size walk the same trials (midpoint parameters,
 ``vmc_tegotae``, trials back to back from standing): all on the flat plane (the plane model, today's program), all
 on rough ground 4 cm peak-to-peak (the terrain model: the feet against the height field, the rest of the robot
-against the plane below it), all on blocks of 0.3 m and 4 cm (the same model), and all on flat heights in the terrain model (what a flat instance costs in a batch
-that also holds a rough one). After a compiling trial the backend runs ``--trials`` trials, best of ``--repeats``;
-the figure is µs per instance-step (wall time / (batch × ticks)), and each ratio is against the first terrain (the
-flat plane) of the same backend in the same run.
+against the plane below it), all on blocks of 0.3 m and 4 cm (the same model), and all on flat heights in the
+terrain model (what a flat instance costs in a batch that also holds a rough one). After a compiling trial the
+backend runs ``--trials`` trials, best of ``--repeats``; the figure is µs per instance-step (wall time / (batch ×
+ticks)), and each ratio is against the first terrain (the flat plane) of the same backend in the same run.
 
     JAX_PLATFORMS=cpu python benchmarks/terrain_cost.py [--batch 4] [--steps 500] [--trials 2] [--repeats 2]
-                                                        [--backends native,mjx] [--terrains flat,rough,blocks,flat_heights]
+        [--backends native,mjx] [--terrains flat,rough,blocks,flat_heights]
 
 ``--terrains flat`` times the flat plane alone, which runs on a checkout without terrains too (the same command
 with that checkout first on PYTHONPATH): today's flat program against the flat plane of this one. Timings on a

@@ -98,6 +98,21 @@ def test_the_blocks_are_numpys_heights_one_per_block_with_a_flat_pad():
     np.testing.assert_array_equal(field[:-n, :], field[n:, :])
 
 
+def test_a_slope_combines_with_rough_ground():
+    """Rough ground on a 10° incline: the instance's model has the height field and the slope's gravity, and a short
+    native trial of it walks (no failure)."""
+    scenario = go1_model.make_scenarios(slope_deg=[10.0, 0.0], terrain="rough", terrain_amplitude_m=0.02,
+                                        terrain_seed=3)
+    m = go1_model.scenario_model(scenario, 0)
+    assert m.nhfield == 1 and m.geom_type[go1_model.indices().floor_geom] == mujoco.mjtGeom.mjGEOM_HFIELD
+    np.testing.assert_allclose(m.opt.gravity, go1_model.gravity_vector(10.0))
+    sim = native_go1.NativeBackend(scenario, trial_config=SHORT_TRIAL)
+    params = np.tile(param_space.midpoint(), (2, 1))
+    _, record = sim.trial(sim.reset(params), params, protocol.batch_gates(["vmc_tegotae"] * 2))
+    assert not np.asarray(record.failed).any()
+    assert float(record.c_slope_rad[0]) < float(record.c_slope_rad[1]) - 0.05  # the incline is read (uphill: < 0)
+
+
 def test_the_ground_height_is_where_c_mujoco_finds_the_height_field():
     """terrain.ground_height_m against a vertical ray cast onto the model's hfield geom by C MuJoCo (mj_ray), at
     random points over the whole field, on both sides of the cells' diagonals."""
