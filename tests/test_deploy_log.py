@@ -106,7 +106,7 @@ def test_a_killed_deploy_keeps_its_logged_batches(tmp_path):
 REPLAYED = {"ground_clearance_m": 0.085, "ground_penetration_m": 0.012, "omega_swing_rad_s": 20.5,
             "omega_stance_rad_s": 12.0, "amplitude_mu": 1.2, "x_offset_front_m": -0.03, "x_offset_hind_m": -0.04,
             "sigma_n": 0.2}
-TUNED_FOR = dict(controller="tegotae", physics="paper", friction=0.8, slope_deg=2.0, payload_kg=1.5,
+TUNED_FOR = dict(controller="tegotae", gait="trot", physics="paper", friction=0.8, slope_deg=2.0, payload_kg=1.5,
                  target_velocity_mps=0.4)
 
 

@@ -27,7 +27,7 @@ def test_an_optimization_on_the_go1_records_its_options_and_each_trials_paramete
                      str(tmp_path / "run")]) == 0
     rows = [{"trial": 0, **FIRST, "objective": 0.4}, {"trial": 1, **SECOND, "objective": 0.9}]
     assert deploy.what_ran(ran[-1], rows) == {
-        "mode": "optimize", "robot": "go1", "controller": "vmc", "physics": "robot", "startup": "paper",
+        "mode": "optimize", "robot": "go1", "controller": "vmc", "gait": "trot", "physics": "robot", "startup": "paper",
         "friction": None, "slope_deg": None, "payload_kg": 2.0, "target_velocity_mps": 0.7, "transition_s": 0.5,
         "steady_s": 2.0,
         "duration_s": None, "num_trials": 3, "optimizer": "random", "seed": 7, "params_file": None, "params": None,
