@@ -361,8 +361,8 @@ def test_a_replay_reports_how_the_robot_walked_in_each_trial(robot, controller):
     replay = robot_trials.ReplayTrials(params.midpoint(), 2000, protocol.TrialConfig(300, 600))
     result, _, _ = _run(robot, controller, schedule=replay)
     assert result.trip is None, result.events
-    tuned_for = dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0, payload_kg=0.0,
-                     target_velocity_mps=0.5)
+    tuned_for = dict(controller="vmc_tegotae", gait="trot", physics="go1", friction=0.6, slope_deg=0.0,
+                     payload_kg=0.0, target_velocity_mps=0.5)
     rows = replay.rows(12.74, 0.5, 0, tuned_for)
     assert [r["trial"] for r in rows] == [0, 1]
     for r in rows:
@@ -375,8 +375,8 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     """Random search stands in for the contextual BO (cpgjax.optim.bo) until that lands."""
     robot.reset()
     transport = go1_transport.LockstepTransport(robot.address)
-    tuned_for = dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0, payload_kg=0.0,
-                     target_velocity_mps=0.5)
+    tuned_for = dict(controller="vmc_tegotae", gait="trot", physics="go1", friction=0.6, slope_deg=0.0,
+                     payload_kg=0.0, target_velocity_mps=0.5)
     spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), tuned_for)
     try:
         result, rows, _ = robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
@@ -407,8 +407,8 @@ def _optimize_with_a_fault(robot, controller, tmp_path, kind, value, recover):
     robot.reset()
     robot.inject(kind, value, after_ticks=RUN_STARTS_AT + 900 + 200, ticks=10**6)
     transport = go1_transport.LockstepTransport(robot.address)
-    tuned_for = dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0, payload_kg=0.0,
-                     target_velocity_mps=0.5)
+    tuned_for = dict(controller="vmc_tegotae", gait="trot", physics="go1", friction=0.6, slope_deg=0.0,
+                     payload_kg=0.0, target_velocity_mps=0.5)
     spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), tuned_for)
     try:
         return robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
@@ -505,8 +505,9 @@ def test_deploy_optimize_starts_from_the_optimizers_random_proposal(tmp_path):
     assert np.all((first >= params.PARAM_LOWER) & (first <= params.PARAM_UPPER))
     replayed = tuned.load(run / "best_params.json")
     assert replayed.params.shape == (8,)
-    assert replayed.tuned_for == dict(controller="vmc_tegotae", physics="go1", friction=0.6, slope_deg=0.0,
-                                      payload_kg=0.0, target_velocity_mps=0.5)  # deploy's defaults, all recorded
+    assert replayed.tuned_for == dict(controller="vmc_tegotae", gait="trot", physics="go1", friction=0.6,
+                                      slope_deg=0.0, payload_kg=0.0,
+                                      target_velocity_mps=0.5)  # deploy's defaults, all recorded
 
 
 # ------------------------------------------------------------------------------------- foot-force calibration
