@@ -155,7 +155,10 @@ def _idle_entries() -> tuple[int, int]:
 
 def test_the_polling_request_keeps_idle_cpus_from_halting_until_released():
     """While the request is held the kernel's latency target is 0 and the idle CPUs enter no halting state (its
-    own counters); released, the target is back. Skips where the request is not permitted."""
+    own counters); released, the target is back. Skips where the request is not permitted, and where another
+    process holds one already (another test's robot loop on a parallel worker: the target stays 0 until it ends)."""
+    if _latency_target_us() == 0:
+        pytest.skip("another process holds a CPU wake-up latency request")
     note, release = cpu_wakeup.request_polling()
     if note != cpu_wakeup.REQUESTED:
         assert note.startswith("idle CPUs may halt (")
