@@ -964,20 +964,14 @@ def _add_target_arg(p: argparse.ArgumentParser) -> None:
                    help=f"target velocity v_x* [m/s] of the objective J, in {limits.TARGET_VELOCITY_MPS}")
 
 
-def _physics_names(text: str) -> tuple[str, ...]:
-    names = tuple(text.split(","))
-    for name in names:
-        if name not in physics_profiles.PROFILES:
-            raise argparse.ArgumentTypeError(f"unknown physics profile {name!r}; allowed: "
-                                             f"{', '.join(physics_profiles.PROFILES)}")
-    return names
-
-
-def _controller_names(text: str) -> tuple[str, ...]:
-    names = tuple(text.split(","))
-    for name in names:
-        if name not in cpg.CONTROLLERS:
-            raise argparse.ArgumentTypeError(f"unknown controller {name!r}; allowed: {', '.join(cpg.CONTROLLERS)}")
+def _names_in(allowed, what: str):
+    """The argparse type of a comma list of names, each one of ``allowed`` (a ``what``: "controller", ...)."""
+    def names(text: str) -> tuple[str, ...]:
+        given = tuple(text.split(","))
+        for name in given:
+            if name not in allowed:
+                raise argparse.ArgumentTypeError(f"unknown {what} {name!r}; allowed: {', '.join(allowed)}")
+        return given
     return names
 
 
@@ -985,19 +979,12 @@ def _add_physics_arg(p: argparse.ArgumentParser, default: str | None, many: bool
     """``--physics``: the physics profile(s) of the simulated Go1 (docs/physics.md)."""
     allowed = ", ".join(physics_profiles.PROFILES)
     if many:
-        p.add_argument("--physics", type=_physics_names, default=default, action=_Given,
+        p.add_argument("--physics", type=_names_in(tuple(physics_profiles.PROFILES), "physics profile"),
+                       default=default, action=_Given,
                        help=f"comma list of physics profiles ({allowed})")
     else:
         p.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=default, action=_Given,
                        help="physics profile" + ("" if default else " (default: the study's own)"))
-
-
-def _gait_names(text: str) -> tuple[str, ...]:
-    names = tuple(text.split(","))
-    for name in names:
-        if name not in cpg.GAITS:
-            raise argparse.ArgumentTypeError(f"unknown gait {name!r}; allowed: {', '.join(cpg.GAITS)}")
-    return names
 
 
 def _add_gait_arg(p: argparse.ArgumentParser, default: str | None, many: bool = False, help_suffix: str = "") -> None:
@@ -1006,8 +993,9 @@ def _add_gait_arg(p: argparse.ArgumentParser, default: str | None, many: bool = 
     what = (f"the CPG's gait (coupling phase lags, docs/gaits.md): {allowed}"
             + ("" if default else "; default: the study's own") + help_suffix)
     if many:
-        p.add_argument("--gaits", type=_gait_names, default=default if default is None else (default,),
-                       action=_Given, help=f"comma list of gaits; {what}")
+        p.add_argument("--gaits", type=_names_in(tuple(cpg.GAITS), "gait"),
+                       default=default if default is None else (default,), action=_Given,
+                       help=f"comma list of gaits; {what}")
     else:
         p.add_argument("--gait", choices=tuple(cpg.GAITS), default=default, action=_Given, help=what)
 
@@ -1058,8 +1046,8 @@ def _add_robot_args(p: argparse.ArgumentParser, robot_required: bool = True) -> 
 def _add_walk(sub) -> None:
     w = sub.add_parser("walk", help="walk with fixed parameters and print the trial figures",
                        formatter_class=_HelpFormatter)
-    w.add_argument("--controllers", type=_controller_names, default=",".join(cpg.CONTROLLERS), action=_Given,
-                   help="comma list of controllers")
+    w.add_argument("--controllers", type=_names_in(cpg.CONTROLLERS, "controller"), default=",".join(cpg.CONTROLLERS),
+                   action=_Given, help="comma list of controllers")
     _add_gait_arg(w, cpg.DEFAULT_GAIT, many=True)
     _add_scenario_args(w, many=True)
     _add_terrain_args(w)
