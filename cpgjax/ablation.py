@@ -314,8 +314,8 @@ class Engine:
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
         self.physics = _pad(np.array([lab["physics"] for lab in self.labels]), size)
         self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
-        grounds = [study_spec.ground(lab) for lab in self.labels]
-        self.grounds = {f: _pad(np.array([getattr(g, f) for g in grounds]), size) for f in terrains.Ground._fields}
+        grounds = terrains.ground_fields(map(study_spec.ground, self.labels))
+        self.grounds = {field: _pad(values, size) for field, values in grounds.items()}
         self.active = param_space.active_parameters(self.gates.tegotae > 0)
         targets = self.padded.target_velocity_mps
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))

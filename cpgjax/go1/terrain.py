@@ -59,6 +59,13 @@ class Ground(NamedTuple):
 FLAT_GROUND = Ground()
 
 
+def ground_fields(grounds) -> dict[str, np.ndarray]:
+    """Several instances' grounds (any iterable) as the per-field arrays ``go1_model.make_scenarios`` takes (field →
+    (B,))."""
+    grounds = list(grounds)
+    return {field: np.array([getattr(g, field) for g in grounds]) for field in Ground._fields}
+
+
 def check_terrain(terrain, amplitude_m, seed, step_m=None) -> None:
     """Raise ValueError in one line naming the field, the value, the instance and the allowed range: an unknown
     terrain, an amplitude outside [0, MAX_AMPLITUDE_M] (0 for flat), a seed that is not an integer in [0, 2³²), or

@@ -120,6 +120,6 @@ def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None
         raise study_spec.StudyError("the gaits were found with different trial lengths; film them one at a time")
     scenario = go1_model.make_scenarios(friction=[g.friction for g in gaits], slope_deg=[g.slope_deg for g in gaits],
                                         payload_kg=[g.payload_kg for g in gaits], physics=[g.physics for g in gaits],
-                                        **{f: [getattr(g.ground, f) for g in gaits] for f in terrains.Ground._fields})
+                                        **terrains.ground_fields(g.ground for g in gaits))
     return registry.rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config,
                              backend, config.steady_steps if steps is None else steps, [g.gait for g in gaits])

@@ -535,9 +535,8 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     latency, noise = _resolved(cond, result.labels, n)
     cols["latency_ticks"], cols["noise_scale"] = latency.reshape(-1), noise.reshape(-1)
     if result.spec.has_terrain():  # a study on the flat plane alone: the table as before terrains
-        grounds = [study_spec.ground(lab) for lab in result.labels]
-        for field in terrains.Ground._fields:
-            cols[field] = np.array([getattr(g, field) for g in grounds])[inst]
+        for field, values in terrains.ground_fields(map(study_spec.ground, result.labels)).items():
+            cols[field] = values[inst]
     params = per(tr.params)
     for i, name in enumerate(param_space.PARAM_NAMES):
         cols[name] = params[:, i]

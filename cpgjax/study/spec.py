@@ -369,8 +369,7 @@ def validate(spec: StudySpec) -> Conditions:
                 allowed.check(values[b, t], field)
             except ValueError as err:
                 fail(f"instance {b}, trial {t}: {err}")
-    grounds = [ground(lab) for lab in instances(spec)]
-    terrain = {f: [getattr(g, f) for g in grounds] for f in terrains.Ground._fields}
+    terrain = terrains.ground_fields(map(ground, instances(spec)))
     try:
         for t in range(spec.num_trials):
             go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t],
