@@ -121,6 +121,6 @@ def test_a_study_without_gaits_has_the_trial_table_it_had(tmp_path):
     """Unset, the gaits axis is the trot alone and the trial table has no gait column (the paper's studies' tables
     stay byte for byte those of their record, tests/test_study_files.py)."""
     spec = study_spec.StudySpec("plain")
-    assert spec.gait_values() == ("trot",) and [lab["gait"] for lab in study_spec.instances(spec)] == ["trot"]
+    assert spec.axis("gaits") == ("trot",) and [lab["gait"] for lab in study_spec.instances(spec)] == ["trot"]
     with pytest.raises(study_spec.StudyError, match="unknown gait 'canter'; allowed: trot, pace"):
         study_spec.validate(study_spec.StudySpec("bad", gaits=("canter",)))

@@ -173,10 +173,6 @@ class StudySpec:
     terrain_amplitude_m: tuple[float, ...] | None = None
     terrain_seed: tuple[int, ...] | None = None
 
-    def gait_values(self) -> tuple[str, ...]:
-        """``gaits``, or the paper's trot."""
-        return self.gaits or (cpg.DEFAULT_GAIT,)
-
     def axis(self, field: str) -> tuple:
         """The values of the grid axis ``field`` (a field name); an unset one's default (:data:`UNSET_AXES`)."""
         value = getattr(self, field)
@@ -220,7 +216,7 @@ LABELS = ("controller", "gait", "seed", "friction", "slope_deg", "payload_kg", "
 
 def label_values(spec: StudySpec) -> dict[str, tuple]:
     """Each label of :data:`LABELS` → the values its grid axis takes, in batch order."""
-    return dict(zip(LABELS, (spec.controllers, spec.gait_values(), spec.seeds, spec.friction, spec.slope_deg,
+    return dict(zip(LABELS, (spec.controllers, spec.axis("gaits"), spec.seeds, spec.friction, spec.slope_deg,
                              spec.payload_kg, spec.target_velocity_mps, tuple(s.label for s in spec.schedules),
                              spec.data_reuse, spec.physics, spec.axis("terrain_amplitude_m"),
                              spec.axis("terrain_seed")), strict=True))
@@ -312,7 +308,7 @@ def validate(spec: StudySpec) -> Conditions:
     for c in spec.controllers:
         if c not in cpg.CONTROLLERS:
             fail(f"unknown controller {c!r}; allowed: {cpg.CONTROLLERS}")
-    for g in spec.gait_values():
+    for g in spec.axis("gaits"):
         if g not in cpg.GAITS:
             fail(f"unknown gait {g!r}; allowed: {', '.join(cpg.GAITS)}")
     if spec.startup is not None and spec.startup not in cpg.STARTUPS:
