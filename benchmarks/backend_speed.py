@@ -39,13 +39,12 @@ def _make(backend: str, scenario, trial_config):
     return cls(scenario, trial_config=trial_config)
 
 
-def trial_speed(backend: str, batch: int, steps: int, repeats: int, physics: str | None = None) -> dict:
+def trial_speed(backend: str, batch: int, steps: int, repeats: int, physics: str = "soft") -> dict:
     """Closed-loop trial env-steps/s (best of ``repeats`` after a warm-up call that compiles) for one backend
-    (``physics``: the profile, default the Python API's)."""
+    (``physics``: the profile, default ``soft``, that of the figures in RESULTS.md)."""
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
-    kwargs = {} if physics is None else {"physics": physics}
-    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6), **kwargs), config)
+    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics), config)
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     state = jax.block_until_ready(sim.reset(p))
@@ -68,7 +67,7 @@ def ablation_wall_time(backend: str, trials: int) -> dict:
     batch = len(controllers)
     rng = np.random.default_rng(0)
     t0 = time.perf_counter()
-    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6)), protocol.TrialConfig())
+    sim = _make(backend, go1_model.make_scenarios(friction=np.full(batch, 0.6), physics="soft"), protocol.TrialConfig())
     gates = protocol.batch_gates(controllers)
     state = sim.reset(np.tile(param_space.midpoint(), (batch, 1)))
     ends = []

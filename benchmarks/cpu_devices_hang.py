@@ -27,7 +27,7 @@ from cpgjax.go1 import model as go1_model
 from cpgjax import mjx_go1
 from cpgjax.trial import params
 batch = int(sys.argv[1])
-sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)))
+sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6), physics="soft"))
 assert len(sim.mesh.devices.ravel()) == 2
 jax.block_until_ready(sim.reset(np.tile(params.midpoint(), (batch, 1))))
 """

@@ -220,7 +220,7 @@ def main() -> None:
     parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=[16, 20, 64])
     parser.add_argument("--steps", type=int, default=400, help="ticks per timed run")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--physics", default=physics_profiles.PAPER_STUDIES_PROFILE, choices=physics_profiles.PROFILES)
+    parser.add_argument("--physics", default=physics_profiles.DEFAULT_PROFILE, choices=physics_profiles.PROFILES)
     parser.add_argument("--stepping", choices=("ffi", "batch"), default=None,
                         help="the native backend's stepping (default: native.default_stepping())")
     parser.add_argument("--accounts", action="store_true",

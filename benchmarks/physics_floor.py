@@ -59,7 +59,7 @@ def main() -> None:
     cpu_dispatch.request_inline()  # as every cpgjax command on the native backend
     cpu_dispatch.request_one_pool_thread()
     stepping = native_go1.default_stepping()
-    physics = physics_profiles.PAPER_STUDIES_PROFILE
+    physics = physics_profiles.DEFAULT_PROFILE
     r = native_limit(args.batch, args.steps, args.repeats, physics, [stepping])
     limit = r["cores"] * r["replay_one_thread_env_steps_per_s"]
     closed = r[f"closed_loop_env_steps_per_s_{stepping}"]

@@ -89,8 +89,8 @@ def measure(batch: int, steps: int, repeats: int, devices: list) -> dict:
     """
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
-    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6)), trial_config=config,
-                             devices=devices)
+    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6), physics="soft"),
+                             trial_config=config, devices=devices)
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     ids = go1_model.indices()
@@ -263,7 +263,7 @@ def main() -> None:
     parser.add_argument("--steppings", type=lambda s: s.split(","), default=[native_go1.default_stepping()],
                         help="comma list of the native backend's steppings to time against the limit "
                         f"(of {native_go1.STEPPINGS}; default {native_go1.default_stepping()})")
-    parser.add_argument("--physics", default=physics_profiles.PAPER_STUDIES_PROFILE, choices=physics_profiles.PROFILES,
+    parser.add_argument("--physics", default=physics_profiles.DEFAULT_PROFILE, choices=physics_profiles.PROFILES,
                         help="physics profile of the native closed loop and its limit (default: the studies')")
     args = parser.parse_args()
     unknown = [name for name in args.steppings if name not in native_go1.STEPPINGS]
@@ -344,7 +344,7 @@ def main() -> None:
                      "machine": provenance.machine(), "steps_per_instance": steps, "repeats": repeats,
                      "native_physics": args.physics, **native_figures}
     for b in batches:
-        native = trial_speed("native", b, steps, repeats)  # the same trial as MJX's below (default profile)
+        native = trial_speed("native", b, steps, repeats)  # the same trial as MJX's below (soft profile)
         for devices in layouts(b, args.quick):
             r = measure(b, steps, repeats, devices)
             print(f"| {b} | {len(devices)} | {r['closed_loop_steps_per_s']:,.0f} | {r['replay_steps_per_s']:,.0f} "

@@ -50,8 +50,9 @@ TERRAINS = {"flat": ("flat plane", dict()),
 def time_per_step_us(backend: str, fields: dict, batch: int, steps: int, trials: int, repeats: int) -> float:
     """µs per instance-step of ``trials`` back-to-back trials of ``steps`` ticks (best of ``repeats``)."""
     config = protocol.TrialConfig(transition_steps=steps // 5, steady_steps=steps - steps // 5)
-    sim = BACKENDS[backend](go1_model.make_scenarios(**{k: [v] * batch for k, v in fields.items()} or
-                                                     {"friction": [0.6] * batch}), trial_config=config)
+    sim = BACKENDS[backend](go1_model.make_scenarios(friction=[0.6] * batch, physics="soft",
+                                                     **{k: [v] * batch for k, v in fields.items()}),
+                                 trial_config=config)
     params = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     state = sim.reset(params)
@@ -75,7 +76,7 @@ def program_digests(batch: int, steps: int) -> dict[str, str]:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     config = protocol.TrialConfig(transition_steps=steps // 5, steady_steps=steps - steps // 5)
-    scenario = go1_model.make_scenarios(friction=[0.6] * batch)
+    scenario = go1_model.make_scenarios(friction=[0.6] * batch, physics="soft")
     params = np.tile(param_space.midpoint(), (batch, 1))
     new_params = protocol.check_params(params, batch)
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)

@@ -33,7 +33,7 @@ def _backend(load) -> mjx_go1.MJXBackend:
         cached.cache_clear()
     go1_model.load_model = load
     try:
-        return mjx_go1.MJXBackend(go1_model.make_scenarios(friction=[0.6] * BATCH), trial_config=TRIAL)
+        return mjx_go1.MJXBackend(go1_model.make_scenarios(friction=[0.6] * BATCH, physics="soft"), trial_config=TRIAL)
     finally:
         go1_model.load_model = shipped
         for cached in (go1_model.indices, go1_model.model_with_payload):

@@ -313,6 +313,7 @@ class Engine:
         self.local_gates = jax.tree.map(lambda g: g[first:stop], self.gates)
         self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
         self.physics = _pad(np.array([lab["physics"] for lab in self.labels]), size)
+        self.feet = _pad(np.array([lab["foot_friction"] for lab in self.labels], np.float64), size)
         self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
         grounds = terrains.ground_fields(map(study_spec.ground, self.labels))
         self.grounds = {field: _pad(values, size) for field, values in grounds.items()}
@@ -370,6 +371,7 @@ class Engine:
                                         c.payload_kg[instances, trials], self.physics[instances],
                                         c.mass_scale[instances, trials], c.latency_ticks[instances, trials],
                                         c.noise_scale[instances, trials], self.seeds[instances],  # noise per seed
+                                        foot_friction=self.feet[instances],
                                         **{f: v[instances] for f, v in self.grounds.items()})
 
     def simulator(self, trial: int) -> Backend:

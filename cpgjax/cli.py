@@ -253,7 +253,8 @@ def _walk(args) -> int:
                                       params=None if args.params is None else args.params.params,
                                       target_velocity_mps=args.target_velocity_mps, backend=args.backend,
                                       physics=args.physics, progress=_notice,  # stderr: stdout holds the table
-                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup), ground=ground)
+                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup), ground=ground,
+                                      foot_friction=-1.0 if args.foot_friction is None else args.foot_friction)
     print(walk.trials_table(trials))
     pace = timing["env_steps_per_s"]
     print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
@@ -462,11 +463,12 @@ def _trials_table(trial_log) -> str:
     return "\n".join(lines)
 
 
-def write_best_params(path: pathlib.Path, trial_log, tuned_for: dict) -> int:
+def write_best_params(path: pathlib.Path, trial_log, tuned_for: dict, **info) -> int:
     """``best_params.json`` of one optimization (instance 0) in the format ``cpgjax deploy --params`` replays, with
-    what it was tuned for (:mod:`cpgjax.trial.tuned`); returns the best trial."""
+    what it was tuned for (:mod:`cpgjax.trial.tuned`) and ``info``; returns the best trial."""
     best = int(np.argmax(trial_log.objective[:, 0]))
-    tuned.save(path, trial_log.params[best, 0], tuned_for, objective=float(trial_log.objective[best, 0]), trial=best)
+    tuned.save(path, trial_log.params[best, 0], tuned_for, objective=float(trial_log.objective[best, 0]), trial=best,
+               **info)
     return best
 
 
@@ -484,7 +486,8 @@ def optimize_spec(args) -> study_spec.StudySpec:
                                 seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
                                 payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
                                 physics=(args.physics,), safe=args.safe, max_trials=args.max_trials,
-                                startup=study_spec.startup_field(args.startup))
+                                startup=study_spec.startup_field(args.startup),
+                                foot_friction=None if args.foot_friction is None else (args.foot_friction,))
 
 
 def _optimize(args) -> int:
@@ -516,8 +519,9 @@ def _optimize(args) -> int:
         with study_io.writing(out, "trials.parquet, metadata.json and best_params.json"):
             study_io.write_trials(result, out / "trials.parquet")
             study_io.write_metadata(result, out / "metadata.json", command=args.command_line)
+            feet = {} if args.foot_friction is None else {"foot_friction": args.foot_friction}
             best = write_best_params(out / "best_params.json", tr,
-                                     {name: getattr(args, name) for name in tuned.TUNED_FOR})
+                                     {name: getattr(args, name) for name in tuned.TUNED_FOR}, **feet)
         print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
         with study_io.writing(out, "recording.rrd"):
             study_io.write_recording(result, out / "recording.rrd")
@@ -912,7 +916,8 @@ def _add_output_args(p: argparse.ArgumentParser, default: str | None, shown: str
 
 def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bool = False) -> None:
     """``--friction``, ``--slope-deg`` and ``--payload-kg``, one name, unit and range in every command
-    (``many``: comma lists, every combination is run; ``robot``: deploy's, which only the simulated Go1 simulates)."""
+    (``many``: comma lists, every combination is run; ``robot``: deploy's, which only the simulated Go1 simulates),
+    and ``--foot-friction`` but on deploy."""
     kind, what = (_list_in, "comma list of ") if many else (_in, "")
     for name, allowed, default, text, on_robot in (
             ("--friction", limits.FRICTION, 0.6, "Coulomb friction", "sim only: "),
@@ -921,6 +926,11 @@ def _add_scenario_args(p: argparse.ArgumentParser, many: bool = False, robot: bo
         # a string default goes through the type like a typed value (and shows as typed in the help)
         p.add_argument(name, type=kind(allowed), default=f"{default:g}" if many else default, action=_Given,
                        help=f"{on_robot if robot else ''}{what}{text} in {allowed}")
+    if not robot:
+        p.add_argument("--foot-friction", type=_in(limits.FRICTION), default=None,
+                       help=f"the feet's Coulomb friction in {limits.FRICTION}: a contact takes the smaller of floor's "
+                       "and feet's, as the paper's Gazebo does (default: the physics profile's own, 0.6 under paper; "
+                       "none under soft and go1, where the floor's holds)")
 
 
 def _add_terrain_args(p: argparse.ArgumentParser) -> None:
@@ -1053,7 +1063,7 @@ def _add_walk(sub) -> None:
     _add_terrain_args(w)
     w.add_argument("--trials", type=_count(), default=2, help="back-to-back trials of 1.5 s + 3 s")
     _add_target_arg(w)
-    _add_physics_arg(w, physics_profiles.PAPER_STUDIES_PROFILE, many=True)
+    _add_physics_arg(w, physics_profiles.DEFAULT_PROFILE, many=True)
     _add_startup_arg(w, cpg.DEFAULT_STARTUP)
     w.add_argument("--out", type=_output_path, help="write walk.parquet (every trial) and metadata.json into this "
                    "folder, missing or empty (default: print the table only)")
@@ -1125,7 +1135,7 @@ def _add_optimize(sub) -> None:
     o.add_argument("--seed", type=_seed, default=0, help="the optimizer's random seed")
     o.add_argument("--safe", action="store_true", help=SAFE_HELP)
     _add_output_args(o, "results/optimize")
-    _add_physics_arg(o, physics_profiles.PAPER_STUDIES_PROFILE)
+    _add_physics_arg(o, physics_profiles.DEFAULT_PROFILE)
     _add_startup_arg(o, cpg.DEFAULT_STARTUP)
     backends.add_backend_argument(o)
     o.set_defaults(func=_optimize)

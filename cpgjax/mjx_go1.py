@@ -79,8 +79,8 @@ class BatchModel(NamedTuple):
 def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     """Per-instance MJX model data for a whole batch of scenarios, in one call.
 
-    Floor friction → ``geom_friction[floor, 0]`` (the floor has priority, docs/decisions.md §5; under the profile's
-    friction rule, ``physics_profiles.floor_friction``); slope →
+    Floor friction → ``geom_friction[floor, 0]`` (the floor has priority, docs/decisions.md §5), the μ in effect
+    with the feet's (``go1_model.effective_friction``); slope →
     ``opt.gravity``; payload and physics profile → every field they change, recomputed by ``mj_setConst`` once per
     distinct (payload, profile); terrain → the terrain model (``go1_model.load_terrain_model``) when some instance
     is not flat, its ``hfield_data`` per instance (a flat batch keeps the plane and its program).
@@ -107,8 +107,7 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     # then walks 0.09 m/s instead of 0.53), so MJX carries a negligible bound where a profile has no joint friction.
     updates["dof_frictionloss"] = jnp.maximum(updates["dof_frictionloss"], MIN_FRICTIONLOSS_NM)
     friction = np.broadcast_to(np.asarray(base.geom_friction), (batch,) + base.geom_friction.shape).copy()
-    friction[:, ids.floor_geom, 0] = [physics_profiles.floor_friction(physics_profiles.get(str(name)), mu)
-                                      for name, mu in zip(scenario.physics, scenario.friction, strict=True)]
+    friction[:, ids.floor_geom, 0] = go1_model.effective_friction(scenario)
     updates["geom_friction"] = jnp.asarray(friction, mx.geom_friction.dtype)
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
     if terrain:

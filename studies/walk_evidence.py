@@ -29,7 +29,7 @@ from cpgjax.trial import protocol
 
 
 def gait_figure(path: pathlib.Path, controller: str = "vmc_tegotae", seconds: float = 3.0) -> None:
-    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=[0.6]))
+    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=[0.6], physics="soft"))
     p = param_space.midpoint()[None]
     steps = int(seconds * 1000)
     _, log = sim.rollout(sim.reset(p), p, protocol.batch_gates([controller]), steps)

@@ -110,8 +110,8 @@ def test_grid_order_and_schedules():
     labels = study_spec.instances(spec)
     assert len(labels) == 2 * 2 * 2 * 2
     assert labels[0] == dict(controller="open_loop", gait="trot", seed=0, friction=0.3, slope_deg=0.0, payload_kg=0.0,
-                             target_velocity_mps=0.5, schedule="a", data_reuse=True, physics="soft",
-                             terrain_amplitude_m=0.0, terrain_seed=0)
+                             target_velocity_mps=0.5, schedule="a", data_reuse=True, physics="paper",
+                             terrain_amplitude_m=0.0, terrain_seed=0, foot_friction=-1.0)
     assert labels[1]["schedule"] == "b" and labels[2]["friction"] == 0.9 and labels[4]["seed"] == 1
     cond = study_spec.conditions(spec)
     np.testing.assert_array_equal(cond.payload_kg[0], [0, 0, 7.5, 7.5, 15])

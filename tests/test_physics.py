@@ -232,7 +232,7 @@ def test_mjx_batches_profile_fields_per_instance():
 def test_context_ranges_follow_the_profile_and_clipping_is_reported():
     paper = study_spec.StudySpec("t", physics=("paper",)).optimizer_config()
     assert (paper.context_lower, paper.context_upper) == ((15.0, -0.4), (55.0, 0.1))  # docs/decisions.md §11
-    assert study_spec.StudySpec("t").optimizer_config().context_upper == (75.0, 0.1)  # soft: the widened range
+    assert study_spec.StudySpec("t", physics=("soft",)).optimizer_config().context_upper == (75.0, 0.1)  # widened
     with pytest.raises(study_spec.StudyError, match="normalize c_load over different ranges"):
         study_spec.validate(study_spec.StudySpec("t", physics=("soft", "paper")))
     clipped, messages = optimizer_config.clip_context(paper, np.array([[60.0, -0.1], [30.0, 0.2], [40.0, 0.0]]),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import xml.etree.ElementTree as ElementTree
 from importlib import resources
 from typing import NamedTuple
@@ -23,6 +24,8 @@ from cpgjax.go1 import terrain as terrains
 MODEL_FILE = "go1.xml"
 JOINT_NAMES = tuple(f"{leg}_{part}_joint" for leg in constants.LEG_NAMES for part in constants.JOINT_PARTS)
 FOOT_SENSOR_NAMES = tuple(f"{leg}_foot_force" for leg in constants.LEG_NAMES)
+log = logging.getLogger(__name__)
+
 MAX_ABS_SLOPE_DEG = 45.0
 # docs/decisions.md §6: the payload is a rigid box of 0.3 x 0.2 x 0.1 m at the trunk's centre of mass.
 PAYLOAD_BOX_M = (0.3, 0.2, 0.1)
@@ -178,6 +181,9 @@ class Scenario(NamedTuple):
     """A batch of scenarios, one entry per instance, each an array of shape (batch,)."""
 
     friction: np.ndarray  # floor friction coefficient (the paper: 0.3 slippery, 0.6 normal, 0.9 coarse)
+    # The feet's μ: the contact takes the smaller of floor's and feet's (Gazebo's rule, physics.contact_friction);
+    # −1: the profile's own (paper: 0.6, the unitree_ros feet; soft, go1: none, the floor's μ holds).
+    foot_friction: np.ndarray
     slope_deg: np.ndarray  # terrain slope, uphill along +x (gravity rotated about y, docs/decisions.md §4)
     payload_kg: np.ndarray  # mass added on the trunk (docs/decisions.md §6)
     physics: np.ndarray  # str, the physics profile (cpgjax.go1.physics.PROFILES, docs/decisions.md §15)
@@ -197,17 +203,20 @@ class Scenario(NamedTuple):
 
 def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_profiles.DEFAULT_PROFILE,
                    mass_scale=1.0, latency_ticks=-1, noise_scale=-1.0, noise_seed=0, terrain=terrains.FLAT,
-                   terrain_amplitude_m=0.0, terrain_seed=0, terrain_step_m=0.0) -> Scenario:
+                   terrain_amplitude_m=0.0, terrain_seed=0, terrain_step_m=0.0, foot_friction=-1.0) -> Scenario:
     """Broadcast scalars or sequences to a batch of scenarios and validate them.
 
+    A floor μ above the feet's, which the contact does not feel (:func:`friction_notes`), is logged as a warning
+    naming the μ in effect, once per process for each profile and feet's μ.
+
     Raises:
-      ValueError: a non-finite value, friction ≤ 0, |slope| ≥ 45°, a negative payload, an unknown physics profile, a
-        mass scale outside [0.5, 1.5], a latency outside −1 … MAX_LATENCY_TICKS, a noise scale neither −1 nor in
-        [0, 5], a noise seed that is not an integer in [0, 2³²), or a terrain, amplitude or terrain seed that
-        ``terrain.check_terrain`` refuses; the message names the field, the value, the instance and the allowed
-        range.
+      ValueError: a non-finite value, friction ≤ 0, a foot friction neither −1 nor > 0, |slope| ≥ 45°, a negative
+        payload, an unknown physics profile, a mass scale outside [0.5, 1.5], a latency outside −1 …
+        MAX_LATENCY_TICKS, a noise scale neither −1 nor in [0, 5], a noise seed that is not an integer in [0, 2³²), or
+        a terrain, amplitude or terrain seed that ``terrain.check_terrain`` refuses; the message names the field, the
+        value, the instance and the allowed range.
     """
-    numbers = [np.atleast_1d(np.asarray(v, np.float64)) for v in (friction, slope_deg, payload_kg)]
+    numbers = [np.atleast_1d(np.asarray(v, np.float64)) for v in (friction, foot_friction, slope_deg, payload_kg)]
     arrays = np.broadcast_arrays(*numbers, np.atleast_1d(np.asarray(physics, str)),
                                  np.atleast_1d(np.asarray(mass_scale, np.float64)),
                                  np.atleast_1d(np.asarray(latency_ticks, np.float64)),
@@ -222,6 +231,7 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
         raise ValueError(f"scenario fields must be scalars or 1-D sequences, got shape {scenario.friction.shape}")
     checks = (
         ("friction", scenario.friction, lambda v: v > 0.0, "(0, inf)"),
+        ("foot_friction", scenario.foot_friction, lambda v: (v == -1.0) | (v > 0.0), "-1 (the profile's) or (0, inf)"),
         ("slope_deg", scenario.slope_deg, lambda v: np.abs(v) < MAX_ABS_SLOPE_DEG,
          f"(-{MAX_ABS_SLOPE_DEG}, {MAX_ABS_SLOPE_DEG})"),
         ("payload_kg", scenario.payload_kg, lambda v: v >= 0.0, "[0, inf)"),
@@ -250,7 +260,48 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
         i = unknown[0]
         raise ValueError(f"scenario physics = {str(scenario.physics[i])!r} (instance {i}) is not a profile; allowed: "
                          f"{tuple(physics_profiles.PROFILES)}")
+    for key, line in friction_notes(scenario).items():
+        _warn_once(key, line)
     return scenario
+
+
+def effective_friction(scenario: Scenario) -> np.ndarray:
+    """(batch,) the sliding μ each instance's feet feel on its floor (``physics.contact_friction``)."""
+    return np.array([physics_profiles.contact_friction(physics_profiles.get(str(name)), mu, foot)
+                     for name, mu, foot in zip(scenario.physics, scenario.friction, scenario.foot_friction,
+                                               strict=True)], np.float64).reshape(-1)
+
+
+def friction_notes(scenario: Scenario) -> dict[tuple[str, float], str]:
+    """(profile, feet's μ) → one line for each such pair of the batch whose floors include some above the feet's μ:
+    the contact takes the smaller μ, so those floors walk as the feet's."""
+    effective = effective_friction(scenario)
+    capped: dict[tuple[str, float], list[float]] = {}
+    for name, mu, foot, mu_in_effect in zip(scenario.physics, scenario.friction, scenario.foot_friction, effective,
+                                            strict=True):
+        if mu > mu_in_effect:
+            capped.setdefault((str(name), float(foot)), []).append(float(mu))
+    notes = {}
+    for (name, foot), floors in capped.items():
+        feet = float(physics_profiles.feet_friction(physics_profiles.get(name), foot))
+        whose = "the scenario's foot_friction" if foot >= 0.0 else f"the {name} profile's feet"
+        asked = sorted(set(floors))
+        shown = (", ".join(f"{mu:g}" for mu in asked) if len(asked) <= 4
+                 else f"{len(asked)} values from {asked[0]:g} to {asked[-1]:g}")
+        notes[(name, feet)] = (
+            f"friction above {feet:g} under physics {name} walks as {feet:g} (asked: {shown}): a contact takes the "
+            f"smaller μ of floor and feet (Gazebo's rule), and the feet's is {feet:g} ({whose}); a foot friction at "
+            "least the floor's (--foot-friction, scenario foot_friction) lets the floor's count")
+    return notes
+
+
+_SAID: set[tuple[str, float]] = set()  # the (profile, feet's μ) pairs whose line this process has logged
+
+
+def _warn_once(key: tuple[str, float], line: str) -> None:
+    if key not in _SAID:
+        _SAID.add(key)
+        log.warning(line)
 
 
 def gravity_vector(slope_deg) -> np.ndarray:
@@ -328,13 +379,13 @@ def scenario_ground(scenario: Scenario, i: int) -> terrains.Ground:
 
 
 def scenario_model(scenario: Scenario, i: int) -> mujoco.MjModel:
-    """The C-MuJoCo model of instance i: profile, payload, floor friction (under the profile's friction rule,
-    ``physics.floor_friction``) and gravity applied (a fresh copy)."""
+    """The C-MuJoCo model of instance i: profile, payload, the μ in effect on the floor (:func:`effective_friction`)
+    and gravity applied (a fresh copy)."""
     terrain = has_terrain(scenario)
     m = model_with_payload(float(scenario.payload_kg[i]), str(scenario.physics[i]),
                            float(scenario.mass_scale[i]), terrain).__copy__()
-    m.geom_friction[indices().floor_geom, 0] = physics_profiles.floor_friction(
-        physics_profiles.get(str(scenario.physics[i])), scenario.friction[i])
+    m.geom_friction[indices().floor_geom, 0] = physics_profiles.contact_friction(
+        physics_profiles.get(str(scenario.physics[i])), scenario.friction[i], scenario.foot_friction[i])
     m.opt.gravity[:] = gravity_vector(scenario.slope_deg[i])
     if terrain:
         m.hfield_data[:] = terrains.hfield_data(scenario_ground(scenario, i))

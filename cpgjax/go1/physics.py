@@ -3,14 +3,15 @@
 A profile is data, chosen per instance (docs/decisions.md §15; every constant and its source in docs/physics.md):
 
 * ``soft`` — MuJoCo's default soft contact, armature 0.01, light damping, no joint friction, the foot force as the
-  world-frame contact normal force at 1 kHz; the Python API's default, measured beside the other two in
-  docs/physics.md.
+  world-frame contact normal force at 1 kHz, measured beside the other two in docs/physics.md.
 * ``paper`` — the paper's Gazebo Go1 as closely as MuJoCo allows: near-rigid foot contact, the unitree_ros Gazebo
   joint damping and Coulomb friction, no reflected rotor inertia, Gazebo's velocity limits, and the paper's foot-force
   signal: the z component of the contact force in the calf frame, published at 100 Hz as the mean over the update's
   in-contact steps (the unitree_ros foot contact plugin), and Gazebo's friction rule (the smaller μ of floor and foot).
 * ``go1`` — the best estimate of the real robot: reflected rotor inertia, joint friction, the DC-motor torque-speed
   envelope, actuation latency, and the foot sensor's int16 counts of the contact normal force.
+
+``paper`` is the default of the command line and the Python API alike (:data:`DEFAULT_PROFILE`).
 
 Model fields (floor contact ``solref``/``solimp``, ``dof_armature``, ``dof_damping``, ``dof_frictionloss``) are
 applied to the MuJoCo model of each instance (batched model leaves in MJX, one ``MjModel`` per instance in C MuJoCo);
@@ -57,8 +58,9 @@ class PhysicsProfile(NamedTuple):
     foot_contact_layer_m: float
     foot_force_n_per_count: float  # > 0: the force is reported in int16 counts of this size (0: continuous)
     context_load_range_n: tuple[float, float]  # the c_load normalization range of this signal (decisions §11)
-    # Gazebo's friction rule: a contact's μ is the smaller of the two surfaces' (gazebo-classic ODEPhysics::Collide), so
-    # the floor's μ counts up to the feet's own; inf: MuJoCo's rule, the floor's μ (it has priority).
+    # The feet's own μ under Gazebo's friction rule: a contact's μ is the smaller of the two surfaces'
+    # (gazebo-classic ODEPhysics::Collide), so the floor's μ counts up to the feet's; inf: MuJoCo's rule, the floor's
+    # μ (it has priority). A scenario's ``foot_friction`` replaces it (:func:`contact_friction`).
     foot_friction: float
     # Sensor noise, drawn every tick independently per reading, uniform in ± the amplitude (0: none).
     joint_pos_noise_rad: float = 0.0  # each encoder angle
@@ -120,8 +122,8 @@ PROFILES: dict[str, PhysicsProfile] = {
 # `paper` with unitree_ros's physics rate: earth.world steps ODE every 0.2 ms (max_step_size 0.0002, commit 7325aa5
 # of 2022-02-09 to this day) where `paper` steps every 1 ms; the one-change run of the step (docs/physics.md).
 PROFILES["paper_5khz"] = PROFILES["paper"]._replace(physics_substeps=5)
-DEFAULT_PROFILE = "soft"  # what the Python API simulates when a call names no profile
-PAPER_STUDIES_PROFILE = "paper"  # the five paper studies, cpgjax walk and cpgjax optimize
+# What every command and the Python API simulate when none is named: the paper's simulator (docs/decisions.md §15).
+DEFAULT_PROFILE = "paper"
 ROBOT_PROFILE = "go1"  # the loopback simulated Go1 (cpgjax deploy --robot sim)
 
 
@@ -155,9 +157,17 @@ def model_fields(profile: PhysicsProfile, floor_geom: int, joint_dof: np.ndarray
     return fields
 
 
-def floor_friction(profile: PhysicsProfile, friction):
-    """The sliding μ of a foot-floor contact on a floor of μ ``friction`` under ``profile``'s friction rule."""
-    return np.minimum(np.asarray(friction, np.float64), profile.foot_friction)
+def feet_friction(profile: PhysicsProfile, foot_friction):
+    """The feet's μ: a scenario's ``foot_friction``, or where it is −1 the profile's own (inf: the feet have none, and
+    the floor's μ holds)."""
+    foot = np.asarray(foot_friction, np.float64)
+    return np.where(foot < 0.0, profile.foot_friction, foot)
+
+
+def contact_friction(profile: PhysicsProfile, friction, foot_friction=-1.0):
+    """The sliding μ of a foot-floor contact on a floor of μ ``friction``: the smaller of the floor's and the feet's
+    (:func:`feet_friction`; Gazebo's rule, the paper's simulator), which is the floor's where the feet have none."""
+    return np.minimum(np.asarray(friction, np.float64), feet_friction(profile, foot_friction))
 
 
 def apply_to_model(model: mujoco.MjModel, profile: PhysicsProfile, floor_geom: int, joint_dof: np.ndarray) -> None:

@@ -47,7 +47,9 @@ class WalkTrial(NamedTuple):
     trial: int
     controller: str
     gait: str  # cpg.GAITS
-    friction: float
+    friction: float  # the floor's μ asked for
+    friction_in_effect: float  # the μ the feet feel: the smaller of floor's and feet's (go1_model.effective_friction)
+    foot_friction: float  # the feet's μ asked for (−1: the profile's own)
     slope_deg: float
     payload_kg: float
     physics: str
@@ -66,8 +68,10 @@ def walk_trials(controllers=cpg.CONTROLLERS, gaits=(cpg.DEFAULT_GAIT,), friction
                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), backend: str = "auto",
                 physics=(physics_profiles.DEFAULT_PROFILE,), progress=print,
                 cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                ground: terrains.Ground = terrains.FLAT_GROUND) -> tuple[list[WalkTrial], dict]:
-    """Every combination of controller × gait × friction × slope × payload × physics profile on ``ground``,
+                ground: terrains.Ground = terrains.FLAT_GROUND,
+                foot_friction: float = -1.0) -> tuple[list[WalkTrial], dict]:
+    """Every combination of controller × gait × friction × slope × payload × physics profile on ``ground`` with the
+    feet's μ ``foot_friction`` (−1: each profile's own),
     ``num_trials`` trials back to back with the same parameters (default: the middle of the paper's ranges) on
     ``backend``
     (:func:`backends.make_backend`) with the controller's ``cpg_config`` (its start-up); returns every trial of every
@@ -82,7 +86,8 @@ def walk_trials(controllers=cpg.CONTROLLERS, gaits=(cpg.DEFAULT_GAIT,), friction
     grid = list(itertools.product(controllers, gaits, friction, slope_deg, payload_kg, physics))
     scenario = go1_model.make_scenarios(friction=[g[2] for g in grid], slope_deg=[g[3] for g in grid],
                                         payload_kg=[g[4] for g in grid], physics=[g[5] for g in grid],
-                                        **ground._asdict())
+                                        foot_friction=foot_friction, **ground._asdict())
+    in_effect = go1_model.effective_friction(scenario)
     p = np.tile(param_space.midpoint() if params is None else params, (len(grid), 1))
     gates = protocol.batch_gates([g[0] for g in grid], [g[1] for g in grid])
     sim = backends.make_backend(scenario, backend, cpg_config, trial_config)
@@ -101,7 +106,8 @@ def walk_trials(controllers=cpg.CONTROLLERS, gaits=(cpg.DEFAULT_GAIT,), friction
         progress(f"{k + 1}/{num_trials} trials done ({time.perf_counter() - t0:.1f} s)")
     run_s = time.perf_counter() - t1
     steps = len(grid) * (num_trials - 1) * (trial_config.transition_steps + trial_config.steady_steps)
-    trials = [WalkTrial(i, k, c, g, float(f), float(s), float(m), ph, float(target_velocity_mps), p[i],
+    trials = [WalkTrial(i, k, c, g, float(f), float(in_effect[i]), float(foot_friction), float(s), float(m), ph,
+                        float(target_velocity_mps), p[i],
                         protocol.TrialRecord(*(field[i] for field in record)), float(j[i]), v[i], float(cot[i]),
                         ground)
               for i, (c, g, f, s, m, ph) in enumerate(grid) for k, (record, j, v, cot) in enumerate(records)]
@@ -138,7 +144,7 @@ def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
         "walk": np.array([t.walk for t in trials], np.int64), "trial": np.array([t.trial for t in trials], np.int64)}
     for name in ("controller", "gait", "physics"):
         cols[name] = np.array([getattr(t, name) for t in trials])
-    for name in ("friction", "slope_deg", "payload_kg", "target_velocity_mps"):
+    for name in ("friction", "friction_in_effect", "foot_friction", "slope_deg", "payload_kg", "target_velocity_mps"):
         cols[name] = np.array([getattr(t, name) for t in trials], np.float64)
     cols["terrain"] = np.array([t.ground.terrain for t in trials])
     cols["terrain_amplitude_m"] = np.array([t.ground.terrain_amplitude_m for t in trials], np.float64)
@@ -162,11 +168,12 @@ def trial_columns(trials: list[WalkTrial]) -> dict[str, np.ndarray]:
 
 def trials_table(trials: list[WalkTrial]) -> str:
     """Every trial of every walk as a markdown table, labeled by walk and trial (numbered from 0)."""
-    head = ("| walk | trial | controller | gait | friction | slope [°] | payload [kg] | physics | v_x [m/s] | CoT "
-            f"| J (v*={trials[0].target_velocity_mps:g} m/s) | c_load [N] | c_slope [rad] | fell |")
-    lines = [head, "|" + "---|" * 14]
+    head = ("| walk | trial | controller | gait | friction | μ in effect | slope [°] | payload [kg] | physics "
+            f"| v_x [m/s] | CoT | J (v*={trials[0].target_velocity_mps:g} m/s) | c_load [N] | c_slope [rad] | fell |")
+    lines = [head, "|" + "---|" * 15]
     for t in trials:
-        lines.append(f"| {t.walk} | {t.trial} | {t.controller} | {t.gait} | {t.friction:.1f} | {t.slope_deg:.1f} "
+        lines.append(f"| {t.walk} | {t.trial} | {t.controller} | {t.gait} | {t.friction:g} "
+                     f"| {t.friction_in_effect:g} | {t.slope_deg:.1f} "
                      f"| {t.payload_kg:.1f} | {t.physics} | {t.velocity_xy_mps[0]:.3f} | {t.cot:.3f} "
                      f"| {t.objective:.3f} | {float(t.record.c_load_n):.1f} | {float(t.record.c_slope_rad):.3f} "
                      f"| {bool(t.record.fell > 0)} |")

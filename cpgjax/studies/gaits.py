@@ -17,6 +17,7 @@ import re
 import numpy as np
 
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
 from cpgjax.studies import registry
 from cpgjax.studies import video as study_video
@@ -58,11 +59,20 @@ def phases(result) -> list[list[Phase]]:
     return out
 
 
+def friction_text(friction: float, labels: dict) -> str:
+    """A floor's μ as the reports write it: with the μ in effect beside it where the feet's is smaller
+    (``physics.contact_friction``)."""
+    in_effect = float(physics_profiles.contact_friction(physics_profiles.get(str(labels["physics"])), friction,
+                                                        labels["foot_friction"]))
+    return f"μ {friction:g}" + (f" ({in_effect:g} in effect)" if in_effect < friction else "")
+
+
 def phase_text(result, b: int, phase: Phase) -> str:
     """A phase as the reports write it: its trials and conditions."""
     cond, (start, stop) = result.conditions, phase
     mode = ", inference mode" if cond.inference[b, start] else ""
-    return (f"trials {start}–{stop - 1}: μ {cond.friction[b, start]:g}, {cond.slope_deg[b, start]:g}°, "
+    return (f"trials {start}–{stop - 1}: {friction_text(float(cond.friction[b, start]), result.labels[b])}, "
+            f"{cond.slope_deg[b, start]:g}°, "
             f"{cond.payload_kg[b, start]:g} kg, v* {cond.target_velocity_mps[b, start]:g} m/s{mode}")
 
 
@@ -99,7 +109,8 @@ def best_gaits(result) -> list[study_video.Gait]:
             transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
             target_velocity_mps=float(cond.target_velocity_mps[b, t]), objective=float(tr.objective[t, b]),
             instance=b, trial=t, phase=phase_text(result, b, phase), walked=walked,
-            gait=str(result.labels[b]["gait"]), ground=study_spec.ground(result.labels[b])))
+            gait=str(result.labels[b]["gait"]), ground=study_spec.ground(result.labels[b]),
+            foot_friction=float(result.labels[b]["foot_friction"])))
     return gaits
 
 
@@ -120,6 +131,7 @@ def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None
         raise study_spec.StudyError("the gaits were found with different trial lengths; film them one at a time")
     scenario = go1_model.make_scenarios(friction=[g.friction for g in gaits], slope_deg=[g.slope_deg for g in gaits],
                                         payload_kg=[g.payload_kg for g in gaits], physics=[g.physics for g in gaits],
+                                        foot_friction=[g.foot_friction for g in gaits],
                                         **terrains.ground_fields(g.ground for g in gaits))
     return registry.rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config,
                              backend, config.steady_steps if steps is None else steps, [g.gait for g in gaits])

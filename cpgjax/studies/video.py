@@ -63,6 +63,7 @@ class Gait(NamedTuple):
     walked: bool | None = None  # false: no trial of its group walked (``cpgjax.studies.gaits``)
     gait: str = cpg.DEFAULT_GAIT  # the CPG's coupling pattern (``cpg.GAITS``)
     ground: terrains.Ground = terrains.FLAT_GROUND  # the ground it walked (its file: the Ground's three fields)
+    foot_friction: float = -1.0  # the feet's μ it walked on (go1_model.Scenario.foot_friction; −1: the profile's)
 
 
 # A gait file's fields besides what the parameters were tuned for (tuned.TUNED_FOR), required to film it again.

@@ -112,7 +112,8 @@ def checkpoint_files(out_dir) -> list[pathlib.Path]:
 
 # Fields a study sets only where it uses them; unset (None), they are not part of its definition, so a study without
 # them keeps the fingerprint of its other fields (and the checkpoints written before the fields existed resume).
-_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup", "switches", "gaits", "terrain_amplitude_m", "terrain_seed")
+_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup", "switches", "gaits", "terrain_amplitude_m", "terrain_seed",
+                       "foot_friction")
 
 
 def definition(spec) -> dict[str, str]:
@@ -537,6 +538,8 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     if result.spec.has_terrain():  # a study on the flat plane alone: the table as before terrains
         for field, values in terrains.ground_fields(map(study_spec.ground, result.labels)).items():
             cols[field] = values[inst]
+    if result.spec.foot_friction is not None:  # a study on the profiles' own feet: the table as before the axis
+        cols["foot_friction"] = np.array([lab["foot_friction"] for lab in result.labels], np.float64)[inst]
     params = per(tr.params)
     for i, name in enumerate(param_space.PARAM_NAMES):
         cols[name] = params[:, i]

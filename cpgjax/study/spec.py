@@ -147,6 +147,9 @@ class StudySpec:
       terrain_amplitude_m, terrain_seed: grid axes of the ground (``cpgjax.go1.terrain``): a rough ground's
         peak-to-peak height [m] (0: the flat plane) and the seed of its heights; None: the flat plane alone, and the
         trial table has no terrain columns.
+      foot_friction: a grid axis of the feet's μ (``go1_model.Scenario.foot_friction``: a contact takes the smaller
+        of floor's and feet's); None: each physics profile's own feet, and the trial table has no foot_friction
+        column.
     """
 
     name: str
@@ -172,6 +175,7 @@ class StudySpec:
     gaits: tuple[str, ...] | None = None
     terrain_amplitude_m: tuple[float, ...] | None = None
     terrain_seed: tuple[int, ...] | None = None
+    foot_friction: tuple[float, ...] | None = None
 
     def axis(self, field: str) -> tuple:
         """The values of the grid axis ``field`` (a field name); an unset one's default (:data:`UNSET_AXES`)."""
@@ -207,11 +211,13 @@ def startup_field(name: str | None) -> str | None:
     return None if name == cpg.DEFAULT_STARTUP else name
 
 
-UNSET_AXES = {"gaits": (cpg.DEFAULT_GAIT,), "terrain_amplitude_m": (0.0,), "terrain_seed": (0,)}
-"""The values of the grid axes a study leaves unset (None): the paper's trot on the flat plane."""
+UNSET_AXES = {"gaits": (cpg.DEFAULT_GAIT,), "terrain_amplitude_m": (0.0,), "terrain_seed": (0,),
+              "foot_friction": (-1.0,)}
+"""The values of the grid axes a study leaves unset (None): the paper's trot on the flat plane, on each profile's own
+feet."""
 
 LABELS = ("controller", "gait", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
-          "data_reuse", "physics", "terrain_amplitude_m", "terrain_seed")
+          "data_reuse", "physics", "terrain_amplitude_m", "terrain_seed", "foot_friction")
 
 
 def label_values(spec: StudySpec) -> dict[str, tuple]:
@@ -219,7 +225,7 @@ def label_values(spec: StudySpec) -> dict[str, tuple]:
     return dict(zip(LABELS, (spec.controllers, spec.axis("gaits"), spec.seeds, spec.friction, spec.slope_deg,
                              spec.payload_kg, spec.target_velocity_mps, tuple(s.label for s in spec.schedules),
                              spec.data_reuse, spec.physics, spec.axis("terrain_amplitude_m"),
-                             spec.axis("terrain_seed")), strict=True))
+                             spec.axis("terrain_seed"), spec.axis("foot_friction")), strict=True))
 
 
 def ground(labels: dict[str, Any]) -> terrains.Ground:
@@ -299,7 +305,7 @@ def validate(spec: StudySpec) -> Conditions:
         fail(f"max_trials = {spec.max_trials!r}; need an integer in [num_trials = {spec.num_trials}, "
              f"{limits.MAX_TRIALS}]")
     for axis in ("controllers", "gaits", "seeds", "friction", "slope_deg", "payload_kg", "target_velocity_mps",
-                 "schedules", "data_reuse", "physics", "terrain_amplitude_m", "terrain_seed"):
+                 "schedules", "data_reuse", "physics", "terrain_amplitude_m", "terrain_seed", "foot_friction"):
         values = spec.axis(axis)
         if len(values) == 0:
             fail(f"grid axis {axis} is empty")
@@ -365,12 +371,14 @@ def validate(spec: StudySpec) -> Conditions:
                 allowed.check(values[b, t], field)
             except ValueError as err:
                 fail(f"instance {b}, trial {t}: {err}")
-    terrain = terrains.ground_fields(map(ground, instances(spec)))
+    labels = instances(spec)
+    terrain = terrains.ground_fields(map(ground, labels))
+    physics, feet = ([lab[k] for lab in labels] for k in ("physics", "foot_friction"))
     try:
         for t in range(spec.num_trials):
-            go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t],
+            go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t], physics,
                                      mass_scale=cond.mass_scale[:, t], latency_ticks=cond.latency_ticks[:, t],
-                                     noise_scale=cond.noise_scale[:, t], **terrain)
+                                     noise_scale=cond.noise_scale[:, t], foot_friction=feet, **terrain)
     except ValueError as err:
         fail(f"trial {t}: {err}")
     return cond
@@ -393,6 +401,7 @@ GRID_AXES = {  # a study file's [grid] key → (StudySpec field, element kind, a
     "data_reuse": ("data_reuse", "bool", (True, False)),
     "terrain_amplitude_m": ("terrain_amplitude_m", "float", limits.ROUGHNESS_M),
     "terrain_seed": ("terrain_seed", "int", limits.TERRAIN_SEEDS),
+    "foot_friction": ("foot_friction", "float", limits.FRICTION),
 }
 SCHEDULE_RANGES = {"friction": limits.FRICTION, "slope_deg": limits.SLOPE_DEG, "payload_kg": limits.PAYLOAD_KG,
                    "target_velocity_mps": limits.TARGET_VELOCITY_MPS}  # inference and ramp: true or false
