@@ -18,11 +18,17 @@ UNITREE_ROS_FEET_MU = 0.6  # go1_description gazebo.xacro: mu1 = mu2 = 0.6 on ea
 PAPER_09 = "friction above 0.6 under physics paper walks as 0.6 (asked: 0.9)"  # a note's first clause
 
 
-@pytest.fixture(autouse=True)
-def _fresh_notes():
-    go1_model._SAID.clear()  # each test sees its own first time
-    yield
+@pytest.fixture
+def notes(caplog):
+    """The model's warnings in this test, which sees its own first time of each note."""
     go1_model._SAID.clear()
+    caplog.set_level(logging.WARNING, logger=go1_model.__name__)
+    yield caplog
+    go1_model._SAID.clear()
+
+
+def _lines(notes) -> list[str]:
+    return [r.getMessage() for r in notes.records if r.name == go1_model.__name__]
 
 
 def test_the_contact_takes_the_smaller_mu_of_floor_and_feet_in_both_backends():
@@ -47,23 +53,21 @@ def test_a_foot_friction_neither_the_profiles_nor_positive_is_refused_in_one_lin
         go1_model.make_scenarios(friction=[0.6, 0.6], foot_friction=[-1.0, bad])
 
 
-def test_a_floor_above_the_feet_mu_is_said_once_with_the_mu_in_effect(caplog):
-    with caplog.at_level(logging.WARNING, logger=go1_model.__name__):
-        go1_model.make_scenarios(friction=[0.3, 0.6, 0.9, 0.9], physics="paper")
-        go1_model.make_scenarios(friction=[0.9], physics="paper")  # the same again: nothing more
-    lines = [r.getMessage() for r in caplog.records]
+def test_a_floor_above_the_feet_mu_is_said_once_with_the_mu_in_effect(notes):
+    go1_model.make_scenarios(friction=[0.3, 0.6, 0.9, 0.9], physics="paper")
+    go1_model.make_scenarios(friction=[0.9], physics="paper")  # the same again: nothing more
+    lines = _lines(notes)
     assert len(lines) == 1, lines
     assert lines[0].startswith("friction above 0.6 under physics paper walks as 0.6 (asked: 0.9): a contact takes the "
                                "smaller μ of floor and feet")
     assert "the feet's is 0.6 (the paper profile's feet)" in lines[0] and "--foot-friction" in lines[0]
 
 
-def test_many_floors_above_the_feet_make_one_line(caplog):
-    with caplog.at_level(logging.WARNING, logger=go1_model.__name__):
-        go1_model.make_scenarios(friction=np.linspace(0.65, 0.95, 7), physics="paper")
-        go1_model.make_scenarios(friction=[1.2], physics="paper")  # the same profile and feet: said already
-        go1_model.make_scenarios(friction=[1.2], physics="soft", foot_friction=1.0)
-    lines = [r.getMessage() for r in caplog.records]
+def test_many_floors_above_the_feet_make_one_line(notes):
+    go1_model.make_scenarios(friction=np.linspace(0.65, 0.95, 7), physics="paper")
+    go1_model.make_scenarios(friction=[1.2], physics="paper")  # the same profile and feet: said already
+    go1_model.make_scenarios(friction=[1.2], physics="soft", foot_friction=1.0)
+    lines = _lines(notes)
     assert len(lines) == 2, lines
     assert "(asked: 7 values from 0.65 to 0.95)" in lines[0]
     assert lines[1].startswith("friction above 1 under physics soft walks as 1 (asked: 1.2)")
@@ -73,52 +77,46 @@ def test_many_floors_above_the_feet_make_one_line(caplog):
 @pytest.mark.parametrize("fields", [dict(friction=[0.9], physics="soft"),  # MuJoCo's rule: the floor's μ
                                     dict(friction=[0.6], physics="paper"),  # at the feet's, nothing lost
                                     dict(friction=[0.9], physics="paper", foot_friction=1.0)])
-def test_nothing_is_said_where_the_floor_counts(fields, caplog):
-    with caplog.at_level(logging.WARNING, logger=go1_model.__name__):
-        go1_model.make_scenarios(**fields)
-    assert caplog.records == []
+def test_nothing_is_said_where_the_floor_counts(fields, notes):
+    go1_model.make_scenarios(**fields)
+    assert _lines(notes) == []
 
 
-def test_a_study_says_it_before_any_compute_and_its_grid_sets_the_feet(caplog, tmp_path):
+def test_a_study_says_it_before_any_compute_and_its_grid_sets_the_feet(notes, tmp_path):
     spec = study_spec.StudySpec("mu", num_trials=2, friction=(0.6, 0.9), physics=("paper",))
-    with caplog.at_level(logging.WARNING, logger=go1_model.__name__):
-        study_spec.validate(spec)
-    assert [r.getMessage().split("):")[0] + ")" for r in caplog.records] == [PAPER_09]
-    caplog.clear()
+    study_spec.validate(spec)
+    assert [line.split("):")[0] + ")" for line in _lines(notes)] == [PAPER_09]
+    notes.clear()
     path = tmp_path / "feet.toml"
     path.write_text('name = "feet"\ntrials = 2\n[grid]\nfriction = [0.6, 0.9]\nfoot_friction = [1.0]\n')
     feet = study_spec.load(path)
-    with caplog.at_level(logging.WARNING, logger=go1_model.__name__):
-        study_spec.validate(feet)
-    assert caplog.records == []
+    study_spec.validate(feet)
+    assert _lines(notes) == []
     assert [lab["foot_friction"] for lab in study_spec.instances(feet)] == [1.0, 1.0]
     path.write_text('name = "feet"\ntrials = 2\n[grid]\nfoot_friction = [0.05]\n')
     with pytest.raises(study_spec.StudyError, match="grid.foot_friction"):
         study_spec.load(path)
 
 
-def test_walk_prints_the_mu_in_effect_beside_the_asked_one(capsys, caplog):
-    with caplog.at_level(logging.WARNING, logger=go1_model.__name__):
-        assert cli.main(["walk", "--controllers", "open_loop", "--friction", "0.6,0.9", "--trials", "1"]) == 0
+def test_walk_prints_the_mu_in_effect_beside_the_asked_one(capsys, notes):
+    assert cli.main(["walk", "--controllers", "open_loop", "--friction", "0.6,0.9", "--trials", "1"]) == 0
     out, _ = capsys.readouterr()
-    assert [r.getMessage().split("):")[0] + ")" for r in caplog.records] == [PAPER_09]
-    caplog.clear()
+    assert [line.split("):")[0] + ")" for line in _lines(notes)] == [PAPER_09]
+    notes.clear()
     rows = [line.split("|")[5:7] for line in out.splitlines() if line.startswith(("| 0 |", "| 1 |"))]
     assert [[c.strip() for c in r] for r in rows] == [["0.6", "0.6"], ["0.9", "0.6"]]
-    with caplog.at_level(logging.WARNING, logger=go1_model.__name__):
-        assert cli.main(["walk", "--controllers", "open_loop", "--friction", "0.9", "--foot-friction", "1.0",
-                         "--trials", "1"]) == 0
+    assert cli.main(["walk", "--controllers", "open_loop", "--friction", "0.9", "--foot-friction", "1.0",
+                     "--trials", "1"]) == 0
     out, _ = capsys.readouterr()
-    assert caplog.records == []
+    assert _lines(notes) == []
     row = next(line for line in out.splitlines() if line.startswith("| 0 |")).split("|")[5:7]
     assert [c.strip() for c in row] == ["0.9", "0.9"]
 
 
-def test_optimize_says_it_before_any_compute_and_takes_the_feet(caplog):
+def test_optimize_says_it_before_any_compute_and_takes_the_feet(notes):
     args = cli.build_parser().parse_args(["optimize", "--friction", "0.9", "--trials", "8"])
-    with caplog.at_level(logging.WARNING, logger=go1_model.__name__):
-        study_spec.validate(cli.optimize_spec(args))
-    assert [r.getMessage().split("):")[0] + ")" for r in caplog.records] == [PAPER_09]
+    study_spec.validate(cli.optimize_spec(args))
+    assert [line.split("):")[0] + ")" for line in _lines(notes)] == [PAPER_09]
     args = cli.build_parser().parse_args(["optimize", "--friction", "0.9", "--foot-friction", "0.9", "--trials", "8"])
     spec = cli.optimize_spec(args)
     assert spec.foot_friction == (0.9,) and study_spec.instances(spec)[0]["foot_friction"] == 0.9
