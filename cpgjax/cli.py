@@ -1101,8 +1101,10 @@ def _add_study(sub) -> None:
     s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help=f"trials per run, at least {limits.MIN_STUDY_TRIALS}; condition changes scale with it "
                    "(default: the file's trials; --quick its [quick] trials)")
+    seeds, trials = study_driver.quick_sizes()
     s.add_argument("--quick", action="store_true", help="the file's [quick] values: fewer seeds and trials (the "
-                   "paper's studies: 2 seeds, 12 to 42 trials; `--print` shows a study's)")
+                   f"shipped studies: {'/'.join(map(str, seeds))} seeds, {trials[0]} to {trials[-1]} trials; "
+                   "`--print` shows a study's)")
     s.add_argument("--max-trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
                    help=MAX_TRIALS_HELP)
     s.add_argument("--safe", action="store_true", help=SAFE_HELP)
@@ -1177,7 +1179,10 @@ def _add_deploy(sub) -> None:
                        "(`cpgjax deploy calibrate`: the foot-force calibration)",
                        description="Run the CPG controller at 1 kHz on a Go1 or on the loopback simulated Go1; "
                        "replay parameters or optimize them online. `cpgjax deploy calibrate --help`: the foot-force "
-                       "calibration.", formatter_class=_HelpFormatter)
+                       "calibration.", formatter_class=_HelpFormatter,
+                       # --robot is required, but argparse could only say so by asking for it before `calibrate` too
+                       usage="cpgjax deploy --robot {sim,go1} [options]\n       cpgjax deploy calibrate --robot "
+                       "{sim,go1} [options]")
     _add_robot_args(d, robot_required=False)  # _deploy requires it: argparse would ask for it before `calibrate` too
     what = d.add_mutually_exclusive_group()
     what.add_argument("--params", type=_params_file, help="replay these parameters: a best_params.json (of "

@@ -212,6 +212,9 @@ def joined(results: list[LoopResult]) -> LoopResult:
 
 
 OVERRUN_CAUSES = ("late_start", "not_running", "work_cpu")
+# The loop's target: at most this many overruns per 10k ticks, about what an empty loop achieves on a VM (its
+# measured floor, docs/hardware.md "The floor").
+OVERRUN_TARGET_PER_10K = 1.0
 
 
 def overrun_causes(log: TickLog) -> np.ndarray:
@@ -262,9 +265,25 @@ def timing_table(timing: dict, deadlines: bool = True) -> str:
         causes = ", ".join(f"{name.replace('_', ' ')} {timing[f'overruns_{name}']}" for name in OVERRUN_CAUSES)
         lines.append(f"overruns         {timing['overruns']} in {timing['ticks']} ticks "
                      f"({timing['overruns_per_10k_ticks']:.2f} per 10k; {causes})")
+        lines.append(overrun_verdict(timing))
     else:
         lines.append(f"overruns         do not apply: lockstep pacing has no deadlines ({timing['ticks']} ticks)")
     return "\n".join(lines)
+
+
+def overrun_verdict(timing: dict) -> str:
+    """One line: whether the run's overruns met the loop's target (:data:`OVERRUN_TARGET_PER_10K`), and where they
+    did not, their largest cause and what helps against it (docs/hardware.md)."""
+    rate = timing["overruns_per_10k_ticks"]
+    target = f"the loop's target of at most {OVERRUN_TARGET_PER_10K:g} per 10k ticks"
+    if rate <= OVERRUN_TARGET_PER_10K:
+        return f"verdict: met {target}"
+    cause = max(OVERRUN_CAUSES, key=lambda name: timing[f"overruns_{name}"])
+    helps = {"late_start": "--busy-wait, or a CPU of its own (--cpu) with idle CPUs polling",
+             "not_running": "a machine whose host does not stall it (a VM's virtual CPU was descheduled)",
+             "work_cpu": "a CPU of its own (--cpu) and SCHED_FIFO (without --no-realtime)"}[cause]
+    return (f"verdict: missed {target} ({rate:.2f}); most were {cause.replace('_', ' ')}: {helps} "
+            "(docs/hardware.md)")
 
 
 def _enter_realtime(loop: LoopConfig):

@@ -970,3 +970,26 @@ def test_ctrl_c_stopping_the_web_viewer_says_so_not_that_outputs_are_written(tmp
         signal.signal(signal.SIGINT, previous)
     err = capsys.readouterr().err
     assert "the viewer is stopped" in err and "outputs are written" not in err and len(stopped) == 1
+
+
+def test_deploy_help_shows_robot_as_required(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["deploy", "--help"])
+    usage = capsys.readouterr().out.split("\n\n")[0]
+    assert usage.startswith("usage: cpgjax deploy --robot {sim,go1} [options]")
+    assert "[--robot" not in usage
+
+
+def test_dry_run_estimates_the_wall_time_from_this_machines_measured_rate(tmp_path, capsys, monkeypatch):
+    from cpgjax.study import rate
+
+    monkeypatch.setenv("CPGJAX_CACHE_DIR", str(tmp_path / "cache"))
+    argv = ["study", "friction", "--quick", "--dry-run", "--backend", "native", "--out", str(tmp_path / "f")]
+    assert cli.main(argv) == 0
+    assert "no native study has run on this machine yet, so no wall-time estimate" in capsys.readouterr().out
+    # 6 instances × 12 trials × 4,500 steps = 324,000 env-steps; at a measured 5,400 env-steps/s that is 60 s
+    rate.record("native", {"env_steps_per_s": 5400.0, "wall_s": 100.0}, "controller_ablation", 8)
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "324,000 env-steps" in out and "about 1.0 min at this machine's latest measured rate (5,400 env-steps/s: " \
+        "controller_ablation, 8 instances, " in out

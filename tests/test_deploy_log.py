@@ -147,4 +147,19 @@ def test_a_replay_on_the_simulated_go1_logs_its_true_state_beside_the_estimate(t
                           "transition_s": 1.5, "steady_s": 3.0, "duration_s": 9.5, "num_trials": None,
                           "optimizer": None, "seed": 0,
                           "params_file": str(params_file), "params": REPLAYED, "trial_params": None}
-    assert "(the simulated Go1's truth: v_x" in out.stderr + out.stdout
+    # the outcome on stdout, the progress on stderr
+    assert "(the simulated Go1's truth: v_x" in out.stdout and "how the robot walked" in out.stdout
+    assert "overruns         do not apply: lockstep pacing" in out.stdout
+    assert "how the robot walked" not in out.stderr
+
+
+@pytest.mark.parametrize("overruns, causes, verdict", [
+    (1, (1, 0, 0), "verdict: met the loop's target of at most 1 per 10k ticks"),
+    (2, (0, 0, 2), "verdict: missed the loop's target of at most 1 per 10k ticks (2.00); most were work cpu: "),
+    (30, (25, 5, 0), "verdict: missed the loop's target of at most 1 per 10k ticks (30.00); most were late start: "
+                     "--busy-wait")])
+def test_the_timing_says_whether_the_overruns_met_the_loops_target(overruns, causes, verdict):
+    timing = {"ticks": 10_000, "overruns": overruns, "overruns_per_10k_ticks": float(overruns),
+              **{f"overruns_{name}": n for name, n in zip(hio.OVERRUN_CAUSES, causes, strict=True)},
+              **{f"{k}_{q}_us": 100.0 for k in ("step", "work", "period") for q in ("median", "p99", "max")}}
+    assert hio.timing_table(timing).splitlines()[-1].startswith(verdict)

@@ -294,9 +294,9 @@ def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | No
     walked = ("\n".join(walked_line(row) for row in rows) if rows else
               "no trial completed (a trial is 1.5 s of settling then 3 s measured)" if not args.optimize else
               "no trial completed")
-    log.info("%s; per-tick log %s\nhow the robot walked (its own sensors):\n%s%s\n%s%s", ended,
-             args.log_dir / tick_log.FILE_NAME, walked, truth_line,
-             hio.timing_table(summary["timing"], deadlines=not lockstep), shared)
+    # the run's outcome on stdout (its progress was logged on stderr)
+    print(f"{ended}; per-tick log {args.log_dir / tick_log.FILE_NAME}\nhow the robot walked (its own sensors):\n"
+          f"{walked}{truth_line}\n{hio.timing_table(summary['timing'], deadlines=not lockstep)}{shared}", flush=True)
     return 2 if result.trip else 130 if result.stopped else 0
 
 

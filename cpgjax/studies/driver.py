@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pathlib
 import sys
+import tomllib
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -53,6 +54,18 @@ BEYOND_THE_PAPER = ("gaits", "rough_terrain")
 def shipped_studies() -> list[str]:
     """The names of the studies shipped in ``studies/`` (each ``<name>.toml``)."""
     return sorted(p.stem for p in STUDY_FOLDER.glob(f"*{study_spec.STUDY_FILE_SUFFIX}"))
+
+
+def quick_sizes() -> tuple[list[int], list[int]]:
+    """The seeds and the trials the shipped studies' ``[quick]`` tables give (sorted, distinct), read from the files
+    without running their checks (``study --help`` states them)."""
+    seeds, trials = set(), set()
+    for name in shipped_studies():
+        data = tomllib.loads((STUDY_FOLDER / f"{name}{study_spec.STUDY_FILE_SUFFIX}").read_text())
+        quick = data.get("quick", {})
+        seeds.add(quick.get("seeds", data.get("seeds")))
+        trials.add(quick.get("trials", data.get("trials")))
+    return sorted(seeds - {None}), sorted(trials - {None})
 
 
 def paper_studies() -> list[str]:

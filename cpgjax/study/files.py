@@ -39,6 +39,7 @@ import cpgjax
 from cpgjax import compile_cache, provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
+from cpgjax.study import rate
 from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import StudyError
@@ -606,7 +607,8 @@ def output_folder(name: str, out=None) -> pathlib.Path:
 
 
 def run_plan(spec, out_dir, backend: str, start: int) -> str:
-    """One line on what a study run would compute (``--dry-run``): instances, trials, env-steps, where it writes."""
+    """One line on what a study run would compute (``--dry-run``): instances, trials, env-steps, where it writes, and
+    its wall time at this machine's measured rate (:func:`rate.estimate`)."""
     batch = len(study_spec.instances(spec))
     steps = spec.trial.transition_steps + spec.trial.steady_steps
     remaining = batch * (spec.num_trials - start) * steps
@@ -616,7 +618,7 @@ def run_plan(spec, out_dir, backend: str, start: int) -> str:
     where = f"resuming {out_dir} at trial {start}" if start else f"writing {out_dir}/"
     return (f"{spec.name}: {batch} instances ({axes or 'one'}) × {spec.num_trials} trials of {steps * 0.001:g} s"
             f"{', safe' if spec.safe else ''}: {remaining:,} env-steps ({remaining * 0.001 / 3600:.2f} robot-hours) "
-            f"on the {backend} backend, {where}")
+            f"on the {backend} backend, {where}; {rate.estimate(backend, remaining)}")
 
 
 def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
@@ -644,14 +646,17 @@ def write_metadata(result, path, extra: dict | None = None, command: str | None 
     """``metadata.json``: the study, how it was run (``command``: the exact command line) and its run figures
     (``compiled_programs``: how many of the process's programs were loaded from the cache of compiled programs and
     how many compiled, which the first trial's time depends on; null without the cache)."""
+    figures = run_figures(result)
     meta = dict(study=result.spec.name, command=command, cpgjax_version=cpgjax.__version__,
                 git_commit=provenance.git_commit(),
                 instances=len(result.labels), trials=int(result.trials.objective.shape[0]),
                 backend=result.backend, sharded_over=result.devices, spec=repr(result.spec),
                 optimizer=dataclasses.asdict(result.spec.optimizer_config()),
-                **run_figures(result), environment=provenance.environment(),
+                **figures, environment=provenance.environment(),
                 compiled_programs=compile_cache.counts(), **(extra or {}))
     pathlib.Path(path).write_text(json.dumps(meta, indent=2, default=str))
+    if result.wall_s > 0.0:
+        rate.record(result.backend, figures, result.spec.name, len(result.labels))
     return meta
 
 
