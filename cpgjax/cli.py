@@ -1215,7 +1215,7 @@ def _add_deploy(sub) -> None:
                    help="the optimizer's random seed, and with --robot sim the simulated sensors' noise stream")
     d.set_defaults(func=functools.partial(_deploy, d))
 
-    c = d.add_subparsers(title="subcommands").add_parser(
+    c = d.add_subparsers(title="subcommands", prog="cpgjax deploy").add_parser(
         "calibrate", help="measure the foot-force sensors and save their calibration",
         description="Measure the Go1's foot-force sensors (feet in the air, then standing) and save their "
         "calibration to raw counts → N.", formatter_class=_HelpFormatter)

@@ -22,13 +22,13 @@ PAPER_09 = "friction above 0.6 under physics paper walks as 0.6 (asked: 0.9)"  #
 def notes(caplog):
     """The model's warnings in this test, which sees its own first time of each note."""
     go1_model._SAID.clear()
-    caplog.set_level(logging.WARNING, logger=go1_model.__name__)
+    caplog.set_level(logging.WARNING, logger=go1_model.log.name)
     yield caplog
     go1_model._SAID.clear()
 
 
 def _lines(notes) -> list[str]:
-    return [r.getMessage() for r in notes.records if r.name == go1_model.__name__]
+    return [r.getMessage() for r in notes.records if r.name == go1_model.log.name]
 
 
 def test_the_contact_takes_the_smaller_mu_of_floor_and_feet_in_both_backends():
