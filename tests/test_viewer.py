@@ -55,6 +55,14 @@ def _descendants(pid: int) -> set[int]:
     return children
 
 
+def _running(pid: int) -> bool:
+    """The process exists and is not a zombie (ended, its status not yet collected)."""
+    try:
+        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] not in "ZX"
+    except OSError:
+        return False
+
+
 class _DevTools:
     """The least of the Chrome DevTools protocol: numbered calls on one websocket, events skipped."""
 
@@ -128,6 +136,37 @@ def test_the_idle_viewer_uses_almost_no_cpu():
     figures = json.loads(done.stdout.splitlines()[-1])
     assert len(figures["processes"]) >= 2, figures  # the command and rerun's viewer server at least
     assert figures["total_percent_of_a_core"] < IDLE_PERCENT, figures
+
+
+# Python keeps SIGINT ignored in a child of a shell that ignores it (a background job): give the command Python's own
+# Ctrl-C handler, as a terminal would.
+_WITH_CTRL_C = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+                "sys.argv = ['cpgjax', *sys.argv[1:]]; runpy.run_module('cpgjax.cli', run_name='__main__')")
+
+
+def test_ctrl_c_stops_the_viewer_and_says_so(tmp_path):
+    """Ctrl-C on a running `cpgjax show --web`: exit 0, "the viewer is stopped" (not a study's "its outputs are
+    written"), and no process of it left."""
+    _record(tmp_path)
+    proc = subprocess.Popen([sys.executable, "-c", _WITH_CTRL_C, "show", str(tmp_path), "--web", "--port",
+                             str(_free_port())], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                            env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO)))
+    try:
+        printed = ""
+        while "Ctrl-C stops it" not in printed:
+            line = proc.stdout.readline()
+            assert line, printed + proc.stderr.read()
+            printed += line
+        ours = _descendants(proc.pid) - {proc.pid}
+        assert ours  # rerun's launcher and its server
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "cpgjax show: the viewer is stopped" in err and "outputs are written" not in err and "Traceback" not in err
+    assert not [pid for pid in ours if _running(pid)]
 
 
 @pytest.fixture
