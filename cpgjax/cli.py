@@ -224,7 +224,7 @@ def _walk_video(args) -> int:
                             trial.steady_steps, args.target_velocity_mps, gait=args.gaits[0], ground=ground)
     (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
     try:
-        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground)])
+        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground, gait.payload_kg)])
     except (study_video.RenderUnavailable, RuntimeError) as err:
         print(f"cpgjax walk: {err}", file=sys.stderr)
         return code or 1
