@@ -98,7 +98,8 @@ class _NoRedirect(urllib.request.HTTPRedirectHandler):
 
 def test_the_plain_address_leads_to_the_viewer_with_the_recording(tmp_path):
     """``/`` answers with a redirect to the viewer's page told the recording's address (the Host asked for, as a
-    tunnel's local end would be); that address is the recording file; the viewer's own files are passed on."""
+    tunnel's local end would be); that address is the recording file; the viewer's own files are passed on; a request
+    naming another host is refused."""
     _record(tmp_path)
     served = viewer.serve(tmp_path / "recording.rrd", _free_port())
     try:
@@ -120,6 +121,11 @@ def test_the_plain_address_leads_to_the_viewer_with_the_recording(tmp_path):
             urllib.request.build_opener(_NoRedirect).open(through_a_tunnel, timeout=30)
         assert redirect.value.headers["Location"] == (
             "/?renderer=webgl&url=" + urllib.parse.quote("http://localhost:8000/recording.rrd", safe=""))
+        for path in ("", "recording.rrd"):  # another site's name for this address gets nothing
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(urllib.request.Request(plain + path, headers={"Host": f"evil.example:{port}"}),
+                                       timeout=30)
+            assert refused.value.code == 403
         with urllib.request.urlopen(urllib.parse.urljoin(plain, "re_viewer_bg.wasm"), timeout=60) as wasm:
             assert wasm.headers["Content-Type"] == "application/wasm" and wasm.read(4) == b"\0asm"
     finally:

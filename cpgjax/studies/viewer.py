@@ -37,6 +37,7 @@ DEFAULT_WEB_PORT = 9090
 START_S = 20.0  # how long rerun's viewer server may take to listen
 RECORDING_PATH = "/recording.rrd"  # where the front server serves the recording
 CHUNK_BYTES = 1 << 16
+LOOPBACK_NAMES = (HOST, "localhost")  # the host names a browser here or at a tunnel's local end asks for
 
 
 def rerun_executable() -> str | None:
@@ -81,9 +82,12 @@ def _front_handler(recording: pathlib.Path, viewer_port: int) -> type[http.serve
         # HTTP/1.0 (the default): one request per connection, a body without a length ends with the connection
         def do_GET(self):  # noqa: N802 (http.server's name)
             path, _, query = self.path.partition("?")
-            if path == "/" and "url" not in urllib.parse.parse_qs(query):
+            host = self.headers.get("Host", f"{HOST}:{self.server.server_port}")
+            if urllib.parse.urlsplit(f"http://{host}").hostname not in LOOPBACK_NAMES:
+                # a page of another site that renamed itself to 127.0.0.1 (DNS rebinding) reads nothing
+                self.send_error(403, f"this viewer answers requests for {', '.join(LOOPBACK_NAMES)} only")
+            elif path == "/" and "url" not in urllib.parse.parse_qs(query):
                 self.send_response(302)
-                host = self.headers.get("Host", f"{HOST}:{self.server.server_port}")
                 self.send_header("Location", viewer_location(host, query))
                 self.end_headers()
             elif path == RECORDING_PATH:
