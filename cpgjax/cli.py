@@ -224,7 +224,7 @@ def _walk_video(args) -> int:
                             trial.steady_steps, args.target_velocity_mps, gait=args.gaits[0], ground=ground)
     (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
     try:
-        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground)])
+        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground, gait.payload_kg)])
     except (study_video.RenderUnavailable, RuntimeError) as err:
         print(f"cpgjax walk: {err}", file=sys.stderr)
         return code or 1
@@ -829,10 +829,9 @@ def _show_web(args) -> int:
     except study_spec.StudyError as err:
         print(f"cpgjax show: {err}", file=sys.stderr)
         return 2
-    web, grpc = args.port, args.port + 1
     print(f"serving {recording} in rerun's web viewer on 127.0.0.1 only (pid {proc.pid}); open\n"
-          f"  {study_viewer.url(web, grpc)}\n"
-          f"from another machine, tunnel both ports first:\n  {study_viewer.tunnel_line(web, grpc)}\n"
+          f"  {study_viewer.url(args.port)}\n"
+          f"from another machine, tunnel its port first:\n  {study_viewer.tunnel_line(args.port)}\n"
           "Ctrl-C stops it.", flush=True)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill, like Ctrl-C, stops the viewer first
     try:
@@ -1159,9 +1158,8 @@ def _add_show(sub) -> None:
     backends.add_backend_argument(v)
     v.add_argument("--web", action="store_true", help="serve the recording in rerun's web viewer on 127.0.0.1 (for "
                    "a browser here or through an ssh tunnel) until Ctrl-C")
-    v.add_argument("--port", type=_integer_in(range(1024, 65535), "an unprivileged TCP port; the recording uses "
-                   "it + 1"), default=study_viewer.DEFAULT_WEB_PORT, help="--web: the viewer page's port (the "
-                   "recording's is the next one)")
+    v.add_argument("--port", type=_integer_in(range(1024, 65536), "an unprivileged TCP port"),
+                   default=study_viewer.DEFAULT_WEB_PORT, help="--web: the viewer's port (the page and the recording)")
     v.set_defaults(func=_show_command)
 
 

@@ -122,3 +122,33 @@ def test_the_world_is_tilted_by_the_slope_and_the_arrows_are_the_forces(recorded
         assert np.all(vectors[:, :2] == 0)
     phase = _first(_column(chunks, f"{base}/cpg/phase_rad/FL", "Scalars:scalars"))
     np.testing.assert_allclose(phase, log.phase_rad[:, 1])
+
+
+def test_the_payload_is_a_box_at_the_carrier_body_and_absent_without_one(recorded, tmp_path):
+    """A rollout with a payload (the fixture's 2 kg): ``robot/payload/boxes`` is one box of the payload's size, and its
+    transforms put the box's centre at the carrier body's place in the trunk (go1.xml's ``payload`` pos) at every
+    recorded tick; the same rollout without a payload records no payload entity."""
+    log, rollout, base, chunks = recorded
+    (half,) = _column(chunks, f"{base}/world/robot/payload/boxes", "Boxes3D:half_sizes")[0]
+    np.testing.assert_allclose(np.array(half, float), np.asarray(go1_model.PAYLOAD_BOX_M) / 2, rtol=1e-6)
+    ids = go1_model.indices()
+    carrier_m = go1_model.load_model().body_pos[ids.payload_body]
+    np.testing.assert_allclose(carrier_m, [0.0223, 0.002, -0.0005])  # at the trunk's centre of mass
+    pos = _first(_column(chunks, f"{base}/world/robot/payload", "Transform3D:translation"))
+    quat = _first(_column(chunks, f"{base}/world/robot/payload", "Transform3D:quaternion"))
+    for row, tick in enumerate(np.arange(0, TICKS, scene.TICK_STRIDE)):
+        q = log.qpos[tick]
+        trunk_quat = q[ids.root_qpos + 3:ids.root_qpos + 7]
+        np.testing.assert_allclose(pos[row], q[ids.root_qpos:ids.root_qpos + 3]
+                                   + attitude.quat_rotate(trunk_quat, carrier_m), atol=1e-6)
+        np.testing.assert_allclose(np.abs(quat[row, [3, 0, 1, 2]] @ trunk_quat), 1.0, atol=1e-6)  # the trunk's axes
+
+    path = tmp_path / "unladen.rrd"
+    rec = rr.RecordingStream("test_scene")
+    rec.save(str(path))
+    unladen = "/" + scene.log_rollout(rec, rollout._replace(payload_kg=0.0))
+    rec.flush()
+    rec.disconnect()
+    entities = {chunk.entity_path for chunk in RrdReader(path).stream()}
+    assert f"{unladen}/world/robot/trunk" in entities
+    assert not [e for e in entities if "/robot/payload" in e]

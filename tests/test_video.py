@@ -144,3 +144,22 @@ def test_show_names_a_study_video_and_a_cut_one(tmp_path, capsys):
     assert cli.main(["show", str(tmp_path), "--no-viewer"]) == 1
     listed, = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  best_vmc.mp4 ")]
     assert "[best_vmc.mp4: not a complete MP4 video" in listed, listed
+
+
+def test_a_payload_is_drawn_on_the_trunk(tmp_path):
+    """The same standing frame with and without a 15 kg payload: the payload's box (a geom of the scene, not of the
+    model) changes the picture around the trunk, in the payload's colour, and nothing away from the robot."""
+    stand = np.tile(go1_model.standing_qpos(go1_model.load_visual_model()), (40, 1))
+    jobs = [video.Job(tmp_path / "unladen.mp4", stand), video.Job(tmp_path / "laden.mp4", stand, payload_kg=15.0)]
+    try:
+        unladen, laden = (info["strip"][0].astype(int) for info in video.render_videos(jobs, width=320, height=240))
+    except video.RenderUnavailable as err:
+        pytest.skip(f"no OpenGL backend: {err}")
+    changed = np.abs(laden - unladen).max(axis=2) > 30
+    rows, cols = np.nonzero(changed)
+    assert changed.mean() > 0.005, changed.mean()  # the box shows
+    assert abs(rows.mean() / 240 - 0.5) < 0.15 and abs(cols.mean() / 320 - 0.5) < 0.15  # where the trunk is
+    assert not changed[:40].any() and not changed[-20:].any()  # the sky and the floor in front stay as they were
+    orange = np.array(go1_model.PAYLOAD_RGBA[:3]) * 255
+    hue = laden[changed] / np.maximum(laden[changed].max(axis=1, keepdims=True), 1)
+    assert np.median(np.abs(hue - orange / orange.max()).max(axis=1)) < 0.25  # lit, but the payload's colour

@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 MAX_ABS_SLOPE_DEG = 45.0
 # docs/decisions.md §6: the payload is a rigid box of 0.3 x 0.2 x 0.1 m at the trunk's centre of mass.
 PAYLOAD_BOX_M = (0.3, 0.2, 0.1)
+# The payload carrier has no geom (the simulated model stays as is): videos and recordings draw that box at the
+# carrier body's pose in this colour, where the payload is not zero.
+PAYLOAD_RGBA = (0.9, 0.5, 0.1, 1.0)
 # Standing pose: feet under the hips at the controller's nominal height h = 0.30 m (foot centre), x at the middle
 # of the x-offset range; the foot sphere radius puts the trunk origin at 0.32 m.
 STAND_FOOT_X_M = -0.035

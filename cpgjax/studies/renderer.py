@@ -51,10 +51,11 @@ def unavailable(err: BaseException) -> int:
     return UNAVAILABLE
 
 
-def render_frames(qpos, slope_deg: float, width: int, height: int, ground=None):
+def render_frames(qpos, slope_deg: float, width: int, height: int, ground=None, payload_kg: float = 0.0):
     """Frames (height, width, 3) uint8 of the visual model at each qpos row (T, nq) on ``ground`` (a
-    ``terrain.Ground``; None: flat), camera following the trunk. Needs a working OpenGL backend in this process
-    (MUJOCO_GL)."""
+    ``terrain.Ground``; None: flat), camera following the trunk, with the payload's box (``go1_model.PAYLOAD_BOX_M``,
+    a geom added to the scene, not to the model) where ``payload_kg`` is not zero. Needs a working OpenGL backend
+    in this process (MUJOCO_GL)."""
     import mujoco
 
     from cpgjax.go1 import attitude
@@ -75,6 +76,8 @@ def render_frames(qpos, slope_deg: float, width: int, height: int, ground=None):
             camera.lookat[:] = attitude.quat_rotate(tilt, row[root:root + 3])
             renderer.update_scene(d, camera)
             scene = renderer.scene
+            if payload_kg > 0.0:
+                _add_payload(scene, d, go1_model.indices().payload_body)
             scene.enabletransform = 1
             scene.rotate[:] = tilt
             scene.translate[:] = 0.0
@@ -82,6 +85,21 @@ def render_frames(qpos, slope_deg: float, width: int, height: int, ground=None):
             yield renderer.render()
     finally:
         renderer.close()
+
+
+def _add_payload(scene, d, body: int) -> None:
+    """The payload's box at the carrier body's pose, appended to the scene's geoms (the scene's transform, the
+    slope's rotation, applies to it as to the model's)."""
+    import mujoco
+
+    from cpgjax.go1 import model as go1_model
+
+    if scene.ngeom >= scene.maxgeom:
+        raise RuntimeError(f"the scene holds its most geoms ({scene.maxgeom}): no room for the payload's box")
+    half_m = np.asarray(go1_model.PAYLOAD_BOX_M) / 2
+    mujoco.mjv_initGeom(scene.geoms[scene.ngeom], int(mujoco.mjtGeom.mjGEOM_BOX), half_m, d.xpos[body], d.xmat[body],
+                        np.asarray(go1_model.PAYLOAD_RGBA, np.float32))
+    scene.ngeom += 1
 
 
 def _encode(path: str, frames, fps: int, keep: np.ndarray) -> tuple[int, np.ndarray]:
@@ -107,12 +125,13 @@ def render_jobs(jobs_file: str) -> int:
 
     with np.load(jobs_file) as z:
         slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
+        payloads = z["payload_kg"]
         paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
         grounds = [terrains.Ground(str(kind), float(a), int(s), float(d)) for kind, a, s, d in zip(
             z["terrain"], z["terrain_amplitude_m"], z["terrain_seed"], z["terrain_step_m"], strict=True)]
     for k, path in enumerate(paths):
         t0 = time.perf_counter()
-        frames = render_frames(qpos[k], float(slopes[k]), width, height, grounds[k])
+        frames = render_frames(qpos[k], float(slopes[k]), width, height, grounds[k], float(payloads[k]))
         try:
             first = next(frames)
         except Exception as err:  # the GL backends fail with many types (ImportError, OSError, GL errors...)

@@ -126,12 +126,13 @@ def frame_ticks(num_ticks: int, fps: int = FPS) -> np.ndarray:
 
 class Job(NamedTuple):
     """One video to make: the MP4 ``path`` of ``qpos`` (T, nq; 1 ms ticks) on a floor of ``slope_deg`` and
-    ``ground``."""
+    ``ground``, carrying ``payload_kg`` (drawn as the payload's box where not zero)."""
 
     path: pathlib.Path
     qpos: np.ndarray
     slope_deg: float = 0.0
     ground: terrains.Ground = terrains.FLAT_GROUND
+    payload_kg: float = 0.0
 
 
 def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height: int = HEIGHT) -> list[dict]:
@@ -154,7 +155,8 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
         arrays = {f"qpos_{k}": np.asarray(j.qpos, np.float64)[frame_ticks(len(j.qpos), fps)]
                   for k, j in enumerate(jobs)}
         grounds = {field: np.array([getattr(j.ground, field) for j in jobs]) for field in terrains.Ground._fields}
-        np.savez(frames_file, slope_deg=np.array([float(j.slope_deg) for j in jobs]), fps=fps, width=width,
+        np.savez(frames_file, slope_deg=np.array([float(j.slope_deg) for j in jobs]),
+                 payload_kg=np.array([float(j.payload_kg) for j in jobs]), fps=fps, width=width,
                  height=height, paths=np.array(tmps), **grounds, **arrays)
         child = subprocess.run([sys.executable, "-m", "cpgjax.studies.renderer", str(frames_file)], env=env,
                                capture_output=True, text=True)
@@ -179,7 +181,8 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
     """``best_<group>.mp4`` of each gait from its rollout log (``protocol.StepLog``, arrays (T, ...)), a line to
     ``notify`` for each. Where no OpenGL backend works, one line says so and no video is written; another rendering
     failure is one line too. Either way the caller's other files are left as they are."""
-    jobs = [Job(video_file(out, g.group), log.qpos, g.slope_deg, g.ground) for g, log in zip(gaits, logs, strict=True)]
+    jobs = [Job(video_file(out, g.group), log.qpos, g.slope_deg, g.ground, g.payload_kg)
+            for g, log in zip(gaits, logs, strict=True)]
     try:
         infos = render_videos(jobs)
     except (RenderUnavailable, RuntimeError) as err:

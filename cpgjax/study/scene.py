@@ -7,7 +7,8 @@ Entities below ``rollout/best_<group>/<controller>/seed=<seed>/<condition>``:
 * ``world`` — the floor frame (the simulation's; x uphill, docs/decisions.md §4), rotated so that the viewer's z is
   against gravity; below it ``floor`` (a grey slab whose top is the floor, tilted with the frame; on rough ground
   the height field's surface as a mesh, lighter where higher), ``robot/<body>``
-  (per-body transforms; the body's geoms as boxes, cylinders and spheres below) and ``contact_force/<leg>`` (arrows
+  (per-body transforms; the body's geoms as boxes, cylinders and spheres below; ``robot/payload/boxes`` the
+  payload's box, only where the rollout carries one) and ``contact_force/<leg>`` (arrows
   from each foot centre along the floor normal, ``FORCE_ARROW_M_PER_N`` long per newton).
 * ``cpg/phase_rad/<leg>``, ``cpg/amplitude/<leg>``, ``foot_force_n/<leg>``, ``attitude_rad/<axis>`` — scalars every
   tick.
@@ -105,6 +106,15 @@ def _log_geoms(rec, base: str, m: mujoco.MjModel, body: int) -> None:
                          "cylinders and spheres are recorded")
 
 
+def payload_box():
+    """The payload as drawn: a box of ``go1_model.PAYLOAD_BOX_M`` centred on the carrier body's frame (which has no
+    geom), in ``go1_model.PAYLOAD_RGBA``."""
+    import rerun as rr
+
+    return rr.Boxes3D(half_sizes=[np.asarray(go1_model.PAYLOAD_BOX_M) / 2],
+                      colors=[[int(round(255 * c)) for c in go1_model.PAYLOAD_RGBA]], fill_mode="solid")
+
+
 def field_mesh(ground: terrains.Ground, low_m: np.ndarray, high_m: np.ndarray) -> dict[str, np.ndarray]:
     """The height field's surface over the floor-frame rectangle [low, high] (the cells that cover it) as a
     triangle mesh: ``vertex_positions`` (N, 3) [m] at the field's vertices and heights, ``triangle_indices`` (M, 3)
@@ -151,11 +161,15 @@ def log_rollout(rec, rollout: Rollout) -> str:
         floor = rr.Mesh3D(**mesh, vertex_colors=np.stack([shade, shade, 0.97 * shade], -1).astype(np.uint8))
     rr.log(f"{base}/world/floor", floor, static=True, recording=rec)
     pos, quat = body_poses(qpos[every])
+    payload_body = go1_model.indices().payload_body
     for body in range(1, m.nbody):
-        if not np.any((m.geom_bodyid == body) & (m.geom_group == go1_model.VISUAL_GROUP)):
-            continue  # the payload carrier: nothing to see
         path = f"{base}/world/robot/{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body)}"
-        _log_geoms(rec, path, m, body)
+        if body == payload_body:  # no geom: the payload's box, where there is a payload
+            if rollout.payload_kg <= 0.0:
+                continue
+            rr.log(f"{path}/boxes", payload_box(), static=True, recording=rec)
+        else:
+            _log_geoms(rec, path, m, body)
         rr.send_columns(path, indexes=index(every),
                         columns=rr.Transform3D.columns(translation=pos[:, body], quaternion=_xyzw(quat[:, body])),
                         recording=rec)
