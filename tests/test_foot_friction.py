@@ -103,14 +103,16 @@ def test_walk_prints_the_mu_in_effect_beside_the_asked_one(capsys, notes):
     out, _ = capsys.readouterr()
     assert [line.split("):")[0] + ")" for line in _lines(notes)] == [PAPER_09]
     notes.clear()
-    rows = [line.split("|")[5:7] for line in out.splitlines() if line.startswith(("| 0 |", "| 1 |"))]
-    assert [[c.strip() for c in r] for r in rows] == [["0.6", "0.6"], ["0.9", "0.6"]]
+    rows = [[c.strip() for c in line.split("|")] for line in out.splitlines() if line.startswith(("| 0 |", "| 1 |"))]
+    assert [r[5:7] for r in rows] == [["0.6", "0.6"], ["0.9", "0.6"]]
+    assert rows[0][10:14] == rows[1][10:14]  # v_x, CoT, J, c_load: the 0.9 floor walked as the 0.6 one
     assert cli.main(["walk", "--controllers", "open_loop", "--friction", "0.9", "--foot-friction", "1.0",
                      "--trials", "1"]) == 0
     out, _ = capsys.readouterr()
     assert _lines(notes) == []
-    row = next(line for line in out.splitlines() if line.startswith("| 0 |")).split("|")[5:7]
-    assert [c.strip() for c in row] == ["0.9", "0.9"]
+    row = [c.strip() for c in next(line for line in out.splitlines() if line.startswith("| 0 |")).split("|")]
+    assert row[5:7] == ["0.9", "0.9"]
+    assert row[10:14] != rows[1][10:14]  # feet of 1.0: the 0.9 floor counts
 
 
 def test_optimize_says_it_before_any_compute_and_takes_the_feet(notes):
