@@ -422,6 +422,25 @@ def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     assert registry.REPORTS["friction"].paper_marks(result) == []
 
 
+def test_summary_draws_the_main_table_as_cells_that_fit_the_page():
+    """summary.png's table: the first Markdown table's cells (not its rule, not the tables after it), each wrapped
+    to its column's width, the columns together no wider than the page's line."""
+    long_name = "gaittrot_target_velocity_mps0.3"
+    text = ("intro\n\n| group | phase | trials to a prospective solution (runs never reaching one) |\n|---|---|---|\n"
+            f"| {long_name} | trials 0–39: μ 0.6, 0°, 0 kg, v* 0.3 m/s | 5.350 [3.860, 6.840] (0) |\n"
+            "| b | c | d |\n\nComparisons:\n\n| x | y |\n|---|---|\n| 1 | 2 |\n")
+    rows = study_figures._first_table(text)
+    assert rows[0] == ["group", "phase", "trials to a prospective solution (runs never reaching one)"]
+    assert rows[1][0] == long_name and rows[2] == ["b", "c", "d"] and len(rows) == 3
+    cells, shares = study_figures._wrapped(rows)
+    assert sum(shares) == pytest.approx(1.0)
+    assert cells[1][0].replace("\n", "") == long_name  # broken after its underscores, nothing lost
+    wide = [["h"] * 12] + [["x" * 30 + " " + "y" * 30] * 12]
+    cells, _ = study_figures._wrapped(wide)
+    width = max(len(line) for line in cells[1][0].split("\n"))
+    assert 12 * width <= study_figures.TABLE_CHARS_PER_LINE
+
+
 def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk(tmp_path):
     """``studies/fall_chains.py`` on a hand-made table of two instances × five trials, counted by hand: instance 0
     falls at trials 1, 2 and 4; instance 1 at trial 3, and its condition changes at trial 3 (the pair (2, 3) is not
