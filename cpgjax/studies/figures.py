@@ -24,6 +24,7 @@ from cpgjax.trial import params as param_space
 CONTEXT_LABELS = ("$c_{load}$ [N]", "$c_{slope}$ [rad]")
 LEGEND_FONT_PT = 7
 LEGEND_WIDTH_IN = 2.6  # room to the right of a figure's axes for a legend beside them
+LEGEND_LABEL_CHARS = 38  # a legend label's line in LEGEND_WIDTH_IN
 ATTITUDE_PANELS_PER_ROW = 5
 SUMMARY_WIDTH_IN = 8.3  # A4's width
 TABLE_FONT_PT = 6.5
@@ -57,16 +58,19 @@ def _plt():
     return plt
 
 
-def _legend_beside(ax, **kwargs):
-    """``ax``'s legend to the right of it, off the data (the figure's constrained layout makes the room)."""
-    return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=LEGEND_FONT_PT,
-                     **kwargs)
+def _legend_beside(ax):
+    """``ax``'s legend to the right of it, off the data, in LEGEND_WIDTH_IN (its labels wrapped to fit)."""
+    handles, labels = ax.get_legend_handles_labels()
+    return ax.legend(handles, [textwrap.fill(label, LEGEND_LABEL_CHARS) for label in labels], loc="upper left",
+                     bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=LEGEND_FONT_PT)
 
 
 def _legend_outside(fig, ax, where: str = "right upper", **kwargs):
     """``ax``'s curves' legend in the figure's margin (``where``: matplotlib's "outside …" places), off every panel's
     data (the figure's constrained layout makes the room)."""
-    return fig.legend(*ax.get_legend_handles_labels(), loc=f"outside {where}", fontsize=LEGEND_FONT_PT, **kwargs)
+    handles, labels = ax.get_legend_handles_labels()
+    return fig.legend(handles, [textwrap.fill(label, LEGEND_LABEL_CHARS) for label in labels], loc=f"outside {where}",
+                      fontsize=LEGEND_FONT_PT, **kwargs)
 
 
 def _colors(count: int) -> list:
@@ -129,7 +133,7 @@ def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), t
             ax.axvline(c - 0.5, color="red", lw=0.6, alpha=0.5)
     _legend_outside(fig, axes[0])
     axes[-1].set_xlabel("trial (from 0)")
-    fig.suptitle(f"{result.spec.name}: {_runs_per_curve(labels)}, mean ± std", fontsize=10)
+    axes[0].set_title(f"{result.spec.name}: {_runs_per_curve(labels)}, mean ± std", fontsize=10)  # clear of the legend
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
@@ -169,7 +173,8 @@ def optimization_progress(path: pathlib.Path, result, groups: list[str]) -> path
     for ax in axes:
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("trial (from 0)")
-    fig.suptitle(f"{result.spec.name}: best-so-far J and the parameters ({_runs_per_curve(names)})", fontsize=10)
+    axes[0].set_title(f"{result.spec.name}: best-so-far J and the parameters ({_runs_per_curve(names)})",
+                      fontsize=10)  # over the panel, clear of the legend
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
@@ -240,8 +245,10 @@ def _first_table(text: str) -> list[list[str]]:
 
 
 def _wrap(cell: str, width: int) -> str:
-    """``cell`` in lines of at most ``width`` characters, broken at spaces and after underscores (group names)."""
-    lines = textwrap.wrap(cell.replace("_", "_ "), width, break_on_hyphens=False)
+    """``cell`` in lines of at most ``width`` characters, broken at spaces, and after underscores where a word
+    (a group name) is longer than the line."""
+    long_word = any(len(word) > width for word in cell.split())
+    lines = textwrap.wrap(cell.replace("_", "_ ") if long_word else cell, width, break_on_hyphens=False)
     return "\n".join(line.replace("_ ", "_") for line in lines) or " "
 
 
