@@ -198,6 +198,13 @@ def paired(a, b) -> Comparison:
     return Comparison(ci.mean, ci.low, ci.high, t_p, w_p, int(d.size), int(d.size), pair_tests, least)
 
 
+def paired_text(a, b) -> str:
+    """:func:`paired`'s line, or where there are fewer than MIN_SEEDS finite pairs one saying there is no test."""
+    a, b = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
+    n = int(np.sum(np.isfinite(a) & np.isfinite(b))) if a.shape == b.shape else MIN_SEEDS
+    return str(paired(a, b)) if n >= MIN_SEEDS else f"no test below {MIN_SEEDS} pairs (n = {n})"
+
+
 def proportion_ci(successes: int, trials: int) -> Interval:
     """A proportion with its Clopper–Pearson (exact) 95 % interval."""
     if trials <= 0:
