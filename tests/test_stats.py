@@ -114,6 +114,12 @@ def test_a_nonnegative_interval_never_goes_below_zero_and_keeps_the_t_coverage()
         stats.nonnegative_ci([0.2, -0.1, 0.3])
 
 
+def test_a_paired_line_below_three_pairs_says_there_is_no_test():
+    assert stats.paired_text([1.0, 2.0, np.nan], [0.5, 1.0, 1.5]) == "no test below 3 pairs (n = 2)"
+    a, b = [1.0, 2.0, 3.5, 4.0], [0.5, 1.0, 1.5, 3.0]
+    assert stats.paired_text(a, b) == str(stats.paired(a, b))
+
+
 @pytest.mark.parametrize("n_a, n_b", [(2, 2), (3, 3), (3, 4), (4, 4), (2, 6), (5, 5)])
 def test_mann_whitneys_least_p_is_scipys_exact_p_of_separated_samples(n_a, n_b):
     """The most extreme ordering (every a below every b) gives the exact test's smallest two-sided p."""
