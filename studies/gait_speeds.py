@@ -31,7 +31,6 @@ from cpgjax.study import files as study_io
 FINAL_TRIALS = 5
 TRACKING_TOLERANCE_MPS = 0.05
 WALKS_FRACTION = 0.5
-MIN_SEEDS = 3  # fewer tracking seeds in either gait: no interval, no test
 
 
 class Cell(NamedTuple):
@@ -72,7 +71,7 @@ def _mean(values: np.ndarray) -> float:
 
 def bootstrap_ci(values: np.ndarray) -> stats.Interval:
     """The mean with a percentile 95 % interval of seed resamples (``stats.cluster_bootstrap``, one value a seed)."""
-    if len(values) < MIN_SEEDS:
+    if len(values) < stats.MIN_SEEDS:
         return stats.Interval(_mean(values), np.nan, np.nan, len(values))
     return stats.cluster_bootstrap(list(values), _mean)
 
@@ -80,7 +79,7 @@ def bootstrap_ci(values: np.ndarray) -> stats.Interval:
 class Cheapest(NamedTuple):
     target_mps: float
     gait: str
-    # (gait, cheapest − it, Welch p, Mann–Whitney p); None and NaN below MIN_SEEDS tracking seeds in either
+    # (gait, cheapest − it, Welch p, Mann–Whitney p); None and NaN below stats.MIN_SEEDS tracking seeds in either
     rivals: list[tuple[str, stats.Effect | None, float, float]]
 
 
@@ -99,7 +98,7 @@ def cheapest_by_speed(all_cells: list[Cell]) -> tuple[list[Cheapest], np.ndarray
             if c is best:
                 continue
             a, b = best.cot[best.tracks], c.cot[c.tracks]
-            if min(a.size, b.size) < MIN_SEEDS:
+            if min(a.size, b.size) < stats.MIN_SEEDS:
                 rivals.append((c.gait, None, np.nan, np.nan))
                 pvalues.append(np.nan)
                 continue
@@ -111,11 +110,11 @@ def cheapest_by_speed(all_cells: list[Cell]) -> tuple[list[Cheapest], np.ndarray
     return out, stats.holm(pvalues)
 
 
-def effect_n(best: Cheapest, gait: str, all_cells: list[Cell]) -> str:
-    """'a, b': the tracking seeds of the cheapest gait and of ``gait`` at ``best``'s v*."""
+def effect_n(best: Cheapest, gait: str, all_cells: list[Cell]) -> tuple[int, int]:
+    """The tracking seeds of the cheapest gait and of ``gait`` at ``best``'s v*."""
     def n(g):
         return int(next(c for c in all_cells if c.gait == g and c.target_mps == best.target_mps).tracks.sum())
-    return f"{n(best.gait)}, {n(gait)}"
+    return n(best.gait), n(gait)
 
 
 def table(all_cells: list[Cell]) -> str:
@@ -125,7 +124,7 @@ def table(all_cells: list[Cell]) -> str:
              "|---|---|---|---|---|---|"]
     for c in all_cells:
         cot = bootstrap_ci(c.cot[c.tracks])
-        shown = ("–" if not c.tracks.any() else f"{cot.mean:.3f} (no interval below {MIN_SEEDS} seeds)"
+        shown = ("–" if not c.tracks.any() else f"{cot.mean:.3f} (no interval below {stats.MIN_SEEDS} seeds)"
                  if np.isnan(cot.low) else str(cot))
         lines.append(f"| {c.gait} | {c.target_mps:g} | {int(c.tracks.sum())}/{c.tracks.size} "
                      f"| {stats.mean_ci(c.velocity_mps)} | {shown} | {bootstrap_ci(c.fall_fraction)} |")
@@ -140,11 +139,13 @@ def table(all_cells: list[Cell]) -> str:
         parts, tied = [], []
         for gait, effect, _, rank_p in b.rivals:
             if effect is None:
-                parts.append(f"{gait}: no test (fewer than {MIN_SEEDS} tracking seeds)")
+                parts.append(f"{gait}: no test (fewer than {stats.MIN_SEEDS} tracking seeds)")
             else:
                 low, high = effect.interval()
+                n_best, n_gait = effect_n(b, gait, all_cells)
+                least_p = stats.mann_whitney_least_p(n_best, n_gait)
                 parts.append(f"{gait}: {effect.difference:+.3f} [{low:+.3f}, {high:+.3f}], p = {holm[k]:.2g}, "
-                             f"MW p = {rank_p:.2g} (n = {effect_n(b, gait, all_cells)})")
+                             f"MW {stats.rank_p_text(rank_p, least_p, 'p = ')} (n = {n_best}, {n_gait})")
             if not holm[k] < stats.ALPHA:
                 tied.append(gait)
             k += 1

@@ -103,14 +103,14 @@ def walk(p: np.ndarray, profile: str, *, payload_kg=0.0, slope_deg=0.0, settle=1
 def summary(name: str, w: dict) -> str:
     walking = (w["fell"] == 0) & (w["j"] >= WALK_J)
     return (f"| {name} | {int(w['fell'].sum())}/{w['fell'].size} | {stats.mean_ci(w['v'])} | {stats.mean_ci(w['j'])} | "
-            f"{stats.mean_ci(np.where(w['fell'] > 0, np.nan, w['cot']))} | {walking.mean():.2f} | "
+            f"{stats.nonnegative_ci(np.where(w['fell'] > 0, np.nan, w['cot']))} | {walking.mean():.2f} | "
             f"{100 * w['saturation'].mean():.2f} |")
 
 
 def paired_line(what: str, a: dict, b: dict) -> str:
     """Per-set means of J and v under two settings, compared on the same sets."""
-    cj = stats.paired(a["j"].mean(0), b["j"].mean(0))
-    cv = stats.paired(a["v"].mean(0), b["v"].mean(0))
+    cj = stats.paired_text(a["j"].mean(0), b["j"].mean(0))
+    cv = stats.paired_text(a["v"].mean(0), b["v"].mean(0))
     return f"- {what}: J {cj}; v_x {cv}"
 
 

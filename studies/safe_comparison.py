@@ -99,15 +99,15 @@ def compare(unsafe_dir: pathlib.Path, safe_dir: pathlib.Path, names: tuple[str, 
             never = lambda r: int(np.isnan(r).sum())  # noqa: E731
             label = f"{start}–{stop - 1}" + (" inference" if u["inference"] else "")
             lines.append(f"| {group} | {label} | {u['falls']} | {s['falls']} | {stats.mean_ci(u['j'])} | "
-                         f"{stats.mean_ci(s['j'])} | {stats.paired(s['j'], u['j'])} | {stats.mean_ci(u['v'])} | "
-                         f"{stats.mean_ci(s['v'])} | {stats.mean_ci(u['recover'])} ({never(u['recover'])}) | "
-                         f"{stats.mean_ci(s['recover'])} ({never(s['recover'])}) |")
+                         f"{stats.mean_ci(s['j'])} | {stats.paired_text(s['j'], u['j'])} | {stats.mean_ci(u['v'])} | "
+                         f"{stats.mean_ci(s['v'])} | {stats.nonnegative_ci(u['recover'])} ({never(u['recover'])}) | "
+                         f"{stats.nonnegative_ci(s['recover'])} ({never(s['recover'])}) |")
     falls_u = np.sum(totals[a], axis=0) if totals[a] else np.zeros(1)
     falls_s = np.sum(totals[b], axis=0) if totals[b] else np.zeros(1)
     ratio = falls_u.sum() / max(falls_s.sum(), 1)
     lines += ["", f"Falls during optimization, all phases: {int(falls_u.sum())} {a}, {int(falls_s.sum())} "
               f"{b} ({ratio:.1f}× fewer{'' if falls_s.sum() else f', {b} had none: a lower bound'}); per run, {b} − "
-              f"{a}: {stats.paired(falls_s, falls_u)}."]
+              f"{a}: {stats.paired_text(falls_s, falls_u)}."]
     for arm, columns in runs.items():
         parts = ", ".join(f"{label} {count}" for label, count in fall_breakdown(columns).items())
         lines.append(f"Falls of the {arm} run by where they came from: {parts}.")

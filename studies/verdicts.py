@@ -50,6 +50,7 @@ ALPHA = stats.ALPHA
 LAST_TRIALS = registry.LAST_TRIALS
 FIGURES = {"v_x": "velocity_x_mps", "CoT": "cost_of_transport", "J": "objective"}
 UNITS = {"v_x": " m/s", "CoT": "", "J": ""}
+NONNEGATIVE = {"CoT"}  # of FIGURES: cannot be negative
 # The margins (docs/REPRODUCTION.md, "Criteria"): the paper's own seed-to-seed std of the figure where it gives one;
 # for its load table, which gives none, the std of the same controller (VMC+Tegotae) at the same target on flat ground
 # from its controller table, taken also as the load rows' spread over their 5 seeds.
@@ -91,8 +92,9 @@ class Row(NamedTuple):
         return e.above_p(0.0), e.below_p(self.margin)
 
 
-def _cell(values: np.ndarray, unit: str = "") -> str:
-    ci = stats.mean_ci(values)
+def _cell(values: np.ndarray, unit: str = "", nonnegative: bool = False) -> str:
+    """"mean [95 % CI]unit (n = …)"; ``nonnegative``: a quantity that cannot be negative (``stats.nonnegative_ci``)."""
+    ci = stats.nonnegative_ci(values) if nonnegative else stats.mean_ci(values)
     return f"{ci}{unit} (n = {ci.n})"
 
 
@@ -123,7 +125,8 @@ def controller_rows(cols: dict) -> list[Row]:
         for (name, column), (mean, std) in zip(FIGURES.items(), paper, strict=True):
             ours = _final(cols, column, n, m)
             rows.append(Row("controller table", f"{c} {name}", f"{mean:.3f} ± {std:.3f} (n = 5)",
-                            _cell(ours, UNITS[name]), stats.effect_to_summary(ours, mean, std, registry.PAPER_SEEDS),
+                            _cell(ours, UNITS[name], name in NONNEGATIVE),
+                            stats.effect_to_summary(ours, mean, std, registry.PAPER_SEEDS),
                             std, "the paper's std", "figure", _falls_note(cols, 0, n, m) if name == "J" else ""))
     claims = []
     cot = {c: _final(cols, "cost_of_transport", n, controller == c) for c in cpg.CONTROLLERS
@@ -187,14 +190,15 @@ def load_rows(cols: dict, trial_config) -> list[Row]:
         for k, (name, column) in enumerate(FIGURES.items()):
             ours = _final(cols, column, stop, everyone)
             std = LOAD_STD[name]
-            rows.append(Row("load table", f"{load:g} kg {name} adapted", f"{after[k]:.3f}", _cell(ours, UNITS[name]),
+            rows.append(Row("load table", f"{load:g} kg {name} adapted", f"{after[k]:.3f}",
+                            _cell(ours, UNITS[name], name in NONNEGATIVE),
                             stats.effect_to_summary(ours, after[k], std, registry.PAPER_SEEDS), std,
                             "the paper's VMC+Tegotae std (flat)", "figure",
                             _falls_note(cols, start, stop) if name == "J" else ""))
             if before is not None and load in flat:
                 ours = flat[load][k]
                 rows.append(Row("load table", f"{load:g} kg {name} flat optimum", f"{before[k]:.3f}",
-                                _cell(ours, UNITS[name]),
+                                _cell(ours, UNITS[name], name in NONNEGATIVE),
                                 stats.effect_to_summary(ours, before[k], std, registry.PAPER_SEEDS), std,
                                 "the paper's VMC+Tegotae std (flat)", "figure"))
     return rows + context_rows(cols, "load table", "c_load_n", phases,
@@ -221,7 +225,8 @@ def friction_rows(cols: dict) -> list[Row]:
         counts = prospective_trials(j, threshold)
         random = int(np.sum(counts <= 2))  # trials 0 and 1 are random draws (Algorithm 1)
         rows.append(Row("friction", f"μ {mu:g}: trials to J ≥ {PROSPECTIVE:g} × the group's final J < 10",
-                        "< 10", _cell(counts), stats.effect_to_value(counts, FRICTION_TRIALS_BOUND), 0.0,
+                        "< 10", _cell(counts, nonnegative=True),
+                        stats.effect_to_value(counts, FRICTION_TRIALS_BOUND), 0.0,
                         "the bound itself", "claim_below",
                         f"threshold J {threshold:.3f}; {random} of {counts.size} runs reach it in the 2 random trials; "
                         f"{int(np.sum(counts > n))} never"))
@@ -332,14 +337,16 @@ def hardware_rows(cols: dict) -> list[Row]:
                 paper = paper.get(target)
             if isinstance(paper, float):
                 ours = _final(cols, "cost_of_transport", e, m)
-                rows.append(Row("hardware (go1)", f"{label}, trials {s}–{e - 1}: CoT", f"≈ {paper:g}", _cell(ours),
+                rows.append(Row("hardware (go1)", f"{label}, trials {s}–{e - 1}: CoT", f"≈ {paper:g}",
+                                _cell(ours, nonnegative=True),
                                 stats.effect_to_value(ours, paper), HARDWARE_COT_MARGIN,
                                 "2 × the paper's VMC+Tegotae CoT std", "figure"))
             if label == "flat → 10°" and s > 0:
                 counts = track_counts(cols, s, e, m)
                 paper_trials = registry.PAPER_HARDWARE_SLOPE_TRIALS
                 rows.append(Row("hardware (go1)", f"{label}: tracked again within {paper_trials} trials",
-                                f"within ≈ {paper_trials}", _cell(counts), stats.effect_to_value(counts, paper_trials),
+                                f"within ≈ {paper_trials}", _cell(counts, nonnegative=True),
+                                stats.effect_to_value(counts, paper_trials),
                                 0.0, "the bound itself", "claim_below",
                                 f"never tracked (counted as {e - s + 1}): {int(np.sum(counts > e - s))}"))
                 rows += parameter_shift_rows(cols, m, s, e)

@@ -146,7 +146,8 @@ def test_ablation_outputs(tiny_ablation):
         paper = registry.PAPER_CONTROLLER_TABLE[c]
         assert f"{paper[1][0]:.3f} ± {paper[1][1]:.3f}" in row
         j = result.trials.objective[:, [lab["controller"] == c for lab in result.labels]]
-        assert f"{np.mean(j[-5:].mean(axis=0)):.3f} [" in row  # mean of the last 5, then over seeds, with its CI
+        assert f"| {np.mean(j[-5:].mean(axis=0)):.3f} |" in row  # mean of the last 5, then over 1 seed: no CI
+    assert "- 1 seed: no interval or test below 3 seeds." in text.splitlines()
     assert (out / "table.md").read_text().startswith("# controller_ablation")
     assert "Roll–pitch of the best parameters" in (out / "table.md").read_text()  # the attitude figure's rows
     for png in ("learning_curves.png", "attitude.png", "attitude_best_gaits.png", "summary.png",
@@ -310,7 +311,8 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
         j_home = np.mean([j for j, c, e in zip(rows["objective"], rows["controller"], rows["environment"], strict=True)
                           if c == "vmc" and e == home])
         label = home + (" + randomization" if randomized else "")
-        assert f"| vmc | {label} | {j_home:.3f} [" in text, arm
+        assert f"| vmc | {label} | {j_home:.3f} |" in text, arm  # one seed: the mean, no interval
+    assert "1 seed: no interval or test below 3 seeds." in text.splitlines()
 
 
 def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
@@ -368,6 +370,43 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
     assert f"| {worst.mean():+.3f} [{worst.mean() - half:+.3f}, {worst.mean() + half:+.3f}] |" in line
 
 
+def _hand_made_ablation(seeds: int, cot_final: np.ndarray):
+    """A controller-ablation result of ``seeds`` seeds per controller and 6 trials: J and v_x drawn at random, the
+    last 5 trials' CoT of each run ``cot_final`` (one value a run), and no falls."""
+    rng = np.random.default_rng(7)
+    labels = [{"controller": c, "seed": s} for c in cpg.CONTROLLERS for s in range(seeds)]
+    b = len(labels)
+    trials = type("T", (), {"objective": rng.normal(1.5, 0.5, (6, b)),
+                            "velocity_xy_mps": rng.normal(0.5, 0.1, (6, b, 2)),
+                            "cot": np.broadcast_to(cot_final, (6, b)).copy(), "fell": np.zeros((6, b))})
+    spec = dataclasses.replace(_spec("controller_ablation"), seeds=tuple(range(seeds)))
+    return type("Result", (), {"trials": trials, "labels": labels, "spec": spec})
+
+
+def test_a_two_seed_table_gives_means_without_intervals_or_tests_and_says_why():
+    result = _hand_made_ablation(2, np.tile([0.4, 47.6], len(cpg.CONTROLLERS)))
+    text = ABLATION_REPORT.report(result, "native") + registry.notes(result)
+    rows = [line for line in text.splitlines() if line.startswith("| open_loop |")]
+    assert rows == [f"| open_loop | {result.trials.velocity_xy_mps[1:, :2, 0].mean():.3f} | 0.477 ± 0.045 | 24.000 | "
+                    f"0.931 ± 0.138 | {result.trials.objective[1:, :2].mean():.3f} | 1.638 ± 0.516 | 0/12 |"]
+    assert "[" not in "".join(rows) and " p = " not in text and "Welch" not in text
+    assert "- 2 seeds: no interval or test below 3 seeds." in text.splitlines()
+    assert "J = -1 is J's floor" in text and "at least 0.05 m" in text  # the footnotes on J's floor and on CoT
+
+
+def test_a_cost_of_transports_interval_stays_above_zero_where_a_t_interval_would_not():
+    """Three seeds, one of which barely moved (CoT 47.6): the t interval of the CoT reaches below 0, the table's
+    starts at 0 (SciPy's t interval, cut); the comparisons' rank test says it cannot reach 5 %."""
+    from scipy import stats as sp
+
+    cot = np.tile([0.5, 0.6, 47.6], len(cpg.CONTROLLERS))
+    t_low, t_high = sp.ttest_1samp(cot[:3], 0.0).confidence_interval(0.95)
+    text = ABLATION_REPORT.report(_hand_made_ablation(3, cot), "native")
+    row = next(line for line in text.splitlines() if line.startswith("| open_loop |"))
+    assert t_low < 0.0 and f"| {cot[:3].mean():.3f} [0.000, {t_high:.3f}] |" in row
+    assert "Mann–Whitney cannot reach p < 0.05 at these sizes (least p 0.1)" in text
+
+
 def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     """The load study's marks: the paper's J after adaptation (Table "load": 2.175, 2.213, 2.189) over the last 5
     trials of each payload phase; the ablation's: each controller's J ± std over the last 5 trials."""
@@ -381,6 +420,25 @@ def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     assert (ablation_marks["tegotae"].first_trial, ablation_marks["tegotae"].last_trial) == (75, 79)
     assert (ablation_marks["tegotae"].objective, ablation_marks["tegotae"].std) == (2.153, 0.042)
     assert registry.REPORTS["friction"].paper_marks(result) == []
+
+
+def test_summary_draws_the_main_table_as_cells_that_fit_the_page():
+    """summary.png's table: the first Markdown table's cells (not its rule, not the tables after it), each wrapped
+    to its column's width, the columns together no wider than the page's line."""
+    long_name = "gaittrot_target_velocity_mps0.3"
+    text = ("intro\n\n| group | phase | trials to a prospective solution (runs never reaching one) |\n|---|---|---|\n"
+            f"| {long_name} | trials 0–39: μ 0.6, 0°, 0 kg, v* 0.3 m/s | 5.350 [3.860, 6.840] (0) |\n"
+            "| b | c | d |\n\nComparisons:\n\n| x | y |\n|---|---|\n| 1 | 2 |\n")
+    rows = study_figures._first_table(text)
+    assert rows[0] == ["group", "phase", "trials to a prospective solution (runs never reaching one)"]
+    assert rows[1][0] == long_name and rows[2] == ["b", "c", "d"] and len(rows) == 3
+    cells, shares = study_figures._wrapped(rows)
+    assert sum(shares) == pytest.approx(1.0)
+    assert cells[1][0].replace("\n", "") == long_name  # broken after its underscores, nothing lost
+    wide = [["h"] * 12] + [["x" * 30 + " " + "y" * 30] * 12]
+    cells, _ = study_figures._wrapped(wide)
+    width = max(len(line) for line in cells[1][0].split("\n"))
+    assert 12 * width <= study_figures.TABLE_CHARS_PER_LINE
 
 
 def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk(tmp_path):

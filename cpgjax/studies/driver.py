@@ -124,8 +124,9 @@ def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Repo
     gait (``best_params/<group>.json``, ``gaits.save_best_gaits``; a line to ``notify`` for a group none of whose
     trials walked) first (they cannot fail but for the disk), then table.md (``report``'s text; by default the
     generic report's), then the study's figures (the ablation's table then gains the attitude rows its figure
-    walks), the recording, and last the gaits' figures and videos (``best_<group>.mp4``,
-    :mod:`cpgjax.studies.video`), with a line to ``notify`` per video, or one saying why there is none.
+    walks; ``registry.notes`` under the tables say how to read their figures), the recording, and last the gaits'
+    figures and videos (``best_<group>.mp4``, :mod:`cpgjax.studies.video`), with a line to ``notify`` per video,
+    or one saying why there is none.
 
     Raises:
       study_io.OutputError: a file could not be written; the message names it and what was kept.
@@ -143,7 +144,8 @@ def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Repo
                    "file holds the best of its final phase")
     study = report or generic.report_for()
     report = study.report(result, backend)
-    tail = f"{registry.safety_summary(result)}\nRun: {study_figures.run_line(result, study_io.run_figures(result))}\n"
+    tail = (f"{registry.safety_summary(result)}{registry.notes(result)}\nRun: "
+            f"{study_figures.run_line(result, study_io.run_figures(result))}\n")
     with study_io.writing(out, "table.md"):
         text = f"# {result.spec.name}\n\n{report}{tail}"
         (out / "table.md").write_text(text)

@@ -39,9 +39,11 @@ def trials_to_prospective(objective: np.ndarray, fell: np.ndarray, phase: tuple[
     return float(np.argmax(ok) + 1) if final > 0 and ok.any() else np.nan
 
 
-def _metrics(result) -> dict[str, np.ndarray]:
+def _metrics(result) -> dict[str, tuple]:
+    """Each metric's (interval over seeds, (N, B) values): CoT cannot be negative."""
     tr = result.trials
-    return {"v_x [m/s]": tr.velocity_xy_mps[..., 0], "CoT": tr.cot, "J": tr.objective}
+    return {"v_x [m/s]": (stats.mean_ci, tr.velocity_xy_mps[..., 0]), "CoT": (stats.nonnegative_ci, tr.cot),
+            "J": (stats.mean_ci, tr.objective)}
 
 
 def group_table(result) -> str:
@@ -54,11 +56,11 @@ def group_table(result) -> str:
         runs = np.flatnonzero(names == name)
         for phase in all_phases[runs[0]]:
             start, stop = phase
-            cells = [str(stats.mean_ci(_final(v, runs, phase))) for v in _metrics(result).values()]
-            cells.append(str(stats.mean_ci(_final(tr.fell, runs, phase) * min(LAST_TRIALS, stop - start))))
+            cells = [str(interval(_final(v, runs, phase))) for interval, v in _metrics(result).values()]
+            cells.append(str(stats.nonnegative_ci(_final(tr.fell, runs, phase) * min(LAST_TRIALS, stop - start))))
             counts = np.array([trials_to_prospective(tr.objective[:, b], tr.fell[:, b], phase) for b in runs])
             never = int(np.isnan(counts).sum())
-            reached = f"{stats.mean_ci(counts)} ({never})" if never < counts.size else f"– ({never})"
+            reached = f"{stats.nonnegative_ci(counts)} ({never})" if never < counts.size else f"– ({never})"
             falls = tr.fell[start:stop][:, runs]
             ramp = ", on the ramp" if cond.ramp[runs[0], start] else ""
             rows.append(f"| {name} | {study_gaits.phase_text(result, runs[0], phase)}{ramp} | " + " | ".join(cells)
@@ -98,8 +100,10 @@ def comparison_table(result, given: tuple[study_spec.Contrast, ...]) -> str:
     for name, a, b in pairs:
         pa, pb = all_phases[a[0]], all_phases[b[0]]
         for phase in pa if pa == pb else pa[-1:]:
-            cells = [str(stats.compare(_final(v, a, phase), _final(v, b, phase))) if min(a.size, b.size) >= 2
-                     else f"too few seeds to test ({a.size} and {b.size})" for v in (tr.objective, tr.cot)]
+            cells = [str(stats.compare(_final(v, a, phase), _final(v, b, phase)))
+                     if min(a.size, b.size) >= stats.MIN_SEEDS
+                     else f"no test below {stats.MIN_SEEDS} seeds ({a.size} and {b.size})"
+                     for v in (tr.objective, tr.cot)]
             rows.append(f"| {name} | trials {phase[0]}–{phase[1] - 1} | {cells[0]} | {cells[1]} |")
     if not pairs:
         return "\nNo two groups differ in one label: nothing to compare.\n"

@@ -64,8 +64,35 @@ def last_mean(values: np.ndarray, stop: int, k: int = LAST_TRIALS) -> np.ndarray
 
 
 def mean_ci(values: np.ndarray) -> str:
-    """Mean over seeds with its 95 % confidence interval, as "mean [low, high]"."""
+    """Mean over seeds with its Student-t 95 % interval, as "mean [low, high]" (a quantity of either sign)."""
     return str(stats.mean_ci(values))
+
+
+def nonnegative_ci(values: np.ndarray) -> str:
+    """Mean over seeds of a quantity that cannot be negative (CoT, falls, trial counts) with its 95 % interval cut at
+    0 (``stats.nonnegative_ci``), as "mean [low, high]"."""
+    return str(stats.nonnegative_ci(values))
+
+
+def notes(result) -> str:
+    """The notes under a study's tables: the line saying there is no interval or test below ``stats.MIN_SEEDS``
+    seeds (where so), how the intervals are made, and what a J at its floor and a large CoT are."""
+    floor = result.spec.switch_values().objective_floor
+    too_few = stats.too_few_line(len(result.spec.seeds))
+    lines = [f"- {too_few}"] if too_few else []
+    lines += [
+        "- Intervals: 95 % over seeds, Student-t; for CoT, falls and trial counts, which cannot be negative, its part "
+        "below 0 cut off (an interval from 0 says the mean is not pinned down); a fall rate of the safety table: "
+        "Clopper–Pearson over its trials. A rank test that cannot reach p < 0.05 at its sizes says so in place of p.",
+        f"- J = {floor:g} is J's floor (the study's `objective_floor`, by default "
+        f"`cpgjax.trial.objective.MIN_OBJECTIVE` = {objective.MIN_OBJECTIVE:g}; docs/decisions.md §10): a trial that "
+        "fell or failed gets exactly it and no trial gets less, so a mean near it says most trials fell.",
+        f"- CoT = energy / (m g d) with the forward distance d taken as at least {objective.MIN_DISTANCE_M:g} m "
+        "(`cpgjax.trial.objective.MIN_DISTANCE_M`, docs/decisions.md §10; CoT has no other cap): a run that stands "
+        f"still or walks backwards gets its energy over {objective.MIN_DISTANCE_M * 100:g} cm, a CoT of tens "
+        "(e.g. 47.6), so a mean CoT far above 1 says a seed barely moved.",
+    ]
+    return "\nNotes:\n\n" + "\n".join(lines) + "\n"
 
 
 def phase_starts(values: np.ndarray) -> list[int]:
@@ -128,7 +155,7 @@ def report_ablation(result, backend: str) -> str:
             continue
         v, cot, j = (last_mean(x[:, m], n) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
         p = PAPER_CONTROLLER_TABLE[c]
-        rows.append(f"| {c} | {mean_ci(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {mean_ci(cot)} | "
+        rows.append(f"| {c} | {mean_ci(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {nonnegative_ci(cot)} | "
                     f"{p[1][0]:.3f} ± {p[1][1]:.3f} | {mean_ci(j)} | {p[2][0]:.3f} ± {p[2][1]:.3f} | "
                     f"{int(tr.fell[:, m].sum())}/{tr.fell[:, m].size} |")
     return (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then mean "
@@ -169,7 +196,9 @@ def ablation_verdicts(result) -> str:
     """Ours against the paper's table (Welch's test from its mean ± std over 5 seeds), and the controllers against
     each other (Welch and Mann–Whitney on our seeds): the effect, its 95 % interval and the p-values."""
     controllers = _labels(result, "controller")
-    present = [c for c in cpg.CONTROLLERS if (controllers == c).sum() >= 2]
+    present = [c for c in cpg.CONTROLLERS if (controllers == c).sum() >= stats.MIN_SEEDS]
+    if not present:
+        return ""
     lines = ["", "Ours − paper (Welch's test from the paper's mean ± std, n = 5):", "",
              "| controller | CoT | J |", "|---|---|---|"]
     for c in present:
@@ -223,7 +252,8 @@ def report_load(result, backend: str) -> str:
         paper_after, paper_before = PAPER_LOAD_TABLE.get(load, (None, None))
         cells = []
         for k in range(3):
-            ours = mean_ci(after[k]) + (f" ({mean_ci(before[k])})" if before is not None else " (-)")
+            ci = nonnegative_ci if k == 1 else mean_ci  # CoT cannot be negative
+            ours = ci(after[k]) + (f" ({ci(before[k])})" if before is not None else " (-)")
             paper = "" if paper_after is None else f"{paper_after[k]:.3f}" + (
                 f" ({paper_before[k]:.3f})" if paper_before else " (-)")
             cells += [ours, paper]
@@ -246,9 +276,8 @@ def report_friction(result, backend: str) -> str:
         m = friction == f
         j = tr.objective[:, m]
         first = [int(np.argmax(j[:, b] >= 0.9 * j[:, b].max())) + 1 for b in range(j.shape[1])]
-        rows.append(f"| {f} | " + " | ".join(mean_ci(last_mean(x[:, m], n)) for x in
-                                            (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
-                    + f" | {mean_ci(first)} |")
+        v, cot, final_j = (last_mean(x[:, m], n) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
+        rows.append(f"| {f} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(final_j)} | {nonnegative_ci(first)} |")
     text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, mean [95 % CI] over "
             f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
             "(no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction"))
@@ -258,8 +287,8 @@ def report_friction(result, backend: str) -> str:
 def _versus(result, labels: np.ndarray, reference, name: str) -> str:
     """Each group's final CoT and J against the reference group's (Welch's t and Mann–Whitney U on the seeds)."""
     ref = labels == reference
-    others = [g for g in dict.fromkeys(labels.tolist()) if g != reference and (labels == g).sum() >= 2]
-    if ref.sum() < 2 or not others:
+    others = [g for g in dict.fromkeys(labels.tolist()) if g != reference and (labels == g).sum() >= stats.MIN_SEEDS]
+    if ref.sum() < stats.MIN_SEEDS or not others:
         return ""
     lines = ["", f"Against {name} = {reference} (Welch's t and Mann–Whitney U, two-sided):", "",
              f"| {name} | CoT | J |", "|---|---|---|"]
@@ -294,9 +323,9 @@ def report_multi_velocity(result, backend: str) -> str:
             never = int(np.sum(counts > e - s))
             tracked[(s, flag)] = counts
             rows.append(f"| {target:g} ({s}–{e - 1}) | {'yes' if flag else 'no (restart)'} | "
-                        f"{stats.mean_ci(counts)} | {never} | "
+                        f"{nonnegative_ci(counts)} | {never} | "
                         f"{mean_ci(last_mean(tr.velocity_xy_mps[:, bs, 0], e))} | "
-                        f"{mean_ci(last_mean(tr.cot[:, bs], e))} |")
+                        f"{nonnegative_ci(last_mean(tr.cot[:, bs], e))} |")
     text = (f"Multi-velocity tracking: a target counts as tracked from the first trial with |v_x − v*| ≤ "
             f"{TRACKING_TOLERANCE_MPS} m/s and no fall; final = mean of the last {LAST_TRIALS} trials of the phase; "
             f"{len(result.spec.seeds)} seeds. Paper: fewer trials after each change with data reuse (figure only).\n\n"
@@ -306,7 +335,8 @@ def report_multi_velocity(result, backend: str) -> str:
                  "t and Mann–Whitney U):", ""]
         for s in starts[1:-1]:
             a, b = tracked[(s, True)], tracked[(s, False)]
-            verdict = stats.compare(a, b) if min(a.size, b.size) >= 2 else "fewer than 2 runs per group"
+            verdict = (stats.compare(a, b) if min(a.size, b.size) >= stats.MIN_SEEDS
+                       else f"no test below {stats.MIN_SEEDS} runs per group")
             lines.append(f"- {float(cond.target_velocity_mps[0, s]):g} m/s (from trial {s}): {verdict}")
         text += "\n".join(lines) + "\n"
     return text
@@ -319,9 +349,10 @@ def report_slope(result, backend: str) -> str:
     learn = starts[-1]
     rows = ["| slope [deg] (trials) | velocity | CoT | J | c_slope [rad] | falls |", "|---|---|---|---|---|---|"]
     for s, e in zip(starts[:-1], starts[1:], strict=True):
-        rows.append(f"| {cond.slope_deg[0, s]:g} ({s}–{e - 1}) | " + " | ".join(
-            mean_ci(last_mean(x, e)) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective, tr.context[..., 1]))
-            + f" | {int(tr.fell[s:e].sum())} |")
+        v, cot, j, c_slope = (last_mean(x, e) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective,
+                                                        tr.context[..., 1]))
+        rows.append(f"| {cond.slope_deg[0, s]:g} ({s}–{e - 1}) | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(j)} | "
+                    f"{mean_ci(c_slope)} | {int(tr.fell[s:e].sum())} |")
     text = (f"Slope adaptation, v* = 0.5 m/s, contextual BO; last {LAST_TRIALS} trials of each phase, "
             f"{len(result.spec.seeds)} seeds.\n\n" + "\n".join(rows) + "\n")
     ramp = ramp_start(result)
@@ -391,16 +422,16 @@ def report_hardware(result, backend: str) -> str:
             counts = np.array([trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b],
                                                s, e) for b in bs])
             never = int(np.sum(counts > e - s))
-            track = f"{stats.mean_ci(counts)} ({never})"
+            track = f"{nonnegative_ci(counts)} ({never})"
             paper = PAPER_HARDWARE_COT.get(label)
             if isinstance(paper, dict):
                 paper = paper.get(target)
             paper_text = f"CoT ≈ {paper:g}" if isinstance(paper, float) else ""
             if label == "flat → 10°" and s > 0:
                 paper_text = f"tracked again within ≈ {PAPER_HARDWARE_SLOPE_TRIALS} trials"
-            rows.append(f"| {label} | {phase} | {target:g} | " + " | ".join(
-                mean_ci(last_mean(x[:, bs], e)) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
-                + f" | {int(tr.fell[s:e, bs].sum())}/{tr.fell[s:e, bs].size} | {track} | {paper_text} |")
+            v, cot, j = (last_mean(x[:, bs], e) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
+            rows.append(f"| {label} | {phase} | {target:g} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(j)} | "
+                        f"{int(tr.fell[s:e, bs].sum())}/{tr.fell[s:e, bs].size} | {track} | {paper_text} |")
     text = (f"The paper's hardware experiments predicted under the `{result.labels[0]['physics']}` profile; per phase: "
             f"mean [95 % CI] of its last {LAST_TRIALS} trials over {len(result.spec.seeds)} seeds; tracked: the first "
             f"trial with |v_x − v*| ≤ {TRACKING_TOLERANCE_MPS} m/s and no fall. Taped feet: floor μ "

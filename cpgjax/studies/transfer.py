@@ -175,15 +175,11 @@ def table(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations: dict
             rows.append(
                 f"| {c} | {label} | {stats.mean_ci(t.home)} | "
                 + " | ".join(f"{j[m][:, k].mean():.3f}" for k in range(len(fixed)))
-                + f" | {stats.mean_ci(t.randomized)} | {_signed(stats.mean_ci(t.drop_worst_fixed))} | "
-                f"{_signed(stats.mean_ci(t.drop_randomized))} | {v[m][:, home_col].mean():.3f} / "
+                + f" | {stats.mean_ci(t.randomized)} | {stats.mean_ci(t.drop_worst_fixed).text('+')} | "
+                f"{stats.mean_ci(t.drop_randomized).text('+')} | {v[m][:, home_col].mean():.3f} / "
                 f"{v[m][:, len(fixed):].mean():.3f} | {cot[m][:, home_col].mean():.3f} / "
                 f"{cot[m][:, len(fixed):].mean():.3f} | {int(fell[m][:, away].sum())}/{fell[m].shape[0] * len(away)} |")
     return "\n".join(rows) + "\n"
-
-
-def _signed(interval: stats.Interval) -> str:
-    return f"{interval.mean:+.3f} [{interval.low:+.3f}, {interval.high:+.3f}]"
 
 
 def comparisons(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations: dict) -> str:
@@ -202,7 +198,7 @@ def comparisons(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations
     def row(name: str, quantity: str, a, b) -> None:
         d = stats.compare(a, b)
         rows.append(f"| {name} | {quantity} | {d.difference:+.3f} [{d.low:+.3f}, {d.high:+.3f}] | {d.t_p:.2g} | "
-                    f"{d.rank_p:.2g} | {d.n_a} / {d.n_b} |")
+                    f"{d.rank_text()} | {d.n_a} / {d.n_b} |")
 
     per_arm = {arm: {c: _transfer(arm_results[arm], evaluations[arm], c, home) for c in cpg.CONTROLLERS}
                for arm, home, _ in arms}
@@ -288,7 +284,7 @@ def run(study: study_spec.StudyFile, *, out=None, resume=False, overwrite=False,
             f"profile by its mean; the mean over the randomized draws).\n\n"
             + table(study.arms, arm_results, evaluations)
             + (f"\n## Differences, tested over {runs} seeds\n\n" + comparisons(study.arms, arm_results, evaluations)
-               if runs >= 2 else "\nOne seed: no differences are tested.\n")
+               if runs >= stats.MIN_SEEDS else f"\n{stats.too_few_line(runs)}\n")
             + f"\nOptimization wall time {wall:.0f} s (all arms).\n")
     out.mkdir(parents=True, exist_ok=True)
     (out / "table.md").write_text(text)
