@@ -122,3 +122,21 @@ def test_optimize_says_it_before_any_compute_and_takes_the_feet(notes):
     args = cli.build_parser().parse_args(["optimize", "--friction", "0.9", "--foot-friction", "0.9", "--trials", "8"])
     spec = cli.optimize_spec(args)
     assert spec.foot_friction == (0.9,) and study_spec.instances(spec)[0]["foot_friction"] == 0.9
+
+
+def test_the_friction_tables_say_why_a_09_floor_equals_06_under_paper():
+    from cpgjax.studies import registry
+    from tests.test_study_files import _fake_result
+
+    paper = _fake_result(study_spec.StudySpec("friction", num_trials=8, seeds=(0, 1, 2), friction=(0.3, 0.6, 0.9),
+                                              group_by=("friction",), physics=("paper",)))
+    table = registry.report_friction(paper, "native")
+    assert "| friction | μ in effect |" in table
+    assert [line.split("|")[1:3] for line in table.splitlines() if line.startswith("| 0.") and " − " not in line] == [
+        [" 0.3 ", " 0.3 "], [" 0.6 ", " 0.6 "], [" 0.9 ", " 0.6 (the feet's) "]]
+    note = registry.notes(paper)
+    assert "a floor above the feet's μ walks as the feet's (under physics paper, μ 0.9 walked as 0.6)" in note
+    feet = _fake_result(study_spec.StudySpec("friction", num_trials=8, seeds=(0, 1, 2), friction=(0.3, 0.6, 0.9),
+                                             group_by=("friction",), physics=("paper",), foot_friction=(1.0,)))
+    assert "| 0.9 | 0.9 |" in registry.report_friction(feet, "native")
+    assert "Friction:" not in registry.notes(feet)

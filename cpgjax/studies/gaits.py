@@ -17,7 +17,6 @@ import re
 import numpy as np
 
 from cpgjax.go1 import model as go1_model
-from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
 from cpgjax.studies import registry
 from cpgjax.studies import video as study_video
@@ -59,19 +58,11 @@ def phases(result) -> list[list[Phase]]:
     return out
 
 
-def friction_text(friction: float, labels: dict) -> str:
-    """A floor's μ as the reports write it: with the μ in effect beside it where the feet's is smaller
-    (``physics.contact_friction``)."""
-    in_effect = float(physics_profiles.contact_friction(physics_profiles.get(str(labels["physics"])), friction,
-                                                        labels["foot_friction"]))
-    return f"μ {friction:g}" + (f" ({in_effect:g} in effect)" if in_effect < friction else "")
-
-
 def phase_text(result, b: int, phase: Phase) -> str:
     """A phase as the reports write it: its trials and conditions."""
     cond, (start, stop) = result.conditions, phase
     mode = ", inference mode" if cond.inference[b, start] else ""
-    return (f"trials {start}–{stop - 1}: {friction_text(float(cond.friction[b, start]), result.labels[b])}, "
+    return (f"trials {start}–{stop - 1}: {registry.friction_text(float(cond.friction[b, start]), result.labels[b])}, "
             f"{cond.slope_deg[b, start]:g}°, "
             f"{cond.payload_kg[b, start]:g} kg, v* {cond.target_velocity_mps[b, start]:g} m/s{mode}")
 

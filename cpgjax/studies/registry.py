@@ -27,6 +27,7 @@ import numpy as np
 
 from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
+from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
 from cpgjax.studies import figures as study_figures
 from cpgjax.studies import stats
@@ -74,12 +75,43 @@ def nonnegative_ci(values: np.ndarray) -> str:
     return str(stats.nonnegative_ci(values))
 
 
+def in_effect(friction: float, labels: dict) -> float:
+    """The μ an instance of ``labels`` (its physics profile and feet's μ) feels on a floor of μ ``friction``
+    (``physics.contact_friction``)."""
+    return float(physics_profiles.contact_friction(physics_profiles.get(str(labels["physics"])), friction,
+                                                   labels["foot_friction"]))
+
+
+def friction_text(friction: float, labels: dict) -> str:
+    """A floor's μ as the reports write it: with the μ in effect beside it where the feet's is smaller."""
+    mu = in_effect(friction, labels)
+    return f"μ {friction:g}" + (f" ({mu:g} in effect)" if mu < friction else "")
+
+
+def friction_note(result) -> str | None:
+    """The note on floors the feet do not feel: for each (profile, feet's μ) of the study with a floor above the
+    feet's μ, that such floors walk as the feet's, and why; None where every floor counts."""
+    capped: dict[tuple[str, float], set[float]] = {}
+    for b, lab in enumerate(result.labels):
+        for mu in {float(v) for v in np.asarray(result.conditions.friction[b])}:
+            if in_effect(mu, lab) < mu:
+                capped.setdefault((str(lab["physics"]), in_effect(mu, lab)), set()).add(mu)
+    if not capped:
+        return None
+    said = "; ".join(f"under physics {name}, μ {', '.join(f'{mu:g}' for mu in sorted(floors))} walked as {feet:g}"
+                     for (name, feet), floors in capped.items())
+    return (f"- Friction: a contact takes the smaller μ of floor and feet (Gazebo's rule, the paper's simulator), so a "
+            f"floor above the feet's μ walks as the feet's ({said}): such rows are the feet's μ's rows. A study's "
+            "`grid.foot_friction` at least the floor's makes the floor count (docs/physics.md \"Friction\").")
+
+
 def notes(result) -> str:
     """The notes under a study's tables: the line saying there is no interval or test below ``stats.MIN_SEEDS``
     seeds (where so), how the intervals are made, and what a J at its floor and a large CoT are."""
     floor = result.spec.switch_values().objective_floor
     too_few = stats.too_few_line(len(result.spec.seeds))
     lines = [f"- {too_few}"] if too_few else []
+    lines += [note] if (note := friction_note(result)) else []
     lines += [
         "- Intervals: 95 % over seeds, Student-t; for CoT, falls and trial counts, which cannot be negative, its part "
         "below 0 cut off (an interval from 0 says the mean is not pinned down); a fall rate of the safety table: "
@@ -270,14 +302,17 @@ def report_load(result, backend: str) -> str:
 def report_friction(result, backend: str) -> str:
     tr, n = result.trials, result.trials.objective.shape[0]
     friction = _labels(result, "friction")
-    rows = ["| friction | velocity [m/s] | CoT | J | trials to a prospective solution (J ≥ 90 % of the run's best) |",
-            "|---|---|---|---|---|"]
+    rows = ["| friction | μ in effect | velocity [m/s] | CoT | J | trials to a prospective solution (J ≥ 90 % of the "
+            "run's best) |", "|---|---|---|---|---|---|"]
     for f in result.spec.friction:
         m = friction == f
+        mu = in_effect(f, result.labels[int(np.argmax(m))])
         j = tr.objective[:, m]
         first = [int(np.argmax(j[:, b] >= 0.9 * j[:, b].max())) + 1 for b in range(j.shape[1])]
         v, cot, final_j = (last_mean(x[:, m], n) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
-        rows.append(f"| {f} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(final_j)} | {nonnegative_ci(first)} |")
+        feet = "" if mu == f else " (the feet's)"
+        rows.append(f"| {f} | {mu:g}{feet} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(final_j)} "
+                    f"| {nonnegative_ci(first)} |")
     text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, mean [95 % CI] over "
             f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
             "(no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction"))
