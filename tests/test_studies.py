@@ -374,13 +374,14 @@ def _hand_made_ablation(seeds: int, cot_final: np.ndarray):
     """A controller-ablation result of ``seeds`` seeds per controller and 6 trials: J and v_x drawn at random, the
     last 5 trials' CoT of each run ``cot_final`` (one value a run), and no falls."""
     rng = np.random.default_rng(7)
-    labels = [{"controller": c, "seed": s} for c in cpg.CONTROLLERS for s in range(seeds)]
+    spec = dataclasses.replace(_spec("controller_ablation"), seeds=tuple(range(seeds)))
+    labels = study_spec.instances(spec)  # controllers × seeds
     b = len(labels)
     trials = type("T", (), {"objective": rng.normal(1.5, 0.5, (6, b)),
                             "velocity_xy_mps": rng.normal(0.5, 0.1, (6, b, 2)),
                             "cot": np.broadcast_to(cot_final, (6, b)).copy(), "fell": np.zeros((6, b))})
-    spec = dataclasses.replace(_spec("controller_ablation"), seeds=tuple(range(seeds)))
-    return type("Result", (), {"trials": trials, "labels": labels, "spec": spec})
+    return type("Result", (), {"trials": trials, "labels": labels, "spec": spec,
+                               "conditions": study_spec.conditions(spec)})
 
 
 def test_a_two_seed_table_gives_means_without_intervals_or_tests_and_says_why():
@@ -391,6 +392,7 @@ def test_a_two_seed_table_gives_means_without_intervals_or_tests_and_says_why():
                     f"0.931 ± 0.138 | {result.trials.objective[1:, :2].mean():.3f} | 1.638 ± 0.516 | 0/12 |"]
     assert "[" not in "".join(rows) and " p = " not in text and "Welch" not in text
     assert "- 2 seeds: no interval or test below 3 seeds." in text.splitlines()
+    assert "then mean over 2 seeds (no interval below 3);" in text and "95 % CI" not in text.splitlines()[0]
     assert "J = -1 is J's floor" in text and "at least 0.05 m" in text  # the footnotes on J's floor and on CoT
 
 

@@ -128,7 +128,7 @@ def report_for(given: tuple[study_spec.Contrast, ...] = (), paper: dict | None =
         n = result.trials.objective.shape[0]
         head = f"{description}\n\n" if description else ""
         return (head + f"{result.spec.name}: per group and phase, each run's mean of its last {LAST_TRIALS} trials "
-                f"of the phase, then mean [95 % CI] over {len(result.spec.seeds)} seeds; a prospective solution: the "
+                f"of the phase, then {stats.over_seeds(len(result.spec.seeds))}; a prospective solution: the "
                 f"first trial of the phase that walked with J ≥ {PROSPECTIVE_FRACTION:g} × the run's final J. {n} "
                 f"trials per run.\n\n" + group_table(result) + comparison_table(result, given)
                 + paper_lines(paper or {}))

@@ -190,8 +190,8 @@ def report_ablation(result, backend: str) -> str:
         rows.append(f"| {c} | {mean_ci(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {nonnegative_ci(cot)} | "
                     f"{p[1][0]:.3f} ± {p[1][1]:.3f} | {mean_ci(j)} | {p[2][0]:.3f} ± {p[2][1]:.3f} | "
                     f"{int(tr.fell[:, m].sum())}/{tr.fell[:, m].size} |")
-    return (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then mean "
-            f"[95 % CI] over {len(result.spec.seeds)} seeds; the paper's mean ± std over {PAPER_SEEDS} seeds.\n\n"
+    return (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then "
+            f"{stats.over_seeds(len(result.spec.seeds))}; the paper's mean ± std over {PAPER_SEEDS} seeds.\n\n"
             + "\n".join(rows) + "\n" + ablation_verdicts(result))
 
 
@@ -291,8 +291,8 @@ def report_load(result, backend: str) -> str:
             cells += [ours, paper]
         rows.append(f"| {load:g} | " + " | ".join(cells) + " |")
         phases.append(f"| {load:g} ({start}–{stop - 1}) | {phase_diagnostics(result, start, stop)} |")
-    text = (f"Load adaptation, v* = 0.5 m/s, payload changes at trials {starts[1:-1]} of {starts[-1]}; after: mean "
-            f"[95 % CI] of the last {LAST_TRIALS} trials of each phase over {len(result.spec.seeds)} seeds; in "
+    text = (f"Load adaptation, v* = 0.5 m/s, payload changes at trials {starts[1:-1]} of {starts[-1]}; after: the last "
+            f"{LAST_TRIALS} trials of each phase, {stats.over_seeds(len(result.spec.seeds))}; in "
             "parentheses: the best parameters found before the first payload change, re-run on the loaded robot. The "
             "paper gives no spread for this table.\n\n" + "\n".join(rows) + "\n\nPer phase:\n\n"
             + "\n".join(phases) + "\n")
@@ -313,9 +313,9 @@ def report_friction(result, backend: str) -> str:
         feet = "" if mu == f else " (the feet's)"
         rows.append(f"| {f} | {mu:g}{feet} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(final_j)} "
                     f"| {nonnegative_ci(first)} |")
-    text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, mean [95 % CI] over "
-            f"{len(result.spec.seeds)} seeds. Paper: prospective solutions within < 10 trials for every friction "
-            "(no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction"))
+    text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, "
+            f"{stats.over_seeds(len(result.spec.seeds))}. Paper: prospective solutions within < 10 trials for every "
+            "friction (no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction"))
     return text
 
 
@@ -468,7 +468,7 @@ def report_hardware(result, backend: str) -> str:
             rows.append(f"| {label} | {phase} | {target:g} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(j)} | "
                         f"{int(tr.fell[s:e, bs].sum())}/{tr.fell[s:e, bs].size} | {track} | {paper_text} |")
     text = (f"The paper's hardware experiments predicted under the `{result.labels[0]['physics']}` profile; per phase: "
-            f"mean [95 % CI] of its last {LAST_TRIALS} trials over {len(result.spec.seeds)} seeds; tracked: the first "
+            f"its last {LAST_TRIALS} trials, {stats.over_seeds(len(result.spec.seeds))}; tracked: the first "
             f"trial with |v_x − v*| ≤ {TRACKING_TOLERANCE_MPS} m/s and no fall. Taped feet: floor μ "
             f"{_taped_feet_friction(result)} (the paper gives none). The paper's figures are from one robot run "
             "each.\n\n"

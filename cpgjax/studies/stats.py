@@ -53,6 +53,12 @@ class Interval(NamedTuple):
         return f"{self.mean:{sign}.3f} [{self.low:{sign}.3f}, {self.high:{sign}.3f}]"
 
 
+def over_seeds(n: int) -> str:
+    """What a table's cells are over ``n`` seeds: "mean [95 % CI] over n seeds", or below MIN_SEEDS the mean alone."""
+    return (f"mean [95 % CI] over {n} seeds" if n >= MIN_SEEDS
+            else f"mean over {n} seed{'' if n == 1 else 's'} (no interval below {MIN_SEEDS})")
+
+
 def too_few_line(n: int) -> str:
     """The line a table gives where its groups have ``n`` < MIN_SEEDS seeds (its cells then hold means alone); empty
     from MIN_SEEDS on."""
