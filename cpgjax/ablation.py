@@ -42,15 +42,14 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-# The coordinator's client, for its key-value store (exchange). No public API exposes the store, and the public
-# all-gathers (jax.experimental.multihost_utils.process_allgather, broadcast_one_to_all) are collectives: a process
-# that is alive but never joins holds every other one inside the collective for as long as it stays away (jax 0.10.2,
-# CPU: rank 0 waited the 20 s that rank 1 slept before joining), and nothing says which rank is missing. One key per
-# rank and a bounded wait for each name the rank that did not deliver (ProcessLost).
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+# jax_internals: the coordinator's client, for its key-value store (exchange). No public API exposes the store, and
+# the public all-gathers (jax.experimental.multihost_utils.process_allgather, broadcast_one_to_all) are collectives: a
+# process that is alive but never joins holds every other one inside the collective for as long as it stays away (jax
+# 0.10.2, CPU: rank 0 waited the 20 s that rank 1 slept before joining), and nothing says which rank is missing. One
+# key per rank and a bounded wait for each name the rank that did not deliver (ProcessLost).
 from cpgjax import jax_internals
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import terrain as terrains
