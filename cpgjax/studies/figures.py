@@ -58,6 +58,11 @@ def _plt():
     return plt
 
 
+def _figure_label(fig, x: float, y: float, label: str, size: float) -> None:
+    """``label`` at (x, y) in fractions of the figure, left and baseline aligned, drawn through its first axes."""
+    fig.axes[0].annotate(label, (x, y), xycoords="figure fraction", fontsize=size)
+
+
 def _legend_beside(ax):
     """``ax``'s legend to the right of it, off the data, in LEGEND_WIDTH_IN (its labels wrapped to fit)."""
     handles, labels = ax.get_legend_handles_labels()
@@ -348,12 +353,12 @@ def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict,
             ax.axis("off")
             ax.imshow(frame)
         j = "" if gait.objective is None else f", J {gait.objective:.3f}"
-        fig.text((x0_in + 0.02) / SUMMARY_WIDTH_IN, 1.0 - (row_top + 0.15) / height_in, f"best_{gait.group}{j}",
-                 fontsize=7)
+        _figure_label(fig, (x0_in + 0.02) / SUMMARY_WIDTH_IN, 1.0 - (row_top + 0.15) / height_in,
+                      f"best_{gait.group}{j}", 7)
     missing = [g.group for g in gaits if not frames.get(g.group)]
     if missing:
-        fig.text(0.2 / SUMMARY_WIDTH_IN, 0.1 / height_in, textwrap.shorten(
-            f"no video frames of: {', '.join(missing)}", 160), fontsize=6)
+        _figure_label(fig, 0.2 / SUMMARY_WIDTH_IN, 0.1 / height_in,
+                      textwrap.shorten(f"no video frames of: {', '.join(missing)}", 160), 6)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -44,9 +44,9 @@ class Interval(NamedTuple):
     n: int
 
     def __str__(self) -> str:
-        return self.text()
+        return self.cell()
 
-    def text(self, sign: str = "") -> str:
+    def cell(self, sign: str = "") -> str:
         """"mean [low, high]", or the mean alone where there is no interval; ``sign`` "+" writes every sign."""
         if np.isnan(self.low) or np.isnan(self.high):
             return f"{self.mean:{sign}.3f}"

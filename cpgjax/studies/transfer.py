@@ -175,8 +175,8 @@ def table(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations: dict
             rows.append(
                 f"| {c} | {label} | {stats.mean_ci(t.home)} | "
                 + " | ".join(f"{j[m][:, k].mean():.3f}" for k in range(len(fixed)))
-                + f" | {stats.mean_ci(t.randomized)} | {stats.mean_ci(t.drop_worst_fixed).text('+')} | "
-                f"{stats.mean_ci(t.drop_randomized).text('+')} | {v[m][:, home_col].mean():.3f} / "
+                + f" | {stats.mean_ci(t.randomized)} | {stats.mean_ci(t.drop_worst_fixed).cell('+')} | "
+                f"{stats.mean_ci(t.drop_randomized).cell('+')} | {v[m][:, home_col].mean():.3f} / "
                 f"{v[m][:, len(fixed):].mean():.3f} | {cot[m][:, home_col].mean():.3f} / "
                 f"{cot[m][:, len(fixed):].mean():.3f} | {int(fell[m][:, away].sum())}/{fell[m].shape[0] * len(away)} |")
     return "\n".join(rows) + "\n"
