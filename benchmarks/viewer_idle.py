@@ -16,7 +16,6 @@ import os
 import pathlib
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -29,6 +28,7 @@ sys.path.insert(0, str(ROOT))
 
 from cpgjax import provenance  # noqa: E402
 from cpgjax.go1 import model as go1_model  # noqa: E402
+from cpgjax.studies import launch as study_launch  # noqa: E402
 from cpgjax.trial import protocol  # noqa: E402
 
 STANDING_TICKS = 2000
@@ -50,12 +50,6 @@ def standing_recording(folder: pathlib.Path) -> None:
     scene.log_rollout(rec, rollout)
     rec.flush()
     rec.disconnect()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def tree(pid: int) -> set[int]:
@@ -91,7 +85,7 @@ def cpu_s(pids: set[int]) -> dict[int, tuple[str, float]]:
 
 
 def measure(folder: pathlib.Path, seconds: float, settle_s: float) -> dict:
-    port = free_port()
+    port = study_launch.free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
     proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", "show", str(folder), "--web", "--port", str(port)],
                             env=env, cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)

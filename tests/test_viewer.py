@@ -26,6 +26,7 @@ import rerun as rr
 from rerun.chunk import RrdReader
 from websockets.sync.client import connect
 
+from cpgjax.studies import launch as study_launch
 from cpgjax.studies import viewer
 from cpgjax.study import scene
 from tests.test_scene import _synthetic_log
@@ -33,12 +34,6 @@ from tests.test_scene import _synthetic_log
 REPO = pathlib.Path(__file__).resolve().parent.parent
 LOAD_S = 90.0  # the viewer's WebAssembly compiles in a software-rendered browser: allow for a loaded machine
 IDLE_PERCENT = 5.0  # of one core, the viewer's processes together (the recording loaded into rerun's gRPC server: 100)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _descendants(pid: int) -> set[int]:
@@ -101,7 +96,7 @@ def test_the_plain_address_leads_to_the_viewer_with_the_recording(tmp_path):
     tunnel's local end would be); that address is the recording file; the viewer's own files are passed on; a request
     naming another host is refused."""
     _record(tmp_path)
-    served = viewer.serve(tmp_path / "recording.rrd", _free_port())
+    served = viewer.serve(tmp_path / "recording.rrd", study_launch.free_port())
     try:
         port = served.front.server_port
         plain = viewer.url(port)
@@ -155,8 +150,8 @@ def test_ctrl_c_stops_the_viewer_and_says_so(tmp_path):
     written"), and no process of it left."""
     _record(tmp_path)
     proc = subprocess.Popen([sys.executable, "-c", _WITH_CTRL_C, "show", str(tmp_path), "--web", "--port",
-                             str(_free_port())], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-                            env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO)))
+                             str(study_launch.free_port())], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=REPO, env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO)))
     try:
         printed = ""
         while "Ctrl-C stops it" not in printed:
@@ -178,7 +173,7 @@ def test_ctrl_c_stops_the_viewer_and_says_so(tmp_path):
 @pytest.fixture
 def served(tmp_path):
     base = _record(tmp_path)
-    port = _free_port()
+    port = study_launch.free_port()
     proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", "show", str(tmp_path), "--web", "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=dict(os.environ, JAX_PLATFORMS="cpu"))

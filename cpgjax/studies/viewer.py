@@ -30,6 +30,7 @@ import urllib.error
 import urllib.parse
 import urllib.request
 
+from cpgjax.studies import launch as study_launch
 from cpgjax.study.spec import StudyError
 
 HOST = "127.0.0.1"
@@ -67,12 +68,6 @@ def _listening(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.settimeout(0.2)
         return s.connect_ex((HOST, port)) == 0
-
-
-def _any_free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((HOST, 0))
-        return s.getsockname()[1]
 
 
 def _front_handler(recording: pathlib.Path, viewer_port: int) -> type[http.server.BaseHTTPRequestHandler]:
@@ -147,7 +142,7 @@ def serve(recording, web_port: int = DEFAULT_WEB_PORT) -> Served:
     rerun = rerun_executable()
     if rerun is None:
         raise StudyError("the rerun viewer is not installed (pip install rerun-sdk)")
-    viewer_port = _any_free_port()
+    viewer_port = study_launch.free_port()
     try:
         front = http.server.ThreadingHTTPServer((HOST, web_port), _front_handler(pathlib.Path(recording), viewer_port))
     except OSError:
