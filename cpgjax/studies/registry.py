@@ -94,8 +94,8 @@ def friction_note(result) -> str | None:
     capped: dict[tuple[str, float], set[float]] = {}
     for b, lab in enumerate(result.labels):
         for mu in {float(v) for v in np.asarray(result.conditions.friction[b])}:
-            if in_effect(mu, lab) < mu:
-                capped.setdefault((str(lab["physics"]), in_effect(mu, lab)), set()).add(mu)
+            if (feet := in_effect(mu, lab)) < mu:
+                capped.setdefault((str(lab["physics"]), feet), set()).add(mu)
     if not capped:
         return None
     said = "; ".join(f"under physics {name}, μ {', '.join(f'{mu:g}' for mu in sorted(floors))} walked as {feet:g}"

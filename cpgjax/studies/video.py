@@ -154,7 +154,7 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
         frames_file = pathlib.Path(folder) / "jobs.npz"
         arrays = {f"qpos_{k}": np.asarray(j.qpos, np.float64)[frame_ticks(len(j.qpos), fps)]
                   for k, j in enumerate(jobs)}
-        grounds = {field: np.array([getattr(j.ground, field) for j in jobs]) for field in terrains.Ground._fields}
+        grounds = terrains.ground_fields(j.ground for j in jobs)
         np.savez(frames_file, slope_deg=np.array([float(j.slope_deg) for j in jobs]),
                  payload_kg=np.array([float(j.payload_kg) for j in jobs]), fps=fps, width=width,
                  height=height, paths=np.array(tmps), **grounds, **arrays)
