@@ -10,17 +10,15 @@ import json
 import os
 import pathlib
 import shlex
-import shutil
 import signal
-import subprocess
 import sys
 import time
 
 import numpy as np
 
 import cpgjax
-from cpgjax import ablation, compile_cache, cpg, provenance
-from cpgjax.deployment import calibrate, deploy, tick_log
+from cpgjax import ablation, compile_cache, cpg, provenance, show
+from cpgjax.deployment import calibrate, deploy
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
 from cpgjax.robot import cpu_dispatch, foot_force
@@ -40,7 +38,6 @@ from cpgjax.trial import params as param_space
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
-VIEWER_START_S = 2.0  # a viewer still running after this long counts as started
 INTERRUPTED = 130  # the exit status of a run stopped by Ctrl-C (128 + SIGINT)
 
 
@@ -472,13 +469,6 @@ def write_best_params(path: pathlib.Path, trial_log, tuned_for: dict, **info) ->
     return best
 
 
-def replay_hint(params_path: pathlib.Path) -> str:
-    """The commands that replay a ``best_params.json`` as it was tuned (the file carries the controller, the physics
-    profile, the scenario and the target, which both commands use)."""
-    return (f"replay the best: cpgjax deploy --robot sim --params {shlex.quote(str(params_path))}; "
-            f"check it in simulation: cpgjax walk --params {shlex.quote(str(params_path))}")
-
-
 def optimize_spec(args) -> study_spec.StudySpec:
     """The one-instance study of ``cpgjax optimize``'s options."""
     return study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,),
@@ -530,249 +520,8 @@ def _optimize(args) -> int:
         return 1
     except KeyboardInterrupt:  # every trial is in the checkpoint: --resume writes the outputs
         return _interrupted(args.command_line, args, out)
-    print(f"outputs in {out}/ ({replay_hint(out / 'best_params.json')})")
+    print(f"outputs in {out}/ ({tuned.replay_hint(out / 'best_params.json')})")
     return 0
-
-
-def _has_display() -> bool:
-    """Whether a viewer window can open here: macOS and Windows have a desktop; elsewhere X11 or Wayland must be
-    named in the environment."""
-    return sys.platform in ("darwin", "win32") or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-
-
-def _viewer() -> str | None:
-    """The rerun viewer: the venv's, also when the venv is not activated, else the one on PATH."""
-    beside = pathlib.Path(sys.executable).parent / "rerun"
-    return str(beside) if beside.exists() else shutil.which("rerun")
-
-
-RRD_MAGIC = b"RRF2"  # the first bytes of a rerun recording file
-RRD_FOOTER = b"RRF2FOOT"  # rerun's footer, 12 bytes before the end of a recording it finished writing
-
-# What each file cpgjax writes holds, as `cpgjax show` lists it (docs/outputs.md has every column).
-FILE_KINDS = {
-    "table.md": "the study's table (a paper study's: ours beside the paper's)",
-    "trials.parquet": "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls",
-    "walk.parquet": "one row per trial of each walk: conditions, parameters, J, velocity, CoT, falls",
-    "metadata.json": "how the run was made: command, version, commit, optimizer, machine, run figures",
-    study_io.CHECKPOINT: "the state after the last finished trial (--resume continues from it)",
-    "recording.rrd": "rerun recording: optimization curves and representative rollouts",
-    "trials.rrd": "rerun recording of the robot's trials",
-    "best_params.json": "the best trial's parameters and what they were tuned for (deploy / walk --params)",
-    study_io.BEST_PARAMS: "the best parameters of each group and what they were tuned for (deploy / walk --params)",
-    "run.json": "how the robot run ended, its timing and what ran it",
-    "sim_truth.parquet": "the simulated Go1's true trunk state, one row per physics step",
-    tick_log.FILE_NAME: "the 1 kHz loop's per-tick log",
-    "calibration.json": "the foot-force calibration the run used",
-}
-
-
-def _file_kind(path: pathlib.Path) -> str:
-    if path.name in FILE_KINDS:
-        return FILE_KINDS[path.name]
-    if path.suffix == ".png":
-        return "figure"
-    if path.name.startswith("best_") and path.suffix == ".mp4":
-        return "video of the group's best gait (show --video films it again)"
-    if path in study_io.checkpoint_files(path.parent):
-        return "one process's checkpoint shard (--processes)"
-    if path.name.endswith(".ticks.arrows"):
-        return "the per-tick log of a calibration stand"
-    if path.is_dir() and (path / "metadata.json").exists():
-        return f"an arm of the study (cpgjax show {path})"
-    return "not written by cpgjax"
-
-
-def _damage(path: pathlib.Path) -> str | None:
-    """What is wrong with a file cpgjax wrote (empty, truncated, corrupt), None if it reads back."""
-    import pyarrow.parquet as pq
-
-    try:
-        if path.is_dir():
-            return None
-        data_size = path.stat().st_size
-        if data_size == 0:
-            return "empty"
-        if path.suffix == ".json":
-            json.loads(path.read_text())
-        elif path.suffix == ".parquet":
-            pq.read_metadata(path)
-        elif path.suffix == ".rrd":
-            with open(path, "rb") as f:
-                if f.read(len(RRD_MAGIC)) != RRD_MAGIC:
-                    return "not a rerun recording"
-                f.seek(max(data_size - 12, 0))
-                if not f.read(12).startswith(RRD_FOOTER):
-                    return "truncated (no rerun footer: its writer stopped early; the viewer shows what it holds)"
-        elif path.suffix == ".arrows":
-            if not tick_log.read_tick_log(path)[1]:
-                return "truncated (its writer stopped mid-batch)"
-        elif path.suffix == ".npz":
-            study_io.checkpoint_meta(path.parent)
-        elif path.suffix == ".png":
-            if path.read_bytes()[:4] != b"\x89PNG":
-                return "not a PNG image"
-        elif path.suffix == ".mp4":
-            data = path.read_bytes()
-            if data[4:8] != b"ftyp" or b"moov" not in data:  # an MP4's file-type box, and its index (written last)
-                return "not a complete MP4 video (show --video films it again)"
-    except study_spec.StudyError as err:
-        return str(err)
-    except Exception as err:  # each reader raises its own kinds for a damaged file
-        return f"corrupt or truncated ({type(err).__name__}: {err})"
-    return None
-
-
-def _files_listing(out: pathlib.Path) -> tuple[list[str], int]:
-    """One line per entry of ``out``: its name, what it is, and what is wrong with it; and the count of damaged
-    ones."""
-    lines, damaged = [], 0
-    for path in sorted(out.iterdir()):
-        problem = _damage(path)
-        damaged += problem is not None
-        shown = path.name + ("/" if path.is_dir() else "")
-        lines.append(f"  {shown:<20} {_file_kind(path)}" + (f"  [{path.name}: {problem}]" if problem else ""))
-    return lines, damaged
-
-
-def _metadata_line(path: pathlib.Path) -> str:
-    try:
-        m = json.loads(path.read_text())
-        if not isinstance(m, dict):
-            raise ValueError("not a JSON object")
-    except (OSError, UnicodeDecodeError, ValueError) as err:
-        return f"{path}: corrupt or truncated ({err})"
-    parts = [f"{m['instances']} instances × {m['trials']} trials"] if "instances" in m and "trials" in m else []
-    for key, label, unit in (("backend", "on", ""), ("wall_s", "wall", " s"), ("env_steps_per_s", "", " env-steps/s"),
-                             ("real_time_factor", "real-time factor", "×"), ("git_commit", "commit", ""),
-                             ("command", "command:", "")):
-        if m.get(key) is not None:
-            parts.append(f"{label} {m[key]}{unit}".strip())
-    return f"{m.get('study', '(no study name)')}: " + ", ".join(parts)
-
-
-def _read_json(path: pathlib.Path) -> dict | None:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
-def _folder_kind(out: pathlib.Path) -> str | None:
-    """Which command wrote ``out``: "deploy", "optimize", "walk", "study", "calibrate", or None (not a result)."""
-    names = {p.name for p in out.iterdir()}
-    if names & {"run.json", tick_log.FILE_NAME}:
-        return "deploy"
-    study = (_read_json(out / "metadata.json") or {}).get("study")
-    if study in ("optimize", "walk"):
-        return study
-    gaits = study_io.BEST_PARAMS in names or any(n.startswith("best_") and n.endswith(".mp4") for n in names)
-    if names & {"table.md", "trials.parquet", "metadata.json", "recording.rrd"} or gaits or study_io.checkpoint_files(
-            out) or any((out / n / "metadata.json").exists() or study_io.checkpoint_files(out / n) for n in names):
-        return "optimize" if "best_params.json" in names else "study"
-    if any(n.endswith(".air.ticks.arrows") for n in names):
-        return "calibrate"
-    return None
-
-
-def _next_step(out: pathlib.Path, kind: str) -> str:
-    """What to run next with a result folder."""
-    meta = _read_json(out / "metadata.json")
-    if kind in ("study", "optimize") and meta is None and (out / "metadata.json").exists():
-        return "next: metadata.json is damaged: the command that wrote the folder, again with --resume, rewrites it"
-    if kind in ("study", "optimize") and meta is None and study_io.checkpoint_files(out):
-        try:
-            done = (study_io.checkpoint_meta(out) or {}).get("trial")
-        except study_spec.StudyError:
-            return "next: its checkpoint is damaged: start afresh with --overwrite"
-        return (f"next: unfinished ({done} trials done, no metadata.json yet): run the command that started it again "
-                f"with --resume")
-    if kind == "optimize" or (kind == "deploy" and (out / "best_params.json").exists()):
-        return f"next: {replay_hint(out / 'best_params.json')}"
-    groups = sorted((out / study_io.BEST_PARAMS).glob("*.json"))
-    if groups:
-        return f"next: {replay_hint(groups[0])} (one file per group in {out / study_io.BEST_PARAMS}/)"
-    if kind == "calibrate":
-        found = sorted(out.glob("*.air.ticks.arrows"))
-        name = found[0].name.removesuffix(".air.ticks.arrows") + ".json"
-        return f"next: cpgjax deploy --robot go1 --calibration {out / name}"
-    if kind == "deploy":
-        return (f"next: the per-tick log in Python: pyarrow.ipc.open_stream({str(out / tick_log.FILE_NAME)!r})"
-                ".read_all().to_pandas()")
-    data = out / ("walk.parquet" if kind == "walk" else "trials.parquet")
-    return f"next: its trials in Python: pandas.read_parquet({str(data)!r})"
-
-
-def _calibration_file_summary(path: pathlib.Path) -> int:
-    """``cpgjax show`` of a calibration file: its values and its stands' per-tick logs."""
-    try:
-        calibration = foot_force.FootForceCalibration.load(path)
-    except ValueError as err:
-        print(f"cpgjax show: {err}", file=sys.stderr)
-        return 2
-    print(f"foot-force calibration {path}: offsets {calibration.offset_counts.tolist()} counts, "
-          f"{calibration.newton_per_count.tolist()} N/count")
-    damaged = 0
-    for stand, log in calibrate.tick_log_paths(path).items():
-        problem = _damage(log) if log.exists() else "missing"
-        damaged += problem is not None
-        print(f"  {log.name:<20} the per-tick log of the {stand} stand" + (f"  [{problem}]" if problem else ""))
-    print(f"next: cpgjax deploy --robot go1 --calibration {path}")
-    return 1 if damaged else 0
-
-
-def _show(args) -> int:
-    out = pathlib.Path(args.results)
-    if out.is_file() and out.suffix == ".json":
-        return _calibration_file_summary(out)
-    if not out.is_dir():
-        print(f"cpgjax show: {out} is not a folder (or a calibration file)", file=sys.stderr)
-        return 2
-    kind = _folder_kind(out)
-    if kind is None:
-        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, recording, "
-              f"best gait, checkpoint, run.json or {tick_log.FILE_NAME})", file=sys.stderr)
-        return 2
-    listing, damaged = _files_listing(out)
-    print(f"{out}: a `cpgjax {kind}` folder\n" + "\n".join(listing))
-    if kind == "deploy":
-        print(tick_log.summarize_run(out))
-    table = out / "table.md"
-    if table.exists() and _damage(table) is None:
-        print(table.read_text())
-    if (out / "metadata.json").exists() and _damage(out / "metadata.json") is None:
-        print(_metadata_line(out / "metadata.json"))
-    data = out / "trials.parquet"
-    if data.exists() and _damage(data) is None:
-        import pyarrow.parquet as pq
-
-        rows = pq.read_metadata(data).num_rows
-        print(f"trial data ({rows} rows): pandas.read_parquet({str(data)!r}) or pyarrow.parquet.read_table(...)")
-    print(_next_step(out, kind))
-    status = 1 if damaged else 0
-    recording = next((out / name for name in ("recording.rrd", "trials.rrd") if (out / name).exists()), None)
-    if recording is None or _damage(recording) in ("empty", "not a rerun recording"):
-        return status
-    viewer = _viewer()
-    elsewhere = f"copy it to a machine with a display and run `rerun {recording.name}` (pip install rerun-sdk)"
-    if args.no_viewer:
-        print(f"recording: {recording}")
-    elif not _has_display():
-        print(f"recording: {recording}; no display here (DISPLAY and WAYLAND_DISPLAY are unset): {elsewhere}")
-    elif viewer is None:
-        print(f"recording: {recording}; the rerun viewer is not installed (pip install rerun-sdk): {elsewhere}")
-    else:
-        proc = subprocess.Popen([viewer, "--bind", "127.0.0.1", str(recording)], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
-        try:
-            code = proc.wait(VIEWER_START_S)
-        except subprocess.TimeoutExpired:
-            print(f"opened {recording} in the rerun viewer (pid {proc.pid}, serving on 127.0.0.1 only)")
-            return status
-        print(f"recording: {recording}; the rerun viewer exited at once (status {code}): {elsewhere}")
-        return 1
-    return status
 
 
 def _inapplicable(args, calibrating: bool = False) -> str | None:
@@ -796,63 +545,7 @@ def _inapplicable(args, calibrating: bool = False) -> str | None:
     return None
 
 
-def _show_video(args) -> int:
-    """``cpgjax show DIR --video``: film each best_params/<group>.json of a study folder again."""
-    out = pathlib.Path(args.results)
-    try:
-        gaits = study_video.load_gaits(out) if out.is_dir() else None
-    except study_spec.StudyError as err:
-        print(f"cpgjax show: {err}", file=sys.stderr)
-        return 2
-    if not gaits:
-        print(f"cpgjax show: {out} has no {study_io.BEST_PARAMS}/<group>.json to film (a study writes them)",
-              file=sys.stderr)
-        return 2
-    for gait in gaits:
-        if study_video.video_file(out, gait.group).exists():
-            _notice(f"replacing {study_video.video_file(out, gait.group)}")
-    logs = study_gaits.gait_rollouts(gaits, args.backend, steps=int(round(args.video_s * 1000)))
-    return 0 if study_video.write_videos(out, gaits, logs, _notice) else 1
-
-
 WRITES_RESULTS = ("study", "optimize", "demo", "walk")  # the commands whose Ctrl-C after the last trial is news
-
-
-def _show_web(args) -> int:
-    """``cpgjax show DIR --web``: rerun's web viewer on the folder's recording, on 127.0.0.1, until Ctrl-C."""
-    recording = pathlib.Path(args.results) / "recording.rrd"
-    if not recording.is_file():
-        print(f"cpgjax show: {recording} does not exist (a study or `cpgjax optimize` writes it)", file=sys.stderr)
-        return 2
-    try:
-        proc = study_viewer.serve(recording, args.port)
-    except study_spec.StudyError as err:
-        print(f"cpgjax show: {err}", file=sys.stderr)
-        return 2
-    print(f"serving {recording} in rerun's web viewer on 127.0.0.1 only (pid {proc.pid}); open\n"
-          f"  {study_viewer.url(args.port)}\n"
-          f"from another machine, tunnel its port first:\n  {study_viewer.tunnel_line(args.port)}\n"
-          "Ctrl-C stops it.", flush=True)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill, like Ctrl-C, stops the viewer first
-    try:
-        return proc.wait()
-    except KeyboardInterrupt:
-        _notice("cpgjax show: the viewer is stopped")
-        return 0
-    finally:
-        study_viewer.stop(proc)
-
-
-def _show_command(args) -> int:
-    if args.video:
-        code = _show_video(args)
-        if code:
-            return code
-    if args.web:
-        args.no_viewer = True
-        code = _show(args)
-        return code or _show_web(args)
-    return _show(args)
 
 
 def _deploy(parser: argparse.ArgumentParser, args) -> int:
@@ -1160,7 +853,7 @@ def _add_show(sub) -> None:
                    "a browser here or through an ssh tunnel) until Ctrl-C")
     v.add_argument("--port", type=_integer_in(range(1024, 65536), "an unprivileged TCP port"),
                    default=study_viewer.DEFAULT_WEB_PORT, help="--web: the viewer's port (the page and the recording)")
-    v.set_defaults(func=_show_command)
+    v.set_defaults(func=show.command)
 
 
 def _add_demo(sub) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import cpgjax
-from cpgjax import ablation, cli
+from cpgjax import ablation, cli, show
 from cpgjax.deployment import calibrate, deploy, tick_log
 from cpgjax.robot import foot_force, sim_server
 from cpgjax.robot import safety as go1_safety
@@ -759,7 +759,7 @@ def test_progress_lines_count_trials_done_and_wait_for_the_pace(capsys):
 
 # ----------------------------------------------------------------------------------------------- show
 
-RRD = b"RRF2" + bytes(100) + cli.RRD_FOOTER + bytes(4)  # a header, a body, rerun's footer
+RRD = b"RRF2" + bytes(100) + show.RRD_FOOTER + bytes(4)  # a header, a body, rerun's footer
 
 
 def test_show_lists_every_file_and_names_each_damaged_one(tmp_path, capsys):
@@ -839,10 +839,10 @@ def test_show_opens_a_viewer_only_where_one_can_run(tmp_path, capsys, monkeypatc
     out.mkdir()
     (out / "recording.rrd").write_bytes(RRD)
     _write(out / "metadata.json", {"study": "friction"})
-    monkeypatch.setattr(cli, "VIEWER_START_S", 0.5)
+    monkeypatch.setattr(show, "VIEWER_START_S", 0.5)
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    monkeypatch.setattr(cli, "_viewer", lambda: str(_fake_viewer(tmp_path, 0)))
+    monkeypatch.setattr(show, "_viewer", lambda: str(_fake_viewer(tmp_path, 0)))
     assert cli.main(["show", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "no display here" in printed and "rerun recording.rrd" in printed and "opened" not in printed
@@ -850,7 +850,7 @@ def test_show_opens_a_viewer_only_where_one_can_run(tmp_path, capsys, monkeypatc
     monkeypatch.setenv("DISPLAY", ":0")
     assert cli.main(["show", str(out)]) == 1  # the viewer dies at once: not "opened"
     assert "exited at once (status 3)" in capsys.readouterr().out
-    monkeypatch.setattr(cli, "_viewer", lambda: str(_fake_viewer(tmp_path, 2)))
+    monkeypatch.setattr(show, "_viewer", lambda: str(_fake_viewer(tmp_path, 2)))
     assert cli.main(["show", str(out)]) == 0
     assert "opened" in capsys.readouterr().out
     assert (tmp_path / "viewer_args").read_text().split() == ["--bind", "127.0.0.1", str(out / "recording.rrd")]
@@ -962,7 +962,7 @@ def test_ctrl_c_stopping_the_web_viewer_says_so_not_that_outputs_are_written(tmp
             raise AssertionError("not interrupted")
     monkeypatch.setattr(study_viewer, "serve", lambda recording, port: Viewer())
     monkeypatch.setattr(study_viewer, "stop", stopped.append)
-    monkeypatch.setattr(cli, "_show", lambda args: 0)  # the folder's listing, checked by the tests of show
+    monkeypatch.setattr(show, "_summarize", lambda args: 0)  # the folder's listing, checked by the tests of show
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         assert cli.main(["show", str(tmp_path), "--web"]) == 0

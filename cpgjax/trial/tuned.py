@@ -12,6 +12,7 @@ were a choice). A plain JSON list of 8 numbers is read as parameters with nothin
 from __future__ import annotations
 
 import json
+import shlex
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -98,3 +99,10 @@ def describe(tuned_for: dict[str, Any]) -> str:
     shown = {"controller": "controller {}", "gait": "gait {}", "physics": "physics {}", "friction": "friction {:g}",
              "slope_deg": "slope {:g}°", "payload_kg": "payload {:g} kg", "target_velocity_mps": "v* {:g} m/s"}
     return ", ".join(shown[name].format(tuned_for[name]) for name in TUNED_FOR if name in tuned_for) or "nothing"
+
+
+def replay_hint(params_path) -> str:
+    """The commands that replay a ``best_params.json`` as it was tuned (the file carries the controller, the physics
+    profile, the scenario and the target, which both commands use)."""
+    return (f"replay the best: cpgjax deploy --robot sim --params {shlex.quote(str(params_path))}; "
+            f"check it in simulation: cpgjax walk --params {shlex.quote(str(params_path))}")
