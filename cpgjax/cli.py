@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 import cpgjax
-from cpgjax import ablation, compile_cache, cpg, provenance, show
+from cpgjax import ablation, compile_cache, cpg, outputs, provenance, show
 from cpgjax.deployment import calibrate, deploy
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
@@ -260,14 +260,14 @@ def _walk(args) -> int:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        pq.write_table(pa.table(walk.trial_columns(trials)), args.out / "walk.parquet")
-        meta = dict(study="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
+        pq.write_table(pa.table(walk.trial_columns(trials)), args.out / walk.TABLE)
+        meta = dict(study="walk", written_by="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
                     git_commit=provenance.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
                     backend=backends.resolve_backend(args.backend), startup=args.startup,
                     terrain=ground._asdict(), **timing,
                     environment=provenance.environment(),
                     compiled_programs=compile_cache.counts())
-        (args.out / "metadata.json").write_text(json.dumps(meta, indent=2, default=str))
+        (args.out / study_io.METADATA).write_text(json.dumps(meta, indent=2, default=str))
         print(f"outputs in {args.out}/ (walk.parquet: every trial, docs/outputs.md)")
     return 0
 
@@ -507,20 +507,21 @@ def _optimize(args) -> int:
     print(_trials_table(tr))
     try:
         with study_io.writing(out, "trials.parquet, metadata.json and best_params.json"):
-            study_io.write_trials(result, out / "trials.parquet")
-            study_io.write_metadata(result, out / "metadata.json", command=args.command_line)
+            study_io.write_trials(result, out / outputs.TRIALS)
+            study_io.write_metadata(result, out / study_io.METADATA, command=args.command_line,
+                                    written_by="optimize")
             feet = {} if args.foot_friction is None else {"foot_friction": args.foot_friction}
-            best = write_best_params(out / "best_params.json", tr,
+            best = write_best_params(out / tuned.FILE_NAME, tr,
                                      {name: getattr(args, name) for name in tuned.TUNED_FOR}, **feet)
         print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
-        with study_io.writing(out, "recording.rrd"):
-            study_io.write_recording(result, out / "recording.rrd")
+        with study_io.writing(out, study_io.RECORDING):
+            study_io.write_recording(result, out / study_io.RECORDING)
     except study_io.OutputError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # every trial is in the checkpoint: --resume writes the outputs
         return _interrupted(args.command_line, args, out)
-    print(f"outputs in {out}/ ({tuned.replay_hint(out / 'best_params.json')})")
+    print(f"outputs in {out}/ ({tuned.replay_hint(out / tuned.FILE_NAME)})")
     return 0
 
 

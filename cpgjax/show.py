@@ -12,9 +12,13 @@ import signal
 import subprocess
 import sys
 
-from cpgjax.deployment import calibrate, tick_log
+from cpgjax import outputs
+from cpgjax.deployment import calibrate, deploy, tick_log, trials
 from cpgjax.robot import foot_force
+from cpgjax.sim import walk
+from cpgjax.studies import figures as study_figures
 from cpgjax.studies import gaits as study_gaits
+from cpgjax.studies import transfer
 from cpgjax.studies import video as study_video
 from cpgjax.studies import viewer as study_viewer
 from cpgjax.study import files as study_io
@@ -41,81 +45,34 @@ def _viewer() -> str | None:
     return str(beside) if beside.exists() else shutil.which("rerun")
 
 
-RRD_MAGIC = b"RRF2"  # the first bytes of a rerun recording file
-RRD_FOOTER = b"RRF2FOOT"  # rerun's footer, 12 bytes before the end of a recording it finished writing
-
-# What each file cpgjax writes holds, as `cpgjax show` lists it (docs/outputs.md has every column).
-FILE_KINDS = {
-    "table.md": "the study's table (a paper study's: ours beside the paper's)",
-    "trials.parquet": "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls",
-    "walk.parquet": "one row per trial of each walk: conditions, parameters, J, velocity, CoT, falls",
-    "metadata.json": "how the run was made: command, version, commit, optimizer, machine, run figures",
-    study_io.CHECKPOINT: "the state after the last finished trial (--resume continues from it)",
-    "recording.rrd": "rerun recording: optimization curves and representative rollouts",
-    "trials.rrd": "rerun recording of the robot's trials",
-    "best_params.json": "the best trial's parameters and what they were tuned for (deploy / walk --params)",
-    study_io.BEST_PARAMS: "the best parameters of each group and what they were tuned for (deploy / walk --params)",
-    "run.json": "how the robot run ended, its timing and what ran it",
-    "sim_truth.parquet": "the simulated Go1's true trunk state, one row per physics step",
-    tick_log.FILE_NAME: "the 1 kHz loop's per-tick log",
-    "calibration.json": "the foot-force calibration the run used",
-}
+def catalogue() -> tuple[outputs.OutputFile, ...]:
+    """Every file a cpgjax command writes, each as its writer declares it (docs/outputs.md documents the same)."""
+    return (*outputs.OUTPUTS, *study_io.OUTPUTS, *tuned.OUTPUTS, *walk.OUTPUTS, *study_figures.OUTPUTS,
+            *study_video.OUTPUTS, *transfer.OUTPUTS, *tick_log.OUTPUTS, *deploy.OUTPUTS, *trials.OUTPUTS,
+            *calibrate.OUTPUTS)
 
 
 def _file_kind(path: pathlib.Path) -> str:
-    if path.name in FILE_KINDS:
-        return FILE_KINDS[path.name]
-    if path.suffix == ".png":
-        return "figure"
-    if path.name.startswith("best_") and path.suffix == ".mp4":
-        return "video of the group's best gait (show --video films it again)"
-    if path in study_io.checkpoint_files(path.parent):
-        return "one process's checkpoint shard (--processes)"
-    if path.name.endswith(".ticks.arrows"):
-        return "the per-tick log of a calibration stand"
-    if path.is_dir() and (path / "metadata.json").exists():
+    entry = outputs.entry_of(path.name, catalogue())
+    if entry is not None:
+        return entry.meaning
+    if path.is_dir() and (path / study_io.METADATA).exists():
         return f"an arm of the study (cpgjax show {path})"
     return "not written by cpgjax"
 
 
 def _damage(path: pathlib.Path) -> str | None:
-    """What is wrong with a file cpgjax wrote (empty, truncated, corrupt), None if it reads back."""
-    import pyarrow.parquet as pq
-
+    """What is wrong with a file cpgjax wrote (empty, truncated, corrupt: its catalogue entry's check), None if it
+    reads back or is no file of the catalogue."""
+    entry = outputs.entry_of(path.name, catalogue())
     try:
-        if path.is_dir():
+        if path.is_dir() or entry is None:
             return None
-        data_size = path.stat().st_size
-        if data_size == 0:
+        if path.stat().st_size == 0:
             return "empty"
-        if path.suffix == ".json":
-            json.loads(path.read_text())
-        elif path.suffix == ".parquet":
-            pq.read_metadata(path)
-        elif path.suffix == ".rrd":
-            with open(path, "rb") as f:
-                if f.read(len(RRD_MAGIC)) != RRD_MAGIC:
-                    return "not a rerun recording"
-                f.seek(max(data_size - 12, 0))
-                if not f.read(12).startswith(RRD_FOOTER):
-                    return "truncated (no rerun footer: its writer stopped early; the viewer shows what it holds)"
-        elif path.suffix == ".arrows":
-            if not tick_log.read_tick_log(path)[1]:
-                return "truncated (its writer stopped mid-batch)"
-        elif path.suffix == ".npz":
-            study_io.checkpoint_meta(path.parent)
-        elif path.suffix == ".png":
-            if path.read_bytes()[:4] != b"\x89PNG":
-                return "not a PNG image"
-        elif path.suffix == ".mp4":
-            data = path.read_bytes()
-            if data[4:8] != b"ftyp" or b"moov" not in data:  # an MP4's file-type box, and its index (written last)
-                return "not a complete MP4 video (show --video films it again)"
-    except study_spec.StudyError as err:
-        return str(err)
+        return entry.check(path)
     except Exception as err:  # each reader raises its own kinds for a damaged file
         return f"corrupt or truncated ({type(err).__name__}: {err})"
-    return None
 
 
 def _files_listing(out: pathlib.Path) -> tuple[list[str], int]:
@@ -155,26 +112,36 @@ def _read_json(path: pathlib.Path) -> dict | None:
 
 
 def _folder_kind(out: pathlib.Path) -> str | None:
-    """Which command wrote ``out``: "deploy", "optimize", "walk", "study", "calibrate", or None (not a result)."""
+    """Which command wrote ``out``: "deploy", "optimize", "walk", "study", "calibrate", or None (not a result). Its
+    metadata.json says so (``written_by``); a folder without one (a robot run, a calibration's stands, an unfinished
+    run, a run from before metadata.json named its command) is told by its files."""
     names = {p.name for p in out.iterdir()}
-    if names & {"run.json", tick_log.FILE_NAME}:
+    meta = _read_json(out / study_io.METADATA) or {}
+    if meta.get("written_by"):
+        return meta["written_by"]
+    if names & {tick_log.RUN_FILE, tick_log.FILE_NAME}:
         return "deploy"
-    study = (_read_json(out / "metadata.json") or {}).get("study")
-    if study in ("optimize", "walk"):
-        return study
-    gaits = study_io.BEST_PARAMS in names or any(n.startswith("best_") and n.endswith(".mp4") for n in names)
-    if names & {"table.md", "trials.parquet", "metadata.json", "recording.rrd"} or gaits or study_io.checkpoint_files(
-            out) or any((out / n / "metadata.json").exists() or study_io.checkpoint_files(out / n) for n in names):
-        return "optimize" if "best_params.json" in names else "study"
-    if any(n.endswith(".air.ticks.arrows") for n in names):
+    if meta.get("study") in ("optimize", "walk"):
+        return meta["study"]
+    gaits = study_io.BEST_PARAMS in names or any(study_video.VIDEO.matches(n) for n in names)
+    if names & {study_io.TABLE, outputs.TRIALS, study_io.METADATA, study_io.RECORDING} or gaits or (
+            study_io.checkpoint_files(out)) or any((out / n / study_io.METADATA).exists()
+                                                   or study_io.checkpoint_files(out / n) for n in names):
+        return "optimize" if tuned.FILE_NAME in names else "study"
+    if any(_air_log(n) for n in names):
         return "calibrate"
     return None
 
 
+def _air_log(name: str) -> bool:
+    """Whether the file called ``name`` is a calibration's first stand's per-tick log."""
+    return calibrate.STAND_LOGS[calibrate.STANDS[0]].matches(name)
+
+
 def _next_step(out: pathlib.Path, kind: str) -> str:
     """What to run next with a result folder."""
-    meta = _read_json(out / "metadata.json")
-    if kind in ("study", "optimize") and meta is None and (out / "metadata.json").exists():
+    meta = _read_json(out / study_io.METADATA)
+    if kind in ("study", "optimize") and meta is None and (out / study_io.METADATA).exists():
         return "next: metadata.json is damaged: the command that wrote the folder, again with --resume, rewrites it"
     if kind in ("study", "optimize") and meta is None and study_io.checkpoint_files(out):
         try:
@@ -183,19 +150,18 @@ def _next_step(out: pathlib.Path, kind: str) -> str:
             return "next: its checkpoint is damaged: start afresh with --overwrite"
         return (f"next: unfinished ({done} trials done, no metadata.json yet): run the command that started it again "
                 f"with --resume")
-    if kind == "optimize" or (kind == "deploy" and (out / "best_params.json").exists()):
-        return f"next: {tuned.replay_hint(out / 'best_params.json')}"
+    if kind == "optimize" or (kind == "deploy" and (out / tuned.FILE_NAME).exists()):
+        return f"next: {tuned.replay_hint(out / tuned.FILE_NAME)}"
     groups = sorted((out / study_io.BEST_PARAMS).glob("*.json"))
     if groups:
         return f"next: {tuned.replay_hint(groups[0])} (one file per group in {out / study_io.BEST_PARAMS}/)"
     if kind == "calibrate":
-        found = sorted(out.glob("*.air.ticks.arrows"))
-        name = found[0].name.removesuffix(".air.ticks.arrows") + ".json"
-        return f"next: cpgjax deploy --robot go1 --calibration {out / name}"
+        found = sorted(p for p in out.iterdir() if _air_log(p.name))
+        return f"next: cpgjax deploy --robot go1 --calibration {calibrate.calibration_file(found[0])}"
     if kind == "deploy":
         return (f"next: the per-tick log in Python: pyarrow.ipc.open_stream({str(out / tick_log.FILE_NAME)!r})"
                 ".read_all().to_pandas()")
-    data = out / ("walk.parquet" if kind == "walk" else "trials.parquet")
+    data = out / (walk.TABLE if kind == "walk" else outputs.TRIALS)
     return f"next: its trials in Python: pandas.read_parquet({str(data)!r})"
 
 
@@ -233,12 +199,12 @@ def _summarize(args) -> int:
     print(f"{out}: a `cpgjax {kind}` folder\n" + "\n".join(listing))
     if kind == "deploy":
         print(tick_log.summarize_run(out))
-    table = out / "table.md"
+    table = out / study_io.TABLE
     if table.exists() and _damage(table) is None:
         print(table.read_text())
-    if (out / "metadata.json").exists() and _damage(out / "metadata.json") is None:
-        print(_metadata_line(out / "metadata.json"))
-    data = out / "trials.parquet"
+    if (out / study_io.METADATA).exists() and _damage(out / study_io.METADATA) is None:
+        print(_metadata_line(out / study_io.METADATA))
+    data = out / outputs.TRIALS
     if data.exists() and _damage(data) is None:
         import pyarrow.parquet as pq
 
@@ -246,7 +212,8 @@ def _summarize(args) -> int:
         print(f"trial data ({rows} rows): pandas.read_parquet({str(data)!r}) or pyarrow.parquet.read_table(...)")
     print(_next_step(out, kind))
     status = 1 if damaged else 0
-    recording = next((out / name for name in ("recording.rrd", "trials.rrd") if (out / name).exists()), None)
+    recordings = (out / name for name in (study_io.RECORDING, trials.RECORDING))
+    recording = next((path for path in recordings if path.exists()), None)
     if recording is None or _damage(recording) in ("empty", "not a rerun recording"):
         return status
     viewer = _viewer()
@@ -291,7 +258,7 @@ def _film(args) -> int:
 
 def _serve(args) -> int:
     """``cpgjax show DIR --web``: rerun's web viewer on the folder's recording, on 127.0.0.1, until Ctrl-C."""
-    recording = pathlib.Path(args.results) / "recording.rrd"
+    recording = pathlib.Path(args.results) / study_io.RECORDING
     if not recording.is_file():
         print(f"cpgjax show: {recording} does not exist (a study or `cpgjax optimize` writes it)", file=sys.stderr)
         return 2

@@ -19,8 +19,8 @@ PACKAGE = ROOT / "cpgjax"
 
 # docs/architecture.md: the layers, lowest first. A module may import modules of its own layer or of lower ones.
 LAYERS = (
-    ("run provenance, flat layouts, JAX internals, compile cache", ("provenance", "layout", "jax_internals",
-                                                                    "compile_cache")),
+    ("run provenance, output files, flat layouts, JAX internals, compile cache", ("provenance", "outputs", "layout",
+                                                                                  "jax_internals", "compile_cache")),
     ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.terrain", "go1.model",
                    "go1.sensors")),
     ("parameters and GP", ("trial.params", "gp")),
@@ -41,11 +41,11 @@ LAYERS = (
     ("command line", ("cli", "show")),
 )
 # The design's modules, the entry point and its results browser, and below every layer what a run records about its
-# code and machine and how a pytree is laid out in a flat vector, the one module that reads JAX's internals, and where
-# compiled code is kept
+# code and machine, the entry type of the catalogue of output files, how a pytree is laid out in a flat vector, the
+# one module that reads JAX's internals, and where compiled code is kept
 TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io",
              "cli", "show",  # the entry point and its results browser
-             "provenance", "layout", "jax_internals", "compile_cache"}
+             "provenance", "outputs", "layout", "jax_internals", "compile_cache"}
 # docs/architecture.md: these layers sit side by side, neither imports the other (whatever their order in LAYERS).
 SIDE_BY_SIDE = tuple((a, b) for a in ("study definitions and files", "the study engine", "studies")
                      for b in ("robot", "the 1 kHz loop", "deployment"))

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import cpgjax
-from cpgjax import ablation, cli, show
+from cpgjax import ablation, cli, outputs, show
 from cpgjax.deployment import calibrate, deploy, tick_log
 from cpgjax.robot import foot_force, sim_server
 from cpgjax.robot import safety as go1_safety
@@ -759,7 +759,7 @@ def test_progress_lines_count_trials_done_and_wait_for_the_pace(capsys):
 
 # ----------------------------------------------------------------------------------------------- show
 
-RRD = b"RRF2" + bytes(100) + show.RRD_FOOTER + bytes(4)  # a header, a body, rerun's footer
+RRD = b"RRF2" + bytes(100) + outputs.RRD_FOOTER + bytes(4)  # a header, a body, rerun's footer
 
 
 def test_show_lists_every_file_and_names_each_damaged_one(tmp_path, capsys):
@@ -810,6 +810,18 @@ def test_show_detects_a_truncated_recording_and_tick_log(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "[trials.rrd: truncated (no rerun footer" in printed and "[run.json: corrupt or truncated" in printed
     assert "Traceback" not in printed
+
+
+def test_show_names_the_command_that_metadata_json_says_wrote_the_folder(tmp_path, capsys):
+    """metadata.json's ``written_by`` names the folder's command; a folder from before the key is told by its files."""
+    out = tmp_path / "run"
+    out.mkdir()
+    _write(out / study_io.METADATA, {"study": "friction", "written_by": "optimize"})
+    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    assert f"{out}: a `cpgjax optimize` folder" in capsys.readouterr().out
+    _write(out / study_io.METADATA, {"study": "friction"})
+    assert cli.main(["show", str(out), "--no-viewer"]) == 0
+    assert f"{out}: a `cpgjax study` folder" in capsys.readouterr().out
 
 
 def test_show_refuses_a_folder_that_is_no_result(tmp_path, capsys):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -24,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax import hardware_io as hio
+from cpgjax import outputs
 from cpgjax.deployment import deploy, tick_log
 from cpgjax.robot import foot_force
 from cpgjax.robot import safety as go1_safety
@@ -43,12 +45,24 @@ class Measurement(NamedTuple):
 
 
 STANDS = ("air", "standing")
+# Each stand's per-tick log, NAME.<stand>.ticks.arrows beside the calibration file NAME.json (tick_log_paths).
+STAND_LOGS = {stand: outputs.OutputFile(f"NAME.{stand}.{tick_log.FILE_NAME}", "the per-tick log of a calibration stand",
+                                        tick_log.check_tick_log,
+                                        pattern=rf".+\.{stand}\.{re.escape(tick_log.FILE_NAME)}") for stand in STANDS}
+OUTPUTS = tuple(STAND_LOGS.values())
 
 
 def tick_log_paths(out: Path) -> dict[str, Path]:
     """The per-tick log of each measuring stand, next to the calibration file ``out``."""
     out = Path(out)
     return {stand: out.with_name(f"{out.stem}.{stand}.{tick_log.FILE_NAME}") for stand in STANDS}
+
+
+def calibration_file(stand_log: Path) -> Path:
+    """The calibration file beside which ``stand_log`` (one of :func:`tick_log_paths`) lies."""
+    stand_log = Path(stand_log)
+    stand = next(s for s, entry in STAND_LOGS.items() if entry.matches(stand_log.name))
+    return stand_log.with_name(stand_log.name.removesuffix(f".{stand}.{tick_log.FILE_NAME}") + ".json")
 
 
 def measure_counts(transport: go1_transport.Transport, measure_s: float, settle_s: float, loop: hio.LoopConfig,

@@ -15,7 +15,7 @@ import socket
 import numpy as np
 
 import cpgjax
-from cpgjax import cpg, provenance
+from cpgjax import cpg, outputs, provenance
 from cpgjax import hardware_io as hio
 from cpgjax.deployment import tick_log
 from cpgjax.deployment.trials import OptimizerSpec, ReplayTrials, online_optimization
@@ -124,7 +124,7 @@ def run(args) -> int:
     calibration = sim_calibration() if args.calibration is None else foot_force.check_calibration(args.calibration)
     log.info("foot-force calibration: offsets %s counts, %s N/count", calibration.offset_counts,
              calibration.newton_per_count)
-    calibration.save(args.log_dir / "calibration.json")
+    calibration.save(args.log_dir / CALIBRATION_FILE)
     hint = stale_hint(args)
     with connect(args) as (transport, server), tick_log_writer(args.log_dir / tick_log.FILE_NAME, loop) as ticks:
         controller = compiled_controller.CompiledController(cpg.with_startup(cpg.CPGConfig(), args.startup))
@@ -152,11 +152,15 @@ def run(args) -> int:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        pq.write_table(pa.Table.from_pylist(rows), args.log_dir / "trials.parquet")
+        pq.write_table(pa.Table.from_pylist(rows), args.log_dir / outputs.TRIALS)
     return report(args, result, rows, truth)
 
 
 TRUTH_FILE = "sim_truth.parquet"
+CALIBRATION_FILE = "calibration.json"  # the foot-force calibration a run used, copied into its folder
+OUTPUTS = (outputs.OutputFile(TRUTH_FILE, "the simulated Go1's true trunk state, one row per physics step",
+                              outputs.check_parquet),
+           outputs.OutputFile(CALIBRATION_FILE, "the foot-force calibration the run used", outputs.check_json))
 
 
 def first_params(args) -> np.ndarray | None:
@@ -276,7 +280,7 @@ def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | No
                "timing": result.timing(), "command": getattr(args, "command_line", None),
                "cpgjax_version": cpgjax.__version__, "git_commit": provenance.git_commit(),
                "environment": provenance.environment()}
-    (args.log_dir / "run.json").write_text(json.dumps(summary, indent=1, default=str))
+    (args.log_dir / tick_log.RUN_FILE).write_text(json.dumps(summary, indent=1, default=str))
     ended = (f"safety trip: {result.trip}" if result.trip else "stopped by Ctrl-C (damped)" if result.stopped
              else "clean end")
     if result.safety_stops:

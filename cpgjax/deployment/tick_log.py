@@ -25,9 +25,11 @@ import numpy as np
 import pyarrow as pa
 
 from cpgjax import hardware_io as hio
+from cpgjax import outputs
 from cpgjax.robot.controller import OBSERVATION
 
 FILE_NAME = "ticks.arrows"
+RUN_FILE = "run.json"  # how a deploy run ended, its timing and what ran it (cpgjax.deployment.deploy writes it)
 # Column (TickLog field, or derived) → Arrow type, for the columns that are written as they are.
 _SCALARS = {
     "late_s": pa.float32(), "step_s": pa.float32(), "work_s": pa.float32(), "work_cpu_s": pa.float32(),
@@ -164,7 +166,7 @@ def summarize_run(run_dir: Path) -> str:
     """A few lines on a deploy run folder: how it ended, what ran it, its per-tick log (ticks, phases, trials,
     timing, the watchdog) and its per-trial rows."""
     run_dir = Path(run_dir)
-    run_file = run_dir / "run.json"
+    run_file = run_dir / RUN_FILE
     try:
         run = json.loads(run_file.read_text()) if run_file.exists() else None
     except (OSError, UnicodeDecodeError, ValueError) as err:
@@ -206,9 +208,18 @@ def summarize_run(run_dir: Path) -> str:
     stale = table["stale_ticks"].to_numpy()[active]
     lines.append(f"watchdog: longest wait for a new robot tick {int(stale.max()) if stale.size else 0} ticks; "
                  f"trials reached {int(table['trial'].to_numpy().max()) + 1}")
-    trials_file = run_dir / "trials.parquet"
+    trials_file = run_dir / outputs.TRIALS
     if trials_file.exists():
         import pyarrow.parquet as pq
 
         lines.append(f"per-trial rows: {pq.read_metadata(trials_file).num_rows} in {trials_file.name}")
     return "\n".join(lines)
+
+
+def check_tick_log(path: Path) -> str | None:
+    """A per-tick log's check: it ends after a complete batch."""
+    return None if read_tick_log(path)[1] else "truncated (its writer stopped mid-batch)"
+
+
+OUTPUTS = (outputs.OutputFile(FILE_NAME, "the 1 kHz loop's per-tick log", check_tick_log),
+           outputs.OutputFile(RUN_FILE, "how the robot run ended, its timing and what ran it", outputs.check_json))

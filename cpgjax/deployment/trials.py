@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax import hardware_io as hio
+from cpgjax import outputs
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
@@ -51,6 +52,9 @@ from cpgjax.trial import params as param_space
 
 # Columns of the steady-phase buffer, taken from the controller's flat output each tick.
 log = logging.getLogger(__name__)
+
+RECORDING = "trials.rrd"  # the robot's trials as a rerun recording
+OUTPUTS = (outputs.OutputFile(RECORDING, "rerun recording of the robot's trials", outputs.check_recording),)
 
 _SIGNALS = ("v_x", "v_y", "power", "load", "roll", "pitch", "saturated")
 # The robot's context normalization: its foot force is calibrated so that the feet carry its weight standing, the
@@ -173,14 +177,14 @@ class _TrialLog:
         self.dir = log_dir
         self.rows: list[dict] = []
         self._rec = rr.RecordingStream("cpgjax_deploy")
-        self._rec.save(str(log_dir / "trials.rrd"))
+        self._rec.save(str(log_dir / RECORDING))
 
     def append(self, row: dict) -> None:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
         self.rows.append(row)
-        pq.write_table(pa.Table.from_pylist(self.rows), self.dir / "trials.parquet")
+        pq.write_table(pa.Table.from_pylist(self.rows), self.dir / outputs.TRIALS)
         rr, rec = self._rr, self._rec
         rec.set_time("trial", sequence=row["trial"])
         for key in ("objective", "cost_of_transport", "velocity_x_mps", "c_load_n", "c_slope_rad", "wait_s"):
@@ -351,7 +355,7 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
                  c[1], row["wait_s"])
         if j > best:
             best = j
-            tuned.save(Path(spec.log_dir) / "best_params.json", x, spec.tuned_for, objective=j, trial=trial)
+            tuned.save(Path(spec.log_dir) / tuned.FILE_NAME, x, spec.tuned_for, objective=j, trial=trial)
     trial_log.close()
     conn.send(("done", trial_log.rows))
 

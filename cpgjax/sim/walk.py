@@ -13,13 +13,17 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from cpgjax import cpg
+from cpgjax import cpg, outputs
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
 from cpgjax.sim import backends
 from cpgjax.trial import limits, objective, protocol
 from cpgjax.trial import params as param_space
+
+TABLE = "walk.parquet"  # cpgjax walk --out: every trial, the columns of trial_columns
+OUTPUTS = (outputs.OutputFile(TABLE, "one row per trial of each walk: conditions, parameters, J, velocity, CoT, falls",
+                              outputs.check_parquet),)
 
 
 class WalkRow(NamedTuple):

@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 
 import jax
 
-from cpgjax import ablation
+from cpgjax import ablation, outputs
 from cpgjax.sim import backends
 from cpgjax.studies import figures as study_figures
 from cpgjax.studies import gaits as study_gaits
@@ -132,10 +132,10 @@ def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Repo
       study_io.OutputError: a file could not be written; the message names it and what was kept.
     """
     out.mkdir(parents=True, exist_ok=True)
-    with study_io.writing(out, "trials.parquet"):
-        study_io.write_trials(result, out / "trials.parquet")
-    with study_io.writing(out, "metadata.json"):
-        study_io.write_metadata(result, out / "metadata.json", metadata, command=command)
+    with study_io.writing(out, outputs.TRIALS):
+        study_io.write_trials(result, out / outputs.TRIALS)
+    with study_io.writing(out, study_io.METADATA):
+        study_io.write_metadata(result, out / study_io.METADATA, metadata, command=command)
     with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
         gaits = study_gaits.save_best_gaits(out, result)
     for gait in gaits:
@@ -146,20 +146,20 @@ def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Repo
     report = study.report(result, backend)
     tail = (f"{registry.safety_summary(result)}{registry.notes(result)}\nRun: "
             f"{study_figures.run_line(result, study_io.run_figures(result))}\n")
-    with study_io.writing(out, "table.md"):
+    with study_io.writing(out, study_io.TABLE):
         text = f"# {result.spec.name}\n\n{report}{tail}"
-        (out / "table.md").write_text(text)
+        (out / study_io.TABLE).write_text(text)
     with study_io.writing(out, "the study's figures"):
         extra = study.figures(result, out, backend)
         study_figures.optimization_progress(out / "optimization_progress.png", result,
                                             list(study_gaits.group_names(result)))
     if extra:
-        with study_io.writing(out, "table.md"):
+        with study_io.writing(out, study_io.TABLE):
             text = f"# {result.spec.name}\n\n{report}{extra}{tail}"
-            (out / "table.md").write_text(text)
+            (out / study_io.TABLE).write_text(text)
     logs = study_gaits.gait_rollouts(gaits, backend)
-    with study_io.writing(out, "recording.rrd"):
-        study_io.write_recording(result, out / "recording.rrd", [
+    with study_io.writing(out, study_io.RECORDING):
+        study_io.write_recording(result, out / study_io.RECORDING, [
             study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction,
                                 g.slope_deg, g.payload_kg, g.ground) for g, log in zip(gaits, logs, strict=True)])
     with study_io.writing(out, "the best gaits' figures and videos"):
@@ -167,7 +167,7 @@ def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Repo
         filmed = study_video.write_videos(out, gaits, logs, notify)
         # filmed: the videos written, for a prefix of the gaits (none where no OpenGL backend works)
         strips = {g.group: list(info["strip"]) for g, info in zip(gaits, filmed, strict=False)}
-        study_figures.summary(out / "summary.png", result, text, gaits, strips,
+        study_figures.summary(out / study_figures.SUMMARY, result, text, gaits, strips,
                               study.paper_marks(result))
     return text
 

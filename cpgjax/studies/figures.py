@@ -19,7 +19,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cpgjax import outputs
 from cpgjax.trial import params as param_space
+
+SUMMARY = "summary.png"  # the one-page summary of every study (:func:`summary`)
+OUTPUTS = (outputs.OutputFile("*.png", "figure", outputs.check_png, pattern=r".+\.png"),)
 
 CONTEXT_LABELS = ("$c_{load}$ [N]", "$c_{slope}$ [rad]")
 LEGEND_FONT_PT = 7

@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cpgjax import ablation, cpg
+from cpgjax import ablation, cpg, outputs
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
@@ -39,6 +39,9 @@ from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 
 NAME = "transfer"
+EVALUATIONS = "evaluations.parquet"  # in each arm's folder: its runs' best gaits walked away from home
+OUTPUTS = (outputs.OutputFile(EVALUATIONS, "one row per (run, evaluation environment): the run's best gait walked "
+                              "away from home", outputs.check_parquet),)
 EVALUATION_RANDOMIZATION = study_spec.Randomization(seed=1)
 EVALUATION_DRAWS = 8
 # The fixed profiles every run is evaluated under: those that step the physics at the control tick (one batch steps
@@ -261,15 +264,15 @@ def run(study: study_spec.StudyFile, *, out=None, resume=False, overwrite=False,
         engine = ablation.Engine(spec, backend=backend)
         result = engine.run(out / spec.name, resume=spec.name in resumed, progress=progress)
         with study_io.writing(out / spec.name, "trials.parquet, metadata.json and best_params/"):
-            study_io.write_trials(result, out / spec.name / "trials.parquet")
-            study_io.write_metadata(result, out / spec.name / "metadata.json", study.metadata(), command=command)
+            study_io.write_trials(result, out / spec.name / outputs.TRIALS)
+            study_io.write_metadata(result, out / spec.name / study_io.METADATA, study.metadata(), command=command)
             gaits[arm] = study_gaits.save_best_gaits(out / spec.name, result)
         arm_results[arm] = result
         env = Environments(home)
         evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels], env, spec.trial,
                                     engine.backend_name, target)
-        with study_io.writing(out / spec.name, "evaluations.parquet"):
-            write_evaluations(out / spec.name / "evaluations.parquet", result, env, evaluations[arm])
+        with study_io.writing(out / spec.name, EVALUATIONS):
+            write_evaluations(out / spec.name / EVALUATIONS, result, env, evaluations[arm])
         wall += result.wall_s
     env, fixed = Environments(study.arms[0].physics), len(ENVIRONMENT_PROFILES)
     draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}" for f, p, s, lat, z in zip(
@@ -287,7 +290,7 @@ def run(study: study_spec.StudyFile, *, out=None, resume=False, overwrite=False,
                if runs >= stats.MIN_SEEDS else f"\n{stats.too_few_line(runs)}\n")
             + f"\nOptimization wall time {wall:.0f} s (all arms).\n")
     out.mkdir(parents=True, exist_ok=True)
-    (out / "table.md").write_text(text)
+    (out / study_io.TABLE).write_text(text)
     for (arm, _, _), spec in zip(study.arms, arm_specs, strict=True):  # after the table: filming never costs a result
         with study_io.writing(out / spec.name, "the best gaits' videos"):
             logs = study_gaits.gait_rollouts(gaits[arm], engine.backend_name)

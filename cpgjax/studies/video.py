@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cpgjax import cpg
+from cpgjax import cpg, outputs
 from cpgjax.go1 import terrain as terrains
 from cpgjax.studies import renderer
 from cpgjax.study.files import BEST_PARAMS
@@ -76,6 +76,12 @@ def gait_file(out, group: str) -> pathlib.Path:
 
 def video_file(out, group: str) -> pathlib.Path:
     return pathlib.Path(out) / f"best_{group}.mp4"
+
+
+VIDEO = outputs.OutputFile(video_file("", "<group>").name,
+                           "video of the group's best gait (show --video films it again)", outputs.check_mp4,
+                           pattern=r"best_.+\.mp4")
+OUTPUTS = (VIDEO,)
 
 
 def save_gait(out, gait: Gait, **info) -> pathlib.Path:

@@ -36,14 +36,16 @@ from typing import Any, NamedTuple
 import numpy as np
 
 import cpgjax
-from cpgjax import compile_cache, provenance
+from cpgjax import compile_cache, outputs, provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
+from cpgjax.sim import walk
 from cpgjax.study import rate
 from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
+from cpgjax.trial import tuned
 
 
 class OutputError(RuntimeError):
@@ -53,6 +55,9 @@ class OutputError(RuntimeError):
 CHECKPOINT = "checkpoint.npz"
 BEST_PARAMS = "best_params"  # a study's folder of best parameters per group
 _SHARD = re.compile(r"checkpoint\.(\d+)of(\d+)\.t(\d+)\.npz")
+METADATA = "metadata.json"
+RECORDING = "recording.rrd"
+TABLE = "table.md"  # the study's report (cpgjax.studies writes it)
 
 
 class TrialLog(NamedTuple):
@@ -372,13 +377,40 @@ def _entries(folder: pathlib.Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir() if not p.name.startswith(_WRITE_PROBE))
 
 
-# Every file name a cpgjax command writes into its output folder (studies, optimize, walk and, written by
-# cpgjax.robot, a deploy run: its per-tick log, run.json and calibration.json), beside the figures (*.png), the
-# checkpoint shards, the best gaits' videos (best_<group>.mp4) and the best_params/ folder; --overwrite deletes these
-# and nothing else.
-OUTPUT_FILES = frozenset({CHECKPOINT, "trials.parquet", "recording.rrd", "trials.rrd", "metadata.json", "table.md",
-                          "best_params.json", "walk.parquet", "run.json", "ticks.arrows", "calibration.json",
-                          "sim_truth.parquet"})
+def _check_checkpoint(path: pathlib.Path) -> str | None:
+    """A checkpoint's (or shard's) check: its folder's newest complete checkpoint reads back."""
+    try:
+        checkpoint_meta(path.parent)
+    except StudyError as err:
+        return str(err)
+    return None
+
+
+# A study's files (and optimize's), beside the trial table (cpgjax.outputs) and best_params.json (cpgjax.trial.tuned).
+OUTPUTS = (
+    outputs.OutputFile(TABLE, "the study's table (a paper study's: ours beside the paper's)", outputs.check_none),
+    outputs.OutputFile(METADATA, "how the run was made: command, version, commit, optimizer, machine, run figures",
+                       outputs.check_json),
+    outputs.OutputFile(CHECKPOINT, "the state after the last finished trial (--resume continues from it)",
+                       _check_checkpoint),
+    outputs.OutputFile("checkpoint.<rank>of<N>.t<trial>.npz", "one process's checkpoint shard (--processes)",
+                       _check_checkpoint, pattern=_SHARD.pattern),
+    outputs.OutputFile(RECORDING, "rerun recording: optimization curves and representative rollouts",
+                       outputs.check_recording),
+    outputs.OutputFile(f"{BEST_PARAMS}/<group>.json",
+                       "the best parameters of each group and what they were tuned for (deploy / walk --params)",
+                       outputs.check_none, pattern=re.escape(BEST_PARAMS)),
+)
+
+# Every file name a cpgjax command writes into its output folder, beside the figures (*.png), the checkpoint shards,
+# the best gaits' videos (best_<group>.mp4) and the best_params/ folder; --overwrite deletes these and nothing else.
+# The robot's files (its per-tick log, trials.rrd, run.json, calibration.json, sim_truth.parquet) and the transfer
+# study's evaluations are named here by their names: their writers sit beside this module or above it, where it
+# cannot import them (tests/test_outputs_doc.py checks that this list and the catalogue, cpgjax.show.catalogue, name
+# the same files).
+OUTPUT_FILES = frozenset({outputs.TRIALS, tuned.FILE_NAME, walk.TABLE, *(e.name for e in OUTPUTS if e.pattern is None),
+                          "trials.rrd", "run.json", "ticks.arrows", "calibration.json", "sim_truth.parquet",
+                          "evaluations.parquet"})
 
 
 def _is_output(path: pathlib.Path) -> bool:
@@ -642,12 +674,14 @@ def run_figures(result) -> dict[str, float]:
                 checkpoint_s=round(result.timing.checkpoint_s, 2))
 
 
-def write_metadata(result, path, extra: dict | None = None, command: str | None = None) -> dict:
-    """``metadata.json``: the study, how it was run (``command``: the exact command line) and its run figures
-    (``compiled_programs``: how many of the process's programs were loaded from the cache of compiled programs and
-    how many compiled, which the first trial's time depends on; null without the cache)."""
+def write_metadata(result, path, extra: dict | None = None, command: str | None = None,
+                   written_by: str = "study") -> dict:
+    """``metadata.json``: the study, the cpgjax command that wrote the folder (``written_by``: ``study`` or
+    ``optimize``), how it was run (``command``: the exact command line) and its run figures (``compiled_programs``:
+    how many of the process's programs were loaded from the cache of compiled programs and how many compiled, which
+    the first trial's time depends on; null without the cache)."""
     figures = run_figures(result)
-    meta = dict(study=result.spec.name, command=command, cpgjax_version=cpgjax.__version__,
+    meta = dict(study=result.spec.name, written_by=written_by, command=command, cpgjax_version=cpgjax.__version__,
                 git_commit=provenance.git_commit(),
                 instances=len(result.labels), trials=int(result.trials.objective.shape[0]),
                 backend=result.backend, sharded_over=result.devices, spec=repr(result.spec),

@@ -18,10 +18,14 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from cpgjax import cpg
+from cpgjax import cpg, outputs
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.trial import limits
 from cpgjax.trial import params as param_space
+
+FILE_NAME = "best_params.json"
+OUTPUTS = (outputs.OutputFile(FILE_NAME, "the best trial's parameters and what they were tuned for (deploy / walk "
+                              "--params)", outputs.check_json),)
 
 # What a run was tuned for, in the order a replay names them; the numeric ones with their allowed ranges.
 TUNED_FOR = ("controller", "gait", "physics", "friction", "slope_deg", "payload_kg", "target_velocity_mps")
