@@ -21,6 +21,7 @@ import numpy as np
 import cpgjax
 from cpgjax import ablation, compile_cache, cpg, provenance
 from cpgjax.deployment import calibrate, deploy, tick_log
+from cpgjax.go1 import constants
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
 from cpgjax.robot import cpu_dispatch, foot_force
@@ -222,7 +223,7 @@ def _walk_video(args) -> int:
     gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
                             args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
                             trial.steady_steps, args.target_velocity_mps, gait=args.gaits[0], ground=ground)
-    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
+    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=constants.ticks(args.video_s))
     try:
         (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground, gait.payload_kg)])
     except (study_video.RenderUnavailable, RuntimeError) as err:

@@ -25,6 +25,7 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import terrain as terrains
+from cpgjax.go1.constants import TICK_S
 from cpgjax.studies import renderer
 from cpgjax.study.files import BEST_PARAMS
 from cpgjax.study.spec import StudyError
@@ -33,7 +34,6 @@ from cpgjax.trial import limits, tuned
 FPS = 25  # frames per second of video; one frame every 1000 / FPS ticks of 1 ms, so the video plays in real time
 WIDTH, HEIGHT = 640, 480
 DURATION_S = limits.Range(0.04, 120.0, "at least one frame, at most two minutes of video")
-TICK_S = 0.001
 
 
 class RenderUnavailable(RuntimeError):

@@ -31,7 +31,6 @@ TICK_STRIDE = 10  # body transforms and arrows at 100 Hz (the scalars every tick
 FORCE_ARROW_M_PER_N = 0.004  # a foot carrying a quarter of the robot's weight (31 N): a 12 cm arrow
 FLOOR_MARGIN_M = 0.6  # the floor slab spans the trunk's path and this much around it (its top at z = 0)
 FLOOR_THICKNESS_M = 0.01
-TICK_S = 0.001
 
 
 class Rollout(NamedTuple):
@@ -146,7 +145,7 @@ def log_rollout(rec, rollout: Rollout) -> str:
     every = ticks[::TICK_STRIDE]
 
     def index(t):
-        return [rr.TimeColumn("step", sequence=t), rr.TimeColumn("sim_time", duration=t * TICK_S)]
+        return [rr.TimeColumn("step", sequence=t), rr.TimeColumn("sim_time", duration=t * constants.TICK_S)]
 
     tilt = _xyzw(go1_model.slope_quaternion(rollout.slope_deg))
     rr.log(f"{base}/world", rr.Transform3D(quaternion=tilt), static=True, recording=rec)
