@@ -25,7 +25,7 @@ LAYERS = (
                    "go1.sensors")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
-    ("trial", ("trial.limits", "trial.protocol", "trial.objective", "trial.tuned")),
+    ("trial", ("trial.limits", "trial.protocol", "trial.objective", "trial.tuned", "trial.condition")),
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
     ("optimizer setting", ("trial.optimizer_setting",)),
     ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.ffi_step", "sim.backends", "sim.walk")),
