@@ -148,7 +148,7 @@ def test_the_payload_is_a_box_at_the_carrier_body_and_absent_without_one(recorde
     path = tmp_path / "unladen.rrd"
     rec = rr.RecordingStream("test_scene")
     rec.save(str(path))
-    unladen = "/" + scene.log_rollout(rec, rollout._replace(payload_kg=0.0))
+    unladen = "/" + scene.log_rollout(rec, rollout._replace(condition=rollout.condition._replace(payload_kg=0.0)))
     rec.flush()
     rec.disconnect()
     entities = {chunk.entity_path for chunk in RrdReader(path).stream()}
