@@ -39,12 +39,14 @@ def standing_recording(folder: pathlib.Path) -> None:
     import rerun as rr
 
     from cpgjax.study import scene
+    from cpgjax.trial.condition import Condition
 
     qpos = np.tile(go1_model.standing_qpos(), (STANDING_TICKS, 1))
     zeros = {name: np.zeros((STANDING_TICKS, *shape)) for name, shape in (
         ("qvel", (qpos.shape[1] - 1,)), ("torque_nm", (12,)), ("foot_force_n", (4,)), ("foot_pos_m", (4, 3)),
         ("amplitude", (4,)), ("phase_rad", (4,)), ("foot_target_m", (4, 3)), ("rpy_rad", (3,)))}
-    rollout = scene.Rollout(protocol.StepLog(qpos=qpos, **zeros), "standing", "vmc_tegotae", 0, 1.0, 0.0, 0.0)
+    rollout = scene.Rollout(log=protocol.StepLog(qpos=qpos, **zeros), group="standing", controller="vmc_tegotae",
+                            seed=0, condition=Condition(friction=1.0))
     rec = rr.RecordingStream("cpgjax_viewer_idle")
     rec.save(str(folder / "recording.rrd"))
     scene.log_rollout(rec, rollout)

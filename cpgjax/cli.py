@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import functools
 import ipaddress
-import json
 import os
 import pathlib
 import shlex
@@ -17,7 +16,7 @@ import time
 import numpy as np
 
 import cpgjax
-from cpgjax import ablation, compile_cache, cpg, outputs, provenance, show
+from cpgjax import ablation, compile_cache, cpg, outputs, show
 from cpgjax.deployment import calibrate, deploy
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
@@ -35,6 +34,7 @@ from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import limits, protocol, tuned
 from cpgjax.trial import params as param_space
+from cpgjax.trial.condition import Condition
 
 DEMO_OUT = pathlib.Path("results/demo_controller_ablation")
 DEPLOY_RUNS = pathlib.Path("runs/deploy")  # each robot run gets a fresh timestamped folder below it by default
@@ -215,13 +215,14 @@ def _walk_video(args) -> int:
         return 2
     code = _walk(args)
     trial = protocol.TrialConfig()  # the walk's trials, the paper's
-    params = param_space.midpoint() if args.params is None else np.asarray(args.params.params)
-    gait = study_video.Gait(path.stem, params, args.controllers[0], args.friction[0],
-                            args.slope_deg[0], args.payload_kg[0], args.physics[0], trial.transition_steps,
-                            trial.steady_steps, args.target_velocity_mps, gait=args.gaits[0], ground=ground)
-    (log,) = study_gaits.gait_rollouts([gait], args.backend, steps=int(round(args.video_s * 1000)))
+    condition = Condition(friction=args.friction[0], slope_deg=args.slope_deg[0], payload_kg=args.payload_kg[0],
+                          target_velocity_mps=args.target_velocity_mps, gait=args.gaits[0], ground=ground)
+    gait = study_video.Gait(group=path.stem, params=param_space.midpoint() if args.params is None
+                            else np.asarray(args.params.params), controller=args.controllers[0],
+                            physics=args.physics[0], condition=condition, transition_steps=trial.transition_steps,
+                            steady_steps=trial.steady_steps)
     try:
-        (info,) = study_video.render_videos([study_video.Job(path, log.qpos, gait.slope_deg, ground, gait.payload_kg)])
+        info = study_gaits.film(path, gait, args.backend, args.video_s)
     except (study_video.RenderUnavailable, RuntimeError) as err:
         print(f"cpgjax walk: {err}", file=sys.stderr)
         return code or 1
@@ -244,31 +245,14 @@ def _walk(args) -> int:
     ground = _ground(args)
     if ground is None:
         return 2
-    trials, timing = walk.walk_trials(controllers=args.controllers, gaits=args.gaits, friction=args.friction,
-                                      slope_deg=args.slope_deg,
-                                      payload_kg=args.payload_kg, num_trials=args.trials,
-                                      params=None if args.params is None else args.params.params,
-                                      target_velocity_mps=args.target_velocity_mps, backend=args.backend,
-                                      physics=args.physics, progress=_notice,  # stderr: stdout holds the table
-                                      cpg_config=cpg.with_startup(cpg.CPGConfig(), args.startup), ground=ground,
-                                      foot_friction=-1.0 if args.foot_friction is None else args.foot_friction)
-    print(walk.trials_table(trials))
-    pace = timing["env_steps_per_s"]
-    print(f"compilation and the first trial {timing['compile_and_first_trial_s']:.1f} s"
-          + ("" if pace is None else f"; then {pace:,.0f} env-steps/s"))
-    if args.out is not None:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
-        pq.write_table(pa.table(walk.trial_columns(trials)), args.out / walk.TABLE)
-        meta = dict(study="walk", written_by="walk", command=args.command_line, cpgjax_version=cpgjax.__version__,
-                    git_commit=provenance.git_commit(), walks=len({t.walk for t in trials}), trials=args.trials,
-                    backend=backends.resolve_backend(args.backend), startup=args.startup,
-                    terrain=ground._asdict(), **timing,
-                    environment=provenance.environment(),
-                    compiled_programs=compile_cache.counts())
-        (args.out / study_io.METADATA).write_text(json.dumps(meta, indent=2, default=str))
-        print(f"outputs in {args.out}/ (walk.parquet: every trial, docs/outputs.md)")
+    options = walk.WalkOptions(controllers=args.controllers, gaits=args.gaits, friction=args.friction,
+                               slope_deg=args.slope_deg, payload_kg=args.payload_kg, physics=args.physics,
+                               num_trials=args.trials, params=None if args.params is None else args.params.params,
+                               target_velocity_mps=args.target_velocity_mps, backend=args.backend,
+                               startup=args.startup, ground=ground,
+                               foot_friction=-1.0 if args.foot_friction is None else args.foot_friction,
+                               out=args.out, command_line=args.command_line)
+    walk.run_walk(options, progress=_notice)  # progress to stderr: stdout holds the table
     return 0
 
 
@@ -508,7 +492,7 @@ def _optimize(args) -> int:
     try:
         with study_io.writing(out, "trials.parquet, metadata.json and best_params.json"):
             study_io.write_trials(result, out / outputs.TRIALS)
-            study_io.write_metadata(result, out / study_io.METADATA, command=args.command_line,
+            study_io.write_metadata(result, out / outputs.METADATA, command=args.command_line,
                                     written_by="optimize")
             feet = {} if args.foot_friction is None else {"foot_friction": args.foot_friction}
             best = write_best_params(out / tuned.FILE_NAME, tr,

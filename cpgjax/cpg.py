@@ -76,7 +76,7 @@ class CPGConfig(NamedTuple):
     # force on a foot in the air only swings the leg (measured: lateral velocity std 0.11 m/s with the phase alone,
     # vs 0.06 with VMC alone, mid-range parameters). −inf: the stance phase alone (docs/decisions.md §7's switch).
     vmc_contact_force_n: float = 10.0
-    dt_s: float = 0.001  # control period (1 kHz)
+    dt_s: float = constants.TICK_S  # control period (the 1 kHz tick)
     # docs/decisions.md §1 (switch): "paper" integrates α(μ² − r²)r (r → μ); "sqrt" integrates α(μ − r²)r (r → √μ),
     # the form of the lab's public code.
     amplitude_form: str = "paper"

@@ -29,7 +29,7 @@ import numpy as np
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax.go1.constants import JOINT_LOWER_RAD, JOINT_UPPER_RAD
+from cpgjax.go1.constants import CONTROL_HZ, JOINT_LOWER_RAD, JOINT_UPPER_RAD, TICK_S
 from cpgjax.robot import cpu_wakeup, memory_lock, wire
 from cpgjax.robot.controller import (
     INPUT,
@@ -98,7 +98,7 @@ class FixedParams:
 class LoopConfig(NamedTuple):
     """Timing and soft start of the 1 kHz loop."""
 
-    period_s: float = 0.001
+    period_s: float = TICK_S
     spin_s: float = 0.0002  # sleep until this long before the deadline, then spin
     # Spin through the whole period, never sleep: the CPU stays awake (on a VM, the virtual CPU is not halted and
     # handed back to the host). Needs a CPU of its own (``cpu``) and, at SCHED_FIFO, the kernel's real-time
@@ -118,7 +118,7 @@ class LoopConfig(NamedTuple):
     lock_memory: bool = True  # mlockall while the loop runs, when permitted: no page fault waits on a disk
     poll_idle: bool = True  # idle CPUs poll instead of halting while the loop runs, when permitted (robot.cpu_wakeup)
     log_ticks: int = 120_000  # per-tick log ring buffer (the newest ticks are kept); a multiple of flush_ticks
-    flush_ticks: int = 1000  # hand the per-tick log to the sink in batches of this many ticks
+    flush_ticks: int = CONTROL_HZ  # hand the per-tick log to the sink in batches of this many ticks (1 s)
 
 
 class TickLog(NamedTuple):

@@ -4,7 +4,8 @@ gathers them (``cpgjax.show.catalogue``) for ``cpgjax show`` and docs/outputs.md
 that the catalogue, docs/outputs.md and ``--overwrite`` (``cpgjax.study.files.claim_folder``) name the same files.
 
 Here, below every writer: the entry type, the checks of the formats that entries share (JSON, parquet, rerun
-recordings, PNG images, MP4 videos), and the trial table, which the studies and the robot both write.
+recordings, PNG images, MP4 videos), the trial table, which the studies and the robot both write, and the metadata,
+which the studies and ``walk`` write.
 """
 
 from __future__ import annotations
@@ -82,5 +83,8 @@ def check_none(_path: pathlib.Path) -> str | None:
 
 
 TRIALS = "trials.parquet"
+METADATA = "metadata.json"  # a study's, an optimization's and a walk's
 OUTPUTS = (OutputFile(TRIALS, "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls",
-                      check_parquet),)
+                      check_parquet),
+           OutputFile(METADATA, "how the run was made: command, version, commit, optimizer, machine, run figures",
+                      check_json))

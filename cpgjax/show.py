@@ -14,6 +14,7 @@ import sys
 
 from cpgjax import outputs
 from cpgjax.deployment import calibrate, deploy, tick_log, trials
+from cpgjax.go1 import constants
 from cpgjax.robot import foot_force
 from cpgjax.sim import walk
 from cpgjax.studies import figures as study_figures
@@ -56,7 +57,7 @@ def _file_kind(path: pathlib.Path) -> str:
     entry = outputs.entry_of(path.name, catalogue())
     if entry is not None:
         return entry.meaning
-    if path.is_dir() and (path / study_io.METADATA).exists():
+    if path.is_dir() and (path / outputs.METADATA).exists():
         return f"an arm of the study (cpgjax show {path})"
     return "not written by cpgjax"
 
@@ -116,7 +117,7 @@ def _folder_kind(out: pathlib.Path) -> str | None:
     metadata.json says so (``written_by``); a folder without one (a robot run, a calibration's stands, an unfinished
     run, a run from before metadata.json named its command) is told by its files."""
     names = {p.name for p in out.iterdir()}
-    meta = _read_json(out / study_io.METADATA) or {}
+    meta = _read_json(out / outputs.METADATA) or {}
     if meta.get("written_by"):
         return meta["written_by"]
     if names & {tick_log.RUN_FILE, tick_log.FILE_NAME}:
@@ -124,8 +125,8 @@ def _folder_kind(out: pathlib.Path) -> str | None:
     if meta.get("study") in ("optimize", "walk"):
         return meta["study"]
     gaits = study_io.BEST_PARAMS in names or any(study_video.VIDEO.matches(n) for n in names)
-    if names & {study_io.TABLE, outputs.TRIALS, study_io.METADATA, study_io.RECORDING} or gaits or (
-            study_io.checkpoint_files(out)) or any((out / n / study_io.METADATA).exists()
+    if names & {study_io.TABLE, outputs.TRIALS, outputs.METADATA, study_io.RECORDING} or gaits or (
+            study_io.checkpoint_files(out)) or any((out / n / outputs.METADATA).exists()
                                                    or study_io.checkpoint_files(out / n) for n in names):
         return "optimize" if tuned.FILE_NAME in names else "study"
     if any(_air_log(n) for n in names):
@@ -140,8 +141,8 @@ def _air_log(name: str) -> bool:
 
 def _next_step(out: pathlib.Path, kind: str) -> str:
     """What to run next with a result folder."""
-    meta = _read_json(out / study_io.METADATA)
-    if kind in ("study", "optimize") and meta is None and (out / study_io.METADATA).exists():
+    meta = _read_json(out / outputs.METADATA)
+    if kind in ("study", "optimize") and meta is None and (out / outputs.METADATA).exists():
         return "next: metadata.json is damaged: the command that wrote the folder, again with --resume, rewrites it"
     if kind in ("study", "optimize") and meta is None and study_io.checkpoint_files(out):
         try:
@@ -202,8 +203,8 @@ def _summarize(args) -> int:
     table = out / study_io.TABLE
     if table.exists() and _damage(table) is None:
         print(table.read_text())
-    if (out / study_io.METADATA).exists() and _damage(out / study_io.METADATA) is None:
-        print(_metadata_line(out / study_io.METADATA))
+    if (out / outputs.METADATA).exists() and _damage(out / outputs.METADATA) is None:
+        print(_metadata_line(out / outputs.METADATA))
     data = out / outputs.TRIALS
     if data.exists() and _damage(data) is None:
         import pyarrow.parquet as pq
@@ -252,7 +253,7 @@ def _film(args) -> int:
     for gait in gaits:
         if study_video.video_file(out, gait.group).exists():
             _notice(f"replacing {study_video.video_file(out, gait.group)}")
-    logs = study_gaits.gait_rollouts(gaits, args.backend, steps=int(round(args.video_s * 1000)))
+    logs = study_gaits.gait_rollouts(gaits, args.backend, steps=constants.ticks(args.video_s))
     return 0 if study_video.write_videos(out, gaits, logs, _notice) else 1
 
 

@@ -88,8 +88,8 @@ def components() -> None:
                         progress=lambda _: None)
     print("| variant | controller | slope [°] | v_x [m/s] | CoT | J | falls |\n|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r.physics.removeprefix('component: ')} | {r.controller} | {r.slope_deg:g} | {r.vx_mps:.3f} | "
-              f"{r.cot:.2f} | {r.objective:.2f} | {r.falls} |")
+        print(f"| {r.physics.removeprefix('component: ')} | {r.controller} | {r.condition.slope_deg:g} "
+              f"| {r.vx_mps:.3f} | {r.cot:.2f} | {r.objective:.2f} | {r.falls} |")
 
 
 def main() -> None:

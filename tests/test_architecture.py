@@ -25,7 +25,7 @@ LAYERS = (
                    "go1.sensors")),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
-    ("trial", ("trial.limits", "trial.protocol", "trial.objective", "trial.tuned")),
+    ("trial", ("trial.limits", "trial.protocol", "trial.objective", "trial.tuned", "trial.condition")),
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
     ("optimizer setting", ("trial.optimizer_setting",)),
     ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.ffi_step", "sim.backends", "sim.walk")),
@@ -263,6 +263,58 @@ def test_every_citation_resolves_inside_the_repository():
                 continue
             problems.append(f"{path.relative_to(ROOT)}: cites {name}, which is not in the repository")
     assert problems == []
+
+
+# The control tick's one home (CONTROL_HZ, TICK_S, ticks, seconds): anywhere else a literal 1000 or 0.001 is a tick
+# conversion written out, unless it is one of these, each (module, the function or class it is in, value) → what it is.
+TICK_HOME = "go1/constants.py"
+NOT_TICKS = {
+    ("ablation.py", "exchange", 1000): "the key-value store's wait in milliseconds",
+    ("go1/physics.py", "<module>", 0.001): "MuJoCo's solimp width and the feet's 1 mm contact layer",
+    ("hardware_io.py", "timing_table", 1000): "µs in a table as a fraction of the period",
+    ("hardware_io.py", "_enter_realtime", 1000): "the kernel's µs in a message as ms",
+    ("robot/foot_force.py", "<module>", 0.001): "the lowest N per count a calibration accepts",
+    ("robot/sim_server.py", "motor_torque", 1000): "the distance from the SDK's stop sentinel that marks it",
+    ("robot/sim_server.py", "SimGo1Server._tick_once", 1000): "an injected fault's delay in ms as s",
+    ("sim/ffi_step.py", "Stepper.__init__", 1000): "the size of the native step's error message buffer",
+    ("study/spec.py", "<module>", 1000): "the longest ramp a study file may give, in m",
+    ("trial/limits.py", "<module>", 1000): "the most trials a run may ask for",
+}
+
+
+def _tick_literals(path: pathlib.Path):
+    """(scope, value, line) of each literal 1000 or 0.001 (any spelling: 1e3, 1000.0, 1e-3) in the file; scope is
+    the dotted name of the function or class it is in, ``<module>`` at the top level."""
+    found = []
+
+    def visit(node, scope):
+        for child in ast.iter_child_nodes(node):
+            inner = scope
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                inner = f"{scope}.{child.name}" if scope else child.name
+            if isinstance(child, ast.Constant) and type(child.value) in (int, float) and child.value in (1000, 0.001):
+                found.append((scope or "<module>", child.value, child.lineno))
+            visit(child, inner)
+
+    visit(ast.parse(path.read_text()), "")
+    return found
+
+
+def test_ticks_are_converted_in_one_place():
+    """Seconds ↔ control ticks through go1.constants alone: no other module writes 1000 or 0.001 except the listed
+    uses that are not ticks, and every listed use still exists."""
+    bare, seen = [], set()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        name = str(path.relative_to(PACKAGE))
+        if name == TICK_HOME:
+            continue
+        for scope, value, line in _tick_literals(path):
+            key = (name, scope, 1000 if value == 1000 else 0.001)
+            seen.add(key)
+            if key not in NOT_TICKS:
+                bare.append(f"cpgjax/{name}:{line} writes {value!r} in {scope} (go1.constants.ticks/seconds/TICK_S)")
+    assert bare == []
+    assert sorted(set(NOT_TICKS) - seen, key=str) == []
 
 
 if __name__ == "__main__":

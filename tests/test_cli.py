@@ -27,6 +27,7 @@ from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import limits, tuned
 from cpgjax.trial import params as param_space
+from cpgjax.trial.condition import Condition
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
@@ -737,7 +738,9 @@ def test_walk_refuses_zero_trials_and_names_its_target(capsys):
     assert "argument --trials: 0: need an integer >= 1" in _refused(["walk", "--trials", "0"], capsys)
     with pytest.raises(ValueError, match="num_trials = 0"):
         walk.walk(num_trials=0)
-    row = walk.WalkRow("vmc", 0.6, 0.0, 0.0, "paper", 0.5, 0.0, 0.6, 1.8, 0.8, 30.0, 0.0, 0.01, 0.01, 0)
+    row = walk.WalkRow(controller="vmc", physics="paper", condition=Condition(target_velocity_mps=0.8), vx_mps=0.5,
+                       vy_mps=0.0, cot=0.6, objective=1.8, c_load_n=30.0, c_slope_rad=0.0, roll_std_rad=0.01,
+                       pitch_std_rad=0.01, falls=0)
     assert "| J (v*=0.8 m/s) |" in walk.markdown_table([row])
 
 
@@ -816,10 +819,10 @@ def test_show_names_the_command_that_metadata_json_says_wrote_the_folder(tmp_pat
     """metadata.json's ``written_by`` names the folder's command; a folder from before the key is told by its files."""
     out = tmp_path / "run"
     out.mkdir()
-    _write(out / study_io.METADATA, {"study": "friction", "written_by": "optimize"})
+    _write(out / outputs.METADATA, {"study": "friction", "written_by": "optimize"})
     assert cli.main(["show", str(out), "--no-viewer"]) == 0
     assert f"{out}: a `cpgjax optimize` folder" in capsys.readouterr().out
-    _write(out / study_io.METADATA, {"study": "friction"})
+    _write(out / outputs.METADATA, {"study": "friction"})
     assert cli.main(["show", str(out), "--no-viewer"]) == 0
     assert f"{out}: a `cpgjax study` folder" in capsys.readouterr().out
 

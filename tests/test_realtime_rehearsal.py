@@ -24,7 +24,7 @@ from cpgjax.deployment import trials as robot_trials
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
-from cpgjax.go1.constants import GRAVITY_MPS2
+from cpgjax.go1.constants import GRAVITY_MPS2, TICK_S
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import cpu_wakeup, wire
 from cpgjax.robot import sim_server as sim
@@ -36,7 +36,7 @@ def test_the_simulated_go1s_clock_locks_to_just_after_the_commands():
     settles at PHASE_AFTER_COMMAND_S after them, never moves a deadline by more than PHASE_STEP_MAX_S, and keeps a
     1 kHz rate; with no new commands its phase stays put."""
     rng = np.random.default_rng(0)
-    period = sim.TICK_S
+    period = TICK_S
     deadline, command_phase = 0.0, 0.63e-3  # the loop sends 630 µs into the simulated Go1's period
     steps, phases = [], []
     for k in range(400):

@@ -11,6 +11,7 @@ from cpgjax.go1 import attitude, kinematics
 from cpgjax.go1 import model as go1_model
 from cpgjax.study import scene
 from cpgjax.trial import protocol
+from cpgjax.trial.condition import Condition
 
 TICKS = 60
 
@@ -36,7 +37,8 @@ def _synthetic_log():
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     log = _synthetic_log()
-    rollout = scene.Rollout(log, "friction0.3", "vmc_tegotae", 1, 0.3, 7.5, 2.0)
+    rollout = scene.Rollout(log=log, group="friction0.3", controller="vmc_tegotae", seed=1,
+                            condition=Condition(friction=0.3, slope_deg=7.5, payload_kg=2.0))
     path = tmp_path_factory.mktemp("scene") / "one.rrd"
     rec = rr.RecordingStream("test_scene")
     rec.save(str(path))
@@ -105,7 +107,7 @@ def test_the_transforms_put_the_feet_where_the_leg_kinematics_does(recorded):
 def test_the_world_is_tilted_by_the_slope_and_the_arrows_are_the_forces(recorded):
     log, rollout, base, chunks = recorded
     (tilt,) = _first(_column(chunks, f"{base}/world", "Transform3D:quaternion"))
-    down = attitude.quat_rotate(tilt[[3, 0, 1, 2]], go1_model.gravity_vector(rollout.slope_deg))
+    down = attitude.quat_rotate(tilt[[3, 0, 1, 2]], go1_model.gravity_vector(rollout.condition.slope_deg))
     np.testing.assert_allclose(down / np.linalg.norm(down), [0, 0, -1], atol=1e-6)
     (center,) = _first(_column(chunks, f"{base}/world/floor", "Boxes3D:centers"))
     (half,) = _first(_column(chunks, f"{base}/world/floor", "Boxes3D:half_sizes"))
@@ -146,7 +148,7 @@ def test_the_payload_is_a_box_at_the_carrier_body_and_absent_without_one(recorde
     path = tmp_path / "unladen.rrd"
     rec = rr.RecordingStream("test_scene")
     rec.save(str(path))
-    unladen = "/" + scene.log_rollout(rec, rollout._replace(payload_kg=0.0))
+    unladen = "/" + scene.log_rollout(rec, rollout._replace(condition=rollout.condition._replace(payload_kg=0.0)))
     rec.flush()
     rec.disconnect()
     entities = {chunk.entity_path for chunk in RrdReader(path).stream()}

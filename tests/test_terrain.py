@@ -21,6 +21,7 @@ from cpgjax.studies import video
 from cpgjax.study import scene
 from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
+from cpgjax.trial.condition import Condition
 from tests import test_outputs_doc
 from tests.conftest import SHORT_TRIAL
 
@@ -351,8 +352,10 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys):
 
 def test_walk_parquet_names_the_terrain():
     record = protocol.TrialRecord(*(np.zeros(()) for _ in protocol.TrialRecord._fields))
-    trial = walk.WalkTrial(0, 0, "vmc", "trot", 0.6, 0.6, -1.0, 0.0, 0.0, "soft", 0.5, param_space.midpoint(), record,
-                           0.0, np.zeros(2), 0.0, terrains.Ground("rough", 0.04, 3))
+    trial = walk.WalkTrial(walk=0, trial=0, controller="vmc", physics="soft",
+                           condition=Condition(ground=terrains.Ground("rough", 0.04, 3)), friction_in_effect=0.6,
+                           params=param_space.midpoint(), record=record, objective=0.0, velocity_xy_mps=np.zeros(2),
+                           cot=0.0)
     cols = walk.trial_columns([trial])
     assert (cols["terrain"][0], cols["terrain_amplitude_m"][0], cols["terrain_seed"][0]) == ("rough", 0.04, 3)
     assert not test_outputs_doc.undocumented("walk.parquet", cols)
@@ -366,8 +369,9 @@ def test_a_video_draws_the_terrain(tmp_path):
     stand[go1_model.indices().root_qpos] = 1.5
     qpos = np.tile(stand, (40, 1))
     rough = terrains.Ground("rough", 0.04, 3)
-    jobs = [video.Job(tmp_path / "flat.mp4", qpos), video.Job(tmp_path / "rough.mp4", qpos, 0.0, rough),
-            video.Job(tmp_path / "again.mp4", qpos, 0.0, rough)]
+    jobs = [video.Job(path=tmp_path / "flat.mp4", qpos=qpos),
+            video.Job(path=tmp_path / "rough.mp4", qpos=qpos, condition=Condition(ground=rough)),
+            video.Job(path=tmp_path / "again.mp4", qpos=qpos, condition=Condition(ground=rough))]
     try:
         flat, bumpy, again = (info["strip"][0].astype(float) for info in video.render_videos(jobs, width=320,
                                                                                               height=240))
@@ -394,7 +398,8 @@ def test_a_recording_draws_the_field_under_the_path(tmp_path):
     path = tmp_path / "rough.rrd"
     rec = rr.RecordingStream("test_terrain")
     rec.save(str(path))
-    base = scene.log_rollout(rec, scene.Rollout(log, "rough", "vmc", 0, 0.6, 0.0, 0.0, ground))
+    base = scene.log_rollout(rec, scene.Rollout(log=log, group="rough", controller="vmc", seed=0,
+                                                condition=Condition(ground=ground)))
     rec.flush()
     rec.disconnect()
     vertices = [row for chunk in RrdReader(path).stream() if chunk.entity_path == f"/{base}/world/floor"

@@ -16,6 +16,7 @@ from cpgjax.studies import video
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
 from cpgjax.trial import tuned
+from cpgjax.trial.condition import Condition
 
 
 def test_frames_play_in_real_time():
@@ -47,7 +48,7 @@ def test_the_camera_follows_the_robot(tmp_path):
     qpos = np.concatenate([np.tile(stand, (40, 1)), np.tile(far, (40, 1))])  # two frames at 25 fps
     path = tmp_path / "two.mp4"
     try:
-        (info,) = video.render_videos([video.Job(path, qpos, 0.0)], width=320, height=240)
+        (info,) = video.render_videos([video.Job(path=path, qpos=qpos)], width=320, height=240)
     except video.RenderUnavailable as err:
         pytest.skip(f"no OpenGL backend: {err}")
     assert info["frames"] == 2 and info["rollout_s"] == pytest.approx(0.08) and not list(tmp_path.glob(".*tmp*"))
@@ -66,7 +67,8 @@ def test_no_gl_backend_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     stand = np.tile(go1_model.standing_qpos(), (80, 1))
-    gait = video.Gait("vmc_tegotae", param_space.midpoint(), "vmc_tegotae", 0.6, 0.0, 0.0, "soft", 100, 200)
+    gait = video.Gait(group="vmc_tegotae", params=param_space.midpoint(), controller="vmc_tegotae", physics="soft",
+                      condition=Condition(friction=0.6), transition_steps=100, steady_steps=200)
     lines = []
     log = type("Log", (), {"qpos": stand})
     assert video.write_videos(tmp_path, [gait, gait._replace(group="other")], [log, log], lines.append) == []
@@ -76,8 +78,11 @@ def test_no_gl_backend_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
 
 
 def test_gait_files_round_trip_and_refuse_damage(tmp_path):
-    gait = video.Gait("friction0.3", param_space.midpoint(), "vmc_tegotae", 0.3, 5.0, 7.5, "paper", 1500, 3000,
-                      0.5, 1.9, 4, 11, gait="bound", ground=terrains.Ground("rough", 0.04, 7))
+    condition = Condition(friction=0.3, slope_deg=5.0, payload_kg=7.5, target_velocity_mps=0.5, gait="bound",
+                          ground=terrains.Ground("rough", 0.04, 7))
+    gait = video.Gait(group="friction0.3", params=param_space.midpoint(), controller="vmc_tegotae", physics="paper",
+                      condition=condition, transition_steps=1500, steady_steps=3000, objective=1.9, instance=4,
+                      trial=11)
     path = video.save_gait(tmp_path, gait, seed=3)
     assert path == tmp_path / "best_params" / "friction0.3.json"
     data = json.loads(path.read_text())
@@ -102,7 +107,8 @@ def test_gait_files_round_trip_and_refuse_damage(tmp_path):
 
 
 def test_cli_show_video_films_the_gait_files(tmp_path, capsys):
-    gait = video.Gait("vmc_tegotae", param_space.midpoint(), "vmc_tegotae", 0.6, 4.0, 0.0, "soft", 100, 200)
+    gait = video.Gait(group="vmc_tegotae", params=param_space.midpoint(), controller="vmc_tegotae", physics="soft",
+                      condition=Condition(friction=0.6, slope_deg=4.0), transition_steps=100, steady_steps=200)
     video.save_gait(tmp_path, gait)
     (tmp_path / "best_vmc_tegotae.mp4").write_bytes(b"an older video")
     code = cli.main(["show", str(tmp_path), "--video", "--video-s", "0.08", "--backend", "native", "--no-viewer"])
@@ -129,7 +135,8 @@ def test_cli_video_options_are_checked_before_compute(tmp_path, capsys):
 
 
 def test_show_names_a_study_video_and_a_cut_one(tmp_path, capsys):
-    gait = video.Gait("vmc", param_space.midpoint(), "vmc", 0.6, 0.0, 0.0, "soft", 100, 200)
+    gait = video.Gait(group="vmc", params=param_space.midpoint(), controller="vmc", physics="soft",
+                      condition=Condition(friction=0.6), transition_steps=100, steady_steps=200)
     video.save_gait(tmp_path, gait)
     stand = np.tile(go1_model.standing_qpos(), (80, 1))
     lines = []
@@ -150,7 +157,8 @@ def test_a_payload_is_drawn_on_the_trunk(tmp_path):
     """The same standing frame with and without a 15 kg payload: the payload's box (a geom of the scene, not of the
     model) changes the picture around the trunk, in the payload's colour, and nothing away from the robot."""
     stand = np.tile(go1_model.standing_qpos(go1_model.load_visual_model()), (40, 1))
-    jobs = [video.Job(tmp_path / "unladen.mp4", stand), video.Job(tmp_path / "laden.mp4", stand, payload_kg=15.0)]
+    jobs = [video.Job(path=tmp_path / "unladen.mp4", qpos=stand),
+            video.Job(path=tmp_path / "laden.mp4", qpos=stand, condition=Condition(payload_kg=15.0))]
     try:
         unladen, laden = (info["strip"][0].astype(int) for info in video.render_videos(jobs, width=320, height=240))
     except video.RenderUnavailable as err:

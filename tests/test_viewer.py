@@ -29,6 +29,7 @@ from websockets.sync.client import connect
 from cpgjax.studies import launch as study_launch
 from cpgjax.studies import viewer
 from cpgjax.study import scene
+from cpgjax.trial.condition import Condition
 from tests.test_scene import _synthetic_log
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
@@ -77,7 +78,8 @@ class _DevTools:
 
 def _record(folder) -> str:
     """``folder/recording.rrd``: one rollout; returns its entity path."""
-    rollout = scene.Rollout(_synthetic_log(), "vmc_tegotae", "vmc_tegotae", 0, 0.6, 5.0, 0.0)
+    rollout = scene.Rollout(log=_synthetic_log(), group="vmc_tegotae", controller="vmc_tegotae", seed=0,
+                            condition=Condition(friction=0.6, slope_deg=5.0, payload_kg=0.0))
     rec = rr.RecordingStream("cpgjax_web_test")
     rec.save(str(folder / "recording.rrd"))
     base = "/" + scene.log_rollout(rec, rollout)

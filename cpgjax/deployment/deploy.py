@@ -19,6 +19,7 @@ from cpgjax import cpg, outputs, provenance
 from cpgjax import hardware_io as hio
 from cpgjax.deployment import tick_log
 from cpgjax.deployment.trials import OptimizerSpec, ReplayTrials, online_optimization
+from cpgjax.go1 import constants
 from cpgjax.go1 import model as go1_model
 from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import foot_force
@@ -137,7 +138,7 @@ def run(args) -> int:
                                                         args.trials, timing, loop, safety, ticks, hint,
                                                         recover=stand_up(server))
         else:
-            replay = ReplayTrials(params, round(args.duration_s * 1000), timing)
+            replay = ReplayTrials(params, constants.ticks(args.duration_s), timing)
             result = hio.run_loop(transport, controller, replay, calibration, gates, loop, safety, ticks, hint)
             windows = replay.steady_windows
         truth = None
@@ -173,7 +174,7 @@ def trial_timing(args) -> protocol.TrialConfig:
     """Each trial's timing in loop ticks (1 ms): --transition-s and --steady-s with --optimize; a replay's run is cut
     into the protocol's trials (1.5 s settling, 3 s measured)."""
     if args.optimize:
-        return protocol.TrialConfig(round(args.transition_s * 1000), round(args.steady_s * 1000))
+        return protocol.TrialConfig(constants.ticks(args.transition_s), constants.ticks(args.steady_s))
     return protocol.TrialConfig()
 
 
@@ -185,7 +186,8 @@ def what_ran(args, rows: list[dict]) -> dict:
     timing, params = trial_timing(args), first_params(args)
     return {"mode": "optimize" if args.optimize else "replay", "robot": args.robot, **tuned_for(args),
             "physics": args.physics if args.robot == "sim" else "robot", "startup": args.startup,
-            "transition_s": timing.transition_steps / 1000, "steady_s": timing.steady_steps / 1000,
+            "transition_s": constants.seconds(timing.transition_steps),
+            "steady_s": constants.seconds(timing.steady_steps),
             "duration_s": None if args.optimize else args.duration_s,
             "num_trials": args.trials if args.optimize else None,
             "optimizer": args.optimizer if args.optimize else None, "seed": args.seed,

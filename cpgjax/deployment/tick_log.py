@@ -26,6 +26,7 @@ import pyarrow as pa
 
 from cpgjax import hardware_io as hio
 from cpgjax import outputs
+from cpgjax.go1 import constants
 from cpgjax.robot.controller import OBSERVATION
 
 FILE_NAME = "ticks.arrows"
@@ -188,12 +189,12 @@ def summarize_run(run_dir: Path) -> str:
         return "\n".join(lines)
     table, complete = read_tick_log(path)
     n = table.num_rows
-    lines.append(f"per-tick log {path.name}: {n} ticks ({n / 1000:.1f} s)" + ("" if complete else
+    lines.append(f"per-tick log {path.name}: {n} ticks ({constants.seconds(n):.1f} s)" + ("" if complete else
                  ", truncated: its writer stopped mid-batch (the complete batches are shown)"))
     if n == 0:
         return "\n".join(lines)
     phase = table["phase"].to_numpy()
-    spans = [f"{name} {np.sum(phase == i) / 1000:.2f} s" for i, name in enumerate(hio.PHASE_NAMES)
+    spans = [f"{name} {constants.seconds(np.sum(phase == i)):.2f} s" for i, name in enumerate(hio.PHASE_NAMES)
              if np.any(phase == i)]
     lines.append("time per phase: " + ", ".join(spans))
     last = table.slice(n - 1)

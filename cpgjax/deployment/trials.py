@@ -42,6 +42,7 @@ import numpy as np
 from cpgjax import hardware_io as hio
 from cpgjax import outputs
 from cpgjax.go1 import physics as physics_profiles
+from cpgjax.go1.constants import TICK_S
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.robot import controller as compiled_controller
@@ -144,13 +145,13 @@ class OptimizerSpec(NamedTuple):
     total_mass_kg: float
     log_dir: str
     tuned_for: dict  # what best_params.json records it was tuned for (cpgjax.trial.tuned.TUNED_FOR)
-    dt_s: float = 0.001
+    dt_s: float = TICK_S
     steady_steps: int = protocol.TrialConfig().steady_steps  # ticks of a trial's steady phase (its record's length)
     cpus: tuple[int, ...] | None = None  # the CPUs the worker may use (None: any); keep it off the loop's CPU
     safe: bool = False  # the safe BO (kind "bo" only; docs/decisions.md §17)
 
 
-def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = 0.001,
+def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = TICK_S,
                  timing: protocol.TrialConfig = protocol.TrialConfig()) -> protocol.TrialRecord:
     """The trial record of the steady phase's per-tick robot signals (T, len(_SIGNALS)), summarized by
     ``protocol.summarize`` exactly as in simulation.
@@ -215,7 +216,7 @@ def trial_row(trial: int, x: np.ndarray, record: protocol.TrialRecord, j: float,
             "fell": safety_stop is not None, "failed": False, "safety_stop": safety_stop}
 
 
-def stopped_trial_record(signals: np.ndarray, stop_margin: float, total_mass_kg: float, dt_s: float = 0.001,
+def stopped_trial_record(signals: np.ndarray, stop_margin: float, total_mass_kg: float, dt_s: float = TICK_S,
                          timing: protocol.TrialConfig = protocol.TrialConfig()) -> protocol.TrialRecord:
     """The record of a trial that a safety stop ended: fallen, so J is at its minimum (``objective.objective``), and
     its safety margin the worst of its steady ticks (``signals``, possibly none) and of the stop's
@@ -281,7 +282,7 @@ class ReplayTrials:
                 self.trial = self.trials_done
 
     def rows(self, total_mass_kg: float, target_velocity_mps: float, seed: int, tuned_for: dict,
-             dt_s: float = 0.001) -> list[dict]:
+             dt_s: float = TICK_S) -> list[dict]:
         """Each complete trial's row (:func:`trial_row`): J, velocity, distance, CoT and the context from the
         robot's own sensors, summarized as in simulation."""
         rows = []

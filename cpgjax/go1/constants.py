@@ -22,3 +22,18 @@ GRAVITY_MPS2 = 9.81
 # The deployment's tilt stop: IMU |roll| or |pitch| beyond this damps the motors (cpgjax.robot.safety), and a trial's
 # safety margin reaches 0 there (cpgjax.trial.protocol.safety_margin).
 TILT_STOP_RAD = 0.7
+
+# The control tick: the paper's 1 kHz control loop, which the physics steps at too (docs/decisions.md §14). Every
+# conversion between seconds and ticks goes through these.
+CONTROL_HZ = 1000
+TICK_S = 1 / CONTROL_HZ  # 0.001 s
+
+
+def ticks(seconds: float) -> int:
+    """The whole number of control ticks nearest ``seconds`` (``seconds · CONTROL_HZ``, rounded half to even)."""
+    return int(round(seconds * CONTROL_HZ))
+
+
+def seconds(num_ticks):
+    """``num_ticks`` control ticks in seconds (``num_ticks / CONTROL_HZ``; an array gives an array)."""
+    return num_ticks / CONTROL_HZ

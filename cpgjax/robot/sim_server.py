@@ -42,12 +42,11 @@ import numpy as np
 from cpgjax.go1 import attitude, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
-from cpgjax.go1.constants import GRAVITY_MPS2, TORQUE_LIMIT_NM
+from cpgjax.go1.constants import GRAVITY_MPS2, TICK_S, TORQUE_LIMIT_NM
 from cpgjax.layout import FlatLayout
 from cpgjax.robot import cpu_dispatch, memory_lock, wire
 
 LOOPBACK = "127.0.0.1"
-TICK_S = 0.001
 # The simulated foot sensor: raw = offset + N / scale (the real Go1's values are unknown and drift; the deployment
 # calibrates them, docs/decisions.md §3).
 FOOT_FORCE_OFFSET_COUNTS = np.array([14, -6, 22, 9])

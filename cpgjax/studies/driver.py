@@ -134,8 +134,8 @@ def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Repo
     out.mkdir(parents=True, exist_ok=True)
     with study_io.writing(out, outputs.TRIALS):
         study_io.write_trials(result, out / outputs.TRIALS)
-    with study_io.writing(out, study_io.METADATA):
-        study_io.write_metadata(result, out / study_io.METADATA, metadata, command=command)
+    with study_io.writing(out, outputs.METADATA):
+        study_io.write_metadata(result, out / outputs.METADATA, metadata, command=command)
     with study_io.writing(out, f"{study_io.BEST_PARAMS}/"):
         gaits = study_gaits.save_best_gaits(out, result)
     for gait in gaits:
@@ -160,8 +160,9 @@ def write_outputs(result, out: pathlib.Path, backend: str, report: registry.Repo
     logs = study_gaits.gait_rollouts(gaits, backend)
     with study_io.writing(out, study_io.RECORDING):
         study_io.write_recording(result, out / study_io.RECORDING, [
-            study_scene.Rollout(log, g.group, g.controller, result.labels[g.instance]["seed"], g.friction,
-                                g.slope_deg, g.payload_kg, g.ground) for g, log in zip(gaits, logs, strict=True)])
+            study_scene.Rollout(log=log, group=g.group, controller=g.controller,
+                                seed=result.labels[g.instance]["seed"], condition=g.condition)
+            for g, log in zip(gaits, logs, strict=True)])
     with study_io.writing(out, "the best gaits' figures and videos"):
         study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
         filmed = study_video.write_videos(out, gaits, logs, notify)

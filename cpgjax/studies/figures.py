@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cpgjax import outputs
+from cpgjax.go1 import constants
 from cpgjax.trial import params as param_space
 
 SUMMARY = "summary.png"  # the one-page summary of every study (:func:`summary`)
@@ -236,8 +237,8 @@ def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
         ax.grid(alpha=0.3)
     for ax in axes[:, 0]:
         ax.set_ylabel("pitch [deg]")
-    fig.suptitle(f"roll–pitch of each group's best gait, {len(logs[0].rpy_rad) / 1000:g} s after a settling trial",
-                 fontsize=9)
+    fig.suptitle(f"roll–pitch of each group's best gait, {constants.seconds(len(logs[0].rpy_rad)):g} s after a "
+                 "settling trial", fontsize=9)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

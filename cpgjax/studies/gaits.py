@@ -16,12 +16,14 @@ import re
 
 import numpy as np
 
+from cpgjax.go1 import constants
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import terrain as terrains
 from cpgjax.studies import registry
 from cpgjax.studies import video as study_video
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import objective, protocol
+from cpgjax.trial.condition import Condition
 
 
 def group_name(labels: dict, spec: study_spec.StudySpec) -> str:
@@ -93,15 +95,18 @@ def best_gaits(result) -> list[study_video.Gait]:
     gaits = []
     for name in dict.fromkeys(names):
         b, t, phase, walked = best_run(result, names == name, all_phases)
+        condition = Condition(friction=float(cond.friction[b, t]), slope_deg=float(cond.slope_deg[b, t]),
+                              payload_kg=float(cond.payload_kg[b, t]),
+                              target_velocity_mps=float(cond.target_velocity_mps[b, t]),
+                              gait=str(result.labels[b]["gait"]),
+                              foot_friction=float(result.labels[b]["foot_friction"]),
+                              ground=study_spec.ground(result.labels[b]))
         gaits.append(study_video.Gait(
             group=str(name), params=np.asarray(tr.params[t, b], np.float64), controller=result.labels[b]["controller"],
-            friction=float(cond.friction[b, t]), slope_deg=float(cond.slope_deg[b, t]),
-            payload_kg=float(cond.payload_kg[b, t]), physics=str(result.labels[b]["physics"]),
+            physics=str(result.labels[b]["physics"]), condition=condition,
             transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
-            target_velocity_mps=float(cond.target_velocity_mps[b, t]), objective=float(tr.objective[t, b]),
-            instance=b, trial=t, phase=phase_text(result, b, phase), walked=walked,
-            gait=str(result.labels[b]["gait"]), ground=study_spec.ground(result.labels[b]),
-            foot_friction=float(result.labels[b]["foot_friction"])))
+            objective=float(tr.objective[t, b]), instance=b, trial=t, phase=phase_text(result, b, phase),
+            walked=walked))
     return gaits
 
 
@@ -120,9 +125,24 @@ def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None
     config = protocol.TrialConfig(transition_steps=gaits[0].transition_steps, steady_steps=gaits[0].steady_steps)
     if any((g.transition_steps, g.steady_steps) != (config.transition_steps, config.steady_steps) for g in gaits):
         raise study_spec.StudyError("the gaits were found with different trial lengths; film them one at a time")
-    scenario = go1_model.make_scenarios(friction=[g.friction for g in gaits], slope_deg=[g.slope_deg for g in gaits],
-                                        payload_kg=[g.payload_kg for g in gaits], physics=[g.physics for g in gaits],
-                                        foot_friction=[g.foot_friction for g in gaits],
-                                        **terrains.ground_fields(g.ground for g in gaits))
+    conditions = [g.condition for g in gaits]
+    scenario = go1_model.make_scenarios(friction=[c.friction for c in conditions],
+                                        slope_deg=[c.slope_deg for c in conditions],
+                                        payload_kg=[c.payload_kg for c in conditions],
+                                        physics=[g.physics for g in gaits],
+                                        foot_friction=[c.foot_friction for c in conditions],
+                                        **terrains.ground_fields(c.ground for c in conditions))
     return registry.rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config,
-                             backend, config.steady_steps if steps is None else steps, [g.gait for g in gaits])
+                             backend, config.steady_steps if steps is None else steps, [c.gait for c in conditions])
+
+
+def film(path: pathlib.Path, gait: study_video.Gait, backend: str, seconds: float) -> dict:
+    """The MP4 ``path`` of ``gait``: ``seconds`` of it after a settling trial (:func:`gait_rollouts`), rendered by
+    ``study_video.render_videos``, whose info it returns.
+
+    Raises:
+      study_video.RenderUnavailable, RuntimeError: as ``study_video.render_videos``.
+    """
+    (log,) = gait_rollouts([gait], backend, steps=constants.ticks(seconds))
+    (info,) = study_video.render_videos([study_video.Job(path=path, qpos=log.qpos, condition=gait.condition)])
+    return info

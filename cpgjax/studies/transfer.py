@@ -265,7 +265,7 @@ def run(study: study_spec.StudyFile, *, out=None, resume=False, overwrite=False,
         result = engine.run(out / spec.name, resume=spec.name in resumed, progress=progress)
         with study_io.writing(out / spec.name, "trials.parquet, metadata.json and best_params/"):
             study_io.write_trials(result, out / spec.name / outputs.TRIALS)
-            study_io.write_metadata(result, out / spec.name / study_io.METADATA, study.metadata(), command=command)
+            study_io.write_metadata(result, out / spec.name / outputs.METADATA, study.metadata(), command=command)
             gaits[arm] = study_gaits.save_best_gaits(out / spec.name, result)
         arm_results[arm] = result
         env = Environments(home)

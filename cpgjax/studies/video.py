@@ -23,17 +23,18 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cpgjax import cpg, outputs
+from cpgjax import outputs
 from cpgjax.go1 import terrain as terrains
+from cpgjax.go1.constants import TICK_S
 from cpgjax.studies import renderer
 from cpgjax.study.files import BEST_PARAMS
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import limits, tuned
+from cpgjax.trial.condition import Condition
 
 FPS = 25  # frames per second of video; one frame every 1000 / FPS ticks of 1 ms, so the video plays in real time
 WIDTH, HEIGHT = 640, 480
 DURATION_S = limits.Range(0.04, 120.0, "at least one frame, at most two minutes of video")
-TICK_S = 0.001
 
 
 class RenderUnavailable(RuntimeError):
@@ -49,25 +50,20 @@ class Gait(NamedTuple):
     group: str  # the group's name in file names (``cpgjax.studies.gaits.group_name``)
     params: np.ndarray  # (8,) physical units
     controller: str
-    friction: float
-    slope_deg: float
-    payload_kg: float
     physics: str
+    condition: Condition  # what it walked in (its file: the condition's fields, the ground's among them)
     transition_steps: int
     steady_steps: int
-    target_velocity_mps: float = 0.5
     objective: float | None = None  # J of the trial the parameters come from
     instance: int | None = None
     trial: int | None = None
     phase: str | None = None  # the phase of the study the trial is from (``cpgjax.studies.gaits.phase_text``)
     walked: bool | None = None  # false: no trial of its group walked (``cpgjax.studies.gaits``)
-    gait: str = cpg.DEFAULT_GAIT  # the CPG's coupling pattern (``cpg.GAITS``)
-    ground: terrains.Ground = terrains.FLAT_GROUND  # the ground it walked (its file: the Ground's three fields)
-    foot_friction: float = -1.0  # the feet's μ it walked on (go1_model.Scenario.foot_friction; −1: the profile's)
 
 
 # A gait file's fields besides what the parameters were tuned for (tuned.TUNED_FOR), required to film it again.
 _FILM_FIELDS = ("transition_steps", "steady_steps")
+_RECORD_FIELDS = ("group", "params", "controller", "physics", "condition")  # a Gait's fields its file keeps otherwise
 
 
 def gait_file(out, group: str) -> pathlib.Path:
@@ -86,11 +82,12 @@ OUTPUTS = (VIDEO,)
 
 def save_gait(out, gait: Gait, **info) -> pathlib.Path:
     """``best_params/<group>.json`` of ``gait`` in the :mod:`cpgjax.trial.tuned` format, with the trial lengths, its
-    objective, instance and trial, and ``info`` (e.g. seed, study)."""
-    fields = gait._asdict()
+    objective, instance and trial, the feet's μ and the ground, and ``info`` (e.g. seed, study)."""
+    condition = gait.condition._asdict()
+    fields = {**gait._asdict(), **condition}
     tuned_for = {name: fields[name] for name in tuned.TUNED_FOR}
-    rest = {k: v for k, v in fields.items() if k not in tuned.TUNED_FOR and k not in ("params", "group", "ground")}
-    rest.update(gait.ground._asdict())
+    rest = {k: v for k, v in gait._asdict().items() if k not in _RECORD_FIELDS}
+    rest.update(foot_friction=gait.condition.foot_friction, **gait.condition.ground._asdict())
     path = gait_file(out, gait.group)
     path.parent.mkdir(parents=True, exist_ok=True)
     tuned.save(path, gait.params, tuned_for, **rest, **info)
@@ -113,12 +110,14 @@ def load_gaits(out) -> list[Gait]:
             if missing:
                 raise StudyError(f"{path} is not a study's gait file (missing key {missing[0]!r}); run the study "
                                  "again")
-            fields = {k: data[k] for k in Gait._fields if k not in ("params", "group", "ground", *tuned.TUNED_FOR)
-                      and k in data}
+            fields = {k: data[k] for k in Gait._fields if k not in _RECORD_FIELDS and k in data}
             ground = terrains.Ground(**{k: data[k] for k in terrains.Ground._fields if k in data})
             terrains.check_terrain([ground.terrain], [ground.terrain_amplitude_m], [ground.terrain_seed],
                                    [ground.terrain_step_m])
-            gaits.append(Gait(group=path.stem, params=read.params, **read.tuned_for, **fields, ground=ground))
+            condition = Condition(**{k: read.tuned_for[k] for k in Condition._fields if k in read.tuned_for},
+                                  **{k: data[k] for k in ("foot_friction",) if k in data}, ground=ground)
+            gaits.append(Gait(group=path.stem, params=read.params, controller=read.tuned_for["controller"],
+                              physics=read.tuned_for["physics"], condition=condition, **fields))
         except ValueError as err:  # tuned.load's one line: unreadable, bad JSON, a value out of range
             raise StudyError(str(err)) from None
     return gaits
@@ -131,14 +130,12 @@ def frame_ticks(num_ticks: int, fps: int = FPS) -> np.ndarray:
 
 
 class Job(NamedTuple):
-    """One video to make: the MP4 ``path`` of ``qpos`` (T, nq; 1 ms ticks) on a floor of ``slope_deg`` and
-    ``ground``, carrying ``payload_kg`` (drawn as the payload's box where not zero)."""
+    """One video to make: the MP4 ``path`` of ``qpos`` (T, nq; 1 ms ticks) in ``condition``: on a floor of its slope
+    and ground, carrying its payload (drawn as the payload's box where not zero)."""
 
     path: pathlib.Path
     qpos: np.ndarray
-    slope_deg: float = 0.0
-    ground: terrains.Ground = terrains.FLAT_GROUND
-    payload_kg: float = 0.0
+    condition: Condition = Condition()
 
 
 def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height: int = HEIGHT) -> list[dict]:
@@ -160,9 +157,9 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
         frames_file = pathlib.Path(folder) / "jobs.npz"
         arrays = {f"qpos_{k}": np.asarray(j.qpos, np.float64)[frame_ticks(len(j.qpos), fps)]
                   for k, j in enumerate(jobs)}
-        grounds = terrains.ground_fields(j.ground for j in jobs)
-        np.savez(frames_file, slope_deg=np.array([float(j.slope_deg) for j in jobs]),
-                 payload_kg=np.array([float(j.payload_kg) for j in jobs]), fps=fps, width=width,
+        grounds = terrains.ground_fields(j.condition.ground for j in jobs)
+        np.savez(frames_file, slope_deg=np.array([float(j.condition.slope_deg) for j in jobs]),
+                 payload_kg=np.array([float(j.condition.payload_kg) for j in jobs]), fps=fps, width=width,
                  height=height, paths=np.array(tmps), **grounds, **arrays)
         child = subprocess.run([sys.executable, "-m", "cpgjax.studies.renderer", str(frames_file)], env=env,
                                capture_output=True, text=True)
@@ -187,7 +184,7 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
     """``best_<group>.mp4`` of each gait from its rollout log (``protocol.StepLog``, arrays (T, ...)), a line to
     ``notify`` for each. Where no OpenGL backend works, one line says so and no video is written; another rendering
     failure is one line too. Either way the caller's other files are left as they are."""
-    jobs = [Job(video_file(out, g.group), log.qpos, g.slope_deg, g.ground, g.payload_kg)
+    jobs = [Job(path=video_file(out, g.group), qpos=log.qpos, condition=g.condition)
             for g, log in zip(gaits, logs, strict=True)]
     try:
         infos = render_videos(jobs)
@@ -195,10 +192,10 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
         notify(str(err))
         return []
     for gait, info in zip(gaits, infos, strict=True):
-        g = gait.ground
+        c, g = gait.condition, gait.condition.ground
         ground = "" if g.terrain == terrains.FLAT else f", {g.terrain} ground {g.terrain_amplitude_m:g} m (seed " \
             f"{g.terrain_seed})"
-        notify(f"{info['path']}: {info['rollout_s']:.1f} s of {gait.controller} ({gait.gait}) at friction "
-               f"{gait.friction:g}, slope {gait.slope_deg:g}°, payload {gait.payload_kg:g} kg{ground}; "
+        notify(f"{info['path']}: {info['rollout_s']:.1f} s of {gait.controller} ({c.gait}) at friction "
+               f"{c.friction:g}, slope {c.slope_deg:g}°, payload {c.payload_kg:g} kg{ground}; "
                f"{info['frames']} frames rendered in {info['render_s']:.1f} s ({info['backend']})")
     return infos

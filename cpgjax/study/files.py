@@ -39,6 +39,7 @@ import cpgjax
 from cpgjax import compile_cache, outputs, provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
+from cpgjax.go1.constants import TICK_S
 from cpgjax.sim import walk
 from cpgjax.study import rate
 from cpgjax.study import scene as study_scene
@@ -55,7 +56,6 @@ class OutputError(RuntimeError):
 CHECKPOINT = "checkpoint.npz"
 BEST_PARAMS = "best_params"  # a study's folder of best parameters per group
 _SHARD = re.compile(r"checkpoint\.(\d+)of(\d+)\.t(\d+)\.npz")
-METADATA = "metadata.json"
 RECORDING = "recording.rrd"
 TABLE = "table.md"  # the study's report (cpgjax.studies writes it)
 
@@ -389,8 +389,6 @@ def _check_checkpoint(path: pathlib.Path) -> str | None:
 # A study's files (and optimize's), beside the trial table (cpgjax.outputs) and best_params.json (cpgjax.trial.tuned).
 OUTPUTS = (
     outputs.OutputFile(TABLE, "the study's table (a paper study's: ours beside the paper's)", outputs.check_none),
-    outputs.OutputFile(METADATA, "how the run was made: command, version, commit, optimizer, machine, run figures",
-                       outputs.check_json),
     outputs.OutputFile(CHECKPOINT, "the state after the last finished trial (--resume continues from it)",
                        _check_checkpoint),
     outputs.OutputFile("checkpoint.<rank>of<N>.t<trial>.npz", "one process's checkpoint shard (--processes)",
@@ -648,8 +646,8 @@ def run_plan(spec, out_dir, backend: str, start: int) -> str:
                                                                "payload_kg", "target_velocity_mps", "schedules",
                                                                "data_reuse", "physics") if len(getattr(spec, a)) > 1)
     where = f"resuming {out_dir} at trial {start}" if start else f"writing {out_dir}/"
-    return (f"{spec.name}: {batch} instances ({axes or 'one'}) × {spec.num_trials} trials of {steps * 0.001:g} s"
-            f"{', safe' if spec.safe else ''}: {remaining:,} env-steps ({remaining * 0.001 / 3600:.2f} robot-hours) "
+    return (f"{spec.name}: {batch} instances ({axes or 'one'}) × {spec.num_trials} trials of {steps * TICK_S:g} s"
+            f"{', safe' if spec.safe else ''}: {remaining:,} env-steps ({remaining * TICK_S / 3600:.2f} robot-hours) "
             f"on the {backend} backend, {where}; {rate.estimate(backend, remaining)}")
 
 
@@ -664,7 +662,7 @@ def run_figures(result) -> dict[str, float]:
     spec = result.spec
     steps_per_trial = spec.trial.transition_steps + spec.trial.steady_steps
     env_steps = len(result.labels) * result.trials.objective.shape[0] * steps_per_trial
-    robot_s = env_steps * 0.001
+    robot_s = env_steps * TICK_S
     wall = max(result.wall_s, 1e-9)
     return dict(wall_s=round(result.wall_s, 2), env_steps=env_steps, robot_s=round(robot_s, 1),
                 env_steps_per_s=round(env_steps / wall, 1), real_time_factor=round(robot_s / wall, 2),

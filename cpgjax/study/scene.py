@@ -26,12 +26,12 @@ import numpy as np
 from cpgjax.go1 import constants
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import terrain as terrains
+from cpgjax.trial.condition import Condition
 
 TICK_STRIDE = 10  # body transforms and arrows at 100 Hz (the scalars every tick)
 FORCE_ARROW_M_PER_N = 0.004  # a foot carrying a quarter of the robot's weight (31 N): a 12 cm arrow
 FLOOR_MARGIN_M = 0.6  # the floor slab spans the trunk's path and this much around it (its top at z = 0)
 FLOOR_THICKNESS_M = 0.01
-TICK_S = 0.001
 
 
 class Rollout(NamedTuple):
@@ -41,17 +41,15 @@ class Rollout(NamedTuple):
     group: str
     controller: str
     seed: int
-    friction: float
-    slope_deg: float
-    payload_kg: float
-    ground: terrains.Ground = terrains.FLAT_GROUND
+    condition: Condition
 
 
 def entity_path(rollout: Rollout) -> str:
     import rerun as rr
 
     parts = (f"best_{rollout.group}", rollout.controller, f"seed={rollout.seed}",
-             f"friction={rollout.friction:g},slope_deg={rollout.slope_deg:g},payload_kg={rollout.payload_kg:g}")
+             f"friction={rollout.condition.friction:g},slope_deg={rollout.condition.slope_deg:g},"
+             f"payload_kg={rollout.condition.payload_kg:g}")
     return "rollout/" + "/".join(rr.escape_entity_path_part(p) for p in parts)
 
 
@@ -146,17 +144,17 @@ def log_rollout(rec, rollout: Rollout) -> str:
     every = ticks[::TICK_STRIDE]
 
     def index(t):
-        return [rr.TimeColumn("step", sequence=t), rr.TimeColumn("sim_time", duration=t * TICK_S)]
+        return [rr.TimeColumn("step", sequence=t), rr.TimeColumn("sim_time", duration=t * constants.TICK_S)]
 
-    tilt = _xyzw(go1_model.slope_quaternion(rollout.slope_deg))
+    tilt = _xyzw(go1_model.slope_quaternion(rollout.condition.slope_deg))
     rr.log(f"{base}/world", rr.Transform3D(quaternion=tilt), static=True, recording=rec)
     trunk_xy = qpos[:, go1_model.indices().root_qpos:go1_model.indices().root_qpos + 2]
     low, high = trunk_xy.min(axis=0) - FLOOR_MARGIN_M, trunk_xy.max(axis=0) + FLOOR_MARGIN_M
-    if rollout.ground.terrain == terrains.FLAT:
+    if rollout.condition.ground.terrain == terrains.FLAT:
         floor = rr.Boxes3D(mins=[[*low, -FLOOR_THICKNESS_M]], sizes=[[*(high - low), FLOOR_THICKNESS_M]],
                            colors=[[190, 190, 185, 255]], fill_mode="solid")
     else:
-        mesh = field_mesh(rollout.ground, low, high)
+        mesh = field_mesh(rollout.condition.ground, low, high)
         shade = 150 + 80 * (mesh["vertex_positions"][:, 2] / terrains.MAX_AMPLITUDE_M + 0.5)  # lighter higher
         floor = rr.Mesh3D(**mesh, vertex_colors=np.stack([shade, shade, 0.97 * shade], -1).astype(np.uint8))
     rr.log(f"{base}/world/floor", floor, static=True, recording=rec)
@@ -165,7 +163,7 @@ def log_rollout(rec, rollout: Rollout) -> str:
     for body in range(1, m.nbody):
         path = f"{base}/world/robot/{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body)}"
         if body == payload_body:  # no geom: the payload's box, where there is a payload
-            if rollout.payload_kg <= 0.0:
+            if rollout.condition.payload_kg <= 0.0:
                 continue
             rr.log(f"{path}/boxes", payload_box(), static=True, recording=rec)
         else:

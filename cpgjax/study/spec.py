@@ -22,6 +22,7 @@ from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
+from cpgjax.go1.constants import TICK_S
 from cpgjax.optim import acquisition
 from cpgjax.optim import config as optimizer_config
 from cpgjax.trial import limits, objective, optimizer_setting, protocol
@@ -409,7 +410,6 @@ TOP_KEYS = ("name", "description", "report", "trials", "max_trials", "seeds", "g
             "switches", "comparisons", "grid", "schedules", "ramp", "randomize", "trial", "quick", "paper", "transfer")
 QUICK_KEYS = ("trials", "seeds", "max_trials", "schedules")
 STUDY_FILE_SUFFIX = ".toml"
-TICK_S = 0.001  # a trial's timing in a file is in seconds, run in 1 kHz control ticks (cpg.CPGConfig.dt_s)
 WORD = r"[A-Za-z0-9._-]+"  # a schedule's name: it becomes part of file names
 
 

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from cpgjax.go1.constants import TICK_S
 from cpgjax.go1.model import MAX_ABS_SLOPE_DEG
 from cpgjax.go1.terrain import BLOCK_DEPTH_M as BLOCK_DEPTH
 from cpgjax.go1.terrain import MAX_AMPLITUDE_M
@@ -63,8 +64,8 @@ TARGET_VELOCITY_MPS = Range(0.0, 2.0, "forward walking; the paper's targets are 
 ROBOT_MASS_KG = Range(5.0, 40.0, "the Go1 weighs ~12 kg, with at most a 20 kg payload")
 RUN_DURATION_S = Range(0.0, 3600.0, "a run of at most an hour", low_open=True)
 TRANSITION_S = Range(0.0, 60.0, "each trial's parameter transition")
-STEADY_S = Range(0.001, 600.0, "each trial's measured phase: at least one 1 ms tick")
-MEASURE_S = Range(0.001, 600.0, "a measuring window: at least one 1 ms tick")
+STEADY_S = Range(TICK_S, 600.0, "each trial's measured phase: at least one 1 ms tick")
+MEASURE_S = Range(TICK_S, 600.0, "a measuring window: at least one 1 ms tick")
 SETTLE_S = Range(0.0, 60.0, "holding the pose before measuring")
 LIFT_M = Range(0.0, 1.0, "how high the simulated Go1 is hung up", low_open=True)
 OBJECTIVE_FLOOR = Range(-20.0, -0.5, "J's lower bound and a fall's J, below every walking gait's J (1.5 … 2.3)")

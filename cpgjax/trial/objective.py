@@ -8,14 +8,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from cpgjax.go1.constants import GRAVITY_MPS2
+from cpgjax.go1.constants import GRAVITY_MPS2, TICK_S
 from cpgjax.trial.protocol import TrialRecord
 
 VELOCITY_WEIGHT = 1.0  # w1
 COT_WEIGHT = 0.5  # w2
 MAX_VELOCITY_REWARD = 0.85  # l_r
 VELOCITY_KERNEL_WIDTH = 0.05  # [m²/s²], the 0.05 in eq. (9)
-STEADY_DT_S = 0.001  # Δt
+STEADY_DT_S = TICK_S  # Δt
 # docs/decisions.md §10, degenerate trials: CoT divides by at least MIN_DISTANCE_M of forward progress (so standing
 # still or walking backwards gives a large CoT), and J is bounded below by MIN_OBJECTIVE; a fall or a non-finite
 # state gives exactly MIN_OBJECTIVE. Typical J of a walking gait is 1.5 … 2.3; the floor sits well below.
