@@ -19,8 +19,8 @@ import pytest
 
 from cpgjax import hardware_io as hio
 from cpgjax.deployment import deploy
-from cpgjax.deployment.options import RobotOptions
 from cpgjax.deployment import trials as robot_trials
+from cpgjax.deployment.options import RobotOptions
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
