@@ -837,8 +837,8 @@ def _show_command(args) -> int:
 
 
 def _options_of(kind: type[RobotOptions], args, **values) -> RobotOptions:
-    """``kind``'s options (:mod:`cpgjax.deployment.options`) from the parsed ``args``: each field the value of the
-    option of its name, but those ``values`` give, and the options the command line gave.
+    """``kind``'s options (:mod:`cpgjax.deployment.options`) from the parsed ``args``: each field takes the parsed
+    option of its name or its value in ``values``, and ``given`` the options the command line gave.
 
     Raises:
       ValueError: a rule of ``kind`` broken (the message to show).
@@ -868,6 +868,7 @@ def _deploy_options(args) -> tuple[DeployOptions, str | None]:
 
 
 def _shown(value) -> str:
+    """An option's value as a command line writes it."""
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
