@@ -4,6 +4,7 @@ deploy calibrate); each command's function takes the parsed options."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import ipaddress
 import os
@@ -18,6 +19,7 @@ import numpy as np
 import cpgjax
 from cpgjax import ablation, compile_cache, cpg, outputs, show
 from cpgjax.deployment import calibrate, deploy
+from cpgjax.deployment.options import CalibrateOptions, DeployOptions, RobotOptions, flag
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
 from cpgjax.robot import cpu_dispatch, foot_force
@@ -509,50 +511,63 @@ def _optimize(args) -> int:
     return 0
 
 
-def _inapplicable(args, calibrating: bool = False) -> str | None:
-    """The given options that do not apply to this run of ``deploy`` (or ``deploy calibrate``), and why; None if
-    every given option applies."""
-    given = getattr(args, "given", set())
-    rules = [(("robot_ip", "robot_port", "local_port"), args.robot == "sim",
-              "to --robot go1 only (the simulated Go1 listens on 127.0.0.1 on a port of its own)"),
-             (("sim_pacing", "friction", "slope_deg", "physics", "lift_m"), args.robot == "go1",
-              "to --robot sim only")]
-    if not calibrating:
-        rules += [(("trials", "optimizer", "transition_s", "steady_s"), not args.optimize,
-                   "to --optimize only (a replay walks one set of parameters for --duration-s)"),
-                  (("duration_s",), args.optimize, "to a replay only (--optimize runs --trials trials)")]
-    for dests, refused, why in rules:
-        named = [f"--{d.replace('_', '-')}" for d in dests if d in given]
-        if refused and named:
-            return f"{', '.join(named)} {'applies' if len(named) == 1 else 'apply'} {why}"
-    if not calibrating and getattr(args, "safe", False) and not (args.optimize and args.optimizer == "bo"):
-        return "--safe applies to --optimize with --optimizer bo only (it constrains the contextual BO's proposals)"
-    return None
-
-
 WRITES_RESULTS = ("study", "optimize", "demo", "walk")  # the commands whose Ctrl-C after the last trial is news
 
 
+def _options_of(kind: type[RobotOptions], args, **values) -> RobotOptions:
+    """``kind``'s options (:mod:`cpgjax.deployment.options`) from the parsed ``args``: each field takes the parsed
+    option of its name or its value in ``values``, and ``given`` the options the command line gave.
+
+    Raises:
+      ValueError: a rule of ``kind`` broken (the message to show).
+    """
+    taken = {field.name: getattr(args, field.name) for field in dataclasses.fields(kind)
+             if field.name not in values and field.name != "given"}
+    return kind(**taken, **values, given=frozenset(getattr(args, "given", ())))
+
+
+def _deploy_options(args) -> tuple[DeployOptions, str | None]:
+    """``deploy``'s options from its parsed ``args``, and with ``--params FILE`` the line that says what the file was
+    tuned for and which given options override it (None without a file): the file's parameters, and its tuned-for
+    values (:data:`tuned.TUNED_FOR`) in each option the command line did not give.
+
+    Raises:
+      ValueError: a rule of :class:`DeployOptions` broken (the message to show).
+    """
+    if args.params is None:
+        return _options_of(DeployOptions, args, params=None, params_path=None), None
+    given, file = getattr(args, "given", set()), args.params
+    kept = {name: value for name, value in file.tuned_for.items() if name not in given}
+    overrides = [f"{flag(name)} {_shown(getattr(args, name))} overrides it" for name, value in file.tuned_for.items()
+                 if name in given and getattr(args, name) != value]
+    recorded = f"tuned for {tuned.describe(file.tuned_for)}" if file.tuned_for else "records nothing it was tuned for"
+    notice = f"cpgjax deploy: {file.path} {recorded}" + "".join(f"; {o}" for o in overrides)
+    return _options_of(DeployOptions, args, **kept, params=file.params, params_path=str(file.path)), notice
+
+
+def _shown(value) -> str:
+    """An option's value as a command line writes it."""
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
 def _deploy(parser: argparse.ArgumentParser, args) -> int:
-    """``cpgjax deploy`` after the checks that span options (``parser.error`` exits with 2) and the choice of its
-    folder: every option is checked at parsing and the folder here, before anything is sent to a robot."""
-    if args.robot is None:
-        parser.error("the following arguments are required: --robot")
-    if args.robot == "go1" and args.calibration is None:
-        parser.error("--robot go1 needs --calibration FILE (run `cpgjax deploy calibrate` first, see docs/hardware.md)")
-    if problem := _inapplicable(args):
-        parser.error(problem)
+    """``cpgjax deploy`` after its options' checks (``parser.error`` exits with 2) and the choice of its folder:
+    every option is checked at parsing, the rules that span them in :class:`DeployOptions` and the folder here,
+    before anything is sent to a robot."""
     try:
-        args.log_dir = study_io.claim_folder(args.log_dir or fresh_run_folder(DEPLOY_RUNS), overwrite=args.overwrite,
-                                             resumable=False)
+        options, tuned_notice = _deploy_options(args)
+    except ValueError as err:
+        parser.error(str(err))
+    try:
+        log_dir = study_io.claim_folder(options.log_dir or fresh_run_folder(DEPLOY_RUNS), overwrite=options.overwrite,
+                                        resumable=False)
     except study_spec.StudyError as err:
         print(f"cpgjax deploy: {err}", file=sys.stderr)
         return 2
-    _use_tuned(args)
-    args.params_path = None if args.params is None else str(args.params.path)  # run.json records the file
-    args.params = None if args.params is None else args.params.params
-    _notice(f"cpgjax deploy: writing to {args.log_dir}/")
-    return deploy.run(args)
+    if tuned_notice:
+        _notice(tuned_notice)
+    _notice(f"cpgjax deploy: writing to {log_dir}/")
+    return deploy.run(dataclasses.replace(options, log_dir=log_dir))
 
 
 def fresh_run_folder(parent: pathlib.Path) -> pathlib.Path:
@@ -566,16 +581,20 @@ def fresh_run_folder(parent: pathlib.Path) -> pathlib.Path:
 
 
 def _calibrate(args) -> int:
-    if problem := _inapplicable(args, calibrating=True):
-        print(f"cpgjax deploy calibrate: error: {problem}", file=sys.stderr)
+    """``cpgjax deploy calibrate`` after its options' checks (:class:`CalibrateOptions`) and the claim of the files
+    it writes, before anything is sent to a robot."""
+    try:
+        options = _options_of(CalibrateOptions, args)
+    except ValueError as err:
+        print(f"cpgjax deploy calibrate: error: {err}", file=sys.stderr)
         return 2
     try:
-        for path in (args.out, *calibrate.tick_log_paths(args.out).values()):
-            study_io.claim_file(path, overwrite=args.overwrite)
+        for path in (options.out, *calibrate.tick_log_paths(options.out).values()):
+            study_io.claim_file(path, overwrite=options.overwrite)
     except study_spec.StudyError as err:
         print(f"cpgjax deploy calibrate: {err}", file=sys.stderr)
         return 2
-    return calibrate.run(args)
+    return calibrate.run(options)
 
 
 # ----------------------------------------------------------------------------------------------- shared options

@@ -37,7 +37,8 @@ LAYERS = (
     ("robot", ("robot.wire", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.cpu_wakeup",
                "robot.foot_force", "robot.safety", "robot.controller", "robot.sim_server")),
     ("the 1 kHz loop", ("hardware_io",)),
-    ("deployment", ("deployment.tick_log", "deployment.trials", "deployment.deploy", "deployment.calibrate")),
+    ("deployment", ("deployment.options", "deployment.tick_log", "deployment.trials", "deployment.deploy",
+                    "deployment.calibrate")),
     ("command line", ("cli", "show")),
 )
 # The design's modules, the entry point and its results browser, and below every layer what a run records about its

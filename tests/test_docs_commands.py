@@ -24,6 +24,8 @@ import sys
 import pytest
 
 from cpgjax import cli
+from cpgjax.deployment import deploy
+from cpgjax.deployment.options import CalibrateOptions, DeployOptions
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 PLACEHOLDER = re.compile(r"<|\[|\||\.\.\.|…|\b(FILE|N|NAME|DIR|FOLDER|CALIBRATION)\b")
@@ -74,8 +76,15 @@ def test_a_documented_command_parses(doc, command, monkeypatch, capsys):
     except SystemExit:
         pytest.fail(f"{doc}: `{command}` is refused: {capsys.readouterr().err.strip()}")
     if args.command == "deploy" and getattr(args, "robot", None) is not None:
-        problem = cli._inapplicable(args, calibrating=args.func is cli._calibrate)
-        assert problem is None, f"{doc}: `{command}`: {problem}"
+        args.command_line = command
+        try:  # the rules that span options; a file named stands for a good one
+            if args.func is cli._calibrate:
+                cli._options_of(CalibrateOptions, args)
+            else:
+                cli._options_of(DeployOptions, args, params=None, params_path=None,
+                                calibration=None if args.calibration is None else deploy.sim_calibration())
+        except ValueError as err:
+            pytest.fail(f"{doc}: `{command}`: {err}")
 
 
 def shortened(argv: list[str]) -> list[str] | None:

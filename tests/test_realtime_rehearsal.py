@@ -4,7 +4,6 @@ idle CPUs polling, the loop's timing floor, the optimizer compiled before the ro
 handed to the optimizer without blocking the loop. The trip counts of the rehearsal itself are measured by
 benchmarks/rehearsal.py (real time; not asserted in a test on a shared machine)."""
 
-import argparse
 import logging
 import multiprocessing
 import os
@@ -21,6 +20,7 @@ import pytest
 from cpgjax import hardware_io as hio
 from cpgjax.deployment import deploy
 from cpgjax.deployment import trials as robot_trials
+from cpgjax.deployment.options import RobotOptions
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
@@ -80,9 +80,10 @@ def test_the_simulated_go1_reports_its_imu_as_the_numpy_attitude_defines_it():
 
 
 def _deploy_args(**kw):
-    base = dict(cpu=None, robot="sim", sim_pacing="realtime", no_realtime=False, busy_wait=False, power_level=9,
-                idle_halt=False)
-    return argparse.Namespace(**{**base, **kw})
+    base = dict(robot="sim", transport=None, robot_ip="192.168.123.10", robot_port=8007, local_port=8082,
+                power_level=9, sim_pacing="realtime", friction=0.6, slope_deg=0.0, payload_kg=0.0, physics="go1",
+                seed=0, no_realtime=False, cpu=None, busy_wait=False, idle_halt=False, overwrite=False)
+    return RobotOptions(**{**base, **kw})
 
 
 def test_the_simulated_go1s_sensor_noise_follows_its_seed():

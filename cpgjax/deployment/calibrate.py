@@ -27,6 +27,7 @@ import numpy as np
 from cpgjax import hardware_io as hio
 from cpgjax import outputs
 from cpgjax.deployment import deploy, tick_log
+from cpgjax.deployment.options import CalibrateOptions
 from cpgjax.robot import foot_force
 from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import transport as go1_transport
@@ -112,28 +113,28 @@ def _sim_lifter(server, lift_m: float) -> Callable[[bool], None]:
     return lambda hung_up: server.lift(lift_m) if hung_up else server.reset()
 
 
-def run(args) -> int:
-    """``cpgjax deploy calibrate`` with its parsed options. Returns 0 when the calibration is saved, 2 when a
-    measuring stand failed."""
+def run(options: CalibrateOptions) -> int:
+    """``cpgjax deploy calibrate`` with its checked options (``out`` and its stands' per-tick logs files it may
+    write). Returns 0 when the calibration is saved, 2 when a measuring stand failed."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    loop, safety = deploy.loop_and_safety(args)
-    mass_kg = args.mass_kg if args.mass_kg is not None else deploy.robot_mass_kg(args.payload_kg)
-    tick_logs = tick_log_paths(args.out)
-    with deploy.connect(args) as (transport, server):
-        lifted = _ask_operator if server is None else _sim_lifter(server, args.lift_m)
+    loop, safety = deploy.loop_and_safety(options)
+    mass_kg = options.mass_kg if options.mass_kg is not None else deploy.robot_mass_kg(options.payload_kg)
+    tick_logs = tick_log_paths(options.out)
+    with deploy.connect(options) as (transport, server):
+        lifted = _ask_operator if server is None else _sim_lifter(server, options.lift_m)
         try:
-            m = measure(transport, mass_kg, lifted, args.air_s, args.stand_s, args.settle_s, loop, safety,
+            m = measure(transport, mass_kg, lifted, options.air_s, options.stand_s, options.settle_s, loop, safety,
                         tick_logs)
         except (CalibrationError, ValueError) as e:
             print(f"cpgjax deploy calibrate: {e}", file=sys.stderr)
             return 2
     standing_n = m.calibration.to_newtons(np.mean(m.standing_counts, axis=0))
-    m.calibration.save(args.out, robot=args.robot, total_mass_kg=mass_kg, air_samples=len(m.air_counts),
+    m.calibration.save(options.out, robot=options.robot, total_mass_kg=mass_kg, air_samples=len(m.air_counts),
                        standing_samples=len(m.standing_counts),
                        air_counts_max=np.max(m.air_counts, axis=0).tolist(),
                        standing_counts_mean=np.mean(m.standing_counts, axis=0).round(2).tolist(),
                        standing_n=standing_n.round(2).tolist())
     print(f"offsets {m.calibration.offset_counts} counts, {m.calibration.newton_per_count[0]:.4f} N/count; "
           f"standing: {standing_n.round(1)} N per foot (sum {standing_n.sum():.1f} N = {mass_kg:.2f} kg · g); "
-          f"saved {args.out} (per-tick logs: {', '.join(str(p) for p in tick_logs.values())})")
+          f"saved {options.out} (per-tick logs: {', '.join(str(p) for p in tick_logs.values())})")
     return 0

@@ -1,7 +1,7 @@
 """``cpgjax deploy``: run the CPG on a Go1 (or the loopback simulated Go1), replaying parameters or optimizing them
 online (:mod:`cpgjax.deployment.trials`), and what ``cpgjax deploy calibrate``
-(:mod:`cpgjax.deployment.calibrate`) shares with it: reaching the robot and the loop's configuration. The options
-are defined in :mod:`cpgjax.cli`.
+(:mod:`cpgjax.deployment.calibrate`) shares with it: reaching the robot and the loop's configuration. It reads its
+typed, checked options (:mod:`cpgjax.deployment.options`), which :mod:`cpgjax.cli` builds from the command line.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import cpgjax
 from cpgjax import cpg, outputs, provenance
 from cpgjax import hardware_io as hio
 from cpgjax.deployment import tick_log
+from cpgjax.deployment.options import DeployOptions, RobotOptions
 from cpgjax.deployment.trials import OptimizerSpec, ReplayTrials, online_optimization
 from cpgjax.go1 import constants
 from cpgjax.go1 import model as go1_model
@@ -32,12 +33,12 @@ from cpgjax.trial import protocol
 log = logging.getLogger(__name__)
 
 
-def loop_and_safety(args):
-    """(LoopConfig, SafetyConfig) of the command line's options, the safety limits checked
-    (:func:`go1_safety.check_safety`)."""
-    return (hio.LoopConfig(realtime_priority=None if args.no_realtime else LOOP_PRIORITY, cpu=loop_cpu(args),
-                           busy_wait=args.busy_wait, poll_idle=not args.idle_halt),
-            go1_safety.check_safety(go1_safety.SafetyConfig(power_level=args.power_level)))
+def loop_and_safety(options: RobotOptions) -> tuple[hio.LoopConfig, go1_safety.SafetyConfig]:
+    """(LoopConfig, SafetyConfig) of the run's options (their safety limits checked when the options were
+    made)."""
+    return (hio.LoopConfig(realtime_priority=None if options.no_realtime else LOOP_PRIORITY, cpu=loop_cpu(options),
+                           busy_wait=options.busy_wait, poll_idle=not options.idle_halt),
+            options.safety)
 
 
 LOOP_PRIORITY = 80  # SCHED_FIFO of the 1 kHz loop
@@ -45,13 +46,13 @@ SIM_PRIORITY = 85  # the simulated Go1's, above the loop's: it stands in for the
 LOG_WRITER_PRIORITY = 75  # the per-tick log's writer thread, when the loop is real time (see tick_log)
 
 
-def loop_cpu(args) -> int | None:
+def loop_cpu(options: RobotOptions) -> int | None:
     """The CPU the loop is pinned to: ``--cpu``; else the machine's last CPU, the loop's own on the robot (the
     optimizer and the per-tick log's writer run on the others). A simulated Go1 in real time shares it with the loop
     (a stall of that virtual CPU stops the simulated robot's clock with the loop's, docs/hardware.md). Not pinned
     in lockstep (no deadlines) or on a machine with one CPU."""
-    if args.cpu is not None or (args.robot == "sim" and args.sim_pacing != "realtime"):
-        return args.cpu
+    if options.cpu is not None or (options.robot == "sim" and options.sim_pacing != "realtime"):
+        return options.cpu
     return last_cpu()
 
 
@@ -75,26 +76,28 @@ def robot_mass_kg(payload_kg: float) -> float:
 
 
 @contextlib.contextmanager
-def connect(args):
+def connect(options: RobotOptions):
     """(transport, simulated Go1 client or None) for the robot of the command line; both closed on exit."""
     server = None
-    if args.robot == "sim":
+    if options.robot == "sim":
         # The simulated robot shares the loop's CPU (loop_cpu), at a real-time priority above the loop's: nothing on
         # the machine delays its ticks, as nothing on the robot's computer delays the robot's, and a stall of that
         # virtual CPU stops both. Its clock's phase is locked to the loop's commands (sim_server.phase_correction),
         # so in the steady state its tick falls between the loop's command and the loop's next tick.
-        cpu = loop_cpu(args)
-        server = sim.SimGo1Client(pacing=args.sim_pacing, friction=args.friction, slope_deg=args.slope_deg,
-                                  payload_kg=args.payload_kg,
-                                  realtime_priority=None if args.no_realtime else SIM_PRIORITY,
-                                  cpus=None if cpu is None else {cpu}, physics=args.physics, noise_seed=args.seed)
+        cpu = loop_cpu(options)
+        server = sim.SimGo1Client(pacing=options.sim_pacing, friction=options.friction, slope_deg=options.slope_deg,
+                                  payload_kg=options.payload_kg,
+                                  realtime_priority=None if options.no_realtime else SIM_PRIORITY,
+                                  cpus=None if cpu is None else {cpu}, physics=options.physics,
+                                  noise_seed=options.seed)
         ip, port, local_port = server.address[0], server.port, 0
     else:
-        ip, port, local_port = args.robot_ip, args.robot_port, args.local_port
+        ip, port, local_port = options.robot_ip, options.robot_port, options.local_port
     try:
-        if (args.transport or ("sdk" if args.robot == "go1" else "udp")) == "sdk":
-            transport = go1_transport.SdkTransport(ip, port, local_port or _free_port(), power_level=args.power_level)
-        elif args.robot == "sim" and args.sim_pacing == "lockstep":
+        if (options.transport or ("sdk" if options.robot == "go1" else "udp")) == "sdk":
+            transport = go1_transport.SdkTransport(ip, port, local_port or _free_port(),
+                                                   power_level=options.power_level)
+        elif options.robot == "sim" and options.sim_pacing == "lockstep":
             transport = go1_transport.LockstepTransport((ip, port))
         else:
             transport = go1_transport.UdpTransport((ip, port), local_port)
@@ -113,48 +116,49 @@ def sim_calibration():
                                     np.full(4, sim.FOOT_FORCE_N_PER_COUNT))
 
 
-def run(args) -> int:
-    """``cpgjax deploy`` with its parsed options (checked by the parser: ``params`` an array, ``calibration`` a
-    :class:`foot_force.FootForceCalibration` or None, ``log_dir`` a folder it may write). Returns 0 after a clean
-    end, 2 after a safety trip."""
+def run(options: DeployOptions) -> int:
+    """``cpgjax deploy`` with its checked options (``log_dir`` a folder it may write). Returns 0 after a clean end,
+    2 after a safety trip."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    gates = cpg.controller_gates(args.controller, args.gait)
-    params, timing = first_params(args), trial_timing(args)
-    loop, safety = loop_and_safety(args)
-    args.log_dir.mkdir(parents=True, exist_ok=True)
-    calibration = sim_calibration() if args.calibration is None else foot_force.check_calibration(args.calibration)
+    gates = cpg.controller_gates(options.controller, options.gait)
+    params, timing = first_params(options), trial_timing(options)
+    loop, safety = loop_and_safety(options)
+    options.log_dir.mkdir(parents=True, exist_ok=True)
+    calibration = sim_calibration() if options.calibration is None else options.calibration
     log.info("foot-force calibration: offsets %s counts, %s N/count", calibration.offset_counts,
              calibration.newton_per_count)
-    calibration.save(args.log_dir / CALIBRATION_FILE)
-    hint = stale_hint(args)
-    with connect(args) as (transport, server), tick_log_writer(args.log_dir / tick_log.FILE_NAME, loop) as ticks:
-        controller = compiled_controller.CompiledController(cpg.with_startup(cpg.CPGConfig(), args.startup))
+    calibration.save(options.log_dir / CALIBRATION_FILE)
+    hint = stale_hint(options)
+    with (connect(options) as (transport, server),
+          tick_log_writer(options.log_dir / tick_log.FILE_NAME, loop) as ticks):
+        controller = compiled_controller.CompiledController(cpg.with_startup(cpg.CPGConfig(), options.startup))
         start_xy = None if server is None else server.stats()["trunk_xy_m"]
-        if args.optimize:
-            spec = OptimizerSpec(args.optimizer, args.seed, args.target_velocity_mps, bool(gates.tegotae),
-                                 robot_mass_kg(args.payload_kg), str(args.log_dir), tuned_for(args),
-                                 safe=args.safe)
+        if options.optimize:
+            spec = OptimizerSpec(options.optimizer, options.seed, options.target_velocity_mps, bool(gates.tegotae),
+                                 robot_mass_kg(options.payload_kg), str(options.log_dir), tuned_for(options),
+                                 safe=options.safe)
             result, rows, windows = online_optimization(transport, controller, calibration, gates, spec, params,
-                                                        args.trials, timing, loop, safety, ticks, hint,
+                                                        options.trials, timing, loop, safety, ticks, hint,
                                                         recover=stand_up(server))
         else:
-            replay = ReplayTrials(params, constants.ticks(args.duration_s), timing)
+            replay = ReplayTrials(params, constants.ticks(options.duration_s), timing)
             result = hio.run_loop(transport, controller, replay, calibration, gates, loop, safety, ticks, hint)
             windows = replay.steady_windows
         truth = None
         if server is not None:
             truth = dict(trunk_start_xy_m=start_xy, trunk_end_xy_m=server.stats()["trunk_xy_m"])
-            server.save_truth(args.log_dir / TRUTH_FILE)
-    if not args.optimize:  # the figures after the loop: the robot is damped
-        rows = replay.rows(robot_mass_kg(args.payload_kg), args.target_velocity_mps, args.seed, tuned_for(args))
+            server.save_truth(options.log_dir / TRUTH_FILE)
+    if not options.optimize:  # the figures after the loop: the robot is damped
+        rows = replay.rows(robot_mass_kg(options.payload_kg), options.target_velocity_mps, options.seed,
+                           tuned_for(options))
     if server is not None:
-        rows = with_truth(rows, windows, args.log_dir)
+        rows = with_truth(rows, windows, options.log_dir)
     if rows:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        pq.write_table(pa.Table.from_pylist(rows), args.log_dir / outputs.TRIALS)
-    return report(args, result, rows, truth)
+        pq.write_table(pa.Table.from_pylist(rows), options.log_dir / outputs.TRIALS)
+    return report(options, result, rows, truth)
 
 
 TRUTH_FILE = "sim_truth.parquet"
@@ -164,37 +168,37 @@ OUTPUTS = (outputs.OutputFile(TRUTH_FILE, "the simulated Go1's true trunk state,
            outputs.OutputFile(CALIBRATION_FILE, "the foot-force calibration the run used", outputs.check_json))
 
 
-def first_params(args) -> np.ndarray | None:
+def first_params(options: DeployOptions) -> np.ndarray | None:
     """The parameters the run walks first: a replay's --params, else the middle of the box; an optimization's
     --params as trial 0, else None (the optimizer's first random proposal, docs/decisions.md §16)."""
-    return args.params if args.params is not None or args.optimize else param_space.midpoint()
+    return options.params if options.params is not None or options.optimize else param_space.midpoint()
 
 
-def trial_timing(args) -> protocol.TrialConfig:
+def trial_timing(options: DeployOptions) -> protocol.TrialConfig:
     """Each trial's timing in loop ticks (1 ms): --transition-s and --steady-s with --optimize; a replay's run is cut
     into the protocol's trials (1.5 s settling, 3 s measured)."""
-    if args.optimize:
-        return protocol.TrialConfig(constants.ticks(args.transition_s), constants.ticks(args.steady_s))
+    if options.optimize:
+        return protocol.TrialConfig(constants.ticks(options.transition_s), constants.ticks(options.steady_s))
     return protocol.TrialConfig()
 
 
-def what_ran(args, rows: list[dict]) -> dict:
+def what_ran(options: DeployOptions, rows: list[dict]) -> dict:
     """What the run walked, from its options after a --params file's tuned-for values filled those the command line
     did not give: replay or optimization, the robot, the controller, the physics profile ("robot" on the Go1), the
     conditions (friction and slope the simulated Go1's, null on the Go1), v*, each trial's timing, the parameter
     file, the first parameters by name (:func:`first_params`) and each trial's (``rows``) with --optimize."""
-    timing, params = trial_timing(args), first_params(args)
-    return {"mode": "optimize" if args.optimize else "replay", "robot": args.robot, **tuned_for(args),
-            "physics": args.physics if args.robot == "sim" else "robot", "startup": args.startup,
+    timing, params = trial_timing(options), first_params(options)
+    return {"mode": "optimize" if options.optimize else "replay", "robot": options.robot, **tuned_for(options),
+            "physics": options.physics if options.robot == "sim" else "robot", "startup": options.startup,
             "transition_s": constants.seconds(timing.transition_steps),
             "steady_s": constants.seconds(timing.steady_steps),
-            "duration_s": None if args.optimize else args.duration_s,
-            "num_trials": args.trials if args.optimize else None,
-            "optimizer": args.optimizer if args.optimize else None, "seed": args.seed,
-            "params_file": getattr(args, "params_path", None),
+            "duration_s": None if options.optimize else options.duration_s,
+            "num_trials": options.trials if options.optimize else None,
+            "optimizer": options.optimizer if options.optimize else None, "seed": options.seed,
+            "params_file": options.params_path,
             "params": None if params is None else param_space.as_dict(params),
             "trial_params": [{"trial": row["trial"], **{name: row[name] for name in param_space.PARAM_NAMES}}
-                             for row in rows] if args.optimize else None}
+                             for row in rows] if options.optimize else None}
 
 
 def stand_up(server: sim.SimGo1Client | None):
@@ -233,18 +237,18 @@ def with_truth(rows: list[dict], steady_windows: list[tuple[int, int]], log_dir)
     return out
 
 
-def tuned_for(args) -> dict:
+def tuned_for(options: DeployOptions) -> dict:
     """What a run's ``best_params.json`` records it was tuned for (:mod:`cpgjax.trial.tuned`): on the simulated Go1
     its physics profile and scenario; on the robot only the payload, the floor's friction and slope being unknown."""
-    sim_only = dict(physics=args.physics, friction=args.friction, slope_deg=args.slope_deg)
-    return dict(controller=args.controller, gait=args.gait, target_velocity_mps=args.target_velocity_mps,
-                payload_kg=args.payload_kg,
-                **(sim_only if args.robot == "sim" else dict.fromkeys(sim_only)))
+    sim_only = dict(physics=options.physics, friction=options.friction, slope_deg=options.slope_deg)
+    return dict(controller=options.controller, gait=options.gait, target_velocity_mps=options.target_velocity_mps,
+                payload_kg=options.payload_kg,
+                **(sim_only if options.robot == "sim" else dict.fromkeys(sim_only)))
 
 
-def stale_hint(args) -> str:
+def stale_hint(options: RobotOptions) -> str:
     """What a stale-state trip adds to its reason: with the simulated Go1 in real time, where lockstep goes."""
-    if args.robot != "sim" or args.sim_pacing != "realtime":
+    if options.robot != "sim" or options.sim_pacing != "realtime":
         return ""
     return (" (the simulated Go1 shares this machine's CPUs and did not keep time; `--sim-pacing lockstep` runs "
             "without deadlines, docs/hardware.md)")
@@ -265,24 +269,25 @@ def walked_line(row: dict) -> str:
     return line
 
 
-def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | None = None) -> int:
+def report(options: DeployOptions, result: hio.LoopResult, rows: list[dict] = (),
+           truth: dict | None = None) -> int:
     """Write ``run.json`` (how the run ended, how the robot walked in each complete trial, its timing, what it walked
     (:func:`what_ran`), and what ran it: the command line, cpgjax's version and commit, the machine) and print how
     the run ended, each trial's J, velocity, distance and CoT (from the robot's own sensors) and the timing. Returns
     the exit status: 0 after a clean end, 130 after Ctrl-C (a stop), 2 after a safety trip. ``truth``: the
     simulated Go1's true trunk position before and after the loop (its own state, beside the robot's estimate),
     None on the robot."""
-    lockstep = args.robot == "sim" and args.sim_pacing == "lockstep"
+    lockstep = options.robot == "sim" and options.sim_pacing == "lockstep"
     summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events,
                "safety_stops": [{"tick": tick, "reason": reason} for tick, reason in result.safety_stops],
                "realtime": result.realtime,
                "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
                "trials": [{k: _finite_or_none(row[k]) for k in (*WALKED, *TRUE) if k in row} for row in rows],
-               "sim_truth": truth, "ran": what_ran(args, rows),
-               "timing": result.timing(), "command": getattr(args, "command_line", None),
+               "sim_truth": truth, "ran": what_ran(options, rows),
+               "timing": result.timing(), "command": options.command_line,
                "cpgjax_version": cpgjax.__version__, "git_commit": provenance.git_commit(),
                "environment": provenance.environment()}
-    (args.log_dir / tick_log.RUN_FILE).write_text(json.dumps(summary, indent=1, default=str))
+    (options.log_dir / tick_log.RUN_FILE).write_text(json.dumps(summary, indent=1, default=str))
     ended = (f"safety trip: {result.trip}" if result.trip else "stopped by Ctrl-C (damped)" if result.stopped
              else "clean end")
     if result.safety_stops:
@@ -290,7 +295,7 @@ def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | No
                   "stand-up: " + "; ".join(reason for _, reason in result.safety_stops))
     shared = ("\nthe simulated Go1 shared the loop's CPU: its ticks are in these figures "
               "(the loop on a CPU of its own: benchmarks/hardware_loop.py)"
-              if args.robot == "sim" and not lockstep and loop_cpu(args) is not None else "")
+              if options.robot == "sim" and not lockstep and loop_cpu(options) is not None else "")
     if truth is not None:
         moved = np.subtract(truth["trunk_end_xy_m"], truth["trunk_start_xy_m"])
         truth_line = (f"\nthe simulated Go1's true trunk moved {moved[0]:+.2f} m along x, {moved[1]:+.2f} m along y "
@@ -298,10 +303,10 @@ def report(args, result: hio.LoopResult, rows: list[dict] = (), truth: dict | No
     else:
         truth_line = ""
     walked = ("\n".join(walked_line(row) for row in rows) if rows else
-              "no trial completed (a trial is 1.5 s of settling then 3 s measured)" if not args.optimize else
+              "no trial completed (a trial is 1.5 s of settling then 3 s measured)" if not options.optimize else
               "no trial completed")
     # the run's outcome on stdout (its progress was logged on stderr)
-    print(f"{ended}; per-tick log {args.log_dir / tick_log.FILE_NAME}\nhow the robot walked (its own sensors):\n"
+    print(f"{ended}; per-tick log {options.log_dir / tick_log.FILE_NAME}\nhow the robot walked (its own sensors):\n"
           f"{walked}{truth_line}\n{hio.timing_table(summary['timing'], deadlines=not lockstep)}{shared}", flush=True)
     return 2 if result.trip else 130 if result.stopped else 0
 
