@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 import cpgjax
-from cpgjax import ablation, compile_cache, cpg, outputs, show
+from cpgjax import ablation, compile_cache, cpg, show
 from cpgjax.deployment import calibrate, deploy
 from cpgjax.deployment.options import CalibrateOptions, DeployOptions, RobotOptions, flag
 from cpgjax.go1 import physics as physics_profiles
@@ -29,7 +29,8 @@ from cpgjax.sim import backends, walk
 from cpgjax.studies import driver as study_driver
 from cpgjax.studies import gaits as study_gaits
 from cpgjax.studies import launch as study_launch
-from cpgjax.studies import transfer
+from cpgjax.studies import optimize as study_optimize
+from cpgjax.studies import options as study_options
 from cpgjax.studies import video as study_video
 from cpgjax.studies import viewer as study_viewer
 from cpgjax.study import files as study_io
@@ -71,6 +72,9 @@ def _integer(text: str) -> int:
         return int(text)
     except ValueError:
         raise ValueError(f"{text!r} is not an integer") from None
+
+
+_whole = _argument_type(_integer)  # an integer; its range is the typed options' check (cpgjax.studies.options)
 
 
 def _in(allowed: limits.Range):
@@ -124,15 +128,6 @@ def _ip_address(text: str) -> str:
         return str(ipaddress.ip_address(text))
     except ValueError:
         raise ValueError(f"{text!r} is not an IP address") from None
-
-
-@_argument_type
-def _processes(text: str) -> int:
-    value, cpus = _integer(text), os.cpu_count() or 1
-    if not 1 <= value <= cpus:
-        raise ValueError(f"{value} is outside the allowed range 1 … {cpus} (local processes, at most one per CPU of "
-                         "this machine; a cluster starts its processes itself: --distributed)")
-    return value
 
 
 @_argument_type
@@ -354,6 +349,14 @@ def _study_template(args) -> int:
     return 0
 
 
+def _study_options(args) -> study_options.StudyOptions:
+    return study_options.StudyOptions(
+        out=args.out, resume=args.resume, overwrite=args.overwrite, backend=args.backend, dry_run=args.dry_run,
+        command=args.command_line, progress=_progress_printer(ctrl_c=args.ctrl_c), notify=_notice, quick=args.quick,
+        seeds=args.seeds, trials=args.trials, max_trials=args.max_trials, physics=args.physics, safe=args.safe,
+        startup=args.startup, gaits=args.gaits, processes=args.processes, distributed=args.distributed)
+
+
 def _study(args) -> int:
     if args.template is not None:
         return _study_template(args)
@@ -363,37 +366,27 @@ def _study(args) -> int:
               "(PATH.toml), or write one with --template PATH", file=sys.stderr)
         return 2
     try:
-        study = study_driver.read(args.name, quick=args.quick, seeds=args.seeds, trials=args.trials,
-                                  physics=args.physics, safe=args.safe, max_trials=args.max_trials,
-                                  startup=args.startup, gaits=args.gaits)
+        options = _study_options(args)
+        definition = study_driver.read(args.name, **options.overrides())
+        if args.print:
+            print(definition.source, end="")
+            return 0
+        study = study_driver.of_file(definition)
+        study_driver.check_processes(study, options)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
-    if args.print:
-        print(study.source, end="")
-        return 0
-    if args.processes is not None or args.distributed:
-        problem = ("--processes and --distributed exclude each other (--processes starts --distributed processes)"
-                   if args.processes is not None and args.distributed
-                   else f"{study.spec.name} runs its arms one after another in one process: drop --processes / "
-                   "--distributed" if study.arms else None)
-        if problem:
-            print(f"cpgjax study: {problem}", file=sys.stderr)
-            return 2
-    if args.processes is not None and args.processes > 1 and not args.dry_run:
+    if options.processes is not None and options.processes > 1 and not options.dry_run:
         command = [sys.executable, "-m", "cpgjax.cli", *_without_processes(args.argv), "--distributed"]
-        outcome = study_launch.run(command, args.processes)
+        outcome = study_launch.run(command, options.processes)
         if outcome.returncode:
             print(f"cpgjax study: {outcome.message}; `--resume` continues from the last checkpoint", file=sys.stderr)
         return outcome.returncode
-    if args.distributed and not args.dry_run:
+    if options.distributed and not options.dry_run:
         ablation.initialize_distributed()
-    out = study_io.output_folder(study.spec.name, args.out)
+    out = study_io.output_folder(study.name, options.out)
     try:
-        text, out, _ = study_driver.run_file(
-            study, out, resume=args.resume, overwrite=args.overwrite, backend=args.backend,
-            command=args.command_line, notify=_notice, progress=_progress_printer(ctrl_c=args.ctrl_c),
-            dry_run=args.dry_run)
+        text, out, _ = study_driver.run(study, options)
     except study_spec.StudyError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 2
@@ -405,11 +398,9 @@ def _study(args) -> int:
         sys.stdout.flush()
         os._exit(3)  # not through jax.distributed's shutdown barrier, which would wait for the lost process
     except KeyboardInterrupt:
-        arm = next((out / s.name for s in reversed(transfer.specs(study))
-                    if study_io.checkpoint_files(out / s.name)), None) if study.arms else out
-        return _interrupted(args.command_line, args, arm)
+        return _interrupted(args.command_line, args, study_driver.resumable_folder(study, out))
     print(text)
-    print("nothing computed (--dry-run)" if args.dry_run else f"outputs in {out}/")
+    print("nothing computed (--dry-run)" if options.dry_run else f"outputs in {out}/")
     return 0
 
 
@@ -425,9 +416,10 @@ def _demo(args) -> int:
           "v* = 0.5 m/s, all runs batched in lockstep on the CPU (quick variant: 2 seeds × 12 trials; the first "
           f"trial compiles). Outputs replace those in {DEMO_OUT}/.", flush=True)
     try:
-        text, out, _ = study_driver.run_file(study_driver.read("controller_ablation", quick=True), DEMO_OUT,
-                                             overwrite=True, command=args.command_line,
-                                             progress=_progress_printer(ctrl_c=args.ctrl_c))
+        text, out, _ = study_driver.run_file(
+            study_driver.read(study_driver.DEMO_STUDY, quick=True),
+            study_options.RunOptions(out=DEMO_OUT, overwrite=True, command=args.command_line,
+                                     progress=_progress_printer(ctrl_c=args.ctrl_c)))
     except KeyboardInterrupt:
         print("\ncpgjax demo: interrupted", file=sys.stderr)
         return INTERRUPTED
@@ -436,77 +428,25 @@ def _demo(args) -> int:
     return 0
 
 
-def _trials_table(trial_log) -> str:
-    """Markdown table of one optimization's trials (instance 0), numbered from 0 as in trials.parquet."""
-    lines = ["| trial | J | v_x [m/s] | CoT | c_load [N] | c_slope [rad] | β | fell |", "|---" * 8 + "|"]
-    for t in range(trial_log.objective.shape[0]):
-        lines.append(f"| {t} | {trial_log.objective[t, 0]:.3f} | {trial_log.velocity_xy_mps[t, 0, 0]:.3f} | "
-                     f"{trial_log.cot[t, 0]:.3f} | {trial_log.context[t, 0, 0]:.1f} | "
-                     f"{trial_log.context[t, 0, 1]:.3f} | {trial_log.beta[t, 0]:.3g} | {bool(trial_log.fell[t, 0])} |")
-    return "\n".join(lines)
-
-
-def write_best_params(path: pathlib.Path, trial_log, tuned_for: dict, **info) -> int:
-    """``best_params.json`` of one optimization (instance 0) in the format ``cpgjax deploy --params`` replays, with
-    what it was tuned for (:mod:`cpgjax.trial.tuned`) and ``info``; returns the best trial."""
-    best = int(np.argmax(trial_log.objective[:, 0]))
-    tuned.save(path, trial_log.params[best, 0], tuned_for, objective=float(trial_log.objective[best, 0]), trial=best,
-               **info)
-    return best
-
-
-def optimize_spec(args) -> study_spec.StudySpec:
-    """The one-instance study of ``cpgjax optimize``'s options."""
-    return study_spec.StudySpec("optimize", num_trials=args.trials, controllers=(args.controller,),
-                                gaits=None if args.gait == cpg.DEFAULT_GAIT else (args.gait,),
-                                seeds=(args.seed,), friction=(args.friction,), slope_deg=(args.slope_deg,),
-                                payload_kg=(args.payload_kg,), target_velocity_mps=(args.target_velocity_mps,),
-                                physics=(args.physics,), safe=args.safe, max_trials=args.max_trials,
-                                startup=study_spec.startup_field(args.startup),
-                                foot_friction=None if args.foot_friction is None else (args.foot_friction,))
-
-
 def _optimize(args) -> int:
-    if args.max_trials is not None and args.max_trials < args.trials:
-        print(f"cpgjax optimize: --max-trials {args.max_trials}: need at least --trials ({args.trials})",
-              file=sys.stderr)
-        return 2
-    spec = optimize_spec(args)
-    out = pathlib.Path(args.out)
     try:
-        study_spec.validate(spec)
-        start = study_io.open_run(out, spec, backends.resolve_backend(args.backend), resume=args.resume,
-                                  overwrite=args.overwrite)
-        if start:
-            _notice(study_io.resume_notice(out, start, spec.num_trials))
-        engine = ablation.Engine(spec, backend=args.backend)
-        result = engine.run(out, resume=args.resume, progress=_progress_printer(ctrl_c=args.ctrl_c))
+        options = study_options.OptimizeOptions(
+            out=pathlib.Path(args.out), resume=args.resume, overwrite=args.overwrite, backend=args.backend,
+            command=args.command_line, progress=_progress_printer(ctrl_c=args.ctrl_c), notify=_notice,
+            controller=args.controller, gait=args.gait, seed=args.seed, trials=args.trials, max_trials=args.max_trials,
+            friction=args.friction, slope_deg=args.slope_deg, payload_kg=args.payload_kg,
+            target_velocity_mps=args.target_velocity_mps, foot_friction=args.foot_friction, physics=args.physics,
+            safe=args.safe, startup=args.startup)
+        text, out, _ = study_driver.run(study_optimize.study(options), options)
     except study_spec.StudyError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 2
     except study_io.OutputError as err:
         print(f"cpgjax optimize: {err}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        return _interrupted(args.command_line, args, out)
-    tr = result.trials
-    print(_trials_table(tr))
-    try:
-        with study_io.writing(out, "trials.parquet, metadata.json and best_params.json"):
-            study_io.write_trials(result, out / outputs.TRIALS)
-            study_io.write_metadata(result, out / outputs.METADATA, command=args.command_line,
-                                    written_by="optimize")
-            feet = {} if args.foot_friction is None else {"foot_friction": args.foot_friction}
-            best = write_best_params(out / tuned.FILE_NAME, tr,
-                                     {name: getattr(args, name) for name in tuned.TUNED_FOR}, **feet)
-        print(f"best J {tr.objective[best, 0]:.3f} at trial {best}: {param_space.as_dict(tr.params[best, 0])}")
-        with study_io.writing(out, study_io.RECORDING):
-            study_io.write_recording(result, out / study_io.RECORDING)
-    except study_io.OutputError as err:
-        print(f"cpgjax optimize: {err}", file=sys.stderr)
-        return 1
     except KeyboardInterrupt:  # every trial is in the checkpoint: --resume writes the outputs
-        return _interrupted(args.command_line, args, out)
+        return _interrupted(args.command_line, args, pathlib.Path(args.out))
+    print(text)
     print(f"outputs in {out}/ ({tuned.replay_hint(out / tuned.FILE_NAME)})")
     return 0
 
@@ -792,16 +732,16 @@ def _add_study(sub) -> None:
     s.add_argument("--print", action="store_true", help="print the study's file (to copy and edit) and stop")
     s.add_argument("--template", type=pathlib.Path, help="write a commented study file of every key, its default, "
                    "unit and range to this path and stop (with --overwrite: replace an existing file)")
-    s.add_argument("--seeds", type=_count(1, maximum=limits.MAX_SEEDS, maximum_reason=limits.MAX_SEEDS_REASON),
+    s.add_argument("--seeds", type=_whole,
                    default=None, help="seeds 0 … N-1 per group (default: the file's seeds; --quick its [quick] seeds)")
-    s.add_argument("--trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
+    s.add_argument("--trials", type=_whole, default=None,
                    help=f"trials per run, at least {limits.MIN_STUDY_TRIALS}; condition changes scale with it "
                    "(default: the file's trials; --quick its [quick] trials)")
     seeds, trials = study_driver.quick_sizes()
     s.add_argument("--quick", action="store_true", help="the file's [quick] values: fewer seeds and trials (the "
                    f"shipped studies: {'/'.join(map(str, seeds))} seeds, {trials[0]} to {trials[-1]} trials; "
                    "`--print` shows a study's)")
-    s.add_argument("--max-trials", type=_count(limits.MIN_STUDY_TRIALS, limits.MIN_STUDY_TRIALS_REASON), default=None,
+    s.add_argument("--max-trials", type=_whole, default=None,
                    help=MAX_TRIALS_HELP)
     s.add_argument("--safe", action="store_true", help=SAFE_HELP)
     s.add_argument("--dry-run", action="store_true", help="check every input and the output folder, print what "
@@ -811,7 +751,7 @@ def _add_study(sub) -> None:
     s.add_argument("--distributed", action="store_true", help="one of several cooperating processes: "
                    "jax.distributed.initialize() first (coordinator, count and rank from the environment or Slurm; "
                    "docs/scaling.md)")
-    s.add_argument("--processes", type=_processes, default=None, help="run as N cooperating local processes "
+    s.add_argument("--processes", type=_whole, default=None, help="run as N cooperating local processes "
                    "(coordinator on 127.0.0.1), e.g. to check a multi-process run before a cluster (default: one "
                    "process)")
     _add_physics_arg(s, None)
@@ -828,8 +768,8 @@ def _add_optimize(sub) -> None:
     _add_gait_arg(o, cpg.DEFAULT_GAIT)
     _add_scenario_args(o)
     _add_target_arg(o)
-    o.add_argument("--trials", type=_count(), default=40, help="trials of 1.5 s + 3 s")
-    o.add_argument("--max-trials", type=_count(), default=None, help=MAX_TRIALS_HELP)
+    o.add_argument("--trials", type=_whole, default=40, help="trials of 1.5 s + 3 s")
+    o.add_argument("--max-trials", type=_whole, default=None, help=MAX_TRIALS_HELP)
     o.add_argument("--seed", type=_seed, default=0, help="the optimizer's random seed")
     o.add_argument("--safe", action="store_true", help=SAFE_HELP)
     _add_output_args(o, "results/optimize")

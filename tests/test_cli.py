@@ -23,6 +23,8 @@ from cpgjax.robot import foot_force, sim_server
 from cpgjax.robot import safety as go1_safety
 from cpgjax.sim import walk
 from cpgjax.studies import driver as study_driver
+from cpgjax.studies import optimize as study_optimize
+from cpgjax.studies import options as study_options
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import limits, tuned
@@ -231,7 +233,7 @@ def test_optimize_best_params_replay_with_deploy(tmp_path):
     params = param_space.from_unit(np.array([[[0.1] * 8], [[0.7] * 8], [[0.4] * 8]]))  # (trials, B=1, 8)
     log = _Log(objective=np.array([[0.5], [1.9], [1.2]]), params=params)
     path = tmp_path / "best_params.json"
-    assert cli.write_best_params(path, log, TUNED) == 1
+    assert study_optimize.write_best_params(path, log, TUNED) == 1
     saved = json.loads(path.read_text())
     assert saved["trial"] == 1 and saved["objective"] == 1.9 and {k: saved[k] for k in TUNED} == TUNED
     args = cli.build_parser().parse_args(["deploy", "--robot", "sim", "--params", str(path)])
@@ -467,8 +469,7 @@ def test_deploy_and_calibrate_outputs(tmp_path, capsys, monkeypatch):
 # ----------------------------------------------------------------------------------------------- checkpoints, resume
 
 def _optimize_spec(trials=2):
-    args = cli.build_parser().parse_args(["optimize", "--trials", str(trials)])
-    return cli.optimize_spec(args)
+    return study_options.OptimizeOptions(trials=trials).spec()
 
 
 def _fake_checkpoint(out: pathlib.Path, spec, trial: int, backend: str) -> None:
@@ -665,14 +666,14 @@ def test_a_ctrl_c_lost_in_a_callback_still_stops_after_the_trial(tmp_path, capsy
 def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, monkeypatch):
     """Lost after the last trial's check, the request still makes the exit status 130 once the outputs are
     written (the run finished: nothing to resume)."""
-    def finishes_after_a_lost_interrupt(study, out, **kwargs):
+    def finishes_after_a_lost_interrupt(study, options):
         try:
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.1)
         except KeyboardInterrupt:
             pass
-        return study_driver.StudyRun("the table", out, None)
-    monkeypatch.setattr(study_driver, "run_file", finishes_after_a_lost_interrupt)
+        return study_driver.StudyRun("the table", options.out, None)
+    monkeypatch.setattr(study_driver, "run", finishes_after_a_lost_interrupt)
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         assert cli.main(["study", "friction", "--quick", "--out", str(tmp_path / "s")]) == 130
@@ -684,10 +685,10 @@ def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, mo
 def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypatch):
     out = tmp_path / "study"
 
-    def interrupted(study, out, **kwargs):
-        _fake_checkpoint(out, study.spec, 3, "native")
+    def interrupted(study, options):
+        _fake_checkpoint(options.out, study.specs[0], 3, "native")
         raise KeyboardInterrupt
-    monkeypatch.setattr(study_driver, "run_file", interrupted)
+    monkeypatch.setattr(study_driver, "run", interrupted)
     assert cli.main(["study", "friction", "--quick", "--out", str(out)]) == 130
     err = capsys.readouterr().err
     assert f"trials 0…2 are saved in {out / study_io.CHECKPOINT}" in err and "Traceback" not in err

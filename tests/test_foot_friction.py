@@ -11,6 +11,7 @@ import pytest
 
 from cpgjax import cli, mjx_go1
 from cpgjax.go1 import model as go1_model
+from cpgjax.studies import options as study_options
 from cpgjax.study import spec as study_spec
 
 IDS = go1_model.indices()
@@ -116,11 +117,9 @@ def test_walk_prints_the_mu_in_effect_beside_the_asked_one(capsys, notes):
 
 
 def test_optimize_says_it_before_any_compute_and_takes_the_feet(notes):
-    args = cli.build_parser().parse_args(["optimize", "--friction", "0.9", "--trials", "8"])
-    study_spec.validate(cli.optimize_spec(args))
+    study_spec.validate(study_options.OptimizeOptions(friction=0.9, trials=8).spec())
     assert [line.split("):")[0] + ")" for line in _lines(notes)] == [PAPER_09]
-    args = cli.build_parser().parse_args(["optimize", "--friction", "0.9", "--foot-friction", "0.9", "--trials", "8"])
-    spec = cli.optimize_spec(args)
+    spec = study_options.OptimizeOptions(friction=0.9, foot_friction=0.9, trials=8).spec()
     assert spec.foot_friction == (0.9,) and study_spec.instances(spec)[0]["foot_friction"] == 0.9
 
 
@@ -130,7 +129,7 @@ def test_the_friction_tables_say_why_a_09_floor_equals_06_under_paper():
 
     paper = _fake_result(study_spec.StudySpec("friction", num_trials=8, seeds=(0, 1, 2), friction=(0.3, 0.6, 0.9),
                                               group_by=("friction",), physics=("paper",)))
-    table = registry.report_friction(paper, "native")
+    table = registry.report_friction(paper)
     assert "| friction | μ in effect |" in table
     assert [line.split("|")[1:3] for line in table.splitlines() if line.startswith("| 0.") and " − " not in line] == [
         [" 0.3 ", " 0.3 "], [" 0.6 ", " 0.6 "], [" 0.9 ", " 0.6 (the feet's) "]]
@@ -138,5 +137,5 @@ def test_the_friction_tables_say_why_a_09_floor_equals_06_under_paper():
     assert "a floor above the feet's μ walks as the feet's (under physics paper, μ 0.9 walked as 0.6)" in note
     feet = _fake_result(study_spec.StudySpec("friction", num_trials=8, seeds=(0, 1, 2), friction=(0.3, 0.6, 0.9),
                                              group_by=("friction",), physics=("paper",), foot_friction=(1.0,)))
-    assert "| 0.9 | 0.9 |" in registry.report_friction(feet, "native")
+    assert "| 0.9 | 0.9 |" in registry.report_friction(feet)
     assert "Friction:" not in registry.notes(feet)

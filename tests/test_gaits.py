@@ -10,6 +10,7 @@ import pytest
 from cpgjax import ablation, cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.studies import driver as study_driver
+from cpgjax.studies import options as study_options
 from cpgjax.studies import registry
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
@@ -95,7 +96,8 @@ def _run(tmp_path, gaits):
     path.write_text(STUDY.format(gaits=json.dumps(gaits)))
     study = study_driver.read(path)
     out = tmp_path / "_".join(gaits)
-    text, out, result = study_driver.run_file(study, out, backend="native", notify=lambda line: None)
+    text, out, result = study_driver.run_file(study, study_options.RunOptions(
+        out=out, backend="native", notify=lambda line: None))
     return out, result
 
 

@@ -17,6 +17,7 @@ from cpgjax import ablation, cli, cpg
 from cpgjax.studies import driver as study_driver
 from cpgjax.studies import figures as study_figures
 from cpgjax.studies import gaits as study_gaits
+from cpgjax.studies import options as study_options
 from cpgjax.studies import registry
 from cpgjax.studies import video as study_video
 from cpgjax.study import files as study_io
@@ -35,6 +36,12 @@ def _spec(name, **overrides):
 PAPER_STUDIES = [n for n in study_driver.paper_studies() if n != "transfer"]
 TRANSFER_ARMS = study_driver.read("transfer").arms
 ABLATION_REPORT = registry.REPORTS["controller_ablation"]
+
+
+def _write_ablation(result, out, **kwargs) -> str:
+    """Every file of the ablation's finished run, as ``cpgjax study`` writes them."""
+    return study_driver.write_study(study_driver.one_folder(result.spec, ABLATION_REPORT), {result.spec.name: result},
+                                    out, "native", **kwargs)
 
 def test_specs_follow_the_paper():
     spec = _spec("controller_ablation")
@@ -122,7 +129,7 @@ def tiny_ablation(tmp_path_factory):
     out = tmp_path_factory.mktemp("controller_ablation")
     engine = ablation.Engine(spec, backend="native")
     result = engine.run(out)
-    text = study_driver.write_outputs(result, out, "native", ABLATION_REPORT)
+    text = _write_ablation(result, out)
     return result, out, text
 
 
@@ -132,7 +139,7 @@ def test_a_machine_without_video_still_gets_every_other_output(tiny_ablation, tm
     result, _, _ = tiny_ablation
     monkeypatch.setenv("MUJOCO_GL", "no-such-backend")
     lines = []
-    study_driver.write_outputs(result, tmp_path, "native", ABLATION_REPORT, notify=lines.append)
+    _write_ablation(result, tmp_path, notify=lines.append)
     (said,) = [line for line in lines if line.startswith("no video")]
     assert "'no-such-backend' OpenGL backend" in said and "RuntimeError" in said and "\n" not in said
     assert (tmp_path / "summary.png").read_bytes()[:4] == b"\x89PNG" and (tmp_path / "table.md").exists()
@@ -268,7 +275,7 @@ def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp
     with pytest.raises(study_io.OutputError, match=r"writing the study's figures in .* failed \(OSError: "
                        r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, table.md, "
                        r"trials.parquet"):
-        study_driver.write_outputs(result, tmp_path, "native", ABLATION_REPORT)
+        _write_ablation(result, tmp_path)
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 16 and (tmp_path / "metadata.json").exists()
     table = (tmp_path / "table.md").read_text()
     assert "| vmc_tegotae |" in table and "Safety during optimization" in table and "\nRun: " in table
@@ -291,7 +298,8 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
 
     monkeypatch.setattr(transfer, "specs", tiny)
     lines = []
-    text, out = transfer.run(study, out=tmp_path / "transfer", backend="native", notify=lines.append)
+    text, out, _ = study_driver.run(transfer.study(study), study_options.RunOptions(
+        out=tmp_path / "transfer", backend="native", notify=lines.append))
     assert (out / "table.md").read_text() == text
     filmed = [line for line in lines if ".mp4: " in line]
     for (arm, home, _), spec in zip(study.arms, tiny(), strict=True):

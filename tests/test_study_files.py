@@ -17,6 +17,7 @@ from scipy import stats as sp
 from cpgjax import ablation, cli
 from cpgjax.studies import driver as study_driver
 from cpgjax.studies import generic, transfer
+from cpgjax.studies import options as study_options
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 
@@ -240,8 +241,10 @@ def test_a_study_in_python_and_the_same_study_as_a_file_write_the_same_files(tmp
                                   physics=("paper",), trial=protocol.TrialConfig(transition_steps=100,
                                                                                  steady_steps=200))
     assert study_spec.load(path) == python
-    a = study_driver.run_spec(python, tmp_path / "python", backend="native", notify=lambda line: None)
-    b = study_driver.run_file(study_driver.read(path), tmp_path / "file", backend="native", notify=lambda line: None)
+    def options(out):
+        return study_options.RunOptions(out=out, backend="native", notify=lambda line: None)
+    a = study_driver.run_spec(python, options(tmp_path / "python"))
+    b = study_driver.run_file(study_driver.read(path), options(tmp_path / "file"))
     assert (a.out / "trials.parquet").read_bytes() == (b.out / "trials.parquet").read_bytes()
     for gait in sorted((a.out / study_io.BEST_PARAMS).glob("*.json")):
         assert gait.read_bytes() == (b.out / study_io.BEST_PARAMS / gait.name).read_bytes()

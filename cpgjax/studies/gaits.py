@@ -16,6 +16,7 @@ import re
 
 import numpy as np
 
+from cpgjax import ablation
 from cpgjax.go1 import constants
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import terrain as terrains
@@ -110,13 +111,11 @@ def best_gaits(result) -> list[study_video.Gait]:
     return gaits
 
 
-def save_best_gaits(out: pathlib.Path, result) -> list[study_video.Gait]:
-    """Each group's :func:`best_gaits` as ``out/best_params/<group>.json``, what ``deploy --params`` and
+def save_gaits(out: pathlib.Path, result: ablation.StudyResult, gaits: list[study_video.Gait]) -> None:
+    """Each group's best gait (:func:`best_gaits`) as ``out/best_params/<group>.json``, what ``deploy --params`` and
     ``walk --params`` replay as tuned and what the study films (``best_<group>.mp4``)."""
-    gaits = best_gaits(result)
     for gait in gaits:
         study_video.save_gait(out, gait, seed=int(result.labels[gait.instance]["seed"]), study=result.spec.name)
-    return gaits
 
 
 def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None = None) -> list:

@@ -14,6 +14,7 @@ import pathlib
 
 import numpy as np
 
+from cpgjax import ablation
 from cpgjax.studies import figures as study_figures
 from cpgjax.studies import gaits as study_gaits
 from cpgjax.studies import registry, stats
@@ -123,8 +124,7 @@ def report_for(given: tuple[study_spec.Contrast, ...] = (), paper: dict | None =
                description: str = "") -> registry.Report:
     """The generic report of a study whose file names ``given`` comparisons, ``paper`` figures and a
     ``description``."""
-    def report(result, backend: str) -> str:
-        del backend  # the generic report simulates nothing
+    def report(result: ablation.StudyResult) -> str:
         n = result.trials.objective.shape[0]
         head = f"{description}\n\n" if description else ""
         return (head + f"{result.spec.name}: per group and phase, each run's mean of its last {LAST_TRIALS} trials "
@@ -133,11 +133,10 @@ def report_for(given: tuple[study_spec.Contrast, ...] = (), paper: dict | None =
                 f"trials per run.\n\n" + group_table(result) + comparison_table(result, given)
                 + paper_lines(paper or {}))
 
-    def figures(result, out: pathlib.Path, backend: str) -> str:
-        del backend
+    def figures(result: ablation.StudyResult, out: pathlib.Path) -> str:
         changes = sorted({s for p in study_gaits.phases(result) for s, _ in p} - {0})
         study_figures.learning_curves(out / "learning_curves.png", result, "group", changes=changes,
                                       groups=list(study_gaits.group_names(result)))
         return ""
 
-    return registry.Report(report, figures)
+    return registry.Report(registry.of_result(report), registry.of_result(figures))

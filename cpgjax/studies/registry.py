@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import pathlib
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -32,6 +32,10 @@ from cpgjax.sim import backends
 from cpgjax.studies import figures as study_figures
 from cpgjax.studies import stats
 from cpgjax.trial import objective, protocol
+
+Evaluation = dict[str, Any]
+"""What a study's evaluate step walked beyond the engine's trials, by name (``Report.evaluate``, ``Study.evaluate``);
+its report and files read it and simulate nothing."""
 
 PAPER_SEEDS = 5  # the paper's tables' std is over 5 seeds
 LAST_TRIALS = 5  # "averaging the outcomes of the last five trials"
@@ -176,7 +180,7 @@ def _labels(result, key) -> np.ndarray:
     return np.array([lab[key] for lab in result.labels])
 
 
-def report_ablation(result, backend: str) -> str:
+def report_ablation(result: ablation.StudyResult) -> str:
     tr, n = result.trials, result.trials.objective.shape[0]
     controllers = _labels(result, "controller")
     rows = ["| controller | velocity [m/s] ours | paper | CoT ours | paper | J ours | paper | falls (all trials) |",
@@ -195,20 +199,29 @@ def report_ablation(result, backend: str) -> str:
             + "\n".join(rows) + "\n" + ablation_verdicts(result))
 
 
-def figures_ablation(result, out: pathlib.Path, backend: str) -> str:
-    """learning_curves.png, and attitude.png with its table: the roll–pitch of open loop's and VMC+Tegotae's best
-    parameters (the paper's Fig. att_comp), each walked again."""
+def evaluate_ablation(result: ablation.StudyResult, backend: str) -> Evaluation:
+    """The best parameters of open loop and VMC+Tegotae walked again (3 s after a settling trial), for the paper's
+    Fig. att_comp: ``best`` ((x, instance, J) per controller) and ``logs`` (per-step logs by ``best_<controller>``)."""
     controllers = _labels(result, "controller")
-    study_figures.learning_curves(out / "learning_curves.png", result, "controller")
     picks = [c for c in ("open_loop", "vmc_tegotae") if (controllers == c).any()]
     if not picks:
-        return ""
+        return {"best": [], "logs": {}}
     best = [best_params(result, controllers == c) for c in picks]
     params = np.stack([b[0] for b in best])
     scenario = go1_model.make_scenarios(friction=[result.spec.friction[0]] * len(picks),
                                         physics=[result.labels[b]["physics"] for _, b, _ in best])
     logs = {f"best_{c}": lg for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend),
                                              strict=True)}
+    return {"best": best, "logs": logs}
+
+
+def figures_ablation(result: ablation.StudyResult, evaluation: Evaluation, out: pathlib.Path) -> str:
+    """learning_curves.png, and attitude.png with its table: the roll–pitch of open loop's and VMC+Tegotae's best
+    parameters (the paper's Fig. att_comp, :func:`evaluate_ablation`)."""
+    study_figures.learning_curves(out / "learning_curves.png", result, "controller")
+    best, logs = evaluation["best"], evaluation["logs"]
+    if not best:
+        return ""
     study_figures.attitude(out / "attitude.png", logs)
     text = "\nRoll–pitch of the best parameters (3 s after a settling trial), std [rad]:\n\n"
     text += "| controller | best J (instance) | roll std | pitch std |\n|---|---|---|---|\n"
@@ -263,12 +276,31 @@ def phase_diagnostics(result, start: int, stop: int) -> str:
             f"{beta.min():.2g} – {beta.max():.2g}")
 
 
-def report_load(result, backend: str) -> str:
-    tr, cond = result.trials, result.conditions
-    starts = phase_starts(cond.payload_kg[0]) + [tr.objective.shape[0]]
-    loads = [float(cond.payload_kg[0, s]) for s in starts[:-1]]
+def _load_phases(result: ablation.StudyResult) -> tuple[list[int], list[float]]:
+    """The load study's phases: the first trial of each payload (then the trial count), and each phase's payload."""
+    payload = result.conditions.payload_kg
+    starts = phase_starts(payload[0]) + [result.trials.objective.shape[0]]
+    return starts, [float(payload[0, s]) for s in starts[:-1]]
+
+
+def evaluate_load(result: ablation.StudyResult, backend: str) -> Evaluation:
+    """Each run's best parameters before the first payload change walked again under every later payload
+    (``registry.evaluate``: a settling trial, then a measured one): ``flat_optimum`` maps a payload to the (velocity,
+    CoT, J, fell) arrays over the runs."""
+    starts, loads = _load_phases(result)
     flat = np.stack([best_params(result, np.eye(len(result.labels), dtype=bool)[b], starts[1])[0]
                      for b in range(len(result.labels))])
+    walked = {}
+    for load in loads:
+        if load > 0:
+            scenario = go1_model.make_scenarios(payload_kg=[load] * len(flat), physics=_labels(result, "physics"))
+            walked[load] = evaluate(flat, _labels(result, "controller"), scenario, result.spec.trial, backend, 0.5)
+    return {"flat_optimum": walked}
+
+
+def report_load(result: ablation.StudyResult, evaluation: Evaluation) -> str:
+    tr = result.trials
+    starts, loads = _load_phases(result)
     rows = ["| load [kg] | velocity ours (flat optimum) | paper | CoT ours (flat optimum) | paper | "
             "J ours (flat optimum) | paper |", "|---|---|---|---|---|---|---|"]
     config = result.spec.optimizer_config()
@@ -277,10 +309,7 @@ def report_load(result, backend: str) -> str:
               f"t_load·r_load = {tolerance:g} N) | trials with β_init,c | β |", "|---|---|---|---|---|---|"]
     for load, start, stop in zip(loads, starts[:-1], starts[1:], strict=True):
         after = [last_mean(x, stop) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective)]
-        before = None
-        if load > 0:
-            scenario = go1_model.make_scenarios(payload_kg=[load] * len(flat), physics=_labels(result, "physics"))
-            before = evaluate(flat, _labels(result, "controller"), scenario, result.spec.trial, backend, 0.5)
+        before = evaluation["flat_optimum"].get(load)
         paper_after, paper_before = PAPER_LOAD_TABLE.get(load, (None, None))
         cells = []
         for k in range(3):
@@ -299,7 +328,7 @@ def report_load(result, backend: str) -> str:
     return text
 
 
-def report_friction(result, backend: str) -> str:
+def report_friction(result: ablation.StudyResult) -> str:
     tr, n = result.trials, result.trials.objective.shape[0]
     friction = _labels(result, "friction")
     rows = ["| friction | μ in effect | velocity [m/s] | CoT | J | trials to a prospective solution (J ≥ 90 % of the "
@@ -340,7 +369,7 @@ def trials_to_track(velocity: np.ndarray, target: np.ndarray, fell: np.ndarray, 
     return float(np.argmax(ok) + 1) if ok.any() else float(stop - start + 1)
 
 
-def report_multi_velocity(result, backend: str) -> str:
+def report_multi_velocity(result: ablation.StudyResult) -> str:
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
     starts = phase_starts(cond.target_velocity_mps[0]) + [n]
@@ -377,7 +406,7 @@ def report_multi_velocity(result, backend: str) -> str:
     return text
 
 
-def report_slope(result, backend: str) -> str:
+def report_slope(result: ablation.StudyResult) -> str:
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
     starts = _slope_phases(result)
@@ -438,7 +467,7 @@ def report_ramp(result, start: int) -> str:
             f"{walked.size} seeds with one; {top} reached the top.\n")
 
 
-def report_hardware(result, backend: str) -> str:
+def report_hardware(result: ablation.StudyResult) -> str:
     tr, cond = result.trials, result.conditions
     n = tr.objective.shape[0]
     schedules = _labels(result, "schedule")
@@ -487,8 +516,7 @@ def _taped_feet_friction(result) -> str:
 def _figure(name: str, group_key: str, changes_of=None, **kwargs):
     """A study's learning-curve figure ``name``: J (and the context) per trial per ``group_key``, with a line at each
     trial where ``changes_of(result)`` changes (the condition's phases)."""
-    def draw(result, out: pathlib.Path, backend: str) -> str:
-        del backend
+    def draw(result: ablation.StudyResult, out: pathlib.Path) -> str:
         changes = [] if changes_of is None else changes_of(result)
         study_figures.learning_curves(out / name, result, group_key, changes=changes, **kwargs)
         return ""
@@ -503,8 +531,7 @@ def _slope_phases(result) -> list[int]:
     return phase_starts(result.conditions.slope_deg[0, :learn]) + [learn]
 
 
-def figures_multi_velocity(result, out: pathlib.Path, backend: str) -> str:
-    del backend
+def figures_multi_velocity(result: ablation.StudyResult, out: pathlib.Path) -> str:
     target = result.conditions.target_velocity_mps[0]
     study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse",
                                   changes=phase_starts(target)[1:], target=target)
@@ -549,22 +576,78 @@ def load_paper_marks(result) -> list[study_figures.PaperMark]:
             for start, stop in zip(starts[:-1], starts[1:], strict=True) if float(payload[start]) in PAPER_LOAD_TABLE]
 
 
-class Report(NamedTuple):
-    """A hand-written report, which a study file names (``report = "<name>"``)."""
+def walks_nothing(*given) -> Evaluation:
+    """The evaluate step of a report or a study that needs nothing walked again (whatever it is given): nothing."""
+    del given
+    return {}
 
-    report: Callable[..., str]  # (result, backend) → the table text; writes no file
-    figures: Callable[..., str]  # (result, out, backend) → the study's figures; returns text the table gains
-    # (result) → the paper's J values that summary.png marks; none where the paper gives no J for the result
+
+def only(results: dict[str, ablation.StudyResult]) -> ablation.StudyResult:
+    """The result of a study of one engine run."""
+    (result,) = results.values()
+    return result
+
+
+def of_result(function: Callable[..., str]) -> Callable[..., str]:
+    """A report or figure function of the result alone (and the folder), as a :class:`Report` field."""
+    return lambda result, evaluation, *out: function(result, *out)
+
+
+class Report(NamedTuple):
+    """A one-folder study's report: the hand-written ones a study file names (``report = "<name>"``), and the
+    generic one (``cpgjax.studies.generic``). ``cpgjax.studies.driver.one_folder`` makes it a study of the
+    protocol (``Study``).
+
+    Fields:
+      report: (result, evaluation) → the table text; pure (it simulates nothing and writes no file).
+      figures: (result, evaluation, out) → draws the study's figures into ``out``; returns text the table gains.
+      evaluate: (result, backend) → what ``report`` and ``figures`` need walked again (an :data:`Evaluation`); the
+        only one of the three that simulates.
+      paper_marks: (result) → the paper's J values that summary.png marks; none where the paper gives no J.
+    """
+
+    report: Callable[..., str]
+    figures: Callable[..., str]
+    evaluate: Callable[..., Evaluation] = walks_nothing
     paper_marks: Callable[..., list] = lambda result: []
 
 
+class Study(NamedTuple):
+    """One study of any kind, as ``cpgjax.studies.driver.run`` runs it (docs/studies.md "One protocol"): the
+    engine's runs, one step beyond them that simulates, a pure report, and its files.
+
+    Fields:
+      name: the study's name (its default folder ``results/<name>``).
+      specs: the engine's runs: one, written into the study's folder, or several (a transfer study's arms), each
+        in a folder of its name below it.
+      evaluate: (results, backend) → an :data:`Evaluation`: what the report and the files need walked again (the
+        best gaits, parameters under other conditions); the only step that simulates after the engine.
+      report: (results, evaluation) → the table text; pure.
+      write: (results, evaluation, text, out, notify) → writes the study's files after the trial tables and the
+        metadata (table.md, figures, videos …); returns the table's final text.
+      metadata: more keys for every run's ``metadata.json`` (a study file's path and text).
+      plan: what a dry run's plan adds after the runs' plans.
+      written_by: the command that writes its folders, as ``metadata.json`` records it (``cpgjax show`` reads it).
+    """
+
+    name: str
+    specs: tuple
+    evaluate: Callable[..., Evaluation]
+    report: Callable[..., str]
+    write: Callable[..., str]
+    metadata: dict | None = None
+    plan: str = ""
+    written_by: str = "study"
+
+
 REPORTS = {
-    "controller_ablation": Report(report_ablation, figures_ablation, ablation_paper_marks),
-    "load_adaptation": Report(report_load, _figure("load_adaptation.png", "schedule", lambda r: phase_starts(
-        r.conditions.payload_kg[0])[1:], context_index=0), load_paper_marks),
-    "friction": Report(report_friction, _figure("friction.png", "friction")),
-    "multi_velocity": Report(report_multi_velocity, figures_multi_velocity),
-    "slope_adaptation": Report(report_slope, _figure("slope_adaptation.png", "schedule",
-                                                     lambda r: _slope_phases(r)[1:], context_index=1)),
-    "paper_hardware": Report(report_hardware, _figure("paper_hardware.png", "schedule")),
+    "controller_ablation": Report(of_result(report_ablation), figures_ablation, evaluate_ablation,
+                                  ablation_paper_marks),
+    "load_adaptation": Report(report_load, of_result(_figure("load_adaptation.png", "schedule", lambda r: phase_starts(
+        r.conditions.payload_kg[0])[1:], context_index=0)), evaluate_load, load_paper_marks),
+    "friction": Report(of_result(report_friction), of_result(_figure("friction.png", "friction"))),
+    "multi_velocity": Report(of_result(report_multi_velocity), of_result(figures_multi_velocity)),
+    "slope_adaptation": Report(of_result(report_slope), of_result(_figure(
+        "slope_adaptation.png", "schedule", lambda r: _slope_phases(r)[1:], context_index=1))),
+    "paper_hardware": Report(of_result(report_hardware), of_result(_figure("paper_hardware.png", "schedule"))),
 }

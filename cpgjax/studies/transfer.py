@@ -28,10 +28,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cpgjax import ablation, cpg, outputs
+from cpgjax import cpg, outputs
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
-from cpgjax.sim import backends
 from cpgjax.studies import gaits as study_gaits
 from cpgjax.studies import registry, stats
 from cpgjax.studies import video as study_video
@@ -232,54 +231,31 @@ def comparisons(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations
     return "\n".join(rows) + "\n\n" + "\n".join(falls) + "\n"
 
 
-def run(study: study_spec.StudyFile, *, out=None, resume=False, overwrite=False, backend="auto", progress=None,
-        command: str | None = None, notify: Callable[[str], None], dry_run: bool = False) -> tuple[str, pathlib.Path]:
-    """Every arm of the study file ``study`` (its own engine run and folder), then the evaluations and the table;
-    returns (text, folder). Output folders, ``resume``, ``overwrite``, ``command``, ``notify`` and ``dry_run`` (each
-    arm's plan) as in ``cpgjax.studies.driver.run_spec``; a resume continues the arms that have a checkpoint and
-    starts the others."""
-    out = study_io.output_folder(study.spec.name, out)
-    arm_specs = specs(study)
-    for spec in arm_specs:
-        study_spec.validate(spec)
-    resumed = {}
-    if resume:
-        resumed = {spec.name: spec for spec in arm_specs if (out / spec.name / study_io.CHECKPOINT).exists()}
-        if not resumed:
-            raise study_spec.StudyError(f"--resume: no arm of {out} has a checkpoint; run without --resume to start")
-    study_io.claim_folder(out, overwrite=overwrite, resume=resume, dry_run=dry_run)
-    plans, backend_name = [], backends.resolve_backend(backend)
-    for spec in arm_specs:
-        start = study_io.open_run(out / spec.name, spec, backend_name, resume=spec.name in resumed,
-                                  overwrite=overwrite, dry_run=dry_run)
-        if dry_run:
-            plans.append(study_io.run_plan(spec, out / spec.name, backend_name, start))
-        elif start:
-            notify(study_io.resume_notice(out / spec.name, start, spec.num_trials))
-    if dry_run:
-        return "\n".join(plans) + "\nthen each arm's best gaits walked in every evaluation environment", out
+def _evaluate(study: study_spec.StudyFile, results: dict, backend: str) -> registry.Evaluation:
+    """Every arm's best parameters walked in every environment (``evaluations``, by arm: :func:`evaluate`'s
+    arrays), and each arm's best gaits (``gaits``) with their per-step logs (``gait_logs``) for the videos."""
     target = study.spec.target_velocity_mps[0]
-    arm_results, evaluations, gaits, wall = {}, {}, {}, 0.0
-    for (arm, home, _), spec in zip(study.arms, arm_specs, strict=True):
-        engine = ablation.Engine(spec, backend=backend)
-        result = engine.run(out / spec.name, resume=spec.name in resumed, progress=progress)
-        with study_io.writing(out / spec.name, "trials.parquet, metadata.json and best_params/"):
-            study_io.write_trials(result, out / spec.name / outputs.TRIALS)
-            study_io.write_metadata(result, out / spec.name / outputs.METADATA, study.metadata(), command=command)
-            gaits[arm] = study_gaits.save_best_gaits(out / spec.name, result)
-        arm_results[arm] = result
-        env = Environments(home)
-        evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels], env, spec.trial,
-                                    engine.backend_name, target)
-        with study_io.writing(out / spec.name, EVALUATIONS):
-            write_evaluations(out / spec.name / EVALUATIONS, result, env, evaluations[arm])
-        wall += result.wall_s
+    evaluations, gaits, logs = {}, {}, {}
+    for (arm, home, _), result in zip(study.arms, results.values(), strict=True):
+        evaluations[arm] = evaluate(_best(result), [lab["controller"] for lab in result.labels], Environments(home),
+                                    result.spec.trial, backend, target)
+        gaits[arm] = study_gaits.best_gaits(result)
+        logs[arm] = study_gaits.gait_rollouts(gaits[arm], backend)
+    return {"evaluations": evaluations, "gaits": gaits, "gait_logs": logs}
+
+
+def _report(study: study_spec.StudyFile, results: dict, evaluation: registry.Evaluation) -> str:
+    """The study's table.md: what was run, the transfer table and its tests over seeds."""
+    arm_results = dict(zip((arm.name for arm in study.arms), results.values(), strict=True))
+    evaluations = evaluation["evaluations"]
     env, fixed = Environments(study.arms[0].physics), len(ENVIRONMENT_PROFILES)
     draws = ", ".join(f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}" for f, p, s, lat, z in zip(
         env.friction[fixed:], env.payload_kg[fixed:], env.mass_scale[fixed:], env.latency_ticks[fixed:],
         env.noise_scale[fixed:], strict=True))
-    n, runs = arm_specs[0].num_trials, len(arm_specs[0].seeds)
-    text = (f"# transfer\n\nEach controller optimized online for {n} trials ({runs} seeds) under one physics profile "
+    first = next(iter(results.values())).spec
+    n, runs, target = first.num_trials, len(first.seeds), study.spec.target_velocity_mps[0]
+    wall = sum(result.wall_s for result in results.values())
+    return (f"# transfer\n\nEach controller optimized online for {n} trials ({runs} seeds) under one physics profile "
             f"(or under randomized physics), then its best parameters walked — one settling trial, one measured "
             f"trial, v* = {target:g} m/s — under every fixed profile (flat, μ 0.6) and under {EVALUATION_DRAWS} "
             f"randomized physics ({draws}, on the arm's home profile). J at home, J randomized and the drops: mean "
@@ -289,10 +265,34 @@ def run(study: study_spec.StudyFile, *, out=None, resume=False, overwrite=False,
             + (f"\n## Differences, tested over {runs} seeds\n\n" + comparisons(study.arms, arm_results, evaluations)
                if runs >= stats.MIN_SEEDS else f"\n{stats.too_few_line(runs)}\n")
             + f"\nOptimization wall time {wall:.0f} s (all arms).\n")
+
+
+def _write(study: study_spec.StudyFile, results: dict, evaluation: registry.Evaluation, text: str,
+           out: pathlib.Path, notify: Callable[[str], None]) -> str:
+    """Each arm's best gaits (``best_params/``) and evaluations (``evaluations.parquet``), the study's table.md, then
+    each arm's videos (after the table: filming never costs a result)."""
+    for (arm, home, _), result in zip(study.arms, results.values(), strict=True):
+        folder = out / result.spec.name
+        with study_io.writing(folder, "best_params/"):
+            study_gaits.save_gaits(folder, result, evaluation["gaits"][arm])
+        with study_io.writing(folder, EVALUATIONS):
+            write_evaluations(folder / EVALUATIONS, result, Environments(home),
+                              evaluation["evaluations"][arm])
     out.mkdir(parents=True, exist_ok=True)
     (out / study_io.TABLE).write_text(text)
-    for (arm, _, _), spec in zip(study.arms, arm_specs, strict=True):  # after the table: filming never costs a result
-        with study_io.writing(out / spec.name, "the best gaits' videos"):
-            logs = study_gaits.gait_rollouts(gaits[arm], engine.backend_name)
-            study_video.write_videos(out / spec.name, gaits[arm], logs, notify)
-    return text, out
+    for (arm, _, _), result in zip(study.arms, results.values(), strict=True):
+        with study_io.writing(out / result.spec.name, "the best gaits' videos"):
+            study_video.write_videos(out / result.spec.name, evaluation["gaits"][arm], evaluation["gait_logs"][arm],
+                                     notify)
+    return text
+
+
+def study(definition: study_spec.StudyFile) -> registry.Study:
+    """The transfer study of the study file ``definition`` (with its arms) as a study of the protocol: every arm its
+    own engine run and folder, then the evaluations, the table and the videos."""
+    return registry.Study(
+        definition.spec.name, tuple(specs(definition)),
+        lambda results, backend: _evaluate(definition, results, backend),
+        lambda results, evaluation: _report(definition, results, evaluation),
+        lambda results, evaluation, text, out, notify: _write(definition, results, evaluation, text, out, notify),
+        metadata=definition.metadata(), plan="then each arm's best gaits walked in every evaluation environment")
