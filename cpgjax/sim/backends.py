@@ -17,6 +17,7 @@ import jax
 from cpgjax import cpg, mjx_go1
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native as native_go1
+from cpgjax.sim import native_physics
 from cpgjax.sim.base import Backend
 from cpgjax.trial import protocol
 
@@ -52,7 +53,7 @@ def check_mjx_layout(instances_per_device: int, devices) -> None:
       ValueError: naming the cause and the workarounds.
     """
     devices = list(devices)
-    cores = native_go1.available_cores()
+    cores = native_physics.available_cores()
     if (len(devices) > 1 and devices[0].platform == "cpu" and len(devices) >= cores
             and instances_per_device > MAX_MJX_INSTANCES_PER_CPU_DEVICE):
         raise ValueError(
