@@ -36,12 +36,11 @@ def resolve_backend(backend: str = "auto") -> str:
     return default_backend() if backend == "auto" else backend
 
 
-# jaxlib 0.10.2's CPU LAPACK kernels split a large batch into pieces for XLA's intra-op thread pool (one thread per
-# core) and block until the pieces are done (jax::ParallelBatchMap). The batched Cholesky in MJX's solver is one of
-# them. When each pool thread runs one device's program and all of them are inside that Cholesky at the same time, no
-# thread is left to run the pieces, and the program never finishes. Seen with 2 CPU devices on 2 cores at 128
-# instances per device (gdb: both pool threads in BlockingCounter::Wait under lapack_spotrf_ffi); 64 per device
-# completes.
+# jaxlib's CPU LAPACK kernels split a large batch into pieces for XLA's intra-op thread pool (one thread per core)
+# and block until the pieces are done (jax::ParallelBatchMap). The batched Cholesky in MJX's solver is one of them.
+# When each pool thread runs one device's program and all of them are inside that Cholesky at the same time, no
+# thread is left to run the pieces, and the program never finishes. The most instances per device seen to complete
+# (docs/backends.md, "Devices: MJX uses every core only as several host devices"):
 MAX_MJX_INSTANCES_PER_CPU_DEVICE = 64
 
 

@@ -98,8 +98,8 @@ class _Carry(NamedTuple):
     """Controller-side state carried from tick to tick. In the compiled trial of the ``ffi`` stepping every field
     is its pytree; between the per-tick calls of the other steppings ``controller`` and ``pending`` travel as flat
     vectors and ``rows`` as one flat row per tick (``_Packing``): a handful of buffers per call keeps the per-tick
-    dispatch cheap, and inside one program the pytrees spare the per-tick packing (a quarter of the tick's
-    arithmetic at batch 64, ``benchmarks/native_tick.py``)."""
+    dispatch cheap, and inside one program the pytrees spare the per-tick packing (what it costs: docs/backends.md,
+    "How the native backend works")."""
 
     controller: _Controller | jax.Array  # the batch's _Controller (B, ...), or (C,) flat
     pending: object  # the batch's pre-step half of the last tick's row (B, ...), or (P,) flat
