@@ -57,7 +57,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from cpgjax import ablation, compile_cache, cpg, provenance  # noqa: E402
-from cpgjax.sim import backends, ffi_step  # noqa: E402
+from cpgjax.sim import backends, ffi_step, native_physics  # noqa: E402
 from cpgjax.sim import native as native_go1  # noqa: E402
 from cpgjax.studies import driver as study_driver  # noqa: E402
 from cpgjax.studies import launch as study_launch  # noqa: E402
@@ -162,7 +162,7 @@ def run_once(args, physics: str | None) -> float:
               f"thread at {rate:,.0f} env-steps/s (max |Δstate| against the logged run {diff:.1e}); the study's "
               f"{fig['env_steps']:,} env-steps take {single_core_s:.1f} s of single-core physics, its wall time "
               f"{fraction:.2f} of that")
-        cores = native_go1.available_cores()
+        cores = native_physics.available_cores()
         if fraction < 1 / cores:
             print(f"# the study took less than 1/{cores} of that single-core physics time on {cores} cores: the "
                   "replay was slowed by other load on the machine, and this fraction is not the code's")
@@ -229,7 +229,7 @@ def _replay_rate(sampled: list[_Sample]) -> tuple[float, float, int]:
     for s in sampled:
         if id(s.sim) not in replayers:
             again = native_go1.NativeBackend(s.sim.scenario, s.sim.cpg_config, s.sim.trial_config)
-            replayers[id(s.sim)] = (again, native_go1.BatchPhysics(again.scenario, nthread=1, stepping="ffi"), {})
+            replayers[id(s.sim)] = (again, native_physics.BatchPhysics(again.scenario, nthread=1, stepping="ffi"), {})
         again, one, compiled = replayers[id(s.sim)]
         consts = again._constants(s.state.params, s.new_params, s.gates)
         _, rows = again._run(s.state, native_go1.LOG_RECORDER, again.trial_config, consts)

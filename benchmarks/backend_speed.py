@@ -27,6 +27,7 @@ import numpy as np
 from cpgjax import cpg, mjx_go1, provenance
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native as native_go1
+from cpgjax.sim import native_physics
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -100,7 +101,7 @@ def main() -> None:
     load_start = os.getloadavg()[0]
 
     device = jax.devices()[0]
-    print(f"# {provenance.machine()}; JAX device {device.platform}; {native_go1.available_cores()} cores for the "
+    print(f"# {provenance.machine()}; JAX device {device.platform}; {native_physics.available_cores()} cores for the "
           "native physics threads; "
           f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
           f"load average {load_start:.1f}")
@@ -109,7 +110,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     figures: dict = {"benchmark": "backend_speed", "machine": provenance.machine(), "jax_device": device.platform,
                      "steps_per_instance": steps, "async_dispatch": not args.sync_dispatch,
-                     "rollout_threads": native_go1.available_cores()}
+                     "rollout_threads": native_physics.available_cores()}
     missing = {"env_steps_per_s": float("nan"), "first_call_s": float("nan")}
     for b in batches:
         native, mjx = (trial_speed(name, b, steps, repeats) if name in args.backends else missing

@@ -60,7 +60,7 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 from cpgjax import provenance  # noqa: E402
 from cpgjax.go1 import model as go1_model  # noqa: E402
 from cpgjax.go1 import physics as physics_profiles  # noqa: E402
-from cpgjax.sim import ffi_step  # noqa: E402
+from cpgjax.sim import ffi_step, native_physics  # noqa: E402
 from cpgjax.sim import native as native_go1  # noqa: E402
 from cpgjax.trial import params as param_space  # noqa: E402
 from cpgjax.trial import protocol  # noqa: E402
@@ -222,7 +222,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--physics", default=physics_profiles.DEFAULT_PROFILE, choices=physics_profiles.PROFILES)
     parser.add_argument("--stepping", choices=("ffi", "batch"), default=None,
-                        help="the native backend's stepping (default: native.default_stepping())")
+                        help="the native backend's stepping (default: native_physics.default_stepping())")
     parser.add_argument("--accounts", action="store_true",
                         help="split the closed loop by thread, from the physics library's accounts (ffi stepping)")
     args = parser.parse_args()
@@ -230,14 +230,14 @@ def main() -> None:
         if args.stepping == "batch":
             parser.error("--accounts: the ffi stepping's library keeps the accounts, not --stepping batch")
         ffi_step.request_accounts()
-    stepping = args.stepping or native_go1.default_stepping()
+    stepping = args.stepping or native_physics.default_stepping()
     if args.accounts and stepping != "ffi":
         parser.error("--accounts: the ffi stepping is not available on this machine (see the log)")
     if min(args.batch_sizes) < 1 or args.steps < 4 or args.repeats < 1:
         parser.error(f"--batch-sizes {args.batch_sizes}, --steps {args.steps}, --repeats {args.repeats}: need "
                      "batch sizes ≥ 1, steps ≥ 4, repeats ≥ 1")
     load_start = os.getloadavg()[0]
-    print(f"# {provenance.machine()}, {native_go1.available_cores()} cores, {args.physics} physics, {stepping} "
+    print(f"# {provenance.machine()}, {native_physics.available_cores()} cores, {args.physics} physics, {stepping} "
           f"stepping, {args.steps} ticks, best of {args.repeats}, load average {load_start:.1f}")
     print("| batch | threads | closed loop [µs/tick] | controller call [µs] | controller in a scan [µs/tick] "
           "| physics step [µs] | rest [µs] | env-steps/s |\n|---|---|---|---|---|---|---|---|")

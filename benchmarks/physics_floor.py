@@ -25,7 +25,7 @@ from rollout import native_limit  # benchmarks/ is the script's directory
 from cpgjax import provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.robot import cpu_dispatch
-from cpgjax.sim import native as native_go1
+from cpgjax.sim import native_physics
 from cpgjax.studies import driver as study_driver
 from cpgjax.studies import transfer
 from cpgjax.study import spec as study_spec
@@ -58,7 +58,7 @@ def main() -> None:
                      "steps ≥ 4, repeats ≥ 1")
     cpu_dispatch.request_inline()  # as every cpgjax command on the native backend
     cpu_dispatch.request_one_pool_thread()
-    stepping = native_go1.default_stepping()
+    stepping = native_physics.default_stepping()
     physics = physics_profiles.DEFAULT_PROFILE
     r = native_limit(args.batch, args.steps, args.repeats, physics, [stepping])
     limit = r["cores"] * r["replay_one_thread_env_steps_per_s"]

@@ -50,7 +50,7 @@ from cpgjax import mjx_go1, provenance
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.robot import cpu_dispatch
-from cpgjax.sim import backends
+from cpgjax.sim import backends, native_physics
 from cpgjax.sim import native as native_go1
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
@@ -166,9 +166,9 @@ def profile_costs(profiles: list[str], batch: int, steps: int, repeats: int) -> 
 
 
 def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: list[str]) -> dict:
-    """The native backend's closed-loop trial with each of ``steppings`` (``native.STEPPINGS``) against the replay of
-    its torques (see the module docstring), timed in interleaved rounds (best of each): env-steps/s of each, and the
-    closed loops as fractions of ``available_cores()`` × the one-thread replay."""
+    """The native backend's closed-loop trial with each of ``steppings`` (``native_physics.STEPPINGS``) against the
+    replay of its torques (see the module docstring), timed in interleaved rounds (best of each): env-steps/s of each,
+    and the closed loops as fractions of ``available_cores()`` × the one-thread replay."""
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
     scenario = go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics)
@@ -192,7 +192,7 @@ def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: 
     control = np.zeros((batch, steps, models[0].nu))
     control[..., go1_model.indices().actuator] = np.asarray(log.torque_nm)
     replayed = np.empty((batch, steps, phys.layout.size))  # the one-thread replay's states, compared below
-    cores = native_go1.available_cores()
+    cores = native_physics.available_cores()
 
     def replay(nthread: int, states: np.ndarray):
         pool = mj_rollout.Rollout(nthread=nthread)  # 0: the calling thread only
@@ -260,15 +260,15 @@ def main() -> None:
     parser.add_argument("--profiles", help="comma list of physics profiles: time only their closed loops (ratios "
                         "against the first)")
     parser.add_argument("--native-only", action="store_true", help="only the native closed loop against its limit")
-    parser.add_argument("--steppings", type=lambda s: s.split(","), default=[native_go1.default_stepping()],
+    parser.add_argument("--steppings", type=lambda s: s.split(","), default=[native_physics.default_stepping()],
                         help="comma list of the native backend's steppings to time against the limit "
-                        f"(of {native_go1.STEPPINGS}; default {native_go1.default_stepping()})")
+                        f"(of {native_physics.STEPPINGS}; default {native_physics.default_stepping()})")
     parser.add_argument("--physics", default=physics_profiles.DEFAULT_PROFILE, choices=physics_profiles.PROFILES,
                         help="physics profile of the native closed loop and its limit (default: the studies')")
     args = parser.parse_args()
-    unknown = [name for name in args.steppings if name not in native_go1.STEPPINGS]
+    unknown = [name for name in args.steppings if name not in native_physics.STEPPINGS]
     if unknown:
-        parser.error(f"--steppings {','.join(args.steppings)}: unknown {unknown}; allowed: {native_go1.STEPPINGS}")
+        parser.error(f"--steppings {','.join(args.steppings)}: unknown {unknown}; allowed: {native_physics.STEPPINGS}")
     if args.native_only:
         # As the cpgjax commands: per-tick calls inline, the cores for MuJoCo's threads, one host device (with two,
         # the native trial's program runs 1.8x slower on 2 cores: docs/backends.md).
@@ -316,7 +316,7 @@ def main() -> None:
                                f"native_replay_all_cores_fraction_of_limit_b{b}":
                                round(r["replay_all_cores_fraction_of_limit"], 3)})
     # Only where the instances split evenly between the cores can the replay on every core reach the limit.
-    cores = native_go1.available_cores()
+    cores = native_physics.available_cores()
     shared = {b: f for b in batches if b % cores == 0 and not
               INDEPENDENT_CORES <= (f := native_figures[f"native_replay_all_cores_fraction_of_limit_b{b}"])
               <= SLOWED_REPLAY}

@@ -103,8 +103,8 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     per_key = {k: go1_model.model_with_payload(*k) for k in dict.fromkeys(keys)}
     updates = {f: jnp.asarray(np.stack([getattr(per_key[k], f) for k in keys]), dtype=getattr(mx, f).dtype)
                for f in fields}
-    # A zero bound makes MJX's friction-loss row act as a stiff constraint on the joint (measured: the soft profile
-    # then walks 0.09 m/s instead of 0.53), so MJX carries a negligible bound where a profile has no joint friction.
+    # A zero bound makes MJX's friction-loss row act as a stiff constraint on the joint (the gait it costs:
+    # docs/physics.md), so MJX carries a negligible bound where a profile has no joint friction.
     updates["dof_frictionloss"] = jnp.maximum(updates["dof_frictionloss"], MIN_FRICTIONLOSS_NM)
     friction = np.broadcast_to(np.asarray(base.geom_friction), (batch,) + base.geom_friction.shape).copy()
     friction[:, ids.floor_geom, 0] = go1_model.effective_friction(scenario)

@@ -232,16 +232,15 @@ def test_mjx_refuses_the_cpu_layout_that_deadlocks(monkeypatch):
     benchmarks/cpu_devices_hang.py); refused with the cause and the workarounds, before any compute."""
     import jax
 
-    from cpgjax.sim import backends
-    from cpgjax.sim import native as native_go1
+    from cpgjax.sim import backends, native_physics
     cpu = jax.devices("cpu")[0]
-    monkeypatch.setattr(native_go1, "available_cores", lambda: 2)
+    monkeypatch.setattr(native_physics, "available_cores", lambda: 2)
     with pytest.raises(ValueError, match="128 instances on each of 2 CPU devices .2 cores. never finishes") as err:
         backends.check_mjx_layout(128, [cpu, cpu])
     assert "--processes 2" in str(err.value) and "native backend" in str(err.value)
     backends.check_mjx_layout(64, [cpu, cpu])  # measured to complete
     backends.check_mjx_layout(128, [cpu])  # one device: a free thread runs the pieces
-    monkeypatch.setattr(native_go1, "available_cores", lambda: 4)
+    monkeypatch.setattr(native_physics, "available_cores", lambda: 4)
     backends.check_mjx_layout(128, [cpu, cpu])
 
 

@@ -11,8 +11,7 @@ import sys
 
 import pytest
 
-from cpgjax.sim import ffi_step
-from cpgjax.sim import native as native_go1
+from cpgjax.sim import ffi_step, native_physics
 
 
 def test_a_fresh_cache_gets_the_library_with_its_entry_points(tmp_path, monkeypatch):
@@ -41,7 +40,7 @@ def test_without_a_working_compiler_one_line_says_so_and_the_backend_steps_tick_
     monkeypatch.setattr(ffi_step, "load", ffi_step.load.__wrapped__)  # not the process's cached library
     with caplog.at_level(logging.WARNING, logger=ffi_step.log.name):
         assert ffi_step.load() is None
-        assert native_go1.default_stepping() == "batch"
+        assert native_physics.default_stepping() == "batch"
     messages = [r.getMessage() for r in caplog.records]
     assert len(messages) == 2  # once per load() call: load() above, then default_stepping()'s
     expected = "no C++ compiler" if case == "no compiler" else "could not be built (false exited with 1"
@@ -84,7 +83,7 @@ def test_mujoco_timers_are_off_while_a_stepper_exists_and_the_callback_found_com
     code = """
 import mujoco, numpy as np
 from cpgjax.go1 import model as go1_model
-from cpgjax.sim import native
+from cpgjax.sim import native_physics
 scenario = go1_model.make_scenarios(friction=np.array([0.6, 0.6]))
 m = go1_model.scenario_model(scenario, 0)
 def run():  # (time the step timer added, final qpos) over 50 steps from standing, torques on every motor
@@ -99,11 +98,11 @@ def clock():
     calls.append(1)
     return float(len(calls))
 on, q_on = run()
-physics = native.BatchPhysics(scenario, stepping="ffi")
+physics = native_physics.BatchPhysics(scenario, stepping="ffi")
 off, q_off = run()
 mujoco.set_mjcb_time(clock)
 physics.close()
-physics = native.BatchPhysics(scenario, stepping="ffi")
+physics = native_physics.BatchPhysics(scenario, stepping="ffi")
 before = len(calls)
 off_again, _ = run()
 calls_during = len(calls) - before
@@ -130,8 +129,9 @@ from cpgjax.sim import ffi_step
 if sys.argv[1] == "accounts":
     ffi_step.request_accounts()
 from cpgjax.go1 import model as go1_model
-from cpgjax.sim import native
-physics = native.BatchPhysics(go1_model.make_scenarios(friction=np.array([0.4, 0.9])), nthread=2, stepping="ffi")
+from cpgjax.sim import native_physics
+scenario = go1_model.make_scenarios(friction=np.array([0.4, 0.9]))
+physics = native_physics.BatchPhysics(scenario, nthread=2, stepping="ffi")
 torque = np.linspace(-2.0, 2.0, 24, dtype=np.float32).reshape(2, 12)
 for _ in range(30):
     physics.step(torque)

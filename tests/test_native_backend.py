@@ -14,10 +14,11 @@ import pytest
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
-from cpgjax.sim import backends
+from cpgjax.sim import backends, native_physics
 from cpgjax.sim import native as native_go1
 from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
+from tests import native_oracle
 from tests.conftest import SHORT_TRIAL
 
 NOMINAL, HEAVY, UPHILL, SLIPPERY, COARSE = 0, 1, 2, 3, 4
@@ -41,13 +42,14 @@ def _figures(record) -> dict[str, np.ndarray]:
             "fell": np.asarray(record.fell), "margin": np.asarray(record.safety_margin)}
 
 
-@pytest.mark.parametrize("stepping", native_go1.STEPPINGS)
+@pytest.mark.parametrize("stepping", [*native_physics.STEPPINGS, native_oracle.STEPPING])
 def test_batched_steps_equal_a_persistent_mj_step_loop(stepping):
-    """BatchPhysics (the FFI step, ``mujoco.batch`` in place, or one ``mujoco.rollout`` call per step; warm start
-    rebuilt from the states) against a plain ``mj_step`` loop on one persistent MjData, with the same PD torques:
-    equal to float64 rounding (the loop warm-starts with MuJoCo's own acceleration, which differs in the last bits)."""
+    """BatchPhysics (the FFI step or ``mujoco.batch`` in place) and the tests' reference (one ``mujoco.rollout`` call
+    per step, ``tests.native_oracle``), warm start rebuilt from the states, against a plain ``mj_step`` loop on one
+    persistent MjData, with the same PD torques: equal to float64 rounding (the loop warm-starts with MuJoCo's own
+    acceleration, which differs in the last bits)."""
     scenario = go1_model.make_scenarios(friction=[0.6, 0.3], slope_deg=[0.0, 5.0], payload_kg=[0.0, 7.5])
-    batch = native_go1.BatchPhysics(scenario, stepping=stepping)
+    batch = native_oracle.batch_physics(scenario, stepping)
     assert batch.stepping == stepping
     ids = go1_model.indices()
     lay = batch.layout

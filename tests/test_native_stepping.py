@@ -1,12 +1,12 @@
-"""The native backend's steppings (``cpgjax.sim.native.STEPPINGS``) against each other.
+"""The native backend's steppings (``cpgjax.sim.native_physics.STEPPINGS``) against each other and the reference.
 
-- ``batch`` (``mujoco.batch`` from Python, one jitted call per tick) against its reference, one ``mujoco.rollout``
-  call per step: whole studies, compared by the bytes of the ``trials.parquet`` they write. The two run the same C
-  MuJoCo ``mj_step`` on the same per-instance models from the same states, controls and warm starts
-  (docs/backends.md), so nothing is allowed to differ: not a bit of any trial's figures, parameters or optimizer
-  decisions, and not the states they leave. Studies are short (few trials of 0.18 s, a small optimizer) and cover a
-  controller ablation and a load adaptation whose payload changes twice (a new batch of models each time), at batch
-  1, 20 and 64.
+- ``batch`` (``mujoco.batch`` from Python, one jitted call per tick) against the reference, one ``mujoco.rollout``
+  call per step (``tests.native_oracle``): whole studies, compared by the bytes of the ``trials.parquet`` they
+  write. The two run the same C MuJoCo ``mj_step`` on the same per-instance models from the same states, controls
+  and warm starts (docs/backends.md), so nothing is allowed to differ: not a bit of any trial's figures, parameters
+  or optimizer decisions, and not the states they leave. Studies are short (few trials of 0.18 s, a small optimizer)
+  and cover a controller ablation and a load adaptation whose payload changes twice (a new batch of models each
+  time), at batch 1, 20 and 64.
 - ``ffi`` (``cpgjax.sim.ffi_step``: the step in C++, called from inside one compiled program per trial): its
   physics step, from Python and through the FFI, whole or in two overlapped parts, equals the reference's bit for
   bit for the same torques. Its
@@ -23,11 +23,12 @@ import pytest
 from cpgjax import ablation, cpg, gp
 from cpgjax.go1 import model as go1_model
 from cpgjax.optim import acquisition
-from cpgjax.sim import ffi_step
+from cpgjax.sim import ffi_step, native_physics
 from cpgjax.sim import native as native_go1
 from cpgjax.study import files as study_io
 from cpgjax.study.spec import Change, Schedule, StudySpec
 from cpgjax.trial import optimizer_setting, protocol
+from tests import native_oracle
 
 TRIAL = protocol.TrialConfig(transition_steps=60, steady_steps=120)
 TRIALS = 4
@@ -71,12 +72,17 @@ def _assert_the_reference_steps_so(ref, new, torques, outputs):
 
 
 def _run(engine: ablation.Engine, stepping: str, out, monkeypatch):
-    """The whole study with ``stepping``; one engine for both steppings (its optimizer compiles once), whose
-    simulator is made afresh for each run (``Engine.simulator`` keeps it from trial to trial)."""
-    monkeypatch.setattr(native_go1, "default_stepping", lambda: stepping)
-    engine._sim = None
-    result = engine.run()
-    sim = engine.simulator(TRIALS - 1)
+    """The whole study with ``stepping`` (or the reference, ``native_oracle.STEPPING``, standing in for the
+    backend's physics); one engine for both runs (its optimizer compiles once), whose simulator is made afresh for
+    each run (``Engine.simulator`` keeps it from trial to trial)."""
+    with monkeypatch.context() as patch:
+        if stepping == native_oracle.STEPPING:
+            patch.setattr(native_physics, "BatchPhysics", native_oracle.RolloutPhysics)
+        else:
+            patch.setattr(native_physics, "default_stepping", lambda: stepping)
+        engine._sim = None
+        result = engine.run()
+        sim = engine.simulator(TRIALS - 1)
     assert sim.physics.stepping == stepping and sim.batch_size == len(result.labels)
     return study_io.write_trials(result, out).read_bytes(), result
 
@@ -86,7 +92,7 @@ def _run(engine: ablation.Engine, stepping: str, out, monkeypatch):
 @pytest.mark.parametrize("study", ["controller_ablation", "load_adaptation"])
 def test_a_study_writes_the_same_bytes_with_either_stepping(study, batch, tmp_path, monkeypatch):
     engine = ablation.Engine(_spec(study, batch), backend="native")
-    reference, ref = _run(engine, "rollout", tmp_path / "rollout.parquet", monkeypatch)
+    reference, ref = _run(engine, native_oracle.STEPPING, tmp_path / "rollout.parquet", monkeypatch)
     stepped, new = _run(engine, "batch", tmp_path / "batch.parquet", monkeypatch)
     assert len(ref.labels) == batch
     if study == "load_adaptation":
@@ -105,7 +111,7 @@ def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(st
     standing; under ``paper_5khz`` a tick is five physics steps of 0.2 ms, the torques held."""
     monkeypatch.chdir(tmp_path)  # MuJoCo logs its instability warning to ./MUJOCO_LOG.TXT
     scenario = _three_scenarios(physics)
-    ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("rollout", stepping))
+    ref, new = native_oracle.RolloutPhysics(scenario), native_physics.BatchPhysics(scenario, stepping=stepping)
     ids = go1_model.indices()
     q_stand = go1_model.standing_qpos()[ids.joint_qpos]
     flagged = []
@@ -123,14 +129,14 @@ def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(st
         flagged += [k] * int(failed_new[1])
     assert flagged == [50]
     assert new.substeps == ref.substeps == (5 if physics == "paper_5khz" else 1)
-    assert new.physics[0, new.layout.time] == pytest.approx(native_go1.CLOCK_START_S + 200 * 0.001)
+    assert new.physics[0, new.layout.time] == pytest.approx(native_physics.CLOCK_START_S + 200 * 0.001)
     ref.close()
     new.close()
 
 
 def test_an_unknown_stepping_is_refused_with_the_allowed_ones():
-    with pytest.raises(ValueError, match=r"stepping 'threads': allowed \('ffi', 'batch', 'rollout'\)"):
-        native_go1.BatchPhysics(go1_model.make_scenarios(friction=[0.6]), stepping="threads")
+    with pytest.raises(ValueError, match=r"stepping 'threads': allowed \('ffi', 'batch'\)"):
+        native_physics.BatchPhysics(go1_model.make_scenarios(friction=[0.6]), stepping="threads")
 
 
 @needs_ffi
@@ -140,7 +146,7 @@ def test_the_step_called_inside_a_compiled_loop_equals_the_reference():
     packed as the controller reads it (float32 [physics | sensor data | failed]), and the states after the loop are
     equal bit for bit."""
     scenario = _three_scenarios()
-    ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
+    ref, new = (native_physics.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
     torques = np.random.default_rng(0).normal(scale=3.0, size=(100, 3, 12)).astype(np.float32)
     shape = (3, new.layout.size + new.sensordata.shape[1] + 1)
 
@@ -161,7 +167,7 @@ def test_the_overlapped_steps_of_two_halves_equal_the_reference():
     after, bit for bit, whichever thread stepped an instance."""
     scenario = go1_model.make_scenarios(friction=[0.6, 0.3, 0.9, 0.45], slope_deg=[0.0, 5.0, -5.0, 2.5],
                                         payload_kg=[0.0, 7.5, 15.0, 3.0], physics="paper")
-    ref, new = (native_go1.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
+    ref, new = (native_physics.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
     torques = np.random.default_rng(1).normal(scale=3.0, size=(100, 4, 12)).astype(np.float32)
     n, half, width = len(torques), 2, new.layout.size + new.sensordata.shape[1] + 1
 
@@ -186,7 +192,7 @@ def test_the_overlapped_steps_of_two_halves_equal_the_reference():
 
 @needs_ffi
 def test_a_half_started_out_of_turn_is_refused_in_one_line_and_the_stepper_goes_on():
-    physics = native_go1.BatchPhysics(go1_model.make_scenarios(friction=[0.6, 0.3, 0.9, 0.45]), stepping="ffi")
+    physics = native_physics.BatchPhysics(go1_model.make_scenarios(friction=[0.6, 0.3, 0.9, 0.45]), stepping="ffi")
     width = physics.layout.size + physics.sensordata.shape[1] + 1
     second_first = jax.jit(lambda handle, torque: ffi_step.alternate(handle, torque, 1, width))
     with pytest.raises(jax.errors.JaxRuntimeError, match="cpgjax_step_alternate: a part published out of order"):

@@ -15,6 +15,7 @@ from cpgjax.go1 import attitude, physics, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import native as native_go1
+from cpgjax.sim import native_physics
 from cpgjax.studies import transfer
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import objective, optimizer_setting, params, protocol
@@ -362,7 +363,7 @@ def test_paper_5khz_is_paper_at_unitree_ros_physics_rate():
     mixed = go1_model.make_scenarios(friction=[0.6, 0.6], physics=["paper", "paper_5khz"])
     with pytest.raises(ValueError, match=r"one batch steps its physics at one rate: profiles \['paper', "
                                          r"'paper_5khz'\] take \[1, 5\] physics steps per tick"):
-        native_go1.BatchPhysics(mixed)
+        native_physics.BatchPhysics(mixed)
     with pytest.raises(ValueError, match="'paper_5khz' steps its physics more than once per control tick"):
         mjx_go1.make_batch_model(go1_model.make_scenarios(friction=[0.6], physics="paper_5khz"))
     # The loopback Go1 steps five times per 1 ms tick too: its clock keeps the tick.

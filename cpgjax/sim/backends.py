@@ -17,6 +17,7 @@ import jax
 from cpgjax import cpg, mjx_go1
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native as native_go1
+from cpgjax.sim import native_physics
 from cpgjax.sim.base import Backend
 from cpgjax.trial import protocol
 
@@ -35,12 +36,11 @@ def resolve_backend(backend: str = "auto") -> str:
     return default_backend() if backend == "auto" else backend
 
 
-# jaxlib 0.10.2's CPU LAPACK kernels split a large batch into pieces for XLA's intra-op thread pool (one thread per
-# core) and block until the pieces are done (jax::ParallelBatchMap). The batched Cholesky in MJX's solver is one of
-# them. When each pool thread runs one device's program and all of them are inside that Cholesky at the same time, no
-# thread is left to run the pieces, and the program never finishes. Seen with 2 CPU devices on 2 cores at 128
-# instances per device (gdb: both pool threads in BlockingCounter::Wait under lapack_spotrf_ffi); 64 per device
-# completes.
+# jaxlib's CPU LAPACK kernels split a large batch into pieces for XLA's intra-op thread pool (one thread per core)
+# and block until the pieces are done (jax::ParallelBatchMap). The batched Cholesky in MJX's solver is one of them.
+# When each pool thread runs one device's program and all of them are inside that Cholesky at the same time, no
+# thread is left to run the pieces, and the program never finishes. The most instances per device seen to complete
+# (docs/backends.md, "Devices: MJX uses every core only as several host devices"):
 MAX_MJX_INSTANCES_PER_CPU_DEVICE = 64
 
 
@@ -52,7 +52,7 @@ def check_mjx_layout(instances_per_device: int, devices) -> None:
       ValueError: naming the cause and the workarounds.
     """
     devices = list(devices)
-    cores = native_go1.available_cores()
+    cores = native_physics.available_cores()
     if (len(devices) > 1 and devices[0].platform == "cpu" and len(devices) >= cores
             and instances_per_device > MAX_MJX_INSTANCES_PER_CPU_DEVICE):
         raise ValueError(

@@ -1,8 +1,8 @@
 // The physics step of a batch of Go1s in C MuJoCo, callable from inside a compiled JAX program (XLA FFI targets),
 // so that a whole trial runs as one program: controller, physics step, record, tick after tick.
 //
-// The step is the arithmetic of cpgjax.sim.native.BatchPhysics.step, in the same order and precision, instance by
-// instance:
+// The step is the arithmetic of cpgjax.sim.native_physics.BatchPhysics.step, in the same order and precision,
+// instance by instance:
 //   controls <- torques (float32 -> float64), then `substeps` physics steps each: one mj_step of the instance's
 //   state (mjb_step on a one-thread MuJoCo batch, which traps MuJoCo's errors), the failure test on the clock, the
 //   warm start recovered as (qvel' - qvel) * (1/h); a failed instance put back to standing;

@@ -2,7 +2,7 @@
 
 ``batch_step.cc`` steps a batch of C-MuJoCo Go1s in place, instance by instance on one thread per core (each with
 its own one-thread MuJoCo batch, ``mujoco/mjbatch.h``, which runs the instance's model variant and traps MuJoCo's
-errors), and does the step's host arithmetic of ``cpgjax.sim.native.BatchPhysics.step`` (the failure test on the
+errors), and does the step's host arithmetic of ``cpgjax.sim.native_physics.BatchPhysics.step`` (the failure test on the
 clock, the recovered warm start, the reset of a failed instance) in the same order and precision. Registered with
 ``jax.ffi``, it is called from inside a ``lax.fori_loop`` over the trial's ticks: the controller, the physics step
 and the record then alternate inside one XLA program, with no Python, dispatch or host copy between them. The
@@ -14,7 +14,7 @@ The library is compiled once per machine, with the system's C++ compiler, agains
 ``mujoco`` and ``jaxlib`` wheels, into cpgjax's cache folder (``compile_cache.directory``), under a name that hashes
 the source, the compiler and both wheels' versions. Without a compiler (or if the build fails) :func:`load` logs why
 in one line and returns None, and the native backend steps tick by tick from Python instead
-(``native.default_stepping``).
+(``native_physics.default_stepping``).
 
 A process that calls :func:`request_accounts` before the library loads gets it built with each thread's accounts
 (the steps it took, the time in them and in their ``mj_step``, the time it waited; :meth:`Stepper.accounts`), for

@@ -1,10 +1,8 @@
 """The Go1 in C MuJoCo on the CPU: the paper's trial (``cpgjax.trial.protocol``) with native physics.
 
-Physics: :class:`BatchPhysics` steps the whole batch one physics step per call, in place, on one thread per core
-with one ``MjModel`` variant per instance from ``go1_model.scenario_model``: through ``cpgjax.sim.ffi_step`` (C++
-on MuJoCo's batch API, callable from a compiled program) or ``mujoco.batch`` from Python; ``mujoco.rollout``
-stepping stays as the reference both equal bit for bit. Its host arrays are allocated once and reused; the solver
-is warm-started from the previous step's acceleration as a persistent ``mj_step`` loop would be.
+Physics: ``native_physics.BatchPhysics`` steps the whole batch one control tick per call, in place, on one thread
+per core with one ``MjModel`` variant per instance, through ``cpgjax.sim.ffi_step`` or ``mujoco.batch`` from
+Python (its stepping, ``native_physics.STEPPINGS``).
 
 Control: a jitted, vmapped tick for the whole batch runs the shared sensor model (``cpgjax.go1.sensors.observe``)
 and controller (``cpg.controller_step``) and writes the tick's record into a device buffer. With the ``ffi``
@@ -22,283 +20,42 @@ post-step half (velocity, fall, failure) at the next call, which sees S_{k+1}:
 
     host:    [jit: finish record k−1 from S_k; observe S_k; control k] → [batch step: S_k → S_{k+1}] → [jit: ...]
 
-Non-finite states: C MuJoCo resets an instance itself (``mj_resetData``, time → 0) when it meets a NaN, Inf or
-huge value. The simulator clock therefore starts at ``CLOCK_START_S`` after every reset, a step that does not
-advance it by exactly one time step is a failure, and the instance is put back to the standing pose with its
-trial flagged ``failed``, like the MJX backend (see docs/backends.md for the differences that remain).
+Non-finite states: an instance that diverges in a physics step is put back to the standing pose by the physics
+(``native_physics.BatchPhysics.step``) and its trial flagged ``failed`` here, like the MJX backend (see
+docs/backends.md for the differences that remain).
 """
 
 from __future__ import annotations
 
 import functools
-import os
 from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from mujoco import batch as mj_batch
-from mujoco import rollout as mj_rollout
 
 from cpgjax import cpg
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import sensors
 from cpgjax.go1 import terrain as terrains
-from cpgjax.sim import ffi_step
+from cpgjax.sim import ffi_step, native_physics
 from cpgjax.sim.base import Backend
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
-
-# The simulator clock after a reset [s]. Any value > 0 works: MuJoCo's own reset sets the clock to 0, so a step
-# that does not advance it from here by one time step reveals that MuJoCo reset a diverged instance.
-CLOCK_START_S = 1.0
-_PHYSICS_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS.value  # time, qpos, qvel (the Go1 has no act, mocap, ...)
-_CTRL_SPEC = mujoco.mjtState.mjSTATE_CTRL.value
-# How BatchPhysics steps (see there): the FFI step inside one program per trial, mujoco.batch from Python, or the
-# mujoco.rollout reference.
-STEPPINGS = ("ffi", "batch", "rollout")
-
-
-def default_stepping() -> str:
-    """``"ffi"`` where its library builds on this machine (``ffi_step.available``), else ``"batch"``."""
-    return "ffi" if ffi_step.available() else "batch"
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on (affinity-aware)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
-class PhysicsLayout(NamedTuple):
-    """Where time, qpos and qvel sit in a ``mjSTATE_FULLPHYSICS`` vector (MuJoCo orders components by bit)."""
-
-    time: int
-    qpos: slice
-    qvel: slice
-    size: int
-
-
-def physics_layout(model: mujoco.MjModel) -> PhysicsLayout:
-    qpos_at = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_TIME.value)
-    qvel_at = qpos_at + model.nq
-    return PhysicsLayout(time=0, qpos=slice(qpos_at, qvel_at), qvel=slice(qvel_at, qvel_at + model.nv),
-                         size=mujoco.mj_stateSize(model, _PHYSICS_SPEC))
 
 
 class NativeState(NamedTuple):
     """Per-instance simulator and controller state between trials (leading batch axis on every leaf)."""
 
-    physics: np.ndarray  # (B, nstate) float64 mjSTATE_FULLPHYSICS: clock [s], qpos, qvel (see PhysicsLayout)
+    physics: np.ndarray  # (B, nstate) float64 mjSTATE_FULLPHYSICS: clock [s], qpos, qvel (PhysicsLayout)
     warmstart: np.ndarray  # (B, nv) float64 qacc_warmstart for the next step (the last step's qacc)
     sensordata: np.ndarray  # (B, nsensordata) float64, as left by the last step (computed at its start, as in MJX)
     cpg: cpg.CPGState  # device arrays
     params: jax.Array  # (B, 8) the parameters applied at the end of the last trial
     io: physics_profiles.ActuatorSensorState  # device arrays: the physics profile's foot sensor and motors
-
-
-# ----------------------------------------------------------------------------------------------- physics
-
-class BatchPhysics:
-    """B C-MuJoCo Go1s (one scenario each) stepped together, one physics step per :meth:`step`.
-
-    The current state lives in host arrays allocated once: ``physics`` (B, nstate), ``sensordata`` (B, nsensordata)
-    and ``warmstart`` (B, nv). ``stepping`` chooses how a step runs (``STEPPINGS``; default :func:`default_stepping`):
-
-    - ``"ffi"``: ``ffi_step.Stepper``, MuJoCo's batch API in C (``mjbatch.h``) with this method's host arithmetic in
-      C++ (batch_step.cc), its rows and sensor data these arrays; the native backend calls it from inside the
-      compiled trial, :meth:`step` from Python;
-    - ``"batch"``: ``mujoco.batch.Batch``, whose state rows (``mjSTATE_INTEGRATION``: clock, qpos, qvel,
-      warm start, controls, ...) *are* these arrays, stepped in place on a persistent pool of one thread per core
-      with one model variant per instance (``set_models``);
-    - ``"rollout"``: one ``mujoco.rollout`` call per step (``nstep=1``) into a second state buffer, the reference
-      that tests/test_native_stepping.py checks the other steppings against, bit for bit.
-
-    All warm-start the solver with the step's acceleration recovered from the states, (q̇' − q̇)/h (see
-    :meth:`step`), so they run the same arithmetic. Used by the native backend only (the loopback simulated Go1
-    steps its own ``mj_step``).
-    """
-
-    def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None, stepping: str | None = None,
-                 stand_foot_shift_m: np.ndarray | None = None):
-        stepping = default_stepping() if stepping is None else stepping
-        if stepping not in STEPPINGS:
-            raise ValueError(f"stepping {stepping!r}: allowed {STEPPINGS}")
-        self.scenario = scenario
-        self.stepping = stepping
-        # Instances with the same scenario share one MjModel (read-only during a step): less memory traffic.
-        # (friction, slope, payload, physics) per instance
-        keys = list(zip(*(field.tolist() for field in scenario), strict=True))
-        unique = {key: go1_model.scenario_model(scenario, keys.index(key)) for key in dict.fromkeys(keys)}
-        self.models = [unique[key] for key in keys]
-        m = self.models[0]
-        self.layout = physics_layout(m)
-        substeps = {physics_profiles.get(str(name)).physics_substeps for name in scenario.physics}
-        if len(substeps) > 1:
-            names = sorted(set(scenario.physics.tolist()))
-            raise ValueError(f"one batch steps its physics at one rate: profiles {names} take {sorted(substeps)} "
-                             "physics steps per tick")
-        self.substeps = substeps.pop()  # physics steps per step() (per control tick), the torques held
-        self.timestep_s = float(m.opt.timestep)  # of one physics step
-        self.actuator = go1_model.indices().actuator
-        batch = scenario.batch_size
-        self.nthread = max(min(available_cores() if nthread is None else nthread, batch), 1)
-
-        self.gravity_mps2 = np.stack([mi.opt.gravity for mi in self.models])  # (B, 3)
-        self.total_mass_kg = np.array([mi.body_subtreemass[go1_model.indices().trunk_body] for mi in self.models])
-        self.standing_physics = np.empty((batch, self.layout.size))
-        self.standing_sensordata = np.empty((batch, m.nsensordata))
-        shift = np.zeros(batch) if stand_foot_shift_m is None else np.broadcast_to(stand_foot_shift_m, (batch,))
-        for i, mi in enumerate(self.models):  # once per backend, not per tick
-            d = mujoco.MjData(mi)
-            d.qpos[:] = go1_model.standing_qpos(mi, shift[i])
-            mujoco.mj_forward(mi, d)
-            d.time = CLOCK_START_S
-            mujoco.mj_getState(mi, d, self.standing_physics[i], _PHYSICS_SPEC)
-            self.standing_sensordata[i] = d.sensordata
-
-        if stepping == "ffi":
-            rows = _RowLayout.of(m, mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_INTEGRATION.value))
-            offsets = ffi_step.RowOffsets(nphysics=self.layout.size, qvel_at=self.layout.qvel.start, nv=m.nv,
-                                          warmstart_at=rows.warmstart.start, ctrl_at=rows.ctrl.start,
-                                          nsensordata=m.nsensordata, substeps=self.substeps)
-            self._stepper = ffi_step.Stepper(self.models, self.nthread, offsets, self.actuator, self.standing_physics,
-                                             self.standing_sensordata)
-            self.physics = self._stepper.rows[:, rows.physics]  # views of the library's arrays
-            self.warmstart = self._stepper.rows[:, rows.warmstart]
-            self.sensordata = self._stepper.sensordata
-            np.copyto(self.physics, self.standing_physics)
-            np.copyto(self.sensordata, self.standing_sensordata)
-        else:
-            self.sensordata = self.standing_sensordata.copy()
-        if stepping == "batch":
-            self._batch = mj_batch.Batch(m, batch, nthread=self.nthread)
-            self._batch.set_models(self.models)
-            rows = _RowLayout.of(m, self._batch.nstate)
-            state = self._batch.state
-            self.physics = state[:, rows.physics]  # views of the batch's rows: the batch steps them in place
-            self.warmstart = state[:, rows.warmstart]
-            self._ctrl = state[:, rows.ctrl]
-            self._step_sensordata = self._batch.bind("sensordata")  # refreshed by every step
-            self._before = np.empty((batch, self.layout.size))  # the state before the step
-            np.copyto(self.physics, self.standing_physics)
-        elif stepping == "rollout":
-            self._chunk = -(-batch // self.nthread)  # one contiguous chunk per thread: least pool overhead
-            self._pool = mj_rollout.Rollout(nthread=self.nthread if self.nthread > 1 else 0)
-            self._data = [mujoco.MjData(m) for _ in range(self.nthread)]
-            self.physics = self.standing_physics.copy()
-            self._next = np.empty_like(self.physics)
-            self._ctrl = np.zeros((batch, m.nu))
-            self.warmstart = np.zeros((batch, m.nv))
-        self.warmstart[:] = 0.0
-
-    @property
-    def batch_size(self) -> int:
-        return self.scenario.batch_size
-
-    @property
-    def ffi_handle(self) -> np.ndarray:
-        """The stepper's name for ``ffi_step.call`` (the ``ffi`` stepping only)."""
-        return self._stepper.handle
-
-    def accounts(self, reset: bool = False) -> np.ndarray | None:
-        """The ``ffi`` stepper's per-thread accounts (``ffi_step.Stepper.accounts``); None for the other steppings
-        or where the library counts nothing (``ffi_step.request_accounts``)."""
-        return self._stepper.accounts(reset) if self.stepping == "ffi" else None
-
-    def set_state(self, physics: np.ndarray, warmstart: np.ndarray, sensordata: np.ndarray) -> None:
-        np.copyto(self.physics, physics)
-        np.copyto(self.warmstart, warmstart)
-        np.copyto(self.sensordata, sensordata)
-
-    def get_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Copies of (physics, warmstart, sensordata)."""
-        return self.physics.copy(), self.warmstart.copy(), self.sensordata.copy()
-
-    def reset(self, mask: np.ndarray | None = None) -> None:
-        """Put the instances selected by ``mask`` (B,) bool (all if None) back to standing at rest."""
-        if mask is None:
-            mask = np.ones(self.batch_size, bool)
-        self.physics[mask] = self.standing_physics[mask]
-        self.sensordata[mask] = self.standing_sensordata[mask]
-        self.warmstart[mask] = 0.0
-
-    def step(self, torque_nm) -> np.ndarray:
-        """One control tick of every instance with joint torques (B, 12) [N·m] in motor order: ``substeps`` physics
-        steps, the torques held.
-
-        Returns the (B,) bool mask of instances that diverged during the step; they are already reset to standing.
-        """
-        if self.stepping == "ffi":
-            return self._stepper.step(torque_nm)
-        self._ctrl[:, self.actuator] = torque_nm
-        failed = np.zeros(self.batch_size, bool)
-        for _ in range(self.substeps):
-            failed |= self._physics_step(~failed)
-        return failed
-
-    def _physics_step(self, live: np.ndarray) -> np.ndarray:
-        """One physics step; the instances not ``live`` (failed in an earlier substep, already standing) are stepped
-        and put back to standing again. Returns the mask of the instances that failed in it."""
-        if self.stepping == "batch":
-            before, after = self._before, self.physics
-            np.copyto(before, after)
-            self._batch.step()
-            np.copyto(self.sensordata, self._step_sensordata)
-        else:
-            before, after = self.physics, self._next
-            self._pool.rollout(self.models, self._data, before, self._ctrl, control_spec=_CTRL_SPEC,
-                               skip_checks=True, nstep=1, initial_warmstart=self.warmstart, state=after,
-                               sensordata=self.sensordata, chunk_size=self._chunk)
-            self.physics, self._next = after, before
-        lay = self.layout
-        # MuJoCo checks positions, velocities and accelerations itself and resets a diverged instance (clock → 0)
-        # before integrating, so the states it returns are finite and the clock tells which ones it reset.
-        failed = np.abs(after[:, lay.time] - before[:, lay.time] - self.timestep_s) > 0.5 * self.timestep_s
-        # Euler without implicit damping: qvel' = qvel + h·qacc, so the step's qacc is recovered from the two states
-        # and warm-starts the next step. mujoco.rollout does not return MuJoCo's own (the batch's rows hold it
-        # here, and this replaces it): one formula for both steppings keeps their results equal bit for bit.
-        np.subtract(after[:, lay.qvel], before[:, lay.qvel], out=self.warmstart)
-        self.warmstart *= 1.0 / self.timestep_s
-        if failed.any() or not live.all():
-            self.reset(failed | ~live)
-        return failed & live
-
-    def close(self) -> None:
-        """Release the thread pool (the batch's goes with the object)."""
-        if self.stepping == "rollout":
-            self._pool.close()
-        elif self.stepping == "ffi":
-            self._stepper.close()
-
-
-class _RowLayout(NamedTuple):
-    """Where the physics state (``mjSTATE_FULLPHYSICS``), the warm start and the controls sit in a
-    ``mujoco.batch`` state row (``mjSTATE_INTEGRATION``; MuJoCo orders components by bit)."""
-
-    physics: slice
-    warmstart: slice
-    ctrl: slice
-
-    @staticmethod
-    def of(model: mujoco.MjModel, nstate: int) -> _RowLayout:
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION.value
-        if mujoco.mj_stateSize(model, spec) != nstate:
-            raise ValueError(f"mujoco.batch rows of {nstate} numbers, expected mjSTATE_INTEGRATION's "
-                             f"{mujoco.mj_stateSize(model, spec)}")
-
-        def at(component: mujoco.mjtState) -> int:  # the size of every component ordered before it
-            return mujoco.mj_stateSize(model, spec & (component.value - 1))
-
-        warmstart_at, ctrl_at = at(mujoco.mjtState.mjSTATE_WARMSTART), at(mujoco.mjtState.mjSTATE_CTRL)
-        physics_size = mujoco.mj_stateSize(model, _PHYSICS_SPEC)
-        if warmstart_at != physics_size:  # e.g. plugin state, which FULLPHYSICS holds and the row keeps further on
-            raise ValueError("the model's mjSTATE_FULLPHYSICS is not the start of a mujoco.batch row")
-        return _RowLayout(physics=slice(0, physics_size), warmstart=slice(warmstart_at, warmstart_at + model.nv),
-                          ctrl=slice(ctrl_at, ctrl_at + model.nu))
 
 
 # ----------------------------------------------------------------------------------------------- per-tick logic
@@ -341,8 +98,8 @@ class _Carry(NamedTuple):
     """Controller-side state carried from tick to tick. In the compiled trial of the ``ffi`` stepping every field
     is its pytree; between the per-tick calls of the other steppings ``controller`` and ``pending`` travel as flat
     vectors and ``rows`` as one flat row per tick (``_Packing``): a handful of buffers per call keeps the per-tick
-    dispatch cheap, and inside one program the pytrees spare the per-tick packing (a quarter of the tick's
-    arithmetic at batch 64, ``benchmarks/native_tick.py``)."""
+    dispatch cheap, and inside one program the pytrees spare the per-tick packing (what it costs: docs/backends.md,
+    "How the native backend works")."""
 
     controller: _Controller | jax.Array  # the batch's _Controller (B, ...), or (C,) flat
     pending: object  # the batch's pre-step half of the last tick's row (B, ...), or (P,) flat
@@ -414,7 +171,7 @@ class _Packing(NamedTuple):
     controller: Callable
     pending: Callable
     row: Callable
-    layout: PhysicsLayout
+    layout: native_physics.PhysicsLayout
     nsensordata: int
 
 
@@ -609,7 +366,8 @@ class NativeBackend(Backend):
         self.cpg_config = cpg_config
         self.trial_config = trial_config
         lean_m = np.asarray(cpg.lean_x_m(cpg_config, go1_model.standing_imu_pitch_rad(scenario.slope_deg)))
-        self.physics = BatchPhysics(scenario, nthread=nthread, stepping=stepping, stand_foot_shift_m=lean_m)
+        self.physics = native_physics.BatchPhysics(scenario, nthread=nthread, stepping=stepping,
+                                                   stand_foot_shift_m=lean_m)
         self._gravity = jnp.asarray(self.physics.gravity_mps2, jnp.float32)
         self._total_mass = jnp.asarray(self.physics.total_mass_kg, jnp.float32)
         lay, standing = self.physics.layout, self.physics.standing_physics.astype(np.float32)
