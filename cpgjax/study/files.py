@@ -406,7 +406,8 @@ OUTPUTS = (
 # study's evaluations are named here by their names: their writers sit beside this module or above it, where it
 # cannot import them (tests/test_outputs_doc.py checks that this list and the catalogue, cpgjax.show.catalogue, name
 # the same files).
-OUTPUT_FILES = frozenset({outputs.TRIALS, tuned.FILE_NAME, walk.TABLE, *(e.name for e in OUTPUTS if e.pattern is None),
+OUTPUT_FILES = frozenset({tuned.FILE_NAME, walk.TABLE,
+                          *(e.name for e in (*outputs.OUTPUTS, *OUTPUTS) if e.pattern is None),
                           "trials.rrd", "run.json", "ticks.arrows", "calibration.json", "sim_truth.parquet",
                           "evaluations.parquet"})
 
