@@ -92,15 +92,6 @@ def test_bad_study_names(name, message):
         study_driver.read(name)
 
 
-def test_cli_rejects_bad_options_before_compute(capsys, tmp_path):
-    with pytest.raises(SystemExit) as exit_:
-        cli.main(["study", "friction", "--trials", "3", "--out", str(tmp_path)])
-    assert exit_.value.code == 2
-    err = capsys.readouterr().err
-    assert "argument --trials: 3: need an integer >= 8 (a paper study changes its conditions" in err
-    assert not any(tmp_path.iterdir())
-
-
 # ----------------------------------------------------------------------------------------------- analyses
 
 def test_trials_to_track_counts_from_the_change():
