@@ -42,7 +42,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import PartitionSpec
 
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import terrain as terrains
@@ -143,6 +142,8 @@ class Engine:
         self.backend_name = backends.resolve_backend(backend)
         self.batch_size = len(self.labels)
         self.placement = study_placement.make_placement(self.batch_size, devices)
+        self.instance_rows = self.placement.instance_rows(self.batch_size)  # this process's instances
+        self.local_instances = self.instance_rows[1] - self.instance_rows[0]  # its rows before the padding's copies
         if self.backend_name == "mjx":  # before any compute
             local = self.placement.local_devices
             try:
@@ -172,35 +173,21 @@ class Engine:
         opt = self.optimizer
         init = (lambda a, t: opt.init(active_dims=a, target_velocity=t)) if self.uses_records else \
             (lambda a, t: opt.init(active_dims=a))
-        self._init = self._per_instance(init)
-        self._propose = self._per_instance(opt.propose_with_fallback)
+        self._init = self.placement.per_instance(init)
+        self._propose = self.placement.per_instance(opt.propose_with_fallback)
         def observe_unconstrained(state, x, c, observation, margin):
             del margin  # only a safe optimizer learns it
             return opt.observe(state, x, c, observation)
 
-        self._observe = self._per_instance(opt.observe if config.safe else observe_unconstrained)
-        self._beta = self._per_instance(opt.beta)
-        self._set_target = self._per_instance(opt.set_target) if self.uses_records else None
-        self._keys = self._per_instance(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
-                                        in_axes=(0, None))
+        self._observe = self.placement.per_instance(opt.observe if config.safe else observe_unconstrained)
+        self._beta = self.placement.per_instance(opt.beta)
+        self._set_target = self.placement.per_instance(opt.set_target) if self.uses_records else None
+        self._keys = self.placement.per_instance(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
+                                                 in_axes=(0, None))
         self._summary = jax.jit(jax.vmap(lambda r, v: (
             score(r, v), objective.context(r), objective.mean_velocity(r),
             objective.cost_of_transport(r))))
         self._sim = None
-
-    def _per_instance(self, fn: Callable, in_axes=0) -> Callable:
-        """``fn`` of one instance as a jitted function of the whole sharded batch (``in_axes`` as ``jax.vmap``'s:
-        0 for a batched argument, None for one shared by every instance), each device computing its own rows
-        (``jax.shard_map``). The instances are independent, so no device needs another's data; left to jit's
-        partitioner, the GP's loop over its instances' matrices (``cpgjax.gp``, one matrix per LAPACK call) made
-        every device gather the whole batch and compute all of it (all-gathers in propose and observe: on 2 CPU
-        devices 1.9× slower, and each process of a multi-process run computed every instance's optimizer)."""
-        specs = (tuple(PartitionSpec() if axis is None else PartitionSpec("batch") for axis in in_axes)
-                 if isinstance(in_axes, tuple) else PartitionSpec("batch"))
-        # check_vma=False: the optimizer's scans carry values that the mesh's manual axis would otherwise have to
-        # mark as varying by hand (jax.lax.pcast); every value here varies along the batch.
-        return jax.jit(jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=self.placement.mesh, in_specs=specs,
-                                     out_specs=PartitionSpec("batch"), check_vma=False))
 
     # -- pieces ---------------------------------------------------------------------------------------------
 
@@ -286,11 +273,11 @@ class Engine:
                     figures = env_steps / max(time.perf_counter() - t_begin, 1e-9), None
                 progress(Progress(t + 1, n, self.best_by_group(run.logs), *figures))
         wall_s = run.wall_before + time.perf_counter() - t_begin
-        first, stop = self.placement.rows
-        rows = (min(first, self.batch_size), min(stop, self.batch_size))
+        rows = self.instance_rows
         walked = Conditions(*(c[:self.batch_size] for c in self.walked(run.logs)))
         return StudyResult(
-            spec=spec, labels=self.labels, conditions=self.conditions, walked=walked, trials=self.stack(run.logs),
+            spec=spec, labels=self.labels, conditions=self.conditions, walked=walked,
+            trials=study_io.stacked(run.logs, self.batch_size),
             opt_state=jax.tree.map(lambda a: a[:rows[1] - rows[0]], self.placement.local(run.opt_state)),
             wall_s=wall_s, timing=Timing(**run.timing), backend=self.backend_name,
             devices=[str(d) for d in self.placement.mesh.devices.flat], rows=rows)
@@ -324,7 +311,7 @@ class Engine:
             # In the box as they are: the optimizer rounds its bounds inward to float32 (optim.bo), so no proposal
             # crosses the float64 box that the simulator validates.
             x, fell_back = local(x).astype(np.float64), local(fell_back)
-            real = self._unpadded_local_rows()
+            real = self.local_instances
             if fell_back[:real].any():
                 log.warning("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
                             "the safe trial with the highest expected margin there (docs/decisions.md §17)", t,
@@ -370,15 +357,10 @@ class Engine:
         fell = np.array([np.asarray(lg.fell) for lg in logs])
         return study_spec.walked(self.padded, self.spec.ramp, distance_m, fell, self.spec.trial)
 
-    def _unpadded_local_rows(self) -> int:
-        """How many of this process's rows are instances, not the padding copies after the last one."""
-        first, stop = self.placement.rows
-        return max(0, min(stop, self.batch_size) - first)
-
     def _clip_context(self, trial: int, context: np.ndarray) -> np.ndarray:
         """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
         when any is; the trial log keeps the measured values."""
-        real = self._unpadded_local_rows()
+        real = self.local_instances
         clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real],
                                                            objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
         if messages:
@@ -393,7 +375,7 @@ class Engine:
         first = self.placement.rows[0]
         shard = study_io.Shard(jax.process_index(), jax.process_count(), first)
         ckpt = study_io.process_checkpoint(t + 1, self.placement.local(run.opt_state), run.sim_state, run.context,
-                                           run.logs, (first, self._unpadded_local_rows()), wall_s, run.timing)
+                                           run.logs, (first, self.local_instances), wall_s, run.timing)
         study_io.save_checkpoint(out_dir, self.spec, ckpt, self.backend_name, shard)
         # Trial t's logs came from every process, so each has written trial t − 1 (one process: t itself).
         complete = t + 1 if shard.num_processes == 1 else t
@@ -408,13 +390,6 @@ class Engine:
         kinds = [type(x) for x in jax.tree.leaves(template)]
         restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds, strict=True)]
         return jax.tree.unflatten(treedef, restored)  # the backend places it on its devices
-
-    def stack(self, logs: list[study_io.TrialLog]) -> study_io.TrialLog:
-        """Per-trial logs → one study_io.TrialLog of (num_trials, B, ...) arrays without the padding instances."""
-        if not logs:
-            return study_io.TrialLog(*(np.zeros((0, self.batch_size)) for _ in study_io.TrialLog._fields))
-        return study_io.TrialLog(*(np.stack([np.asarray(f)[:self.batch_size] for f in field])
-                                   for field in zip(*logs, strict=True)))
 
     def group_names(self) -> list[str]:
         return [", ".join(str(lab[g]) for g in self.spec.group_by) for lab in self.labels]

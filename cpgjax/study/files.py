@@ -81,6 +81,14 @@ class TrialLog(NamedTuple):
     safe_fallback: np.ndarray  # (B,) --safe: nothing was certified safe, a safe trial's parameters were repeated
 
 
+def stacked(logs: list[TrialLog], batch_size: int) -> TrialLog:
+    """Per-trial logs of the padded batch → one :class:`TrialLog` of (num_trials, B, ...) arrays of its first
+    ``batch_size`` rows, the instances (without the padding)."""
+    if not logs:
+        return TrialLog(*(np.zeros((0, batch_size)) for _ in TrialLog._fields))
+    return TrialLog(*(np.stack([np.asarray(f)[:batch_size] for f in field]) for field in zip(*logs, strict=True)))
+
+
 class Checkpoint(NamedTuple):
     trial: int  # trials completed
     opt_leaves: list  # optimizer-state leaves (instances first)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import os
 import time
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -116,6 +117,26 @@ class Placement(NamedTuple):
     @property
     def local_devices(self) -> list:
         return [d for d in self.mesh.devices.flat if d.process_index == jax.process_index()]
+
+    def per_instance(self, fn: Callable, in_axes=0) -> Callable:
+        """``fn`` of one instance as a jitted function of the whole sharded batch (``in_axes`` as ``jax.vmap``'s:
+        0 for a batched argument, None for one shared by every instance), each device computing its own rows
+        (``jax.shard_map``). The instances are independent, so no device needs another's data; left to jit's
+        partitioner, the GP's loop over its instances' matrices (``cpgjax.gp``, one matrix per LAPACK call) made
+        every device gather the whole batch and compute all of it (all-gathers in propose and observe: on 2 CPU
+        devices 1.9× slower, and each process of a multi-process run computed every instance's optimizer)."""
+        specs = (tuple(PartitionSpec() if axis is None else PartitionSpec("batch") for axis in in_axes)
+                 if isinstance(in_axes, tuple) else PartitionSpec("batch"))
+        # check_vma=False: the optimizer's scans carry values that the mesh's manual axis would otherwise have to
+        # mark as varying by hand (jax.lax.pcast); every value here varies along the batch.
+        return jax.jit(jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=self.mesh, in_specs=specs,
+                                     out_specs=PartitionSpec("batch"), check_vma=False))
+
+    def instance_rows(self, batch_size: int) -> tuple[int, int]:
+        """[first, stop): the rows of :attr:`rows` that hold instances of a batch of ``batch_size``, not the padding's
+        copies of the last one (first = stop where this process holds none)."""
+        first, stop = self.rows
+        return min(first, batch_size), min(stop, batch_size)
 
     def pad(self, array) -> np.ndarray:
         """Rows of the batch → the padded batch's: the last row repeated up to :attr:`padded_size`."""
