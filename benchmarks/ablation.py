@@ -62,6 +62,7 @@ from cpgjax.sim import native as native_go1  # noqa: E402
 from cpgjax.studies import driver as study_driver  # noqa: E402
 from cpgjax.studies import launch as study_launch  # noqa: E402
 from cpgjax.study import files as study_io  # noqa: E402
+from cpgjax.study import placement as study_placement  # noqa: E402
 
 PAPER_SEEDS = 5  # the paper's controller table: 4 controllers × 5 seeds = 20 instances
 REPLAY_REPEATS = 2  # times each sampled trial's torques are replayed for the physics limit (the fastest is kept)
@@ -96,7 +97,7 @@ def main() -> None:
             print(f"benchmarks/ablation.py: {outcome.message}", file=sys.stderr)
         sys.exit(outcome.returncode)
     if args.distributed:
-        ablation.initialize_distributed()
+        study_placement.initialize_distributed()
     if args.physics:
         walls = {}
         for name in args.physics.split(","):

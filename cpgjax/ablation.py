@@ -9,32 +9,32 @@ round for the whole batch::
     sim_state, record = backend.trial(sim_state, x, gates)   # 1.5 s transition + 3 s steady phase
     opt_state = vmap(observe)(opt_state, x, c(record), record or J)   # eqs. (9)-(11), GP refit
 
-A :class:`Schedule` changes an instance's conditions from a given trial on (payload +7.5 kg at trial 36, slope
-0° → 10° → 12.5°, target 0.8 → 0.3 → 0.6 m/s, inference mode); a target change either reuses the stored trial
-records (paper Sec. III-A-2: ``set_target`` recomputes every stored J) or restarts the optimizer, per instance.
-The proposal of trial t uses the context measured in trial t − 1 (Algorithm 1: context, then argmax); if trial t − 1
-fell, the one it was proposed for (a fallen robot measures no ground).
+A :class:`Schedule` changes an instance's conditions from a given trial on (payload +7.5 kg at trial 36, slope 0° → 10°
+→ 12.5°, target 0.8 → 0.3 → 0.6 m/s, inference mode, the ramp: each of its trials on the slope climbed to,
+``study_spec.walked``); a target change either reuses the stored trial records (paper Sec. III-A-2: ``set_target``
+recomputes every stored J) or restarts the optimizer, per instance. The proposal of trial t uses the context measured in
+trial t − 1 (Algorithm 1: context, then argmax); if trial t − 1 fell, the one it was proposed for (a fallen robot
+measures no ground).
 
 The optimizer's arrays are sharded along the batch axis over every device (``jax.sharding``), the simulator's over this
-process's devices. With several processes (``jax.distributed``, :func:`initialize_distributed`, docs/scaling.md) each
-owns a contiguous block of instances, the rows of its devices' shards (:attr:`Placement.rows`): it simulates only those,
-computes only their optimizer shards, and per trial sends the other processes only their trial logs, the data of the
-report (:func:`exchange`). Keys are ``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on
-the batch it is in or on the devices; its numbers agree to float rounding only (XLA vectorizes differently for another
-batch size or shard), and a walking robot amplifies a rounding difference within a trial or two, so one seed in two
-different batches gives statistically equivalent, not identical, runs. How the instances are split over processes does
-not matter, only the optimizer's batch per device: 2 processes × 1 CPU device give the bits of 1 process × 2 CPU
-devices. The state is checkpointed after every trial (``cpgjax.study.files``) and :meth:`Engine.run` with
-``resume=True`` continues from the last checkpoint to exactly (bit for bit) the results of an uninterrupted run.
+process's devices (``cpgjax.study.placement``). With several processes (``jax.distributed``,
+``study.placement.initialize_distributed``, docs/scaling.md) each owns a contiguous block of instances, the rows of its
+devices' shards (``Placement.rows``): it simulates only those, computes only their optimizer shards, and per trial sends
+the other processes only their trial logs, the data of the report (``study.placement.exchange``). Keys are
+``fold_in(PRNGKey(seed), trial)``, so an instance's random draws do not depend on the batch it is in or on the devices;
+its numbers agree to float rounding only (XLA vectorizes differently for another batch size or shard), and a walking
+robot amplifies a rounding difference within a trial or two, so one seed in two different batches gives statistically
+equivalent, not identical, runs. How the instances are split over processes does not matter, only the optimizer's batch
+per device: 2 processes × 1 CPU device give the bits of 1 process × 2 CPU devices. The state is checkpointed after every
+trial (``cpgjax.study.files``) and :meth:`Engine.run` with ``resume=True`` continues from the last checkpoint to exactly
+(bit for bit) the results of an uninterrupted run.
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
-import io
 import logging
-import os
 import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -42,15 +42,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental import multihost_utils
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-# jax_internals: the coordinator's client, for its key-value store (exchange). No public API exposes the store, and
-# the public all-gathers (jax.experimental.multihost_utils.process_allgather, broadcast_one_to_all) are collectives: a
-# process that is alive but never joins holds every other one inside the collective for as long as it stays away (jax
-# 0.10.2, CPU: rank 0 waited the 20 s that rank 1 slept before joining), and nothing says which rank is missing. One
-# key per rank and a bounded wait for each name the rank that did not deliver (ProcessLost).
-from cpgjax import jax_internals
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import terrain as terrains
 from cpgjax.optim import bo
@@ -58,161 +50,13 @@ from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import backends
 from cpgjax.sim.base import Backend
 from cpgjax.study import files as study_io
+from cpgjax.study import placement as study_placement
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import Conditions, StudySpec, instances, validate
 from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
 
 log = logging.getLogger(__name__)
-
-
-# ----------------------------------------------------------------------------------------------- processes
-
-EXCHANGE_TIMEOUT_ENV = "CPGJAX_EXCHANGE_TIMEOUT_S"  # how long a process waits for another's trial logs
-DEFAULT_EXCHANGE_TIMEOUT_S = 600.0  # generous: the first trial compiles, unevenly on a shared machine
-
-
-class ProcessLost(RuntimeError):
-    """Another process of a multi-process run stopped or did not answer in time (the message names its rank)."""
-
-
-def initialize_distributed() -> None:
-    """Join a multi-process run before any JAX computation: ``jax.distributed.initialize()`` with the coordinator
-    from ``JAX_COORDINATOR_ADDRESS``, the count and rank from ``JAX_NUM_PROCESSES`` / ``JAX_PROCESS_ID`` when set,
-    else from JAX's cluster detection (Slurm, Open MPI, ...). CPU collectives go through gloo. A coordinator on
-    127.0.0.1 or localhost listens on that address only (JAX's default binds every interface)."""
-    jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    address = os.environ.get("JAX_COORDINATOR_ADDRESS")
-    count, rank = os.environ.get("JAX_NUM_PROCESSES"), os.environ.get("JAX_PROCESS_ID")
-    loopback = address is not None and address.rsplit(":", 1)[0] in ("127.0.0.1", "localhost")
-    jax.distributed.initialize(address, None if count is None else int(count), None if rank is None else int(rank),
-                               coordinator_bind_address=address if loopback else None)
-
-
-def exchange_timeout_s() -> float:
-    return float(os.environ.get(EXCHANGE_TIMEOUT_ENV, DEFAULT_EXCHANGE_TIMEOUT_S))
-
-
-def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
-    """Every process's ``local`` pytree of NumPy arrays, in rank order (an all-gather through the JAX
-    coordinator's key-value store, so that a process that does not answer shows as a timeout naming its rank, not a
-    hang). A process that dies is noticed sooner by the coordinator, which then stops every process (its message
-    names the lost task); ``cpgjax study --processes`` names the rank that died first.
-
-    Every process makes the same sequence of exchanges: the n-th exchange of each process (counted in the
-    coordinator's store, so the count lasts as long as the distributed run) meets the n-th of every other.
-
-    Raises:
-      ProcessLost: a process did not deliver within ``timeout_s`` (default :func:`exchange_timeout_s`).
-    """
-    rank, count = jax.process_index(), jax.process_count()
-    if count == 1:
-        return [local]
-    client = jax_internals.coordinator_client()
-    timeout_s = exchange_timeout_s() if timeout_s is None else timeout_s
-    n = client.key_value_increment(f"cpgjax/exchanges/{rank}", 1) - 1
-    leaves, treedef = jax.tree.flatten(local)
-    buf = io.BytesIO()
-    np.savez(buf, *leaves)
-    client.key_value_set_bytes(f"cpgjax/exchange/{n}/{rank}", buf.getvalue())
-    if n > 1:  # every process has read it: each set its exchange n − 1 after finishing n − 2
-        client.key_value_delete(f"cpgjax/exchange/{n - 2}/{rank}")
-    out = []
-    for other in range(count):
-        if other == rank:
-            out.append(local)
-            continue
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                data = client.blocking_key_value_get_bytes(f"cpgjax/exchange/{n}/{other}", 1000)
-                break
-            except Exception as err:  # the coordinator's DEADLINE_EXCEEDED; anything else is fatal
-                if "DEADLINE_EXCEEDED" not in str(err):
-                    raise ProcessLost(f"process {rank}: exchange {n} with process {other} failed: {err}") from err
-            if time.monotonic() > deadline:
-                raise ProcessLost(f"process {rank}: no trial data from process {other} of {count} within "
-                                  f"{timeout_s:g} s ({EXCHANGE_TIMEOUT_ENV}); is it hung?")
-        with np.load(io.BytesIO(data)) as z:
-            out.append(jax.tree.unflatten(treedef, [z[f"arr_{i}"] for i in range(len(leaves))]))
-    return out
-
-
-# ----------------------------------------------------------------------------------------------- devices
-
-
-class Placement(NamedTuple):
-    """How the batch sits on the devices: a 1-D mesh over axis ``batch``, devices ordered by process; the batch is
-    padded to a multiple of the device count with copies of the last instance (their results are dropped)."""
-
-    mesh: Mesh
-    padded_size: int
-    rows: tuple[int, int]  # [first, stop): the padded batch's rows on this process's devices
-
-    @property
-    def sharding(self) -> NamedSharding:
-        return NamedSharding(self.mesh, PartitionSpec("batch"))
-
-    @property
-    def local_devices(self) -> list:
-        return [d for d in self.mesh.devices.flat if d.process_index == jax.process_index()]
-
-    def put(self, tree):
-        """Host arrays of the whole (padded) batch → arrays sharded along it (each process places its own rows)."""
-        sharding = self.sharding
-
-        def one(x):
-            x = np.asarray(x)
-            return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
-        return jax.tree.map(one, tree)
-
-    def put_local(self, tree):
-        """Host arrays of this process's rows → arrays of the whole batch sharded along it."""
-        def one(x):
-            x = np.asarray(x)
-            return jax.make_array_from_process_local_data(self.sharding, x, (self.padded_size,) + x.shape[1:])
-        return jax.tree.map(one, tree)
-
-    def local(self, tree):
-        """Arrays of the whole batch → NumPy of this process's rows (no communication)."""
-        first, stop = self.rows
-
-        def one(x):
-            if not isinstance(x, jax.Array) or x.is_fully_addressable:
-                return np.asarray(x)[first:stop]
-            out = np.empty((stop - first,) + x.shape[1:], x.dtype)
-            for shard in x.addressable_shards:
-                lo, hi, _ = shard.index[0].indices(x.shape[0]) if shard.index else (0, x.shape[0], 1)
-                a, b = max(lo, first), min(hi, stop)
-                if a < b:
-                    out[a - first:b - first] = np.asarray(shard.data)[a - lo:b - lo]
-            return out
-        return jax.tree.map(one, tree)
-
-
-def make_placement(batch_size: int, devices=None) -> Placement:
-    devices = sorted(jax.devices() if devices is None else devices, key=lambda d: (d.process_index, d.id))
-    padded = -(-batch_size // len(devices)) * len(devices)
-    per_device = padded // len(devices)
-    mine = [i for i, d in enumerate(devices) if d.process_index == jax.process_index()]
-    if not mine:
-        raise ValueError(f"process {jax.process_index()} has no device among {devices}")
-    return Placement(Mesh(np.array(devices), ("batch",)), padded, (mine[0] * per_device, (mine[-1] + 1) * per_device))
-
-
-def fetch(tree):
-    """Arrays → NumPy on this host; arrays sharded over several processes are gathered (every process must call)."""
-
-    def one(x):
-        if isinstance(x, jax.Array) and not x.is_fully_addressable:
-            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-        return np.asarray(x)
-    return jax.tree.map(one, tree)
-
-
-def _pad(array: np.ndarray, size: int) -> np.ndarray:
-    extra = size - array.shape[0]
-    return array if extra == 0 else np.concatenate([array, np.repeat(array[-1:], extra, axis=0)])
 
 
 # ----------------------------------------------------------------------------------------------- the engine
@@ -242,7 +86,8 @@ class Progress(NamedTuple):
 class StudyResult(NamedTuple):
     spec: StudySpec
     labels: list[dict[str, Any]]
-    conditions: Conditions
+    conditions: Conditions  # planned: the study's (study_spec.conditions)
+    walked: Conditions  # what the trials walked: the ramp's trials at the slopes climbed to (study_spec.walked)
     trials: study_io.TrialLog  # every field (num_trials, B, ...)
     opt_state: bo.OptimizerState  # final, host arrays: instances rows[0] … rows[1] − 1 (all with one process)
     wall_s: float  # compute wall time, summed over resumed segments
@@ -296,26 +141,28 @@ class Engine:
         self.labels = instances(spec)
         self.backend_name = backends.resolve_backend(backend)
         self.batch_size = len(self.labels)
-        self.placement = make_placement(self.batch_size, devices)
+        self.placement = study_placement.make_placement(self.batch_size, devices)
+        self.instance_rows = self.placement.instance_rows(self.batch_size)  # this process's instances
+        self.local_instances = self.instance_rows[1] - self.instance_rows[0]  # its rows before the padding's copies
         if self.backend_name == "mjx":  # before any compute
             local = self.placement.local_devices
             try:
                 backends.check_mjx_layout((self.placement.rows[1] - self.placement.rows[0]) // len(local), local)
             except ValueError as err:
                 raise study_spec.StudyError(f"study {spec.name!r}: {err}") from None
-        size = self.placement.padded_size
-        self.padded = Conditions(*(_pad(c, size) for c in self.conditions))
-        controllers = _pad(np.array([lab["controller"] for lab in self.labels]), size)
-        gaits = _pad(np.array([lab["gait"] for lab in self.labels]), size)
+        pad = self.placement.pad
+        self.padded = Conditions(*(pad(c) for c in self.conditions))
+        controllers = pad(np.array([lab["controller"] for lab in self.labels]))
+        gaits = pad(np.array([lab["gait"] for lab in self.labels]))
         self.gates = protocol.batch_gates(controllers.tolist(), gaits.tolist())
         first, stop = self.placement.rows
         self.local_gates = jax.tree.map(lambda g: g[first:stop], self.gates)
-        self.seeds = _pad(np.array([lab["seed"] for lab in self.labels]), size)
-        self.physics = _pad(np.array([lab["physics"] for lab in self.labels]), size)
-        self.feet = _pad(np.array([lab["foot_friction"] for lab in self.labels], np.float64), size)
-        self.reuse = _pad(np.array([lab["data_reuse"] for lab in self.labels]), size)
+        self.seeds = pad(np.array([lab["seed"] for lab in self.labels]))
+        self.physics = pad(np.array([lab["physics"] for lab in self.labels]))
+        self.feet = pad(np.array([lab["foot_friction"] for lab in self.labels], np.float64))
+        self.reuse = pad(np.array([lab["data_reuse"] for lab in self.labels]))
         grounds = terrains.ground_fields(map(study_spec.ground, self.labels))
-        self.grounds = {field: _pad(values, size) for field, values in grounds.items()}
+        self.grounds = {field: pad(values) for field, values in grounds.items()}
         self.active = param_space.active_parameters(self.gates.tegotae > 0)
         targets = self.padded.target_velocity_mps
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
@@ -326,46 +173,33 @@ class Engine:
         opt = self.optimizer
         init = (lambda a, t: opt.init(active_dims=a, target_velocity=t)) if self.uses_records else \
             (lambda a, t: opt.init(active_dims=a))
-        self._init = self._per_instance(init)
-        self._propose = self._per_instance(opt.propose_with_fallback)
+        self._init = self.placement.per_instance(init)
+        self._propose = self.placement.per_instance(opt.propose_with_fallback)
         def observe_unconstrained(state, x, c, observation, margin):
             del margin  # only a safe optimizer learns it
             return opt.observe(state, x, c, observation)
 
-        self._observe = self._per_instance(opt.observe if config.safe else observe_unconstrained)
-        self._beta = self._per_instance(opt.beta)
-        self._set_target = self._per_instance(opt.set_target) if self.uses_records else None
-        self._keys = self._per_instance(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
-                                        in_axes=(0, None))
+        self._observe = self.placement.per_instance(opt.observe if config.safe else observe_unconstrained)
+        self._beta = self.placement.per_instance(opt.beta)
+        self._set_target = self.placement.per_instance(opt.set_target) if self.uses_records else None
+        self._keys = self.placement.per_instance(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
+                                                 in_axes=(0, None))
         self._summary = jax.jit(jax.vmap(lambda r, v: (
             score(r, v), objective.context(r), objective.mean_velocity(r),
             objective.cost_of_transport(r))))
         self._sim = None
 
-    def _per_instance(self, fn: Callable, in_axes=0) -> Callable:
-        """``fn`` of one instance as a jitted function of the whole sharded batch (``in_axes`` as ``jax.vmap``'s:
-        0 for a batched argument, None for one shared by every instance), each device computing its own rows
-        (``jax.shard_map``). The instances are independent, so no device needs another's data; left to jit's
-        partitioner, the GP's loop over its instances' matrices (``cpgjax.gp``, one matrix per LAPACK call) made
-        every device gather the whole batch and compute all of it (all-gathers in propose and observe: on 2 CPU
-        devices 1.9× slower, and each process of a multi-process run computed every instance's optimizer)."""
-        specs = (tuple(PartitionSpec() if axis is None else PartitionSpec("batch") for axis in in_axes)
-                 if isinstance(in_axes, tuple) else PartitionSpec("batch"))
-        # check_vma=False: the optimizer's scans carry values that the mesh's manual axis would otherwise have to
-        # mark as varying by hand (jax.lax.pcast); every value here varies along the batch.
-        return jax.jit(jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=self.placement.mesh, in_specs=specs,
-                                     out_specs=PartitionSpec("batch"), check_vma=False))
-
     # -- pieces ---------------------------------------------------------------------------------------------
 
-    def scenario(self, trial: int) -> go1_model.Scenario:
-        """Every instance's scenario of trial ``trial`` (padded batch)."""
-        return self.scenario_at(trial, slice(None))
+    def scenario(self, trial: int, conditions: Conditions | None = None) -> go1_model.Scenario:
+        """Every instance's scenario of trial ``trial`` (padded batch), under ``conditions`` as :meth:`scenario_at`."""
+        return self.scenario_at(trial, slice(None), conditions)
 
-    def scenario_at(self, trials, instances) -> go1_model.Scenario:
+    def scenario_at(self, trials, instances, conditions: Conditions | None = None) -> go1_model.Scenario:
         """The scenarios of (trial, instance) pairs (NumPy indices into the padded conditions, broadcast together):
-        one batch of them, e.g. the trials a study's analysis walks again."""
-        c = self.padded
+        one batch of them, e.g. the trials a study's analysis walks again. ``conditions``: the padded batch's (default
+        the planned ones, :attr:`padded`; the engine's trials take them walked, :meth:`walked`)."""
+        c = self.padded if conditions is None else conditions
         return go1_model.make_scenarios(c.friction[instances, trials], c.slope_deg[instances, trials],
                                         c.payload_kg[instances, trials], self.physics[instances],
                                         c.mass_scale[instances, trials], c.latency_ticks[instances, trials],
@@ -373,11 +207,12 @@ class Engine:
                                         foot_friction=self.feet[instances],
                                         **{f: v[instances] for f, v in self.grounds.items()})
 
-    def simulator(self, trial: int) -> Backend:
-        """The backend of this process's instances for trial ``trial``'s scenario, on this process's devices; rebuilt
-        (reusing its compiled code where the backend allows) only when one of its instances' conditions change."""
+    def simulator(self, trial: int, conditions: Conditions | None = None) -> Backend:
+        """The backend of this process's instances for trial ``trial``'s scenario (under ``conditions``, see
+        :meth:`scenario_at`), on this process's devices; rebuilt (reusing its compiled code where the backend allows)
+        only when one of its instances' conditions change."""
         first, stop = self.placement.rows
-        scenario = go1_model.Scenario(*(field[first:stop] for field in self.scenario(trial)))
+        scenario = go1_model.Scenario(*(field[first:stop] for field in self.scenario(trial, conditions)))
         if self._sim is None:
             self._sim = backends.make_backend(scenario, self.backend_name, self.spec.cpg_config(), self.spec.trial,
                                               devices=self.placement.local_devices)
@@ -438,10 +273,11 @@ class Engine:
                     figures = env_steps / max(time.perf_counter() - t_begin, 1e-9), None
                 progress(Progress(t + 1, n, self.best_by_group(run.logs), *figures))
         wall_s = run.wall_before + time.perf_counter() - t_begin
-        first, stop = self.placement.rows
-        rows = (min(first, self.batch_size), min(stop, self.batch_size))
+        rows = self.instance_rows
+        walked = Conditions(*(c[:self.batch_size] for c in self.walked(run.logs)))
         return StudyResult(
-            spec=spec, labels=self.labels, conditions=self.conditions, trials=self.stack(run.logs),
+            spec=spec, labels=self.labels, conditions=self.conditions, walked=walked,
+            trials=study_io.stacked(run.logs, self.batch_size),
             opt_state=jax.tree.map(lambda a: a[:rows[1] - rows[0]], self.placement.local(run.opt_state)),
             wall_s=wall_s, timing=Timing(**run.timing), backend=self.backend_name,
             devices=[str(d) for d in self.placement.mesh.devices.flat], rows=rows)
@@ -450,23 +286,15 @@ class Engine:
         """The run's state before its first trial: fresh, or restored from ``out_dir``'s checkpoint."""
         run = _Run(start=0, opt_state=self.initial_opt_state(), sim_state=None, context=self.initial_context(),
                    logs=[], wall_before=0.0, timing={name: 0.0 for name in Timing._fields})
-        # This process's rows; a padding row is a copy of the last instance (another process may hold it).
-        first, stop, last = *self.placement.rows, self.batch_size - 1
-        ckpt = study_io.load_checkpoint(out_dir, self.spec, (min(first, last), min(stop, last + 1))) if resume else None
+        ckpt = (study_io.resume_checkpoint(out_dir, self.spec, self.placement.local(run.opt_state), self.placement,
+                                           self.batch_size) if resume else None)
         if ckpt is None:
             return run
-        index = np.minimum(np.arange(first, stop), last) - min(first, last)
-        saved = jax.tree.unflatten(jax.tree.structure(run.opt_state), [leaf[index] for leaf in ckpt.opt_leaves])
-        opt_state = self.placement.put_local(bo.full_rows(self.placement.local(run.opt_state), saved))
-        sim_state = (self._restore_sim(ckpt.trial, [leaf[index] for leaf in ckpt.sim_leaves])
-                     if ckpt.trial < self.spec.num_trials else None)
-        size = self.placement.padded_size
-        logs = [study_io.TrialLog(*(_pad(np.asarray(f)[:self.batch_size], size) for f in lg)) for lg in ckpt.logs]
-        for t in range(ckpt.trial):  # the slopes the restored trials walked on a ramp
-            self._walk_the_ramp(t, logs)
+        opt_state = self.placement.put_local(jax.tree.unflatten(jax.tree.structure(run.opt_state), ckpt.opt_leaves))
+        sim_state = self._restore_sim(ckpt.trial, ckpt.sim_leaves) if ckpt.trial < self.spec.num_trials else None
         log.info("resumed %s at trial %d", self.spec.name, ckpt.trial)
-        return _Run(start=ckpt.trial, opt_state=opt_state, sim_state=sim_state, context=ckpt.context[index],
-                    logs=logs, wall_before=ckpt.wall_s, timing={**run.timing, **ckpt.timing})
+        return _Run(start=ckpt.trial, opt_state=opt_state, sim_state=sim_state, context=ckpt.context,
+                    logs=ckpt.logs, wall_before=ckpt.wall_s, timing={**run.timing, **ckpt.timing})
 
     def _trial(self, run: _Run, t: int) -> _Run:
         """Trial ``t`` for this process's instances: propose (eq. 8), simulate, summarize (eqs. 9-11), observe; then
@@ -483,21 +311,20 @@ class Engine:
             # In the box as they are: the optimizer rounds its bounds inward to float32 (optim.bo), so no proposal
             # crosses the float64 box that the simulator validates.
             x, fell_back = local(x).astype(np.float64), local(fell_back)
-            real = self._unpadded_local_rows()
+            real = self.local_instances
             if fell_back[:real].any():
                 log.warning("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
                             "the safe trial with the highest expected margin there (docs/decisions.md §17)", t,
                             int(fell_back[:real].sum()))
         with _timed(timing, "simulation_s"):
-            self._walk_the_ramp(t, run.logs)
-            sim = self.simulator(t)
+            sim = self.simulator(t, self.walked(run.logs))
             sim_state = sim.reset(x, self.local_gates) if run.sim_state is None else run.sim_state
             sim_state, record = sim.trial(sim_state, x, self.local_gates)
             record = jax.block_until_ready(record)
         with _timed(timing, "transfer_s"):
-            rec = fetch(record)
+            rec = study_placement.fetch(record)
             target = self.padded.target_velocity_mps[first:stop, t].astype(np.float32)
-            j, new_context, velocity, cot = fetch(self._summary(rec, target))
+            j, new_context, velocity, cot = study_placement.fetch(self._summary(rec, target))
             # A trial that fell measured a robot on the ground (its feet carry nothing: c_load ≈ 0 N), not the
             # ground it walked: the optimizer takes the context the trial was proposed for, as on the robot
             # (deployment.trials), both for this observation and for the next proposal (docs/decisions.md §11).
@@ -517,39 +344,23 @@ class Engine:
             total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed, safety_margin=rec.safety_margin,
             safe_fallback=fell_back)
         with _timed(timing, "exchange_s"):
-            parts = exchange(trial_log)
+            parts = study_placement.exchange(trial_log)
             trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts, strict=True)))
         return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(gp_context, np.float32),
                             logs=run.logs + [trial_log])
 
-    def _walk_the_ramp(self, trial: int, logs: list) -> None:
-        """Where trial ``trial`` walks the spec's ramp (``study_spec.Ramp``): its slope, from the distance each
-        instance has climbed since it reached the ramp, written into the conditions (so ``trials.parquet`` records
-        the slope walked). A trial climbs its forward distance, the steady phase's scaled to the whole trial (the
-        record measures the steady phase); a fall puts the robot back at the bottom. The slope is constant within a
-        trial, so the ramp is walked at the trials' resolution (docs/decisions.md §4). The logs hold every
-        instance, so each process computes the same slopes, and a resume computes them again from its logs."""
-        on = self.padded.ramp[:, trial]
-        if not on.any():
-            return
-        scale = (self.spec.trial.transition_steps + self.spec.trial.steady_steps) / self.spec.trial.steady_steps
-        climbed = np.zeros(on.shape[0])
-        for s, lg in enumerate(logs[:trial]):
-            walked = np.maximum(climbed + scale * np.asarray(lg.distance_m, np.float64), 0.0)
-            climbed = np.where(self.padded.ramp[:, s] & ~(np.asarray(lg.fell) > 0), walked, 0.0)
-        slope = np.where(on, self.spec.ramp.slope_deg(climbed), self.padded.slope_deg[:, trial])
-        self.padded.slope_deg[:, trial] = slope
-        self.conditions.slope_deg[:, trial] = slope[:self.batch_size]
-
-    def _unpadded_local_rows(self) -> int:
-        """How many of this process's rows are instances, not the padding copies after the last one."""
-        first, stop = self.placement.rows
-        return max(0, min(stop, self.batch_size) - first)
+    def walked(self, logs: list[study_io.TrialLog]) -> Conditions:
+        """The padded batch's conditions walked after the trials of ``logs`` (``study_spec.walked``): the ramp's
+        trials at the slopes climbed to. The logs hold every instance, so each process computes the same slopes, and
+        a resume computes them again from its logs."""
+        distance_m = np.array([np.asarray(lg.distance_m) for lg in logs])
+        fell = np.array([np.asarray(lg.fell) for lg in logs])
+        return study_spec.walked(self.padded, self.spec.ramp, distance_m, fell, self.spec.trial)
 
     def _clip_context(self, trial: int, context: np.ndarray) -> np.ndarray:
         """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
         when any is; the trial log keeps the measured values."""
-        real = self._unpadded_local_rows()
+        real = self.local_instances
         clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real],
                                                            objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
         if messages:
@@ -562,16 +373,10 @@ class Engine:
         """This process's instances (not their padding copies) after trial ``t``; once every process has written
         trial t, the files a resume no longer needs are deleted (``study_io.prune_checkpoints``)."""
         first = self.placement.rows[0]
-        keep = self._unpadded_local_rows()
         shard = study_io.Shard(jax.process_index(), jax.process_count(), first)
-        # Trial t is at most the (t + 1)-th observation since init: the later rows of the buffers are init's.
-        local = self.placement.local(run.opt_state)
-        study_io.save_checkpoint(out_dir, self.spec, study_io.Checkpoint(
-            trial=t + 1, opt_leaves=[leaf[:keep] for leaf in jax.tree.leaves(bo.first_rows(local, t + 1))],
-            sim_leaves=[np.asarray(leaf)[:keep] for leaf in jax.tree.leaves(run.sim_state)],
-            context=run.context[:keep], logs=[study_io.TrialLog(*(np.asarray(f)[first:first + keep] for f in lg))
-                                              for lg in run.logs], wall_s=wall_s, timing=dict(run.timing)),
-            self.backend_name, shard)
+        ckpt = study_io.process_checkpoint(t + 1, self.placement.local(run.opt_state), run.sim_state, run.context,
+                                           run.logs, (first, self.local_instances), wall_s, run.timing)
+        study_io.save_checkpoint(out_dir, self.spec, ckpt, self.backend_name, shard)
         # Trial t's logs came from every process, so each has written trial t − 1 (one process: t itself).
         complete = t + 1 if shard.num_processes == 1 else t
         if complete > run.start:
@@ -585,13 +390,6 @@ class Engine:
         kinds = [type(x) for x in jax.tree.leaves(template)]
         restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds, strict=True)]
         return jax.tree.unflatten(treedef, restored)  # the backend places it on its devices
-
-    def stack(self, logs: list[study_io.TrialLog]) -> study_io.TrialLog:
-        """Per-trial logs → one study_io.TrialLog of (num_trials, B, ...) arrays without the padding instances."""
-        if not logs:
-            return study_io.TrialLog(*(np.zeros((0, self.batch_size)) for _ in study_io.TrialLog._fields))
-        return study_io.TrialLog(*(np.stack([np.asarray(f)[:self.batch_size] for f in field])
-                                   for field in zip(*logs, strict=True)))
 
     def group_names(self) -> list[str]:
         return [", ".join(str(lab[g]) for g in self.spec.group_by) for lab in self.labels]

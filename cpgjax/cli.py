@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 import cpgjax
-from cpgjax import ablation, compile_cache, cpg, show
+from cpgjax import compile_cache, cpg, show
 from cpgjax.deployment import calibrate, deploy
 from cpgjax.deployment.options import CalibrateOptions, DeployOptions, RobotOptions, flag
 from cpgjax.go1 import physics as physics_profiles
@@ -34,6 +34,7 @@ from cpgjax.studies import options as study_options
 from cpgjax.studies import video as study_video
 from cpgjax.studies import viewer as study_viewer
 from cpgjax.study import files as study_io
+from cpgjax.study import placement as study_placement
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import limits, protocol, tuned
 from cpgjax.trial import params as param_space
@@ -383,7 +384,7 @@ def _study(args) -> int:
             print(f"cpgjax study: {outcome.message}; `--resume` continues from the last checkpoint", file=sys.stderr)
         return outcome.returncode
     if options.distributed and not options.dry_run:
-        ablation.initialize_distributed()
+        study_placement.initialize_distributed()
     out = study_io.output_folder(study.name, options.out)
     try:
         text, out, _ = study_driver.run(study, options)
@@ -393,7 +394,7 @@ def _study(args) -> int:
     except study_io.OutputError as err:
         print(f"cpgjax study: {err}", file=sys.stderr)
         return 1
-    except ablation.ProcessLost as err:
+    except study_placement.ProcessLost as err:
         print(f"cpgjax study: {err}", file=sys.stderr, flush=True)
         sys.stdout.flush()
         os._exit(3)  # not through jax.distributed's shutdown barrier, which would wait for the lost process

@@ -4,7 +4,7 @@
   (``robot.cpu_dispatch``) must be chosen before it exists, and the public calls that would tell
   (``jax.devices()``, ``jax.extend.backend.backends()``) create it.
 - :func:`coordinator_client`: the distributed runtime's client, whose key-value store carries a multi-process
-  study's trial logs (``ablation.exchange``). The public all-gathers (``jax.experimental.multihost_utils``) block
+  study's trial logs (``study.placement.exchange``). The public all-gathers (``jax.experimental.multihost_utils``) block
   until every process arrives and cannot name a process that never does; the store's timed gets can.
 
 Both read JAX internals (``jax._src``); ``tests/test_jax_internals.py`` fails loudly when a JAX upgrade moves them.

@@ -34,6 +34,7 @@ from cpgjax.sim import backends
 from cpgjax.studies import driver as study_driver
 from cpgjax.studies import stats
 from cpgjax.study import files as study_io
+from cpgjax.study import placement as study_placement
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -97,7 +98,7 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
 
     def one_trial(sim, state, p):
         state, record = sim.trial(state, p, gates)
-        return state, np.asarray(ablation.fetch(record).fell) > 0
+        return state, np.asarray(study_placement.fetch(record).fell) > 0
 
     sim = backends.make_backend(scenario, "native", trial_config=spec.trial)
     _, as_walked = one_trial(sim, sim.reset(x_before), x)

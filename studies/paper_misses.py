@@ -43,11 +43,12 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from cpgjax import ablation, cpg
+from cpgjax import cpg
 from cpgjax.go1 import attitude, physics, sensors
 from cpgjax.go1 import model as go1_model
 from cpgjax.sim import native
 from cpgjax.studies import stats
+from cpgjax.study import placement as study_placement
 from cpgjax.trial import objective, params, protocol
 
 TARGET_MPS = 0.5
@@ -88,7 +89,7 @@ def walk(p: np.ndarray, profile: str, *, payload_kg=0.0, slope_deg=0.0, settle=1
         state, record = sim.trial(state, p, gates)
         if t < settle:
             continue
-        r = ablation.fetch(record)
+        r = study_placement.fetch(record)
         j = np.asarray(jax.vmap(objective.objective, in_axes=(0, None))(r, np.float32(TARGET_MPS)))
         raw = (np.asarray(jax.vmap(objective.velocity_reward, in_axes=(0, None))(r, np.float32(TARGET_MPS)))
                - objective.COT_WEIGHT * np.asarray(objective.cost_of_transport(r)))

@@ -32,6 +32,7 @@ from cpgjax.sim import backends
 from cpgjax.studies import driver as study_driver
 from cpgjax.studies import stats
 from cpgjax.study import files as study_io
+from cpgjax.study import placement as study_placement
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol
 
@@ -117,7 +118,7 @@ def restart(engine: ablation.Engine, gaits: Gaits, variant: Variant, backend: st
     sim = backends.make_backend(scenario, backend, variant.config, engine.spec.trial)
     start = np.tile(param_space.midpoint(), (len(gaits.params), 1)) if variant.blend_from_midpoint else gaits.params
     _, record = sim.trial(sim.reset(start), gaits.params, protocol.batch_gates(list(gaits.controller)))
-    record = ablation.fetch(record)
+    record = study_placement.fetch(record)
     return (np.asarray(record.fell) > 0) | (np.asarray(record.failed) > 0)
 
 

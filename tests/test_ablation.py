@@ -23,6 +23,7 @@ from cpgjax import ablation, gp
 from cpgjax.optim import acquisition, bo
 from cpgjax.sim import native as native_go1
 from cpgjax.study import files as study_io
+from cpgjax.study import placement as study_placement
 from cpgjax.study import spec as study_spec
 from cpgjax.study.spec import Change, Schedule, StudyError, StudySpec
 from cpgjax.trial import objective, optimizer_setting, protocol
@@ -52,6 +53,7 @@ def tiny_spec(**overrides):
 # The kill/resume and sharding subprocesses build the same study from this source.
 SPEC_SOURCE = """
 from cpgjax import ablation
+from cpgjax.study import placement as study_placement
 from cpgjax.optim import acquisition
 from cpgjax.optim import bo
 from cpgjax import gp
@@ -122,10 +124,10 @@ def test_grid_order_and_schedules():
 
 def test_placement_pads_to_the_device_count():
     devices = jax.devices()
-    placement = ablation.make_placement(3, devices)
+    placement = study_placement.make_placement(3, devices)
     assert placement.padded_size % len(devices) == 0 and placement.padded_size >= 3
     x = np.arange(placement.padded_size * 2.0).reshape(-1, 2)
-    np.testing.assert_array_equal(ablation.fetch(placement.put(x)), x)
+    np.testing.assert_array_equal(study_placement.fetch(placement.put(x)), x)
 
 
 # ----------------------------------------------------------------------------------------------- the run
@@ -359,11 +361,14 @@ def test_trials_on_the_ramp_walk_the_slope_of_the_distance_climbed(tmp_path):
             climbed = 0.0 if fell else max(climbed + distance * 300 / 200, 0.0)
         np.testing.assert_allclose(rows.slope_deg[2:], expected, rtol=0, atol=1e-9)
     assert table.slope_deg[table.ramp].max() > ramp.start_deg  # some instance climbed
+    # the result keeps the study's planned conditions; the slopes walked are their own field, the table's
+    np.testing.assert_array_equal(result.conditions.slope_deg, study_spec.conditions(spec).slope_deg)
+    np.testing.assert_array_equal(table.slope_deg, result.walked.slope_deg.reshape(-1))  # instance-major
     # a run stopped on the ramp and resumed (here: extended from 4 trials) records the slopes of the same walk
     out = tmp_path / "resumed"
     ablation.Engine(dataclasses.replace(spec, num_trials=4), backend="native").run(out)
     resumed = ablation.Engine(spec, backend="native").run(out, resume=True)
-    np.testing.assert_array_equal(resumed.conditions.slope_deg, result.conditions.slope_deg)
+    np.testing.assert_array_equal(resumed.walked.slope_deg, result.walked.slope_deg)
 
 
 def test_a_ramp_schedule_needs_a_ramp():

@@ -30,7 +30,7 @@ LAYERS = (
     ("optimizer setting", ("trial.optimizer_setting",)),
     ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.native_physics", "sim.ffi_step", "sim.backends",
                     "sim.walk")),
-    ("study definitions and files", ("study.spec", "study.scene", "study.files", "study.rate")),
+    ("study definitions and files", ("study.spec", "study.scene", "study.placement", "study.files", "study.rate")),
     ("the study engine", ("ablation",)),
     ("studies", ("studies.stats", "studies.renderer", "studies.video", "studies.viewer", "studies.figures",
                  "studies.registry", "studies.gaits", "studies.generic", "studies.transfer", "studies.options",

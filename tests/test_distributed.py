@@ -28,7 +28,7 @@ ENV = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
 CHILD = SPEC_SOURCE + """
 import os, pathlib, signal, sys, threading, time, jax
 out, resume, kill_rank, kill_after = sys.argv[1], sys.argv[2] == "resume", int(sys.argv[3]), int(sys.argv[4])
-ablation.initialize_distributed()
+study_placement.initialize_distributed()
 assert jax.process_count() == 2 and len(jax.local_devices()) == 1
 def kill_when_written():
     mine = pathlib.Path(out) / f"checkpoint.{kill_rank}of2.t{kill_after:06d}.npz"
@@ -147,13 +147,13 @@ def test_killed_process_stops_the_run_and_its_checkpoint_resumes(tmp_path, two_p
 
 HUNG = """
 import sys, time, jax
-from cpgjax import ablation
-ablation.initialize_distributed()
+from cpgjax.study import placement as study_placement
+study_placement.initialize_distributed()
 if jax.process_index() == 1:
     time.sleep(60)  # alive and connected, never answers
 try:
-    ablation.exchange({"x": jax.numpy.zeros(3)}, timeout_s=3.0)
-except ablation.ProcessLost as err:
+    study_placement.exchange({"x": jax.numpy.zeros(3)}, timeout_s=3.0)
+except study_placement.ProcessLost as err:
     print("lost:", err)
     sys.stdout.flush()
     import os; os._exit(3)

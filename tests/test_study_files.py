@@ -262,7 +262,8 @@ def _fake_result(spec, seed=0):
     trials = types.SimpleNamespace(
         objective=rng.uniform(-1.0, 2.3, (n, batch)), cot=rng.uniform(0.4, 1.2, (n, batch)),
         velocity_xy_mps=rng.uniform(0.0, 0.6, (n, batch, 2)), fell=(rng.random((n, batch)) < 0.15).astype(float))
-    return types.SimpleNamespace(spec=spec, trials=trials, conditions=cond, labels=study_spec.instances(spec))
+    return types.SimpleNamespace(spec=spec, trials=trials, conditions=cond, walked=cond,
+                                 labels=study_spec.instances(spec))
 
 
 def test_the_generic_report_per_group_and_phase_matches_numpy_and_scipy():

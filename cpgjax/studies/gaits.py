@@ -63,7 +63,7 @@ def phases(result) -> list[list[Phase]]:
 
 def phase_text(result, b: int, phase: Phase) -> str:
     """A phase as the reports write it: its trials and conditions."""
-    cond, (start, stop) = result.conditions, phase
+    cond, (start, stop) = result.walked, phase
     mode = ", inference mode" if cond.inference[b, start] else ""
     return (f"trials {start}–{stop - 1}: {registry.friction_text(float(cond.friction[b, start]), result.labels[b])}, "
             f"{cond.slope_deg[b, start]:g}°, "
@@ -91,7 +91,7 @@ def best_run(result, mask: np.ndarray, all_phases: list[list[Phase]]) -> tuple[i
 
 def best_gaits(result) -> list[study_video.Gait]:
     """Per group of the study (``spec.group_by``): its best gait (:func:`best_run`) in the conditions of its trial."""
-    tr, cond = result.trials, result.conditions
+    tr, cond = result.trials, result.walked
     names, all_phases = group_names(result), phases(result)
     gaits = []
     for name in dict.fromkeys(names):

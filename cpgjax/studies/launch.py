@@ -1,10 +1,10 @@
 """N cooperating processes on this machine: what ``cpgjax study NAME --processes N`` runs (docs/scaling.md).
 
-:func:`run` starts the same command N times with JAX's coordinator on 127.0.0.1 (a free port) and each process's
-count and rank in ``JAX_NUM_PROCESSES`` / ``JAX_PROCESS_ID`` (read by ``ablation.initialize_distributed``), forwards
-every line of their output prefixed with ``[rank i]``, and watches them: when one exits with an error or is killed,
-the others are stopped and the message names it. With N no more than the CPU cores each process is pinned to its own
-block of cores, so the native backend's threads do not compete.
+:func:`run` starts the same command N times with JAX's coordinator on 127.0.0.1 (a free port) and each process's count
+and rank in ``JAX_NUM_PROCESSES`` / ``JAX_PROCESS_ID`` (read by ``study.placement.initialize_distributed``), forwards
+every line of their output prefixed with ``[rank i]``, and watches them: when one exits with an error or is killed, the
+others are stopped and the message names it. With N no more than the CPU cores each process is pinned to its own block
+of cores, so the native backend's threads do not compete.
 """
 
 from __future__ import annotations

@@ -31,6 +31,7 @@ from cpgjax.go1 import physics as physics_profiles
 from cpgjax.sim import backends
 from cpgjax.studies import figures as study_figures
 from cpgjax.studies import stats
+from cpgjax.study import placement as study_placement
 from cpgjax.trial import objective, protocol
 
 Evaluation = dict[str, Any]
@@ -148,7 +149,7 @@ def evaluate(params: np.ndarray, controllers, scenario: go1_model.Scenario, tria
     fell = np.zeros(params.shape[0])
     for _ in range(settle_trials + 1):
         state, record = sim.trial(state, params, gates)
-        record = ablation.fetch(record)
+        record = study_placement.fetch(record)
         fell = np.maximum(fell, np.asarray(record.fell))
     j = jax.vmap(objective.objective, in_axes=(0, None))(record, np.float32(target_mps))
     return (np.asarray(objective.mean_velocity(record))[:, 0], np.asarray(objective.cost_of_transport(record)),
@@ -163,7 +164,7 @@ def rollouts(params: np.ndarray, controllers, scenario, trial_config, backend: s
     gates = protocol.batch_gates(list(controllers), gaits)
     state, _ = sim.trial(sim.reset(params, gates), params, gates)
     _, log = sim.rollout(state, params, gates, steps)
-    log = ablation.fetch(log)
+    log = study_placement.fetch(log)
     return [type(log)(*(field[b] for field in log)) for b in range(params.shape[0])]
 
 
@@ -447,7 +448,7 @@ def ramp_start(result) -> int:
 def report_ramp(result, start: int) -> str:
     """The continuous ramp in inference mode: per band of slopes, the trials that started there (pooled over
     seeds), and per seed the steepest slope a trial walked without falling."""
-    tr, cond, ramp = result.trials, result.conditions, result.spec.ramp
+    tr, cond, ramp = result.trials, result.walked, result.spec.ramp
     slope = cond.slope_deg[:, start:].T  # (trials, B): the slope each trial started on
     fell = tr.fell[start:] > 0
     rows = ["| slopes [deg] | trials | velocity | J | falls / trials | paper |", "|---|---|---|---|---|---|"]
@@ -468,7 +469,7 @@ def report_ramp(result, start: int) -> str:
 
 
 def report_hardware(result: ablation.StudyResult) -> str:
-    tr, cond = result.trials, result.conditions
+    tr, cond = result.trials, result.walked
     n = tr.objective.shape[0]
     schedules = _labels(result, "schedule")
     rows = ["| schedule | phase (trials) | v* [m/s] | v_x [m/s] | CoT | J | falls | trials to track after the change, "

@@ -33,6 +33,7 @@ import re
 import zipfile
 from typing import Any, NamedTuple
 
+import jax
 import numpy as np
 
 import cpgjax
@@ -40,7 +41,9 @@ from cpgjax import compile_cache, outputs, provenance
 from cpgjax.go1 import physics as physics_profiles
 from cpgjax.go1 import terrain as terrains
 from cpgjax.go1.constants import TICK_S
+from cpgjax.optim import bo
 from cpgjax.sim import walk
+from cpgjax.study import placement as study_placement
 from cpgjax.study import rate
 from cpgjax.study import scene as study_scene
 from cpgjax.study import spec as study_spec
@@ -81,6 +84,14 @@ class TrialLog(NamedTuple):
     failed: np.ndarray
     safety_margin: np.ndarray  # (B,) the trial's worst safety margin (< 0: unsafe; docs/decisions.md §17)
     safe_fallback: np.ndarray  # (B,) --safe: nothing was certified safe, a safe trial's parameters were repeated
+
+
+def stacked(logs: list[TrialLog], batch_size: int) -> TrialLog:
+    """Per-trial logs of the padded batch → one :class:`TrialLog` of (num_trials, B, ...) arrays of its first
+    ``batch_size`` rows, the instances (without the padding)."""
+    if not logs:
+        return TrialLog(*(np.zeros((0, batch_size)) for _ in TrialLog._fields))
+    return TrialLog(*(np.stack([np.asarray(f)[:batch_size] for f in field]) for field in zip(*logs, strict=True)))
 
 
 class Checkpoint(NamedTuple):
@@ -366,6 +377,62 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
                       first_meta["wall_s"], first_meta["timing"])
 
 
+def process_checkpoint(trial: int, opt_state: bo.OptimizerState, sim_state, context: np.ndarray, logs: list,
+                       rows: tuple[int, int], wall_s: float, timing: dict) -> Checkpoint:
+    """The checkpoint of one process's instances after ``trial`` trials, what :func:`save_checkpoint` writes.
+
+    Args:
+      trial: the trials done.
+      opt_state: the optimizer's state of this process's rows of the padded batch (host arrays); of its observation
+        buffers the checkpoint keeps the first ``trial`` rows (``optim.bo.first_rows``: at most one observation per
+        trial since ``init``, the later rows are ``init``'s).
+      sim_state: the simulator's state of the same rows.
+      context: (rows, 2) the last context of the same rows.
+      logs: a :class:`TrialLog` of the whole padded batch per trial done.
+      rows: (first, count): the first of this process's rows in the batch and how many are instances (the rest are
+        the padding's copies of the last instance, left out).
+      wall_s: compute wall time so far.
+      timing: the engine's timing figures so far.
+    """
+    first, count = rows
+    return Checkpoint(
+        trial=trial, opt_leaves=[leaf[:count] for leaf in jax.tree.leaves(bo.first_rows(opt_state, trial))],
+        sim_leaves=[np.asarray(leaf)[:count] for leaf in jax.tree.leaves(sim_state)], context=context[:count],
+        logs=[TrialLog(*(np.asarray(f)[first:first + count] for f in lg)) for lg in logs], wall_s=wall_s,
+        timing=dict(timing))
+
+
+def resume_checkpoint(out_dir, spec, fresh: bo.OptimizerState, placement: study_placement.Placement,
+                      batch_size: int) -> Checkpoint | None:
+    """The newest checkpoint in ``out_dir`` for this process's rows of the padded batch (None if there is none), the
+    inverse of :func:`process_checkpoint`: a padding row takes the saved state of the last instance, which another
+    process may hold.
+
+    Args:
+      fresh: this process's rows of an optimizer state from ``init`` (host arrays), whose observation buffers past
+        the saved rows the resumed state keeps (``optim.bo.full_rows``).
+      placement: the batch's placement, whose ``rows`` are this process's.
+      batch_size: the study's instances (the padded batch's rows before the padding).
+
+    Returns:
+      The checkpoint with ``opt_leaves`` those of the whole optimizer state, ``sim_leaves`` and ``context`` of this
+      process's rows, and ``logs`` of the whole padded batch.
+
+    Raises:
+      StudyError: the checkpoint belongs to a different study definition, or is corrupt.
+    """
+    first, stop, last = *placement.rows, batch_size - 1
+    ckpt = load_checkpoint(out_dir, spec, (min(first, last), min(stop, last + 1)))
+    if ckpt is None:
+        return None
+    index = np.minimum(np.arange(first, stop), last) - min(first, last)
+    saved = jax.tree.unflatten(jax.tree.structure(fresh), [leaf[index] for leaf in ckpt.opt_leaves])
+    return ckpt._replace(
+        opt_leaves=jax.tree.leaves(bo.full_rows(fresh, saved)), sim_leaves=[leaf[index] for leaf in ckpt.sim_leaves],
+        context=ckpt.context[index],
+        logs=[TrialLog(*(placement.pad(np.asarray(f)[:batch_size]) for f in lg)) for lg in ckpt.logs])
+
+
 # ----------------------------------------------------------------------------------------------- output paths
 
 _WRITE_PROBE = ".cpgjax-write-check-"  # the name of check_writable's file, before the process id
@@ -546,11 +613,12 @@ def _resolved(cond, labels: list[dict[str, Any]], n: int) -> tuple[np.ndarray, n
 
 
 def trial_columns(result) -> dict[str, np.ndarray]:
-    """One row per (instance, trial), instance-major: labels, conditions, parameters and trial figures. Every float
-    column is float64 (the engine's figures are float32, widened exactly), counts int64, flags bool; the latency and
-    the noise scale are resolved to the values simulated (docs/outputs.md)."""
+    """One row per (instance, trial), instance-major: labels, conditions (those walked, ``result.walked``: a ramp's
+    trials at the slopes climbed to), parameters and trial figures. Every float column is float64 (the engine's
+    figures are float32, widened exactly), counts int64, flags bool; the latency and the noise scale are resolved to
+    the values simulated (docs/outputs.md)."""
 
-    tr, cond = result.trials, result.conditions
+    tr, cond = result.trials, result.walked
     n, batch = tr.objective.shape
     inst = np.repeat(np.arange(batch), n)
     trial = np.tile(np.arange(n), batch)

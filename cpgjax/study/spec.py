@@ -61,7 +61,7 @@ class Ramp(NamedTuple):
     """A continuous ramp, the terrain of the paper's Fig. slope_setting: the slope rises from ``start_deg`` at the
     bottom to ``end_deg`` over ``length_m`` of climb, then stays there. Trials whose ``ramp`` condition is on walk
     it: each trial's slope is the ramp's at the distance the instance has climbed since it reached the ramp, and a
-    fall puts it back at the bottom (``cpgjax.ablation``; docs/decisions.md §4)."""
+    fall puts it back at the bottom (:func:`walked`; docs/decisions.md §4)."""
 
     start_deg: float
     end_deg: float
@@ -250,7 +250,7 @@ class Conditions(NamedTuple):
     payload_kg: np.ndarray
     target_velocity_mps: np.ndarray
     inference: np.ndarray  # bool
-    ramp: np.ndarray  # bool: the trial walks the spec's ramp, whose slope the engine writes into slope_deg
+    ramp: np.ndarray  # bool: the trial walks the spec's ramp (its slope walked: :func:`walked`)
     mass_scale: np.ndarray  # 1 unless randomized
     latency_ticks: np.ndarray  # int, −1 (the profile's) unless randomized
     noise_scale: np.ndarray  # sensor noise × the robot's; −1 (the profile's own) unless randomized
@@ -273,6 +273,38 @@ def conditions(spec: StudySpec) -> Conditions:
     if spec.randomize is not None:
         out.update(randomized(spec.randomize, len(labels), n))
     return Conditions(**out)
+
+
+def walked(planned: Conditions, ramp: Ramp | None, distance_m, fell, trial: protocol.TrialConfig) -> Conditions:
+    """The conditions the trials walk: ``planned`` with each trial on the ramp (``planned.ramp``) at the ramp's slope
+    of the distance its instance has climbed since it reached the ramp, given the trials done so far (docs/decisions.md
+    §4). A trial climbs its forward distance, the steady phase's (what the record measures) scaled to the whole trial;
+    sliding back lowers it, never below the bottom; a fall puts the instance back at the bottom. A trial's slope
+    depends only on the trials before it, so ``k`` trials done give the slopes of trials 0 … k.
+
+    Args:
+      planned: the study's conditions (:func:`conditions`), each (B, num_trials).
+      ramp: the study's ramp (None: no trial is on it).
+      distance_m: (k, B) each done trial's steady-phase forward distance [m] (``TrialRecord.distance_m``).
+      fell: (k, B) each done trial's fall flag (> 0: it fell).
+      trial: the trials' timing, whose whole length over the steady phase's scales the distance.
+
+    Returns:
+      ``planned`` with the slopes of the ramp's trials 0 … k walked; the later trials' slopes are the planned ones.
+    """
+    done = len(distance_m)
+    if ramp is None or not planned.ramp[:, :done + 1].any():
+        return planned
+    scale = (trial.transition_steps + trial.steady_steps) / trial.steady_steps
+    slope_deg = np.array(planned.slope_deg, copy=True)
+    climbed = np.zeros(slope_deg.shape[0])
+    for t in range(min(done + 1, slope_deg.shape[1])):
+        on = planned.ramp[:, t]
+        slope_deg[:, t] = np.where(on, ramp.slope_deg(climbed), slope_deg[:, t])
+        if t < done:
+            moved = np.maximum(climbed + scale * np.asarray(distance_m[t], np.float64), 0.0)
+            climbed = np.where(on & ~(np.asarray(fell[t]) > 0), moved, 0.0)
+    return planned._replace(slope_deg=slope_deg)
 
 
 def randomized(ranges: Randomization, batch: int, num_trials: int) -> dict[str, np.ndarray]:
