@@ -271,7 +271,7 @@ def test_every_citation_resolves_inside_the_repository():
 # conversion written out, unless it is one of these, each (module, the function or class it is in, value) → what it is.
 TICK_HOME = "go1/constants.py"
 NOT_TICKS = {
-    ("ablation.py", "exchange", 1000): "the key-value store's wait in milliseconds",
+    ("study/placement.py", "exchange", 1000): "the key-value store's wait in milliseconds",
     ("go1/physics.py", "<module>", 0.001): "MuJoCo's solimp width and the feet's 1 mm contact layer",
     ("hardware_io.py", "timing_table", 1000): "µs in a table as a fraction of the period",
     ("hardware_io.py", "_enter_realtime", 1000): "the kernel's µs in a message as ms",
