@@ -1,6 +1,6 @@
 """The catalogue of the files cpgjax writes. Each writing module declares its own files as :class:`OutputFile` entries
 (its ``OUTPUTS``) and writes each file by its entry's name; the command line, the one layer that sees every writer,
-gathers them (``cpgjax.show.catalogue``) for ``cpgjax show`` and docs/outputs.md, and tests/test_outputs_doc.py checks
+gathers them (``cpgjax.show.catalogue``) for ``cpgjax show`` and docs/outputs.md, and tests/test_outputs.py checks
 that the catalogue, docs/outputs.md and ``--overwrite`` (``cpgjax.study.files.claim_folder``) name the same files.
 
 Here, below every writer: the entry type, the checks of the formats that entries share (JSON, parquet, rerun

@@ -388,3 +388,29 @@ def test_folders_follow_the_layers():
     listed = {module for _, modules in LAYERS for module in modules}
     for folder in ("robot", "deployment", "study", "studies"):
         assert {m for m in module_files() if m.startswith(folder + ".")} <= listed
+
+
+# Where a module's tests are (docs/architecture.md "Tests"): tests/<package>/test_<module>[_<topic>].py for a module of
+# cpgjax/<package>/, tests/test_<module>[_<topic>].py for one at the top of the package, and
+# tests/analyses/test_<script>[_<topic>].py for an analysis in studies/. These check the repository as a whole.
+REPOSITORY_TESTS = {"test_architecture", "test_docs_commands", "test_readme"}
+
+
+def test_tests_sit_by_the_module_they_test():
+    modules = module_files()
+    scripts = {p.stem for p in (ROOT / "studies").glob("*.py")}
+    misplaced = []
+    for path in sorted((ROOT / "tests").rglob("test_*.py")):
+        folder = path.parent.relative_to(ROOT / "tests").as_posix()
+        name = path.stem.removeprefix("test_")
+        if folder == "." and path.stem in REPOSITORY_TESTS:
+            continue
+        if folder == "analyses":
+            homes = scripts
+        else:
+            prefix = "" if folder == "." else folder.replace("/", ".") + "."
+            homes = {m.removeprefix(prefix) for m in modules if m.startswith(prefix) and m and "." not in
+                     m.removeprefix(prefix)}
+        if not any(name == home or name.startswith(home + "_") for home in homes):
+            misplaced.append(str(path.relative_to(ROOT)))
+    assert misplaced == []

@@ -30,7 +30,7 @@ from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.trial import objective, params, protocol, tuned
-from tests.test_outputs_doc import undocumented
+from tests.test_outputs import undocumented
 
 GATES = cpg.controller_gates("vmc_tegotae")
 # Short soft start; a watchdog long enough for a loaded CI machine (the stale-state test shortens it).

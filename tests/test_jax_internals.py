@@ -22,5 +22,5 @@ def test_the_cpu_client_is_reported_missing_before_the_first_computation_and_pre
 
 
 def test_the_coordinator_client_is_none_outside_a_distributed_run():
-    """(Inside one, tests/test_distributed.py runs the key-value exchange through it across processes.)"""
+    """(Inside one, tests/test_ablation_distributed.py runs the key-value exchange through it across processes.)"""
     assert jax_internals.coordinator_client() is None

@@ -92,7 +92,7 @@ def load_model() -> mujoco.MjModel:
     visual geoms. Cached: copy before editing.
 
     The visual geoms are physically inert (no contact, no mass: C MuJoCo steps bit for bit the same with them,
-    tests/test_visual_model.py), but MJX compiles its kinematics over every geom, and with 29 more the compiled
+    tests/go1/test_model_visual.py), but MJX compiles its kinematics over every geom, and with 29 more the compiled
     program rounds differently in float32 (a short study's figures differ by ~1e-7 relative, then the optimizer
     amplifies it). Leaving them out keeps every simulation independent of the model's looks."""
     return mujoco.MjModel.from_xml_string(model_xml_without_visual_geoms())

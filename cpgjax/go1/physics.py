@@ -337,7 +337,7 @@ def noise_draws(profile: ProfileArrays, tick: jax.Array) -> NoisyReadings:
     A counter-based SplitMix32 stream (the state for (seed, tick), advanced by the golden gamma per reading, each
     output finalized by ``_fmix32``), not ``jax.random``: in the vmapped 1 kHz tick, threefry made the batch-20
     control tick 3.4–4.3× slower (``benchmarks/control_tick.py``), and sensor noise needs equidistributed,
-    uncorrelated draws, not a cryptographic generator (tests/test_physics.py checks their moments and correlations).
+    uncorrelated draws, not a cryptographic generator (tests/go1/test_physics.py checks their moments and correlations).
     """
     seed = jnp.asarray(profile.noise_seed, jnp.uint32)
     state = _fmix32(_fmix32(seed + _GOLDEN_GAMMA) ^ jnp.asarray(tick).astype(jnp.uint32))

@@ -29,7 +29,7 @@ BLOCKS = "blocks"
 # between its edges, to 4 m; a foot's step (2 d_step μ ≤ 0.17 m) spans one edge at a time.
 BLOCK_DEPTH_M = (0.15, 4.0)
 # The largest peak-to-peak height: the smallest swing clearance g_c of the paper's parameter box (0.06 m,
-# cpgjax/trial/params.py; tests/test_terrain.py checks the two agree), so that the swing apex of every parameter
+# cpgjax/trial/params.py; tests/go1/test_terrain.py checks the two agree), so that the swing apex of every parameter
 # set clears the highest bump from the lowest hollow. A literal here: the Go1's facts sit below the parameters.
 MAX_AMPLITUDE_M = 0.06
 CELL_M = 0.075  # grid spacing: ~Playground's Go1 rough terrain (256 samples over 20 m, 0.078 m)

@@ -471,7 +471,7 @@ OUTPUTS = (
 # the best gaits' videos (best_<group>.mp4) and the best_params/ folder; --overwrite deletes these and nothing else.
 # The robot's files (its per-tick log, trials.rrd, run.json, calibration.json, sim_truth.parquet) and the transfer
 # study's evaluations are named here by their names: their writers sit beside this module or above it, where it
-# cannot import them (tests/test_outputs_doc.py checks that this list and the catalogue, cpgjax.show.catalogue, name
+# cannot import them (tests/test_outputs.py checks that this list and the catalogue, cpgjax.show.catalogue, name
 # the same files).
 OUTPUT_FILES = frozenset({tuned.FILE_NAME, walk.TABLE,
                           *(e.name for e in (*outputs.OUTPUTS, *OUTPUTS) if e.pattern is None),

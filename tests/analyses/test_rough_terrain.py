@@ -7,7 +7,7 @@ import pathlib
 import numpy as np
 from scipy import stats as scipy_stats
 
-SCRIPT = pathlib.Path(__file__).resolve().parent.parent / "studies" / "rough_terrain.py"
+SCRIPT = pathlib.Path(__file__).resolve().parents[2] / "studies" / "rough_terrain.py"
 spec = importlib.util.spec_from_file_location("rough_terrain", SCRIPT)
 rough_terrain = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(rough_terrain)

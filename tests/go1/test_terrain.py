@@ -22,7 +22,7 @@ from cpgjax.study import scene
 from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
 from cpgjax.trial.condition import Condition
-from tests import test_outputs_doc
+from tests import test_outputs
 from tests.conftest import SHORT_TRIAL
 
 ROUGH = dict(terrain="rough", terrain_amplitude_m=0.04, terrain_seed=3)
@@ -264,7 +264,7 @@ def test_native_and_mjx_trial_figures_agree_on_rough_terrain(rough_pair):
     parameters: 6 paired trials. On rough ground the two engines' contact sets differ (MJX makes at most 4 contacts
     per foot–field pair, C MuJoCo one per prism), so trajectories part after some hundred ms, as the flat
     comparison's gaits on the edge of falling do; the criterion is that comparison's statistical one
-    (tests/test_native_backend.py::test_trial_figures_agree_statistically_over_random_parameters): the same fall
+    (tests/sim/test_native.py::test_trial_figures_agree_statistically_over_random_parameters): the same fall
     outcome in ≥ 2/3 of the pairs, ≥ 60 % of the pairs within 0.02 m/s, 5 % CoT, 2 % c_load, 0.01 rad c_slope, and
     the medians over the walked pairs within those. The flat instance in the terrain model reads the plane's
     load."""
@@ -358,7 +358,7 @@ def test_walk_parquet_names_the_terrain():
                            cot=0.0)
     cols = walk.trial_columns([trial])
     assert (cols["terrain"][0], cols["terrain_amplitude_m"][0], cols["terrain_seed"][0]) == ("rough", 0.04, 3)
-    assert not test_outputs_doc.undocumented("walk.parquet", cols)
+    assert not test_outputs.undocumented("walk.parquet", cols)
 
 
 def test_a_video_draws_the_terrain(tmp_path):

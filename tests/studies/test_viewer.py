@@ -30,9 +30,9 @@ from cpgjax.studies import launch as study_launch
 from cpgjax.studies import viewer
 from cpgjax.study import scene
 from cpgjax.trial.condition import Condition
-from tests.test_scene import _synthetic_log
+from tests.study.test_scene import _synthetic_log
 
-REPO = pathlib.Path(__file__).resolve().parent.parent
+REPO = pathlib.Path(__file__).resolve().parents[2]
 LOAD_S = 90.0  # the viewer's WebAssembly compiles in a software-rendered browser: allow for a loaded machine
 IDLE_PERCENT = 5.0  # of one core, the viewer's processes together (the recording loaded into rerun's gRPC server: 100)
 

@@ -1,6 +1,6 @@
 """run.json's ``ran`` (``deploy.what_ran``) of an online optimization on the real Go1, from the options ``cpgjax
 deploy`` parsed (no robot: ``deploy.run`` is replaced; a replay of a parameter file on the simulated Go1 is checked
-end to end in tests/test_deploy_log.py)."""
+end to end in tests/deployment/test_tick_log.py)."""
 
 from cpgjax import cli
 from cpgjax.deployment import deploy

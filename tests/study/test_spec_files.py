@@ -21,7 +21,7 @@ from cpgjax.studies import options as study_options
 from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 
-DATA = pathlib.Path(__file__).resolve().parent / "data"
+DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
 PAPER_STUDIES = ("controller_ablation", "friction", "load_adaptation", "multi_velocity", "paper_hardware",
                  "slope_adaptation", "transfer")
 

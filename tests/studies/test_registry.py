@@ -25,7 +25,7 @@ from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol, tuned
 from tests.test_ablation import small_optimizer
-from tests.test_outputs_doc import undocumented
+from tests.test_outputs import undocumented
 
 # ----------------------------------------------------------------------------------------------- specifications
 
@@ -448,7 +448,7 @@ def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk(tmp_path):
     counted); instance 0's trial 4 is in inference mode (neither it nor its pair is counted). The table goes through a
     parquet file and ``study_io.read_trials``, as a study's does."""
     import importlib.util
-    spec = importlib.util.spec_from_file_location("fall_chains", pathlib.Path(__file__).resolve().parents[1] / "studies"
+    spec = importlib.util.spec_from_file_location("fall_chains", pathlib.Path(__file__).resolve().parents[2] / "studies"
                                                   / "fall_chains.py")
     fall_chains = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(fall_chains)

@@ -1,6 +1,6 @@
 """Building the native backend's FFI physics step (``cpgjax.sim.ffi_step``): a fresh cache gets a whole library
 named by what it was built from, and a machine that cannot build it gets one log line and the per-tick stepping.
-What the step computes is checked against the other steppings in tests/test_native_stepping.py. Also the one XLA
+What the step computes is checked against the other steppings in tests/sim/test_native_physics.py. Also the one XLA
 pool thread the native backend's commands ask for (``cpu_dispatch.request_one_pool_thread``)."""
 
 import ctypes

@@ -17,7 +17,7 @@ from cpgjax.studies import registry, stats
 from cpgjax.study import files as study_io
 
 _SPEC = importlib.util.spec_from_file_location(
-    "verdicts", pathlib.Path(__file__).resolve().parents[1] / "studies" / "verdicts.py")
+    "verdicts", pathlib.Path(__file__).resolve().parents[2] / "studies" / "verdicts.py")
 verdicts = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(verdicts)
 

@@ -125,7 +125,7 @@ def test_optimize_says_it_before_any_compute_and_takes_the_feet(notes):
 
 def test_the_friction_tables_say_why_a_09_floor_equals_06_under_paper():
     from cpgjax.studies import registry
-    from tests.test_study_files import _fake_result
+    from tests.study.test_spec_files import _fake_result
 
     paper = _fake_result(study_spec.StudySpec("friction", num_trials=8, seeds=(0, 1, 2), friction=(0.3, 0.6, 0.9),
                                               group_by=("friction",), physics=("paper",)))

@@ -21,7 +21,7 @@ from cpgjax.robot import safety as go1_safety
 from cpgjax.robot import sim_server as sim
 from cpgjax.robot import transport as go1_transport
 from cpgjax.trial import params
-from tests.test_outputs_doc import undocumented
+from tests.test_outputs import undocumented
 
 LOOP = hio.LoopConfig(hold_s=0.1, ramp_s=0.2, end_damping_s=0.05, realtime_priority=None, flush_ticks=250,
                       log_ticks=1000)

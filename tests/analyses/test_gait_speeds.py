@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats as scipy_stats
 
-SCRIPT = pathlib.Path(__file__).resolve().parent.parent / "studies" / "gait_speeds.py"
+SCRIPT = pathlib.Path(__file__).resolve().parents[2] / "studies" / "gait_speeds.py"
 spec = importlib.util.spec_from_file_location("gait_speeds", SCRIPT)
 gait_speeds = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(gait_speeds)

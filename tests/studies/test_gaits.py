@@ -15,7 +15,7 @@ from cpgjax.studies import registry
 from cpgjax.study import spec as study_spec
 from cpgjax.trial import params as param_space
 from cpgjax.trial import protocol, tuned
-from tests import test_outputs_doc
+from tests import test_outputs
 
 # The phase offsets of FL, RR, RL behind FR [multiples of π], typed from the CPG-RL code of Bellegarda & Ijspeert
 # (leg order FR, FL, RR, RL, as cpgjax.go1.constants.LEG_NAMES): trot, pace, bound and its walk (a diagonal
@@ -111,7 +111,7 @@ def test_a_gaits_axis_runs_each_gait_as_data_and_its_files_carry_it(tmp_path):
                                   np.float32([cpg.gait_phase_lags("trot"), cpg.gait_phase_lags("bound")]))
     table = pq.read_table(out / "trials.parquet").to_pydict()
     assert table["gait"] == ["trot", "trot", "bound", "bound"] and set(table["terrain"]) == {"flat"}
-    assert test_outputs_doc.undocumented("study trials.parquet", table) == []
+    assert test_outputs.undocumented("study trials.parquet", table) == []
     for gait in ("trot", "bound"):
         assert tuned.load(out / "best_params" / f"gait{gait}.json").tuned_for["gait"] == gait
     _, alone = _run(tmp_path, ["trot"])
@@ -121,7 +121,7 @@ def test_a_gaits_axis_runs_each_gait_as_data_and_its_files_carry_it(tmp_path):
 
 def test_a_study_without_gaits_has_the_trial_table_it_had(tmp_path):
     """Unset, the gaits axis is the trot alone and the trial table has no gait column (the paper's studies' tables
-    stay byte for byte those of their record, tests/test_study_files.py)."""
+    stay byte for byte those of their record, tests/study/test_spec_files.py)."""
     spec = study_spec.StudySpec("plain")
     assert spec.axis("gaits") == ("trot",) and [lab["gait"] for lab in study_spec.instances(spec)] == ["trot"]
     with pytest.raises(study_spec.StudyError, match="unknown gait 'canter'; allowed: trot, pace"):
