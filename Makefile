@@ -20,9 +20,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile
 
-# Ruff over the repository, with the rules of pyproject.toml's [tool.ruff], then the dead-code check
-# ([tool.vulture]: what nothing in the package, tests, benchmarks or studies uses).
+# Ruff's formatter (a file it would change fails), then its rules (pyproject.toml's [tool.ruff]), then the dead-code
+# check ([tool.vulture]: what nothing in the package, tests, benchmarks or studies uses).
 lint: $(STAMP)
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/vulture
 

@@ -73,13 +73,25 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--sweep", type=int, default=0, help="instances (4 controllers × seeds) instead of 20")
     parser.add_argument("--trials", type=int, default=None)
-    parser.add_argument("--physics", default=None, help="comma list of physics profiles, one run each, wall-time "
-                        "ratios against the first (default: the study's own, paper)")
-    parser.add_argument("--distributed", action="store_true", help="one of several processes: jax.distributed."
-                        "initialize() first (coordinator, count and rank from the environment or Slurm)")
+    parser.add_argument(
+        "--physics",
+        default=None,
+        help="comma list of physics profiles, one run each, wall-time "
+        "ratios against the first (default: the study's own, paper)",
+    )
+    parser.add_argument(
+        "--distributed",
+        action="store_true",
+        help="one of several processes: jax.distributed."
+        "initialize() first (coordinator, count and rank from the environment or Slurm)",
+    )
     parser.add_argument("--processes", type=int, default=None, help="run as N cooperating local processes")
-    parser.add_argument("--limit-trials", type=int, default=5, help="trials replayed for the physics limit of the "
-                        "study's own steps (native backend, one process; 0: none)")
+    parser.add_argument(
+        "--limit-trials",
+        type=int,
+        default=5,
+        help="trials replayed for the physics limit of the study's own steps (native backend, one process; 0: none)",
+    )
     backends.add_backend_argument(parser)
     args = parser.parse_args()
     if args.backend != "mjx":
@@ -90,8 +102,9 @@ def main() -> None:
     if args.processes is not None:
         if args.processes < 1 or args.distributed:
             parser.error(f"--processes {args.processes}: need at least 1, and no --distributed")
-        argv = [a for i, a in enumerate(sys.argv[1:]) if not a.startswith("--processes")
-                and sys.argv[i] != "--processes"]  # sys.argv[i]: the token before a
+        argv = [
+            a for i, a in enumerate(sys.argv[1:]) if not a.startswith("--processes") and sys.argv[i] != "--processes"
+        ]  # sys.argv[i]: the token before a
         outcome = study_launch.run([sys.executable, os.path.abspath(__file__), *argv, "--distributed"], args.processes)
         if outcome.returncode:
             print(f"benchmarks/ablation.py: {outcome.message}", file=sys.stderr)
@@ -103,8 +116,15 @@ def main() -> None:
         for name in args.physics.split(","):
             walls[name] = run_once(args, name)
         first = next(iter(walls))
-        print(json.dumps({"benchmark": "ablation_profiles", **{f"study_wall_s_{k}": v for k, v in walls.items()},
-                          **{f"wall_ratio_{k}_vs_{first}": round(v / walls[first], 3) for k, v in walls.items()}}))
+        print(
+            json.dumps(
+                {
+                    "benchmark": "ablation_profiles",
+                    **{f"study_wall_s_{k}": v for k, v in walls.items()},
+                    **{f"wall_ratio_{k}_vs_{first}": round(v / walls[first], 3) for k, v in walls.items()},
+                }
+            )
+        )
         return
     run_once(args, None)
 
@@ -126,15 +146,20 @@ def run_once(args, physics: str | None) -> float:
         spec = dataclasses.replace(spec, physics=(physics,))
     t0 = time.perf_counter()
     engine = ablation.Engine(spec, backend=args.backend)
-    sampled = _sample_trials(engine, spec.num_trials, args.limit_trials) if (
-        args.limit_trials and not args.sweep and engine.backend_name == "native" and jax.process_count() == 1) else None
+    sampled = (
+        _sample_trials(engine, spec.num_trials, args.limit_trials)
+        if (args.limit_trials and not args.sweep and engine.backend_name == "native" and jax.process_count() == 1)
+        else None
+    )
     last = [None]
 
     def progress(p):
         last[0] = p
-        print(f"{p.trial}/{p.num_trials} trials done: {p.env_steps_per_s:,.0f} env-steps/s, ETA "
-              + ("after the first trial" if p.eta_s is None else f"{p.eta_s:.0f} s"),
-              flush=True)
+        print(
+            f"{p.trial}/{p.num_trials} trials done: {p.env_steps_per_s:,.0f} env-steps/s, ETA "
+            + ("after the first trial" if p.eta_s is None else f"{p.eta_s:.0f} s"),
+            flush=True,
+        )
 
     with tempfile.TemporaryDirectory() as out:
         result = engine.run(out, progress=progress)
@@ -144,32 +169,56 @@ def run_once(args, physics: str | None) -> float:
     fig = study_io.run_figures(result)
     env = provenance.environment()
     summary = dict(
-        benchmark="ablation", mode=mode, machine=f"{env['cpu']}, {env['cpu_count']} CPUs",
-        device=env["devices"][0], backend=result.backend, instances=len(result.labels),
-        trials=int(result.trials.objective.shape[0]), robot_s=fig["robot_s"], study_wall_s=fig["wall_s"],
-        wall_with_setup_s=round(total_s, 2), env_steps_per_s=fig["env_steps_per_s"],
-        real_time_factor=fig["real_time_factor"], paper_baseline_real_time_factor=1.0,
-        simulation_s=fig["simulation_s"], optimizer_s=fig["optimizer_s"], propose_s=fig["propose_s"],
-        observe_s=fig["observe_s"], transfer_s=fig["transfer_s"], checkpoint_s=fig["checkpoint_s"],
-        processes=jax.process_count(), exchange_s=fig["exchange_s"],
+        benchmark="ablation",
+        mode=mode,
+        machine=f"{env['cpu']}, {env['cpu_count']} CPUs",
+        device=env["devices"][0],
+        backend=result.backend,
+        instances=len(result.labels),
+        trials=int(result.trials.objective.shape[0]),
+        robot_s=fig["robot_s"],
+        study_wall_s=fig["wall_s"],
+        wall_with_setup_s=round(total_s, 2),
+        env_steps_per_s=fig["env_steps_per_s"],
+        real_time_factor=fig["real_time_factor"],
+        paper_baseline_real_time_factor=1.0,
+        simulation_s=fig["simulation_s"],
+        optimizer_s=fig["optimizer_s"],
+        propose_s=fig["propose_s"],
+        observe_s=fig["observe_s"],
+        transfer_s=fig["transfer_s"],
+        checkpoint_s=fig["checkpoint_s"],
+        processes=jax.process_count(),
+        exchange_s=fig["exchange_s"],
         exchange_ms_per_trial=round(1e3 * fig["exchange_s"] / max(len(result.trials.objective), 1), 1),
-        physics=spec.physics[0], compiled_programs=compile_cache.counts(),
-        load_avg_1min_end=round(os.getloadavg()[0], 2), jax=jax.__version__)
+        physics=spec.physics[0],
+        compiled_programs=compile_cache.counts(),
+        load_avg_1min_end=round(os.getloadavg()[0], 2),
+        jax=jax.__version__,
+    )
     if sampled:
         rate, diff, steps = _replay_rate(sampled)
         single_core_s = fig["env_steps"] / rate
         fraction = fig["wall_s"] / single_core_s
-        print(f"physics limit of the study's own steps: {len(sampled)} trials ({steps:,} env-steps) replayed on one "
-              f"thread at {rate:,.0f} env-steps/s (max |Δstate| against the logged run {diff:.1e}); the study's "
-              f"{fig['env_steps']:,} env-steps take {single_core_s:.1f} s of single-core physics, its wall time "
-              f"{fraction:.2f} of that")
+        print(
+            f"physics limit of the study's own steps: {len(sampled)} trials ({steps:,} env-steps) replayed on one "
+            f"thread at {rate:,.0f} env-steps/s (max |Δstate| against the logged run {diff:.1e}); the study's "
+            f"{fig['env_steps']:,} env-steps take {single_core_s:.1f} s of single-core physics, its wall time "
+            f"{fraction:.2f} of that"
+        )
         cores = native_physics.available_cores()
         if fraction < 1 / cores:
-            print(f"# the study took less than 1/{cores} of that single-core physics time on {cores} cores: the "
-                  "replay was slowed by other load on the machine, and this fraction is not the code's")
-        summary.update(limit_trials=len(sampled), replay_one_thread_env_steps_per_s=round(rate),
-                       replay_max_abs_state_diff=diff, single_core_physics_s=round(single_core_s, 2),
-                       wall_over_single_core_physics=round(fraction, 3))
+            print(
+                f"# the study took less than 1/{cores} of that single-core physics time on {cores} cores: the "
+                "replay was slowed by other load on the machine, and this fraction is not the code's"
+            )
+        summary.update(
+            limit_trials=len(sampled),
+            replay_one_thread_env_steps_per_s=round(rate),
+            replay_max_abs_state_diff=diff,
+            single_core_physics_s=round(single_core_s, 2),
+            wall_over_single_core_physics=round(fraction, 3),
+        )
     print(json.dumps(summary))
     return fig["wall_s"]
 
@@ -197,6 +246,7 @@ def _sample_trials(engine: ablation.Engine, num_trials: int, count: int) -> list
                 sampled.append(_Sample(sim, host, np.array(new_params), jax.tree.map(np.array, gates)))
             seen[0] += 1
             return trial(state, new_params, gates)
+
         return run
 
     def wrapped(t):
@@ -214,8 +264,12 @@ def _sample_trials(engine: ablation.Engine, num_trials: int, count: int) -> list
 def _replay(handle, torque_nm, width: int):
     """Step the stepper ``handle`` names with ``torque_nm`` (N, B, 12), tick after tick (``ffi_step.call``)."""
     batch = torque_nm.shape[1]
-    return jax.lax.fori_loop(0, torque_nm.shape[0], lambda k, _: ffi_step.call(handle, torque_nm[k], (batch, width)),
-                             jnp.zeros((batch, width), jnp.float32))
+    return jax.lax.fori_loop(
+        0,
+        torque_nm.shape[0],
+        lambda k, _: ffi_step.call(handle, torque_nm[k], (batch, width)),
+        jnp.zeros((batch, width), jnp.float32),
+    )
 
 
 def _replay_rate(sampled: list[_Sample]) -> tuple[float, float, int]:

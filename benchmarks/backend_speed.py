@@ -87,10 +87,17 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="batch 16, short trials, extrapolated ablation (< 2 min)")
     parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=None)
     parser.add_argument("--steps", type=int, default=None, help="env steps per instance per timed trial")
-    parser.add_argument("--sync-dispatch", action="store_true",
-                        help="set jax_cpu_enable_async_dispatch=False (JAX CPU computations run inline)")
-    parser.add_argument("--backends", type=lambda s: s.split(","), default=["native", "mjx"],
-                        help="comma-separated subset of native,mjx (default both)")
+    parser.add_argument(
+        "--sync-dispatch",
+        action="store_true",
+        help="set jax_cpu_enable_async_dispatch=False (JAX CPU computations run inline)",
+    )
+    parser.add_argument(
+        "--backends",
+        type=lambda s: s.split(","),
+        default=["native", "mjx"],
+        help="comma-separated subset of native,mjx (default both)",
+    )
     parser.add_argument("--no-ablation", action="store_true", help="skip the ablation-study wall time")
     args = parser.parse_args()
     if args.sync_dispatch:
@@ -101,23 +108,36 @@ def main() -> None:
     load_start = os.getloadavg()[0]
 
     device = jax.devices()[0]
-    print(f"# {provenance.machine()}; JAX device {device.platform}; {native_physics.available_cores()} cores for the "
-          "native physics threads; "
-          f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
-          f"load average {load_start:.1f}")
-    print("| batch | native [env-steps/s] | MJX [env-steps/s] | native / MJX | native first call [s] "
-          "| MJX first call (compile) [s] |")
+    print(
+        f"# {provenance.machine()}; JAX device {device.platform}; {native_physics.available_cores()} cores for the "
+        "native physics threads; "
+        f"{steps} steps per instance; async dispatch {'off' if args.sync_dispatch else 'on'}; "
+        f"load average {load_start:.1f}"
+    )
+    print(
+        "| batch | native [env-steps/s] | MJX [env-steps/s] | native / MJX | native first call [s] "
+        "| MJX first call (compile) [s] |"
+    )
     print("|---|---|---|---|---|---|")
-    figures: dict = {"benchmark": "backend_speed", "machine": provenance.machine(), "jax_device": device.platform,
-                     "steps_per_instance": steps, "async_dispatch": not args.sync_dispatch,
-                     "rollout_threads": native_physics.available_cores()}
+    figures: dict = {
+        "benchmark": "backend_speed",
+        "machine": provenance.machine(),
+        "jax_device": device.platform,
+        "steps_per_instance": steps,
+        "async_dispatch": not args.sync_dispatch,
+        "rollout_threads": native_physics.available_cores(),
+    }
     missing = {"env_steps_per_s": float("nan"), "first_call_s": float("nan")}
     for b in batches:
-        native, mjx = (trial_speed(name, b, steps, repeats) if name in args.backends else missing
-                       for name in ("native", "mjx"))
+        native, mjx = (
+            trial_speed(name, b, steps, repeats) if name in args.backends else missing for name in ("native", "mjx")
+        )
         ratio = native["env_steps_per_s"] / mjx["env_steps_per_s"]
-        print(f"| {b} | {native['env_steps_per_s']:,.0f} | {mjx['env_steps_per_s']:,.0f} | {ratio:.2f}× "
-              f"| {native['first_call_s']:.1f} | {mjx['first_call_s']:.1f} |", flush=True)
+        print(
+            f"| {b} | {native['env_steps_per_s']:,.0f} | {mjx['env_steps_per_s']:,.0f} | {ratio:.2f}× "
+            f"| {native['first_call_s']:.1f} | {mjx['first_call_s']:.1f} |",
+            flush=True,
+        )
         for name, result in (("native", native), ("mjx", mjx)):
             if name in args.backends:
                 figures[f"{name}_env_steps_per_s_b{b}"] = round(result["env_steps_per_s"])
@@ -131,8 +151,11 @@ def main() -> None:
             result = ablation_wall_time(backend, trials)
             wall_40 = result["wall_s"]
             note = f" (extrapolated from {trials} trials)" if trials != ABLATION_TRIALS else ""
-            print(f"ablation study simulation, {backend}: {wall_40:.1f} s for {ABLATION_TRIALS} trials × 20 "
-                  f"instances{note}; {result['env_steps_per_s']:,.0f} env-steps/s", flush=True)
+            print(
+                f"ablation study simulation, {backend}: {wall_40:.1f} s for {ABLATION_TRIALS} trials × 20 "
+                f"instances{note}; {result['env_steps_per_s']:,.0f} env-steps/s",
+                flush=True,
+            )
             figures[f"ablation_wall_s_{backend}"] = round(wall_40, 1)
             figures[f"ablation_extrapolated_{backend}"] = trials != ABLATION_TRIALS
     figures["load_avg_1min_start"] = round(load_start, 2)

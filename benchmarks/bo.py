@@ -37,8 +37,7 @@ import warnings
 def parse_args():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small sizes, < 2 min")
-    parser.add_argument("--cpu", type=int, default=(os.cpu_count() or 1) - 1,
-                        help="the CPU core to pin the process to")
+    parser.add_argument("--cpu", type=int, default=(os.cpu_count() or 1) - 1, help="the CPU core to pin the process to")
     parser.add_argument("--seeds", type=int, default=None, help="seeds for (c)")
     return parser.parse_args()
 
@@ -52,8 +51,10 @@ def missing_modules() -> list[str]:
 
 ARGS = parse_args()
 if missing_modules():
-    sys.exit(f"benchmarks/bo.py compares against BoTorch and needs {', '.join(missing_modules())}, not installed "
-             f"here: pip install -e '.[bench]' (or make bench-deps)")
+    sys.exit(
+        f"benchmarks/bo.py compares against BoTorch and needs {', '.join(missing_modules())}, not installed "
+        f"here: pip install -e '.[bench]' (or make bench-deps)"
+    )
 os.sched_setaffinity(0, {ARGS.cpu})  # before jax and torch start their threads
 
 import jax  # noqa: E402
@@ -82,10 +83,17 @@ warnings.filterwarnings("ignore")  # BoTorch's input-scaling and numerical notic
 
 # ---- test functions (maximization form) ---------------------------------------------------
 
-_H6_A = np.array([[10, 3, 17, 3.5, 1.7, 8], [0.05, 10, 17, 0.1, 8, 14],
-                  [3, 3.5, 1.7, 10, 17, 8], [17, 8, 0.05, 10, 0.1, 14]])
-_H6_P = 1e-4 * np.array([[1312, 1696, 5569, 124, 8283, 5886], [2329, 4135, 8307, 3736, 1004, 9991],
-                         [2348, 1451, 3522, 2883, 3047, 6650], [4047, 8828, 8732, 5743, 1091, 381]])
+_H6_A = np.array(
+    [[10, 3, 17, 3.5, 1.7, 8], [0.05, 10, 17, 0.1, 8, 14], [3, 3.5, 1.7, 10, 17, 8], [17, 8, 0.05, 10, 0.1, 14]]
+)
+_H6_P = 1e-4 * np.array(
+    [
+        [1312, 1696, 5569, 124, 8283, 5886],
+        [2329, 4135, 8307, 3736, 1004, 9991],
+        [2348, 1451, 3522, 2883, 3047, 6650],
+        [4047, 8828, 8732, 5743, 1091, 381],
+    ]
+)
 _H6_ALPHA = np.array([1.0, 1.2, 3.0, 3.2])
 
 
@@ -112,25 +120,29 @@ def paper_multiplier(num_observations):
 
 # ---- BoTorch, the paper's stack -----------------------------------------------------------
 
+
 def botorch_iteration(unit_x: np.ndarray, y: np.ndarray, multiplier: float):
     """Fit + acquisition; returns (next unit point, fit seconds, acquisition seconds)."""
     t0 = time.perf_counter()
     train_x = torch.as_tensor(unit_x, dtype=torch.float64)
     train_y = torch.as_tensor(y, dtype=torch.float64).reshape(-1, 1)
     dims = train_x.shape[1]
-    kernel = ScaleKernel(MaternKernel(nu=2.5, ard_num_dims=dims,
-                                      lengthscale_prior=GammaPrior(3.0, 6.0)),
-                         outputscale_prior=GammaPrior(2.0, 0.15))
-    likelihood = GaussianLikelihood(noise_prior=GammaPrior(1.1, 0.05),
-                                    noise_constraint=GreaterThan(1e-4, transform=None,
-                                                                 initial_value=2.0))
-    model = SingleTaskGP(train_x, train_y, covar_module=kernel, likelihood=likelihood,
-                         outcome_transform=Standardize(m=1))
+    kernel = ScaleKernel(
+        MaternKernel(nu=2.5, ard_num_dims=dims, lengthscale_prior=GammaPrior(3.0, 6.0)),
+        outputscale_prior=GammaPrior(2.0, 0.15),
+    )
+    likelihood = GaussianLikelihood(
+        noise_prior=GammaPrior(1.1, 0.05), noise_constraint=GreaterThan(1e-4, transform=None, initial_value=2.0)
+    )
+    model = SingleTaskGP(
+        train_x, train_y, covar_module=kernel, likelihood=likelihood, outcome_transform=Standardize(m=1)
+    )
     fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
     t1 = time.perf_counter()
     bounds = torch.stack([torch.zeros(dims), torch.ones(dims)]).to(torch.float64)
-    candidate, _ = optimize_acqf(UpperConfidenceBound(model, beta=multiplier**2), bounds=bounds,
-                                 q=1, num_restarts=10, raw_samples=2000)
+    candidate, _ = optimize_acqf(
+        UpperConfidenceBound(model, beta=multiplier**2), bounds=bounds, q=1, num_restarts=10, raw_samples=2000
+    )
     t2 = time.perf_counter()
     return candidate[0].numpy(), t1 - t0, t2 - t1
 
@@ -148,6 +160,7 @@ def botorch_run(fn, lower, upper, initial_unit, num_evals):
 
 # ---- cpgjax -------------------------------------------------------------------------------
 
+
 def stack(trees):
     return jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)
 
@@ -158,19 +171,25 @@ def filled_state(opt, config, rng, num_points):
     x = lower + rng.random((num_points, 8)) * (upper - lower)
     y = np.array([float(cosine8(v)) for v in x])
     state = opt.init()
-    return state._replace(
-        parameters=state.parameters.at[:num_points].set(x),
-        objectives=state.objectives.at[:num_points].set(y),
-        stored=state.stored.at[:num_points].set(True),
-        num_stored=jnp.int32(num_points),
-    ), x, y
+    return (
+        state._replace(
+            parameters=state.parameters.at[:num_points].set(x),
+            objectives=state.objectives.at[:num_points].set(y),
+            stored=state.stored.at[:num_points].set(True),
+            num_stored=jnp.int32(num_points),
+        ),
+        x,
+        y,
+    )
 
 
 def vmapped_iteration(opt):
     """Jitted, vmapped (observe the last point, then propose): one BO iteration per instance."""
+
     def iteration(state, x, y, key):
         state, _ = opt.observe(state, x, jnp.zeros((0,)), y)
         return opt.propose(state, jnp.zeros((0,)), key), state
+
     return jax.jit(jax.vmap(iteration))
 
 
@@ -208,6 +227,7 @@ def batched_iteration(batch, repeats, rng, num_points=40):
 
 # ---- (c) regret ---------------------------------------------------------------------------
 
+
 def initial_points(seed, dims):
     return np.random.default_rng(seed).random((2, dims))
 
@@ -240,8 +260,7 @@ def cpgjax_regret(name, seeds, num_evals):
 
 def botorch_regret(name, seeds, num_evals):
     fn, lower, upper, optimum = PROBLEMS[name]
-    return np.array([optimum - botorch_run(fn, lower, upper, initial_points(s, len(lower)),
-                                           num_evals) for s in seeds])
+    return np.array([optimum - botorch_run(fn, lower, upper, initial_points(s, len(lower)), num_evals) for s in seeds])
 
 
 def quartiles(values):
@@ -253,8 +272,13 @@ def main():
     quick = ARGS.quick
     repeats = 3 if quick else 10
     rng = np.random.default_rng(0)
-    figures = {"benchmark": "bo", "machine": provenance.machine(), "pinned_cpu": ARGS.cpu,
-               "quick": quick, "load_avg_1min_start": round(os.getloadavg()[0], 2)}
+    figures = {
+        "benchmark": "bo",
+        "machine": provenance.machine(),
+        "pinned_cpu": ARGS.cpu,
+        "quick": quick,
+        "load_avg_1min_start": round(os.getloadavg()[0], 2),
+    }
     t_start = time.time()
 
     # (a) one iteration, one instance.
@@ -273,8 +297,7 @@ def main():
         figures[f"botorch_acq_ms_{label}"] = round(bt_acq, 1)
         figures[f"botorch_iter_ms_{label}"] = round(bt_fit + bt_acq, 1)
         figures[f"speedup_vs_botorch_{label}"] = round((bt_fit + bt_acq) / (fit_ms + acq_ms), 1)
-        print(f"(a) {label}: cpgjax {fit_ms:.1f} + {acq_ms:.1f} ms, BoTorch {bt_fit:.0f} +"
-              f" {bt_acq:.0f} ms", flush=True)
+        print(f"(a) {label}: cpgjax {fit_ms:.1f} + {acq_ms:.1f} ms, BoTorch {bt_fit:.0f} + {bt_acq:.0f} ms", flush=True)
 
     # (b) batches (40 points each); BoTorch loops are linear in the batch, measured on up to
     # `measured` instances and extrapolated beyond.
@@ -291,8 +314,9 @@ def main():
         figures[f"batch_iter_ms_per_instance_{batch}"] = round(ms / batch, 3)
         figures[f"botorch_loop_iter_ms_{batch}"] = round(botorch_per_instance_ms * batch, 1)
         figures[f"speedup_vs_botorch_loop_{batch}"] = round(botorch_per_instance_ms * batch / ms, 1)
-        print(f"(b) batch {batch}: cpgjax {ms:.1f} ms, BoTorch loop"
-              f" {botorch_per_instance_ms * batch:.0f} ms", flush=True)
+        print(
+            f"(b) batch {batch}: cpgjax {ms:.1f} ms, BoTorch loop {botorch_per_instance_ms * batch:.0f} ms", flush=True
+        )
     figures["botorch_loop_measured_instances"] = measured
 
     # (c) regret.
@@ -312,8 +336,11 @@ def main():
         # a difference beyond seed noise.
         p_value = float(mannwhitneyu(ours, theirs).pvalue)
         figures[f"{name}_regret_mannwhitney_p"] = round(p_value, 3)
-        print(f"(c) {name}: regret cpgjax {quartiles(ours)}, BoTorch {quartiles(theirs)}"
-              f" (median, q25, q75); Mann-Whitney p = {p_value:.2f}", flush=True)
+        print(
+            f"(c) {name}: regret cpgjax {quartiles(ours)}, BoTorch {quartiles(theirs)}"
+            f" (median, q25, q75); Mann-Whitney p = {p_value:.2f}",
+            flush=True,
+        )
 
     figures["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
     figures["wall_s"] = round(time.time() - t_start, 1)

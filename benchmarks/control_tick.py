@@ -39,11 +39,21 @@ def tick_inputs(batch: int):
         return jnp.asarray(np.tile(np.asarray(a, np.float32), (batch,) + (1,) * np.ndim(a)))
 
     qpos, qvel, sens, gravity = rep(d.qpos), rep(d.qvel), rep(d.sensordata), rep(m.opt.gravity)
-    profile = jax.tree.map(jnp.asarray, physics.batch_arrays([physics.ROBOT_PROFILE] * batch,
-                                                             noise_seed=np.arange(batch)))
+    profile = jax.tree.map(
+        jnp.asarray, physics.batch_arrays([physics.ROBOT_PROFILE] * batch, noise_seed=np.arange(batch))
+    )
     obs = jax.vmap(sensors.observe)(qpos, qvel, sens, gravity)
-    return (profile, jax.vmap(physics.init_state)(obs.foot_force_n), jax.vmap(cpg.init_state)(obs),
-            rep(params.midpoint()), protocol.batch_gates(["vmc_tegotae"] * batch), qpos, qvel, sens, gravity)
+    return (
+        profile,
+        jax.vmap(physics.init_state)(obs.foot_force_n),
+        jax.vmap(cpg.init_state)(obs),
+        rep(params.midpoint()),
+        protocol.batch_gates(["vmc_tegotae"] * batch),
+        qpos,
+        qvel,
+        sens,
+        gravity,
+    )
 
 
 def time_tick(args, calls: int, repeats: int) -> float:
@@ -77,9 +87,17 @@ def main() -> None:
     print(f"control tick, batch {a.batch}, {provenance.machine()}:")
     for name, us in results.items():
         print(f"  noise by {name}: {us:.1f} µs per tick ({us / results['splitmix']:.2f}× splitmix)")
-    print(json.dumps({"benchmark": "control_tick", "machine": provenance.machine(), "batch": a.batch,
-                      **{f"{k}_us_per_tick": round(v, 1) for k, v in results.items()},
-                      "threefry_vs_splitmix": round(results["threefry"] / results["splitmix"], 2)}))
+    print(
+        json.dumps(
+            {
+                "benchmark": "control_tick",
+                "machine": provenance.machine(),
+                "batch": a.batch,
+                **{f"{k}_us_per_tick": round(v, 1) for k, v in results.items()},
+                "threefry_vs_splitmix": round(results["threefry"] / results["splitmix"], 2),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -42,13 +42,20 @@ def main() -> None:
     completed = {}
     for batch in args.batch_sizes:
         try:
-            subprocess.run([sys.executable, "-c", CHILD, str(batch)], env=env, check=True, timeout=args.timeout_s,
-                           capture_output=True)
+            subprocess.run(
+                [sys.executable, "-c", CHILD, str(batch)],
+                env=env,
+                check=True,
+                timeout=args.timeout_s,
+                capture_output=True,
+            )
             completed[batch] = True
         except subprocess.TimeoutExpired:
             completed[batch] = False
-        print(f"batch {batch} on 2 CPU devices: {'completed' if completed[batch] else 'no result within the limit'}",
-              flush=True)
+        print(
+            f"batch {batch} on 2 CPU devices: {'completed' if completed[batch] else 'no result within the limit'}",
+            flush=True,
+        )
     print(json.dumps({f"completed_b{b}": ok for b, ok in completed.items()}))
 
 

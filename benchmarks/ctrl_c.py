@@ -34,15 +34,22 @@ from cpgjax.study.spec import StudyError  # noqa: E402
 
 # Python keeps SIGINT ignored in a child of a shell that ignores it (a background job): give the command Python's own
 # Ctrl-C handler, as a terminal would.
-START = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-         "sys.argv = ['cpgjax', *sys.argv[1:]]; runpy.run_module('cpgjax.cli', run_name='__main__')")
+START = (
+    "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "sys.argv = ['cpgjax', *sys.argv[1:]]; runpy.run_module('cpgjax.cli', run_name='__main__')"
+)
 
 
 def start(out: pathlib.Path, trials: int) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
-    return subprocess.Popen([sys.executable, "-c", START, "optimize", "--trials", str(trials), "--out", str(out),
-                             "--backend", "native"], env=env, cwd=ROOT, text=True, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
+    return subprocess.Popen(
+        [sys.executable, "-c", START, "optimize", "--trials", str(trials), "--out", str(out), "--backend", "native"],
+        env=env,
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
 
 
 def first_checkpoint_s(proc: subprocess.Popen, out: pathlib.Path, timeout_s: float = 600.0) -> float:
@@ -68,8 +75,14 @@ def main() -> None:
         first = first_checkpoint_s(probe, work / "probe")
         probe.communicate(timeout=900)
         total = time.monotonic() - t0
-        counts = {"stopped_resumable": 0, "stopped_outputs_written": 0, "exited_0_outputs_written": 0,
-                  "ended_before_the_signal": 0, "failed": 0, "lost_interrupt_messages": 0}
+        counts = {
+            "stopped_resumable": 0,
+            "stopped_outputs_written": 0,
+            "exited_0_outputs_written": 0,
+            "ended_before_the_signal": 0,
+            "failed": 0,
+            "lost_interrupt_messages": 0,
+        }
         failures = []
         for k in range(args.repeats):
             out = work / f"run{k}"
@@ -98,9 +111,21 @@ def main() -> None:
             else:
                 counts["failed"] += 1
                 failures.append({"run": k, "status": proc.returncode, "stderr": err[-600:]})
-        print(json.dumps({"benchmark": "ctrl_c", "machine": provenance.machine(), "load_avg": os.getloadavg(),
-                          "repeats": args.repeats, "trials": args.trials, "first_checkpoint_s": round(first, 1),
-                          "run_s": round(total, 1), **counts, "failures": failures}))
+        print(
+            json.dumps(
+                {
+                    "benchmark": "ctrl_c",
+                    "machine": provenance.machine(),
+                    "load_avg": os.getloadavg(),
+                    "repeats": args.repeats,
+                    "trials": args.trials,
+                    "first_checkpoint_s": round(first, 1),
+                    "run_s": round(total, 1),
+                    **counts,
+                    "failures": failures,
+                }
+            )
+        )
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -45,7 +45,8 @@ def gp_problem(batch: int, capacity: int, seed: int = 0):
         log_lengthscales=jnp.asarray(np.log(rng.uniform(0.2, 1.5, (batch, INPUT_DIMS))), jnp.float32),
         log_outputscale=jnp.asarray(np.log(rng.uniform(0.5, 3.0, batch)), jnp.float32),
         log_noise=jnp.asarray(np.log(rng.uniform(1e-3, 0.1, batch)), jnp.float32),
-        mean=jnp.asarray(rng.uniform(-0.5, 0.5, batch), jnp.float32))
+        mean=jnp.asarray(rng.uniform(-0.5, 0.5, batch), jnp.float32),
+    )
     active = jnp.ones((batch, INPUT_DIMS), bool)
     return params, gp.Dataset(jnp.asarray(inputs), jnp.asarray(targets), jnp.asarray(valid)), active
 
@@ -73,9 +74,13 @@ def legs_pair():
 def controller_pair(batch: int):
     """The vmapped controller step compiled with the hand-written Jacobian and with jacfwd's, and its inputs."""
     mid = jnp.asarray(np.tile(params.midpoint(), (batch, 1)), jnp.float32)
-    obs = sensors.Observation(jnp.tile(jnp.asarray([0.0, 0.8, -1.6] * 4, jnp.float32), (batch, 1)),
-                              jnp.zeros((batch, 12)), jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0]), (batch, 1)),
-                              jnp.zeros((batch, 3)), jnp.full((batch, 4), 30.0))
+    obs = sensors.Observation(
+        jnp.tile(jnp.asarray([0.0, 0.8, -1.6] * 4, jnp.float32), (batch, 1)),
+        jnp.zeros((batch, 12)),
+        jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0]), (batch, 1)),
+        jnp.zeros((batch, 3)),
+        jnp.full((batch, 4), 30.0),
+    )
     state = jax.vmap(cpg.init_state)(obs)
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     step = jax.vmap(lambda s, p, g, o: cpg.controller_step(cpg.CPGConfig(), s, p, g, o)[1])
@@ -108,7 +113,7 @@ def main(argv=None) -> None:
     rounds, repeats = (2, 5) if args.quick else (args.rounds, args.repeats)
     common = {"machine": provenance.machine(), "commit": provenance.git_commit()}
 
-    for batch, capacity in ([(20, 40)] if args.quick else [(20, 40), (80, 40), (20, 80), (20, 160)]):
+    for batch, capacity in [(20, 40)] if args.quick else [(20, 40), (80, 40), (20, 80), (20, 160)]:
         problem = gp_problem(batch, capacity)
         engine, analytic, autodiff = gp_pair(problem)
         (v_a, g_a), (v_b, g_b) = analytic(*problem), autodiff(*problem)
@@ -117,26 +122,61 @@ def main(argv=None) -> None:
             np.testing.assert_allclose(x, y, rtol=1e-3, atol=1e-3 * float(np.abs(y).max()))
         t_a, t_b = alternate(analytic, autodiff, problem, rounds, repeats)
         t_e = median_seconds(engine, *problem, repeats=repeats)
-        print(json.dumps({"benchmark": "derivatives", "what": "GP log-posterior and gradient", "batch": batch,
-                          "capacity": capacity, "stored": capacity // 2, "hand_written_us": round(t_a * 1e6, 1),
-                          "autodiff_us": round(t_b * 1e6, 1), "autodiff_over_hand_written": round(t_b / t_a, 2),
-                          "hand_written_looped_lapack_us": round(t_e * 1e6, 1), **common}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "benchmark": "derivatives",
+                    "what": "GP log-posterior and gradient",
+                    "batch": batch,
+                    "capacity": capacity,
+                    "stored": capacity // 2,
+                    "hand_written_us": round(t_a * 1e6, 1),
+                    "autodiff_us": round(t_b * 1e6, 1),
+                    "autodiff_over_hand_written": round(t_b / t_a, 2),
+                    "hand_written_looped_lapack_us": round(t_e * 1e6, 1),
+                    **common,
+                }
+            ),
+            flush=True,
+        )
 
     analytic, autodiff = legs_pair()
     side = jnp.asarray(kinematics.SIDE_SIGN, jnp.float32)
-    for batch in ([20] if args.quick else [1, 20, 64]):
+    for batch in [20] if args.quick else [1, 20, 64]:
         q = jnp.asarray(np.random.default_rng(1).uniform(-1.0, 1.0, (batch, 4, 3)), jnp.float32)
         np.testing.assert_allclose(analytic(q, side), autodiff(q, side), rtol=1e-5, atol=1e-6)
         t_a, t_b = alternate(analytic, autodiff, (q, side), rounds, repeats * 10)
-        print(json.dumps({"benchmark": "derivatives", "what": "legs' Jacobian", "batch": batch,
-                          "hand_written_us": round(t_a * 1e6, 2), "autodiff_us": round(t_b * 1e6, 2),
-                          "autodiff_over_hand_written": round(t_b / t_a, 2), **common}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "benchmark": "derivatives",
+                    "what": "legs' Jacobian",
+                    "batch": batch,
+                    "hand_written_us": round(t_a * 1e6, 2),
+                    "autodiff_us": round(t_b * 1e6, 2),
+                    "autodiff_over_hand_written": round(t_b / t_a, 2),
+                    **common,
+                }
+            ),
+            flush=True,
+        )
         hand_written, autodiff_step, step_args = controller_pair(batch)
         np.testing.assert_allclose(hand_written(*step_args), autodiff_step(*step_args), rtol=1e-5, atol=1e-4)
         t_a, t_b = alternate(hand_written, autodiff_step, step_args, rounds, repeats * 10)
-        print(json.dumps({"benchmark": "derivatives", "what": "controller step with the legs' Jacobian",
-                          "batch": batch, "hand_written_us": round(t_a * 1e6, 2), "autodiff_us": round(t_b * 1e6, 2),
-                          "autodiff_over_hand_written": round(t_b / t_a, 2), **common}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "benchmark": "derivatives",
+                    "what": "controller step with the legs' Jacobian",
+                    "batch": batch,
+                    "hand_written_us": round(t_a * 1e6, 2),
+                    "autodiff_us": round(t_b * 1e6, 2),
+                    "autodiff_over_hand_written": round(t_b / t_a, 2),
+                    **common,
+                }
+            ),
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -87,19 +87,25 @@ def main() -> None:
         with whole_batch_lapack() if variant == "whole" else contextlib.nullcontext():
             print(seconds(batch, points, args.repeats))
         return
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs (unpinned); "
-          f"jax {jax.__version__}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs (unpinned); "
+        f"jax {jax.__version__}"
+    )
     figures = {}
     for points in (int(p) for p in args.points.split(",")):
         for batch in (int(b) for b in args.batches.split(",")):
             looped, whole = measure("looped", batch, points, args), measure("whole", batch, points, args)
             figures[f"{batch} x {points} points"] = {
-                "looped_s": looped, "whole_batch_s": whole,
-                "ratio": None if looped is None or whole is None else looped / whole}
+                "looped_s": looped,
+                "whole_batch_s": whole,
+                "ratio": None if looped is None or whole is None else looped / whole,
+            }
             shown = lambda t: "stalled" if t is None else f"{t * 1e3:.1f} ms"  # noqa: E731
             ratio = "" if looped is None or whole is None else f", ratio {looped / whole:.2f}"
-            print(f"{batch} instances, {points} points: looped {shown(looped)}, whole batch {shown(whole)}{ratio}",
-                  flush=True)
+            print(
+                f"{batch} instances, {points} points: looped {shown(looped)}, whole batch {shown(whole)}{ratio}",
+                flush=True,
+            )
     print(json.dumps(figures))
 
 

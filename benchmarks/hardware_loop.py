@@ -111,13 +111,18 @@ def polling_ab_figures(log: hio.TickLog, kinds: np.ndarray, period_s: float) -> 
         part = hio.TickLog(*(a[ticks] for a in log))
         n = max(int(ticks.sum()), 1)
         causes = np.bincount(hio.overrun_causes(part), minlength=len(hio.OVERRUN_CAUSES))
-        figures.update({f"ab_{name}_ticks": int(ticks.sum()),
-                        f"ab_{name}_overruns_per_10k_ticks": round(float(part.overrun.sum()) / n * 1e4, 2),
-                        **{f"ab_{name}_overruns_{c}": int(k) for c, k in zip(hio.OVERRUN_CAUSES, causes, strict=True)},
-                        f"ab_{name}_wakeups_later_than_period_per_10k": round(float(np.sum(part.late_s > period_s)) / n
-                                                                              * 1e4, 2),
-                        f"ab_{name}_work_median_us": round(float(np.median(part.work_s)) * 1e6, 1),
-                        f"ab_{name}_work_p99_us": round(float(np.percentile(part.work_s, 99)) * 1e6, 1)})
+        figures.update(
+            {
+                f"ab_{name}_ticks": int(ticks.sum()),
+                f"ab_{name}_overruns_per_10k_ticks": round(float(part.overrun.sum()) / n * 1e4, 2),
+                **{f"ab_{name}_overruns_{c}": int(k) for c, k in zip(hio.OVERRUN_CAUSES, causes, strict=True)},
+                f"ab_{name}_wakeups_later_than_period_per_10k": round(
+                    float(np.sum(part.late_s > period_s)) / n * 1e4, 2
+                ),
+                f"ab_{name}_work_median_us": round(float(np.median(part.work_s)) * 1e6, 1),
+                f"ab_{name}_work_p99_us": round(float(np.percentile(part.work_s, 99)) * 1e6, 1),
+            }
+        )
     return figures
 
 
@@ -170,7 +175,7 @@ class StageTimer:
         """Median / p99 [µs] and share of the 1 ms period per stage, and the whole tick's work."""
         lines = ["| stage | median [µs] | p99 [µs] | p99 / period |", "|---|---|---|---|"]
         figures = {}
-        rows = [(name, self.times[name][:min(self.calls[name], self.times[name].shape[0])]) for name in STAGES]
+        rows = [(name, self.times[name][: min(self.calls[name], self.times[name].shape[0])]) for name in STAGES]
         rows[STAGES.index("controller step")] = ("controller step", step_s)
         for name, t in rows + [("tick work (all)", work_s)]:
             if t.size == 0:
@@ -192,24 +197,39 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     load_start = os.getloadavg()[0]
     # The simulated robot gets real-time priority too (just below the loop's): a real Go1 is not starved by this
     # machine's other processes, but its simulation on the same 2 CPUs would be.
-    with sim.SimGo1Client(pacing="realtime", realtime_priority=None if args.no_realtime else 70,
-                          cpus=sim_cpus) as robot:
+    with sim.SimGo1Client(
+        pacing="realtime", realtime_priority=None if args.no_realtime else 70, cpus=sim_cpus
+    ) as robot:
         controller = compiled_controller.CompiledController()
-        loop = hio.LoopConfig(spin_s=args.spin_us * 1e-6, realtime_priority=loop_priority, cpu=cpu, busy_wait=busy,
-                              poll_idle=not (args.idle_halt or args.poll_ab),  # --poll-ab: the toggle's
-                              log_ticks=round((duration_s + 5.0) * 1000))
+        loop = hio.LoopConfig(
+            spin_s=args.spin_us * 1e-6,
+            realtime_priority=loop_priority,
+            cpu=cpu,
+            busy_wait=busy,
+            poll_idle=not (args.idle_halt or args.poll_ab),  # --poll-ab: the toggle's
+            log_ticks=round((duration_s + 5.0) * 1000),
+        )
         floor_late_s = hio.idle_loop_lateness_s(probe_s, loop) if probe_s > 0 else np.zeros(0)
-        transport = (go1_transport.SdkTransport("127.0.0.1", robot.port, deploy._free_port()) if args.transport == "sdk"
-                     else go1_transport.UdpTransport(robot.address))
+        transport = (
+            go1_transport.SdkTransport("127.0.0.1", robot.port, deploy._free_port())
+            if args.transport == "sdk"
+            else go1_transport.UdpTransport(robot.address)
+        )
         stages = StageTimer(transport, controller, loop.log_ticks) if args.stages else None
         toggle = PollingToggle(args.poll_ab) if args.poll_ab else contextlib.nullcontext()
         t0, waits0 = time.perf_counter(), voluntary_waits()
         try:
             with toggle:
                 schedule = hio.FixedParams(params.midpoint(), round(duration_s * 1000))
-                result = hio.run_loop(transport, controller, schedule, deploy.sim_calibration(),
-                                      cpg.controller_gates("vmc_tegotae"), loop,
-                                      go1_safety.SafetyConfig(watchdog_ticks=50))
+                result = hio.run_loop(
+                    transport,
+                    controller,
+                    schedule,
+                    deploy.sim_calibration(),
+                    cpg.controller_gates("vmc_tegotae"),
+                    loop,
+                    go1_safety.SafetyConfig(watchdog_ticks=50),
+                )
         finally:
             if stages is not None:
                 stages.restore()
@@ -220,33 +240,52 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
     log = result.log
     print(f"## {mode}")
     print(f"events: {result.events}")
-    print(f"scheduling: {result.realtime}; simulated Go1 on CPUs {sorted(sim_cpus) if sim_cpus else 'any'}; "
-          f"spin {'the whole period' if busy else f'{args.spin_us:.0f} µs'}; load average at start {load_start:.2f}, "
-          f"at end {os.getloadavg()[0]:.2f}")
+    print(
+        f"scheduling: {result.realtime}; simulated Go1 on CPUs {sorted(sim_cpus) if sim_cpus else 'any'}; "
+        f"spin {'the whole period' if busy else f'{args.spin_us:.0f} µs'}; load average at start {load_start:.2f}, "
+        f"at end {os.getloadavg()[0]:.2f}"
+    )
     period_s, work_median_s = loop.period_s, timing["work_median_us"] * 1e-6
-    floor = dict.fromkeys(("floor_wakeups_later_than_period_per_10k", "floor_overruns_per_10k_ticks",
-                           "floor_late_p99_us", "floor_late_max_us"))  # None without a probe
+    floor = dict.fromkeys(
+        (
+            "floor_wakeups_later_than_period_per_10k",
+            "floor_overruns_per_10k_ticks",
+            "floor_late_p99_us",
+            "floor_late_max_us",
+        )
+    )  # None without a probe
     if floor_late_s.size:
-        floor.update(floor_wakeups_later_than_period_per_10k=round(float(np.mean(floor_late_s > period_s)) * 1e4, 2),
-                     floor_overruns_per_10k_ticks=round(float(np.mean(floor_late_s + work_median_s > period_s))
-                                                        * 1e4, 2),
-                     floor_late_p99_us=round(float(np.percentile(floor_late_s, 99)) * 1e6, 1),
-                     floor_late_max_us=round(float(floor_late_s.max()) * 1e6, 1))
-        print(f"floor (probe)    {probe_s:.0f} s of the same wait with no work: wake-ups p99 "
-              f"{floor['floor_late_p99_us']:.0f} µs late, max {floor['floor_late_max_us']:.0f} µs; later than the "
-              f"period {floor['floor_wakeups_later_than_period_per_10k']:.2f} per 10k, later than the period less "
-              f"the loop's median work {floor['floor_overruns_per_10k_ticks']:.2f} per 10k (the overruns of a loop "
-              f"with that work from its wake-ups alone)")
-    print(f"controller step  median {timing['step_median_us']:.1f} µs  p99 {timing['step_p99_us']:.1f} µs  "
-          f"max {timing['step_max_us']:.1f} µs   (target p99 ≤ 200 µs)")
-    print(f"loop period      median {timing['period_median_us']:.1f} µs  p1 {timing['period_p1_us']:.1f} µs  "
-          f"p99 {timing['period_p99_us']:.1f} µs  max {timing['period_max_us']:.1f} µs   (target p99 ≤ 1100 µs)")
-    print(f"blocking waits   {waits / result.ticks:.2f} per tick (the sleep: ≤ 1; XLA dispatch "
-          f"{'inline' if controller.inline_dispatch else 'ASYNCHRONOUS'})")
+        floor.update(
+            floor_wakeups_later_than_period_per_10k=round(float(np.mean(floor_late_s > period_s)) * 1e4, 2),
+            floor_overruns_per_10k_ticks=round(float(np.mean(floor_late_s + work_median_s > period_s)) * 1e4, 2),
+            floor_late_p99_us=round(float(np.percentile(floor_late_s, 99)) * 1e6, 1),
+            floor_late_max_us=round(float(floor_late_s.max()) * 1e6, 1),
+        )
+        print(
+            f"floor (probe)    {probe_s:.0f} s of the same wait with no work: wake-ups p99 "
+            f"{floor['floor_late_p99_us']:.0f} µs late, max {floor['floor_late_max_us']:.0f} µs; later than the "
+            f"period {floor['floor_wakeups_later_than_period_per_10k']:.2f} per 10k, later than the period less "
+            f"the loop's median work {floor['floor_overruns_per_10k_ticks']:.2f} per 10k (the overruns of a loop "
+            f"with that work from its wake-ups alone)"
+        )
+    print(
+        f"controller step  median {timing['step_median_us']:.1f} µs  p99 {timing['step_p99_us']:.1f} µs  "
+        f"max {timing['step_max_us']:.1f} µs   (target p99 ≤ 200 µs)"
+    )
+    print(
+        f"loop period      median {timing['period_median_us']:.1f} µs  p1 {timing['period_p1_us']:.1f} µs  "
+        f"p99 {timing['period_p99_us']:.1f} µs  max {timing['period_max_us']:.1f} µs   (target p99 ≤ 1100 µs)"
+    )
+    print(
+        f"blocking waits   {waits / result.ticks:.2f} per tick (the sleep: ≤ 1; XLA dispatch "
+        f"{'inline' if controller.inline_dispatch else 'ASYNCHRONOUS'})"
+    )
     print(f"tick work        median {timing['work_median_us']:.1f} µs  p99 {timing['work_p99_us']:.1f} µs")
-    print(f"overruns         {timing['overruns']} in {timing['ticks']} ticks = "
-          f"{timing['overruns_per_10k_ticks']:.2f} per 10k   (target ≤ 1); by cause: "
-          + ", ".join(f"{name} {timing[f'overruns_{name}']}" for name in hio.OVERRUN_CAUSES))
+    print(
+        f"overruns         {timing['overruns']} in {timing['ticks']} ticks = "
+        f"{timing['overruns_per_10k_ticks']:.2f} per 10k   (target ≤ 1); by cause: "
+        + ", ".join(f"{name} {timing[f'overruns_{name}']}" for name in hio.OVERRUN_CAUSES)
+    )
     stage_figures = {}
     if stages is not None:
         active = log.phase > hio.CONNECT
@@ -254,23 +293,35 @@ def run_mode(mode: str, duration_s: float, probe_s: float, args) -> dict:
         print(f"time per stage (wall, every tick after connecting; the stage timers add ≈ 0.3 µs per call)\n{text}")
     ab_figures = polling_ab_figures(log, toggle.kinds(log.t_start_s), loop.period_s) if args.poll_ab else {}
     for name in ("polling", "halting") if args.poll_ab else ():
-        print(f"{name:7s} ticks   {ab_figures[f'ab_{name}_ticks']} (idle CPUs {name}, every other {args.poll_ab:g} s): "
-              f"overruns {ab_figures[f'ab_{name}_overruns_per_10k_ticks']:.2f} per 10k ("
-              + ", ".join(f"{c} {ab_figures[f'ab_{name}_overruns_{c}']}" for c in hio.OVERRUN_CAUSES)
-              + f"), wake-ups later than the period {ab_figures[f'ab_{name}_wakeups_later_than_period_per_10k']:.2f} "
-              f"per 10k, tick work median {ab_figures[f'ab_{name}_work_median_us']:.1f} µs p99 "
-              f"{ab_figures[f'ab_{name}_work_p99_us']:.1f} µs")
+        print(
+            f"{name:7s} ticks   {ab_figures[f'ab_{name}_ticks']} (idle CPUs {name}, every other {args.poll_ab:g} s): "
+            f"overruns {ab_figures[f'ab_{name}_overruns_per_10k_ticks']:.2f} per 10k ("
+            + ", ".join(f"{c} {ab_figures[f'ab_{name}_overruns_{c}']}" for c in hio.OVERRUN_CAUSES)
+            + f"), wake-ups later than the period {ab_figures[f'ab_{name}_wakeups_later_than_period_per_10k']:.2f} "
+            f"per 10k, tick work median {ab_figures[f'ab_{name}_work_median_us']:.1f} µs p99 "
+            f"{ab_figures[f'ab_{name}_work_p99_us']:.1f} µs"
+        )
     for k in np.flatnonzero(log.overrun)[:20]:
-        print(f"  tick {k}: started {log.late_s[k] * 1e6:7.0f} µs late, work {log.work_s[k] * 1e6:6.0f} µs wall "
-              f"/ {log.work_cpu_s[k] * 1e6:5.0f} µs CPU ({hio.PHASE_NAMES[log.phase[k]]})")
+        print(
+            f"  tick {k}: started {log.late_s[k] * 1e6:7.0f} µs late, work {log.work_s[k] * 1e6:6.0f} µs wall "
+            f"/ {log.work_cpu_s[k] * 1e6:5.0f} µs CPU ({hio.PHASE_NAMES[log.phase[k]]})"
+        )
     return {
-        "scheduling": result.realtime, "sim_cpus": sorted(sim_cpus) if sim_cpus else None,
-        "spin_us": duration_s * 1e6 if busy else args.spin_us, "wall_s": round(wall_s, 1),
-        "walked_m": round(walked_m, 2), "trip": result.trip, "load_avg_1min_start": round(load_start, 2),
-        "load_avg_1min_end": round(os.getloadavg()[0], 2), **floor,
+        "scheduling": result.realtime,
+        "sim_cpus": sorted(sim_cpus) if sim_cpus else None,
+        "spin_us": duration_s * 1e6 if busy else args.spin_us,
+        "wall_s": round(wall_s, 1),
+        "walked_m": round(walked_m, 2),
+        "trip": result.trip,
+        "load_avg_1min_start": round(load_start, 2),
+        "load_avg_1min_end": round(os.getloadavg()[0], 2),
+        **floor,
         **{k: round(v, 2) if isinstance(v, float) else v for k, v in timing.items()},
-        "skipped_ticks": result.skipped_ticks, "inline_dispatch": controller.inline_dispatch,
-        "blocking_waits_per_tick": round(waits / result.ticks, 3), **stage_figures, **ab_figures,
+        "skipped_ticks": result.skipped_ticks,
+        "inline_dispatch": controller.inline_dispatch,
+        "blocking_waits_per_tick": round(waits / result.ticks, 3),
+        **stage_figures,
+        **ab_figures,
     }
 
 
@@ -279,31 +330,53 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="10 s instead of 60 s per mode")
     parser.add_argument("--duration-s", type=float, help="walking time per mode (default 60, --quick 10)")
-    parser.add_argument("--probe-s", type=float,
-                        help="floor probe (the same wait with no work) before each loop (default 20, --quick 5; "
-                        "0: off)")
-    parser.add_argument("--idle-halt", action="store_true",
-                        help="let idle CPUs halt while the loop runs (LoopConfig.poll_idle off; default: polling)")
-    parser.add_argument("--poll-ab", type=float, metavar="S",
-                        help="compare polling and halting idle CPUs within each run: the polling request is made and "
-                        "released every S seconds, and the ticks of each kind are reported apart")
+    parser.add_argument(
+        "--probe-s",
+        type=float,
+        help="floor probe (the same wait with no work) before each loop (default 20, --quick 5; 0: off)",
+    )
+    parser.add_argument(
+        "--idle-halt",
+        action="store_true",
+        help="let idle CPUs halt while the loop runs (LoopConfig.poll_idle off; default: polling)",
+    )
+    parser.add_argument(
+        "--poll-ab",
+        type=float,
+        metavar="S",
+        help="compare polling and halting idle CPUs within each run: the polling request is made and "
+        "released every S seconds, and the ticks of each kind are reported apart",
+    )
     parser.add_argument("--modes", default="sleep,busy-wait", help="comma list of sleep, busy-wait")
     parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
-    parser.add_argument("--cpu", type=int, help="pin the loop to this CPU (default: the last) and the simulated Go1 "
-                        "to the others")
-    parser.add_argument("--spin-us", type=float, default=hio.LoopConfig().spin_s * 1e6,
-                        help="sleep mode: spin this long before each deadline instead of sleeping")
+    parser.add_argument(
+        "--cpu", type=int, help="pin the loop to this CPU (default: the last) and the simulated Go1 to the others"
+    )
+    parser.add_argument(
+        "--spin-us",
+        type=float,
+        default=hio.LoopConfig().spin_s * 1e6,
+        help="sleep mode: spin this long before each deadline instead of sleeping",
+    )
     parser.add_argument("--transport", choices=("udp", "sdk"), default="udp")
-    parser.add_argument("--stages", action="store_true", help="time each stage of the tick (receive, decode, "
-                        "checks, controller step, guard, encode, send, log)")
+    parser.add_argument(
+        "--stages",
+        action="store_true",
+        help="time each stage of the tick (receive, decode, checks, controller step, guard, encode, send, log)",
+    )
     args = parser.parse_args()
     modes = args.modes.split(",")
     if not set(modes) <= {"sleep", "busy-wait"}:
         parser.error(f"--modes {args.modes!r}: each of sleep, busy-wait")
     duration_s = args.duration_s or (10.0 if args.quick else 60.0)
     probe_s = args.probe_s if args.probe_s is not None else (5.0 if args.quick else 20.0)
-    figures = {"benchmark": "hardware_loop", "machine": provenance.machine(), "transport": args.transport,
-               "walk_s": duration_s, "probe_s": probe_s}
+    figures = {
+        "benchmark": "hardware_loop",
+        "machine": provenance.machine(),
+        "transport": args.transport,
+        "walk_s": duration_s,
+        "probe_s": probe_s,
+    }
     for mode in modes:
         mode_figures = run_mode(mode, duration_s, probe_s, args)
         figures.update({f"{mode.replace('-', '_')}_{k}": v for k, v in mode_figures.items()})

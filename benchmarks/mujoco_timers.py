@@ -56,8 +56,10 @@ def main() -> None:
     sim = native.NativeBackend(go1_model.make_scenarios(friction=np.full(args.batch, 0.6), physics="paper"))
     stepper_set = callback.value
     if not clock or stepper_set == clock:
-        sys.exit(f"benchmarks/mujoco_timers.py: mjcb_time {clock} before the stepper, {stepper_set} with it: "
-                 "nothing to compare")
+        sys.exit(
+            f"benchmarks/mujoco_timers.py: mjcb_time {clock} before the stepper, {stepper_set} with it: "
+            "nothing to compare"
+        )
 
     rng = np.random.default_rng(0)
 
@@ -82,17 +84,30 @@ def main() -> None:
     diff = on - off  # each pair: a trial with the clock, then the next without
     half = 1.96 * diff.std(ddof=1) / np.sqrt(diff.size)
     rate = {k: args.batch * ticks / np.mean(v) for k, v in seconds.items()}
-    print(f"batch {args.batch}, {diff.size} pairs of {ticks}-tick trials: with the bindings' clock "
-          f"{rate['clock']:,.0f} env-steps/s, timers off {rate['stepper']:,.0f} env-steps/s; a trial "
-          f"{diff.mean() * 1e3:.1f} ms [{(diff.mean() - half) * 1e3:.1f}, {(diff.mean() + half) * 1e3:.1f}] longer "
-          f"with the clock ({on.mean() / off.mean() - 1:+.1%})")
-    print(json.dumps({"benchmark": "mujoco_timers", "machine": provenance.machine(), "physics": "paper",
-                      "batch": args.batch, "pairs": int(diff.size), "ticks": ticks,
-                      "env_steps_per_s_clock": round(rate["clock"]), "env_steps_per_s_timers_off":
-                      round(rate["stepper"]), "trial_time_ratio_clock_vs_off": round(on.mean() / off.mean(), 4),
-                      "paired_diff_ms": round(diff.mean() * 1e3, 2), "paired_diff_ci95_ms":
-                      [round((diff.mean() - half) * 1e3, 2), round((diff.mean() + half) * 1e3, 2)],
-                      "load_avg_1min_end": round(os.getloadavg()[0], 2)}))
+    print(
+        f"batch {args.batch}, {diff.size} pairs of {ticks}-tick trials: with the bindings' clock "
+        f"{rate['clock']:,.0f} env-steps/s, timers off {rate['stepper']:,.0f} env-steps/s; a trial "
+        f"{diff.mean() * 1e3:.1f} ms [{(diff.mean() - half) * 1e3:.1f}, {(diff.mean() + half) * 1e3:.1f}] longer "
+        f"with the clock ({on.mean() / off.mean() - 1:+.1%})"
+    )
+    print(
+        json.dumps(
+            {
+                "benchmark": "mujoco_timers",
+                "machine": provenance.machine(),
+                "physics": "paper",
+                "batch": args.batch,
+                "pairs": int(diff.size),
+                "ticks": ticks,
+                "env_steps_per_s_clock": round(rate["clock"]),
+                "env_steps_per_s_timers_off": round(rate["stepper"]),
+                "trial_time_ratio_clock_vs_off": round(on.mean() / off.mean(), 4),
+                "paired_diff_ms": round(diff.mean() * 1e3, 2),
+                "paired_diff_ci95_ms": [round((diff.mean() - half) * 1e3, 2), round((diff.mean() + half) * 1e3, 2)],
+                "load_avg_1min_end": round(os.getloadavg()[0], 2),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

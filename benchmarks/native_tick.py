@@ -87,14 +87,19 @@ def _lanes(accounts: np.ndarray, seconds: float, steps: int) -> dict:
     out = {}
     for t in range(accounts.shape[0]):
         who = "caller" if t == accounts.shape[0] - 1 else f"w{t}"
-        out.update({f"{who}_instances_per_tick": round(f["steps"][t] / steps, 2),
-                    f"{who}_step_us": _us_each(f["step_ns"][t], f["steps"][t]),
-                    f"{who}_mj_step_us": _us_each(f["mj_step_ns"][t], f["steps"][t]),
-                    f"{who}_first_step_us": _us_each(f["first_step_ns"][t], f["first_steps"][t])})
+        out.update(
+            {
+                f"{who}_instances_per_tick": round(f["steps"][t] / steps, 2),
+                f"{who}_step_us": _us_each(f["step_ns"][t], f["steps"][t]),
+                f"{who}_mj_step_us": _us_each(f["mj_step_ns"][t], f["steps"][t]),
+                f"{who}_first_step_us": _us_each(f["first_step_ns"][t], f["first_steps"][t]),
+            }
+        )
         if who == "caller":
             out["caller_waited_us_per_tick"] = round(f["wait_ns"][t] / steps / 1e3, 1)
-            out["caller_outside_us_per_tick"] = round((seconds * 1e9 - f["step_ns"][t] - f["wait_ns"][t])
-                                                      / steps / 1e3, 1)
+            out["caller_outside_us_per_tick"] = round(
+                (seconds * 1e9 - f["step_ns"][t] - f["wait_ns"][t]) / steps / 1e3, 1
+            )
         else:  # a worker's wait is counted when it ends, so one that began before the run counts: wall − steps
             out[f"{who}_idle_us_per_tick"] = round((seconds * 1e9 - f["step_ns"][t]) / steps / 1e3, 1)
     return out
@@ -105,8 +110,9 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
     accounts, the closed loop's best run and the physics alone split by thread."""
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
-    sim = native_go1.NativeBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics),
-                                   trial_config=config, stepping=stepping)
+    sim = native_go1.NativeBackend(
+        go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=physics), trial_config=config, stepping=stepping
+    )
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
 
@@ -120,6 +126,7 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
             if accounts is not None and seconds < best.get(name, (np.inf,))[0]:
                 best[name] = (seconds, accounts)
             return seconds
+
         return timed
 
     @functools.partial(accounted, "closed_loop")
@@ -164,6 +171,7 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
         def body(c, host_in):
             c, torque = program.tick(consts, c, host_in)
             return c, torque[0, 0]
+
         return jax.lax.scan(body, carry, host_inputs)
 
     host_inputs_device = jnp.asarray(host_inputs)
@@ -183,9 +191,15 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
             sim.physics.step(torques[k])
         return time.perf_counter() - t0
 
-    per_tick = {name: 1e6 * _best(run, repeats) / steps for name, run in
-                (("closed_loop", closed_loop), ("controller", controller_calls), ("physics", physics_steps),
-                 ("controller_scan", controller_scan))}
+    per_tick = {
+        name: 1e6 * _best(run, repeats) / steps
+        for name, run in (
+            ("closed_loop", closed_loop),
+            ("controller", controller_calls),
+            ("physics", physics_steps),
+            ("controller_scan", controller_scan),
+        )
+    }
     controller = per_tick["controller_scan" if stepping == "ffi" else "controller"]  # what the closed loop runs
     per_tick["rest"] = per_tick["closed_loop"] - controller - per_tick["physics"]
     sim.physics.close()
@@ -194,15 +208,21 @@ def breakdown(batch: int, steps: int, repeats: int, physics: str, stepping: str)
         lanes = _lanes(best["closed_loop"][1], best["closed_loop"][0], steps)
         alone = _fields(best["physics"][1])
         lanes["physics_alone_step_us"] = _us_each(alone["step_ns"].sum(), alone["steps"].sum())
-    return {**{f"{k}_us": round(v, 1) for k, v in per_tick.items()},
-            "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]), "threads": sim.physics.nthread, **lanes}
+    return {
+        **{f"{k}_us": round(v, 1) for k, v in per_tick.items()},
+        "env_steps_per_s": round(batch * 1e6 / per_tick["closed_loop"]),
+        "threads": sim.physics.nthread,
+        **lanes,
+    }
 
 
 def _print_lanes(lanes: list[tuple[int, dict]]) -> None:
-    print("\n# the closed loop's best run by thread (accounts; µs per tick unless said)\n"
-          "| batch | thread | instances stepped | µs per step (its mj_step) | first step after other work [µs] "
-          "| idle | outside the library | waiting in a finish | µs per step, physics alone |\n"
-          "|---|---|---|---|---|---|---|---|---|")
+    print(
+        "\n# the closed loop's best run by thread (accounts; µs per tick unless said)\n"
+        "| batch | thread | instances stepped | µs per step (its mj_step) | first step after other work [µs] "
+        "| idle | outside the library | waiting in a finish | µs per step, physics alone |\n"
+        "|---|---|---|---|---|---|---|---|---|"
+    )
     for b, r in lanes:
         threads = sorted({k.split("_", 1)[0] for k in r if k.endswith("_instances_per_tick")}, key="caller".__eq__)
         for who in threads:
@@ -210,9 +230,11 @@ def _print_lanes(lanes: list[tuple[int, dict]]) -> None:
             idle = "" if caller else f"{r[who + '_idle_us_per_tick']:.1f}"
             outside = f"{r['caller_outside_us_per_tick']:.1f}" if caller else ""
             waited = f"{r['caller_waited_us_per_tick']:.1f}" if caller else ""
-            print(f"| {b} | {who} | {r[who + '_instances_per_tick']:.2f} | {r[who + '_step_us']:.1f} "
-                  f"({r[who + '_mj_step_us']:.1f}) | {r[who + '_first_step_us']:.1f} | {idle} | {outside} | {waited} "
-                  f"| {r['physics_alone_step_us']:.1f} |")
+            print(
+                f"| {b} | {who} | {r[who + '_instances_per_tick']:.2f} | {r[who + '_step_us']:.1f} "
+                f"({r[who + '_mj_step_us']:.1f}) | {r[who + '_first_step_us']:.1f} | {idle} | {outside} | {waited} "
+                f"| {r['physics_alone_step_us']:.1f} |"
+            )
 
 
 def main() -> None:
@@ -221,10 +243,17 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=400, help="ticks per timed run")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--physics", default=physics_profiles.DEFAULT_PROFILE, choices=physics_profiles.PROFILES)
-    parser.add_argument("--stepping", choices=("ffi", "batch"), default=None,
-                        help="the native backend's stepping (default: native_physics.default_stepping())")
-    parser.add_argument("--accounts", action="store_true",
-                        help="split the closed loop by thread, from the physics library's accounts (ffi stepping)")
+    parser.add_argument(
+        "--stepping",
+        choices=("ffi", "batch"),
+        default=None,
+        help="the native backend's stepping (default: native_physics.default_stepping())",
+    )
+    parser.add_argument(
+        "--accounts",
+        action="store_true",
+        help="split the closed loop by thread, from the physics library's accounts (ffi stepping)",
+    )
     args = parser.parse_args()
     if args.accounts:
         if args.stepping == "batch":
@@ -234,21 +263,36 @@ def main() -> None:
     if args.accounts and stepping != "ffi":
         parser.error("--accounts: the ffi stepping is not available on this machine (see the log)")
     if min(args.batch_sizes) < 1 or args.steps < 4 or args.repeats < 1:
-        parser.error(f"--batch-sizes {args.batch_sizes}, --steps {args.steps}, --repeats {args.repeats}: need "
-                     "batch sizes ≥ 1, steps ≥ 4, repeats ≥ 1")
+        parser.error(
+            f"--batch-sizes {args.batch_sizes}, --steps {args.steps}, --repeats {args.repeats}: need "
+            "batch sizes ≥ 1, steps ≥ 4, repeats ≥ 1"
+        )
     load_start = os.getloadavg()[0]
-    print(f"# {provenance.machine()}, {native_physics.available_cores()} cores, {args.physics} physics, {stepping} "
-          f"stepping, {args.steps} ticks, best of {args.repeats}, load average {load_start:.1f}")
-    print("| batch | threads | closed loop [µs/tick] | controller call [µs] | controller in a scan [µs/tick] "
-          "| physics step [µs] | rest [µs] | env-steps/s |\n|---|---|---|---|---|---|---|---|")
+    print(
+        f"# {provenance.machine()}, {native_physics.available_cores()} cores, {args.physics} physics, {stepping} "
+        f"stepping, {args.steps} ticks, best of {args.repeats}, load average {load_start:.1f}"
+    )
+    print(
+        "| batch | threads | closed loop [µs/tick] | controller call [µs] | controller in a scan [µs/tick] "
+        "| physics step [µs] | rest [µs] | env-steps/s |\n|---|---|---|---|---|---|---|---|"
+    )
     lanes = []
-    figures = {"benchmark": "native_tick", "machine": provenance.machine(), "physics": args.physics,
-               "stepping": stepping, "steps": args.steps, "repeats": args.repeats}
+    figures = {
+        "benchmark": "native_tick",
+        "machine": provenance.machine(),
+        "physics": args.physics,
+        "stepping": stepping,
+        "steps": args.steps,
+        "repeats": args.repeats,
+    }
     for b in args.batch_sizes:
         r = breakdown(b, args.steps, args.repeats, args.physics, stepping)
-        print(f"| {b} | {r['threads']} | {r['closed_loop_us']:.0f} | {r['controller_us']:.0f} "
-              f"| {r['controller_scan_us']:.0f} | {r['physics_us']:.0f} | {r['rest_us']:.0f} "
-              f"| {r['env_steps_per_s']:,} |", flush=True)
+        print(
+            f"| {b} | {r['threads']} | {r['closed_loop_us']:.0f} | {r['controller_us']:.0f} "
+            f"| {r['controller_scan_us']:.0f} | {r['physics_us']:.0f} | {r['rest_us']:.0f} "
+            f"| {r['env_steps_per_s']:,} |",
+            flush=True,
+        )
         figures.update({f"{k}_b{b}": v for k, v in r.items()})
         if args.accounts:
             lanes.append((b, r))

@@ -54,8 +54,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="interleaved rounds, best of each (default 2)")
     args = parser.parse_args()
     if args.batch < 1 or args.steps < 4 or args.repeats < 1:
-        parser.error(f"--batch {args.batch}, --steps {args.steps}, --repeats {args.repeats}: need batch ≥ 1, "
-                     "steps ≥ 4, repeats ≥ 1")
+        parser.error(
+            f"--batch {args.batch}, --steps {args.steps}, --repeats {args.repeats}: need batch ≥ 1, "
+            "steps ≥ 4, repeats ≥ 1"
+        )
     cpu_dispatch.request_inline()  # as every cpgjax command on the native backend
     cpu_dispatch.request_one_pool_thread()
     stepping = native_physics.default_stepping()
@@ -64,26 +66,43 @@ def main() -> None:
     limit = r["cores"] * r["replay_one_thread_env_steps_per_s"]
     closed = r[f"closed_loop_env_steps_per_s_{stepping}"]
     steps = study_env_steps()
-    print(f"# {provenance.machine()}, {r['cores']} cores, {physics} physics, batch {args.batch}, load average "
-          f"{os.getloadavg()[0]:.1f}: physics limit {limit:,.0f} env-steps/s ({r['cores']} × the one-thread replay), "
-          f"native closed loop {closed:,.0f} env-steps/s ({closed / limit:.2f} of the limit)")
+    print(
+        f"# {provenance.machine()}, {r['cores']} cores, {physics} physics, batch {args.batch}, load average "
+        f"{os.getloadavg()[0]:.1f}: physics limit {limit:,.0f} env-steps/s ({r['cores']} × the one-thread replay), "
+        f"native closed loop {closed:,.0f} env-steps/s ({closed / limit:.2f} of the limit)"
+    )
     print("| study | env-steps [M] | at the physics limit [min] | at the closed loop's rate [min] |\n|---|---|---|---|")
     for name, n in steps.items():
         print(f"| {name} | {n / 1e6:.1f} | {n / limit / 60:.1f} | {n / closed / 60:.1f} |")
     total = sum(steps.values())
     print(f"| all | {total / 1e6:.1f} | {total / limit / 60:.1f} | {total / closed / 60:.1f} |")
-    print(f"30 minutes for all of them needs {total / TARGET_S:,.0f} env-steps/s: "
-          f"{total / TARGET_S / limit:.2f} of this run's physics limit")
-    print(json.dumps({"benchmark": "physics_floor", "machine": provenance.machine(), "physics": physics,
-                      "stepping": stepping, "batch": args.batch, "steps_per_instance": args.steps,
-                      "repeats": args.repeats, "cores": r["cores"],
-                      "replay_one_thread_env_steps_per_s": round(r["replay_one_thread_env_steps_per_s"]),
-                      "closed_loop_env_steps_per_s": round(closed), "fraction_of_limit": round(closed / limit, 3),
-                      **{f"env_steps_{name}": n for name, n in steps.items()}, "env_steps_all": total,
-                      "minutes_at_limit_all": round(total / limit / 60, 1),
-                      "minutes_at_closed_loop_all": round(total / closed / 60, 1),
-                      "fraction_of_limit_needed_for_30_min": round(total / TARGET_S / limit, 3),
-                      "load_avg_1min_end": round(os.getloadavg()[0], 2)}))
+    print(
+        f"30 minutes for all of them needs {total / TARGET_S:,.0f} env-steps/s: "
+        f"{total / TARGET_S / limit:.2f} of this run's physics limit"
+    )
+    print(
+        json.dumps(
+            {
+                "benchmark": "physics_floor",
+                "machine": provenance.machine(),
+                "physics": physics,
+                "stepping": stepping,
+                "batch": args.batch,
+                "steps_per_instance": args.steps,
+                "repeats": args.repeats,
+                "cores": r["cores"],
+                "replay_one_thread_env_steps_per_s": round(r["replay_one_thread_env_steps_per_s"]),
+                "closed_loop_env_steps_per_s": round(closed),
+                "fraction_of_limit": round(closed / limit, 3),
+                **{f"env_steps_{name}": n for name, n in steps.items()},
+                "env_steps_all": total,
+                "minutes_at_limit_all": round(total / limit / 60, 1),
+                "minutes_at_closed_loop_all": round(total / closed / 60, 1),
+                "fraction_of_limit_needed_for_30_min": round(total / TARGET_S / limit, 3),
+                "load_avg_1min_end": round(os.getloadavg()[0], 2),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -41,8 +41,9 @@ def run_once(name: str, timeout_s: float) -> dict:
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s,
-                              env=dict(os.environ, JAX_PLATFORMS="cpu"))
+        proc = subprocess.run(
+            argv, capture_output=True, text=True, timeout=timeout_s, env=dict(os.environ, JAX_PLATFORMS="cpu")
+        )
         code, text = proc.returncode, proc.stdout + proc.stderr
     except subprocess.TimeoutExpired as e:
         code, text = -1, f"timed out after {timeout_s} s\n{e.stderr or ''}"
@@ -51,9 +52,15 @@ def run_once(name: str, timeout_s: float) -> dict:
     reason = trips[-1].strip() if trips else (None if code == 0 else text.strip().splitlines()[-1])
     if code == 0:
         shutil.rmtree(out)
-    return {"example": name, "exit": code, "wall_s": round(wall_s, 1), "trip": reason,
-            "stale": reason is not None and "stale state" in reason, "load_avg_1min": round(load, 2),
-            "kept": None if code == 0 else out}
+    return {
+        "example": name,
+        "exit": code,
+        "wall_s": round(wall_s, 1),
+        "trip": reason,
+        "stale": reason is not None and "stale state" in reason,
+        "load_avg_1min": round(load, 2),
+        "kept": None if code == 0 else out,
+    }
 
 
 def main() -> None:
@@ -71,8 +78,11 @@ def main() -> None:
             r = run_once(name, args.timeout_s)
             runs.append(r)
             kept = f" (kept {r['kept']})" if r["kept"] else ""
-            print(f"{name:9s} run {i + 1}/{args.repeats}: exit {r['exit']}, {r['wall_s']:5.1f} s, load "
-                  f"{r['load_avg_1min']:.2f}: {r['trip'] or 'clean end'}{kept}", flush=True)
+            print(
+                f"{name:9s} run {i + 1}/{args.repeats}: exit {r['exit']}, {r['wall_s']:5.1f} s, load "
+                f"{r['load_avg_1min']:.2f}: {r['trip'] or 'clean end'}{kept}",
+                flush=True,
+            )
     figures = {"benchmark": "rehearsal", "machine": provenance.machine(), "repeats": args.repeats}
     print("\n| example | runs | clean | tripped | stale-state trips | load avg (min–max) |\n|---|---|---|---|---|---|")
     for name in names:
@@ -81,8 +91,14 @@ def main() -> None:
         stale = sum(r["stale"] for r in mine)
         loads = [r["load_avg_1min"] for r in mine]
         print(f"| {name} | {len(mine)} | {clean} | {len(mine) - clean} | {stale} | {min(loads):.2f}–{max(loads):.2f} |")
-        figures.update({f"{name}_runs": len(mine), f"{name}_clean": clean, f"{name}_stale_trips": stale,
-                        f"{name}_reasons": sorted({r["trip"] for r in mine if r["trip"]})})
+        figures.update(
+            {
+                f"{name}_runs": len(mine),
+                f"{name}_clean": clean,
+                f"{name}_stale_trips": stale,
+                f"{name}_reasons": sorted({r["trip"] for r in mine if r["trip"]}),
+            }
+        )
     print(json.dumps(figures))
 
 

@@ -89,8 +89,9 @@ def measure(batch: int, steps: int, repeats: int, devices: list) -> dict:
     """
     transition = steps // 4
     config = protocol.TrialConfig(transition_steps=transition, steady_steps=steps - transition)
-    sim = mjx_go1.MJXBackend(go1_model.make_scenarios(friction=np.full(batch, 0.6), physics="soft"),
-                             trial_config=config, devices=devices)
+    sim = mjx_go1.MJXBackend(
+        go1_model.make_scenarios(friction=np.full(batch, 0.6), physics="soft"), trial_config=config, devices=devices
+    )
     p = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     ids = go1_model.indices()
@@ -107,6 +108,7 @@ def measure(batch: int, steps: int, repeats: int, devices: list) -> dict:
     def replay(m, data, torques_nm):
         def body(d, tau):
             return mjx.step(m, d.replace(ctrl=jnp.zeros(m.nu, tau.dtype).at[ids.actuator].set(tau))), None
+
         return jax.lax.scan(body, data, torques_nm)[0]
 
     start = sim.reset(p)
@@ -123,17 +125,29 @@ def measure(batch: int, steps: int, repeats: int, devices: list) -> dict:
             t0 = time.perf_counter()
             jax.block_until_ready(fn(*args))
             return time.perf_counter() - t0
+
         return run
 
     timed(replay_fn, model, start.data, torques)()  # warm
-    best = _interleaved_best({"closed_loop": closed_loop_run, "replay": timed(replay_fn, model, start.data, torques),
-                              "constant": timed(replay_fn, model, start.data, constant_torques)}, repeats)
+    best = _interleaved_best(
+        {
+            "closed_loop": closed_loop_run,
+            "replay": timed(replay_fn, model, start.data, torques),
+            "constant": timed(replay_fn, model, start.data, constant_torques),
+        },
+        repeats,
+    )
     rate = {k: batch * steps / v for k, v in best.items()}
-    return {"closed_loop_steps_per_s": rate["closed_loop"], "replay_steps_per_s": rate["replay"],
-            "constant_steps_per_s": rate["constant"], "overhead_vs_replay": best["closed_loop"] / best["replay"] - 1,
-            "overhead_vs_constant": best["closed_loop"] / best["constant"] - 1, "first_call_s": first_call_s,
-            "replay_compile_s": replay_compile_s,
-            "replay_max_abs_qpos_diff": replay_diff}
+    return {
+        "closed_loop_steps_per_s": rate["closed_loop"],
+        "replay_steps_per_s": rate["replay"],
+        "constant_steps_per_s": rate["constant"],
+        "overhead_vs_replay": best["closed_loop"] / best["replay"] - 1,
+        "overhead_vs_constant": best["closed_loop"] / best["constant"] - 1,
+        "first_call_s": first_call_s,
+        "replay_compile_s": replay_compile_s,
+        "replay_max_abs_qpos_diff": replay_diff,
+    }
 
 
 def profile_costs(profiles: list[str], batch: int, steps: int, repeats: int) -> dict:
@@ -146,13 +160,17 @@ def profile_costs(profiles: list[str], batch: int, steps: int, repeats: int) -> 
     runs = {}
     for name in profiles:
         scenario = go1_model.make_scenarios(friction=np.full(batch, 0.6), physics=name)
-        for kind, sim in (("mjx", mjx_go1.MJXBackend(scenario, trial_config=config)),
-                          ("native", native_go1.NativeBackend(scenario, trial_config=config))):
+        for kind, sim in (
+            ("mjx", mjx_go1.MJXBackend(scenario, trial_config=config)),
+            ("native", native_go1.NativeBackend(scenario, trial_config=config)),
+        ):
+
             def run(sim=sim):
                 state = jax.block_until_ready(sim.reset(p))
                 t0 = time.perf_counter()
                 jax.block_until_ready(sim.trial(state, p, gates)[1])
                 return time.perf_counter() - t0
+
             run()  # compiles
             runs[f"{kind}:{name}"] = run
     best = _interleaved_best(runs, repeats)
@@ -200,10 +218,18 @@ def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: 
 
         def run():
             t0 = time.perf_counter()
-            pool.rollout(models, data, phys.standing_physics, control,
-                         control_spec=mujoco.mjtState.mjSTATE_CTRL.value, skip_checks=True, nstep=steps,
-                         state=states)
+            pool.rollout(
+                models,
+                data,
+                phys.standing_physics,
+                control,
+                control_spec=mujoco.mjtState.mjSTATE_CTRL.value,
+                skip_checks=True,
+                nstep=steps,
+                state=states,
+            )
             return time.perf_counter() - t0
+
         return run
 
     # The same replay on every core (MuJoCo's pool, instances split between the threads): how much of the limit
@@ -216,10 +242,14 @@ def native_limit(batch: int, steps: int, repeats: int, physics: str, steppings: 
     diff = float(np.max(np.abs(replayed[:, :, phys.layout.qpos] - np.asarray(log.qpos, np.float64))))
     for s in sims.values():
         s.physics.close()
-    return {"replay_one_thread_env_steps_per_s": rate["replay"], "cores": cores, "replay_max_abs_qpos_diff": diff,
-            "replay_all_cores_fraction_of_limit": rate["replay_all_cores"] / (cores * rate["replay"]),
-            **{f"closed_loop_env_steps_per_s_{name}": rate[name] for name in steppings},
-            **{f"fraction_of_limit_{name}": rate[name] / (cores * rate["replay"]) for name in steppings}}
+    return {
+        "replay_one_thread_env_steps_per_s": rate["replay"],
+        "cores": cores,
+        "replay_max_abs_qpos_diff": diff,
+        "replay_all_cores_fraction_of_limit": rate["replay_all_cores"] / (cores * rate["replay"]),
+        **{f"closed_loop_env_steps_per_s_{name}": rate[name] for name in steppings},
+        **{f"fraction_of_limit_{name}": rate[name] / (cores * rate["replay"]) for name in steppings},
+    }
 
 
 def c_mujoco(steps: int) -> float:
@@ -255,16 +285,26 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="batch 16 on every device, short rollouts (< 2 min)")
     parser.add_argument("--batch-sizes", type=lambda s: [int(v) for v in s.split(",")], default=None)
     parser.add_argument("--steps", type=int, default=None, help="env steps per instance per timed run")
-    parser.add_argument("--cpu-devices", type=int, default=os.cpu_count(),
-                        help="host devices on a CPU (default: one per core)")
-    parser.add_argument("--profiles", help="comma list of physics profiles: time only their closed loops (ratios "
-                        "against the first)")
+    parser.add_argument(
+        "--cpu-devices", type=int, default=os.cpu_count(), help="host devices on a CPU (default: one per core)"
+    )
+    parser.add_argument(
+        "--profiles", help="comma list of physics profiles: time only their closed loops (ratios against the first)"
+    )
     parser.add_argument("--native-only", action="store_true", help="only the native closed loop against its limit")
-    parser.add_argument("--steppings", type=lambda s: s.split(","), default=[native_physics.default_stepping()],
-                        help="comma list of the native backend's steppings to time against the limit "
-                        f"(of {native_physics.STEPPINGS}; default {native_physics.default_stepping()})")
-    parser.add_argument("--physics", default=physics_profiles.DEFAULT_PROFILE, choices=physics_profiles.PROFILES,
-                        help="physics profile of the native closed loop and its limit (default: the studies')")
+    parser.add_argument(
+        "--steppings",
+        type=lambda s: s.split(","),
+        default=[native_physics.default_stepping()],
+        help="comma list of the native backend's steppings to time against the limit "
+        f"(of {native_physics.STEPPINGS}; default {native_physics.default_stepping()})",
+    )
+    parser.add_argument(
+        "--physics",
+        default=physics_profiles.DEFAULT_PROFILE,
+        choices=physics_profiles.PROFILES,
+        help="physics profile of the native closed loop and its limit (default: the studies')",
+    )
     args = parser.parse_args()
     unknown = [name for name in args.steppings if name not in native_physics.STEPPINGS]
     if unknown:
@@ -281,76 +321,129 @@ def main() -> None:
     repeats = 2 if args.quick else 3
     if args.profiles:
         profiles = args.profiles.split(",")
-        figures = {"benchmark": "rollout_profiles", "machine": provenance.machine(), "batch": batches[0],
-                   "steps_per_instance": steps, "repeats": repeats, "num_devices": len(jax.devices()),
-                   **profile_costs(profiles, batches[0], steps, repeats)}
-        print("| profile | MJX closed loop [env-steps/s] | time vs " + profiles[0] + " | native closed loop "
-              "[env-steps/s] | time vs " + profiles[0] + " |\n|---|---|---|---|---|")
+        figures = {
+            "benchmark": "rollout_profiles",
+            "machine": provenance.machine(),
+            "batch": batches[0],
+            "steps_per_instance": steps,
+            "repeats": repeats,
+            "num_devices": len(jax.devices()),
+            **profile_costs(profiles, batches[0], steps, repeats),
+        }
+        print(
+            "| profile | MJX closed loop [env-steps/s] | time vs " + profiles[0] + " | native closed loop "
+            "[env-steps/s] | time vs " + profiles[0] + " |\n|---|---|---|---|---|"
+        )
         for name in profiles:
-            print(f"| {name} | {figures[f'mjx_{name}_env_steps_per_s']:,} | "
-                  f"{figures[f'mjx_{name}_time_ratio_vs_{profiles[0]}']:.2f}× | "
-                  f"{figures[f'native_{name}_env_steps_per_s']:,} | "
-                  f"{figures[f'native_{name}_time_ratio_vs_{profiles[0]}']:.2f}× |")
+            print(
+                f"| {name} | {figures[f'mjx_{name}_env_steps_per_s']:,} | "
+                f"{figures[f'mjx_{name}_time_ratio_vs_{profiles[0]}']:.2f}× | "
+                f"{figures[f'native_{name}_env_steps_per_s']:,} | "
+                f"{figures[f'native_{name}_time_ratio_vs_{profiles[0]}']:.2f}× |"
+            )
         print(json.dumps(figures))
         return
 
-    print(f"# native backend ({args.physics} physics, {provenance.machine()}, load average {os.getloadavg()[0]:.1f}): "
-          "closed loop against the one-thread replay of its torques")
-    print("| batch | stepping | native closed loop [env-steps/s] | replay, 1 thread [env-steps/s] | cores "
-          "| closed loop / (cores × replay) | replay on every core / (cores × replay) "
-          "| replay max abs Δqpos [m or rad] |\n|---|---|---|---|---|---|---|---|")
+    print(
+        f"# native backend ({args.physics} physics, {provenance.machine()}, load average {os.getloadavg()[0]:.1f}): "
+        "closed loop against the one-thread replay of its torques"
+    )
+    print(
+        "| batch | stepping | native closed loop [env-steps/s] | replay, 1 thread [env-steps/s] | cores "
+        "| closed loop / (cores × replay) | replay on every core / (cores × replay) "
+        "| replay max abs Δqpos [m or rad] |\n|---|---|---|---|---|---|---|---|"
+    )
     native_figures = {}
     for b in batches:
         r = native_limit(b, steps, repeats, args.physics, args.steppings)
         for name in args.steppings:
-            print(f"| {b} | {name} | {r[f'closed_loop_env_steps_per_s_{name}']:,.0f} "
-                  f"| {r['replay_one_thread_env_steps_per_s']:,.0f} | {r['cores']} "
-                  f"| {r[f'fraction_of_limit_{name}']:.2f} | {r['replay_all_cores_fraction_of_limit']:.2f} "
-                  f"| {r['replay_max_abs_qpos_diff']:.1e} |", flush=True)
-            native_figures.update({
-                f"native_{name}_closed_loop_env_steps_per_s_b{b}": round(r[f"closed_loop_env_steps_per_s_{name}"]),
-                f"native_{name}_fraction_of_limit_b{b}": round(r[f"fraction_of_limit_{name}"], 3)})
-        native_figures.update({f"native_replay_one_thread_env_steps_per_s_b{b}":
-                               round(r["replay_one_thread_env_steps_per_s"]),
-                               f"native_replay_max_abs_qpos_diff_b{b}": r["replay_max_abs_qpos_diff"],
-                               f"native_replay_all_cores_fraction_of_limit_b{b}":
-                               round(r["replay_all_cores_fraction_of_limit"], 3)})
+            print(
+                f"| {b} | {name} | {r[f'closed_loop_env_steps_per_s_{name}']:,.0f} "
+                f"| {r['replay_one_thread_env_steps_per_s']:,.0f} | {r['cores']} "
+                f"| {r[f'fraction_of_limit_{name}']:.2f} | {r['replay_all_cores_fraction_of_limit']:.2f} "
+                f"| {r['replay_max_abs_qpos_diff']:.1e} |",
+                flush=True,
+            )
+            native_figures.update(
+                {
+                    f"native_{name}_closed_loop_env_steps_per_s_b{b}": round(r[f"closed_loop_env_steps_per_s_{name}"]),
+                    f"native_{name}_fraction_of_limit_b{b}": round(r[f"fraction_of_limit_{name}"], 3),
+                }
+            )
+        native_figures.update(
+            {
+                f"native_replay_one_thread_env_steps_per_s_b{b}": round(r["replay_one_thread_env_steps_per_s"]),
+                f"native_replay_max_abs_qpos_diff_b{b}": r["replay_max_abs_qpos_diff"],
+                f"native_replay_all_cores_fraction_of_limit_b{b}": round(r["replay_all_cores_fraction_of_limit"], 3),
+            }
+        )
     # Only where the instances split evenly between the cores can the replay on every core reach the limit.
     cores = native_physics.available_cores()
-    shared = {b: f for b in batches if b % cores == 0 and not
-              INDEPENDENT_CORES <= (f := native_figures[f"native_replay_all_cores_fraction_of_limit_b{b}"])
-              <= SLOWED_REPLAY}
+    shared = {
+        b: f
+        for b in batches
+        if b % cores == 0
+        and not INDEPENDENT_CORES
+        <= (f := native_figures[f"native_replay_all_cores_fraction_of_limit_b{b}"])
+        <= SLOWED_REPLAY
+    }
     if shared:
-        print("# the replay on every core reached "
-              + ", ".join(f"{f:.2f} at batch {b}" for b, f in shared.items())
-              + f" of cores × the one-thread replay (outside {INDEPENDENT_CORES}–{SLOWED_REPLAY}"
-              + ("; above it the one-thread replay ran slowed" if max(shared.values()) > 1 else "")
-              + "): the cores did not run independently in this run, so its closed-loop fractions measure the "
-              "machine's other load as well as the code")
+        print(
+            "# the replay on every core reached "
+            + ", ".join(f"{f:.2f} at batch {b}" for b, f in shared.items())
+            + f" of cores × the one-thread replay (outside {INDEPENDENT_CORES}–{SLOWED_REPLAY}"
+            + ("; above it the one-thread replay ran slowed" if max(shared.values()) > 1 else "")
+            + "): the cores did not run independently in this run, so its closed-loop fractions measure the "
+            "machine's other load as well as the code"
+        )
     if args.native_only:
-        print(json.dumps({"benchmark": "rollout_native", "machine": provenance.machine(), "physics": args.physics,
-                          "steps_per_instance": steps, "repeats": repeats, "cores": cores,
-                          **native_figures, "load_avg_1min_end": round(os.getloadavg()[0], 2)}))
+        print(
+            json.dumps(
+                {
+                    "benchmark": "rollout_native",
+                    "machine": provenance.machine(),
+                    "physics": args.physics,
+                    "steps_per_instance": steps,
+                    "repeats": repeats,
+                    "cores": cores,
+                    **native_figures,
+                    "load_avg_1min_end": round(os.getloadavg()[0], 2),
+                }
+            )
+        )
         return
 
     device = jax.devices()[0]
-    print(f"# devices: {len(jax.devices())} x {device.platform} {device.device_kind}; host: {provenance.machine()}; "
-          f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance")
-    print("| batch | devices | closed loop [env-steps/s] | bare replay [env-steps/s] | controller overhead (vs replay) "
-          "| bare constant control [env-steps/s] | overhead vs constant control | first call (compile) [s] "
-          "| native closed loop (C MuJoCo, the same profile as MJX) [env-steps/s] |")
+    print(
+        f"# devices: {len(jax.devices())} x {device.platform} {device.device_kind}; host: {provenance.machine()}; "
+        f"jax {jax.__version__}, mujoco {mujoco.__version__}; {steps} steps per instance"
+    )
+    print(
+        "| batch | devices | closed loop [env-steps/s] | bare replay [env-steps/s] | controller overhead (vs replay) "
+        "| bare constant control [env-steps/s] | overhead vs constant control | first call (compile) [s] "
+        "| native closed loop (C MuJoCo, the same profile as MJX) [env-steps/s] |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
-    figures: dict = {"device": f"{device.platform}:{device.device_kind}", "num_devices": len(jax.devices()),
-                     "machine": provenance.machine(), "steps_per_instance": steps, "repeats": repeats,
-                     "native_physics": args.physics, **native_figures}
+    figures: dict = {
+        "device": f"{device.platform}:{device.device_kind}",
+        "num_devices": len(jax.devices()),
+        "machine": provenance.machine(),
+        "steps_per_instance": steps,
+        "repeats": repeats,
+        "native_physics": args.physics,
+        **native_figures,
+    }
     for b in batches:
         native = trial_speed("native", b, steps, repeats)  # the same trial as MJX's below (soft profile)
         for devices in layouts(b, args.quick):
             r = measure(b, steps, repeats, devices)
-            print(f"| {b} | {len(devices)} | {r['closed_loop_steps_per_s']:,.0f} | {r['replay_steps_per_s']:,.0f} "
-                  f"| {r['overhead_vs_replay']:+.1%} | {r['constant_steps_per_s']:,.0f} "
-                  f"| {r['overhead_vs_constant']:+.1%} "
-                  f"| {r['first_call_s']:.1f} | {native['env_steps_per_s']:,.0f} |", flush=True)
+            print(
+                f"| {b} | {len(devices)} | {r['closed_loop_steps_per_s']:,.0f} | {r['replay_steps_per_s']:,.0f} "
+                f"| {r['overhead_vs_replay']:+.1%} | {r['constant_steps_per_s']:,.0f} "
+                f"| {r['overhead_vs_constant']:+.1%} "
+                f"| {r['first_call_s']:.1f} | {native['env_steps_per_s']:,.0f} |",
+                flush=True,
+            )
             key = f"b{b}_d{len(devices)}"
             figures[f"closed_loop_env_steps_per_s_{key}"] = round(r["closed_loop_steps_per_s"])
             figures[f"bare_replay_env_steps_per_s_{key}"] = round(r["replay_steps_per_s"])

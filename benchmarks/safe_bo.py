@@ -65,11 +65,14 @@ def iteration(safe: bool, stored: int, batch: int):
     objective, margin = jax.vmap(jax.vmap(toy))(jnp.asarray(unit))
     state = jax.vmap(lambda _: opt.init())(jnp.arange(batch))
     n = stored
-    state = state._replace(parameters=state.parameters.at[:, :n].set(jnp.asarray(lower + unit[:, :n] * width)),
-                           contexts=state.contexts.at[:, :n].set(jnp.asarray(contexts[:, :n])),
-                           objectives=state.objectives.at[:, :n].set(objective[:, :n]),
-                           stored=state.stored.at[:, :n].set(True), num_stored=jnp.full((batch,), n, jnp.int32),
-                           margins=state.margins.at[:, :n].set(margin[:, :n]) if safe else state.margins)
+    state = state._replace(
+        parameters=state.parameters.at[:, :n].set(jnp.asarray(lower + unit[:, :n] * width)),
+        contexts=state.contexts.at[:, :n].set(jnp.asarray(contexts[:, :n])),
+        objectives=state.objectives.at[:, :n].set(objective[:, :n]),
+        stored=state.stored.at[:, :n].set(True),
+        num_stored=jnp.full((batch,), n, jnp.int32),
+        margins=state.margins.at[:, :n].set(margin[:, :n]) if safe else state.margins,
+    )
     x = jnp.asarray(lower + unit[:, n] * width, jnp.float32)
     c = jnp.asarray(contexts[:, n])
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(batch))
@@ -102,9 +105,13 @@ def paired_cost(stored: int, batch: int, pairs: int) -> dict:
             if timed:
                 seconds[name].append(time.perf_counter() - t0)
     log_ratio = stats.mean_ci(np.log(seconds["safe"]) - np.log(seconds["unconstrained"]))
-    return {"unconstrained_s": float(np.median(seconds["unconstrained"])), "safe_s": float(np.median(seconds["safe"])),
-            "ratio": float(np.exp(log_ratio.mean)), "ratio_ci": [float(np.exp(log_ratio.low)),
-                                                                 float(np.exp(log_ratio.high))], "pairs": pairs}
+    return {
+        "unconstrained_s": float(np.median(seconds["unconstrained"])),
+        "safe_s": float(np.median(seconds["safe"])),
+        "ratio": float(np.exp(log_ratio.mean)),
+        "ratio_ci": [float(np.exp(log_ratio.low)), float(np.exp(log_ratio.high))],
+        "pairs": pairs,
+    }
 
 
 def gardner(x):
@@ -138,8 +145,9 @@ def constrained_runs(seeds: int, trials: int) -> dict:
         violations, regrets = [], []
         for seed in range(seeds):
             fn = gardner if safe else (lambda x: gardner(x)[0])
-            run = black_box.maximize(fn, [[0.0, 0.0], [6.0, 6.0]], trials, seed=seed, initial_xs=feasible_start(seed),
-                                     safe=safe)
+            run = black_box.maximize(
+                fn, [[0.0, 0.0], [6.0, 6.0]], trials, seed=seed, initial_xs=feasible_start(seed), safe=safe
+            )
             margins = np.array([gardner(x)[1] for x in run.xs])
             values = np.array([gardner(x)[0] for x in run.xs])
             violations.append(int((margins < 0).sum()))
@@ -155,24 +163,33 @@ def constrained_runs(seeds: int, trials: int) -> dict:
 def main() -> None:
     pairs = 10 if ARGS.quick else 30
     seeds = ARGS.seeds or (6 if ARGS.quick else 20)
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, pinned to CPU {ARGS.cpu}; "
-          f"jax {jax.__version__}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, pinned to CPU {ARGS.cpu}; "
+        f"jax {jax.__version__}"
+    )
     cost = {}
     for stored in (40, 150):
         for batch in (1, 20):
             c = paired_cost(stored, batch, pairs)
             cost[f"{stored} points x {batch}"] = c
-            print(f"(a) {stored} points, {batch} instance(s): unconstrained {c['unconstrained_s'] * 1e3:.1f} ms, safe "
-                  f"{c['safe_s'] * 1e3:.1f} ms (medians of {pairs}), ratio {c['ratio']:.2f} "
-                  f"[{c['ratio_ci'][0]:.2f}, {c['ratio_ci'][1]:.2f}]", flush=True)
+            print(
+                f"(a) {stored} points, {batch} instance(s): unconstrained {c['unconstrained_s'] * 1e3:.1f} ms, safe "
+                f"{c['safe_s'] * 1e3:.1f} ms (medians of {pairs}), ratio {c['ratio']:.2f} "
+                f"[{c['ratio_ci'][0]:.2f}, {c['ratio_ci'][1]:.2f}]",
+                flush=True,
+            )
     trials = 30
     runs = constrained_runs(seeds, trials)
     for arm in ("unconstrained", "safe"):
         v, r = runs[arm]["violations"], runs[arm]["regret"]
-        print(f"(b) {arm}: violations per {trials} evaluations {stats.mean_ci(v)}, simple regret {stats.mean_ci(r)} "
-              f"over {seeds} seeds")
-    print(f"(b) safe vs unconstrained, Mann–Whitney U: violations p = {runs['violations_mann_whitney_p']:.2g}, "
-          f"regret p = {runs['regret_mann_whitney_p']:.2g}")
+        print(
+            f"(b) {arm}: violations per {trials} evaluations {stats.mean_ci(v)}, simple regret {stats.mean_ci(r)} "
+            f"over {seeds} seeds"
+        )
+    print(
+        f"(b) safe vs unconstrained, Mann–Whitney U: violations p = {runs['violations_mann_whitney_p']:.2g}, "
+        f"regret p = {runs['regret_mann_whitney_p']:.2g}"
+    )
     print(json.dumps({"cost": cost, "constrained": runs, "seeds": seeds, "trials": trials}))
 
 

@@ -40,19 +40,24 @@ from cpgjax.trial import protocol
 
 BACKENDS = {"native": native_go1.NativeBackend, "mjx": mjx_go1.MJXBackend}
 # name → (label, scenario fields) of each batch; the first is the baseline.
-TERRAINS = {"flat": ("flat plane", dict()),
-            "rough": ("rough 4 cm", dict(terrain="rough", terrain_amplitude_m=0.04, terrain_seed=3)),
-            "blocks": ("blocks 0.3 m, 4 cm", dict(terrain="blocks", terrain_amplitude_m=0.04, terrain_seed=3,
-                                                  terrain_step_m=0.3)),
-            "flat_heights": ("flat in the terrain model", dict(terrain="rough", terrain_amplitude_m=0.0))}
+TERRAINS = {
+    "flat": ("flat plane", dict()),
+    "rough": ("rough 4 cm", dict(terrain="rough", terrain_amplitude_m=0.04, terrain_seed=3)),
+    "blocks": (
+        "blocks 0.3 m, 4 cm",
+        dict(terrain="blocks", terrain_amplitude_m=0.04, terrain_seed=3, terrain_step_m=0.3),
+    ),
+    "flat_heights": ("flat in the terrain model", dict(terrain="rough", terrain_amplitude_m=0.0)),
+}
 
 
 def time_per_step_us(backend: str, fields: dict, batch: int, steps: int, trials: int, repeats: int) -> float:
     """µs per instance-step of ``trials`` back-to-back trials of ``steps`` ticks (best of ``repeats``)."""
     config = protocol.TrialConfig(transition_steps=steps // 5, steady_steps=steps - steps // 5)
-    sim = BACKENDS[backend](go1_model.make_scenarios(friction=[0.6] * batch, physics="soft",
-                                                     **{k: [v] * batch for k, v in fields.items()}),
-                                 trial_config=config)
+    sim = BACKENDS[backend](
+        go1_model.make_scenarios(friction=[0.6] * batch, physics="soft", **{k: [v] * batch for k, v in fields.items()}),
+        trial_config=config,
+    )
     params = np.tile(param_space.midpoint(), (batch, 1))
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     state = sim.reset(params)
@@ -71,6 +76,7 @@ def time_per_step_us(backend: str, fields: dict, batch: int, steps: int, trials:
 def program_digests(batch: int, steps: int) -> dict[str, str]:
     """SHA-256 (16 hex digits) of the flat batch's MJX trial and native ffi trial program, lowered to StableHLO
     without debug information and source locations."""
+
     def digest(lowered) -> str:
         text = re.sub(r"#loc\d*( = .*)?|loc\(.*?\)", "", lowered.as_text(debug_info=False))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -82,16 +88,29 @@ def program_digests(batch: int, steps: int) -> dict[str, str]:
     gates = protocol.batch_gates(["vmc_tegotae"] * batch)
     mjx = mjx_go1.MJXBackend(scenario, trial_config=config)
     state = mjx.reset(params)
-    digests = {"mjx trial": digest(mjx._trial.lower(mjx.batch.model, mjx.batch.profile, mjx._put(state),
-                                                    mjx._put(new_params),
-                                                    mjx._put(protocol.check_gates(gates, batch))))}
+    digests = {
+        "mjx trial": digest(
+            mjx._trial.lower(
+                mjx.batch.model,
+                mjx.batch.profile,
+                mjx._put(state),
+                mjx._put(new_params),
+                mjx._put(protocol.check_gates(gates, batch)),
+            )
+        )
+    }
     native = native_go1.NativeBackend(scenario, trial_config=config, stepping="ffi")
     program = native._program(native_go1.TRIAL_RECORDER, config)
     state = native.reset(params)
     carry = native._first_carry(program, native_go1._Controller(state.cpg, state.io), steps, flat=False)
-    digests["native ffi trial"] = digest(program.run.lower(native.physics.ffi_handle,
-                                                           native._constants(params, new_params, gates), carry,
-                                                           native._pack_host_inputs(np.zeros(batch, bool))))
+    digests["native ffi trial"] = digest(
+        program.run.lower(
+            native.physics.ffi_handle,
+            native._constants(params, new_params, gates),
+            carry,
+            native._pack_host_inputs(np.zeros(batch, bool)),
+        )
+    )
     return digests
 
 
@@ -106,16 +125,26 @@ def main() -> None:
     parser.add_argument("--program-digest", action="store_true", help="print the flat programs' digests instead")
     args = parser.parse_args()
     if args.program_digest:
-        print(json.dumps({"benchmark": "terrain_cost_program_digest", "batch": args.batch, "steps": args.steps,
-                          **program_digests(args.batch, args.steps)}))
+        print(
+            json.dumps(
+                {
+                    "benchmark": "terrain_cost_program_digest",
+                    "batch": args.batch,
+                    "steps": args.steps,
+                    **program_digests(args.batch, args.steps),
+                }
+            )
+        )
         return
     backends, terrains = args.backends.split(","), args.terrains.split(",")
     for given, allowed, option in ((backends, BACKENDS, "--backends"), (terrains, TERRAINS, "--terrains")):
         unknown = [b for b in given if b not in allowed]
         if unknown:
             parser.error(f"{option} {unknown[0]!r}: allowed {tuple(allowed)}")
-    print(f"# {provenance.machine()}, batch {args.batch}, {args.trials} trials of {args.steps} ticks, best of "
-          f"{args.repeats}, load average {os.getloadavg()[0]:.2f}")
+    print(
+        f"# {provenance.machine()}, batch {args.batch}, {args.trials} trials of {args.steps} ticks, best of "
+        f"{args.repeats}, load average {os.getloadavg()[0]:.2f}"
+    )
     figures = {}
     for backend in backends:
         baseline = None
@@ -123,11 +152,24 @@ def main() -> None:
             us = time_per_step_us(backend, fields, args.batch, args.steps, args.trials, args.repeats)
             baseline = us if baseline is None else baseline
             figures[f"{backend}: {label}"] = {"us_per_instance_step": us, "ratio_to_first": us / baseline}
-            print(f"{backend:6s} {label:26s} {us:9.1f} µs per instance-step   {us / baseline:5.2f}× the first",
-                  flush=True)
-    print(json.dumps({"benchmark": "terrain_cost", "machine": provenance.machine(), "batch": args.batch,
-                      "steps": args.steps, "trials": args.trials, "repeats": args.repeats,
-                      "load_average": os.getloadavg()[0], "commit": provenance.git_commit(), "figures": figures}))
+            print(
+                f"{backend:6s} {label:26s} {us:9.1f} µs per instance-step   {us / baseline:5.2f}× the first", flush=True
+            )
+    print(
+        json.dumps(
+            {
+                "benchmark": "terrain_cost",
+                "machine": provenance.machine(),
+                "batch": args.batch,
+                "steps": args.steps,
+                "trials": args.trials,
+                "repeats": args.repeats,
+                "load_average": os.getloadavg()[0],
+                "commit": provenance.git_commit(),
+                "figures": figures,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

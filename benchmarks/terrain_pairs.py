@@ -71,23 +71,43 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     base = go1_model.load_model()
-    body = {mujoco.mj_id2name(base, mujoco.mjtObj.mjOBJ_GEOM, g) for g in range(base.ngeom)
-            if base.geom_conaffinity[g] and not mujoco.mj_id2name(base, mujoco.mjtObj.mjOBJ_GEOM, g).endswith("_foot")}
-    variants = {"plane": base, "terrain model (feet on the field)": terrain_variant(set()),
-                "every collision geom on the field": terrain_variant(body),
-                "every geom but the trunk box on the field": terrain_variant(body - {"trunk"})}
-    print(f"# {provenance.machine()}, batch {args.batch}, {args.steps} steps, best of {args.repeats}, load average "
-          f"{os.getloadavg()[0]:.2f}")
+    body = {
+        mujoco.mj_id2name(base, mujoco.mjtObj.mjOBJ_GEOM, g)
+        for g in range(base.ngeom)
+        if base.geom_conaffinity[g] and not mujoco.mj_id2name(base, mujoco.mjtObj.mjOBJ_GEOM, g).endswith("_foot")
+    }
+    variants = {
+        "plane": base,
+        "terrain model (feet on the field)": terrain_variant(set()),
+        "every collision geom on the field": terrain_variant(body),
+        "every geom but the trunk box on the field": terrain_variant(body - {"trunk"}),
+    }
+    print(
+        f"# {provenance.machine()}, batch {args.batch}, {args.steps} steps, best of {args.repeats}, load average "
+        f"{os.getloadavg()[0]:.2f}"
+    )
     figures, plane_us = {}, None
     for name, m in variants.items():
         us, ncon = step_cost_us(m, args.batch, args.steps, args.repeats)
         plane_us = us if plane_us is None else plane_us
         figures[name] = {"us_per_instance_step": us, "ratio_to_plane": us / plane_us, "contacts": ncon}
-        print(f"{name:42s} {ncon:3d} contacts {us:8.1f} µs per instance-step {us / plane_us:6.2f}× the plane",
-              flush=True)
-    print(json.dumps({"benchmark": "terrain_pairs", "machine": provenance.machine(), "batch": args.batch,
-                      "steps": args.steps, "repeats": args.repeats, "load_average": os.getloadavg()[0],
-                      "commit": provenance.git_commit(), "figures": figures}))
+        print(
+            f"{name:42s} {ncon:3d} contacts {us:8.1f} µs per instance-step {us / plane_us:6.2f}× the plane", flush=True
+        )
+    print(
+        json.dumps(
+            {
+                "benchmark": "terrain_pairs",
+                "machine": provenance.machine(),
+                "batch": args.batch,
+                "steps": args.steps,
+                "repeats": args.repeats,
+                "load_average": os.getloadavg()[0],
+                "commit": provenance.git_commit(),
+                "figures": figures,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -42,11 +42,26 @@ def standing_recording(folder: pathlib.Path) -> None:
     from cpgjax.trial.condition import Condition
 
     qpos = np.tile(go1_model.standing_qpos(), (STANDING_TICKS, 1))
-    zeros = {name: np.zeros((STANDING_TICKS, *shape)) for name, shape in (
-        ("qvel", (qpos.shape[1] - 1,)), ("torque_nm", (12,)), ("foot_force_n", (4,)), ("foot_pos_m", (4, 3)),
-        ("amplitude", (4,)), ("phase_rad", (4,)), ("foot_target_m", (4, 3)), ("rpy_rad", (3,)))}
-    rollout = scene.Rollout(log=protocol.StepLog(qpos=qpos, **zeros), group="standing", controller="vmc_tegotae",
-                            seed=0, condition=Condition(friction=1.0))
+    zeros = {
+        name: np.zeros((STANDING_TICKS, *shape))
+        for name, shape in (
+            ("qvel", (qpos.shape[1] - 1,)),
+            ("torque_nm", (12,)),
+            ("foot_force_n", (4,)),
+            ("foot_pos_m", (4, 3)),
+            ("amplitude", (4,)),
+            ("phase_rad", (4,)),
+            ("foot_target_m", (4, 3)),
+            ("rpy_rad", (3,)),
+        )
+    }
+    rollout = scene.Rollout(
+        log=protocol.StepLog(qpos=qpos, **zeros),
+        group="standing",
+        controller="vmc_tegotae",
+        seed=0,
+        condition=Condition(friction=1.0),
+    )
     rec = rr.RecordingStream("cpgjax_viewer_idle")
     rec.save(str(folder / "recording.rrd"))
     scene.log_rollout(rec, rollout)
@@ -82,15 +97,21 @@ def cpu_s(pids: set[int]) -> dict[int, tuple[str, float]]:
         except OSError:
             continue
         fields = stat.rsplit(")", 1)[1].split()
-        times[pid] = (stat[stat.index("(") + 1:stat.rindex(")")], (int(fields[11]) + int(fields[12])) * tick_s)
+        times[pid] = (stat[stat.index("(") + 1 : stat.rindex(")")], (int(fields[11]) + int(fields[12])) * tick_s)
     return times
 
 
 def measure(folder: pathlib.Path, seconds: float, settle_s: float) -> dict:
     port = study_launch.free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
-    proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", "show", str(folder), "--web", "--port", str(port)],
-                            env=env, cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cpgjax.cli", "show", str(folder), "--web", "--port", str(port)],
+        env=env,
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     try:
         printed = ""
         while "Ctrl-C stops it" not in printed:
@@ -103,10 +124,16 @@ def measure(folder: pathlib.Path, seconds: float, settle_s: float) -> dict:
         before, t0 = cpu_s(pids), time.monotonic()
         time.sleep(seconds)
         after, wall_s = cpu_s(pids), time.monotonic() - t0
-        shares = {f"{name} ({pid})": round(100 * (t - before[pid][1]) / wall_s, 2)
-                  for pid, (name, t) in after.items() if pid in before}
-        return {"processes": shares, "total_percent_of_a_core": round(sum(shares.values()), 2),
-                "wall_s": round(wall_s, 1)}
+        shares = {
+            f"{name} ({pid})": round(100 * (t - before[pid][1]) / wall_s, 2)
+            for pid, (name, t) in after.items()
+            if pid in before
+        }
+        return {
+            "processes": shares,
+            "total_percent_of_a_core": round(sum(shares.values()), 2),
+            "wall_s": round(wall_s, 1),
+        }
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -117,8 +144,11 @@ def measure(folder: pathlib.Path, seconds: float, settle_s: float) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--folder", type=pathlib.Path, help="a results folder with recording.rrd (default: a "
-                        "standing robot's recording in a temporary folder)")
+    parser.add_argument(
+        "--folder",
+        type=pathlib.Path,
+        help="a results folder with recording.rrd (default: a standing robot's recording in a temporary folder)",
+    )
     parser.add_argument("--seconds", type=float, default=30.0, help="how long the CPU time is measured")
     parser.add_argument("--settle-s", type=float, default=5.0, help="the wait after the address is printed")
     args = parser.parse_args()
@@ -129,10 +159,19 @@ def main() -> None:
             folder = work
             standing_recording(folder)
         figures = measure(folder, args.seconds, args.settle_s)
-        print(json.dumps({"benchmark": "viewer_idle", "machine": provenance.machine(), "load_avg": os.getloadavg(),
-                          "commit": provenance.git_commit(),
-                          "recording_bytes": (folder / "recording.rrd").stat().st_size, "seconds": args.seconds,
-                          **figures}))
+        print(
+            json.dumps(
+                {
+                    "benchmark": "viewer_idle",
+                    "machine": provenance.machine(),
+                    "load_avg": os.getloadavg(),
+                    "commit": provenance.git_commit(),
+                    "recording_bytes": (folder / "recording.rrd").stat().st_size,
+                    "seconds": args.seconds,
+                    **figures,
+                }
+            )
+        )
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -53,23 +53,33 @@ def main() -> None:
         state = sim.reset(params)
         state, record = sim.trial(state, params, gates)
         jax.block_until_ready(record)
-        runs[name] = dict(sim=sim, state=state, compile_s=time.perf_counter() - t0, ngeom=int(sim.batch.model.ngeom),
-                          best_s=np.inf)
+        runs[name] = dict(
+            sim=sim, state=state, compile_s=time.perf_counter() - t0, ngeom=int(sim.batch.model.ngeom), best_s=np.inf
+        )
     for _ in range(args.rounds):
         for run in runs.values():
             t0 = time.perf_counter()
             run["state"], record = run["sim"].trial(run["state"], params, gates)
             jax.block_until_ready(record)
             run["best_s"] = min(run["best_s"], time.perf_counter() - t0)
-    figures = {name: dict(ngeom=r["ngeom"], compile_and_first_trial_s=round(r["compile_s"], 2),
-                          trial_s=round(r["best_s"], 4)) for name, r in runs.items()}
+    figures = {
+        name: dict(ngeom=r["ngeom"], compile_and_first_trial_s=round(r["compile_s"], 2), trial_s=round(r["best_s"], 4))
+        for name, r in runs.items()
+    }
     figures["visual_over_physics"] = round(runs["visual"]["best_s"] / runs["physics"]["best_s"], 3)
-    figures.update(machine=provenance.machine(), load_avg=os.getloadavg(), batch=BATCH,
-                   steps=TRIAL.transition_steps + TRIAL.steady_steps, rounds=args.rounds)
+    figures.update(
+        machine=provenance.machine(),
+        load_avg=os.getloadavg(),
+        batch=BATCH,
+        steps=TRIAL.transition_steps + TRIAL.steady_steps,
+        rounds=args.rounds,
+    )
     for name in ("physics", "visual"):
         f = figures[name]
-        print(f"{name}: {f['ngeom']} geoms, trial {f['trial_s'] * 1e3:.1f} ms (best of {args.rounds}), compile and "
-              f"first trial {f['compile_and_first_trial_s']:.1f} s")
+        print(
+            f"{name}: {f['ngeom']} geoms, trial {f['trial_s'] * 1e3:.1f} ms (best of {args.rounds}), compile and "
+            f"first trial {f['compile_and_first_trial_s']:.1f} s"
+        )
     print(json.dumps(figures))
 
 

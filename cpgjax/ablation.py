@@ -61,6 +61,7 @@ log = logging.getLogger(__name__)
 
 # ----------------------------------------------------------------------------------------------- the engine
 
+
 class Timing(NamedTuple):
     """Wall seconds spent, summed over trials (and resumed segments)."""
 
@@ -168,13 +169,20 @@ class Engine:
         self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
         config = self.optimizer_config = spec.optimizer_config()
         score = functools.partial(objective.objective, floor=spec.switch_values().objective_floor)
-        self.optimizer = (bo.make_optimizer(config, score, _record_template(spec.trial))
-                          if self.uses_records else bo.make_optimizer(config))
+        self.optimizer = (
+            bo.make_optimizer(config, score, _record_template(spec.trial))
+            if self.uses_records
+            else bo.make_optimizer(config)
+        )
         opt = self.optimizer
-        init = (lambda a, t: opt.init(active_dims=a, target_velocity=t)) if self.uses_records else \
-            (lambda a, t: opt.init(active_dims=a))
+        init = (
+            (lambda a, t: opt.init(active_dims=a, target_velocity=t))
+            if self.uses_records
+            else (lambda a, t: opt.init(active_dims=a))
+        )
         self._init = self.placement.per_instance(init)
         self._propose = self.placement.per_instance(opt.propose_with_fallback)
+
         def observe_unconstrained(state, x, c, observation, margin):
             del margin  # only a safe optimizer learns it
             return opt.observe(state, x, c, observation)
@@ -182,11 +190,19 @@ class Engine:
         self._observe = self.placement.per_instance(opt.observe if config.safe else observe_unconstrained)
         self._beta = self.placement.per_instance(opt.beta)
         self._set_target = self.placement.per_instance(opt.set_target) if self.uses_records else None
-        self._keys = self.placement.per_instance(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t),
-                                                 in_axes=(0, None))
-        self._summary = jax.jit(jax.vmap(lambda r, v: (
-            score(r, v), objective.context(r), objective.mean_velocity(r),
-            objective.cost_of_transport(r))))
+        self._keys = self.placement.per_instance(
+            lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t), in_axes=(0, None)
+        )
+        self._summary = jax.jit(
+            jax.vmap(
+                lambda r, v: (
+                    score(r, v),
+                    objective.context(r),
+                    objective.mean_velocity(r),
+                    objective.cost_of_transport(r),
+                )
+            )
+        )
         self._sim = None
 
     # -- pieces ---------------------------------------------------------------------------------------------
@@ -200,12 +216,18 @@ class Engine:
         one batch of them, e.g. the trials a study's analysis walks again. ``conditions``: the padded batch's (default
         the planned ones, :attr:`padded`; the engine's trials take them walked, :meth:`walked`)."""
         c = self.padded if conditions is None else conditions
-        return go1_model.make_scenarios(c.friction[instances, trials], c.slope_deg[instances, trials],
-                                        c.payload_kg[instances, trials], self.physics[instances],
-                                        c.mass_scale[instances, trials], c.latency_ticks[instances, trials],
-                                        c.noise_scale[instances, trials], self.seeds[instances],  # noise per seed
-                                        foot_friction=self.feet[instances],
-                                        **{f: v[instances] for f, v in self.grounds.items()})
+        return go1_model.make_scenarios(
+            c.friction[instances, trials],
+            c.slope_deg[instances, trials],
+            c.payload_kg[instances, trials],
+            self.physics[instances],
+            c.mass_scale[instances, trials],
+            c.latency_ticks[instances, trials],
+            c.noise_scale[instances, trials],
+            self.seeds[instances],  # noise per seed
+            foot_friction=self.feet[instances],
+            **{f: v[instances] for f, v in self.grounds.items()},
+        )
 
     def simulator(self, trial: int, conditions: Conditions | None = None) -> Backend:
         """The backend of this process's instances for trial ``trial``'s scenario (under ``conditions``, see
@@ -214,8 +236,13 @@ class Engine:
         first, stop = self.placement.rows
         scenario = go1_model.Scenario(*(field[first:stop] for field in self.scenario(trial, conditions)))
         if self._sim is None:
-            self._sim = backends.make_backend(scenario, self.backend_name, self.spec.cpg_config(), self.spec.trial,
-                                              devices=self.placement.local_devices)
+            self._sim = backends.make_backend(
+                scenario,
+                self.backend_name,
+                self.spec.cpg_config(),
+                self.spec.trial,
+                devices=self.placement.local_devices,
+            )
         elif any(not np.array_equal(a, b) for a, b in zip(scenario, self._sim.scenario, strict=True)):
             self._sim = self._sim.with_scenario(scenario)
         return self._sim
@@ -245,8 +272,9 @@ class Engine:
 
     # -- the loop -------------------------------------------------------------------------------------------
 
-    def run(self, out_dir=None, *, resume: bool = False,
-            progress: Callable[[Progress], None] | None = None) -> StudyResult:
+    def run(
+        self, out_dir=None, *, resume: bool = False, progress: Callable[[Progress], None] | None = None
+    ) -> StudyResult:
         """Run (or, with ``resume``, continue from ``out_dir``'s checkpoint) every trial of the study.
 
         With ``out_dir`` the state is checkpointed atomically after every trial (each process its own instances).
@@ -274,27 +302,53 @@ class Engine:
                 progress(Progress(t + 1, n, self.best_by_group(run.logs), *figures))
         wall_s = run.wall_before + time.perf_counter() - t_begin
         rows = self.instance_rows
-        walked = Conditions(*(c[:self.batch_size] for c in self.walked(run.logs)))
+        walked = Conditions(*(c[: self.batch_size] for c in self.walked(run.logs)))
         return StudyResult(
-            spec=spec, labels=self.labels, conditions=self.conditions, walked=walked,
+            spec=spec,
+            labels=self.labels,
+            conditions=self.conditions,
+            walked=walked,
             trials=study_io.stacked(run.logs, self.batch_size),
-            opt_state=jax.tree.map(lambda a: a[:rows[1] - rows[0]], self.placement.local(run.opt_state)),
-            wall_s=wall_s, timing=Timing(**run.timing), backend=self.backend_name,
-            devices=[str(d) for d in self.placement.mesh.devices.flat], rows=rows)
+            opt_state=jax.tree.map(lambda a: a[: rows[1] - rows[0]], self.placement.local(run.opt_state)),
+            wall_s=wall_s,
+            timing=Timing(**run.timing),
+            backend=self.backend_name,
+            devices=[str(d) for d in self.placement.mesh.devices.flat],
+            rows=rows,
+        )
 
     def _start(self, out_dir, resume: bool) -> _Run:
         """The run's state before its first trial: fresh, or restored from ``out_dir``'s checkpoint."""
-        run = _Run(start=0, opt_state=self.initial_opt_state(), sim_state=None, context=self.initial_context(),
-                   logs=[], wall_before=0.0, timing={name: 0.0 for name in Timing._fields})
-        ckpt = (study_io.resume_checkpoint(out_dir, self.spec, self.placement.local(run.opt_state), self.placement,
-                                           self.batch_size) if resume else None)
+        run = _Run(
+            start=0,
+            opt_state=self.initial_opt_state(),
+            sim_state=None,
+            context=self.initial_context(),
+            logs=[],
+            wall_before=0.0,
+            timing={name: 0.0 for name in Timing._fields},
+        )
+        ckpt = (
+            study_io.resume_checkpoint(
+                out_dir, self.spec, self.placement.local(run.opt_state), self.placement, self.batch_size
+            )
+            if resume
+            else None
+        )
         if ckpt is None:
             return run
         opt_state = self.placement.put_local(jax.tree.unflatten(jax.tree.structure(run.opt_state), ckpt.opt_leaves))
         sim_state = self._restore_sim(ckpt.trial, ckpt.sim_leaves) if ckpt.trial < self.spec.num_trials else None
         log.info("resumed %s at trial %d", self.spec.name, ckpt.trial)
-        return _Run(start=ckpt.trial, opt_state=opt_state, sim_state=sim_state, context=ckpt.context,
-                    logs=ckpt.logs, wall_before=ckpt.wall_s, timing={**run.timing, **ckpt.timing})
+        return _Run(
+            start=ckpt.trial,
+            opt_state=opt_state,
+            sim_state=sim_state,
+            context=ckpt.context,
+            logs=ckpt.logs,
+            wall_before=ckpt.wall_s,
+            timing={**run.timing, **ckpt.timing},
+        )
 
     def _trial(self, run: _Run, t: int) -> _Run:
         """Trial ``t`` for this process's instances: propose (eq. 8), simulate, summarize (eqs. 9-11), observe; then
@@ -313,9 +367,12 @@ class Engine:
             x, fell_back = local(x).astype(np.float64), local(fell_back)
             real = self.local_instances
             if fell_back[:real].any():
-                log.warning("trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
-                            "the safe trial with the highest expected margin there (docs/decisions.md §17)", t,
-                            int(fell_back[:real].sum()))
+                log.warning(
+                    "trial %d: %d instance(s) had no parameters certified safe for their context and repeat "
+                    "the safe trial with the highest expected margin there (docs/decisions.md §17)",
+                    t,
+                    int(fell_back[:real].sum()),
+                )
         with _timed(timing, "simulation_s"):
             sim = self.simulator(t, self.walked(run.logs))
             sim_state = sim.reset(x, self.local_gates) if run.sim_state is None else run.sim_state
@@ -333,21 +390,39 @@ class Engine:
             record_d, x_d = put_local(rec), put_local(x.astype(np.float32))
         with _timed(timing, "observe_s", "optimizer_s"):
             observation = record_d if self.uses_records else put_local(j)
-            opt_state, accepted = self._observe(opt_state, x_d, put_local(gp_context), observation,
-                                                put_local(rec.safety_margin))
+            opt_state, accepted = self._observe(
+                opt_state, x_d, put_local(gp_context), observation, put_local(rec.safety_margin)
+            )
             accepted = jax.block_until_ready(accepted)
         trial_log = study_io.TrialLog(
-            params=x, context=new_context, objective=j, velocity_xy_mps=velocity, cot=cot, beta=local(beta.beta),
-            context_changed=local(beta.context_changed), accepted=local(accepted),
-            roll_std_rad=rec.roll_std_rad, pitch_std_rad=rec.pitch_std_rad,
-            saturation_fraction=rec.saturation_fraction, energy_j=rec.energy_j, distance_m=rec.distance_m,
-            total_mass_kg=rec.total_mass_kg, fell=rec.fell, failed=rec.failed, safety_margin=rec.safety_margin,
-            safe_fallback=fell_back)
+            params=x,
+            context=new_context,
+            objective=j,
+            velocity_xy_mps=velocity,
+            cot=cot,
+            beta=local(beta.beta),
+            context_changed=local(beta.context_changed),
+            accepted=local(accepted),
+            roll_std_rad=rec.roll_std_rad,
+            pitch_std_rad=rec.pitch_std_rad,
+            saturation_fraction=rec.saturation_fraction,
+            energy_j=rec.energy_j,
+            distance_m=rec.distance_m,
+            total_mass_kg=rec.total_mass_kg,
+            fell=rec.fell,
+            failed=rec.failed,
+            safety_margin=rec.safety_margin,
+            safe_fallback=fell_back,
+        )
         with _timed(timing, "exchange_s"):
             parts = study_placement.exchange(trial_log)
             trial_log = study_io.TrialLog(*(np.concatenate(f) for f in zip(*parts, strict=True)))
-        return run._replace(opt_state=opt_state, sim_state=sim_state, context=np.asarray(gp_context, np.float32),
-                            logs=run.logs + [trial_log])
+        return run._replace(
+            opt_state=opt_state,
+            sim_state=sim_state,
+            context=np.asarray(gp_context, np.float32),
+            logs=run.logs + [trial_log],
+        )
 
     def walked(self, logs: list[study_io.TrialLog]) -> Conditions:
         """The padded batch's conditions walked after the trials of ``logs`` (``study_spec.walked``): the ramp's
@@ -361,21 +436,35 @@ class Engine:
         """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
         when any is; the trial log keeps the measured values."""
         real = self.local_instances
-        clipped, messages = optimizer_config.clip_context(self.optimizer_config, context[:real],
-                                                           objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
+        clipped, messages = optimizer_config.clip_context(
+            self.optimizer_config, context[:real], objective.CONTEXT_NAMES, objective.CONTEXT_UNITS
+        )
         if messages:
-            log.warning("trial %d: %d context value(s) outside the GP's range, clipped; first: %s", trial,
-                        len(messages), messages[0])
-        return np.concatenate([clipped, np.clip(context[real:], self.optimizer_config.context_lower,
-                                                self.optimizer_config.context_upper)]).astype(np.float32)
+            log.warning(
+                "trial %d: %d context value(s) outside the GP's range, clipped; first: %s",
+                trial,
+                len(messages),
+                messages[0],
+            )
+        return np.concatenate(
+            [clipped, np.clip(context[real:], self.optimizer_config.context_lower, self.optimizer_config.context_upper)]
+        ).astype(np.float32)
 
     def _checkpoint(self, out_dir, run: _Run, t: int, wall_s: float) -> None:
         """This process's instances (not their padding copies) after trial ``t``; once every process has written
         trial t, the files a resume no longer needs are deleted (``study_io.prune_checkpoints``)."""
         first = self.placement.rows[0]
         shard = study_io.Shard(jax.process_index(), jax.process_count(), first)
-        ckpt = study_io.process_checkpoint(t + 1, self.placement.local(run.opt_state), run.sim_state, run.context,
-                                           run.logs, (first, self.local_instances), wall_s, run.timing)
+        ckpt = study_io.process_checkpoint(
+            t + 1,
+            self.placement.local(run.opt_state),
+            run.sim_state,
+            run.context,
+            run.logs,
+            (first, self.local_instances),
+            wall_s,
+            run.timing,
+        )
         study_io.save_checkpoint(out_dir, self.spec, ckpt, self.backend_name, shard)
         # Trial t's logs came from every process, so each has written trial t − 1 (one process: t itself).
         complete = t + 1 if shard.num_processes == 1 else t
@@ -395,7 +484,7 @@ class Engine:
         return [", ".join(str(lab[g]) for g in self.spec.group_by) for lab in self.labels]
 
     def best_by_group(self, logs: list[study_io.TrialLog]) -> dict[str, float]:
-        j = np.stack([np.asarray(lg.objective)[:self.batch_size] for lg in logs])  # (t, B)
+        j = np.stack([np.asarray(lg.objective)[: self.batch_size] for lg in logs])  # (t, B)
         best: dict[str, float] = {}
         for b, name in enumerate(self.group_names()):
             best[name] = max(best.get(name, -np.inf), float(j[:, b].max()))

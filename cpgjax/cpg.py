@@ -104,8 +104,9 @@ def with_startup(config: CPGConfig, name: str) -> CPGConfig:
     if name not in STARTUPS:
         raise ValueError(f"unknown start-up {name!r}; allowed: {', '.join(STARTUPS)}")
     paper = CPGConfig()
-    return config._replace(**({f: getattr(paper, f) for f in CPGConfig._fields if f.startswith("start_")}
-                              | STARTUPS[name]))
+    return config._replace(
+        **({f: getattr(paper, f) for f in CPGConfig._fields if f.startswith("start_")} | STARTUPS[name])
+    )
 
 
 class Gates(NamedTuple):
@@ -121,8 +122,11 @@ def controller_gates(name: str, gait: str = DEFAULT_GAIT) -> Gates:
     """Gates of one of CONTROLLERS ('open_loop', 'vmc', 'tegotae', 'vmc_tegotae') walking one of :data:`GAITS`."""
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}; allowed: {CONTROLLERS}")
-    return Gates(vmc=np.float32("vmc" in name), tegotae=np.float32("tegotae" in name),
-                 phase_lag_rad=gait_phase_lags(gait).astype(np.float32))
+    return Gates(
+        vmc=np.float32("vmc" in name),
+        tegotae=np.float32("tegotae" in name),
+        phase_lag_rad=gait_phase_lags(gait).astype(np.float32),
+    )
 
 
 class CPGState(NamedTuple):
@@ -151,8 +155,16 @@ class Diagnostics(NamedTuple):
     saturated: jax.Array  # (12,) 1.0 where the commanded torque was clipped to the motor limit
 
 
-def oscillator_derivatives(amplitude, phase_rad, params, foot_force_n, tegotae_gate, config: CPGConfig,
-                           mu_scale=1.0, phase_lag_rad=TROT_PHASE_LAG_RAD):
+def oscillator_derivatives(
+    amplitude,
+    phase_rad,
+    params,
+    foot_force_n,
+    tegotae_gate,
+    config: CPGConfig,
+    mu_scale=1.0,
+    phase_lag_rad=TROT_PHASE_LAG_RAD,
+):
     """(ṙ, θ̇) of the four coupled oscillators, eqs. (1)-(3) and the Tegotae term of eq. (6).
 
     Args:
@@ -195,16 +207,21 @@ def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConf
     """
     roll, pitch, yaw = rpy_rad[0], rpy_rad[1], rpy_rad[2]
     heading_error = jnp.arctan2(jnp.sin(yaw - heading_ref_rad), jnp.cos(yaw - heading_ref_rad))
-    force_z = (config.k_att_roll_n * kinematics.SIDE_SIGN * jnp.sin(roll)
-               - config.k_att_pitch_n * kinematics.FRONT_SIGN * jnp.sin(pitch))
+    force_z = config.k_att_roll_n * kinematics.SIDE_SIGN * jnp.sin(
+        roll
+    ) - config.k_att_pitch_n * kinematics.FRONT_SIGN * jnp.sin(pitch)
     force_y = config.k_dir_n_rad * kinematics.FRONT_SIGN * heading_error
     force = stance[:, None] * jnp.stack([jnp.zeros(4), force_y, force_z], axis=-1)  # (4, 3)
     jac = kinematics.legs_jacobian(joint_pos_rad.reshape(4, 3), kinematics.SIDE_SIGN)  # (4, 3, 3)
     return jnp.einsum("lij,li->lj", jac, force).reshape(12)
 
 
-def init_state(obs: sensors.Observation, config: CPGConfig = CPGConfig(), initial_amplitude: float = 0.1,
-               phase_lag_rad=TROT_PHASE_LAG_RAD) -> CPGState:
+def init_state(
+    obs: sensors.Observation,
+    config: CPGConfig = CPGConfig(),
+    initial_amplitude: float = 0.1,
+    phase_lag_rad=TROT_PHASE_LAG_RAD,
+) -> CPGState:
     """Controller state at the start of a run: small amplitude, the gait's phases θ_j = φ_0j of ``phase_lag_rad``
     (+ ``config.start_phase_rad``), heading reference = heading now, the start's clock at 0 and the IMU pitch now
     (the lean's)."""
@@ -245,8 +262,9 @@ def standing_pose_rad(config: CPGConfig, imu_quat_wxyz: jax.Array) -> jax.Array:
     return go1_model.standing_legs_rad(lean_x_m(config, attitude.quat_to_rpy(imu_quat_wxyz)[1]))
 
 
-def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates: Gates,
-                    obs: sensors.Observation) -> tuple[CPGState, jax.Array, Diagnostics]:
+def controller_step(
+    config: CPGConfig, state: CPGState, params: jax.Array, gates: Gates, obs: sensors.Observation
+) -> tuple[CPGState, jax.Array, Diagnostics]:
     """One 1 kHz control tick: (state, 8 parameters, observation) → (new state, 12 joint torques [N·m], diagnostics).
 
     The oscillators are advanced by one forward-Euler step of dt, then mapped to foot targets (eqs. 4-5), joint
@@ -256,9 +274,16 @@ def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates
     if params.shape[-1] != NUM_PARAMS:
         raise ValueError(f"params must have {NUM_PARAMS} entries, got shape {params.shape}")
     start_s = jnp.minimum(state.start_s + config.dt_s, START_CLOCK_MAX_S)
-    d_amp, d_phase = oscillator_derivatives(state.amplitude, state.phase_rad, params, obs.foot_force_n,
-                                            gates.tegotae, config, mu_scale=start_ramp(config.start_ramp_s, start_s),
-                                            phase_lag_rad=gates.phase_lag_rad)
+    d_amp, d_phase = oscillator_derivatives(
+        state.amplitude,
+        state.phase_rad,
+        params,
+        obs.foot_force_n,
+        gates.tegotae,
+        config,
+        mu_scale=start_ramp(config.start_ramp_s, start_s),
+        phase_lag_rad=gates.phase_lag_rad,
+    )
     amplitude = state.amplitude + config.dt_s * d_amp
     phase = jnp.mod(state.phase_rad + config.dt_s * d_phase, 2.0 * jnp.pi)
 
@@ -276,6 +301,12 @@ def controller_step(config: CPGConfig, state: CPGState, params: jax.Array, gates
     limit = jnp.asarray(constants.TORQUE_LIMIT_NM, tau_cmd.dtype)
     torque = jnp.clip(tau_cmd, -limit, limit)
     diagnostics = Diagnostics(
-        foot_target_m=targets, joint_target_rad=q_des, tau_ref_nm=tau_ref, tau_vmc_nm=tau_vmc, stance=stance,
-        rpy_rad=rpy, saturated=(jnp.abs(tau_cmd) > limit).astype(tau_cmd.dtype))
+        foot_target_m=targets,
+        joint_target_rad=q_des,
+        tau_ref_nm=tau_ref,
+        tau_vmc_nm=tau_vmc,
+        stance=stance,
+        rpy_rad=rpy,
+        saturated=(jnp.abs(tau_cmd) > limit).astype(tau_cmd.dtype),
+    )
     return state._replace(amplitude=amplitude, phase_rad=phase, start_s=start_s), torque, diagnostics

@@ -94,25 +94,26 @@ def _one_matrix_per_lapack_call(fn):
     matrix at a time"). A call on one matrix runs on the calling thread, so looping keeps every GP
     factorization and solve deadlock-free at any batch size, at the same arithmetic per matrix.
     """
+
     @custom_batching.custom_vmap
     def unbatched(*args):
         return fn(*args)
 
     @unbatched.def_vmap
     def loop_over_batch(axis_size, in_batched, *args):
-        args = tuple(arg if batched else jnp.broadcast_to(arg, (axis_size, *jnp.shape(arg)))
-                     for arg, batched in zip(args, in_batched, strict=True))
+        args = tuple(
+            arg if batched else jnp.broadcast_to(arg, (axis_size, *jnp.shape(arg)))
+            for arg, batched in zip(args, in_batched, strict=True)
+        )
         return jax.lax.map(lambda one: unbatched(*one), args), True
 
     return unbatched
 
 
-_lower_cholesky = _one_matrix_per_lapack_call(
-    lambda matrix: jax.lax.linalg.cholesky(matrix, symmetrize_input=False))
-_solve_lower = _one_matrix_per_lapack_call(
-    lambda lower, rhs: jsp.linalg.solve_triangular(lower, rhs, lower=True))
-_cholesky_solve = _one_matrix_per_lapack_call(
-    lambda lower, rhs: jsp.linalg.cho_solve((lower, True), rhs))
+_lower_cholesky = _one_matrix_per_lapack_call(lambda matrix: jax.lax.linalg.cholesky(matrix, symmetrize_input=False))
+_solve_lower = _one_matrix_per_lapack_call(lambda lower, rhs: jsp.linalg.solve_triangular(lower, rhs, lower=True))
+_cholesky_solve = _one_matrix_per_lapack_call(lambda lower, rhs: jsp.linalg.cho_solve((lower, True), rhs))
+
 
 class GammaPrior(NamedTuple):
     """A Gamma(concentration, rate) density (rate form: mean concentration / rate)."""
@@ -139,8 +140,9 @@ class Priors(NamedTuple):
     noise: GammaPrior
 
 
-BOTORCH_PRIORS = Priors(lengthscale=GammaPrior(3.0, 6.0), outputscale=GammaPrior(2.0, 0.15),
-                        noise=GammaPrior(1.1, 0.05))
+BOTORCH_PRIORS = Priors(
+    lengthscale=GammaPrior(3.0, 6.0), outputscale=GammaPrior(2.0, 0.15), noise=GammaPrior(1.1, 0.05)
+)
 """BoTorch 0.5.0 ``SingleTaskGP``'s priors: the objective's (module docstring)."""
 
 # The box the fit projects onto after every Adam step (log space; the mean in standardized
@@ -247,8 +249,7 @@ def matern52_and_derivative(squared_distance: jax.Array) -> tuple[jax.Array, jax
     distance = jnp.where(positive, jnp.sqrt(jnp.where(positive, squared_distance, 1.0)), 0.0)
     sqrt5_r = jnp.sqrt(5.0) * distance
     decay = jnp.exp(-sqrt5_r)
-    return ((1.0 + sqrt5_r + (5.0 / 3.0) * squared_distance) * decay,
-            -(5.0 / 6.0) * (1.0 + sqrt5_r) * decay)
+    return ((1.0 + sqrt5_r + (5.0 / 3.0) * squared_distance) * decay, -(5.0 / 6.0) * (1.0 + sqrt5_r) * decay)
 
 
 def squared_differences(inputs_a: jax.Array, inputs_b: jax.Array) -> jax.Array:
@@ -342,8 +343,7 @@ class _Prepared(NamedTuple):
 def _prepare(dataset: Dataset) -> _Prepared:
     inputs = jnp.where(dataset.valid[:, None], dataset.inputs, 0.5)
     standardized, target_mean, target_std = standardize(dataset.targets, dataset.valid)
-    return _Prepared(inputs, squared_differences(inputs, inputs), standardized, dataset.valid,
-                     target_mean, target_std)
+    return _Prepared(inputs, squared_differences(inputs, inputs), standardized, dataset.valid, target_mean, target_std)
 
 
 class _Factored(NamedTuple):
@@ -363,14 +363,14 @@ def _factor(params, prepared, active, context_dims) -> _Factored:
     Cholesky factor, and ``weights = K⁻¹ r`` for the residual ``r`` of the standardized
     targets about the constant mean."""
     r2_x, r2_c = _block_squared_distances(
-        _inverse_squared_lengthscales(params, active), prepared.sq_differences, context_dims)
+        _inverse_squared_lengthscales(params, active), prepared.sq_differences, context_dims
+    )
     corr_x, derivative_x = matern52_and_derivative(r2_x)
     corr_c, derivative_c = (None, None) if r2_c is None else matern52_and_derivative(r2_c)
     corr = corr_x if corr_c is None else corr_x * corr_c
     valid = prepared.valid
     eye = jnp.eye(valid.shape[0], dtype=corr.dtype)
-    valid_block = (jnp.exp(params.log_outputscale) * (corr + JITTER_RATIO * eye)
-                   + jnp.exp(params.log_noise) * eye)
+    valid_block = jnp.exp(params.log_outputscale) * (corr + JITTER_RATIO * eye) + jnp.exp(params.log_noise) * eye
     kernel = jnp.where(valid[:, None] & valid[None, :], valid_block, eye)
     residual = jnp.where(valid, prepared.standardized - params.mean, 0.0)
     # The kernel is symmetric by construction ((a - b)² = (b - a)² exactly), and the
@@ -400,19 +400,18 @@ def _cholesky_inverse(cholesky: jax.Array) -> jax.Array:
     upper_inverse = _cholesky_inverse(cholesky[:half, :half])
     lower_inverse = _cholesky_inverse(cholesky[half:, half:])
     off_diagonal = -(lower_inverse @ (cholesky[half:, :half] @ upper_inverse))
-    return jnp.block([[upper_inverse, jnp.zeros((half, size - half), cholesky.dtype)],
-                      [off_diagonal, lower_inverse]])
+    return jnp.block([[upper_inverse, jnp.zeros((half, size - half), cholesky.dtype)], [off_diagonal, lower_inverse]])
 
 
 def _log_marginal_likelihood(factored: _Factored, prepared: _Prepared) -> jax.Array:
-    return (-0.5 * jnp.dot(factored.residual, factored.weights)
-            - jnp.sum(jnp.log(jnp.diagonal(factored.cholesky)))
-            - 0.5 * jnp.sum(prepared.valid) * jnp.log(2.0 * jnp.pi))
+    return (
+        -0.5 * jnp.dot(factored.residual, factored.weights)
+        - jnp.sum(jnp.log(jnp.diagonal(factored.cholesky)))
+        - 0.5 * jnp.sum(prepared.valid) * jnp.log(2.0 * jnp.pi)
+    )
 
 
-def log_marginal_likelihood(
-    params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int
-) -> jax.Array:
+def log_marginal_likelihood(params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int) -> jax.Array:
     r"""Log marginal likelihood of the standardized valid targets,
     :math:`-\tfrac12 r^\top K^{-1} r - \tfrac12\log|K| - \tfrac{n}{2}\log 2\pi`."""
     prepared = _prepare(dataset)
@@ -436,6 +435,7 @@ def log_prior(params: GPParams, active: jax.Array, priors: Priors = BOTORCH_PRIO
 def _log_prior_gradient(params: GPParams, active: jax.Array, priors: Priors) -> GPParams:
     r"""Gradient of :func:`log_prior` in the log parameters: for a Gamma(a, b) density of
     :math:`v = e^u`, :math:`\partial_u \log p = (a - 1) - b v`."""
+
     def gamma_term(log_value, prior):
         concentration, rate = prior
         return (concentration - 1.0) - rate * jnp.exp(log_value)
@@ -449,7 +449,10 @@ def _log_prior_gradient(params: GPParams, active: jax.Array, priors: Priors) -> 
 
 
 def _log_marginal_likelihood_gradient(
-    params: GPParams, prepared: _Prepared, factored: _Factored, active: jax.Array,
+    params: GPParams,
+    prepared: _Prepared,
+    factored: _Factored,
+    active: jax.Array,
     context_dims: int,
 ) -> GPParams:
     r"""Analytic gradient of the log marginal likelihood in the (log) hyperparameters. Written out because it pays:
@@ -474,8 +477,7 @@ def _log_marginal_likelihood_gradient(
     valid = prepared.valid
     cholesky_inverse = _cholesky_inverse(factored.cholesky)
     kernel_inverse = cholesky_inverse.T @ cholesky_inverse
-    w = jnp.where(valid[:, None] & valid[None, :],
-                  jnp.outer(factored.weights, factored.weights) - kernel_inverse, 0.0)
+    w = jnp.where(valid[:, None] & valid[None, :], jnp.outer(factored.weights, factored.weights) - kernel_inverse, 0.0)
     scaled_w = outputscale * w
     trace_w = jnp.trace(w)
     inverse_sq_lengthscales = _inverse_squared_lengthscales(params, active)
@@ -486,14 +488,17 @@ def _log_marginal_likelihood_gradient(
         return -inverse_sq * jnp.tensordot(sq_differences, m, axes=2)
 
     corr_x, corr_c = factored.correlation_x, factored.correlation_c
-    gradients = [lengthscale_gradient(prepared.sq_differences[:num_x],
-                                      inverse_sq_lengthscales[:num_x],
-                                      factored.derivative_x, corr_c)]
+    gradients = [
+        lengthscale_gradient(
+            prepared.sq_differences[:num_x], inverse_sq_lengthscales[:num_x], factored.derivative_x, corr_c
+        )
+    ]
     if context_dims:
-        gradients.append(lengthscale_gradient(prepared.sq_differences[num_x:],
-                                              inverse_sq_lengthscales[num_x:],
-                                              factored.derivative_c,
-                                              corr_x))
+        gradients.append(
+            lengthscale_gradient(
+                prepared.sq_differences[num_x:], inverse_sq_lengthscales[num_x:], factored.derivative_c, corr_x
+            )
+        )
     corr = corr_x if corr_c is None else corr_x * corr_c
     return GPParams(
         log_lengthscales=jnp.concatenate(gradients),
@@ -503,15 +508,18 @@ def _log_marginal_likelihood_gradient(
     )
 
 
-def log_posterior(params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int,
-                  priors: Priors = BOTORCH_PRIORS):
+def log_posterior(
+    params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int, priors: Priors = BOTORCH_PRIORS
+):
     """The fit's objective: log marginal likelihood + log prior (unnormalized log MAP)."""
-    return log_marginal_likelihood(params, dataset, active, context_dims) + log_prior(
-        params, active, priors)
+    return log_marginal_likelihood(params, dataset, active, context_dims) + log_prior(params, active, priors)
 
 
 def log_posterior_and_gradient(
-    params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int,
+    params: GPParams,
+    dataset: Dataset,
+    active: jax.Array,
+    context_dims: int,
     priors: Priors = BOTORCH_PRIORS,
 ) -> tuple[jax.Array, GPParams]:
     """:func:`log_posterior` and its analytic gradient in the (log) hyperparameters."""
@@ -521,10 +529,8 @@ def log_posterior_and_gradient(
 def _log_posterior_and_gradient(params, prepared, active, context_dims, priors):
     factored = _factor(params, prepared, active, context_dims)
     value = _log_marginal_likelihood(factored, prepared) + log_prior(params, active, priors)
-    likelihood_gradient = _log_marginal_likelihood_gradient(params, prepared, factored, active,
-                                                            context_dims)
-    gradient = jax.tree.map(jnp.add, likelihood_gradient,
-                            _log_prior_gradient(params, active, priors))
+    likelihood_gradient = _log_marginal_likelihood_gradient(params, prepared, factored, active, context_dims)
+    gradient = jax.tree.map(jnp.add, likelihood_gradient, _log_prior_gradient(params, active, priors))
     return value, gradient
 
 
@@ -573,8 +579,7 @@ def fit(
 
     def start_loss(params):
         factored = _factor(params, prepared, active, context_dims)
-        return -per_point * (_log_marginal_likelihood(factored, prepared)
-                             + log_prior(params, active, priors))
+        return -per_point * (_log_marginal_likelihood(factored, prepared) + log_prior(params, active, priors))
 
     schedule = optax.cosine_decay_schedule(config.learning_rate, config.num_steps, alpha=0.1)
     optimizer = optax.adam(schedule)
@@ -584,18 +589,13 @@ def fit(
         loss, grads = objective(params)
         updates, new_opt_state = optimizer.update(grads, opt_state, params)
         new_params = _project(optax.apply_updates(params, updates))
-        finite = jnp.isfinite(loss) & jnp.all(
-            jnp.stack([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)])
-        )
+        finite = jnp.isfinite(loss) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)]))
         keep = lambda new, old: jnp.where(finite, new, old)  # noqa: E731
-        return (jax.tree.map(keep, new_params, params),
-                jax.tree.map(keep, new_opt_state, opt_state)), None
+        return (jax.tree.map(keep, new_params, params), jax.tree.map(keep, new_opt_state, opt_state)), None
 
     def run(start):
         start = _project(start)
-        (params, _), _ = jax.lax.scan(
-            step, (start, optimizer.init(start)), None, length=config.num_steps
-        )
+        (params, _), _ = jax.lax.scan(step, (start, optimizer.init(start)), None, length=config.num_steps)
         return params
 
     default = default_params(dataset.inputs.shape[-1], priors)
@@ -606,21 +606,24 @@ def fit(
     return run(jax.tree.map(lambda leaf: leaf[best], starts))
 
 
-def posterior(
-    params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int
-) -> Posterior:
+def posterior(params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int) -> Posterior:
     """Condition the GP on a dataset: one Cholesky factorization and its triangular inverse,
     reused by every :func:`predict`."""
     prepared = _prepare(dataset)
     factored = _factor(params, prepared, active, context_dims)
-    return Posterior(params, prepared.inputs, dataset.valid, active,
-                     _cholesky_inverse(factored.cholesky), factored.weights,
-                     prepared.target_mean, prepared.target_std)
+    return Posterior(
+        params,
+        prepared.inputs,
+        dataset.valid,
+        active,
+        _cholesky_inverse(factored.cholesky),
+        factored.weights,
+        prepared.target_mean,
+        prepared.target_std,
+    )
 
 
-def predict(
-    post: Posterior, query_inputs: jax.Array, context_dims: int
-) -> tuple[jax.Array, jax.Array]:
+def predict(post: Posterior, query_inputs: jax.Array, context_dims: int) -> tuple[jax.Array, jax.Array]:
     r"""Posterior mean :math:`\mu` and latent variance :math:`\sigma^2` (no observation noise).
 
     Args:

@@ -153,11 +153,31 @@ class TickLog(NamedTuple):
         """Every page written before the loop starts. ``np.zeros`` maps zero pages that are faulted in on first write:
         inside the loop that cost 0.3–1.8 ms of CPU per 2 MB of log on our VM, an overrun each (docs/hardware.md)."""
         zeros = lambda shape, dtype=np.float32: np.full(shape, 0, dtype)  # noqa: E731 (np.full writes every page)
-        return cls(zeros(n, np.float64), zeros(n), zeros(n), zeros(n), zeros(n), zeros(n, bool),
-                   np.full(n, -1, np.int8), zeros(n, bool), zeros(n, np.uint32), zeros((n, 4), np.int16),
-                   zeros((n, OBSERVATION.size)), zeros((n, 12)), zeros((n, 12)), zeros((n, 12)), zeros((n, 12)),
-                   zeros((n, 4)), zeros((n, 3)), zeros((n, 12)), zeros(n), zeros(n), zeros(n, np.int32),
-                   zeros(n, np.int16), zeros(n, np.int16))
+        return cls(
+            zeros(n, np.float64),
+            zeros(n),
+            zeros(n),
+            zeros(n),
+            zeros(n),
+            zeros(n, bool),
+            np.full(n, -1, np.int8),
+            zeros(n, bool),
+            zeros(n, np.uint32),
+            zeros((n, 4), np.int16),
+            zeros((n, OBSERVATION.size)),
+            zeros((n, 12)),
+            zeros((n, 12)),
+            zeros((n, 12)),
+            zeros((n, 12)),
+            zeros((n, 4)),
+            zeros((n, 3)),
+            zeros((n, 12)),
+            zeros(n),
+            zeros(n),
+            zeros(n, np.int32),
+            zeros(n, np.int16),
+            zeros(n, np.int16),
+        )
 
     def chronological(self, ticks: int) -> TickLog:
         n = self.phase.shape[0]
@@ -202,13 +222,20 @@ def joined(results: list[LoopResult]) -> LoopResult:
             rejected[name] = rejected.get(name, 0) + n
     last = results[-1]
     return LoopResult(
-        trip=last.trip, events=[(tick + int(o), phase, msg) for r, o in zip(results, offsets, strict=True)
-                                for tick, phase, msg in r.events],
-        ticks=sum(r.ticks for r in results), overruns=sum(r.overruns for r in results),
-        skipped_ticks=sum(r.skipped_ticks for r in results), rejected_packets=rejected, realtime=last.realtime,
+        trip=last.trip,
+        events=[
+            (tick + int(o), phase, msg) for r, o in zip(results, offsets, strict=True) for tick, phase, msg in r.events
+        ],
+        ticks=sum(r.ticks for r in results),
+        overruns=sum(r.overruns for r in results),
+        skipped_ticks=sum(r.skipped_ticks for r in results),
+        rejected_packets=rejected,
+        realtime=last.realtime,
         log=TickLog(*(np.concatenate(fields) for fields in zip(*(r.log for r in results), strict=True))),
-        stopped=last.stopped, loop_starts=tuple(int(v) for v in rows),
-        safety_stops=tuple((int(o) + r.trip_tick(), r.trip) for r, o in zip(results[:-1], offsets[:-1], strict=True)))
+        stopped=last.stopped,
+        loop_starts=tuple(int(v) for v in rows),
+        safety_stops=tuple((int(o) + r.trip_tick(), r.trip) for r, o in zip(results[:-1], offsets[:-1], strict=True)),
+    )
 
 
 OVERRUN_CAUSES = ("late_start", "not_running", "work_cpu")
@@ -239,14 +266,19 @@ def timing_stats(log: TickLog, overruns: int, ticks: int, loop_starts: tuple[int
     pct = lambda a, q: float(np.percentile(a, q)) if a.size else float("nan")  # noqa: E731
     causes = np.bincount(overrun_causes(log), minlength=len(OVERRUN_CAUSES))
     return {
-        "ticks": int(ticks), "overruns": int(overruns), "overruns_per_10k_ticks": 1e4 * overruns / max(ticks, 1),
+        "ticks": int(ticks),
+        "overruns": int(overruns),
+        "overruns_per_10k_ticks": 1e4 * overruns / max(ticks, 1),
         **{f"overruns_{name}": int(n) for name, n in zip(OVERRUN_CAUSES, causes, strict=True)},
-        "step_median_us": pct(step_us, 50), "step_p99_us": pct(step_us, 99),
+        "step_median_us": pct(step_us, 50),
+        "step_p99_us": pct(step_us, 99),
         "step_max_us": float(step_us.max()) if step_us.size else float("nan"),
-        "period_median_us": pct(period_us, 50), "period_p1_us": pct(period_us, 1),
+        "period_median_us": pct(period_us, 50),
+        "period_p1_us": pct(period_us, 1),
         "period_p99_us": pct(period_us, 99),
         "period_max_us": float(period_us.max()) if period_us.size else float("nan"),
-        "work_median_us": pct(log.work_s[active] * 1e6, 50), "work_p99_us": pct(log.work_s[active] * 1e6, 99),
+        "work_median_us": pct(log.work_s[active] * 1e6, 50),
+        "work_p99_us": pct(log.work_s[active] * 1e6, 99),
         "work_max_us": float(log.work_s[active].max() * 1e6) if active.any() else float("nan"),
     }
 
@@ -263,8 +295,10 @@ def timing_table(timing: dict, deadlines: bool = True) -> str:
         lines.append(f"{label:16s} {median:9.1f} {p99:9.1f} {worst:9.1f}   (p99 {p99 / 1000:.2f} of the period)")
     if deadlines:
         causes = ", ".join(f"{name.replace('_', ' ')} {timing[f'overruns_{name}']}" for name in OVERRUN_CAUSES)
-        lines.append(f"overruns         {timing['overruns']} in {timing['ticks']} ticks "
-                     f"({timing['overruns_per_10k_ticks']:.2f} per 10k; {causes})")
+        lines.append(
+            f"overruns         {timing['overruns']} in {timing['ticks']} ticks "
+            f"({timing['overruns_per_10k_ticks']:.2f} per 10k; {causes})"
+        )
         lines.append(overrun_verdict(timing))
     else:
         lines.append(f"overruns         do not apply: lockstep pacing has no deadlines ({timing['ticks']} ticks)")
@@ -279,11 +313,12 @@ def overrun_verdict(timing: dict) -> str:
     if rate <= OVERRUN_TARGET_PER_10K:
         return f"verdict: met {target}"
     cause = max(OVERRUN_CAUSES, key=lambda name: timing[f"overruns_{name}"])
-    helps = {"late_start": "--busy-wait, or a CPU of its own (--cpu) with idle CPUs polling",
-             "not_running": "a machine whose host does not stall it (a VM's virtual CPU was descheduled)",
-             "work_cpu": "a CPU of its own (--cpu) and SCHED_FIFO (without --no-realtime)"}[cause]
-    return (f"verdict: missed {target} ({rate:.2f}); most were {cause.replace('_', ' ')}: {helps} "
-            "(docs/hardware.md)")
+    helps = {
+        "late_start": "--busy-wait, or a CPU of its own (--cpu) with idle CPUs polling",
+        "not_running": "a machine whose host does not stall it (a VM's virtual CPU was descheduled)",
+        "work_cpu": "a CPU of its own (--cpu) and SCHED_FIFO (without --no-realtime)",
+    }[cause]
+    return f"verdict: missed {target} ({rate:.2f}); most were {cause.replace('_', ' ')}: {helps} (docs/hardware.md)"
 
 
 def _enter_realtime(loop: LoopConfig):
@@ -312,7 +347,8 @@ def _enter_realtime(loop: LoopConfig):
                 f"(kernel.sched_rt_runtime_us = {throttle[0]} of sched_rt_period_us = {throttle[1]}) would stop the "
                 f"loop for {(throttle[1] - throttle[0]) / 1000:.0f} ms every {throttle[1] / 1000:.0f} ms. Busy-wait "
                 "without real-time priority on a CPU of its own (realtime_priority=None, cpu=N), or turn the "
-                "throttling off (sysctl kernel.sched_rt_runtime_us=-1)")
+                "throttling off (sysctl kernel.sched_rt_runtime_us=-1)"
+            )
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(loop.realtime_priority))
             restores.append(lambda: os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0)))
@@ -433,8 +469,14 @@ def _phase_ticks(loop: LoopConfig) -> tuple[int, ...]:
     """How many ticks each phase lasts, indexed by phase: hold, ramp and the final damping at least one, stand
     possibly none; connect and run end on events (0 here)."""
     period_s = loop.period_s
-    return (0, max(1, round(loop.hold_s / period_s)), max(1, round(loop.ramp_s / period_s)),
-            round(loop.stand_s / period_s), 0, max(1, round(loop.end_damping_s / period_s)))
+    return (
+        0,
+        max(1, round(loop.hold_s / period_s)),
+        max(1, round(loop.ramp_s / period_s)),
+        round(loop.stand_s / period_s),
+        0,
+        max(1, round(loop.end_damping_s / period_s)),
+    )
 
 
 def _controller_input(gates: cpg.Gates) -> tuple[np.ndarray, ControllerInput]:
@@ -455,9 +497,16 @@ def _enter_phase(events: list, tick: int, phase: int, message: str) -> tuple[int
     return phase, tick
 
 
-def _trip_reason(power_counter: int, state: wire.RobotState | None, fresh: bool, stale_ticks: int,
-                 transport: Transport, safety: SafetyConfig, stop_mask: int,
-                 stale_hint: str) -> tuple[int, str | None]:
+def _trip_reason(
+    power_counter: int,
+    state: wire.RobotState | None,
+    fresh: bool,
+    stale_ticks: int,
+    transport: Transport,
+    safety: SafetyConfig,
+    stop_mask: int,
+    stale_hint: str,
+) -> tuple[int, str | None]:
     """The safety checks of one tick once connected, in order: the stale-state watchdog or, on a fresh state, tilt,
     stop buttons, motor temperature and the power-protection counter; then the SDK's power trip.
     Returns (power-protection counter, the first trip reason or None)."""
@@ -473,8 +522,14 @@ def _trip_reason(power_counter: int, state: wire.RobotState | None, fresh: bool,
     return power_counter, reason
 
 
-def _soft_start_command(phase: int, ticks_in_phase: int, hold_q_rad: np.ndarray, stand_q_rad: np.ndarray,
-                        phase_ticks: tuple[int, ...], loop: LoopConfig) -> wire.MotorCommand:
+def _soft_start_command(
+    phase: int,
+    ticks_in_phase: int,
+    hold_q_rad: np.ndarray,
+    stand_q_rad: np.ndarray,
+    phase_ticks: tuple[int, ...],
+    loop: LoopConfig,
+) -> wire.MotorCommand:
     """The motor PD command of one soft-start tick: hold the measured pose while Kp ramps from
     ``loop.hold_kp_fraction`` of the standing Kp up to it, move linearly to the standing pose, stand."""
     kp, kd = loop.stand_kp_nm_rad, loop.stand_kd_nm_s_rad
@@ -497,9 +552,22 @@ def _after_soft_start_phase(phase: int, stand_ticks: int, schedule: ParamSchedul
     return (DAMP, "run complete") if schedule.finished else (RUN, "CPG running")
 
 
-def _log_tick(tick_log: TickLog, i: int, t0: float, cpu0: float, late_s: float, step_s: float, phase: int,
-              fresh: bool, robot_tick_ms: int, state: wire.RobotState | None, cmd: wire.MotorCommand,
-              stale_ticks: int, power_counter: int, trial: int) -> None:
+def _log_tick(
+    tick_log: TickLog,
+    i: int,
+    t0: float,
+    cpu0: float,
+    late_s: float,
+    step_s: float,
+    phase: int,
+    fresh: bool,
+    robot_tick_ms: int,
+    state: wire.RobotState | None,
+    cmd: wire.MotorCommand,
+    stale_ticks: int,
+    power_counter: int,
+    trial: int,
+) -> None:
     """Write one tick's record at ring index i (the run phase's obs and controller torque are written by the
     loop); its work time (wall and thread CPU since t0, cpu0) last."""
     tick_log.t_start_s[i] = t0
@@ -548,10 +616,17 @@ def offset_sink(sink: TickSink | None, offset: int) -> TickSink | None:
     return sink if sink is None or offset == 0 else _OffsetSink(sink, offset)
 
 
-def run_loop(transport: Transport, controller: CompiledController | None, schedule: ParamSchedule,
-             calibration: FootForceCalibration | None, gates: cpg.Gates, loop: LoopConfig = LoopConfig(),
-             safety: SafetyConfig = SafetyConfig(), sink: TickSink | None = None,
-             stale_hint: str = "") -> LoopResult:
+def run_loop(
+    transport: Transport,
+    controller: CompiledController | None,
+    schedule: ParamSchedule,
+    calibration: FootForceCalibration | None,
+    gates: cpg.Gates,
+    loop: LoopConfig = LoopConfig(),
+    safety: SafetyConfig = SafetyConfig(),
+    sink: TickSink | None = None,
+    stale_hint: str = "",
+) -> LoopResult:
     """Connect, soft-start (hold, ramp, ``loop.stand_s`` of standing), run the CPG at 1 kHz until
     ``schedule.finished``, Ctrl-C (a stop, not a trip) or a safety trip; then damp for ``loop.end_damping_s`` and
     return. ``sink`` gets the per-tick log in batches as the loop runs, the last one before returning (a trip or a
@@ -602,8 +677,9 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 elif k * period_s > loop.connect_timeout_s:
                     reason = f"no robot state within {loop.connect_timeout_s} s"
             elif phase != DAMP:
-                power_counter, reason = _trip_reason(power_counter, state, fresh, stale_ticks, transport, safety,
-                                                     stop_mask, stale_hint)
+                power_counter, reason = _trip_reason(
+                    power_counter, state, fresh, stale_ticks, transport, safety, stop_mask, stale_hint
+                )
             if reason is not None:
                 trip = trip or reason
                 phase, phase_tick = _enter_phase(events, k, DAMP, reason)
@@ -650,8 +726,22 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
                 phase, phase_tick = _enter_phase(events, k, DAMP, reason)
                 cmd = damp
             transport.send(cmd, last_state)
-            _log_tick(tick_log, i, t0, cpu0, t0 - deadline, step_s, DAMP if reason is not None else command_phase,
-                      fresh, last_robot_tick or 0, last_state, cmd, stale_ticks, power_counter, schedule.trial)
+            _log_tick(
+                tick_log,
+                i,
+                t0,
+                cpu0,
+                t0 - deadline,
+                step_s,
+                DAMP if reason is not None else command_phase,
+                fresh,
+                last_robot_tick or 0,
+                last_state,
+                cmd,
+                stale_ticks,
+                power_counter,
+                schedule.trial,
+            )
             k += 1
 
             deadline += period_s
@@ -670,14 +760,37 @@ def run_loop(transport: Transport, controller: CompiledController | None, schedu
     if sink is not None and k % flush:
         first = k - k % flush
         sink.write(tick_log, slice(first % n_log, first % n_log + k % flush), range(first, k))
-    return LoopResult(trip=trip, events=events, ticks=k, overruns=overruns, skipped_ticks=skipped,
-                      rejected_packets=dict(getattr(transport, "rejected", {})), realtime=realtime,
-                      log=tick_log.chronological(k), stopped=stopped)
+    return LoopResult(
+        trip=trip,
+        events=events,
+        ticks=k,
+        overruns=overruns,
+        skipped_ticks=skipped,
+        rejected_packets=dict(getattr(transport, "rejected", {})),
+        realtime=realtime,
+        log=tick_log.chronological(k),
+        stopped=stopped,
+    )
 
 
-def stand(transport: Transport, stand_s: float, loop: LoopConfig = LoopConfig(),
-          safety: SafetyConfig = SafetyConfig(), sink: TickSink | None = None, stale_hint: str = "") -> LoopResult:
+def stand(
+    transport: Transport,
+    stand_s: float,
+    loop: LoopConfig = LoopConfig(),
+    safety: SafetyConfig = SafetyConfig(),
+    sink: TickSink | None = None,
+    stale_hint: str = "",
+) -> LoopResult:
     """The loop without the controller: connect, soft start, hold the standing pose for ``stand_s``, damp (with
     every safety check of :func:`run_loop`). What the foot-force calibration measures the sensors with."""
-    return run_loop(transport, None, FixedParams(np.zeros(8), 0), None, cpg.Gates(0.0, 0.0),
-                    loop._replace(stand_s=stand_s), safety, sink, stale_hint)
+    return run_loop(
+        transport,
+        None,
+        FixedParams(np.zeros(8), 0),
+        None,
+        cpg.Gates(0.0, 0.0),
+        loop._replace(stand_s=stand_s),
+        safety,
+        sink,
+        stale_hint,
+    )

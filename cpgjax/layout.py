@@ -44,18 +44,26 @@ class FlatLayout(Generic[T]):
         self.size = int(sum(sizes))
         self.slices = None
         if hasattr(example, "_fields"):
-            bounds = np.cumsum([0, *(sum(math.prod(np.shape(leaf)) for leaf in jax.tree.leaves(getattr(example, f)))
-                                     for f in example._fields)])
-            self.slices = type(example)(*(slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:],
-                                                                               strict=True)))
+            bounds = np.cumsum(
+                [
+                    0,
+                    *(
+                        sum(math.prod(np.shape(leaf)) for leaf in jax.tree.leaves(getattr(example, f)))
+                        for f in example._fields
+                    ),
+                ]
+            )
+            self.slices = type(example)(*(slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)))
 
     def unravel(self, vector: Any) -> T:
         """The pytree read from ``vector`` (size,): JAX arrays in JAX; in NumPy, views into ``vector`` (integer and
         boolean leaves: copies in their own dtype)."""
         if vector.shape != (self.size,):
             raise ValueError(f"a vector of shape {vector.shape} for a layout of size {self.size}")
-        leaves = [vector[o:o + n].reshape(shape) if cast is None else vector[o:o + n].reshape(shape).astype(cast)
-                  for o, n, shape, cast in zip(self.offsets, self._sizes, self.shapes, self._casts, strict=True)]
+        leaves = [
+            vector[o : o + n].reshape(shape) if cast is None else vector[o : o + n].reshape(shape).astype(cast)
+            for o, n, shape, cast in zip(self.offsets, self._sizes, self.shapes, self._casts, strict=True)
+        ]
         return jax.tree.unflatten(self._treedef, leaves)
 
     def ravel(self, tree: T, dtype=None) -> Any:

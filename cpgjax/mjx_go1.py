@@ -43,8 +43,13 @@ def _import_mjx_without_its_warp_probe():
     probe = io.StringIO()
     with contextlib.redirect_stdout(probe):
         from mujoco import mjx
-    sys.stdout.write("".join(line for line in probe.getvalue().splitlines(keepends=True)
-                             if not line.startswith(("Failed to import warp:", "Failed to import mujoco_warp:"))))
+    sys.stdout.write(
+        "".join(
+            line
+            for line in probe.getvalue().splitlines(keepends=True)
+            if not line.startswith(("Failed to import warp:", "Failed to import mujoco_warp:"))
+        )
+    )
     return mjx
 
 
@@ -65,6 +70,7 @@ class SimState(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------------------- scenarios
+
 
 class BatchModel(NamedTuple):
     """An MJX model whose scenario-dependent leaves carry a leading batch axis, the matching vmap in_axes, and the
@@ -87,8 +93,10 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     """
     fine = sorted({str(name) for name in scenario.physics if physics_profiles.get(str(name)).physics_substeps != 1})
     if fine:
-        raise ValueError(f"physics profile {fine[0]!r} steps its physics more than once per control tick, which the "
-                         "MJX backend does not: use the native backend")
+        raise ValueError(
+            f"physics profile {fine[0]!r} steps its physics more than once per control tick, which the "
+            "MJX backend does not: use the native backend"
+        )
     ids = go1_model.indices()
     terrain = go1_model.has_terrain(scenario)
     base = (go1_model.load_terrain_model() if terrain else go1_model.load_model()).__copy__()
@@ -98,11 +106,19 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     mx = mjx.put_model(base)
     batch = scenario.batch_size
     fields = [f for f in go1_model.scenario_dependent_fields() if hasattr(mx, f)]
-    keys = list(zip(scenario.payload_kg.tolist(), scenario.physics.tolist(), scenario.mass_scale.tolist(),
-                    [terrain] * batch, strict=True))
+    keys = list(
+        zip(
+            scenario.payload_kg.tolist(),
+            scenario.physics.tolist(),
+            scenario.mass_scale.tolist(),
+            [terrain] * batch,
+            strict=True,
+        )
+    )
     per_key = {k: go1_model.model_with_payload(*k) for k in dict.fromkeys(keys)}
-    updates = {f: jnp.asarray(np.stack([getattr(per_key[k], f) for k in keys]), dtype=getattr(mx, f).dtype)
-               for f in fields}
+    updates = {
+        f: jnp.asarray(np.stack([getattr(per_key[k], f) for k in keys]), dtype=getattr(mx, f).dtype) for f in fields
+    }
     # A zero bound makes MJX's friction-loss row act as a stiff constraint on the joint (the gait it costs:
     # docs/physics.md), so MJX carries a negligible bound where a profile has no joint friction.
     updates["dof_frictionloss"] = jnp.maximum(updates["dof_frictionloss"], MIN_FRICTIONLOSS_NM)
@@ -111,16 +127,23 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     updates["geom_friction"] = jnp.asarray(friction, mx.geom_friction.dtype)
     updates["opt.gravity"] = jnp.asarray(go1_model.gravity_vector(scenario.slope_deg), mx.opt.gravity.dtype)
     if terrain:
-        updates["hfield_data"] = jnp.asarray(np.stack([
-            terrains.hfield_data(go1_model.scenario_ground(scenario, i)) for i in range(batch)]),
-            mx.hfield_data.dtype)
+        updates["hfield_data"] = jnp.asarray(
+            np.stack([terrains.hfield_data(go1_model.scenario_ground(scenario, i)) for i in range(batch)]),
+            mx.hfield_data.dtype,
+        )
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({k: 0 for k in updates})
-    return BatchModel(model=mx.tree_replace(updates), in_axes=in_axes, scenario=scenario,
-                      profile=physics_profiles.batch_arrays(scenario.physics, scenario.latency_ticks,
-                                                            scenario.noise_scale, scenario.noise_seed))
+    return BatchModel(
+        model=mx.tree_replace(updates),
+        in_axes=in_axes,
+        scenario=scenario,
+        profile=physics_profiles.batch_arrays(
+            scenario.physics, scenario.latency_ticks, scenario.noise_scale, scenario.noise_seed
+        ),
+    )
 
 
 # ----------------------------------------------------------------------------------------------- one instance
+
 
 def _standing_data(model: mjx.Model, legs_rad: jax.Array | None = None) -> mjx.Data:
     qpos = jnp.asarray(go1_model.standing_qpos(), jnp.float32)
@@ -137,16 +160,28 @@ def _reset(cpg_config: cpg.CPGConfig, model: mjx.Model, params: jax.Array, phase
     if cpg_config.start_lean:
         data = _standing_data(model, cpg.standing_pose_rad(cpg_config, obs.imu_quat_wxyz))
         obs = sensors.observe(data.qpos, data.qvel, data.sensordata, model.opt.gravity)
-    return SimState(data=data, cpg=cpg.init_state(obs, cpg_config, phase_lag_rad=phase_lag_rad), params=params,
-                    io=physics_profiles.init_state(obs.foot_force_n))
+    return SimState(
+        data=data,
+        cpg=cpg.init_state(obs, cpg_config, phase_lag_rad=phase_lag_rad),
+        params=params,
+        io=physics_profiles.init_state(obs.foot_force_n),
+    )
 
 
-def _control(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics_profiles.ProfileArrays, data: mjx.Data,
-             io: physics_profiles.ActuatorSensorState, cpg_state: cpg.CPGState, params: jax.Array,
-             gates: cpg.Gates) -> tuple[protocol.Control, mjx.Data]:
+def _control(
+    cpg_config: cpg.CPGConfig,
+    model: mjx.Model,
+    profile: physics_profiles.ProfileArrays,
+    data: mjx.Data,
+    io: physics_profiles.ActuatorSensorState,
+    cpg_state: cpg.CPGState,
+    params: jax.Array,
+    gates: cpg.Gates,
+) -> tuple[protocol.Control, mjx.Data]:
     """The shared control tick, then one physics step with its torques."""
-    c = protocol.control(cpg_config, profile, io, cpg_state, params, gates, data.qpos, data.qvel, data.sensordata,
-                         model.opt.gravity)
+    c = protocol.control(
+        cpg_config, profile, io, cpg_state, params, gates, data.qpos, data.qvel, data.sensordata, model.opt.gravity
+    )
     ctrl = jnp.zeros(model.nu, c.torque_nm.dtype).at[go1_model.indices().actuator].set(c.torque_nm)
     return c, mjx.step(model, data.replace(ctrl=ctrl))
 
@@ -175,12 +210,19 @@ def _wrapped(model: mjx.Model, data: mjx.Data) -> mjx.Data:
     if model.nhfield == 0:
         return data
     r = go1_model.indices().root_qpos
-    return data.replace(qpos=data.qpos.at[r:r + 2].set(terrains.wrap_xy_m(data.qpos[r:r + 2])))
+    return data.replace(qpos=data.qpos.at[r : r + 2].set(terrains.wrap_xy_m(data.qpos[r : r + 2])))
 
 
-def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model,
-          profile: physics_profiles.ProfileArrays, gates: cpg.Gates, reset: SimState, state: SimState,
-          params_now: jax.Array) -> tuple[SimState, protocol.Tick]:
+def _tick(
+    cpg_config: cpg.CPGConfig,
+    trial_config: protocol.TrialConfig,
+    model: mjx.Model,
+    profile: physics_profiles.ProfileArrays,
+    gates: cpg.Gates,
+    reset: SimState,
+    state: SimState,
+    params_now: jax.Array,
+) -> tuple[SimState, protocol.Tick]:
     """Sensors → controller → motors → one physics step; a non-finite result is replaced by the standing reset."""
     c, stepped = _control(cpg_config, model, profile, state.data, state.io, state.cpg, params_now, gates)
     failed = ~(jnp.all(jnp.isfinite(stepped.qpos)) & jnp.all(jnp.isfinite(stepped.qvel)))
@@ -192,9 +234,15 @@ def _tick(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: 
     return state._replace(data=data, cpg=cpg_state, io=io), row
 
 
-def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model: mjx.Model,
-           profile: physics_profiles.ProfileArrays, state: SimState, new_params: jax.Array,
-           gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
+def _trial(
+    cpg_config: cpg.CPGConfig,
+    trial_config: protocol.TrialConfig,
+    model: mjx.Model,
+    profile: physics_profiles.ProfileArrays,
+    state: SimState,
+    new_params: jax.Array,
+    gates: cpg.Gates,
+) -> tuple[SimState, protocol.TrialRecord]:
     """One trial of one instance: transition (linear interpolation) then steady phase; reset after a fall; on a
     terrain, the trunk moved back into the terrain's central period at the end (``_wrapped``)."""
     reset = _reset(cpg_config, model, new_params, gates.phase_lag_rad)
@@ -210,8 +258,9 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model:
     def steady_body(s, _):
         return tick(s, new_params)
 
-    (s, transition), _ = jax.lax.scan(transition_body, (state, protocol.TransitionSummary.nothing()),
-                                      jnp.arange(n_transition, dtype=jnp.float32))
+    (s, transition), _ = jax.lax.scan(
+        transition_body, (state, protocol.TransitionSummary.nothing()), jnp.arange(n_transition, dtype=jnp.float32)
+    )
     s, ticks = jax.lax.scan(steady_body, s, None, length=trial_config.steady_steps)
 
     total_mass = model.body_subtreemass[go1_model.indices().trunk_body]
@@ -220,17 +269,31 @@ def _trial(cpg_config: cpg.CPGConfig, trial_config: protocol.TrialConfig, model:
     return protocol.where_batch((record.fell > 0) | (record.failed > 0), reset, end), record
 
 
-def rollout_log(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics_profiles.ProfileArrays, state: SimState,
-                params: jax.Array, gates: cpg.Gates, num_steps: int) -> tuple[SimState, protocol.StepLog]:
+def rollout_log(
+    cpg_config: cpg.CPGConfig,
+    model: mjx.Model,
+    profile: physics_profiles.ProfileArrays,
+    state: SimState,
+    params: jax.Array,
+    gates: cpg.Gates,
+    num_steps: int,
+) -> tuple[SimState, protocol.StepLog]:
     """``num_steps`` ticks of one instance with constant parameters, logging every tick. Not vmapped: wrap it."""
     ids = go1_model.indices()
 
     def body(s, _):
         c, data = _control(cpg_config, model, profile, s.data, s.io, s.cpg, params, gates)
-        row = protocol.StepLog(qpos=data.qpos, qvel=data.qvel, torque_nm=c.torque_nm, foot_force_n=c.obs.foot_force_n,
-                               foot_pos_m=data.geom_xpos[ids.foot_geom], amplitude=c.cpg.amplitude,
-                               phase_rad=c.cpg.phase_rad, foot_target_m=c.diag.foot_target_m,
-                               rpy_rad=c.diag.rpy_rad)
+        row = protocol.StepLog(
+            qpos=data.qpos,
+            qvel=data.qvel,
+            torque_nm=c.torque_nm,
+            foot_force_n=c.obs.foot_force_n,
+            foot_pos_m=data.geom_xpos[ids.foot_geom],
+            amplitude=c.cpg.amplitude,
+            phase_rad=c.cpg.phase_rad,
+            foot_target_m=c.diag.foot_target_m,
+            rpy_rad=c.diag.rpy_rad,
+        )
         return s._replace(data=data, cpg=c.cpg, io=c.io), row
 
     s, log_rows = jax.lax.scan(body, state, None, length=num_steps)
@@ -239,14 +302,16 @@ def rollout_log(cpg_config: cpg.CPGConfig, model: mjx.Model, profile: physics_pr
 
 # ----------------------------------------------------------------------------------------------- batch interface
 
+
 def _batch_mesh(batch_size: int, devices) -> Mesh:
     """A 1-D mesh (axis ``batch``) over ``devices`` (default: every device, when the batch divides among them,
     otherwise the first device alone, said in a log line)."""
     if devices is None:
         devices = jax.devices()
         if batch_size % len(devices):
-            log.info("batch %d does not divide over %d devices; running on %s only", batch_size, len(devices),
-                     devices[0])
+            log.info(
+                "batch %d does not divide over %d devices; running on %s only", batch_size, len(devices), devices[0]
+            )
             devices = devices[:1]
     devices = list(devices)
     if batch_size % len(devices):
@@ -261,10 +326,14 @@ def per_shard(fn, in_axes, mesh: Mesh):
     With the batch merely sharded (GSPMD), the vmapped solver's while-loop condition "any instance not done" becomes
     a cross-device all-reduce in every iteration; per shard, each device loops on its own instances and never waits
     for another. (``check_vma=False``: MJX's internals are not written for varying-axis typing.)"""
-    specs = jax.tree.map(lambda axis: PartitionSpec() if axis is None else PartitionSpec("batch"), in_axes,
-                         is_leaf=lambda axis: axis is None)
-    return jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=mesh, in_specs=specs, out_specs=PartitionSpec("batch"),
-                         check_vma=False)
+    specs = jax.tree.map(
+        lambda axis: PartitionSpec() if axis is None else PartitionSpec("batch"),
+        in_axes,
+        is_leaf=lambda axis: axis is None,
+    )
+    return jax.shard_map(
+        jax.vmap(fn, in_axes=in_axes), mesh=mesh, in_specs=specs, out_specs=PartitionSpec("batch"), check_vma=False
+    )
 
 
 class MJXBackend(Backend):
@@ -279,8 +348,14 @@ class MJXBackend(Backend):
 
     name = "mjx"
 
-    def __init__(self, scenario: go1_model.Scenario, cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, devices=None):
+    def __init__(
+        self,
+        scenario: go1_model.Scenario,
+        cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
+        trial_config: protocol.TrialConfig = protocol.TrialConfig(),
+        *,
+        devices=None,
+    ):
         self.scenario = scenario
         self.cpg_config = cpg_config
         self.trial_config = trial_config
@@ -303,8 +378,9 @@ class MJXBackend(Backend):
 
     def _placed(self, batch: BatchModel) -> BatchModel:
         replicated = NamedSharding(self.mesh, PartitionSpec())
-        model = jax.tree.map(lambda x, axis: jax.device_put(x, self.sharding if axis == 0 else replicated),
-                             batch.model, batch.in_axes)
+        model = jax.tree.map(
+            lambda x, axis: jax.device_put(x, self.sharding if axis == 0 else replicated), batch.model, batch.in_axes
+        )
         return batch._replace(model=model, profile=jax.device_put(batch.profile, self.sharding))
 
     def _put(self, tree):
@@ -314,14 +390,19 @@ class MJXBackend(Backend):
         """Every instance standing at the origin with its CPG at rest in its gait's phases (``gates``; None: trot);
         ``params`` become the 'previous' set."""
         gates = protocol.check_gates(cpg.Gates(0.0, 0.0) if gates is None else gates, self.batch_size)
-        return self._reset(self.batch.model, self._put(protocol.check_params(params, self.batch_size)),
-                           self._put(gates.phase_lag_rad))
+        return self._reset(
+            self.batch.model, self._put(protocol.check_params(params, self.batch_size)), self._put(gates.phase_lag_rad)
+        )
 
     def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
         """One trial for every instance (the input state is consumed). Returns the next state and the records."""
-        return self._trial(self.batch.model, self.batch.profile, self._put(state),
-                           self._put(protocol.check_params(new_params, self.batch_size)),
-                           self._put(protocol.check_gates(gates, self.batch_size)))
+        return self._trial(
+            self.batch.model,
+            self.batch.profile,
+            self._put(state),
+            self._put(protocol.check_params(new_params, self.batch_size)),
+            self._put(protocol.check_gates(gates, self.batch_size)),
+        )
 
     def with_scenario(self, scenario: go1_model.Scenario) -> MJXBackend:
         """This backend for another batch of scenarios of the same size, sharing the compiled trial and rollout
@@ -340,6 +421,10 @@ class MJXBackend(Backend):
         if num_steps not in self._rollouts:
             fn = functools.partial(rollout_log, self.cpg_config, num_steps=num_steps)
             self._rollouts[num_steps] = jax.jit(per_shard(fn, (self.batch.in_axes, 0, 0, 0, 0), self.mesh))
-        return self._rollouts[num_steps](self.batch.model, self.batch.profile, self._put(state),
-                                         self._put(protocol.check_params(params, self.batch_size)),
-                                         self._put(protocol.check_gates(gates, self.batch_size)))
+        return self._rollouts[num_steps](
+            self.batch.model,
+            self.batch.profile,
+            self._put(state),
+            self._put(protocol.check_params(params, self.batch_size)),
+            self._put(protocol.check_gates(gates, self.batch_size)),
+        )

@@ -44,6 +44,7 @@ def entry_of(name: str, entries) -> OutputFile | None:
 
 # ----------------------------------------------------------------------------------------------- format checks
 
+
 def check_json(path: pathlib.Path) -> str | None:
     json.loads(path.read_text())
     return None
@@ -84,7 +85,9 @@ def check_none(_path: pathlib.Path) -> str | None:
 
 TRIALS = "trials.parquet"
 METADATA = "metadata.json"  # a study's, an optimization's and a walk's
-OUTPUTS = (OutputFile(TRIALS, "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls",
-                      check_parquet),
-           OutputFile(METADATA, "how the run was made: command, version, commit, optimizer, machine, run figures",
-                      check_json))
+OUTPUTS = (
+    OutputFile(
+        TRIALS, "one row per trial (and instance): conditions, parameters, J, velocity, CoT, falls", check_parquet
+    ),
+    OutputFile(METADATA, "how the run was made: command, version, commit, optimizer, machine, run figures", check_json),
+)

@@ -40,23 +40,36 @@ def environment() -> dict[str, Any]:
     import mujoco
 
     cpu = cpu_model()
-    return dict(python=sys.version.split()[0], jax=jax.__version__, mujoco=mujoco.__version__,
-                numpy=np.__version__, platform=platform.platform(), cpu=cpu, cpu_count=os.cpu_count(),
-                load_avg=os.getloadavg() if hasattr(os, "getloadavg") else None,
-                jax_backend=jax.default_backend(), devices=[str(d) for d in jax.devices()],
-                xla_flags=os.environ.get("XLA_FLAGS", ""))
+    return dict(
+        python=sys.version.split()[0],
+        jax=jax.__version__,
+        mujoco=mujoco.__version__,
+        numpy=np.__version__,
+        platform=platform.platform(),
+        cpu=cpu,
+        cpu_count=os.cpu_count(),
+        load_avg=os.getloadavg() if hasattr(os, "getloadavg") else None,
+        jax_backend=jax.default_backend(),
+        devices=[str(d) for d in jax.devices()],
+        xla_flags=os.environ.get("XLA_FLAGS", ""),
+    )
 
 
 def git_commit() -> str | None:
     """The commit of the cpgjax checkout that runs ("<hash>-dirty" with uncommitted changes), None outside git."""
     root = pathlib.Path(cpgjax.__file__).resolve().parent.parent
     try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=10)
+        commit = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10
+        )
         if commit.returncode != 0:
             return None
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return None
     return commit.stdout.strip() + ("-dirty" if dirty else "")

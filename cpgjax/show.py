@@ -48,9 +48,19 @@ def _viewer() -> str | None:
 
 def catalogue() -> tuple[outputs.OutputFile, ...]:
     """Every file a cpgjax command writes, each as its writer declares it (docs/outputs.md documents the same)."""
-    return (*outputs.OUTPUTS, *study_io.OUTPUTS, *tuned.OUTPUTS, *walk.OUTPUTS, *study_figures.OUTPUTS,
-            *study_video.OUTPUTS, *transfer.OUTPUTS, *tick_log.OUTPUTS, *deploy.OUTPUTS, *trials.OUTPUTS,
-            *calibrate.OUTPUTS)
+    return (
+        *outputs.OUTPUTS,
+        *study_io.OUTPUTS,
+        *tuned.OUTPUTS,
+        *walk.OUTPUTS,
+        *study_figures.OUTPUTS,
+        *study_video.OUTPUTS,
+        *transfer.OUTPUTS,
+        *tick_log.OUTPUTS,
+        *deploy.OUTPUTS,
+        *trials.OUTPUTS,
+        *calibrate.OUTPUTS,
+    )
 
 
 def _file_kind(path: pathlib.Path) -> str:
@@ -96,9 +106,14 @@ def _metadata_line(path: pathlib.Path) -> str:
     except (OSError, UnicodeDecodeError, ValueError) as err:
         return f"{path}: corrupt or truncated ({err})"
     parts = [f"{m['instances']} instances × {m['trials']} trials"] if "instances" in m and "trials" in m else []
-    for key, label, unit in (("backend", "on", ""), ("wall_s", "wall", " s"), ("env_steps_per_s", "", " env-steps/s"),
-                             ("real_time_factor", "real-time factor", "×"), ("git_commit", "commit", ""),
-                             ("command", "command:", "")):
+    for key, label, unit in (
+        ("backend", "on", ""),
+        ("wall_s", "wall", " s"),
+        ("env_steps_per_s", "", " env-steps/s"),
+        ("real_time_factor", "real-time factor", "×"),
+        ("git_commit", "commit", ""),
+        ("command", "command:", ""),
+    ):
         if m.get(key) is not None:
             parts.append(f"{label} {m[key]}{unit}".strip())
     return f"{m.get('study', '(no study name)')}: " + ", ".join(parts)
@@ -125,9 +140,12 @@ def _folder_kind(out: pathlib.Path) -> str | None:
     if meta.get("study") in ("optimize", "walk"):
         return meta["study"]
     gaits = study_io.BEST_PARAMS in names or any(study_video.VIDEO.matches(n) for n in names)
-    if names & {study_io.TABLE, outputs.TRIALS, outputs.METADATA, study_io.RECORDING} or gaits or (
-            study_io.checkpoint_files(out)) or any((out / n / outputs.METADATA).exists()
-                                                   or study_io.checkpoint_files(out / n) for n in names):
+    if (
+        names & {study_io.TABLE, outputs.TRIALS, outputs.METADATA, study_io.RECORDING}
+        or gaits
+        or (study_io.checkpoint_files(out))
+        or any((out / n / outputs.METADATA).exists() or study_io.checkpoint_files(out / n) for n in names)
+    ):
         return "optimize" if tuned.FILE_NAME in names else "study"
     if any(_air_log(n) for n in names):
         return "calibrate"
@@ -149,8 +167,10 @@ def _next_step(out: pathlib.Path, kind: str) -> str:
             done = (study_io.checkpoint_meta(out) or {}).get("trial")
         except study_spec.StudyError:
             return "next: its checkpoint is damaged: start afresh with --overwrite"
-        return (f"next: unfinished ({done} trials done, no metadata.json yet): run the command that started it again "
-                f"with --resume")
+        return (
+            f"next: unfinished ({done} trials done, no metadata.json yet): run the command that started it again "
+            f"with --resume"
+        )
     if kind == "optimize" or (kind == "deploy" and (out / tuned.FILE_NAME).exists()):
         return f"next: {tuned.replay_hint(out / tuned.FILE_NAME)}"
     groups = sorted((out / study_io.BEST_PARAMS).glob("*.json"))
@@ -160,8 +180,10 @@ def _next_step(out: pathlib.Path, kind: str) -> str:
         found = sorted(p for p in out.iterdir() if _air_log(p.name))
         return f"next: cpgjax deploy --robot go1 --calibration {calibrate.calibration_file(found[0])}"
     if kind == "deploy":
-        return (f"next: the per-tick log in Python: pyarrow.ipc.open_stream({str(out / tick_log.FILE_NAME)!r})"
-                ".read_all().to_pandas()")
+        return (
+            f"next: the per-tick log in Python: pyarrow.ipc.open_stream({str(out / tick_log.FILE_NAME)!r})"
+            ".read_all().to_pandas()"
+        )
     data = out / (walk.TABLE if kind == "walk" else outputs.TRIALS)
     return f"next: its trials in Python: pandas.read_parquet({str(data)!r})"
 
@@ -173,8 +195,10 @@ def _calibration_file_summary(path: pathlib.Path) -> int:
     except ValueError as err:
         print(f"cpgjax show: {err}", file=sys.stderr)
         return 2
-    print(f"foot-force calibration {path}: offsets {calibration.offset_counts.tolist()} counts, "
-          f"{calibration.newton_per_count.tolist()} N/count")
+    print(
+        f"foot-force calibration {path}: offsets {calibration.offset_counts.tolist()} counts, "
+        f"{calibration.newton_per_count.tolist()} N/count"
+    )
     damaged = 0
     for stand, log in calibrate.tick_log_paths(path).items():
         problem = _damage(log) if log.exists() else "missing"
@@ -193,8 +217,11 @@ def _summarize(args) -> int:
         return 2
     kind = _folder_kind(out)
     if kind is None:
-        print(f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, recording, "
-              f"best gait, checkpoint, run.json or {tick_log.FILE_NAME})", file=sys.stderr)
+        print(
+            f"cpgjax show: {out} holds no cpgjax results (no table.md, metadata.json, trials.parquet, recording, "
+            f"best gait, checkpoint, run.json or {tick_log.FILE_NAME})",
+            file=sys.stderr,
+        )
         return 2
     listing, damaged = _files_listing(out)
     print(f"{out}: a `cpgjax {kind}` folder\n" + "\n".join(listing))
@@ -226,8 +253,9 @@ def _summarize(args) -> int:
     elif viewer is None:
         print(f"recording: {recording}; the rerun viewer is not installed (pip install rerun-sdk): {elsewhere}")
     else:
-        proc = subprocess.Popen([viewer, "--bind", "127.0.0.1", str(recording)], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(
+            [viewer, "--bind", "127.0.0.1", str(recording)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         try:
             code = proc.wait(VIEWER_START_S)
         except subprocess.TimeoutExpired:
@@ -247,8 +275,10 @@ def _film(args) -> int:
         print(f"cpgjax show: {err}", file=sys.stderr)
         return 2
     if not gaits:
-        print(f"cpgjax show: {out} has no {study_io.BEST_PARAMS}/<group>.json to film (a study writes them)",
-              file=sys.stderr)
+        print(
+            f"cpgjax show: {out} has no {study_io.BEST_PARAMS}/<group>.json to film (a study writes them)",
+            file=sys.stderr,
+        )
         return 2
     for gait in gaits:
         if study_video.video_file(out, gait.group).exists():
@@ -268,10 +298,13 @@ def _serve(args) -> int:
     except study_spec.StudyError as err:
         print(f"cpgjax show: {err}", file=sys.stderr)
         return 2
-    print(f"serving {recording} in rerun's web viewer on 127.0.0.1 only (pid {proc.pid}); open\n"
-          f"  {study_viewer.url(args.port)}\n"
-          f"from another machine, tunnel its port first:\n  {study_viewer.tunnel_line(args.port)}\n"
-          "Ctrl-C stops it.", flush=True)
+    print(
+        f"serving {recording} in rerun's web viewer on 127.0.0.1 only (pid {proc.pid}); open\n"
+        f"  {study_viewer.url(args.port)}\n"
+        f"from another machine, tunnel its port first:\n  {study_viewer.tunnel_line(args.port)}\n"
+        "Ctrl-C stops it.",
+        flush=True,
+    )
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # a kill, like Ctrl-C, stops the viewer first
     try:
         return proc.wait()

@@ -59,15 +59,27 @@ def chains(columns: dict[str, np.ndarray]) -> dict:
         after_fall, after_walk = (fell[1:][pairs & here[1:] & fell[:-1]], fell[1:][pairs & here[1:] & ~fell[:-1]])
         fallen, walked = here & optimized & fell, here & optimized & ~fell
         after_fall_at, after_walk_at = pairs & here[1:] & fell[:-1], pairs & here[1:] & ~fell[:-1]
-        per_run = [(int((fell[1:, b] & after_fall_at[:, b]).sum()), int(after_fall_at[:, b].sum()),
-                    int((fell[1:, b] & after_walk_at[:, b]).sum()), int(after_walk_at[:, b].sum()))
-                   for b in range(fell.shape[1])]
-        out[label] = dict(after_fall=(int(after_fall.sum()), after_fall.size),
-                          after_walk=(int(after_walk.sum()), after_walk.size), per_run=per_run,
-                          runs_with_falls=int(np.sum(np.any(fallen, axis=0))),
-                          falls=int(fallen.sum()), trials=int((here & optimized).sum()),
-                          contexts={name: tuple(float(np.median(columns[name][m])) if m.any() else np.nan
-                                                for m in (fallen, walked)) for name in ("c_load_n", "c_slope_rad")})
+        per_run = [
+            (
+                int((fell[1:, b] & after_fall_at[:, b]).sum()),
+                int(after_fall_at[:, b].sum()),
+                int((fell[1:, b] & after_walk_at[:, b]).sum()),
+                int(after_walk_at[:, b].sum()),
+            )
+            for b in range(fell.shape[1])
+        ]
+        out[label] = dict(
+            after_fall=(int(after_fall.sum()), after_fall.size),
+            after_walk=(int(after_walk.sum()), after_walk.size),
+            per_run=per_run,
+            runs_with_falls=int(np.sum(np.any(fallen, axis=0))),
+            falls=int(fallen.sum()),
+            trials=int((here & optimized).sum()),
+            contexts={
+                name: tuple(float(np.median(columns[name][m])) if m.any() else np.nan for m in (fallen, walked))
+                for name in ("c_load_n", "c_slope_rad")
+            },
+        )
     return out
 
 
@@ -79,8 +91,10 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
     condition = np.stack([columns[c] for c in CONDITIONS], axis=-1)
     params = np.stack([columns[name] for name in param_space.PARAM_NAMES], axis=-1)
     cases = []  # (trial, instance, last params that walked this condition before the fall)
-    for t, b in zip(*np.nonzero(fell[:-1] & optimized[:-1] & optimized[1:]
-                                & np.all(condition[1:] == condition[:-1], axis=-1)), strict=True):
+    for t, b in zip(
+        *np.nonzero(fell[:-1] & optimized[:-1] & optimized[1:] & np.all(condition[1:] == condition[:-1], axis=-1)),
+        strict=True,
+    ):
         walked = [k for k in range(t) if not fell[k, b] and np.array_equal(condition[k, b], condition[t, b])]
         if walked:
             cases.append((t + 1, b, params[walked[-1], b]))
@@ -89,8 +103,9 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
     spec = study_driver.read(study).spec
     engine = ablation.Engine(spec, backend="native")
     scenario = engine.scenario_at(np.array([t for t, _, _ in cases]), np.array([b for _, b, _ in cases]))
-    level = scenario._replace(slope_deg=np.zeros_like(scenario.slope_deg),
-                              payload_kg=np.zeros_like(scenario.payload_kg))
+    level = scenario._replace(
+        slope_deg=np.zeros_like(scenario.slope_deg), payload_kg=np.zeros_like(scenario.payload_kg)
+    )
     gates = protocol.batch_gates([str(columns["controller"][t, b]) for t, b, _ in cases])
     x = np.stack([params[t, b] for t, b, _ in cases])
     x_before = np.stack([params[t - 1, b] for t, b, _ in cases])
@@ -108,13 +123,15 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
     _, arriving = one_trial(flat.with_scenario(scenario), state, x_walked)
     expected = np.array([fell[t, b] for t, b, _ in cases])
     n, m = len(cases), int((~flat_fell).sum())
-    return (f"{folder}: {n} trials after a fall (with an earlier walk on the condition). Walked again as in the "
-            f"study: {int(as_walked.sum())} fell (the study: {int(expected.sum())}; "
-            f"{'the same trials' if np.array_equal(as_walked, expected) else 'NOT the same trials'}). The last gait "
-            f"that walked the condition, from standing: {int(from_standing.sum())} of {n} fell "
-            f"({stats.proportion_ci(int(from_standing.sum()), n)}); arriving walking from level ground: "
-            f"{int((arriving & ~flat_fell).sum())} of {m} fell "
-            f"({stats.proportion_ci(int((arriving & ~flat_fell).sum()), m)}).")
+    return (
+        f"{folder}: {n} trials after a fall (with an earlier walk on the condition). Walked again as in the "
+        f"study: {int(as_walked.sum())} fell (the study: {int(expected.sum())}; "
+        f"{'the same trials' if np.array_equal(as_walked, expected) else 'NOT the same trials'}). The last gait "
+        f"that walked the condition, from standing: {int(from_standing.sum())} of {n} fell "
+        f"({stats.proportion_ci(int(from_standing.sum()), n)}); arriving walking from level ground: "
+        f"{int((arriving & ~flat_fell).sum())} of {m} fell "
+        f"({stats.proportion_ci(int((arriving & ~flat_fell).sum()), m)})."
+    )
 
 
 def chain_difference(per_run: list) -> float:
@@ -129,20 +146,27 @@ def report(folder: pathlib.Path) -> str:
     for label, c in chains(study_io.read_trials(folder / "trials.parquet")).items():
         (k_f, n_f), (k_w, n_w) = c["after_fall"], c["after_walk"]
         difference = stats.cluster_bootstrap(c["per_run"], chain_difference)
-        contexts = "; ".join(f"{name} median {fallen:.3g} fallen, {walked:.3g} walking"
-                             for name, (fallen, walked) in c["contexts"].items())
-        lines.append(f"{folder}, {label}: {c['falls']} falls in {c['trials']} optimized trials, in "
-                     f"{c['runs_with_falls']} of {len(c['per_run'])} runs. A fall after a fall: {k_f}/{n_f}; after a "
-                     f"walk: {k_w}/{n_w}; difference {difference.mean:+.3f} [{difference.low:+.3f}, "
-                     f"{difference.high:+.3f}] (95 %, bootstrap over the runs). Measured contexts: {contexts}.")
+        contexts = "; ".join(
+            f"{name} median {fallen:.3g} fallen, {walked:.3g} walking"
+            for name, (fallen, walked) in c["contexts"].items()
+        )
+        lines.append(
+            f"{folder}, {label}: {c['falls']} falls in {c['trials']} optimized trials, in "
+            f"{c['runs_with_falls']} of {len(c['per_run'])} runs. A fall after a fall: {k_f}/{n_f}; after a "
+            f"walk: {k_w}/{n_w}; difference {difference.mean:+.3f} [{difference.low:+.3f}, "
+            f"{difference.high:+.3f}] (95 %, bootstrap over the runs). Measured contexts: {contexts}."
+        )
     return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folders", type=pathlib.Path, nargs="+", help="study folders with a trials.parquet")
-    parser.add_argument("--rewalk", metavar="STUDY", help="walk the trials after falls again (the registry name "
-                        "of the study the folders ran)")
+    parser.add_argument(
+        "--rewalk",
+        metavar="STUDY",
+        help="walk the trials after falls again (the registry name of the study the folders ran)",
+    )
     args = parser.parse_args()
     for folder in args.folders:
         print(report(folder))

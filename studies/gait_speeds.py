@@ -112,25 +112,40 @@ def cheapest_by_speed(all_cells: list[Cell]) -> tuple[list[Cheapest], np.ndarray
 
 def effect_n(best: Cheapest, gait: str, all_cells: list[Cell]) -> tuple[int, int]:
     """The tracking seeds of the cheapest gait and of ``gait`` at ``best``'s v*."""
+
     def n(g):
         return int(next(c for c in all_cells if c.gait == g and c.target_mps == best.target_mps).tracks.sum())
+
     return n(best.gait), n(gait)
 
 
 def table(all_cells: list[Cell]) -> str:
     """Markdown: each cell's tracking seeds, v_x and CoT; then the cheapest gait at each v* with its tests."""
-    lines = ["| gait | v* [m/s] | seeds tracking | final v_x [m/s] (all seeds) | final CoT (tracking seeds, "
-             "bootstrap CI) | falls / trials per seed (bootstrap CI) |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "| gait | v* [m/s] | seeds tracking | final v_x [m/s] (all seeds) | final CoT (tracking seeds, "
+        "bootstrap CI) | falls / trials per seed (bootstrap CI) |",
+        "|---|---|---|---|---|---|",
+    ]
     for c in all_cells:
         cot = bootstrap_ci(c.cot[c.tracks])
-        shown = ("–" if not c.tracks.any() else f"{cot.mean:.3f} (no interval below {stats.MIN_SEEDS} seeds)"
-                 if np.isnan(cot.low) else str(cot))
-        lines.append(f"| {c.gait} | {c.target_mps:g} | {int(c.tracks.sum())}/{c.tracks.size} "
-                     f"| {stats.mean_ci(c.velocity_mps)} | {shown} | {bootstrap_ci(c.fall_fraction)} |")
+        shown = (
+            "–"
+            if not c.tracks.any()
+            else f"{cot.mean:.3f} (no interval below {stats.MIN_SEEDS} seeds)"
+            if np.isnan(cot.low)
+            else str(cot)
+        )
+        lines.append(
+            f"| {c.gait} | {c.target_mps:g} | {int(c.tracks.sum())}/{c.tracks.size} "
+            f"| {stats.mean_ci(c.velocity_mps)} | {shown} | {bootstrap_ci(c.fall_fraction)} |"
+        )
     best, holm = cheapest_by_speed(all_cells)
-    lines += ["", "| v* [m/s] | cheapest walking gait | CoT difference to each other walking gait: cheapest − it, "
-              "Welch 95 % CI, Welch p (Holm), Mann–Whitney p (n) | verdict |", "|---|---|---|---|"]
+    lines += [
+        "",
+        "| v* [m/s] | cheapest walking gait | CoT difference to each other walking gait: cheapest − it, "
+        "Welch 95 % CI, Welch p (Holm), Mann–Whitney p (n) | verdict |",
+        "|---|---|---|---|",
+    ]
     k = 0
     for b in best:
         if not b.gait:
@@ -144,13 +159,20 @@ def table(all_cells: list[Cell]) -> str:
                 low, high = effect.interval()
                 n_best, n_gait = effect_n(b, gait, all_cells)
                 least_p = stats.mann_whitney_least_p(n_best, n_gait)
-                parts.append(f"{gait}: {effect.difference:+.3f} [{low:+.3f}, {high:+.3f}], p = {holm[k]:.2g}, "
-                             f"MW {stats.rank_p_text(rank_p, least_p, 'p = ')} (n = {n_best}, {n_gait})")
+                parts.append(
+                    f"{gait}: {effect.difference:+.3f} [{low:+.3f}, {high:+.3f}], p = {holm[k]:.2g}, "
+                    f"MW {stats.rank_p_text(rank_p, least_p, 'p = ')} (n = {n_best}, {n_gait})"
+                )
             if not holm[k] < stats.ALPHA:
                 tied.append(gait)
             k += 1
-        verdict = ("the only walking gait" if not b.rivals else "cheapest" if not tied
-                   else f"not shown cheaper than {', '.join(tied)}")
+        verdict = (
+            "the only walking gait"
+            if not b.rivals
+            else "cheapest"
+            if not tied
+            else f"not shown cheaper than {', '.join(tied)}"
+        )
         lines.append(f"| {b.target_mps:g} | {b.gait} | {'; '.join(parts) or '–'} | {verdict} |")
     return "\n".join(lines)
 
@@ -159,13 +181,17 @@ def figure(all_cells: list[Cell], path: pathlib.Path) -> None:
     """CoT (tracking seeds, bootstrap interval) against the achieved v_x (its t interval), one curve per gait, the
     targets a gait does not walk left out."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for gait in dict.fromkeys(c.gait for c in all_cells):
-        pts = [(stats.mean_ci(c.velocity_mps[c.tracks]), bootstrap_ci(c.cot[c.tracks]))
-               for c in all_cells if c.gait == gait and c.walks]
+        pts = [
+            (stats.mean_ci(c.velocity_mps[c.tracks]), bootstrap_ci(c.cot[c.tracks]))
+            for c in all_cells
+            if c.gait == gait and c.walks
+        ]
         if not pts:
             continue
         x = np.array([p[0].mean for p in pts])
@@ -185,8 +211,9 @@ def figure(all_cells: list[Cell], path: pathlib.Path) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=pathlib.Path, help="a gaits study's results folder (its trials.parquet)")
-    parser.add_argument("--figure", type=pathlib.Path, help="where to draw the figure (default: "
-                        "<folder>/cot_by_speed.png)")
+    parser.add_argument(
+        "--figure", type=pathlib.Path, help="where to draw the figure (default: <folder>/cot_by_speed.png)"
+    )
     args = parser.parse_args(argv)
     trials = args.folder / "trials.parquet"
     if not trials.is_file():

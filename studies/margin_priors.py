@@ -51,7 +51,7 @@ def datasets(folders: list[pathlib.Path]) -> tuple[gp.Dataset, np.ndarray]:
     targets = np.zeros((len(runs), capacity), np.float32)
     valid = np.zeros((len(runs), capacity), bool)
     for i, (x, y, _) in enumerate(runs):
-        inputs[i, :len(y)], targets[i, :len(y)], valid[i, :len(y)] = x, y, True
+        inputs[i, : len(y)], targets[i, : len(y)], valid[i, : len(y)] = x, y, True
     return gp.Dataset(jnp.asarray(inputs), jnp.asarray(targets), jnp.asarray(valid)), np.stack([a for *_, a in runs])
 
 
@@ -64,23 +64,37 @@ def main() -> None:
         parser.error(f"no trials.parquet in {', '.join(missing)}: give finished study folders")
     data, active = datasets(args.folders)
     dims = data.inputs.shape[-1]
-    fit = jax.jit(jax.vmap(lambda ds, a: gp.fit(ds, a, gp.default_params(dims, FLAT_PRIORS), len(CONTEXT_COLUMNS),
-                                                FIT, FLAT_PRIORS)))
+    fit = jax.jit(
+        jax.vmap(
+            lambda ds, a: gp.fit(ds, a, gp.default_params(dims, FLAT_PRIORS), len(CONTEXT_COLUMNS), FIT, FLAT_PRIORS)
+        )
+    )
     fitted = fit(data, jnp.asarray(active))
-    values = {"lengthscale": np.exp(np.asarray(fitted.log_lengthscales))[active],
-              "outputscale": np.exp(np.asarray(fitted.log_outputscale)),
-              "noise": np.exp(np.asarray(fitted.log_noise))}
-    print(f"{len(values['outputscale'])} runs, {int(np.asarray(data.valid).sum())} trials, "
-          f"{int((np.asarray(data.targets)[np.asarray(data.valid)] < 0).sum())} with a negative margin; "
-          "maximum-likelihood fits, median [quartiles]:")
+    values = {
+        "lengthscale": np.exp(np.asarray(fitted.log_lengthscales))[active],
+        "outputscale": np.exp(np.asarray(fitted.log_outputscale)),
+        "noise": np.exp(np.asarray(fitted.log_noise)),
+    }
+    print(
+        f"{len(values['outputscale'])} runs, {int(np.asarray(data.valid).sum())} trials, "
+        f"{int((np.asarray(data.targets)[np.asarray(data.valid)] < 0).sum())} with a negative margin; "
+        "maximum-likelihood fits, median [quartiles]:"
+    )
     for name, v in values.items():
         q1, median, q3 = np.percentile(v, [25, 50, 75])
         print(f"  {name}: {median:.4g} [{q1:.4g}, {q3:.4g}]")
-    candidate = {name: gp.GammaPrior(getattr(gp.BOTORCH_PRIORS, name).concentration,
-                                     getattr(gp.BOTORCH_PRIORS, name).concentration / np.median(v))
-                 for name, v in values.items()}
-    print("candidate: gp.Priors(" + ", ".join(f"{name}=gp.GammaPrior({p.concentration:g}, {p.rate:.3g})"
-                                              for name, p in candidate.items()) + ")")
+    candidate = {
+        name: gp.GammaPrior(
+            getattr(gp.BOTORCH_PRIORS, name).concentration,
+            getattr(gp.BOTORCH_PRIORS, name).concentration / np.median(v),
+        )
+        for name, v in values.items()
+    }
+    print(
+        "candidate: gp.Priors("
+        + ", ".join(f"{name}=gp.GammaPrior({p.concentration:g}, {p.rate:.3g})" for name, p in candidate.items())
+        + ")"
+    )
 
 
 if __name__ == "__main__":

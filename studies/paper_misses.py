@@ -59,8 +59,9 @@ VARIANTS = {
     "paper_sampled": dict(foot_force_contact_mean=False),  # the force of the 100 Hz update step only
     "paper_no_layer": dict(foot_contact_layer_m=0.0),  # the plugin's mean over the steps the foot penetrates
     "paper_1khz": dict(foot_force_contact_mean=False, foot_force_period_ticks=1),  # the calf-frame z every step
-    "paper_soft_contact": dict(floor_solref=physics.get("soft").floor_solref,
-                               floor_solimp=physics.get("soft").floor_solimp),
+    "paper_soft_contact": dict(
+        floor_solref=physics.get("soft").floor_solref, floor_solimp=physics.get("soft").floor_solimp
+    ),
     "paper_armature": dict(armature_kg_m2=physics.get("go1").armature_kg_m2),
 }
 
@@ -76,8 +77,16 @@ def population(sets: int) -> np.ndarray:
     return np.concatenate([params.midpoint()[None], draws])
 
 
-def walk(p: np.ndarray, profile: str, *, payload_kg=0.0, slope_deg=0.0, settle=1, measured=3,
-         cpg_config: cpg.CPGConfig = cpg.CPGConfig()) -> dict:
+def walk(
+    p: np.ndarray,
+    profile: str,
+    *,
+    payload_kg=0.0,
+    slope_deg=0.0,
+    settle=1,
+    measured=3,
+    cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
+) -> dict:
     """Each set of ``p`` (S, 8) under one setting: ``settle`` trials from standing, then ``measured`` back-to-back
     trials. Returns arrays (measured, S): v_x, J, CoT, c_load, c_slope, saturation, fell, and the un-floored J."""
     scenario = go1_model.make_scenarios(payload_kg=[payload_kg] * len(p), slope_deg=slope_deg, physics=profile)
@@ -91,11 +100,19 @@ def walk(p: np.ndarray, profile: str, *, payload_kg=0.0, slope_deg=0.0, settle=1
             continue
         r = study_placement.fetch(record)
         j = np.asarray(jax.vmap(objective.objective, in_axes=(0, None))(r, np.float32(TARGET_MPS)))
-        raw = (np.asarray(jax.vmap(objective.velocity_reward, in_axes=(0, None))(r, np.float32(TARGET_MPS)))
-               - objective.COT_WEIGHT * np.asarray(objective.cost_of_transport(r)))
-        for k, v in (("v", np.asarray(objective.mean_velocity(r))[:, 0]), ("j", j),
-                     ("cot", objective.cost_of_transport(r)), ("c_load", r.c_load_n), ("c_slope", r.c_slope_rad),
-                     ("saturation", r.saturation_fraction), ("fell", r.fell), ("j_raw", raw)):
+        raw = np.asarray(
+            jax.vmap(objective.velocity_reward, in_axes=(0, None))(r, np.float32(TARGET_MPS))
+        ) - objective.COT_WEIGHT * np.asarray(objective.cost_of_transport(r))
+        for k, v in (
+            ("v", np.asarray(objective.mean_velocity(r))[:, 0]),
+            ("j", j),
+            ("cot", objective.cost_of_transport(r)),
+            ("c_load", r.c_load_n),
+            ("c_slope", r.c_slope_rad),
+            ("saturation", r.saturation_fraction),
+            ("fell", r.fell),
+            ("j_raw", raw),
+        ):
             out[k].append(np.asarray(v, np.float64))
     sim.physics.close()
     return {k: np.stack(v) for k, v in out.items()}
@@ -103,9 +120,11 @@ def walk(p: np.ndarray, profile: str, *, payload_kg=0.0, slope_deg=0.0, settle=1
 
 def summary(name: str, w: dict) -> str:
     walking = (w["fell"] == 0) & (w["j"] >= WALK_J)
-    return (f"| {name} | {int(w['fell'].sum())}/{w['fell'].size} | {stats.mean_ci(w['v'])} | {stats.mean_ci(w['j'])} | "
-            f"{stats.nonnegative_ci(np.where(w['fell'] > 0, np.nan, w['cot']))} | {walking.mean():.2f} | "
-            f"{100 * w['saturation'].mean():.2f} |")
+    return (
+        f"| {name} | {int(w['fell'].sum())}/{w['fell'].size} | {stats.mean_ci(w['v'])} | {stats.mean_ci(w['j'])} | "
+        f"{stats.nonnegative_ci(np.where(w['fell'] > 0, np.nan, w['cot']))} | {walking.mean():.2f} | "
+        f"{100 * w['saturation'].mean():.2f} |"
+    )
 
 
 def paired_line(what: str, a: dict, b: dict) -> str:
@@ -115,31 +134,41 @@ def paired_line(what: str, a: dict, b: dict) -> str:
     return f"- {what}: J {cj}; v_x {cv}"
 
 
-HEADER = ("| setting | falls / trials | v_x [m/s] (95 % CI) | J | CoT (no fall) | share walking (J ≥ 1.5) | "
-          "torque saturation [% of joint-ticks] |\n|---|---|---|---|---|---|---|")
+HEADER = (
+    "| setting | falls / trials | v_x [m/s] (95 % CI) | J | CoT (no fall) | share walking (J ≥ 1.5) | "
+    "torque saturation [% of joint-ticks] |\n|---|---|---|---|---|---|---|"
+)
 
 
 def signal(p, measured) -> None:
     print("\n## signal: the foot-force signal\n")
-    print("| payload [kg] | signal | c_load mean [N] | spread within a set (std over its trials) [N] | "
-          "consecutive trials > 8 N apart | v_x | J | falls |\n|---|---|---|---|---|---|---|---|")
+    print(
+        "| payload [kg] | signal | c_load mean [N] | spread within a set (std over its trials) [N] | "
+        "consecutive trials > 8 N apart | v_x | J | falls |\n|---|---|---|---|---|---|---|---|"
+    )
     for payload in (0.0, 7.5, 15.0):
-        for profile, label in (("paper", "plugin: mean over the steps within the 1 mm contact layer"),
-                               ("paper_no_layer", "plugin: mean over the steps the foot penetrates (no layer)"),
-                               ("paper_sampled", "the force of one step per 10 ms"),
-                               ("paper_1khz", "every step (1 kHz)")):
+        for profile, label in (
+            ("paper", "plugin: mean over the steps within the 1 mm contact layer"),
+            ("paper_no_layer", "plugin: mean over the steps the foot penetrates (no layer)"),
+            ("paper_sampled", "the force of one step per 10 ms"),
+            ("paper_1khz", "every step (1 kHz)"),
+        ):
             w = walk(p, profile, payload_kg=payload, measured=measured)
             ok = w["fell"] == 0
             c = np.where(ok, w["c_load"], np.nan)
             spread = np.nanstd(c, axis=0)
             jumps = np.abs(np.diff(c, axis=0)) > SAME_CONTEXT_N
             valid = np.isfinite(np.diff(c, axis=0))
-            print(f"| {payload:g} | {label} | {stats.mean_ci(c)} | {np.nanmean(spread):.2f} | "
-                  f"{int(jumps[valid].sum())}/{int(valid.sum())} | {stats.mean_ci(w['v'])} | {stats.mean_ci(w['j'])} | "
-                  f"{int(w['fell'].sum())}/{w['fell'].size} |")
+            print(
+                f"| {payload:g} | {label} | {stats.mean_ci(c)} | {np.nanmean(spread):.2f} | "
+                f"{int(jumps[valid].sum())}/{int(valid.sum())} | {stats.mean_ci(w['v'])} | {stats.mean_ci(w['j'])} | "
+                f"{int(w['fell'].sum())}/{w['fell'].size} |"
+            )
     print("\nThe 1 kHz calf-frame z of the mid-range gait over 3 s after a settling trial (0 and 15 kg):\n")
-    print("| payload [kg] | profile | mean [N] | mean abs. change per step [N] | max [N] | "
-          "10 ms windows with contact that also have steps without |\n|---|---|---|---|---|---|")
+    print(
+        "| payload [kg] | profile | mean [N] | mean abs. change per step [N] | max [N] | "
+        "10 ms windows with contact that also have steps without |\n|---|---|---|---|---|---|"
+    )
     for payload in (0.0, 15.0):
         for profile in ("paper_1khz", "soft"):
             scenario = go1_model.make_scenarios(payload_kg=payload, physics=profile)
@@ -153,16 +182,20 @@ def signal(p, measured) -> None:
             windows = (f > 0).reshape(-1, 10, 4)
             touching = windows.any(axis=1)
             gaps = (windows.mean(axis=1) < 1.0)[touching].mean()
-            print(f"| {payload:g} | {label} | {f.mean():.1f} | {np.abs(np.diff(f, axis=0)).mean():.2f} | "
-                  f"{f.max():.0f} | {gaps:.2f} |")
+            print(
+                f"| {payload:g} | {label} | {f.mean():.1f} | {np.abs(np.diff(f, axis=0)).mean():.2f} | "
+                f"{f.max():.0f} | {gaps:.2f} |"
+            )
 
 
 def contact(p, measured) -> None:
     print("\n## contact: stiff contact and armature\n")
     for payload, slope in ((15.0, 0.0), (0.0, 10.0)):
         print(f"\n{payload:g} kg, {slope:g}°:\n\n{HEADER}")
-        runs = {name: walk(p, name, payload_kg=payload, slope_deg=slope, measured=measured)
-                for name in ("paper", "paper_soft_contact", "paper_armature")}
+        runs = {
+            name: walk(p, name, payload_kg=payload, slope_deg=slope, measured=measured)
+            for name in ("paper", "paper_soft_contact", "paper_armature")
+        }
         for name, w in runs.items():
             print(summary(name, w))
         print()
@@ -184,21 +217,26 @@ def start(p, measured) -> None:
 
 def search(p, measured) -> None:
     print("\n## search: parameter sets in the box that walk\n")
-    print("| condition | sets walking (no fall, J ≥ 1.5 in every measured trial) | probability (95 % CI) | "
-          "expected random-search trials (CI) |\n|---|---|---|---|")
+    print(
+        "| condition | sets walking (no fall, J ≥ 1.5 in every measured trial) | probability (95 % CI) | "
+        "expected random-search trials (CI) |\n|---|---|---|---|"
+    )
     for payload, slope in ((0.0, 0.0), (15.0, 0.0), (0.0, 10.0), (0.0, 12.5)):
         w = walk(p, "paper", payload_kg=payload, slope_deg=slope, measured=measured)
         ok = ((w["fell"] == 0) & (w["j"] >= WALK_J)).all(axis=0)
         ci = stats.proportion_ci(int(ok.sum()), ok.size)
-        expected = ("never seen" if ci.mean == 0
-                    else f"{1 / ci.mean:.1f} ({1 / ci.high:.1f} – {1 / max(ci.low, 1e-9):.0f})")
+        expected = (
+            "never seen" if ci.mean == 0 else f"{1 / ci.mean:.1f} ({1 / ci.high:.1f} – {1 / max(ci.low, 1e-9):.0f})"
+        )
         print(f"| {payload:g} kg, {slope:g}° | {int(ok.sum())}/{ok.size} | {ci} | {expected} |")
 
 
 def floor(p, measured) -> None:
     print("\n## floor: J at exactly −1 without a fall\n")
-    print("| condition | trials | fell | J = −1 without a fall | un-floored J of those (median, min) |\n"
-          "|---|---|---|---|---|")
+    print(
+        "| condition | trials | fell | J = −1 without a fall | un-floored J of those (median, min) |\n"
+        "|---|---|---|---|---|"
+    )
     for payload, slope in ((0.0, 0.0), (15.0, 0.0), (0.0, 10.0)):
         w = walk(p, "paper", payload_kg=payload, slope_deg=slope, measured=measured)
         flat = (w["fell"] == 0) & (w["j"] <= objective.MIN_OBJECTIVE)
@@ -209,8 +247,10 @@ def floor(p, measured) -> None:
 
 def load(p, measured) -> None:
     print("\n## load: saturation, trunk height and the joint PD gains\n")
-    print("The mid-range gait's trunk height over 3 s after a settling trial (the controller's nominal stance height "
-          "is 0.30 m at the feet, the trunk origin 0.32 m standing):\n")
+    print(
+        "The mid-range gait's trunk height over 3 s after a settling trial (the controller's nominal stance height "
+        "is 0.30 m at the feet, the trunk origin 0.32 m standing):\n"
+    )
     print("| payload [kg] | trunk height mean [m] | min [m] |\n|---|---|---|")
     for payload in (0.0, 7.5, 15.0):
         sim = native.NativeBackend(go1_model.make_scenarios(payload_kg=payload, physics="paper"))
@@ -222,8 +262,10 @@ def load(p, measured) -> None:
         print(f"| {payload:g} | {z.mean():.3f} | {z.min():.3f} |")
     stiff = cpg.CPGConfig(kp_nm_rad=1.5 * cpg.CPGConfig().kp_nm_rad)
     for payload in (0.0, 7.5, 15.0):
-        print(f"\n{payload:g} kg (joint PD K_p {cpg.CPGConfig().kp_nm_rad:g}, the paper's, against "
-              f"{stiff.kp_nm_rad:g}: a diagnostic, not a model change):\n\n{HEADER}")
+        print(
+            f"\n{payload:g} kg (joint PD K_p {cpg.CPGConfig().kp_nm_rad:g}, the paper's, against "
+            f"{stiff.kp_nm_rad:g}: a diagnostic, not a model change):\n\n{HEADER}"
+        )
         base = walk(p, "paper", payload_kg=payload, measured=measured)
         firm = walk(p, "paper", payload_kg=payload, measured=measured, cpg_config=stiff)
         print(summary(f"K_p {cpg.CPGConfig().kp_nm_rad:g}", base))
@@ -249,8 +291,8 @@ def _standing_reading(slope_deg: float, inclined_floor: bool) -> tuple[float, np
     if inclined_floor:
         r = IDS.root_qpos
         rotation = attitude.quat_to_matrix(jnp.asarray(turn))
-        qpos[r:r + 3] = np.asarray(rotation) @ qpos[r:r + 3]
-        qpos[r + 3:r + 7] = np.asarray(attitude.quat_mul(jnp.asarray(turn), jnp.asarray(qpos[r + 3:r + 7])))
+        qpos[r : r + 3] = np.asarray(rotation) @ qpos[r : r + 3]
+        qpos[r + 3 : r + 7] = np.asarray(attitude.quat_mul(jnp.asarray(turn), jnp.asarray(qpos[r + 3 : r + 7])))
         m.opt.gravity[:] = go1_model.gravity_vector(0.0)
     else:
         m.opt.gravity[:] = go1_model.gravity_vector(slope_deg)
@@ -260,8 +302,9 @@ def _standing_reading(slope_deg: float, inclined_floor: bool) -> tuple[float, np
         d.ctrl[IDS.actuator] = 70.0 * (target - d.qpos[IDS.joint_qpos]) - 1.3 * d.qvel[IDS.joint_dof]
         mujoco.mj_step(m, d)
     mujoco.mj_forward(m, d)
-    obs = sensors.observe(jnp.asarray(d.qpos), jnp.asarray(d.qvel), jnp.asarray(d.sensordata),
-                          jnp.asarray(m.opt.gravity))
+    obs = sensors.observe(
+        jnp.asarray(d.qpos), jnp.asarray(d.qvel), jnp.asarray(d.sensordata), jnp.asarray(m.opt.gravity)
+    )
     pitch = float(attitude.quat_to_rpy(obs.imu_quat_wxyz)[1])
     return pitch, np.asarray(d.sensordata[IDS.foot_force_sensor])
 
@@ -332,12 +375,24 @@ def slope_signal(p, measured) -> None:
         for name, w in runs.items():
             print(summary(name, w))
         print()
-        print(paired_line("paper − paper_sampled (the plugin's mean − one step's force)", runs["paper"],
-                          runs["paper_sampled"]))
+        print(
+            paired_line(
+                "paper − paper_sampled (the plugin's mean − one step's force)", runs["paper"], runs["paper_sampled"]
+            )
+        )
 
 
-EXPERIMENTS = {"signal": signal, "contact": contact, "start": start, "search": search, "floor": floor, "load": load,
-               "imu": imu, "placement": placement, "slope_signal": slope_signal}
+EXPERIMENTS = {
+    "signal": signal,
+    "contact": contact,
+    "start": start,
+    "search": search,
+    "floor": floor,
+    "load": load,
+    "imu": imu,
+    "placement": placement,
+    "slope_signal": slope_signal,
+}
 
 
 def main(argv=None) -> None:
@@ -349,12 +404,16 @@ def main(argv=None) -> None:
     chosen = [e for e in args.only.split(",") if e]
     unknown = [e for e in chosen if e not in EXPERIMENTS]
     if unknown or not 1 <= args.sets <= 512 or not 1 <= args.measured <= 20:
-        parser.error(f"--only {unknown} unknown (allowed: {', '.join(EXPERIMENTS)}), or --sets outside 1 … 512, or "
-                     "--measured outside 1 … 20")
+        parser.error(
+            f"--only {unknown} unknown (allowed: {', '.join(EXPERIMENTS)}), or --sets outside 1 … 512, or "
+            "--measured outside 1 … 20"
+        )
     register_variants()
     p = population(args.sets)
-    print(f"{len(p)} parameter sets (the mid-range one and {args.sets} uniform draws), VMC+Tegotae, v* = {TARGET_MPS} "
-          f"m/s, C MuJoCo; {args.measured} measured trials after one settling trial")
+    print(
+        f"{len(p)} parameter sets (the mid-range one and {args.sets} uniform draws), VMC+Tegotae, v* = {TARGET_MPS} "
+        f"m/s, C MuJoCo; {args.measured} measured trials after one settling trial"
+    )
     for name in chosen:
         EXPERIMENTS[name](p, args.measured)
 

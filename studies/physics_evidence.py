@@ -38,18 +38,22 @@ def standing(profile: str) -> None:
         mujoco.mj_step(m, d)
     mujoco.mj_forward(m, d)
     contact = jnp.asarray(d.sensordata[IDS.foot_contact_data])
-    calf = physics.foot_force_signal(physics.arrays(physics.get("paper")), jnp.asarray(d.qpos), contact,
-                                     IDS.root_qpos, IDS.joint_qpos)
+    calf = physics.foot_force_signal(
+        physics.arrays(physics.get("paper")), jnp.asarray(d.qpos), contact, IDS.root_qpos, IDS.joint_qpos
+    )
     sink_mm = 1e3 * (go1_model.FOOT_RADIUS_M - min(d.geom_xpos[g][2] for g in IDS.foot_geom))
-    print(f"| {profile} | {sink_mm:.4f} | {np.round(d.sensordata[IDS.foot_force_sensor], 2).tolist()} | "
-          f"{np.round(np.asarray(calf, np.float64), 2).tolist()} | {float(np.mean(calf)):.2f} |")
+    print(
+        f"| {profile} | {sink_mm:.4f} | {np.round(d.sensordata[IDS.foot_force_sensor], 2).tolist()} | "
+        f"{np.round(np.asarray(calf, np.float64), 2).tolist()} | {float(np.mean(calf)):.2f} |"
+    )
 
 
 def impulse(profile: str, iterations: int, ls_iterations: int, seconds: float = 2.0) -> None:
     # This profile with the plain normal force at every tick, under its own name (models are cached by name).
     name = f"{profile} (normal force, 1 kHz)"
-    physics.PROFILES[name] = physics.PROFILES[profile]._replace(foot_force_frame="contact", foot_force_period_ticks=1,
-                                                                 foot_force_n_per_count=0.0)
+    physics.PROFILES[name] = physics.PROFILES[profile]._replace(
+        foot_force_frame="contact", foot_force_period_ticks=1, foot_force_n_per_count=0.0
+    )
     sim = native_go1.NativeBackend(go1_model.make_scenarios(physics=[name]))
     for model in sim.physics.models:
         model.opt.iterations, model.opt.ls_iterations = iterations, ls_iterations
@@ -63,8 +67,10 @@ def impulse(profile: str, iterations: int, ls_iterations: int, seconds: float = 
     needed = mass * 9.81 * seconds + mass * (vz[-1] - vz[warm - 1])
     measured = force.sum() * 1e-3
     vx = float(np.asarray(log.qvel)[0, warm:, IDS.root_dof].mean())
-    print(f"| {profile} | ({iterations}, {ls_iterations}) | {measured:.1f} | {needed:.1f} | "
-          f"{100 * (measured / needed - 1):+.1f} % | {vx:.3f} |")
+    print(
+        f"| {profile} | ({iterations}, {ls_iterations}) | {measured:.1f} | {needed:.1f} | "
+        f"{100 * (measured / needed - 1):+.1f} % | {vx:.3f} |"
+    )
 
 
 def components() -> None:
@@ -74,8 +80,9 @@ def components() -> None:
     variants = {
         "soft": soft,
         "soft + stiff contact": soft._replace(floor_solref=paper.floor_solref, floor_solimp=paper.floor_solimp),
-        "soft + joint friction and damping": soft._replace(frictionloss_nm=paper.frictionloss_nm,
-                                                           damping_nm_s_rad=paper.damping_nm_s_rad),
+        "soft + joint friction and damping": soft._replace(
+            frictionloss_nm=paper.frictionloss_nm, damping_nm_s_rad=paper.damping_nm_s_rad
+        ),
         "soft + no armature": soft._replace(armature_kg_m2=paper.armature_kg_m2),
         "soft + velocity limit": soft._replace(velocity_limit_rad_s=paper.velocity_limit_rad_s),
         "soft + calf-frame 100 Hz signal": soft._replace(foot_force_frame="calf", foot_force_period_ticks=10),
@@ -83,13 +90,20 @@ def components() -> None:
     }
     for name, profile in variants.items():
         physics.PROFILES[f"component: {name}"] = profile
-    rows, _ = walk.walk(controllers=("vmc_tegotae", "open_loop"), slope_deg=(0.0, 10.0),
-                        physics=[f"component: {name}" for name in variants], num_trials=3, backend="native",
-                        progress=lambda _: None)
+    rows, _ = walk.walk(
+        controllers=("vmc_tegotae", "open_loop"),
+        slope_deg=(0.0, 10.0),
+        physics=[f"component: {name}" for name in variants],
+        num_trials=3,
+        backend="native",
+        progress=lambda _: None,
+    )
     print("| variant | controller | slope [°] | v_x [m/s] | CoT | J | falls |\n|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r.physics.removeprefix('component: ')} | {r.controller} | {r.condition.slope_deg:g} "
-              f"| {r.vx_mps:.3f} | {r.cot:.2f} | {r.objective:.2f} | {r.falls} |")
+        print(
+            f"| {r.physics.removeprefix('component: ')} | {r.controller} | {r.condition.slope_deg:g} "
+            f"| {r.vx_mps:.3f} | {r.cot:.2f} | {r.objective:.2f} | {r.falls} |"
+        )
 
 
 def main() -> None:
@@ -101,8 +115,9 @@ def main() -> None:
     profiles = list(physics.PROFILES)
     for profile in profiles:
         standing(profile)
-    print("\n| profile | solver (iterations, line search) | Σ F dt [N s] | m g T + Δp [N s] | sensor excess "
-          "| v_x [m/s] |")
+    print(
+        "\n| profile | solver (iterations, line search) | Σ F dt [N s] | m g T + Δp [N s] | sensor excess | v_x [m/s] |"
+    )
     print("|---|---|---|---|---|---|")
     for profile in profiles:
         for setting in ((2, 6), (4, 8), (6, 10), (100, 50)):

@@ -45,17 +45,26 @@ FINAL_TRIALS = 5
 FEEDBACK = ("vmc", "tegotae", "vmc_tegotae")
 OPEN_LOOP = "open_loop"
 # eq. (14)'s thresholds in the context's units: t · r, r the range width of docs/decisions.md §11
-CONTEXT_THRESHOLDS = tuple(t * (hi - lo) for t, lo, hi in zip(optimizer_setting.PAPER_CONTEXT_THRESHOLDS,
-                                                               optimizer_setting.PAPER_CONTEXT_LOWER,
-                                                               optimizer_setting.PAPER_CONTEXT_UPPER, strict=True))
+CONTEXT_THRESHOLDS = tuple(
+    t * (hi - lo)
+    for t, lo, hi in zip(
+        optimizer_setting.PAPER_CONTEXT_THRESHOLDS,
+        optimizer_setting.PAPER_CONTEXT_LOWER,
+        optimizer_setting.PAPER_CONTEXT_UPPER,
+        strict=True,
+    )
+)
 
 
 def finals(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Each run's final J and CoT (mean of its last FINAL_TRIALS trials) and its share of trials that fell, (B,)."""
     last = slice(-FINAL_TRIALS, None)
     fell = columns["fell"] | columns["failed"]
-    return {"J": columns["objective"][last].mean(axis=0), "CoT": columns["cost_of_transport"][last].mean(axis=0),
-            "falls": fell.mean(axis=0)}
+    return {
+        "J": columns["objective"][last].mean(axis=0),
+        "CoT": columns["cost_of_transport"][last].mean(axis=0),
+        "falls": fell.mean(axis=0),
+    }
 
 
 def difference_of_differences(a1, b1, a0, b0) -> stats.Effect:
@@ -66,7 +75,7 @@ def difference_of_differences(a1, b1, a0, b0) -> stats.Effect:
     se2 = float(terms.sum())
     if se2 == 0.0:
         return stats.Effect(float(difference), 0.0, float(sum(g.size - 1 for g in groups)))
-    dof = se2 ** 2 / float(sum(t ** 2 / (g.size - 1) for t, g in zip(terms, groups, strict=True)))
+    dof = se2**2 / float(sum(t**2 / (g.size - 1) for t, g in zip(terms, groups, strict=True)))
     return stats.Effect(float(difference), float(np.sqrt(se2)), float(dof))
 
 
@@ -91,25 +100,39 @@ def advantage_table(columns: dict[str, np.ndarray]) -> str:
                 here = stats.effect_between(fb, ol)
                 change = None
                 if a != heights[0]:
-                    change = difference_of_differences(fb, ol, v[(controller == c) & (height == heights[0])],
-                                                       v[(controller == OPEN_LOOP) & (height == heights[0])])
+                    change = difference_of_differences(
+                        fb,
+                        ol,
+                        v[(controller == c) & (height == heights[0])],
+                        v[(controller == OPEN_LOOP) & (height == heights[0])],
+                    )
                 rows.append((c, a, figure, here, change))
                 effects.append(change)
     p = stats.holm([np.nan if e is None else e.two_sided_p() for e in effects])
-    p_same = stats.holm([np.nan if e is None else e.equivalence_p(MARGINS[r[2]]) for e, r in zip(effects, rows,
-                                                                                                  strict=True)])
-    lines = ["| controller | ground height [m] | figure | feedback − open loop (95 % CI) | change from flat "
-             "(95 % CI) | p (Holm) | TOST p (Holm, margin) | on rough ground the advantage |",
-             "|---|---|---|---|---|---|---|---|"]
+    p_same = stats.holm(
+        [np.nan if e is None else e.equivalence_p(MARGINS[r[2]]) for e, r in zip(effects, rows, strict=True)]
+    )
+    lines = [
+        "| controller | ground height [m] | figure | feedback − open loop (95 % CI) | change from flat "
+        "(95 % CI) | p (Holm) | TOST p (Holm, margin) | on rough ground the advantage |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for (c, a, figure, here, change), p_holm, p_tost in zip(rows, p, p_same, strict=True):
         if change is None:
             lines.append(f"| {c} | {a:g} | {figure} | {_interval(here)} | – | – | – | – |")
             continue
         better = change.difference > 0 if BETTER_UP[figure] else change.difference < 0
-        verdict = (("grows" if better else "shrinks") if p_holm < stats.ALPHA
-                   else "unchanged" if p_tost < stats.ALPHA else "inconclusive")
-        lines.append(f"| {c} | {a:g} | {figure} | {_interval(here)} | {_interval(change)} | {p_holm:.2g} "
-                     f"| {p_tost:.2g} (±{MARGINS[figure]:g}) | {verdict} |")
+        verdict = (
+            ("grows" if better else "shrinks")
+            if p_holm < stats.ALPHA
+            else "unchanged"
+            if p_tost < stats.ALPHA
+            else "inconclusive"
+        )
+        lines.append(
+            f"| {c} | {a:g} | {figure} | {_interval(here)} | {_interval(change)} | {p_holm:.2g} "
+            f"| {p_tost:.2g} (±{MARGINS[figure]:g}) | {verdict} |"
+        )
     return "\n".join(lines)
 
 
@@ -118,11 +141,18 @@ def context_table(columns: dict[str, np.ndarray]) -> str:
     flat ground and eq. (14)'s threshold."""
     walked = ~(columns["fell"] | columns["failed"])
     height = columns["terrain_amplitude_m"][0]
-    per_run = {name: np.array([columns[name][walked[:, b], b].mean() if walked[:, b].any() else np.nan
-                               for b in range(walked.shape[1])]) for name in ("c_load_n", "c_slope_rad")}
+    per_run = {
+        name: np.array(
+            [columns[name][walked[:, b], b].mean() if walked[:, b].any() else np.nan for b in range(walked.shape[1])]
+        )
+        for name in ("c_load_n", "c_slope_rad")
+    }
     heights = sorted(set(height.tolist()))
-    lines = ["| ground height [m] | c_load [N] | c_load − flat (threshold ±{:g} N) | c_slope [rad] | c_slope − flat "
-             "(threshold ±{:g} rad) |".format(*CONTEXT_THRESHOLDS), "|---|---|---|---|---|"]
+    lines = [
+        "| ground height [m] | c_load [N] | c_load − flat (threshold ±{:g} N) | c_slope [rad] | c_slope − flat "
+        "(threshold ±{:g} rad) |".format(*CONTEXT_THRESHOLDS),
+        "|---|---|---|---|---|",
+    ]
     for a in heights:
         cells = []
         for v, threshold in zip(per_run.values(), CONTEXT_THRESHOLDS, strict=True):
@@ -132,8 +162,11 @@ def context_table(columns: dict[str, np.ndarray]) -> str:
                 cells.append("–")
             else:
                 effect = stats.effect_between(here, v[height == heights[0]])
-                inside = "inside" if abs(effect.interval()[0]) < threshold and abs(effect.interval()[1]) < threshold \
+                inside = (
+                    "inside"
+                    if abs(effect.interval()[0]) < threshold and abs(effect.interval()[1]) < threshold
                     else "not inside"
+                )
                 cells.append(f"{_interval(effect)} ({inside} the threshold)")
         lines.append(f"| {a:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -147,37 +180,56 @@ def rewalk_table(columns: dict[str, np.ndarray], backend: str = "native") -> str
     flat = np.flatnonzero(height == 0.0)
     j = np.where(walked, columns["objective"], -np.inf)
     best_trial = np.argmax(j[:, flat], axis=0)
-    params = np.stack([[columns[n][t, b] for n in param_space.PARAM_NAMES] for t, b in zip(best_trial, flat,
-                                                                                           strict=True)])
+    params = np.stack(
+        [[columns[n][t, b] for n in param_space.PARAM_NAMES] for t, b in zip(best_trial, flat, strict=True)]
+    )
     rough = sorted(a for a in set(height.tolist()) if a > 0.0)
     k = len(flat)
     scenario = go1_model.make_scenarios(
-        friction=np.tile(columns["friction"][0][flat], len(rough)), physics=np.tile(columns["physics"][0][flat],
-                                                                                     len(rough)),
-        terrain="rough", terrain_amplitude_m=np.repeat(rough, k), terrain_seed=terrain_seed)
+        friction=np.tile(columns["friction"][0][flat], len(rough)),
+        physics=np.tile(columns["physics"][0][flat], len(rough)),
+        terrain="rough",
+        terrain_amplitude_m=np.repeat(rough, k),
+        terrain_seed=terrain_seed,
+    )
     target = float(columns["target_velocity_mps"][0][0])
-    _, _, j_rewalk, fell = registry.evaluate(np.tile(params, (len(rough), 1)), list(controller[flat]) * len(rough),
-                                             scenario, protocol.TrialConfig(), backend, target)
+    _, _, j_rewalk, fell = registry.evaluate(
+        np.tile(params, (len(rough), 1)),
+        list(controller[flat]) * len(rough),
+        scenario,
+        protocol.TrialConfig(),
+        backend,
+        target,
+    )
     j_final = finals(columns)["J"]
     rows, effects = [], []
     for i, a in enumerate(rough):
         for c in dict.fromkeys(controller[flat].tolist()):
-            mine = (controller[flat] == c)
-            moved = j_rewalk[i * k:(i + 1) * k][mine]
+            mine = controller[flat] == c
+            moved = j_rewalk[i * k : (i + 1) * k][mine]
             tuned = j_final[(controller == c) & (height == a)]
             effect = stats.effect_between(moved, tuned)
-            rows.append((a, c, moved, tuned, int(fell[i * k:(i + 1) * k][mine].sum()), effect))
+            rows.append((a, c, moved, tuned, int(fell[i * k : (i + 1) * k][mine].sum()), effect))
             effects.append(effect.two_sided_p())
     p = stats.holm(effects)
     p_same = stats.holm([r[-1].equivalence_p(MARGINS["J"]) for r in rows])
-    lines = ["| ground height [m] | controller | flat-tuned gait, J on this ground (falls) | re-tuned here, final J "
-             "| flat-tuned − re-tuned (95 % CI) | p (Holm) | TOST p (Holm, ±0.072) | verdict |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| ground height [m] | controller | flat-tuned gait, J on this ground (falls) | re-tuned here, final J "
+        "| flat-tuned − re-tuned (95 % CI) | p (Holm) | TOST p (Holm, ±0.072) | verdict |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for (a, c, moved, tuned, falls, effect), p_holm, p_tost in zip(rows, p, p_same, strict=True):
-        verdict = (("re-tuning helps" if effect.difference < 0 else "the flat gait is better")
-                   if p_holm < stats.ALPHA else "transfers" if p_tost < stats.ALPHA else "inconclusive")
-        lines.append(f"| {a:g} | {c} | {stats.mean_ci(moved)} ({falls}/{moved.size}) | {stats.mean_ci(tuned)} "
-                     f"| {_interval(effect)} | {p_holm:.2g} | {p_tost:.2g} | {verdict} |")
+        verdict = (
+            ("re-tuning helps" if effect.difference < 0 else "the flat gait is better")
+            if p_holm < stats.ALPHA
+            else "transfers"
+            if p_tost < stats.ALPHA
+            else "inconclusive"
+        )
+        lines.append(
+            f"| {a:g} | {c} | {stats.mean_ci(moved)} ({falls}/{moved.size}) | {stats.mean_ci(tuned)} "
+            f"| {_interval(effect)} | {p_holm:.2g} | {p_tost:.2g} | {verdict} |"
+        )
     return "\n".join(lines)
 
 

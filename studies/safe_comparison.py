@@ -50,10 +50,12 @@ def fall_breakdown(columns) -> dict[str, int]:
     after_fall[1:] = fell[:-1] & ~first[1:]
     fallback = columns["safe_fallback"] > 0
     counted = fell & optimized
-    return {"first trial of a condition": int((counted & first).sum()),
-            "after a fall": int((counted & after_fall).sum()),
-            "fallback": int((counted & ~first & ~after_fall & fallback).sum()),
-            "after a walk": int((counted & ~first & ~after_fall & ~fallback).sum())}
+    return {
+        "first trial of a condition": int((counted & first).sum()),
+        "after a fall": int((counted & after_fall).sum()),
+        "fallback": int((counted & ~first & ~after_fall & fallback).sum()),
+        "after a walk": int((counted & ~first & ~after_fall & ~fallback).sum()),
+    }
 
 
 def group_keys(columns) -> np.ndarray:
@@ -61,24 +63,36 @@ def group_keys(columns) -> np.ndarray:
     return np.array([", ".join(str(columns[c][0, b]) for c in labels) for b in range(columns["instance"].shape[1])])
 
 
-def compare(unsafe_dir: pathlib.Path, safe_dir: pathlib.Path, names: tuple[str, str] = ("unconstrained", "safe"),
-            what: str | None = None) -> str:
+def compare(
+    unsafe_dir: pathlib.Path,
+    safe_dir: pathlib.Path,
+    names: tuple[str, str] = ("unconstrained", "safe"),
+    what: str | None = None,
+) -> str:
     """The comparison of the module docstring; ``names`` label the two arms (another pair of the same study, for
     example two start-ups: ``("paper", "lean_ramp")``), ``what`` the first sentence's subject."""
     a, b = names
-    runs = {a: study_io.read_trials(unsafe_dir / "trials.parquet"),
-            b: study_io.read_trials(safe_dir / "trials.parquet")}
+    runs = {
+        a: study_io.read_trials(unsafe_dir / "trials.parquet"),
+        b: study_io.read_trials(safe_dir / "trials.parquet"),
+    }
     base = runs[a]
     groups = group_keys(base)
     subject = what or f"Safe (`--safe`, {safe_dir}) against unconstrained ({unsafe_dir})"
-    lines = [f"{subject}, the same seeds. Per phase: falls in "
-             "its optimized trials (total over seeds), final J and v_x (mean of its last "
-             f"{LAST_TRIALS} trials per run, mean [95 % CI] over seeds), trials to a prospective solution (no fall, "
-             "J ≥ 90 % of the run's best in the phase; runs that never reach one in parentheses); tests paired over "
-             "seeds.", ""]
-    lines += [f"| group | phase (trials) | falls {a} | falls {b} | final J {a} | final J {b} | "
-              f"J {b} − {a} (paired t, Wilcoxon) | v_x {a} | v_x {b} | to recover {a} | "
-              f"to recover {b} |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"{subject}, the same seeds. Per phase: falls in "
+        "its optimized trials (total over seeds), final J and v_x (mean of its last "
+        f"{LAST_TRIALS} trials per run, mean [95 % CI] over seeds), trials to a prospective solution (no fall, "
+        "J ≥ 90 % of the run's best in the phase; runs that never reach one in parentheses); tests paired over "
+        "seeds.",
+        "",
+    ]
+    lines += [
+        f"| group | phase (trials) | falls {a} | falls {b} | final J {a} | final J {b} | "
+        f"J {b} − {a} (paired t, Wilcoxon) | v_x {a} | v_x {b} | to recover {a} | "
+        f"to recover {b} |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     totals = {a: [], b: []}
     for group in dict.fromkeys(groups):
         members = np.flatnonzero(groups == group)
@@ -93,21 +107,31 @@ def compare(unsafe_dir: pathlib.Path, safe_dir: pathlib.Path, names: tuple[str, 
                     totals[arm].append(falls)
                 final = slice(max(stop - LAST_TRIALS, start), stop)
                 to_recover = np.array([recover(j[start:stop, k], fell[start:stop, k]) for k in range(len(members))])
-                cells[arm] = dict(falls=int(falls.sum()), j=j[final].mean(axis=0), v=v[final].mean(axis=0),
-                                  recover=to_recover, inference=inference)
+                cells[arm] = dict(
+                    falls=int(falls.sum()),
+                    j=j[final].mean(axis=0),
+                    v=v[final].mean(axis=0),
+                    recover=to_recover,
+                    inference=inference,
+                )
             u, s = cells[a], cells[b]
             never = lambda r: int(np.isnan(r).sum())  # noqa: E731
             label = f"{start}–{stop - 1}" + (" inference" if u["inference"] else "")
-            lines.append(f"| {group} | {label} | {u['falls']} | {s['falls']} | {stats.mean_ci(u['j'])} | "
-                         f"{stats.mean_ci(s['j'])} | {stats.paired_text(s['j'], u['j'])} | {stats.mean_ci(u['v'])} | "
-                         f"{stats.mean_ci(s['v'])} | {stats.nonnegative_ci(u['recover'])} ({never(u['recover'])}) | "
-                         f"{stats.nonnegative_ci(s['recover'])} ({never(s['recover'])}) |")
+            lines.append(
+                f"| {group} | {label} | {u['falls']} | {s['falls']} | {stats.mean_ci(u['j'])} | "
+                f"{stats.mean_ci(s['j'])} | {stats.paired_text(s['j'], u['j'])} | {stats.mean_ci(u['v'])} | "
+                f"{stats.mean_ci(s['v'])} | {stats.nonnegative_ci(u['recover'])} ({never(u['recover'])}) | "
+                f"{stats.nonnegative_ci(s['recover'])} ({never(s['recover'])}) |"
+            )
     falls_u = np.sum(totals[a], axis=0) if totals[a] else np.zeros(1)
     falls_s = np.sum(totals[b], axis=0) if totals[b] else np.zeros(1)
     ratio = falls_u.sum() / max(falls_s.sum(), 1)
-    lines += ["", f"Falls during optimization, all phases: {int(falls_u.sum())} {a}, {int(falls_s.sum())} "
-              f"{b} ({ratio:.1f}× fewer{'' if falls_s.sum() else f', {b} had none: a lower bound'}); per run, {b} − "
-              f"{a}: {stats.paired_text(falls_s, falls_u)}."]
+    lines += [
+        "",
+        f"Falls during optimization, all phases: {int(falls_u.sum())} {a}, {int(falls_s.sum())} "
+        f"{b} ({ratio:.1f}× fewer{'' if falls_s.sum() else f', {b} had none: a lower bound'}); per run, {b} − "
+        f"{a}: {stats.paired_text(falls_s, falls_u)}.",
+    ]
     for arm, columns in runs.items():
         parts = ", ".join(f"{label} {count}" for label, count in fall_breakdown(columns).items())
         lines.append(f"Falls of the {arm} run by where they came from: {parts}.")
@@ -118,15 +142,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("unconstrained", type=pathlib.Path, help="the study folder without --safe")
     parser.add_argument("safe", type=pathlib.Path, help="the same study with --safe")
-    parser.add_argument("--names", default="unconstrained,safe",
-                        help="the two arms' names in the table (e.g. paper,lean_ramp for two start-ups)")
+    parser.add_argument(
+        "--names",
+        default="unconstrained,safe",
+        help="the two arms' names in the table (e.g. paper,lean_ramp for two start-ups)",
+    )
     args = parser.parse_args()
     names = tuple(args.names.split(","))
     if len(names) != 2:
         parser.error(f"--names {args.names!r}: need two names, comma-separated")
-    what = (None if names == ("unconstrained", "safe")
-            else f"{names[1]} ({args.safe}) against {names[0]} ({args.unconstrained})")
+    what = (
+        None
+        if names == ("unconstrained", "safe")
+        else f"{names[1]} ({args.safe}) against {names[0]} ({args.unconstrained})"
+    )
     print(compare(args.unconstrained, args.safe, names, what))
+
 
 if __name__ == "__main__":
     main()

@@ -57,8 +57,9 @@ def main(argv=None) -> None:
     runs = np.concatenate([sets[n] for n in names])  # (kinds × seeds, 8)
     grid = [(s, r) for s in SLOPES_DEG for r in range(len(runs))]
     scenario = go1_model.make_scenarios(slope_deg=[s for s, _ in grid], physics=physics)
-    v, cot, j, fell = registry.evaluate(runs[[r for _, r in grid]], ["vmc_tegotae"] * len(grid), scenario,
-                                        protocol.TrialConfig(), args.backend, target)
+    v, cot, j, fell = registry.evaluate(
+        runs[[r for _, r in grid]], ["vmc_tegotae"] * len(grid), scenario, protocol.TrialConfig(), args.backend, target
+    )
     seeds = len(runs) // len(names)
     print(f"{args.study}: physics {physics}, v* {target} m/s, {seeds} seeds; mean over seeds (falls / seeds)\n")
     print("| parameters | " + " | ".join(f"{s:g}°: v_x [m/s] / J / falls" for s in SLOPES_DEG) + " |")

@@ -28,11 +28,20 @@ from cpgjax.sim import native as native_go1
 from cpgjax.trial import objective, protocol
 from cpgjax.trial import params as param_space
 
-SOLVERS = {"2 iterations, 6 ls": (2, 6), "3 iterations, 6 ls": (3, 6), "4 iterations, 8 ls": (4, 8),
-           "1 iteration, 6 ls": (1, 6), "converged (100, 50)": (100, 50)}
+SOLVERS = {
+    "2 iterations, 6 ls": (2, 6),
+    "3 iterations, 6 ls": (3, 6),
+    "4 iterations, 8 ls": (4, 8),
+    "1 iteration, 6 ls": (1, 6),
+    "converged (100, 50)": (100, 50),
+}
 REFERENCE = "converged (100, 50)"
-SCENARIOS = {"flat μ 0.6": (0.6, 0.0, 0.0), "slippery μ 0.3": (0.3, 0.0, 0.0), "uphill 10°": (0.6, 10.0, 0.0),
-             "15 kg": (0.6, 0.0, 15.0)}
+SCENARIOS = {
+    "flat μ 0.6": (0.6, 0.0, 0.0),
+    "slippery μ 0.3": (0.3, 0.0, 0.0),
+    "uphill 10°": (0.6, 10.0, 0.0),
+    "15 kg": (0.6, 0.0, 15.0),
+}
 
 
 def run(iterations: int, ls_iterations: int, trial_params: np.ndarray, controllers, scenario) -> list:
@@ -56,8 +65,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--trials", type=int, default=3, help="back-to-back trials (first: mid-range parameters)")
     parser.add_argument("--physics", default=",".join(physics_profiles.PROFILES), help="comma list of profiles")
-    parser.add_argument("--solvers", help="comma list of iterations:line-search settings compared with the converged "
-                        f"solver (default: {', '.join(SOLVERS)})")
+    parser.add_argument(
+        "--solvers",
+        help="comma list of iterations:line-search settings compared with the converged "
+        f"solver (default: {', '.join(SOLVERS)})",
+    )
     args = parser.parse_args()
     solvers = dict(SOLVERS)
     if args.solvers:
@@ -71,18 +83,22 @@ def main() -> None:
 def compare(physics: str, num_trials: int, solvers: dict) -> None:
     """The table and the summary of one physics profile."""
     rng = np.random.default_rng(0)
-    trial_params = np.stack([param_space.midpoint()] + [param_space.from_unit(rng.uniform(0.2, 0.8, 8))
-                                                        for _ in range(num_trials - 1)])
+    trial_params = np.stack(
+        [param_space.midpoint()] + [param_space.from_unit(rng.uniform(0.2, 0.8, 8)) for _ in range(num_trials - 1)]
+    )
     rows = [(c, name) for c in cpg.CONTROLLERS for name in SCENARIOS]
     friction, slope, payload = (np.array([SCENARIOS[name][k] for _, name in rows]) for k in range(3))
     scenario = go1_model.make_scenarios(friction=friction, slope_deg=slope, payload_kg=payload, physics=physics)
-    results = {label: run(*setting, trial_params, [c for c, _ in rows], scenario)
-               for label, setting in solvers.items()}
+    results = {label: run(*setting, trial_params, [c for c, _ in rows], scenario) for label, setting in solvers.items()}
 
     def figures(label, trial, i):
         r = jax.tree.map(lambda x: x[i], results[label][trial])
-        return (float(objective.mean_velocity(r)[0]), float(objective.cost_of_transport(r)), float(r.c_load_n),
-                bool(r.fell > 0))
+        return (
+            float(objective.mean_velocity(r)[0]),
+            float(objective.cost_of_transport(r)),
+            float(r.c_load_n),
+            bool(r.fell > 0),
+        )
 
     print("| controller | scenario | trial | " + " | ".join(f"{label}: v_x [m/s], CoT" for label in solvers) + " |")
     print("|---|---|---|" + "---|" * len(solvers))
@@ -98,13 +114,18 @@ def compare(physics: str, num_trials: int, solvers: dict) -> None:
                 diffs[label].append((abs(vx - ref[0]), abs(cot - ref[1]), abs(load - ref[2])))
                 falls[label] += fell
             print(f"| {controller} | {name} | {t} | " + " | ".join(cells) + " |")
-    print(f"\n| {physics}: solver (iterations, line search) | median abs. v_x diff [m/s] | max abs. v_x diff [m/s] "
-          "| median abs. CoT diff | median abs. c_load diff [N] | trials that fell |")
+    print(
+        f"\n| {physics}: solver (iterations, line search) | median abs. v_x diff [m/s] | max abs. v_x diff [m/s] "
+        "| median abs. CoT diff | median abs. c_load diff [N] | trials that fell |"
+    )
     print("|---|---|---|---|---|---|")
     for label in solvers:
         d = np.array(diffs[label])
-        print(f"| {label} | {np.median(d[:, 0]):.4f} | {d[:, 0].max():.3f} | {np.median(d[:, 1]):.3f} "
-              f"| {np.median(d[:, 2]):.2f} | {falls[label]} of {len(d)} |", flush=True)
+        print(
+            f"| {label} | {np.median(d[:, 0]):.4f} | {d[:, 0].max():.3f} | {np.median(d[:, 1]):.3f} "
+            f"| {np.median(d[:, 2]):.2f} | {falls[label]} of {len(d)} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

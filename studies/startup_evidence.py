@@ -50,24 +50,45 @@ class Variant(NamedTuple):
 
 VARIANTS = (
     Variant("paper", "the paper's start: r = 0.1 → μ at α = 50, trot phases, feet 3.5 cm behind the hips, VMC at once"),
-    Variant("blend", "the 1.5 s blend starts from the box midpoint (as after a fall, from another gait)",
-            blend_from_midpoint=True),
+    Variant(
+        "blend",
+        "the 1.5 s blend starts from the box midpoint (as after a fall, from another gait)",
+        blend_from_midpoint=True,
+    ),
     Variant("ramp", "amplitude target ramps 0 → μ over 1.5 s", PAPER._replace(start_ramp_s=1.5)),
     Variant("ramp_3s", "amplitude target ramps 0 → μ over 3 s", PAPER._replace(start_ramp_s=3.0)),
-    Variant("phase", "initial phases + π/2 (the first pair starts mid-swing)",
-            PAPER._replace(start_phase_rad=float(np.pi / 2))),
-    Variant("lean", "standing posture leans into the slope: feet shifted by h·tan(pitch) in x",
-            PAPER._replace(start_lean=True)),
+    Variant(
+        "phase",
+        "initial phases + π/2 (the first pair starts mid-swing)",
+        PAPER._replace(start_phase_rad=float(np.pi / 2)),
+    ),
+    Variant(
+        "lean",
+        "standing posture leans into the slope: feet shifted by h·tan(pitch) in x",
+        PAPER._replace(start_lean=True),
+    ),
     Variant("vmc_delay", "VMC off for the first 1.5 s", PAPER._replace(start_vmc_delay_s=1.5)),
     Variant("kp", "K_p 70 → 100 N·m/rad (everywhere)", PAPER._replace(kp_nm_rad=100.0)),
-    Variant("ramp_lean", "lean, blended out over a 1.5 s amplitude ramp",
-            PAPER._replace(start_ramp_s=1.5, start_lean=True, start_lean_s=1.5)),
-    Variant("ramp_lean_phase", "lean blended out over a 1.5 s ramp, initial phases + π/2",
-            PAPER._replace(start_ramp_s=1.5, start_lean=True, start_lean_s=1.5, start_phase_rad=float(np.pi / 2))),
-    Variant("lean_blend", "lean, blended out over 3 s; the amplitude as the paper's",
-            PAPER._replace(start_lean=True, start_lean_s=3.0)),
-    Variant("lean_ramp", "cpgjax's lean_ramp start-up: lean, blended out over a 3 s amplitude ramp",
-            cpg.with_startup(PAPER, "lean_ramp")),
+    Variant(
+        "ramp_lean",
+        "lean, blended out over a 1.5 s amplitude ramp",
+        PAPER._replace(start_ramp_s=1.5, start_lean=True, start_lean_s=1.5),
+    ),
+    Variant(
+        "ramp_lean_phase",
+        "lean blended out over a 1.5 s ramp, initial phases + π/2",
+        PAPER._replace(start_ramp_s=1.5, start_lean=True, start_lean_s=1.5, start_phase_rad=float(np.pi / 2)),
+    ),
+    Variant(
+        "lean_blend",
+        "lean, blended out over 3 s; the amplitude as the paper's",
+        PAPER._replace(start_lean=True, start_lean_s=3.0),
+    ),
+    Variant(
+        "lean_ramp",
+        "cpgjax's lean_ramp start-up: lean, blended out over a 3 s amplitude ramp",
+        cpg.with_startup(PAPER, "lean_ramp"),
+    ),
 )
 
 
@@ -95,8 +116,12 @@ def gait_sets(columns: dict[str, np.ndarray]) -> dict[str, Gaits]:
     condition = condition_labels(columns)
     params = np.stack([columns[name] for name in param_space.PARAM_NAMES], axis=-1)
     after_fall, walked = {}, {}
-    for t, b in zip(*np.nonzero(fell[:-1] & optimized[:-1] & optimized[1:] & (condition[1:] == condition[:-1])
-                                & (condition[:-1] != "")), strict=True):
+    for t, b in zip(
+        *np.nonzero(
+            fell[:-1] & optimized[:-1] & optimized[1:] & (condition[1:] == condition[:-1]) & (condition[:-1] != "")
+        ),
+        strict=True,
+    ):
         earlier = [k for k in range(t) if not fell[k, b] and condition[k, b] == condition[t, b]]
         if earlier:
             k = earlier[-1]
@@ -107,8 +132,14 @@ def gait_sets(columns: dict[str, np.ndarray]) -> dict[str, Gaits]:
     def gaits(found: dict) -> Gaits:
         kb = np.array(list(found.values()), int).reshape(-1, 2)
         k, b = kb[:, 0], kb[:, 1]
-        return Gaits(params=params[k, b], instance=b, trial=k, condition=condition[k, b],
-                     controller=np.asarray(columns["controller"])[k, b])
+        return Gaits(
+            params=params[k, b],
+            instance=b,
+            trial=k,
+            condition=condition[k, b],
+            controller=np.asarray(columns["controller"])[k, b],
+        )
+
     return {"after a fall": gaits(after_fall), "walked": gaits(walked)}
 
 
@@ -130,8 +161,9 @@ def evenly(gaits: Gaits, limit: int | None) -> Gaits:
     return Gaits(*(field[keep] for field in gaits))
 
 
-def table(folder: pathlib.Path, study: str, variants: tuple[Variant, ...], backend: str,
-          limit: int | None = None) -> str:
+def table(
+    folder: pathlib.Path, study: str, variants: tuple[Variant, ...], backend: str, limit: int | None = None
+) -> str:
     """The markdown table of the module docstring (at most ``limit`` gaits per set, :func:`evenly`)."""
     engine = ablation.Engine(study_driver.read(study).spec, backend="native")
     sets = {name: evenly(g, limit) for name, g in gait_sets(study_io.read_trials(folder / "trials.parquet")).items()}
@@ -161,10 +193,17 @@ def main(argv=None) -> None:
     parser.add_argument("folder", type=pathlib.Path, help="a study's output folder (with trials.parquet)")
     parser.add_argument("--study", default="slope_adaptation", help="the study the folder ran (a name or a file)")
     parser.add_argument("--backend", default="native", choices=backends.BACKENDS)
-    parser.add_argument("--variants", default=",".join(v.name for v in VARIANTS),
-                        help="comma-separated, from: " + ", ".join(v.name for v in VARIANTS))
-    parser.add_argument("--limit", type=int, default=None, help="at most this many gaits per set, evenly spaced "
-                        "(a smaller batch for MJX on a CPU, where it is slow)")
+    parser.add_argument(
+        "--variants",
+        default=",".join(v.name for v in VARIANTS),
+        help="comma-separated, from: " + ", ".join(v.name for v in VARIANTS),
+    )
+    parser.add_argument(
+        "--limit",
+        type=int,
+        default=None,
+        help="at most this many gaits per set, evenly spaced (a smaller batch for MJX on a CPU, where it is slow)",
+    )
     args = parser.parse_args(argv)
     if args.limit is not None and args.limit < 1:
         parser.error(f"--limit {args.limit}: need at least 1 gait per set")

@@ -65,8 +65,15 @@ PROSPECTIVE = 0.9  # a prospective solution: J ≥ this × the group's mean fina
 CONTEXT_TOLERANCE = {"c_load_n": 0.2 * 40.0, "c_slope_rad": 0.1 * 0.5}
 # The paper's hardware 10° adaptation (Sec. "Hardware Experiments"): "a decrease in ω_swing, x_offset,front and g_p;
 # an increase in ω_stance, g_c, σ_N and x_offset,hind" from the flat optimum to the slope's.
-HARDWARE_SLOPE_SHIFTS = {"omega_swing_rad_s": -1, "x_offset_front_m": -1, "ground_penetration_m": -1,
-                         "omega_stance_rad_s": +1, "ground_clearance_m": +1, "sigma_n": +1, "x_offset_hind_m": +1}
+HARDWARE_SLOPE_SHIFTS = {
+    "omega_swing_rad_s": -1,
+    "x_offset_front_m": -1,
+    "ground_penetration_m": -1,
+    "omega_stance_rad_s": +1,
+    "ground_clearance_m": +1,
+    "sigma_n": +1,
+    "x_offset_hind_m": +1,
+}
 
 
 class Row(NamedTuple):
@@ -93,7 +100,7 @@ class Row(NamedTuple):
 
 
 def _cell(values: np.ndarray, unit: str = "", nonnegative: bool = False) -> str:
-    """"mean [95 % CI]unit (n = …)"; ``nonnegative``: a quantity that cannot be negative (``stats.nonnegative_ci``)."""
+    """ "mean [95 % CI]unit (n = …)"; ``nonnegative``: a quantity that cannot be negative (``stats.nonnegative_ci``)."""
     ci = stats.nonnegative_ci(values) if nonnegative else stats.mean_ci(values)
     return f"{ci}{unit} (n = {ci.n})"
 
@@ -107,12 +114,14 @@ def _objective_at_paper_floor(cols: dict) -> dict:
     """The trials with J at the paper's floor of −1 (a one-change run of the floor records its own): J is
     max(J, −1), a fall −1, the same J the reproduction's runs record."""
     out = dict(cols)
-    out["objective"] = np.where(cols["fell"] | cols["failed"], objective.MIN_OBJECTIVE,
-                                np.maximum(cols["objective"], objective.MIN_OBJECTIVE))
+    out["objective"] = np.where(
+        cols["fell"] | cols["failed"], objective.MIN_OBJECTIVE, np.maximum(cols["objective"], objective.MIN_OBJECTIVE)
+    )
     return out
 
 
 # ----------------------------------------------------------------------------------------------- studies
+
 
 def controller_rows(cols: dict) -> list[Row]:
     n = cols["objective"].shape[0]
@@ -124,20 +133,41 @@ def controller_rows(cols: dict) -> list[Row]:
             continue
         for (name, column), (mean, std) in zip(FIGURES.items(), paper, strict=True):
             ours = _final(cols, column, n, m)
-            rows.append(Row("controller table", f"{c} {name}", f"{mean:.3f} ± {std:.3f} (n = 5)",
-                            _cell(ours, UNITS[name], name in NONNEGATIVE),
-                            stats.effect_to_summary(ours, mean, std, registry.PAPER_SEEDS),
-                            std, "the paper's std", "figure", _falls_note(cols, 0, n, m) if name == "J" else ""))
+            rows.append(
+                Row(
+                    "controller table",
+                    f"{c} {name}",
+                    f"{mean:.3f} ± {std:.3f} (n = 5)",
+                    _cell(ours, UNITS[name], name in NONNEGATIVE),
+                    stats.effect_to_summary(ours, mean, std, registry.PAPER_SEEDS),
+                    std,
+                    "the paper's std",
+                    "figure",
+                    _falls_note(cols, 0, n, m) if name == "J" else "",
+                )
+            )
     claims = []
-    cot = {c: _final(cols, "cost_of_transport", n, controller == c) for c in cpg.CONTROLLERS
-           if (controller == c).sum() >= 2}
+    cot = {
+        c: _final(cols, "cost_of_transport", n, controller == c)
+        for c in cpg.CONTROLLERS
+        if (controller == c).sum() >= 2
+    }
     table = {c: p[1] for c, p in registry.PAPER_CONTROLLER_TABLE.items()}
     for a, b in (("tegotae", "open_loop"), ("vmc_tegotae", "vmc"), ("vmc_tegotae", "tegotae")):
         if a in cot and b in cot:
             paper_effect = table[a][0] - table[b][0]
-            claims.append(Row("controller claims", f"CoT {a} − {b} < 0", f"{paper_effect:+.3f}",
-                              f"{np.mean(cot[a]) - np.mean(cot[b]):+.3f}", stats.effect_between(cot[a], cot[b]),
-                              table[a][1], f"the paper's std of {a}'s CoT", "claim_below"))
+            claims.append(
+                Row(
+                    "controller claims",
+                    f"CoT {a} − {b} < 0",
+                    f"{paper_effect:+.3f}",
+                    f"{np.mean(cot[a]) - np.mean(cot[b]):+.3f}",
+                    stats.effect_between(cot[a], cot[b]),
+                    table[a][1],
+                    f"the paper's std of {a}'s CoT",
+                    "claim_below",
+                )
+            )
     return rows + claims
 
 
@@ -152,9 +182,19 @@ def context_rows(cols: dict, family: str, field: str, phases: list[tuple[int, in
         spread = np.nanstd(values[:, enough], axis=0, ddof=1)
         if spread.size < 2:
             continue
-        rows.append(Row(family, f"{label(start)}: {field} spread within a run < t·r = {bound:g}", f"< {bound:g}",
-                        _cell(spread), stats.effect_to_value(spread, bound), 0.0, "the tolerance itself",
-                        "claim_below", f"{int(enough.sum())} runs with 2 or more walking trials"))
+        rows.append(
+            Row(
+                family,
+                f"{label(start)}: {field} spread within a run < t·r = {bound:g}",
+                f"< {bound:g}",
+                _cell(spread),
+                stats.effect_to_value(spread, bound),
+                0.0,
+                "the tolerance itself",
+                "claim_below",
+                f"{int(enough.sum())} runs with 2 or more walking trials",
+            )
+        )
     return rows
 
 
@@ -190,19 +230,36 @@ def load_rows(cols: dict, trial_config) -> list[Row]:
         for k, (name, column) in enumerate(FIGURES.items()):
             ours = _final(cols, column, stop, everyone)
             std = LOAD_STD[name]
-            rows.append(Row("load table", f"{load:g} kg {name} adapted", f"{after[k]:.3f}",
-                            _cell(ours, UNITS[name], name in NONNEGATIVE),
-                            stats.effect_to_summary(ours, after[k], std, registry.PAPER_SEEDS), std,
-                            "the paper's VMC+Tegotae std (flat)", "figure",
-                            _falls_note(cols, start, stop) if name == "J" else ""))
+            rows.append(
+                Row(
+                    "load table",
+                    f"{load:g} kg {name} adapted",
+                    f"{after[k]:.3f}",
+                    _cell(ours, UNITS[name], name in NONNEGATIVE),
+                    stats.effect_to_summary(ours, after[k], std, registry.PAPER_SEEDS),
+                    std,
+                    "the paper's VMC+Tegotae std (flat)",
+                    "figure",
+                    _falls_note(cols, start, stop) if name == "J" else "",
+                )
+            )
             if before is not None and load in flat:
                 ours = flat[load][k]
-                rows.append(Row("load table", f"{load:g} kg {name} flat optimum", f"{before[k]:.3f}",
-                                _cell(ours, UNITS[name], name in NONNEGATIVE),
-                                stats.effect_to_summary(ours, before[k], std, registry.PAPER_SEEDS), std,
-                                "the paper's VMC+Tegotae std (flat)", "figure"))
-    return rows + context_rows(cols, "load table", "c_load_n", phases,
-                               lambda start: f"{cols['payload_kg'][start, 0]:g} kg")
+                rows.append(
+                    Row(
+                        "load table",
+                        f"{load:g} kg {name} flat optimum",
+                        f"{before[k]:.3f}",
+                        _cell(ours, UNITS[name], name in NONNEGATIVE),
+                        stats.effect_to_summary(ours, before[k], std, registry.PAPER_SEEDS),
+                        std,
+                        "the paper's VMC+Tegotae std (flat)",
+                        "figure",
+                    )
+                )
+    return rows + context_rows(
+        cols, "load table", "c_load_n", phases, lambda start: f"{cols['payload_kg'][start, 0]:g} kg"
+    )
 
 
 def prospective_trials(j: np.ndarray, threshold: float) -> np.ndarray:
@@ -224,20 +281,30 @@ def friction_rows(cols: dict) -> list[Row]:
         threshold = PROSPECTIVE * float(np.mean(registry.last_mean(j, n)))
         counts = prospective_trials(j, threshold)
         random = int(np.sum(counts <= 2))  # trials 0 and 1 are random draws (Algorithm 1)
-        rows.append(Row("friction", f"μ {mu:g}: trials to J ≥ {PROSPECTIVE:g} × the group's final J < 10",
-                        "< 10", _cell(counts, nonnegative=True),
-                        stats.effect_to_value(counts, FRICTION_TRIALS_BOUND), 0.0,
-                        "the bound itself", "claim_below",
-                        f"threshold J {threshold:.3f}; {random} of {counts.size} runs reach it in the 2 random trials; "
-                        f"{int(np.sum(counts > n))} never"))
+        rows.append(
+            Row(
+                "friction",
+                f"μ {mu:g}: trials to J ≥ {PROSPECTIVE:g} × the group's final J < 10",
+                "< 10",
+                _cell(counts, nonnegative=True),
+                stats.effect_to_value(counts, FRICTION_TRIALS_BOUND),
+                0.0,
+                "the bound itself",
+                "claim_below",
+                f"threshold J {threshold:.3f}; {random} of {counts.size} runs reach it in the 2 random trials; "
+                f"{int(np.sum(counts > n))} never",
+            )
+        )
     return rows
 
 
 def _slope_parts(cols: dict) -> tuple[int, int]:
     """The slope study's first inference-mode trial and its first ramp trial (the trial count where there is none)."""
     inference, ramp = cols["inference"][:, 0], cols["ramp"][:, 0]
-    return (int(np.argmax(inference)) if inference.any() else inference.size,
-            int(np.argmax(ramp)) if ramp.any() else ramp.size)
+    return (
+        int(np.argmax(inference)) if inference.any() else inference.size,
+        int(np.argmax(ramp)) if ramp.any() else ramp.size,
+    )
 
 
 def slope_rows(cols: dict) -> list[Row]:
@@ -252,27 +319,56 @@ def slope_rows(cols: dict) -> list[Row]:
         if slope == 0.0:
             continue
         ours = _final(cols, "velocity_x_mps", stop, everyone)
-        rows.append(Row("slope", f"{slope:g}° adapted: v_x at v* = {target:g} m/s", f"{target:g} (walks)",
-                        _cell(ours, " m/s"), stats.effect_to_value(ours, target), VELOCITY_MARGIN_MPS,
-                        "the tracking tolerance", "figure", _falls_note(cols, start, stop)))
+        rows.append(
+            Row(
+                "slope",
+                f"{slope:g}° adapted: v_x at v* = {target:g} m/s",
+                f"{target:g} (walks)",
+                _cell(ours, " m/s"),
+                stats.effect_to_value(ours, target),
+                VELOCITY_MARGIN_MPS,
+                "the tracking tolerance",
+                "figure",
+                _falls_note(cols, start, stop),
+            )
+        )
     for start, stop in _phases(cols["slope_deg"][learn:ramp_at, 0]):
         start, stop = start + learn, stop + learn
         slope = float(cols["slope_deg"][start, 0])
         if slope > 15.0:
             continue
         ours = cols["velocity_x_mps"][start:stop].mean(axis=0)  # inference: every trial of the phase
-        rows.append(Row("slope", f"inference {slope:g}°: v_x at v* = {target:g} m/s", f"{target:g} (walks)",
-                        _cell(ours, " m/s"), stats.effect_to_value(ours, target), VELOCITY_MARGIN_MPS,
-                        "the tracking tolerance", "figure", _falls_note(cols, start, stop)))
+        rows.append(
+            Row(
+                "slope",
+                f"inference {slope:g}°: v_x at v* = {target:g} m/s",
+                f"{target:g} (walks)",
+                _cell(ours, " m/s"),
+                stats.effect_to_value(ours, target),
+                VELOCITY_MARGIN_MPS,
+                "the tracking tolerance",
+                "figure",
+                _falls_note(cols, start, stop),
+            )
+        )
     if ramp_at < cols["ramp"].shape[0]:
         slope = cols["slope_deg"][ramp_at:]
         fell = cols["fell"][ramp_at:] | cols["failed"][ramp_at:]
         steepest = np.where(~fell, slope, -np.inf).max(axis=0)
         walked = np.isfinite(steepest)
-        rows.append(Row("slope", "ramp: steepest slope walked without a fall", "15°",
-                        _cell(steepest[walked], "°"), stats.effect_to_value(steepest[walked], 15.0),
-                        RAMP_MARGIN_DEG, "half the 2.5° step of the paper's slopes", "figure",
-                        f"{int(walked.sum())} of {walked.size} seeds walked a ramp trial"))
+        rows.append(
+            Row(
+                "slope",
+                "ramp: steepest slope walked without a fall",
+                "15°",
+                _cell(steepest[walked], "°"),
+                stats.effect_to_value(steepest[walked], 15.0),
+                RAMP_MARGIN_DEG,
+                "half the 2.5° step of the paper's slopes",
+                "figure",
+                f"{int(walked.sum())} of {walked.size} seeds walked a ramp trial",
+            )
+        )
     return rows
 
 
@@ -283,15 +379,23 @@ def _falls_note(cols: dict, start: int, stop: int, mask: np.ndarray | None = Non
         fell = fell[:, mask]
     rate = stats.cluster_bootstrap(list(fell.T), lambda cs: float(np.mean(np.concatenate(cs))))
     seeds = int(np.sum(fell.sum(axis=0) > 0))
-    return (f"falls {int(fell.sum())}/{fell.size}, in {seeds} of {fell.shape[1]} seeds; rate "
-            f"{rate.mean:.3f} [{rate.low:.3f}, {rate.high:.3f}] (seed bootstrap)")
+    return (
+        f"falls {int(fell.sum())}/{fell.size}, in {seeds} of {fell.shape[1]} seeds; rate "
+        f"{rate.mean:.3f} [{rate.low:.3f}, {rate.high:.3f}] (seed bootstrap)"
+    )
 
 
 def track_counts(cols: dict, start: int, stop: int, mask: np.ndarray) -> np.ndarray:
     """Trials from ``start`` to track v* (``registry.trials_to_track``: a run that never tracks counts as the phase's
     length + 1)."""
-    return np.array([registry.trials_to_track(cols["velocity_x_mps"][:, b], cols["target_velocity_mps"][:, b],
-                                              cols["fell"][:, b], start, stop) for b in np.flatnonzero(mask)])
+    return np.array(
+        [
+            registry.trials_to_track(
+                cols["velocity_x_mps"][:, b], cols["target_velocity_mps"][:, b], cols["fell"][:, b], start, stop
+            )
+            for b in np.flatnonzero(mask)
+        ]
+    )
 
 
 def multi_velocity_rows(cols: dict) -> list[Row]:
@@ -303,21 +407,40 @@ def multi_velocity_rows(cols: dict) -> list[Row]:
         if min(a.size, b.size) < 2:
             continue
         never = (int(np.sum(a > stop - start)), int(np.sum(b > stop - start)))
-        rows.append(Row("multi-velocity", f"{target:g} m/s: trials to track, reuse − restart < 0", "fewer with reuse",
-                        f"{np.mean(a):.2f} vs {np.mean(b):.2f}", stats.effect_between(a, b), 0.0, "no effect",
-                        "claim_below", f"never tracked (counted as {stop - start + 1}): {never[0]} with reuse, "
-                                       f"{never[1]} without"))
+        rows.append(
+            Row(
+                "multi-velocity",
+                f"{target:g} m/s: trials to track, reuse − restart < 0",
+                "fewer with reuse",
+                f"{np.mean(a):.2f} vs {np.mean(b):.2f}",
+                stats.effect_between(a, b),
+                0.0,
+                "no effect",
+                "claim_below",
+                f"never tracked (counted as {stop - start + 1}): {never[0]} with reuse, {never[1]} without",
+            )
+        )
     first = _phases(cols["target_velocity_mps"][:, 0])[1][0]  # the paper's trials 40–60 begin at the first change
     window = min(20, cols["objective"].shape[0] - first)
     if window >= 2 * LAST_TRIALS and reuse.sum() >= 2:
-        cot = cols["cost_of_transport"][first:first + window][:, reuse]
-        walked = ~(cols["fell"] | cols["failed"])[first:first + window][:, reuse]
+        cot = cols["cost_of_transport"][first : first + window][:, reuse]
+        walked = ~(cols["fell"] | cols["failed"])[first : first + window][:, reuse]
         early = np.nanmean(np.where(walked[:LAST_TRIALS], cot[:LAST_TRIALS], np.nan), axis=0)
         late = np.nanmean(np.where(walked[-LAST_TRIALS:], cot[-LAST_TRIALS:], np.nan), axis=0)
         change = late - early
-        rows.append(Row("multi-velocity", f"CoT falls over trials {first}–{first + window - 1} (reuse): last 5 − "
-                        "first 5 < 0", "falls (figure)", _cell(change), stats.effect_to_value(change, 0.0), 0.0,
-                        "no effect", "claim_below", "walking trials only"))
+        rows.append(
+            Row(
+                "multi-velocity",
+                f"CoT falls over trials {first}–{first + window - 1} (reuse): last 5 − first 5 < 0",
+                "falls (figure)",
+                _cell(change),
+                stats.effect_to_value(change, 0.0),
+                0.0,
+                "no effect",
+                "claim_below",
+                "walking trials only",
+            )
+        )
     return rows
 
 
@@ -337,18 +460,34 @@ def hardware_rows(cols: dict) -> list[Row]:
                 paper = paper.get(target)
             if isinstance(paper, float):
                 ours = _final(cols, "cost_of_transport", e, m)
-                rows.append(Row("hardware (go1)", f"{label}, trials {s}–{e - 1}: CoT", f"≈ {paper:g}",
-                                _cell(ours, nonnegative=True),
-                                stats.effect_to_value(ours, paper), HARDWARE_COT_MARGIN,
-                                "2 × the paper's VMC+Tegotae CoT std", "figure"))
+                rows.append(
+                    Row(
+                        "hardware (go1)",
+                        f"{label}, trials {s}–{e - 1}: CoT",
+                        f"≈ {paper:g}",
+                        _cell(ours, nonnegative=True),
+                        stats.effect_to_value(ours, paper),
+                        HARDWARE_COT_MARGIN,
+                        "2 × the paper's VMC+Tegotae CoT std",
+                        "figure",
+                    )
+                )
             if label == "flat → 10°" and s > 0:
                 counts = track_counts(cols, s, e, m)
                 paper_trials = registry.PAPER_HARDWARE_SLOPE_TRIALS
-                rows.append(Row("hardware (go1)", f"{label}: tracked again within {paper_trials} trials",
-                                f"within ≈ {paper_trials}", _cell(counts, nonnegative=True),
-                                stats.effect_to_value(counts, paper_trials),
-                                0.0, "the bound itself", "claim_below",
-                                f"never tracked (counted as {e - s + 1}): {int(np.sum(counts > e - s))}"))
+                rows.append(
+                    Row(
+                        "hardware (go1)",
+                        f"{label}: tracked again within {paper_trials} trials",
+                        f"within ≈ {paper_trials}",
+                        _cell(counts, nonnegative=True),
+                        stats.effect_to_value(counts, paper_trials),
+                        0.0,
+                        "the bound itself",
+                        "claim_below",
+                        f"never tracked (counted as {e - s + 1}): {int(np.sum(counts > e - s))}",
+                    )
+                )
                 rows += parameter_shift_rows(cols, m, s, e)
     return rows
 
@@ -357,6 +496,7 @@ def parameter_shift_rows(cols: dict, mask: np.ndarray, change: int, stop: int) -
     """Per parameter the paper names, each run's change from its best flat gait (trials < ``change``) to its best
     gait on the slope (trials ``change`` … ``stop``), in the paper's direction (claims in the units of the
     parameter)."""
+
     def best(lo, hi):
         j = np.where(cols["fell"][lo:hi] | cols["failed"][lo:hi], -np.inf, cols["objective"][lo:hi])[:, mask]
         return lo + np.argmax(j, axis=0)
@@ -366,10 +506,19 @@ def parameter_shift_rows(cols: dict, mask: np.ndarray, change: int, stop: int) -
     rows = []
     for name, sign in HARDWARE_SLOPE_SHIFTS.items():
         shift = cols[name][slope, runs] - cols[name][flat, runs]
-        rows.append(Row("hardware (go1)", f"10°: {name} {'decreases' if sign < 0 else 'increases'}",
-                        "decreases" if sign < 0 else "increases", _cell(shift), stats.effect_to_value(shift, 0.0), 0.0,
-                        "no effect", "claim_below" if sign < 0 else "claim_above",
-                        "best slope gait − best flat gait, per run"))
+        rows.append(
+            Row(
+                "hardware (go1)",
+                f"10°: {name} {'decreases' if sign < 0 else 'increases'}",
+                "decreases" if sign < 0 else "increases",
+                _cell(shift),
+                stats.effect_to_value(shift, 0.0),
+                0.0,
+                "no effect",
+                "claim_below" if sign < 0 else "claim_above",
+                "best slope gait − best flat gait, per run",
+            )
+        )
     return rows
 
 
@@ -384,6 +533,7 @@ STUDIES: dict[str, Callable[..., list[Row]]] = {
 
 
 # ----------------------------------------------------------------------------------------------- verdicts
+
 
 def verdicts(rows: list[Row]) -> list[tuple[Row, float, float, str]]:
     """Each row with its two tests after Holm's correction over its family, and its verdict."""
@@ -402,13 +552,18 @@ def verdicts(rows: list[Row]) -> list[tuple[Row, float, float, str]]:
 
 
 def table(judged: list[tuple[Row, float, float, str]]) -> str:
-    lines = ["| family | figure | paper | ours (mean [95 % CI], seeds) | ours − paper [95 % CI] | margin | "
-             "p for (Holm) | p against (Holm) | verdict | note |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| family | figure | paper | ours (mean [95 % CI], seeds) | ours − paper [95 % CI] | margin | "
+        "p for (Holm) | p against (Holm) | verdict | note |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r, pf, pa, verdict in judged:
         low, high = r.effect.interval()
         margin = f"±{r.margin:g} ({r.margin_source})" if r.kind == "figure" else f"{r.margin:g} ({r.margin_source})"
-        lines.append(f"| {r.family} | {r.figure} | {r.paper} | {r.ours} | {r.effect.difference:+.3f} "
-                     f"[{low:+.3f}, {high:+.3f}] | {margin} | {pf:.2g} | {pa:.2g} | **{verdict}** | {r.note} |")
+        lines.append(
+            f"| {r.family} | {r.figure} | {r.paper} | {r.ours} | {r.effect.difference:+.3f} "
+            f"[{low:+.3f}, {high:+.3f}] | {margin} | {pf:.2g} | {pa:.2g} | **{verdict}** | {r.note} |"
+        )
     return "\n".join(lines)
 
 
@@ -434,8 +589,12 @@ def one_change(base: pathlib.Path, changed: pathlib.Path, name: str) -> str:
     if not np.array_equal(base_cols["seed"], changed_cols["seed"]):
         raise SystemExit(f"{changed}: not the seeds of {base}")
     judged_a, judged_b = verdicts(a), verdicts(b)
-    lines = [f"{changed.name} (commit {_commit(changed)}) against {base.name} (commit {_commit(base)}):", "",
-             "| figure | base | one change | change | base verdict | one-change verdict |", "|---|---|---|---|---|---|"]
+    lines = [
+        f"{changed.name} (commit {_commit(changed)}) against {base.name} (commit {_commit(base)}):",
+        "",
+        "| figure | base | one change | change | base verdict | one-change verdict |",
+        "|---|---|---|---|---|---|",
+    ]
     for (ra, _, _, va), (rb, _, _, vb) in zip(judged_a, judged_b, strict=True):
         change = rb.effect.difference - ra.effect.difference
         lines.append(f"| {ra.figure} | {ra.ours} | {rb.ours} | {change:+.3f} | {va} | {vb}{' ←' if va != vb else ''} |")
@@ -446,12 +605,18 @@ def paired_changes(base: pathlib.Path, changed: pathlib.Path, name: str) -> str:
     """Per headline figure (the per-seed finals of the figure rows), the paired difference one change − base."""
     ca, cb = _objective_at_paper_floor(_columns(base)), _objective_at_paper_floor(_columns(changed))
     n = ca["objective"].shape[0]
-    groups = {"controller_ablation": "controller", "load_adaptation": "payload_kg",
-              "slope_adaptation": "slope_deg"}.get(name)
+    groups = {
+        "controller_ablation": "controller",
+        "load_adaptation": "payload_kg",
+        "slope_adaptation": "slope_deg",
+    }.get(name)
     if groups is None:
         return ""
-    out = ["", "| group | figure | one change − base, paired over seeds [95 % CI] | paired t p | Holm |",
-           "|---|---|---|---|---|"]
+    out = [
+        "",
+        "| group | figure | one change − base, paired over seeds [95 % CI] | paired t p | Holm |",
+        "|---|---|---|---|---|",
+    ]
     entries = []
     if groups == "controller":
         for c in cpg.CONTROLLERS:
@@ -464,20 +629,43 @@ def paired_changes(base: pathlib.Path, changed: pathlib.Path, name: str) -> str:
         everyone = np.ones(ca["objective"].shape[1], bool)
         for start, stop in _phases(ca["slope_deg"][:learn, 0]):
             for fig, column in FIGURES.items():
-                entries.append((f"{ca['slope_deg'][start, 0]:g}°", fig, _final(ca, column, stop, everyone),
-                                _final(cb, column, stop, everyone)))
+                entries.append(
+                    (
+                        f"{ca['slope_deg'][start, 0]:g}°",
+                        fig,
+                        _final(ca, column, stop, everyone),
+                        _final(cb, column, stop, everyone),
+                    )
+                )
         for start, stop in _phases(ca["slope_deg"][learn:ramp_at, 0]):
             start, stop = start + learn, stop + learn
-            entries.append((f"inference {ca['slope_deg'][start, 0]:g}°", "v_x",
-                            *(c["velocity_x_mps"][start:stop].mean(axis=0) for c in (ca, cb))))
-        entries.append(("all", "falls per run", (ca["fell"] | ca["failed"]).sum(axis=0).astype(np.float64),
-                        (cb["fell"] | cb["failed"]).sum(axis=0).astype(np.float64)))
+            entries.append(
+                (
+                    f"inference {ca['slope_deg'][start, 0]:g}°",
+                    "v_x",
+                    *(c["velocity_x_mps"][start:stop].mean(axis=0) for c in (ca, cb)),
+                )
+            )
+        entries.append(
+            (
+                "all",
+                "falls per run",
+                (ca["fell"] | ca["failed"]).sum(axis=0).astype(np.float64),
+                (cb["fell"] | cb["failed"]).sum(axis=0).astype(np.float64),
+            )
+        )
     else:
         everyone = np.ones(ca["objective"].shape[1], bool)
         for start, stop in _phases(ca["payload_kg"][:, 0]):
             for fig, column in FIGURES.items():
-                entries.append((f"{ca['payload_kg'][start, 0]:g} kg", fig, _final(ca, column, stop, everyone),
-                                _final(cb, column, stop, everyone)))
+                entries.append(
+                    (
+                        f"{ca['payload_kg'][start, 0]:g} kg",
+                        fig,
+                        _final(ca, column, stop, everyone),
+                        _final(cb, column, stop, everyone),
+                    )
+                )
         fell_a = (ca["fell"] | ca["failed"]).sum(axis=0).astype(np.float64)
         fell_b = (cb["fell"] | cb["failed"]).sum(axis=0).astype(np.float64)
         entries.append(("all", "falls per run", fell_a, fell_b))
@@ -489,19 +677,23 @@ def paired_changes(base: pathlib.Path, changed: pathlib.Path, name: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("results", type=pathlib.Path, help="the folder holding one folder per study")
-    parser.add_argument("--one-change", action="store_true",
-                        help="also set each <study>__<switch> folder against its <study>")
+    parser.add_argument(
+        "--one-change", action="store_true", help="also set each <study>__<switch> folder against its <study>"
+    )
     args = parser.parse_args(argv)
     if not args.results.is_dir():
         print(f"verdicts.py: {args.results}: not a folder", file=sys.stderr)
         return 2
     found = [name for name in STUDIES if (args.results / name / "trials.parquet").is_file()]
     if not found:
-        print(f"verdicts.py: {args.results}: no study folder with a trials.parquet; looked for "
-              f"{', '.join(STUDIES)}", file=sys.stderr)
+        print(
+            f"verdicts.py: {args.results}: no study folder with a trials.parquet; looked for {', '.join(STUDIES)}",
+            file=sys.stderr,
+        )
         return 2
     rows = [r for name in found for r in study_rows(name, args.results / name)]
     print("Runs: " + ", ".join(f"{name} at {_commit(args.results / name)}" for name in found) + "\n")

@@ -75,8 +75,13 @@ def main() -> None:
     (args.out / "walk30s.md").write_text(text + "\n")
     print("## 31.5 s (7 trials) on flat ground, friction 0.6\n" + text, flush=True)
 
-    rows, _ = walk.walk(controllers=cpg.CONTROLLERS, friction=(0.3, 0.6, 0.9), slope_deg=(0.0, 10.0),
-                        payload_kg=(0.0, 15.0), num_trials=2)
+    rows, _ = walk.walk(
+        controllers=cpg.CONTROLLERS,
+        friction=(0.3, 0.6, 0.9),
+        slope_deg=(0.0, 10.0),
+        payload_kg=(0.0, 15.0),
+        num_trials=2,
+    )
     text = walk.markdown_table(rows)
     (args.out / "table.md").write_text(text + "\n")
     print("## scenario grid (second trial of two)\n" + text, flush=True)

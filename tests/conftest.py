@@ -14,8 +14,12 @@ from cpgjax.trial import protocol
 SHORT_TRIAL = protocol.TrialConfig(transition_steps=400, steady_steps=1200)
 # One batch covering the scenario checks: nominal, heavy, uphill, slippery, coarse, nominal; under MuJoCo's soft
 # contact, whose friction rule (the floor's μ) keeps the coarse floor coarse.
-SCENARIOS = dict(friction=[0.6, 0.6, 0.6, 0.1, 0.9, 0.6], slope_deg=[0, 0, 6, 0, 0, 0],
-                 payload_kg=[0, 15, 0, 0, 0, 0], physics="soft")
+SCENARIOS = dict(
+    friction=[0.6, 0.6, 0.6, 0.1, 0.9, 0.6],
+    slope_deg=[0, 0, 6, 0, 0, 0],
+    payload_kg=[0, 15, 0, 0, 0, 0],
+    physics="soft",
+)
 
 
 @pytest.fixture(scope="session")

@@ -24,8 +24,14 @@ class RolloutPhysics(native_physics.BatchPhysics):
     arguments (``stepping`` is ignored), so that it can stand in for it, e.g. inside a ``NativeBackend``, whose
     per-tick loop then drives it."""
 
-    def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None, stepping: str | None = None,
-                 stand_foot_shift_m: np.ndarray | None = None):
+    def __init__(
+        self,
+        scenario: go1_model.Scenario,
+        *,
+        nthread: int | None = None,
+        stepping: str | None = None,
+        stand_foot_shift_m: np.ndarray | None = None,
+    ):
         del stepping
         self.stepping = STEPPING
         self._set_up_standing(scenario, nthread, stand_foot_shift_m)
@@ -43,10 +49,19 @@ class RolloutPhysics(native_physics.BatchPhysics):
         """One ``mujoco.rollout`` step of every instance from ``physics`` into the other buffer, which becomes
         ``physics``: the states (before, after)."""
         before, after = self.physics, self._next
-        self._pool.rollout(self.models, self._data, before, self._ctrl,
-                           control_spec=mujoco.mjtState.mjSTATE_CTRL.value, skip_checks=True, nstep=1,
-                           initial_warmstart=self.warmstart, state=after, sensordata=self.sensordata,
-                           chunk_size=self._chunk)
+        self._pool.rollout(
+            self.models,
+            self._data,
+            before,
+            self._ctrl,
+            control_spec=mujoco.mjtState.mjSTATE_CTRL.value,
+            skip_checks=True,
+            nstep=1,
+            initial_warmstart=self.warmstart,
+            state=after,
+            sensordata=self.sensordata,
+            chunk_size=self._chunk,
+        )
         self.physics, self._next = after, before
         return before, after
 

@@ -6,13 +6,14 @@ import numpy as np
 PHI = np.array([[0, np.pi, np.pi, 0], [-np.pi, 0, 0, -np.pi], [-np.pi, 0, 0, -np.pi], [0, np.pi, np.pi, 0]])
 
 
-def hopf_derivatives(r, theta, mu, omega_swing, omega_stance, sigma_n, normal_force, tegotae=True,
-                     alpha=50.0, squared_mu=True):
+def hopf_derivatives(
+    r, theta, mu, omega_swing, omega_stance, sigma_n, normal_force, tegotae=True, alpha=50.0, squared_mu=True
+):
     """Eqs. (1)-(3) and (6), loop by loop."""
     dr = np.zeros(4)
     dtheta = np.zeros(4)
     for i in range(4):
-        target = mu ** 2 if squared_mu else mu
+        target = mu**2 if squared_mu else mu
         dr[i] = alpha * (target - r[i] ** 2) * r[i]
         omega = omega_swing if np.sin(theta[i]) > 0 else omega_stance
         coupling = 0.0
@@ -49,6 +50,7 @@ def foot_position(r, theta, params, d_step=0.05, h=0.30, foot_y=0.08):
 
 
 # ---- a dense float64 GP (Rasmussen & Williams, Alg. 2.1) with cpgjax.gp's model -----------------
+
 
 def ref_matern52(distance):
     return (1 + np.sqrt(5) * distance + 5 / 3 * distance**2) * np.exp(-np.sqrt(5) * distance)

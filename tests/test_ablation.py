@@ -36,16 +36,25 @@ TRIALS = 5
 def small_optimizer(capacity=TRIALS):
     # The soft physics profile's context ranges (docs/decisions.md §11), which these studies simulate.
     ranges = StudySpec("ranges").optimizer_config()
-    return optimizer_setting.paper_config(capacity=capacity, fit=gp.FitConfig(num_steps=8),
-                                          context_lower=ranges.context_lower, context_upper=ranges.context_upper,
-                                          acquisition=acquisition.AcquisitionConfig(num_candidates=32, num_restarts=2,
-                                                                                   num_steps=5))
+    return optimizer_setting.paper_config(
+        capacity=capacity,
+        fit=gp.FitConfig(num_steps=8),
+        context_lower=ranges.context_lower,
+        context_upper=ranges.context_upper,
+        acquisition=acquisition.AcquisitionConfig(num_candidates=32, num_restarts=2, num_steps=5),
+    )
 
 
 def tiny_spec(**overrides):
-    settings = dict(name="tiny", num_trials=TRIALS, controllers=("open_loop", "vmc_tegotae"), seeds=(0, 1),
-                    trial=TRIAL, optimizer=small_optimizer(),
-                    schedules=(Schedule("load", (Change(3, "payload_kg", 7.5),)),))
+    settings = dict(
+        name="tiny",
+        num_trials=TRIALS,
+        controllers=("open_loop", "vmc_tegotae"),
+        seeds=(0, 1),
+        trial=TRIAL,
+        optimizer=small_optimizer(),
+        schedules=(Schedule("load", (Change(3, "payload_kg", 7.5),)),),
+    )
     settings.update(overrides)
     return StudySpec(**settings)
 
@@ -83,22 +92,26 @@ def uninterrupted(engine):
 
 # ----------------------------------------------------------------------------------------------- validation
 
-@pytest.mark.parametrize("overrides, message", [
-    (dict(controllers=("open_loop", "cpg_plus")), "unknown controller 'cpg_plus'"),
-    (dict(seeds=(-1,)), "seed -1"),
-    (dict(num_trials=0), "num_trials = 0"),
-    (dict(friction=()), "grid axis friction is empty"),
-    (dict(seeds=(0, 0)), "duplicates"),
-    (dict(schedules=(Schedule("x", (Change(9, "payload_kg", 5.0),)),)), "change at trial 9 outside [0, 5)"),
-    (dict(schedules=(Schedule("x", (Change(1, "mass", 5.0),)),)), "unknown field 'mass'"),
-    (dict(schedules=(Schedule("x", (Change(2, "payload_kg", -3.0),)),)), "trial 2: payload_kg = -3.0 is outside"),
-    (dict(slope_deg=(50.0,)), "slope_deg = 50.0"),
-    (dict(target_velocity_mps=(0.0,)), "target_velocity_mps = 0.0 is outside the allowed range (0, 2]"),
-    (dict(friction=(5.0,)), "friction = 5.0 is outside the allowed range [0.1, 1.5]"),
-    (dict(optimizer=small_optimizer(capacity=3)), "capacity 3 < num_trials 5"),
-    (dict(max_trials=4), "max_trials = 4; need an integer in [num_trials = 5, 1000]"),
-    (dict(group_by=("colour",)), "group_by 'colour'"),
-])
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (dict(controllers=("open_loop", "cpg_plus")), "unknown controller 'cpg_plus'"),
+        (dict(seeds=(-1,)), "seed -1"),
+        (dict(num_trials=0), "num_trials = 0"),
+        (dict(friction=()), "grid axis friction is empty"),
+        (dict(seeds=(0, 0)), "duplicates"),
+        (dict(schedules=(Schedule("x", (Change(9, "payload_kg", 5.0),)),)), "change at trial 9 outside [0, 5)"),
+        (dict(schedules=(Schedule("x", (Change(1, "mass", 5.0),)),)), "unknown field 'mass'"),
+        (dict(schedules=(Schedule("x", (Change(2, "payload_kg", -3.0),)),)), "trial 2: payload_kg = -3.0 is outside"),
+        (dict(slope_deg=(50.0,)), "slope_deg = 50.0"),
+        (dict(target_velocity_mps=(0.0,)), "target_velocity_mps = 0.0 is outside the allowed range (0, 2]"),
+        (dict(friction=(5.0,)), "friction = 5.0 is outside the allowed range [0.1, 1.5]"),
+        (dict(optimizer=small_optimizer(capacity=3)), "capacity 3 < num_trials 5"),
+        (dict(max_trials=4), "max_trials = 4; need an integer in [num_trials = 5, 1000]"),
+        (dict(group_by=("colour",)), "group_by 'colour'"),
+    ],
+)
 def test_bad_options_fail_before_compute_with_a_clear_message(overrides, message):
     with pytest.raises(StudyError, match=None) as err:
         ablation.Engine(tiny_spec(**overrides), backend="native")
@@ -106,14 +119,30 @@ def test_bad_options_fail_before_compute_with_a_clear_message(overrides, message
 
 
 def test_grid_order_and_schedules():
-    spec = tiny_spec(friction=(0.3, 0.9), schedules=(
-        Schedule("a", (Change(2, "payload_kg", 7.5), Change(4, "payload_kg", 15.0), Change(3, "inference", 1))),
-        Schedule("b", (Change(1, "target_velocity_mps", 0.3),))))
+    spec = tiny_spec(
+        friction=(0.3, 0.9),
+        schedules=(
+            Schedule("a", (Change(2, "payload_kg", 7.5), Change(4, "payload_kg", 15.0), Change(3, "inference", 1))),
+            Schedule("b", (Change(1, "target_velocity_mps", 0.3),)),
+        ),
+    )
     labels = study_spec.instances(spec)
     assert len(labels) == 2 * 2 * 2 * 2
-    assert labels[0] == dict(controller="open_loop", gait="trot", seed=0, friction=0.3, slope_deg=0.0, payload_kg=0.0,
-                             target_velocity_mps=0.5, schedule="a", data_reuse=True, physics="paper",
-                             terrain_amplitude_m=0.0, terrain_seed=0, foot_friction=-1.0)
+    assert labels[0] == dict(
+        controller="open_loop",
+        gait="trot",
+        seed=0,
+        friction=0.3,
+        slope_deg=0.0,
+        payload_kg=0.0,
+        target_velocity_mps=0.5,
+        schedule="a",
+        data_reuse=True,
+        physics="paper",
+        terrain_amplitude_m=0.0,
+        terrain_seed=0,
+        foot_friction=-1.0,
+    )
     assert labels[1]["schedule"] == "b" and labels[2]["friction"] == 0.9 and labels[4]["seed"] == 1
     cond = study_spec.conditions(spec)
     np.testing.assert_array_equal(cond.payload_kg[0], [0, 0, 7.5, 7.5, 15])
@@ -132,13 +161,19 @@ def test_placement_pads_to_the_device_count():
 
 # ----------------------------------------------------------------------------------------------- the run
 
+
 def _ucb(config, state, context, beta, x):
     """The UCB acquisition (eq. 8) of the optimizer ``state`` at parameters x (P,) and a context (C,)."""
     lower, width = np.asarray(config.parameter_lower), np.asarray(config.parameter_upper) - config.parameter_lower
     c_lower = np.asarray(config.context_lower)
     c_width = np.asarray(config.context_upper) - c_lower
-    dataset = gp.Dataset(jnp.concatenate([(state.parameters - lower) / width, (state.contexts - c_lower) / c_width],
-                                         1).astype(jnp.float32), state.objectives, state.stored)
+    dataset = gp.Dataset(
+        jnp.concatenate([(state.parameters - lower) / width, (state.contexts - c_lower) / c_width], 1).astype(
+            jnp.float32
+        ),
+        state.objectives,
+        state.stored,
+    )
     post = gp.posterior(state.gp_params, dataset, jnp.ones(10, bool), 2)
     query = jnp.concatenate([(x - lower) / width, (np.asarray(context) - c_lower) / c_width])[None].astype(jnp.float32)
     return float(acquisition.upper_confidence_bound(post, query, acquisition.ucb_multiplier(beta, "paper"), 2)[0])
@@ -165,12 +200,14 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
             ours, theirs = uninterrupted.trials.params[t, b], x
             beta = float(opt.beta(state, context).beta)
             assert _ucb(config, state, context, beta, ours) >= _ucb(config, state, context, beta, theirs) - 1e-3 * abs(
-                _ucb(config, state, context, beta, theirs))
+                _ucb(config, state, context, beta, theirs)
+            )
             x = ours
         x = x[None]
         new_payload = 7.5 if t >= 3 else 0.0
         if new_payload != payload:
             from cpgjax.go1 import model as go1_model
+
             sim = native_go1.NativeBackend(go1_model.make_scenarios(payload_kg=[new_payload]), trial_config=TRIAL)
             payload = new_payload
         if sim_state is None:
@@ -194,13 +231,18 @@ def test_engine_equals_a_hand_written_unbatched_loop(engine, uninterrupted):
     np.testing.assert_allclose(sigma, param_space.midpoint()[param_space.SIGMA_N_INDEX], rtol=1e-6)
     assert np.all(np.isfinite(uninterrupted.trials.objective))
     # the payload change shows in the measured mass and context
-    np.testing.assert_allclose(uninterrupted.trials.total_mass_kg[3:] - uninterrupted.trials.total_mass_kg[:1],
-                               7.5, atol=1e-3)
+    np.testing.assert_allclose(
+        uninterrupted.trials.total_mass_kg[3:] - uninterrupted.trials.total_mass_kg[:1], 7.5, atol=1e-3
+    )
 
 
 def test_target_change_reuses_data_or_restarts():
-    spec = tiny_spec(controllers=("vmc_tegotae",), seeds=(0,), data_reuse=(True, False),
-                     schedules=(Schedule("v", (Change(3, "target_velocity_mps", 0.3),)),))
+    spec = tiny_spec(
+        controllers=("vmc_tegotae",),
+        seeds=(0,),
+        data_reuse=(True, False),
+        schedules=(Schedule("v", (Change(3, "target_velocity_mps", 0.3),)),),
+    )
     engine = ablation.Engine(spec, backend="native")
     assert engine.uses_records
     result = engine.run()
@@ -209,7 +251,8 @@ def test_target_change_reuses_data_or_restarts():
     restart = 1 - reuse
     # data reuse: every stored J recomputed for the new target from the stored records (paper Sec. III-A-2)
     recomputed = jax.vmap(objective.objective, in_axes=(0, None))(
-        jax.tree.map(lambda a: a[reuse], st.records), jnp.float32(0.3))
+        jax.tree.map(lambda a: a[reuse], st.records), jnp.float32(0.3)
+    )
     np.testing.assert_allclose(st.objectives[reuse, :TRIALS], np.asarray(recomputed)[:TRIALS], rtol=1e-5)
     assert int(st.num_stored[reuse]) == TRIALS and float(st.target_velocity[reuse]) == pytest.approx(0.3)
     # without reuse the optimizer restarted at the change: only the trials since then are stored
@@ -221,12 +264,20 @@ def test_target_change_reuses_data_or_restarts():
 
 def _run_subprocess(code: str, env_extra: dict | None = None, timeout=240):
     env = dict(os.environ, JAX_PLATFORMS="cpu", **(env_extra or {}))
-    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=timeout,
-                          cwd=pathlib.Path(__file__).resolve().parents[1])
+    return subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=pathlib.Path(__file__).resolve().parents[1],
+    )
 
 
 def test_sharded_over_two_devices_equals_one_device():
-    code = SPEC_SOURCE + """
+    code = (
+        SPEC_SOURCE
+        + """
 import dataclasses, jax, json, numpy as np
 spec = dataclasses.replace(spec, seeds=(0, 1, 2), controllers=("vmc_tegotae",), num_trials=4)  # 3: padded to 4
 assert len(jax.devices()) == 2
@@ -238,6 +289,7 @@ print(json.dumps(dict(
     objective=float(np.abs(two.trials.objective - one.trials.objective).max()),
     shape=list(two.trials.objective.shape))))
 """
+    )
     out = _run_subprocess(code, {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
     assert out.returncode == 0, out.stderr[-3000:]
     diff = json.loads(out.stdout.strip().splitlines()[-1])
@@ -254,6 +306,7 @@ def test_progress_pace_and_eta_leave_out_the_first_trial(engine, uninterrupted, 
         time.sleep(next(delays))
         log = study_io.TrialLog(*(np.asarray(getattr(first, name)[t]) for name in study_io.TrialLog._fields))
         return run._replace(logs=run.logs + [log])
+
     monkeypatch.setattr(engine, "_trial", fake_trial)
     progress = []
     engine.run(progress=progress.append)
@@ -264,12 +317,20 @@ def test_progress_pace_and_eta_leave_out_the_first_trial(engine, uninterrupted, 
 
 def test_killed_study_resumes_to_the_uninterrupted_result(tmp_path, uninterrupted):
     out = tmp_path / "study"
-    code = SPEC_SOURCE + f"""
+    code = (
+        SPEC_SOURCE
+        + f"""
 ablation.Engine(spec, backend="native").run({str(out)!r})
 """
+    )
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    proc = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, cwd=pathlib.Path(__file__).resolve().parents[1])
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        cwd=pathlib.Path(__file__).resolve().parents[1],
+    )
     ckpt = out / study_io.CHECKPOINT
     deadline = time.time() + 240
     done = 0
@@ -306,7 +367,9 @@ def test_programs_loaded_from_an_earlier_runs_cache_give_the_same_study(tmp_path
     counts = []
     for run in ("first", "second"):
         (tmp_path / run).mkdir()
-        code = SPEC_SOURCE + f"""
+        code = (
+            SPEC_SOURCE
+            + f"""
 from cpgjax import compile_cache
 from cpgjax.study import files as study_io
 compile_cache.enable()
@@ -314,12 +377,17 @@ result = ablation.Engine(spec, backend="native").run()
 study_io.write_trials(result, {str(tmp_path / run / "trials.parquet")!r})
 study_io.write_metadata(result, {str(tmp_path / run / "metadata.json")!r})
 """
+        )
         done = _run_subprocess(code, {"JAX_COMPILATION_CACHE_DIR": str(tmp_path / "programs")})
         assert done.returncode == 0, done.stderr[-2000:]
         counts.append(json.loads((tmp_path / run / "metadata.json").read_text())["compiled_programs"])
         columns = study_io.read_trials(tmp_path / run / "trials.parquet")
-        for column, field in (("objective", "objective"), ("cost_of_transport", "cot"), ("energy_j", "energy_j"),
-                              ("distance_m", "distance_m")):
+        for column, field in (
+            ("objective", "objective"),
+            ("cost_of_transport", "cot"),
+            ("energy_j", "energy_j"),
+            ("distance_m", "distance_m"),
+        ):
             np.testing.assert_array_equal(columns[column], getattr(uninterrupted.trials, field), f"{run}: {column}")
     assert counts[0]["compiled"] > 0 and counts[0]["loaded"] == 0, counts
     assert counts[1] == {"loaded": counts[0]["compiled"], "compiled": 0}, counts
@@ -379,6 +447,7 @@ def test_a_ramp_schedule_needs_a_ramp():
 def test_mjx_scenario_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_tegotae_gates):
     """A payload / slope schedule with the MJX backend: ``with_scenario`` swaps the model data, not the program."""
     from cpgjax.go1 import model as go1_model
+
     state = short_sim.reset(mid_params)
     state, before = short_sim.trial(state, mid_params, vmc_tegotae_gates)
     compiled = short_sim._trial._cache_size()
@@ -386,9 +455,14 @@ def test_mjx_scenario_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc
     heavier = short_sim.with_scenario(go1_model.make_scenarios(payload_kg=np.full(batch, 7.5)))
     state, after = heavier.trial(state, mid_params, vmc_tegotae_gates)
     assert heavier._trial._cache_size() == compiled
-    np.testing.assert_allclose(np.asarray(after.total_mass_kg),
-                               go1_model.make_scenarios().payload_kg[0] + np.asarray(before.total_mass_kg)
-                               - short_sim.scenario.payload_kg + 7.5, rtol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(after.total_mass_kg),
+        go1_model.make_scenarios().payload_kg[0]
+        + np.asarray(before.total_mass_kg)
+        - short_sim.scenario.payload_kg
+        + 7.5,
+        rtol=1e-5,
+    )
     assert short_sim.scenario.payload_kg.max() == 15.0  # the original backend is unchanged
 
 

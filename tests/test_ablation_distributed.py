@@ -25,7 +25,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
 # Process `kill_rank` SIGKILLs itself once its checkpoint of trial `kill_after` is on disk (after the exchange of
 # that trial, so every process has trial `kill_after` − 1 on disk: a mid-study kill).
-CHILD = SPEC_SOURCE + """
+CHILD = (
+    SPEC_SOURCE
+    + """
 import os, pathlib, signal, sys, threading, time, jax
 out, resume, kill_rank, kill_after = sys.argv[1], sys.argv[2] == "resume", int(sys.argv[3]), int(sys.argv[4])
 study_placement.initialize_distributed()
@@ -40,17 +42,23 @@ if jax.process_index() == kill_rank:
 result = ablation.Engine(spec, backend="native").run(out, resume=resume)
 print("rows", result.rows, "timing", dict(result.timing._asdict()))
 """
+)
 # The 1-process reference on as many devices (2 CPU devices): the optimizer's arrays are then split the same way.
-ONE_PROCESS = SPEC_SOURCE + """
+ONE_PROCESS = (
+    SPEC_SOURCE
+    + """
 import sys, jax
 assert jax.process_count() == 1 and len(jax.devices()) == 2
 ablation.Engine(spec, backend="native").run(sys.argv[1])
 """
+)
 
 
 # The optimizer's compiled programs on 2 CPU devices: the collectives XLA put in them (none, each device computes its
 # own instances' rows).
-COLLECTIVES = SPEC_SOURCE + """
+COLLECTIVES = (
+    SPEC_SOURCE
+    + """
 import re, jax, numpy as np
 assert len(jax.devices()) == 2
 engine = ablation.Engine(spec, backend="native")
@@ -68,14 +76,20 @@ for name, lowered in programs.items():
     found = re.findall(pattern, lowered.compile().as_text())
     print(name, len(found), sorted(set(found)))
 """
+)
 
 
 def test_the_optimizer_computes_each_devices_own_instances_without_collectives():
     """Per-instance work needs no other device's data (docs/scaling.md): on 2 CPU devices the optimizer's programs
     hold no collective. Left to jit's partitioner, observe gathered the whole batch 10 times (each process then
     computed, and exchanged, every instance's optimizer)."""
-    run = subprocess.run([sys.executable, "-c", COLLECTIVES], capture_output=True, text=True, timeout=600,
-                         env=dict(ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2"))
+    run = subprocess.run(
+        [sys.executable, "-c", COLLECTIVES],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=dict(ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2"),
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     counts = dict(line.split()[:2] for line in run.stdout.splitlines())
     assert counts == {"propose": "0", "observe": "0", "beta": "0"}, run.stdout
@@ -84,8 +98,12 @@ def test_the_optimizer_computes_each_devices_own_instances_without_collectives()
 def _launch(out, *, resume=False, kill_rank=-1, kill_after=0):
     buffer = io.StringIO()
     t0 = time.monotonic()
-    outcome = launch.run([sys.executable, "-c", CHILD, str(out), "resume" if resume else "fresh", str(kill_rank),
-                          str(kill_after)], 2, env=ENV, out=buffer)
+    outcome = launch.run(
+        [sys.executable, "-c", CHILD, str(out), "resume" if resume else "fresh", str(kill_rank), str(kill_after)],
+        2,
+        env=ENV,
+        out=buffer,
+    )
     return outcome, buffer.getvalue(), time.monotonic() - t0
 
 
@@ -112,9 +130,15 @@ def test_two_processes_equal_one_process(two_processes, tmp_path):
     assert ckpt.trial == TRIALS
     # one shard per process, only the last trial's kept once every process had written it
     assert sorted(p.name for p in study_io.checkpoint_files(out)) == [
-        f"checkpoint.{r}of2.t{t:06d}.npz" for r in (0, 1) for t in (TRIALS - 1, TRIALS)]
-    one = subprocess.run([sys.executable, "-c", ONE_PROCESS, str(tmp_path)], capture_output=True, text=True,
-                         timeout=600, env=dict(ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2"))
+        f"checkpoint.{r}of2.t{t:06d}.npz" for r in (0, 1) for t in (TRIALS - 1, TRIALS)
+    ]
+    one = subprocess.run(
+        [sys.executable, "-c", ONE_PROCESS, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=dict(ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2"),
+    )
     assert one.returncode == 0, one.stderr[-3000:]
     reference = study_io.load_checkpoint(tmp_path, tiny_spec())
     assert len(reference.logs) == len(ckpt.logs) == TRIALS
@@ -129,19 +153,24 @@ def test_killed_process_stops_the_run_and_its_checkpoint_resumes(tmp_path, two_p
     out = tmp_path / "study"
     outcome, text, wall_s = _launch(out, kill_rank=1, kill_after=3)
     assert outcome.returncode != 0 and "process rank 1 of 2 was killed by signal SIGKILL" in outcome.message, (
-        outcome, text[-3000:])
+        outcome,
+        text[-3000:],
+    )
     assert wall_s < 200, f"the run took {wall_s:.0f} s to stop"
     left = study_io.load_checkpoint(out, tiny_spec())
     assert 2 <= left.trial < TRIALS, left.trial
     outcome, text, _ = _launch(out, resume=True)
     assert outcome.returncode == 0, text[-3000:]
-    resumed, uninterrupted = study_io.load_checkpoint(out, tiny_spec()), study_io.load_checkpoint(
-        two_processes[0], tiny_spec())
+    resumed, uninterrupted = (
+        study_io.load_checkpoint(out, tiny_spec()),
+        study_io.load_checkpoint(two_processes[0], tiny_spec()),
+    )
     for a, b in zip(resumed.logs, uninterrupted.logs, strict=True):
         for name in study_io.TrialLog._fields:
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), name)
-    for a, b in zip(resumed.opt_leaves + resumed.sim_leaves, uninterrupted.opt_leaves + uninterrupted.sim_leaves,
-                    strict=True):
+    for a, b in zip(
+        resumed.opt_leaves + resumed.sim_leaves, uninterrupted.opt_leaves + uninterrupted.sim_leaves, strict=True
+    ):
         np.testing.assert_array_equal(a, b)
 
 
@@ -174,9 +203,13 @@ def _shard(out, spec, rank, n, first, trial, rows):
     """A fake checkpoint shard whose every number is its instance's row (first … first + rows − 1)."""
     values = np.arange(first, first + rows, dtype=np.float64)
     log = study_io.TrialLog(*(values for _ in study_io.TrialLog._fields))
-    study_io.save_checkpoint(out, spec, study_io.Checkpoint(trial, [values[:, None] * 10], [values], values[:, None],
-                                                            [log] * trial, 1.0 * rank, {}),
-                             "native", study_io.Shard(rank, n, first))
+    study_io.save_checkpoint(
+        out,
+        spec,
+        study_io.Checkpoint(trial, [values[:, None] * 10], [values], values[:, None], [log] * trial, 1.0 * rank, {}),
+        "native",
+        study_io.Shard(rank, n, first),
+    )
 
 
 def test_shards_merge_on_read_from_the_newest_complete_trial(tmp_path):
@@ -202,11 +235,18 @@ def test_shards_merge_on_read_from_the_newest_complete_trial(tmp_path):
         _shard(tmp_path, spec, rank, 2, 2 * rank, 6, 2)
     study_io.prune_checkpoints(tmp_path, study_io.Shard(1, 2, 2), 5)
     assert sorted(p.name for p in study_io.checkpoint_files(tmp_path)) == [
-        "checkpoint.0of2.t000005.npz", "checkpoint.0of2.t000006.npz", "checkpoint.1of2.t000005.npz",
-        "checkpoint.1of2.t000006.npz", study_io.CHECKPOINT]
+        "checkpoint.0of2.t000005.npz",
+        "checkpoint.0of2.t000006.npz",
+        "checkpoint.1of2.t000005.npz",
+        "checkpoint.1of2.t000006.npz",
+        study_io.CHECKPOINT,
+    ]
     study_io.prune_checkpoints(tmp_path, study_io.Shard(0, 2, 0), 6)  # rank 0 also deletes the 1-process file
     assert sorted(p.name for p in study_io.checkpoint_files(tmp_path)) == [
-        "checkpoint.0of2.t000006.npz", "checkpoint.1of2.t000005.npz", "checkpoint.1of2.t000006.npz"]
+        "checkpoint.0of2.t000006.npz",
+        "checkpoint.1of2.t000005.npz",
+        "checkpoint.1of2.t000006.npz",
+    ]
     assert study_io.load_checkpoint(tmp_path, spec).trial == 6
 
 
@@ -217,8 +257,10 @@ def test_bad_process_options_fail_before_compute(capsys):
         with pytest.raises(SystemExit) as exit_:
             cli.main(["study", "controller_ablation", "--processes", str(count)])
         assert exit_.value.code == 2
-        assert (f"argument --processes: {count} is outside the allowed range 1 … {os.cpu_count()} (local "
-                "processes, at most one per CPU") in capsys.readouterr().err
+        assert (
+            f"argument --processes: {count} is outside the allowed range 1 … {os.cpu_count()} (local "
+            "processes, at most one per CPU"
+        ) in capsys.readouterr().err
 
 
 def test_launched_command_line_drops_processes_and_keeps_the_rest():
@@ -233,6 +275,7 @@ def test_mjx_refuses_the_cpu_layout_that_deadlocks(monkeypatch):
     import jax
 
     from cpgjax.sim import backends, native_physics
+
     cpu = jax.devices("cpu")[0]
     monkeypatch.setattr(native_physics, "available_cores", lambda: 2)
     with pytest.raises(ValueError, match="128 instances on each of 2 CPU devices .2 cores. never finishes") as err:

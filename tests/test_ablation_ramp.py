@@ -19,14 +19,23 @@ def planned(slope_deg, ramp) -> study_spec.Conditions:
     slope_deg = np.asarray(slope_deg, np.float64)
     shape = slope_deg.shape
     return study_spec.Conditions(
-        friction=np.full(shape, 0.6), slope_deg=slope_deg, payload_kg=np.zeros(shape),
-        target_velocity_mps=np.full(shape, 0.5), inference=np.ones(shape, bool), ramp=np.asarray(ramp, bool),
-        mass_scale=np.ones(shape), latency_ticks=np.full(shape, -1, np.int64), noise_scale=np.full(shape, -1.0))
+        friction=np.full(shape, 0.6),
+        slope_deg=slope_deg,
+        payload_kg=np.zeros(shape),
+        target_velocity_mps=np.full(shape, 0.5),
+        inference=np.ones(shape, bool),
+        ramp=np.asarray(ramp, bool),
+        mass_scale=np.ones(shape),
+        latency_ticks=np.full(shape, -1, np.int64),
+        noise_scale=np.full(shape, -1.0),
+    )
 
 
 # Two instances, 5 trials, on the ramp from trial 1; the planned slope of a ramp trial (7°) is never walked.
-PLANNED = planned([[5.0, 7.0, 7.0, 7.0, 7.0], [5.0, 7.0, 7.0, 7.0, 7.0]],
-                  [[False, True, True, True, True], [False, True, True, True, True]])
+PLANNED = planned(
+    [[5.0, 7.0, 7.0, 7.0, 7.0], [5.0, 7.0, 7.0, 7.0, 7.0]],
+    [[False, True, True, True, True], [False, True, True, True, True]],
+)
 DISTANCE_M = np.array([[0.5, 0.5], [1.0, 2.5], [0.5, 1.0], [-2.0, 0.25]], np.float32)  # (trials, B)
 FELL = np.array([[0, 0], [0, 0], [0, 1], [0, 0]], np.float32)
 # Instance 0: trial 0 is off the ramp (its 0.5 m do not count); 1.0 m → 1.5 m climbed: 15°; + 0.75 m = 2.25 m: 17.5°;
@@ -47,8 +56,8 @@ def test_the_trials_done_give_the_slopes_up_to_the_next_and_the_plan_stays():
     before = PLANNED.slope_deg.copy()
     for done in range(len(DISTANCE_M) + 1):
         walked = study_spec.walked(PLANNED, RAMP, DISTANCE_M[:done], FELL[:done], TRIAL)
-        np.testing.assert_allclose(walked.slope_deg[:, :done + 1], WALKED_DEG[:, :done + 1], rtol=0, atol=1e-12)
-        np.testing.assert_array_equal(walked.slope_deg[:, done + 1:], PLANNED.slope_deg[:, done + 1:])
+        np.testing.assert_allclose(walked.slope_deg[:, : done + 1], WALKED_DEG[:, : done + 1], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(walked.slope_deg[:, done + 1 :], PLANNED.slope_deg[:, done + 1 :])
     np.testing.assert_array_equal(PLANNED.slope_deg, before)  # the planned conditions are not written
 
 

@@ -19,38 +19,87 @@ PACKAGE = ROOT / "cpgjax"
 
 # docs/architecture.md: the layers, lowest first. A module may import modules of its own layer or of lower ones.
 LAYERS = (
-    ("run provenance, output files, flat layouts, JAX internals, compile cache", ("provenance", "outputs", "layout",
-                                                                                  "jax_internals", "compile_cache")),
-    ("go1 facts", ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.terrain", "go1.model",
-                   "go1.sensors")),
+    (
+        "run provenance, output files, flat layouts, JAX internals, compile cache",
+        ("provenance", "outputs", "layout", "jax_internals", "compile_cache"),
+    ),
+    (
+        "go1 facts",
+        ("go1.constants", "go1.kinematics", "go1.attitude", "go1.physics", "go1.terrain", "go1.model", "go1.sensors"),
+    ),
     ("parameters and GP", ("trial.params", "gp")),
     ("controller", ("cpg",)),
     ("trial", ("trial.limits", "trial.protocol", "trial.objective", "trial.tuned", "trial.condition")),
     ("optimizer", ("optim.acquisition", "optim.exploration", "optim.config", "optim.bo", "optim.black_box")),
     ("optimizer setting", ("trial.optimizer_setting",)),
-    ("simulation", ("sim.base", "mjx_go1", "sim.native", "sim.native_physics", "sim.ffi_step", "sim.backends",
-                    "sim.walk")),
+    (
+        "simulation",
+        ("sim.base", "mjx_go1", "sim.native", "sim.native_physics", "sim.ffi_step", "sim.backends", "sim.walk"),
+    ),
     ("study definitions and files", ("study.spec", "study.scene", "study.placement", "study.files", "study.rate")),
     ("the study engine", ("ablation",)),
-    ("studies", ("studies.stats", "studies.renderer", "studies.video", "studies.viewer", "studies.figures",
-                 "studies.registry", "studies.gaits", "studies.generic", "studies.transfer", "studies.options",
-                 "studies.optimize", "studies.driver", "studies.launch")),
-    ("robot", ("robot.wire", "robot.transport", "robot.cpu_dispatch", "robot.memory_lock", "robot.cpu_wakeup",
-               "robot.foot_force", "robot.safety", "robot.controller", "robot.sim_server")),
+    (
+        "studies",
+        (
+            "studies.stats",
+            "studies.renderer",
+            "studies.video",
+            "studies.viewer",
+            "studies.figures",
+            "studies.registry",
+            "studies.gaits",
+            "studies.generic",
+            "studies.transfer",
+            "studies.options",
+            "studies.optimize",
+            "studies.driver",
+            "studies.launch",
+        ),
+    ),
+    (
+        "robot",
+        (
+            "robot.wire",
+            "robot.transport",
+            "robot.cpu_dispatch",
+            "robot.memory_lock",
+            "robot.cpu_wakeup",
+            "robot.foot_force",
+            "robot.safety",
+            "robot.controller",
+            "robot.sim_server",
+        ),
+    ),
     ("the 1 kHz loop", ("hardware_io",)),
-    ("deployment", ("deployment.options", "deployment.tick_log", "deployment.trials", "deployment.deploy",
-                    "deployment.calibrate")),
+    (
+        "deployment",
+        ("deployment.options", "deployment.tick_log", "deployment.trials", "deployment.deploy", "deployment.calibrate"),
+    ),
     ("command line", ("cli", "show")),
 )
 # The design's modules, the entry point and its results browser, and below every layer what a run records about its
 # code and machine, the entry type of the catalogue of output files, how a pytree is laid out in a flat vector, the
 # one module that reads JAX's internals, and where compiled code is kept
-TOP_LEVEL = {"cpg", "gp", "mjx_go1", "ablation", "hardware_io",
-             "cli", "show",  # the entry point and its results browser
-             "provenance", "outputs", "layout", "jax_internals", "compile_cache"}
+TOP_LEVEL = {
+    "cpg",
+    "gp",
+    "mjx_go1",
+    "ablation",
+    "hardware_io",
+    "cli",
+    "show",  # the entry point and its results browser
+    "provenance",
+    "outputs",
+    "layout",
+    "jax_internals",
+    "compile_cache",
+}
 # docs/architecture.md: these layers sit side by side, neither imports the other (whatever their order in LAYERS).
-SIDE_BY_SIDE = tuple((a, b) for a in ("study definitions and files", "the study engine", "studies")
-                     for b in ("robot", "the 1 kHz loop", "deployment"))
+SIDE_BY_SIDE = tuple(
+    (a, b)
+    for a in ("study definitions and files", "the study engine", "studies")
+    for b in ("robot", "the 1 kHz loop", "deployment")
+)
 # docs/architecture.md: the optimizer is generic over its parameter and context boxes; of cpgjax it imports only these
 # (and its own modules), never the robot's facts or the trial.
 OPTIMIZER_IMPORTS = {"gp"}
@@ -71,7 +120,7 @@ def _resolve(name: str, modules) -> str | None:
         return ""
     if not name.startswith("cpgjax."):
         return None
-    name = name[len("cpgjax."):]
+    name = name[len("cpgjax.") :]
     while name and name not in modules:
         name = name.rpartition(".")[0]
     return name
@@ -149,9 +198,13 @@ def test_no_import_cycles():
 
 def test_lower_layers_never_import_higher_ones():
     rank = layer_of()
-    upward = [f"{a} ({LAYERS[rank[a]][0]}) imports {b} ({LAYERS[rank[b]][0]})"
-              for a, targets in import_graph().items() if a in rank
-              for b in sorted(targets) if b in rank and rank[b] > rank[a]]
+    upward = [
+        f"{a} ({LAYERS[rank[a]][0]}) imports {b} ({LAYERS[rank[b]][0]})"
+        for a, targets in import_graph().items()
+        if a in rank
+        for b in sorted(targets)
+        if b in rank and rank[b] > rank[a]
+    ]
     assert upward == []
 
 
@@ -160,22 +213,37 @@ def test_the_robot_and_the_studies_never_import_each_other():
     crossing = []
     for pair in SIDE_BY_SIDE:
         one, other = (set(members[name]) for name in pair)
-        crossing += [f"{a} imports {b}" for a, targets in import_graph().items() for b in sorted(targets)
-                     if (a in one and b in other) or (a in other and b in one)]
+        crossing += [
+            f"{a} imports {b}"
+            for a, targets in import_graph().items()
+            for b in sorted(targets)
+            if (a in one and b in other) or (a in other and b in one)
+        ]
     assert crossing == []
 
 
 def test_the_optimizer_imports_nothing_of_the_robot_or_the_trial():
-    robot_side = [f"{a} imports {b}" for a, targets in import_graph().items() if a.startswith("optim.")
-                  for b in sorted(targets) if not b.startswith("optim.") and b not in OPTIMIZER_IMPORTS]
+    robot_side = [
+        f"{a} imports {b}"
+        for a, targets in import_graph().items()
+        if a.startswith("optim.")
+        for b in sorted(targets)
+        if not b.startswith("optim.") and b not in OPTIMIZER_IMPORTS
+    ]
     assert robot_side == []
 
 
 def test_every_module_imports_in_a_fresh_interpreter():
     names = [f"cpgjax.{m}" if m else "cpgjax" for m in module_files()]
     code = f"import importlib\nfor n in {names!r}:\n    importlib.import_module(n)\nprint('ok')"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT,
-                         env={"JAX_PLATFORMS": "cpu", "PATH": "/usr/bin:/bin"})
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+        env={"JAX_PLATFORMS": "cpu", "PATH": "/usr/bin:/bin"},
+    )
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
 
 
@@ -187,7 +255,7 @@ def _defined_names(path: pathlib.Path) -> set[str]:
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
             names.add(node.name)
         elif isinstance(node, (ast.Assign, ast.AnnAssign, ast.AugAssign)):
-            for target in (node.targets if isinstance(node, ast.Assign) else [node.target]):
+            for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
                 names |= {n.id for n in ast.walk(target) if isinstance(n, ast.Name)}
         elif isinstance(node, ast.Import):
             names |= {(a.asname or a.name).split(".")[0] for a in node.names if not a.name.startswith("cpgjax")}
@@ -211,8 +279,12 @@ def test_names_are_used_from_the_module_that_defines_them():
         tree = ast.parse(path.read_text())
         aliases = {}
         for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("cpgjax") \
-                    and node.level == 0:
+            if (
+                isinstance(node, ast.ImportFrom)
+                and node.module
+                and node.module.startswith("cpgjax")
+                and node.level == 0
+            ):
                 source = _resolve(node.module, modules)
                 for a in node.names:
                     sub = f"{source}.{a.name}" if source else a.name
@@ -224,16 +296,20 @@ def test_names_are_used_from_the_module_that_defines_them():
             if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases:
                 module = aliases[node.value.id]
                 if node.attr not in defined[module] and f"{module}.{node.attr}" not in modules:
-                    wrong.append(f"{path.relative_to(ROOT)}:{node.lineno} uses {node.value.id}.{node.attr}, "
-                                 f"not defined in cpgjax.{module}")
+                    wrong.append(
+                        f"{path.relative_to(ROOT)}:{node.lineno} uses {node.value.id}.{node.attr}, "
+                        f"not defined in cpgjax.{module}"
+                    )
     assert wrong == []
 
 
 # A citation of the project's own record: docs/<file>.md, optionally followed by §<number>.
 _DOC_CITATION = re.compile(r"docs/([\w.-]+\.md)(?:\s*§\s*(\d+(?:\.\d+)?))?")
 # The brief's file names, which exist only outside the repository.
-_OUTSIDE = re.compile(r"(?<![\w/])(?:decisions|go1-sdk|go1-model|controller|bayesopt|mjx-and-style)\.md|paper\.tex"
-                      r"|\.\./shared")
+_OUTSIDE = re.compile(
+    r"(?<![\w/])(?:decisions|go1-sdk|go1-model|controller|bayesopt|mjx-and-style)\.md|paper\.tex"
+    r"|\.\./shared"
+)
 
 
 def _cited_files():
@@ -330,21 +406,31 @@ def test_importing_cpgjax_runs_no_jax_computation():
     ``cpu_dispatch.request_inline`` then reports inline dispatch. An array built at import would create the client
     unpinned and asynchronous (it slowed the robot loop's step by half, benchmarks/hardware_loop.py)."""
     names = sorted(n for n in module_files() if n)
-    code = ("import importlib, sys\n"
-            f"for name in {names!r}:\n"
-            "    importlib.import_module('cpgjax.' + name)\n"
-            "from cpgjax.robot import cpu_dispatch\n"
-            "print(cpu_dispatch.request_inline())\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                         env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    code = (
+        "import importlib, sys\n"
+        f"for name in {names!r}:\n"
+        "    importlib.import_module('cpgjax.' + name)\n"
+        "from cpgjax.robot import cpu_dispatch\n"
+        "print(cpu_dispatch.request_inline())\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "True", out.stdout[-500:]
 
 
 def test_only_jax_internals_reads_jax_internals():
     """``jax._src`` is imported by cpgjax/jax_internals.py alone (what JAX's public API does not give)."""
-    readers = sorted(str(path.relative_to(ROOT)) for name, path in module_files().items()
-                     if "jax._src" in path.read_text() and name != "jax_internals")
+    readers = sorted(
+        str(path.relative_to(ROOT))
+        for name, path in module_files().items()
+        if "jax._src" in path.read_text() and name != "jax_internals"
+    )
     assert readers == []
 
 
@@ -409,8 +495,11 @@ def test_tests_sit_by_the_module_they_test():
             homes = scripts
         else:
             prefix = "" if folder == "." else folder.replace("/", ".") + "."
-            homes = {m.removeprefix(prefix) for m in modules if m.startswith(prefix) and m and "." not in
-                     m.removeprefix(prefix)}
+            homes = {
+                m.removeprefix(prefix)
+                for m in modules
+                if m.startswith(prefix) and m and "." not in m.removeprefix(prefix)
+            }
         if not any(name == home or name.startswith(home + "_") for home in homes):
             misplaced.append(str(path.relative_to(ROOT)))
     assert misplaced == []

@@ -55,6 +55,7 @@ def no_robot(monkeypatch):
     def forbidden(*args, **kwargs):
         started.append(args)
         raise AssertionError("a robot connection was started")
+
     monkeypatch.setattr(deploy, "connect", forbidden)
     monkeypatch.setattr(sim_server, "SimGo1Client", forbidden)
     monkeypatch.setattr(deploy, "run", forbidden)
@@ -72,17 +73,21 @@ def _bad_files(tmp_path: pathlib.Path) -> dict[str, pathlib.Path]:
     mid = param_space.as_dict(param_space.midpoint())
     return {
         "cal3": _write(tmp_path / "cal3.json", {"offset_counts": [1, 2, 3], "newton_per_count": [0.5] * 4}),
-        "cal_scales": _write(tmp_path / "cal_scales.json", {"offset_counts": [0, 0, 0, 0],
-                                                             "newton_per_count": [-0.5, 0, 0.5, 1e9]}),
-        "cal_huge": _write(tmp_path / "cal_huge.json", {"offset_counts": [0, 0, 0, 0],
-                                                         "newton_per_count": [0.5, 0.5, 0.5, 1e9]}),
-        "cal_nan": _write(tmp_path / "cal_nan.json", '{"offset_counts": [0, 0, NaN, 0], "newton_per_count": '
-                                                     '[0.5, 0.5, 0.5, 0.5]}'),
+        "cal_scales": _write(
+            tmp_path / "cal_scales.json", {"offset_counts": [0, 0, 0, 0], "newton_per_count": [-0.5, 0, 0.5, 1e9]}
+        ),
+        "cal_huge": _write(
+            tmp_path / "cal_huge.json", {"offset_counts": [0, 0, 0, 0], "newton_per_count": [0.5, 0.5, 0.5, 1e9]}
+        ),
+        "cal_nan": _write(
+            tmp_path / "cal_nan.json", '{"offset_counts": [0, 0, NaN, 0], "newton_per_count": [0.5, 0.5, 0.5, 0.5]}'
+        ),
         "cal_key": _write(tmp_path / "cal_key.json", {"offset_counts": [0, 0, 0, 0]}),
         "cal_json": _write(tmp_path / "cal_json.json", '{"offset_counts": [0, 0'),
         "params_json": _write(tmp_path / "params_json.json", '{"params": {'),
-        "params_key": _write(tmp_path / "params_key.json", {"params": {k: v for k, v in mid.items()
-                                                                      if k != "sigma_n"}}),
+        "params_key": _write(
+            tmp_path / "params_key.json", {"params": {k: v for k, v in mid.items() if k != "sigma_n"}}
+        ),
         "params_range": _write(tmp_path / "params_range.json", {"params": {**mid, "omega_swing_rad_s": 99.0}}),
     }
 
@@ -127,23 +132,35 @@ REFUSED = [  # (extra arguments, what stderr must say)
 @pytest.mark.parametrize("extra, message", REFUSED, ids=[" ".join(e) for e, _ in REFUSED])
 def test_deploy_refuses_a_bad_input_before_any_robot(extra, message, tmp_path, capsys, no_robot):
     files = _bad_files(tmp_path)
-    err = _refused(["deploy", "--robot", "sim", "--log-dir", str(tmp_path / "run")]
-                   + [e.format(**files) for e in extra], capsys)
+    err = _refused(
+        ["deploy", "--robot", "sim", "--log-dir", str(tmp_path / "run")] + [e.format(**files) for e in extra], capsys
+    )
     assert message in err and err.count("\n") == 1  # one line: no usage, no traceback
     assert no_robot == [] and not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["deploy", "--robot", "go1", "--friction", "0.3", "--physics", "paper"],
-     "--friction, --physics apply to --robot sim only"),
-    (["deploy", "--robot", "go1", "--sim-pacing", "lockstep"], "--sim-pacing applies to --robot sim only"),
-    (["deploy", "calibrate", "--robot", "go1", "--lift-m", "0.5"], "--lift-m applies to --robot sim only"),
-    (["deploy", "calibrate", "--robot", "sim", "--robot-ip", "127.0.0.1"], "--robot-ip applies to --robot go1 only"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["deploy", "--robot", "go1", "--friction", "0.3", "--physics", "paper"],
+            "--friction, --physics apply to --robot sim only",
+        ),
+        (["deploy", "--robot", "go1", "--sim-pacing", "lockstep"], "--sim-pacing applies to --robot sim only"),
+        (["deploy", "calibrate", "--robot", "go1", "--lift-m", "0.5"], "--lift-m applies to --robot sim only"),
+        (
+            ["deploy", "calibrate", "--robot", "sim", "--robot-ip", "127.0.0.1"],
+            "--robot-ip applies to --robot go1 only",
+        ),
+    ],
+)
 def test_an_option_of_the_other_robot_is_refused(argv, message, tmp_path, capsys, no_robot):
     calibration = _write(tmp_path / "cal.json", GOOD_CALIBRATION)
-    argv = [*argv, "--calibration", str(calibration)] if "calibrate" not in argv else [
-        *argv, "--out", str(tmp_path / "c.json")]
+    argv = (
+        [*argv, "--calibration", str(calibration)]
+        if "calibrate" not in argv
+        else [*argv, "--out", str(tmp_path / "c.json")]
+    )
     try:
         code = cli.main(argv)
     except SystemExit as exit_:
@@ -176,11 +193,28 @@ def test_no_packet_reaches_the_loopback_robot_when_an_input_is_refused(tmp_path,
     calibration = _write(tmp_path / "cal.json", GOOD_CALIBRATION)
     bad = _bad_files(tmp_path)
     try:
-        for extra in (["--power-level", "99"], ["--calibration", str(bad["cal_scales"])],
-                      ["--params", str(bad["params_key"])], ["--duration-s", "-1"]):
-            argv = ["deploy", "--robot", "go1", "--transport", "udp", "--robot-ip", "127.0.0.1", "--robot-port",
-                    str(robot.getsockname()[1]), "--calibration", str(calibration), "--no-realtime",
-                    "--log-dir", str(tmp_path / "run")] + extra
+        for extra in (
+            ["--power-level", "99"],
+            ["--calibration", str(bad["cal_scales"])],
+            ["--params", str(bad["params_key"])],
+            ["--duration-s", "-1"],
+        ):
+            argv = [
+                "deploy",
+                "--robot",
+                "go1",
+                "--transport",
+                "udp",
+                "--robot-ip",
+                "127.0.0.1",
+                "--robot-port",
+                str(robot.getsockname()[1]),
+                "--calibration",
+                str(calibration),
+                "--no-realtime",
+                "--log-dir",
+                str(tmp_path / "run"),
+            ] + extra
             _refused(argv, capsys)
             with pytest.raises(socket.timeout):
                 robot.recvfrom(4096)
@@ -191,8 +225,9 @@ def test_no_packet_reaches_the_loopback_robot_when_an_input_is_refused(tmp_path,
 def test_accepted_files_parse_to_their_values(tmp_path):
     calibration = _write(tmp_path / "cal.json", GOOD_CALIBRATION)
     params = _write(tmp_path / "p.json", GOOD_PARAMS)
-    args = cli.build_parser().parse_args(["deploy", "--robot", "go1", "--calibration", str(calibration),
-                                          "--params", str(params), "--power-level", "10"])
+    args = cli.build_parser().parse_args(
+        ["deploy", "--robot", "go1", "--calibration", str(calibration), "--params", str(params), "--power-level", "10"]
+    )
     np.testing.assert_array_equal(args.calibration.offset_counts, [14, -6, 22, 9])
     np.testing.assert_array_equal(args.calibration.newton_per_count, [0.5] * 4)
     np.testing.assert_allclose(args.params.params, 0.5 * (param_space.PARAM_LOWER + param_space.PARAM_UPPER))
@@ -201,10 +236,14 @@ def test_accepted_files_parse_to_their_values(tmp_path):
 
 def test_safety_config_is_checked():
     assert go1_safety.check_safety(go1_safety.SafetyConfig()) == go1_safety.SafetyConfig()
-    for bad, match in ((dict(power_level=99), "power_level = 99"), (dict(power_level=0), "power_level = 0"),
-                       (dict(kp_max_nm_rad=-1.0), "kp_max_nm_rad"), (dict(kd_max_nm_s_rad=1e6), "kd_max_nm_s_rad"),
-                       (dict(max_tilt_rad=float("nan")), "max_tilt_rad"), (dict(stop_buttons=("Z9",)),
-                                                                          "stop_buttons")):
+    for bad, match in (
+        (dict(power_level=99), "power_level = 99"),
+        (dict(power_level=0), "power_level = 0"),
+        (dict(kp_max_nm_rad=-1.0), "kp_max_nm_rad"),
+        (dict(kd_max_nm_s_rad=1e6), "kd_max_nm_s_rad"),
+        (dict(max_tilt_rad=float("nan")), "max_tilt_rad"),
+        (dict(stop_buttons=("Z9",)), "stop_buttons"),
+    ):
         with pytest.raises(ValueError, match=match):
             go1_safety.check_safety(go1_safety.SafetyConfig(**bad))
 
@@ -213,7 +252,8 @@ def test_a_negative_mass_gives_no_calibration():
     air = np.zeros((10, 4))
     standing = np.full((10, 4), 60.0)
     assert foot_force.calibrate_foot_force(air, standing, 12.0).newton_per_count[0] == pytest.approx(
-        12.0 * 9.81 / 240.0, rel=1e-3)
+        12.0 * 9.81 / 240.0, rel=1e-3
+    )
     with pytest.raises(ValueError, match="newton_per_count"):
         foot_force.calibrate_foot_force(air, standing, -5.0)
 
@@ -223,8 +263,15 @@ class _Log(NamedTuple):
     params: np.ndarray
 
 
-TUNED = dict(controller="tegotae", gait="pace", physics="paper", friction=0.3, slope_deg=5.0, payload_kg=2.5,
-             target_velocity_mps=0.7)
+TUNED = dict(
+    controller="tegotae",
+    gait="pace",
+    physics="paper",
+    friction=0.3,
+    slope_deg=5.0,
+    payload_kg=2.5,
+    target_velocity_mps=0.7,
+)
 
 
 def test_optimize_best_params_replay_with_deploy(tmp_path):
@@ -258,13 +305,31 @@ def test_deploy_params_replays_what_was_tuned_unless_overridden(tmp_path, capsys
     assert {k: getattr(args, k) for k in TUNED} == TUNED
     np.testing.assert_allclose(args.params, param_space.from_unit(np.full(8, 0.3)))
     err = capsys.readouterr().err
-    assert (f"{path} tuned for controller tegotae, gait pace, physics paper, friction 0.3, slope 5°, payload 2.5 kg, "
-            "v* 0.7 m/s") in err and "overrides" not in err
-    assert cli.main(["deploy", "--robot", "sim", "--params", str(path), "--friction", "0.9", "--controller",
-                     "tegotae", "--log-dir", str(tmp_path / "b")]) == 0
+    assert (
+        f"{path} tuned for controller tegotae, gait pace, physics paper, friction 0.3, slope 5°, payload 2.5 kg, "
+        "v* 0.7 m/s"
+    ) in err and "overrides" not in err
+    assert (
+        cli.main(
+            [
+                "deploy",
+                "--robot",
+                "sim",
+                "--params",
+                str(path),
+                "--friction",
+                "0.9",
+                "--controller",
+                "tegotae",
+                "--log-dir",
+                str(tmp_path / "b"),
+            ]
+        )
+        == 0
+    )
     args = ran[-1]
     assert args.friction == 0.9 and args.physics == "paper" and args.controller == "tegotae"
-    line, = [ln for ln in capsys.readouterr().err.splitlines() if "tuned for" in ln]
+    (line,) = [ln for ln in capsys.readouterr().err.splitlines() if "tuned for" in ln]
     assert line.endswith("; --friction 0.9 overrides it")  # the same controller given again is no override
 
 
@@ -284,25 +349,35 @@ def test_walk_params_walks_what_was_tuned(tmp_path, capsys, monkeypatch):
     def fake_walk(**kwargs):
         walks.append(kwargs)
         raise SystemExit(0)  # stop before the table: only what walk was asked for matters here
+
     monkeypatch.setattr(walk, "walk_trials", fake_walk)
     path = _tuned_file(tmp_path)
     with pytest.raises(SystemExit):
         cli.main(["walk", "--params", str(path), "--payload-kg", "0,5"])
     asked = walks[-1]
-    assert (asked["controllers"], asked["gaits"], asked["physics"], asked["friction"], asked["slope_deg"],
-            asked["payload_kg"], asked["target_velocity_mps"]) == (("tegotae",), ("pace",), ("paper",), (0.3,), (5.0,),
-                                                                   (0.0, 5.0), 0.7)
+    assert (
+        asked["controllers"],
+        asked["gaits"],
+        asked["physics"],
+        asked["friction"],
+        asked["slope_deg"],
+        asked["payload_kg"],
+        asked["target_velocity_mps"],
+    ) == (("tegotae",), ("pace",), ("paper",), (0.3,), (5.0,), (0.0, 5.0), 0.7)
     np.testing.assert_allclose(asked["params"], param_space.from_unit(np.full(8, 0.3)))
     assert "; --payload-kg 0,5 overrides it" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("field, value, message", [
-    ("controller", "cpg9", "controller 'cpg9' is not one of open_loop"),
-    ("gait", "gallop", "gait 'gallop' is not one of trot, pace, bound, walk, walk_diagonal, pronk"),
-    ("physics", "moon", "physics 'moon' is not one of"),
-    ("friction", 7.0, "friction = 7.0 is outside the allowed range [0.1, 1.5]"),
-    ("target_velocity_mps", "fast", "target_velocity_mps 'fast' is not a number"),
-])
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("controller", "cpg9", "controller 'cpg9' is not one of open_loop"),
+        ("gait", "gallop", "gait 'gallop' is not one of trot, pace, bound, walk, walk_diagonal, pronk"),
+        ("physics", "moon", "physics 'moon' is not one of"),
+        ("friction", 7.0, "friction = 7.0 is outside the allowed range [0.1, 1.5]"),
+        ("target_velocity_mps", "fast", "target_velocity_mps 'fast' is not a number"),
+    ],
+)
 def test_a_bad_tuned_for_field_is_refused_with_the_file_and_key(field, value, message, tmp_path, capsys, no_robot):
     path = tmp_path / "best_params.json"
     data = {"params": param_space.as_dict(param_space.midpoint()), **TUNED, field: value}
@@ -313,10 +388,12 @@ def test_a_bad_tuned_for_field_is_refused_with_the_file_and_key(field, value, me
 
 # ----------------------------------------------------------------------------------------------- output folders
 
+
 @pytest.fixture
 def no_engine(monkeypatch):
     def forbidden(*args, **kwargs):
         raise AssertionError("the engine was built")
+
     monkeypatch.setattr(ablation, "Engine", forbidden)
 
 
@@ -328,13 +405,16 @@ def test_out_pointing_at_a_file_fails_at_once(tmp_path, capsys, no_engine):
     assert "is a file" in capsys.readouterr().err
 
 
-OUTPUT_OPTIONS = (["optimize", "--trials", "2", "--out"], ["study", "friction", "--quick", "--out"],
-                  ["deploy", "--robot", "sim", "--log-dir"], ["deploy", "calibrate", "--robot", "sim", "--out"])
+OUTPUT_OPTIONS = (
+    ["optimize", "--trials", "2", "--out"],
+    ["study", "friction", "--quick", "--out"],
+    ["deploy", "--robot", "sim", "--log-dir"],
+    ["deploy", "calibrate", "--robot", "sim", "--out"],
+)
 
 
 @pytest.mark.parametrize("argv", OUTPUT_OPTIONS, ids=lambda a: a[0] + a[-1])
-def test_an_empty_path_or_a_missing_parent_is_refused_before_anything_runs(argv, tmp_path, capsys, no_engine,
-                                                                           no_robot):
+def test_an_empty_path_or_a_missing_parent_is_refused_before_anything_runs(argv, tmp_path, capsys, no_engine, no_robot):
     err = _refused([*argv, ""], capsys)
     assert err.count("\n") == 1 and "an empty path: name a folder or file to write" in err
     target = tmp_path / "missing" / "x"
@@ -344,8 +424,7 @@ def test_an_empty_path_or_a_missing_parent_is_refused_before_anything_runs(argv,
 
 
 @pytest.mark.parametrize("argv", OUTPUT_OPTIONS, ids=lambda a: a[0] + a[-1])
-def test_an_unwritable_folder_is_refused_before_anything_runs(argv, tmp_path, capsys, no_engine, no_robot,
-                                                              monkeypatch):
+def test_an_unwritable_folder_is_refused_before_anything_runs(argv, tmp_path, capsys, no_engine, no_robot, monkeypatch):
     """A read-only file system (simulated: writing the probe file raises EROFS, which root meets too) gives one line
     and exit 2 before the engine or a robot starts."""
     write_bytes = pathlib.Path.write_bytes
@@ -354,6 +433,7 @@ def test_an_unwritable_folder_is_refused_before_anything_runs(argv, tmp_path, ca
         if self.name.startswith(".cpgjax-write-check"):
             raise OSError(30, "Read-only file system")
         return write_bytes(self, data)
+
     monkeypatch.setattr(pathlib.Path, "write_bytes", read_only)
     target = tmp_path / "out"
     assert cli.main([*argv, str(target)]) == 2
@@ -368,19 +448,24 @@ def test_a_folder_in_a_file_system_that_takes_none_names_it(capsys, no_engine):
     """/proc exists but takes no new folder (mkdir fails with ENOENT): the line says that of /proc, not that a
     file is missing."""
     assert cli.main(["walk", "--out", "/proc/cpgjax-out", "--trials", "1"]) == 2
-    assert capsys.readouterr().err == ("cpgjax walk: cannot create the folder /proc/cpgjax-out: /proc takes no new "
-                                       "folders (No such file or directory)\n")
+    assert capsys.readouterr().err == (
+        "cpgjax walk: cannot create the folder /proc/cpgjax-out: /proc takes no new "
+        "folders (No such file or directory)\n"
+    )
     assert cli.main(["study", "friction", "--quick", "--out", "/proc/cpgjax-out", "--dry-run"]) == 2
-    assert capsys.readouterr().err == ("cpgjax study: cannot write in /proc: it takes no new files (No such file "
-                                       "or directory)\n")
+    assert capsys.readouterr().err == (
+        "cpgjax study: cannot write in /proc: it takes no new files (No such file or directory)\n"
+    )
 
 
 def test_a_non_empty_folder_is_not_overwritten(tmp_path, capsys, no_engine):
     robot_run = tmp_path / "run"
     robot_run.mkdir()
     _write(robot_run / "trials.parquet", "robot data")
-    for argv in (["optimize", "--trials", "2", "--out", str(robot_run)],
-                 ["study", "friction", "--quick", "--out", str(robot_run)]):
+    for argv in (
+        ["optimize", "--trials", "2", "--out", str(robot_run)],
+        ["study", "friction", "--quick", "--out", str(robot_run)],
+    ):
         assert cli.main(argv) == 2
         err = capsys.readouterr().err
         assert f"{robot_run} is not empty (trials.parquet): pass --overwrite" in err and "--resume" not in err
@@ -409,8 +494,17 @@ def test_overwrite_starts_afresh(tmp_path):
 def _old_optimize_folder(out: pathlib.Path) -> list[str]:
     """What `optimize` and a study leave in their folder (names as they write them)."""
     out.mkdir()
-    for name in (study_io.CHECKPOINT, "trials.parquet", "recording.rrd", "metadata.json", "best_params.json",
-                 "table.md", "learning_curves.png", "checkpoint.0of2.t000003.npz", "checkpoint.npz.tmp"):
+    for name in (
+        study_io.CHECKPOINT,
+        "trials.parquet",
+        "recording.rrd",
+        "metadata.json",
+        "best_params.json",
+        "table.md",
+        "learning_curves.png",
+        "checkpoint.0of2.t000003.npz",
+        "checkpoint.npz.tmp",
+    ):
         _write(out / name, "old")
     (out / study_io.BEST_PARAMS).mkdir()
     _write(out / study_io.BEST_PARAMS / "controller=vmc.json", "old")
@@ -441,8 +535,14 @@ def test_overwrite_refuses_what_cpgjax_did_not_write(tmp_path, capsys, no_engine
     (out / "data").mkdir()
     assert cli.main(["optimize", "--trials", "2", "--out", str(out), "--overwrite"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and (f"{out}: --overwrite replaces only what cpgjax wrote, and data, notes.txt are not "
-                                     "cpgjax's: move them, or write somewhere else") in err
+    assert (
+        err.count("\n") == 1
+        and (
+            f"{out}: --overwrite replaces only what cpgjax wrote, and data, notes.txt are not "
+            "cpgjax's: move them, or write somewhere else"
+        )
+        in err
+    )
     assert sorted(p.name for p in out.iterdir()) == sorted([*before, "notes.txt", "data"])  # nothing deleted
     assert (out / "trials.parquet").read_text() == "old"
 
@@ -467,6 +567,7 @@ def test_deploy_and_calibrate_outputs(tmp_path, capsys, monkeypatch):
 
 
 # ----------------------------------------------------------------------------------------------- checkpoints, resume
+
 
 def _optimize_spec(trials=2):
     return study_options.OptimizeOptions(trials=trials).spec()
@@ -493,14 +594,17 @@ def test_a_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
 
     def full(*args, **kwargs):
         raise OSError(28, "No space left on device")
+
     monkeypatch.setattr(np, "savez", full)
-    with pytest.raises(study_io.OutputError, match=r"writing the checkpoint of trial 2 in .* failed \(No space left "
-                       r"on device\); trials 0…1 are kept in its checkpoint: free space, then the same command with "
-                       r"--resume continues"):
+    with pytest.raises(
+        study_io.OutputError,
+        match=r"writing the checkpoint of trial 2 in .* failed \(No space left "
+        r"on device\); trials 0…1 are kept in its checkpoint: free space, then the same command with "
+        r"--resume continues",
+    ):
         study_io.save_checkpoint(tmp_path, spec, ckpt._replace(trial=3, logs=[log] * 3), "native")
     monkeypatch.undo()
-    assert study_io.load_checkpoint(tmp_path, spec).trial == 2 and sorted(os.listdir(tmp_path)) == [
-        study_io.CHECKPOINT]
+    assert study_io.load_checkpoint(tmp_path, spec).trial == 2 and sorted(os.listdir(tmp_path)) == [study_io.CHECKPOINT]
 
 
 def test_ctrl_c_while_a_checkpoint_is_written_leaves_no_temporary_file(tmp_path, monkeypatch):
@@ -514,6 +618,7 @@ def test_ctrl_c_while_a_checkpoint_is_written_leaves_no_temporary_file(tmp_path,
     def interrupted(f, **arrays):
         f.write(b"half a checkpoint")
         raise KeyboardInterrupt
+
     monkeypatch.setattr(np, "savez", interrupted)
     with pytest.raises(KeyboardInterrupt):
         study_io.save_checkpoint(tmp_path, spec, ckpt._replace(trial=3, logs=[log] * 3), "native")
@@ -550,8 +655,7 @@ def test_resume_needs_a_checkpoint_of_the_same_backend(tmp_path, capsys, no_engi
     spec = _optimize_spec()
     _fake_checkpoint(out, spec, 1, "mjx")
     assert cli.main(["optimize", "--trials", "2", "--out", str(out), "--resume", "--backend", "native"]) == 2
-    assert "written on the mjx backend, this run would use native: resume with --backend mjx" in \
-        capsys.readouterr().err
+    assert "written on the mjx backend, this run would use native: resume with --backend mjx" in capsys.readouterr().err
     assert study_io.resume_point(out, spec, "mjx") == 1
     with pytest.raises(study_spec.StudyError, match="different study definition .it does not record its fields"):
         study_io.resume_point(out, _optimize_spec(trials=3), "mjx")  # a checkpoint of an older cpgjax
@@ -560,21 +664,52 @@ def test_resume_needs_a_checkpoint_of_the_same_backend(tmp_path, capsys, no_engi
 def test_a_different_definition_is_refused_naming_the_fields(tmp_path, capsys, no_engine):
     out = tmp_path / "out"
     _checkpoint_of(out, _optimize_spec(trials=12), 1)
-    assert cli.main(["optimize", "--trials", "12", "--friction", "0.9", "--controller", "vmc", "--out", str(out),
-                     "--resume", "--backend", "native"]) == 2
+    assert (
+        cli.main(
+            [
+                "optimize",
+                "--trials",
+                "12",
+                "--friction",
+                "0.9",
+                "--controller",
+                "vmc",
+                "--out",
+                str(out),
+                "--resume",
+                "--backend",
+                "native",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and ("was written by a different study definition (controllers ('vmc_tegotae',) there, "
-                                     "('vmc',) here; friction (0.6,) there, (0.9,) here); use another --out") in err
+    assert (
+        err.count("\n") == 1
+        and (
+            "was written by a different study definition (controllers ('vmc_tegotae',) there, "
+            "('vmc',) here; friction (0.6,) there, (0.9,) here); use another --out"
+        )
+        in err
+    )
     assert cli.main(["optimize", "--trials", "20", "--out", str(out), "--resume", "--backend", "native"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and ("--trials 20: the run in this folder holds 12 trials in its optimizers (its "
-                                     "--max-trials, by default its --trials)") in err and "run it afresh" in err
+    assert (
+        err.count("\n") == 1
+        and (
+            "--trials 20: the run in this folder holds 12 trials in its optimizers (its "
+            "--max-trials, by default its --trials)"
+        )
+        in err
+        and "run it afresh" in err
+    )
 
 
 def _checkpoint_of(out: pathlib.Path, spec, trial: int) -> None:
     log = study_io.TrialLog(*(np.zeros(1) for _ in study_io.TrialLog._fields))
-    study_io.save_checkpoint(out, spec, study_io.Checkpoint(trial, [], [], np.zeros((1, 2)), [log] * trial, 1.0, {}),
-                             "native")
+    study_io.save_checkpoint(
+        out, spec, study_io.Checkpoint(trial, [], [], np.zeros((1, 2)), [log] * trial, 1.0, {}), "native"
+    )
 
 
 def test_extending_a_run_needs_its_optimizers_capacity_and_its_conditions(tmp_path):
@@ -597,8 +732,11 @@ def test_extending_a_run_needs_its_optimizers_capacity_and_its_conditions(tmp_pa
     with pytest.raises(study_spec.StudyError, match=r"schedules .* \(its condition changes scale with --trials"):
         study_io.resume_point(studies, study_driver.read("load_adaptation", seeds=1, trials=30).spec, "native")
     # a schedule written with trial numbers that stay: the conditions of the trials done must be those they ran under
-    fixed = dataclasses.replace(_optimize_spec(trials=12), max_trials=30,
-                                schedules=(study_spec.Schedule("s", (study_spec.Change(8, "payload_kg", 5.0),)),))
+    fixed = dataclasses.replace(
+        _optimize_spec(trials=12),
+        max_trials=30,
+        schedules=(study_spec.Schedule("s", (study_spec.Change(8, "payload_kg", 5.0),)),),
+    )
     _checkpoint_of(tmp_path / "fixed", fixed, 12)
     assert study_io.resume_point(tmp_path / "fixed", dataclasses.replace(fixed, num_trials=30), "native") == 12
 
@@ -620,6 +758,7 @@ def test_resume_says_where_and_ctrl_c_says_how_to_resume(tmp_path, capsys, monke
 
         def run(self, *args, **kwargs):
             raise KeyboardInterrupt
+
     monkeypatch.setattr(ablation, "Engine", Interrupted)
     argv = ["optimize", "--trials", "2", "--out", str(out), "--resume", "--backend", "native"]
     assert cli.main(argv) == cli.INTERRUPTED == 130
@@ -652,6 +791,7 @@ def test_a_ctrl_c_lost_in_a_callback_still_stops_after_the_trial(tmp_path, capsy
                         pass
                 progress(ablation.Progress(t + 1, spec.num_trials, {"vmc_tegotae": 1.0}, 1.0, None))
             raise AssertionError("ran to the end")
+
     monkeypatch.setattr(ablation, "Engine", SwallowsOneInterrupt)
     argv = ["optimize", "--trials", "6", "--out", str(out), "--backend", "native"]
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # Python's own, as in a terminal
@@ -666,6 +806,7 @@ def test_a_ctrl_c_lost_in_a_callback_still_stops_after_the_trial(tmp_path, capsy
 def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, monkeypatch):
     """Lost after the last trial's check, the request still makes the exit status 130 once the outputs are
     written (the run finished: nothing to resume)."""
+
     def finishes_after_a_lost_interrupt(study, options):
         try:
             os.kill(os.getpid(), signal.SIGINT)
@@ -673,6 +814,7 @@ def test_a_ctrl_c_lost_after_the_last_trial_still_exits_130(tmp_path, capsys, mo
         except KeyboardInterrupt:
             pass
         return study_driver.StudyRun("the table", options.out, None)
+
     monkeypatch.setattr(study_driver, "run", finishes_after_a_lost_interrupt)
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
@@ -688,6 +830,7 @@ def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypat
     def interrupted(study, options):
         _fake_checkpoint(options.out, study.specs[0], 3, "native")
         raise KeyboardInterrupt
+
     monkeypatch.setattr(study_driver, "run", interrupted)
     assert cli.main(["study", "friction", "--quick", "--out", str(out)]) == 130
     err = capsys.readouterr().err
@@ -696,6 +839,7 @@ def test_ctrl_c_in_a_study_prints_the_resume_command(tmp_path, capsys, monkeypat
 
 
 # ----------------------------------------------------------------------------------------------- options
+
 
 def _subparsers(parser):
     import argparse
@@ -739,16 +883,33 @@ def test_walk_refuses_zero_trials_and_names_its_target(capsys):
     assert "argument --trials: 0: need an integer >= 1" in _refused(["walk", "--trials", "0"], capsys)
     with pytest.raises(ValueError, match="num_trials = 0"):
         walk.walk(num_trials=0)
-    row = walk.WalkRow(controller="vmc", physics="paper", condition=Condition(target_velocity_mps=0.8), vx_mps=0.5,
-                       vy_mps=0.0, cot=0.6, objective=1.8, c_load_n=30.0, c_slope_rad=0.0, roll_std_rad=0.01,
-                       pitch_std_rad=0.01, falls=0)
+    row = walk.WalkRow(
+        controller="vmc",
+        physics="paper",
+        condition=Condition(target_velocity_mps=0.8),
+        vx_mps=0.5,
+        vy_mps=0.0,
+        cot=0.6,
+        objective=1.8,
+        c_load_n=30.0,
+        c_slope_rad=0.0,
+        roll_std_rad=0.01,
+        pitch_std_rad=0.01,
+        falls=0,
+    )
     assert "| J (v*=0.8 m/s) |" in walk.markdown_table([row])
 
 
 def test_version_and_no_warp_probe_on_stdout():
     env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
-    done = subprocess.run([sys.executable, "-m", "cpgjax.cli", "--version"], capture_output=True, text=True,
-                          env=env, cwd=REPO, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "cpgjax.cli", "--version"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO,
+        timeout=120,
+    )
     assert done.returncode == 0 and done.stdout == f"cpgjax {cpgjax.__version__}\n"
 
 
@@ -783,10 +944,13 @@ def test_show_lists_every_file_and_names_each_damaged_one(tmp_path, capsys):
     (out / "learning_curves.png").write_bytes(b"GIF89a")
     assert cli.main(["show", str(out), "--no-viewer"]) == 1  # damaged files: not a clean result
     printed = capsys.readouterr().out
-    for name, problem in (("metadata.json", "corrupt or truncated (JSONDecodeError"),
-                          ("trials.parquet", "corrupt or truncated"), ("recording.rrd", "empty"),
-                          ("learning_curves.png", "not a PNG image")):
-        line, = [ln for ln in printed.splitlines() if ln.startswith(f"  {name} ")]
+    for name, problem in (
+        ("metadata.json", "corrupt or truncated (JSONDecodeError"),
+        ("trials.parquet", "corrupt or truncated"),
+        ("recording.rrd", "empty"),
+        ("learning_curves.png", "not a PNG image"),
+    ):
+        (line,) = [ln for ln in printed.splitlines() if ln.startswith(f"  {name} ")]
         assert f"[{name}: {problem}" in line
     assert "Traceback" not in printed and "metadata.json is damaged" in printed
 
@@ -808,7 +972,7 @@ def test_show_detects_a_truncated_recording_and_tick_log(tmp_path, capsys):
     assert cli.main(["show", str(out), "--no-viewer"]) == 0
     assert "trials.rrd: truncated" not in capsys.readouterr().out
     data = (out / "trials.rrd").read_bytes()
-    (out / "trials.rrd").write_bytes(data[:len(data) // 2])
+    (out / "trials.rrd").write_bytes(data[: len(data) // 2])
     _write(out / "run.json", '{"trip": nu')
     assert cli.main(["show", str(out), "--no-viewer"]) == 1
     printed = capsys.readouterr().out
@@ -874,9 +1038,13 @@ def test_show_opens_a_viewer_only_where_one_can_run(tmp_path, capsys, monkeypatc
 
 # ----------------------------------------------------------------------------------------------- outputs
 
+
 def test_recording_paths_carry_the_study_labels():
-    labels = [dict(controller="vmc_tegotae", seed=s, friction=f, data_reuse=True, schedule="constant")
-              for f in (0.3, 0.9) for s in (0, 1)]
+    labels = [
+        dict(controller="vmc_tegotae", seed=s, friction=f, data_reuse=True, schedule="constant")
+        for f in (0.3, 0.9)
+        for s in (0, 1)
+    ]
     paths = [study_io.instance_path(labels, b) for b in range(len(labels))]
     assert len(set(paths)) == 4
     assert "friction\\=0.3" in paths[0] and "friction\\=0.9" in paths[2]
@@ -893,10 +1061,18 @@ def test_ctrl_c_in_a_real_optimization_saves_and_says_how_to_resume(tmp_path):
     argv = ["optimize", "--trials", "12", "--out", str(out), "--backend", "native"]
     # Python keeps SIGINT ignored in a child whose parent ignores it (a test run started in the background of a
     # non-interactive shell): give the command Python's own Ctrl-C handler, as a terminal would.
-    start = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-             "sys.argv = ['cpgjax', *sys.argv[1:]]; runpy.run_module('cpgjax.cli', run_name='__main__')")
-    proc = subprocess.Popen([sys.executable, "-c", start, *argv], env=env, cwd=REPO, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    start = (
+        "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "sys.argv = ['cpgjax', *sys.argv[1:]]; runpy.run_module('cpgjax.cli', run_name='__main__')"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", start, *argv],
+        env=env,
+        cwd=REPO,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         deadline = time.time() + 240
         while time.time() < deadline and proc.poll() is None and not (out / study_io.CHECKPOINT).exists():
@@ -916,8 +1092,13 @@ def test_the_botorch_benchmark_says_what_to_install():
 
     if importlib.util.find_spec("torch") is not None and importlib.util.find_spec("botorch") is not None:
         pytest.skip("the bench extra is installed here")
-    done = subprocess.run([sys.executable, str(REPO / "benchmarks" / "bo.py"), "--quick"], capture_output=True,
-                          text=True, timeout=60, cwd=REPO)
+    done = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "bo.py"), "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=REPO,
+    )
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert "pip install -e '.[bench]' (or make bench-deps)" in done.stderr
 
@@ -928,8 +1109,11 @@ def test_a_study_dry_run_checks_everything_and_touches_nothing(tmp_path, capsys)
     out = tmp_path / "ablation"
     assert cli.main(["study", "controller_ablation", "--quick", "--out", str(out), "--dry-run"]) == 0
     text = capsys.readouterr().out
-    assert f"controller_ablation: 8 instances (4 controllers, 2 seeds) × 12 trials of 4.5 s: {8 * 12 * 4500:,} " \
-           "env-steps" in text and "nothing computed (--dry-run)" in text
+    assert (
+        f"controller_ablation: 8 instances (4 controllers, 2 seeds) × 12 trials of 4.5 s: {8 * 12 * 4500:,} env-steps"
+        in text
+        and "nothing computed (--dry-run)" in text
+    )
     assert not out.exists()
     spec = study_driver.read("controller_ablation", quick=True).spec
     _fake_checkpoint(out, spec, 3, "native")
@@ -976,6 +1160,7 @@ def test_ctrl_c_stopping_the_web_viewer_says_so_not_that_outputs_are_written(tmp
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1.0)
             raise AssertionError("not interrupted")
+
     monkeypatch.setattr(study_viewer, "serve", lambda recording, port: Viewer())
     monkeypatch.setattr(study_viewer, "stop", stopped.append)
     monkeypatch.setattr(show, "_summarize", lambda args: 0)  # the folder's listing, checked by the tests of show
@@ -1007,5 +1192,9 @@ def test_dry_run_estimates_the_wall_time_from_this_machines_measured_rate(tmp_pa
     rate.record("native", {"env_steps_per_s": 5400.0, "wall_s": 100.0}, "controller_ablation", 8)
     assert cli.main(argv) == 0
     out = capsys.readouterr().out
-    assert "324,000 env-steps" in out and "about 1.0 min at this machine's latest measured rate (5,400 env-steps/s: " \
-        "controller_ablation, 8 instances, " in out
+    assert (
+        "324,000 env-steps" in out
+        and "about 1.0 min at this machine's latest measured rate (5,400 env-steps/s: "
+        "controller_ablation, 8 instances, "
+        in out
+    )

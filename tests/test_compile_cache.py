@@ -26,8 +26,14 @@ print(json.dumps({"folder": None if folder is None else str(folder), "counts": c
 
 def _child(**env) -> dict:
     clean = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_ENABLE_COMP"))}
-    done = subprocess.run([sys.executable, "-c", CHILD], env=dict(clean, JAX_PLATFORMS="cpu", **env),
-                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    done = subprocess.run(
+        [sys.executable, "-c", CHILD],
+        env=dict(clean, JAX_PLATFORMS="cpu", **env),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
 

@@ -19,9 +19,13 @@ def random_params(n, rng=RNG):
 
 def observation(force_n=(0.0, 0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0), q=None):
     q = np.tile([0.0, 0.85, -1.57], 4) if q is None else q
-    return sensors.Observation(joint_pos_rad=jnp.asarray(q, jnp.float32), joint_vel_rad_s=jnp.zeros(12),
-                           imu_quat_wxyz=jnp.asarray(quat, jnp.float32), gyro_rad_s=jnp.zeros(3),
-                           foot_force_n=jnp.asarray(force_n, jnp.float32))
+    return sensors.Observation(
+        joint_pos_rad=jnp.asarray(q, jnp.float32),
+        joint_vel_rad_s=jnp.zeros(12),
+        imu_quat_wxyz=jnp.asarray(quat, jnp.float32),
+        gyro_rad_s=jnp.zeros(3),
+        foot_force_n=jnp.asarray(force_n, jnp.float32),
+    )
 
 
 @pytest.mark.parametrize("form", ["paper", "sqrt"])
@@ -31,8 +35,9 @@ def test_oscillator_derivatives_match_numpy(form):
         r = RNG.uniform(0.1, 2.0, 4)
         theta = RNG.uniform(0, 2 * np.pi, 4)
         force = RNG.uniform(0, 80, 4)
-        dr, dth = cpg.oscillator_derivatives(jnp.asarray(r), jnp.asarray(theta), jnp.asarray(p), jnp.asarray(force),
-                                             1.0, config)
+        dr, dth = cpg.oscillator_derivatives(
+            jnp.asarray(r), jnp.asarray(theta), jnp.asarray(p), jnp.asarray(force), 1.0, config
+        )
         dr_ref, dth_ref = ref.hopf_derivatives(r, theta, p[4], p[2], p[3], p[7], force, squared_mu=form == "paper")
         np.testing.assert_allclose(dr, dr_ref, rtol=2e-5, atol=1e-3)
         np.testing.assert_allclose(dth, dth_ref, rtol=2e-5, atol=2e-4)
@@ -40,8 +45,9 @@ def test_oscillator_derivatives_match_numpy(form):
 
 @jax.jit
 def _run_steps(p, force, gate_tegotae):
-    state = cpg.CPGState(jnp.full(4, 0.1), jnp.array([0.0, np.pi, np.pi, 0.0]), jnp.float32(0.0), jnp.float32(0.0),
-                         jnp.float32(0.0))
+    state = cpg.CPGState(
+        jnp.full(4, 0.1), jnp.array([0.0, np.pi, np.pi, 0.0]), jnp.float32(0.0), jnp.float32(0.0), jnp.float32(0.0)
+    )
     gates = cpg.Gates(vmc=jnp.float32(0.0), tegotae=gate_tegotae)
     obs = observation(force)
 
@@ -64,8 +70,9 @@ def test_two_second_integration_matches_numpy():
 
 
 def _settle(p, config, steps=6000):
-    state = cpg.CPGState(jnp.full(4, 0.1), jnp.array([0.3, 1.0, 2.5, 4.0]), jnp.float32(0.0), jnp.float32(0.0),
-                         jnp.float32(0.0))  # far from trot
+    state = cpg.CPGState(
+        jnp.full(4, 0.1), jnp.array([0.3, 1.0, 2.5, 4.0]), jnp.float32(0.0), jnp.float32(0.0), jnp.float32(0.0)
+    )  # far from trot
     gates = cpg.Gates(vmc=jnp.float32(0.0), tegotae=jnp.float32(0.0))
 
     def body(s, _):
@@ -86,6 +93,7 @@ def test_limit_cycle_amplitude_and_trot_phase_lags(form):
     # Diagonal pairs (FR, RL) and (FL, RR) lock in phase: φ = 0.
     np.testing.assert_allclose(np.angle(np.exp(1j * (phases[:, 3] - phases[:, 0]))), 0.0, atol=1e-3)
     np.testing.assert_allclose(np.angle(np.exp(1j * (phases[:, 2] - phases[:, 1]))), 0.0, atol=1e-3)
+
     # With ω_swing ≠ ω_stance the instantaneous FR–FL difference wobbles, but FL runs FR's cycle half a period later
     # (φ = π): its lift-off (θ crossing 0) falls midway between two lift-offs of FR.
     def lift_offs(theta):
@@ -124,7 +132,7 @@ def test_ik_fk_round_trip_over_workspace():
         q = np.stack([RNG.uniform(-0.6, 0.6, 500), RNG.uniform(-0.3, 2.0, 500), RNG.uniform(-2.7, -0.9, 500)], -1)
         feet = jax.vmap(kinematics.leg_fk, in_axes=(0, None))(jnp.asarray(q, jnp.float32), side)
         # Away from the abduction singularity (foot on the hip's x axis), where float32 IK loses precision.
-        regular = np.asarray(feet[:, 1] ** 2 + feet[:, 2] ** 2 - kinematics.HIP_OFFSET_M ** 2) > 0.05 ** 2
+        regular = np.asarray(feet[:, 1] ** 2 + feet[:, 2] ** 2 - kinematics.HIP_OFFSET_M**2) > 0.05**2
         q, feet = q[regular], feet[regular]
         q_back = jax.vmap(kinematics.leg_ik, in_axes=(0, None))(feet, side)
         np.testing.assert_allclose(q_back, q, atol=2e-3)
@@ -139,24 +147,43 @@ def test_jacobian_matches_finite_differences():
         q = np.array([RNG.uniform(-0.6, 0.6), RNG.uniform(-0.3, 2.0), RNG.uniform(-2.7, -0.9)])
         jac = np.asarray(kinematics.leg_jacobian(jnp.asarray(q), side))
         eps = 1e-3
-        fd = np.stack([(np.asarray(jax_fk(jnp.asarray(q + eps * e), side), np.float64)
-                        - np.asarray(jax_fk(jnp.asarray(q - eps * e), side), np.float64)) / (2 * eps)
-                       for e in np.eye(3)], axis=1)
+        fd = np.stack(
+            [
+                (
+                    np.asarray(jax_fk(jnp.asarray(q + eps * e), side), np.float64)
+                    - np.asarray(jax_fk(jnp.asarray(q - eps * e), side), np.float64)
+                )
+                / (2 * eps)
+                for e in np.eye(3)
+            ],
+            axis=1,
+        )
         np.testing.assert_allclose(jac, fd, atol=2e-4)
 
 
 def _one_step(gates, force, quat, p=None):
     p = jnp.asarray(param_space.midpoint() if p is None else p, jnp.float32)
-    state = cpg.CPGState(jnp.full(4, 1.0), jnp.array([0.6, 3.9, 3.9, 0.6]), jnp.float32(0.0),
-                         jnp.float32(0.0), jnp.float32(0.0))
+    state = cpg.CPGState(
+        jnp.full(4, 1.0), jnp.array([0.6, 3.9, 3.9, 0.6]), jnp.float32(0.0), jnp.float32(0.0), jnp.float32(0.0)
+    )
     return cpg.controller_step(cpg.CPGConfig(), state, p, gates, observation(force, quat))
 
 
 def _tilted_quat(roll, pitch, yaw=0.0):
-    cr, sr, cp, sp, cy, sy = (np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2),
-                              np.cos(yaw / 2), np.sin(yaw / 2))
-    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy)
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll / 2),
+        np.sin(roll / 2),
+        np.cos(pitch / 2),
+        np.sin(pitch / 2),
+        np.cos(yaw / 2),
+        np.sin(yaw / 2),
+    )
+    return (
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    )
 
 
 def test_quaternion_to_rpy_convention():

@@ -101,8 +101,9 @@ def test_the_lean_stands_the_centre_of_mass_over_the_feet_as_on_level_ground():
         assert abs(_com_over_feet_m(m, qpos) - level) < 0.002
         legs = qpos[go1_model.indices().joint_qpos].reshape(4, 3)
         feet = np.asarray(jax.vmap(kinematics.leg_fk)(jnp.asarray(legs, jnp.float32), kinematics.SIDE_SIGN))
-        np.testing.assert_allclose(feet[:, 0], go1_model.STAND_FOOT_X_M + 0.30 * np.tan(-np.radians(slope_deg)),
-                                   atol=1e-4)
+        np.testing.assert_allclose(
+            feet[:, 0], go1_model.STAND_FOOT_X_M + 0.30 * np.tan(-np.radians(slope_deg)), atol=1e-4
+        )
 
 
 def test_both_backends_and_the_robots_soft_start_stand_alike():
@@ -112,11 +113,11 @@ def test_both_backends_and_the_robots_soft_start_stand_alike():
     ids = go1_model.indices()
     physics = native.NativeBackend(scenario, LEAN_RAMP).physics
     native_q = physics.standing_physics[:, physics.layout.qpos][:, ids.joint_qpos]
-    mjx_q = np.asarray(mjx_go1.MJXBackend(scenario, LEAN_RAMP).reset(np.tile(param_space.midpoint(), (2, 1)))
-                       .data.qpos)[:, ids.joint_qpos]
+    mjx_q = np.asarray(
+        mjx_go1.MJXBackend(scenario, LEAN_RAMP).reset(np.tile(param_space.midpoint(), (2, 1))).data.qpos
+    )[:, ids.joint_qpos]
     np.testing.assert_allclose(mjx_q, native_q, atol=2e-5)
-    robot = np.stack([np.asarray(cpg.standing_pose_rad(LEAN_RAMP, _pitch_quat(-np.radians(s))))
-                      for s in (12.5, 0.0)])
+    robot = np.stack([np.asarray(cpg.standing_pose_rad(LEAN_RAMP, _pitch_quat(-np.radians(s)))) for s in (12.5, 0.0)])
     np.testing.assert_allclose(robot, native_q, atol=2e-5)
     np.testing.assert_allclose(native_q[1], go1_model.standing_qpos()[ids.joint_qpos], atol=2e-6)  # level: no lean
 
@@ -146,14 +147,20 @@ def test_the_loopback_go1_starts_a_tuned_gait_on_10_degrees():
         start_x = robot.stats()["trunk_xy_m"][0]
         transport = go1_transport.LockstepTransport(robot.address)
         try:
-            result = hio.run_loop(transport, controller, hio.FixedParams(params, 6000), deploy.sim_calibration(),
-                                  cpg.controller_gates(gait["controller"]))
+            result = hio.run_loop(
+                transport,
+                controller,
+                hio.FixedParams(params, 6000),
+                deploy.sim_calibration(),
+                cpg.controller_gates(gait["controller"]),
+            )
         finally:
             transport.close()
         climbed_m = robot.stats()["trunk_xy_m"][0] - start_x
     assert result.trip is None, result.events
-    stood = result.log.command_q_rad[result.log.phase == hio.STAND if (result.log.phase == hio.STAND).any()
-                                     else result.log.phase == hio.RAMP][-1]
+    stood = result.log.command_q_rad[
+        result.log.phase == hio.STAND if (result.log.phase == hio.STAND).any() else result.log.phase == hio.RAMP
+    ][-1]
     legs = np.asarray(jax.vmap(kinematics.leg_fk)(jnp.asarray(stood.reshape(4, 3), jnp.float32), kinematics.SIDE_SIGN))
     assert np.all(legs[:, 0] < go1_model.STAND_FOOT_X_M - 0.04)  # leaning: the feet ≈ 5 cm further back
     assert climbed_m > 0.5, climbed_m

@@ -31,8 +31,6 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 PLACEHOLDER = re.compile(r"<|\[|\||\.\.\.|…|\b(FILE|N|NAME|DIR|FOLDER|CALIBRATION)\b")
 
 
-
-
 def commands_in_order(path: pathlib.Path) -> list[str]:
     """Every complete `cpgjax <command> <option>…` of one document, in the order the document gives them (in a code
     block or a code span), without repeats."""
@@ -81,8 +79,13 @@ def test_a_documented_command_parses(doc, command, monkeypatch, capsys):
             if args.func is cli._calibrate:
                 cli._options_of(CalibrateOptions, args)
             else:
-                cli._options_of(DeployOptions, args, params=None, params_path=None,
-                                calibration=None if args.calibration is None else deploy.sim_calibration())
+                cli._options_of(
+                    DeployOptions,
+                    args,
+                    params=None,
+                    params_path=None,
+                    calibration=None if args.calibration is None else deploy.sim_calibration(),
+                )
         except ValueError as err:
             pytest.fail(f"{doc}: `{command}`: {err}")
 
@@ -125,9 +128,17 @@ def test_the_documented_commands_run_in_a_fresh_folder(doc, tmp_path, monkeypatc
         if options in run_options:  # shortened to a command already run in this folder
             continue
         run_options.append(options)
-        proc = subprocess.run([sys.executable, "-m", "cpgjax.cli", *argv], cwd=tmp_path, capture_output=True,
-                              text=True, timeout=600, env=dict(os.environ, JAX_PLATFORMS="cpu"))
-        assert proc.returncode == 0, (f"{doc.name}: `{command}` (run as `cpgjax {shlex.join(argv)}` in a fresh "
-                                      f"folder, after {ran}) exited {proc.returncode}: {proc.stderr[-1500:]}")
+        proc = subprocess.run(
+            [sys.executable, "-m", "cpgjax.cli", *argv],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=600,
+            env=dict(os.environ, JAX_PLATFORMS="cpu"),
+        )
+        assert proc.returncode == 0, (
+            f"{doc.name}: `{command}` (run as `cpgjax {shlex.join(argv)}` in a fresh "
+            f"folder, after {ran}) exited {proc.returncode}: {proc.stderr[-1500:]}"
+        )
         ran.append(command)
     assert ran, f"{doc.name}: no documented command was run"

@@ -44,6 +44,7 @@ def as_priors(priors) -> gp.Priors:
 
 # ---- fixtures: data and compiled functions shared by the module ---------------------------
 
+
 def random_params(rng, dims):
     return gp.GPParams(
         log_lengthscales=jnp.asarray(np.log(rng.uniform(0.2, 1.5, dims)), jnp.float32),
@@ -64,8 +65,7 @@ def compiled():
 
     @jax.jit
     def predict(params, dataset, active, queries):
-        return gp.predict(gp.posterior(params, dataset, active, CONTEXT_DIMS), queries,
-                          CONTEXT_DIMS)
+        return gp.predict(gp.posterior(params, dataset, active, CONTEXT_DIMS), queries, CONTEXT_DIMS)
 
     fit = jax.jit(gp.fit, static_argnums=(3, 4))
     return dict(lml=lml, grad=grad, predict=predict, fit=fit)
@@ -78,24 +78,31 @@ def problem():
     inputs = rng.random((30, 6))
     active = np.array([True, True, False, True, True, True])
     return dict(
-        inputs=inputs, targets=3.0 + 2.0 * smooth_targets(inputs), active=active,
-        queries=rng.random((20, 6)), params=random_params(rng, 6),
+        inputs=inputs,
+        targets=3.0 + 2.0 * smooth_targets(inputs),
+        active=active,
+        queries=rng.random((20, 6)),
+        params=random_params(rng, 6),
     )
 
 
 def dataset_of(inputs, targets, valid=None):
     valid = np.ones(len(targets), bool) if valid is None else valid
-    return gp.Dataset(jnp.asarray(inputs, jnp.float32), jnp.asarray(targets, jnp.float32),
-                      jnp.asarray(valid))
+    return gp.Dataset(jnp.asarray(inputs, jnp.float32), jnp.asarray(targets, jnp.float32), jnp.asarray(valid))
 
 
 # ---- posterior and likelihood against the reference -------------------------------------
 
+
 def test_posterior_matches_dense_numpy_reference(compiled, problem):
     p = problem
     ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS, gp.JITTER_RATIO)
-    mean, var = compiled["predict"](p["params"], dataset_of(p["inputs"], p["targets"]),
-                                    jnp.asarray(p["active"]), jnp.asarray(p["queries"], jnp.float32))
+    mean, var = compiled["predict"](
+        p["params"],
+        dataset_of(p["inputs"], p["targets"]),
+        jnp.asarray(p["active"]),
+        jnp.asarray(p["queries"], jnp.float32),
+    )
     ref_mean, ref_var = ref.predict(p["queries"])
     scale = ref.y_std
     np.testing.assert_allclose(mean, ref_mean, atol=2e-4 * scale)
@@ -112,8 +119,9 @@ def test_log_marginal_likelihood_and_gradient_match_reference(compiled, problem)
     ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS, gp.JITTER_RATIO)
     lml = compiled["lml"](p["params"], data, active, CONTEXT_DIMS)
     np.testing.assert_allclose(lml, ref.log_marginal_likelihood(), rtol=1e-5, atol=1e-3)
-    np.testing.assert_allclose(gp.log_prior(p["params"], active),
-                               ref_log_prior(p["params"], p["active"]), rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(
+        gp.log_prior(p["params"], active), ref_log_prior(p["params"], p["active"]), rtol=1e-5, atol=1e-4
+    )
 
     # The fit's analytic gradient against central differences of the float64 reference.
     def ref_objective(flat):
@@ -123,10 +131,9 @@ def test_log_marginal_likelihood_and_gradient_match_reference(compiled, problem)
 
     flat = np.concatenate([np.asarray(leaf, np.float64).ravel() for leaf in p["params"]])
     step = 1e-5
-    numeric = np.array([
-        (ref_objective(flat + step * e) - ref_objective(flat - step * e)) / (2 * step)
-        for e in np.eye(len(flat))
-    ])
+    numeric = np.array(
+        [(ref_objective(flat + step * e) - ref_objective(flat - step * e)) / (2 * step) for e in np.eye(len(flat))]
+    )
     grads = compiled["grad"](p["params"], data, active, CONTEXT_DIMS)
     analytic = np.concatenate([np.ravel(leaf) for leaf in grads])
     assert numeric[2] == pytest.approx(0.0, abs=1e-6)  # the inactive lengthscale is inert
@@ -141,21 +148,24 @@ def test_a_gp_given_its_own_priors_fits_under_them(problem):
     data = dataset_of(p["inputs"], p["targets"])
     priors = as_priors(OTHER)
     assert gp.BOTORCH_PRIORS == as_priors(BOTORCH)
-    np.testing.assert_allclose(gp.log_prior(p["params"], active, priors),
-                               ref_log_prior(p["params"], p["active"], OTHER), rtol=1e-5, atol=1e-4)
-    value, grads = jax.jit(gp.log_posterior_and_gradient, static_argnums=(3, 4))(p["params"], data, active,
-                                                                                 CONTEXT_DIMS, priors)
+    np.testing.assert_allclose(
+        gp.log_prior(p["params"], active, priors), ref_log_prior(p["params"], p["active"], OTHER), rtol=1e-5, atol=1e-4
+    )
+    value, grads = jax.jit(gp.log_posterior_and_gradient, static_argnums=(3, 4))(
+        p["params"], data, active, CONTEXT_DIMS, priors
+    )
     ref = RefGP(p["params"], p["inputs"], p["targets"], p["active"], CONTEXT_DIMS, gp.JITTER_RATIO)
-    np.testing.assert_allclose(value, ref.log_marginal_likelihood() + ref_log_prior(p["params"], p["active"], OTHER),
-                               rtol=1e-5, atol=2e-3)
+    np.testing.assert_allclose(
+        value, ref.log_marginal_likelihood() + ref_log_prior(p["params"], p["active"], OTHER), rtol=1e-5, atol=2e-3
+    )
     # d/du log Gamma(e^u; a, b) = (a - 1) - b e^u on each hyperparameter, the likelihood's part unchanged.
     _, default_grads = gp.log_posterior_and_gradient(p["params"], data, active, CONTEXT_DIMS)
     for name, field in (("outputscale", "log_outputscale"), ("noise", "log_noise")):
         value_now = float(np.exp(getattr(p["params"], field)))
-        shift = ((OTHER[name][0] - 1) - OTHER[name][1] * value_now) - ((BOTORCH[name][0] - 1)
-                                                                       - BOTORCH[name][1] * value_now)
-        assert float(getattr(grads, field) - getattr(default_grads, field)) == pytest.approx(shift, rel=1e-4,
-                                                                                              abs=1e-4)
+        shift = ((OTHER[name][0] - 1) - OTHER[name][1] * value_now) - (
+            (BOTORCH[name][0] - 1) - BOTORCH[name][1] * value_now
+        )
+        assert float(getattr(grads, field) - getattr(default_grads, field)) == pytest.approx(shift, rel=1e-4, abs=1e-4)
     assert gp.default_params(3, priors).log_lengthscales[0] == pytest.approx(np.log(5.0 / 2.5))
 
 
@@ -175,6 +185,7 @@ def test_cholesky_inverse_matches_numpy(size):
 
 # ---- kernel properties --------------------------------------------------------------------
 
+
 def test_kernel_is_symmetric_positive_semidefinite_and_ignores_inactive_inputs(problem):
     p = problem
     x = jnp.asarray(p["inputs"], jnp.float32)
@@ -183,12 +194,20 @@ def test_kernel_is_symmetric_positive_semidefinite_and_ignores_inactive_inputs(p
     np.testing.assert_allclose(corr, corr.T, atol=1e-7)
     np.testing.assert_allclose(np.diag(corr), 1.0, atol=1e-7)
     assert np.linalg.eigvalsh(corr).min() > -1e-5
-    ref = ref_kernel(p["inputs"], p["inputs"], np.exp(np.asarray(p["params"].log_lengthscales,
-                     np.float64)), 1.0, p["active"], CONTEXT_DIMS)
+    ref = ref_kernel(
+        p["inputs"],
+        p["inputs"],
+        np.exp(np.asarray(p["params"].log_lengthscales, np.float64)),
+        1.0,
+        p["active"],
+        CONTEXT_DIMS,
+    )
     np.testing.assert_allclose(corr, ref, atol=1e-6)
     shifted = x.at[:, 2].set(0.123)  # only the inactive column changes
-    np.testing.assert_array_equal(gp.correlation(p["params"], shifted, x, active, CONTEXT_DIMS),
-                                  gp.correlation(p["params"], x, x, active, CONTEXT_DIMS))
+    np.testing.assert_array_equal(
+        gp.correlation(p["params"], shifted, x, active, CONTEXT_DIMS),
+        gp.correlation(p["params"], x, x, active, CONTEXT_DIMS),
+    )
 
 
 def test_standardize_matches_numpy():
@@ -206,6 +225,7 @@ def test_standardize_matches_numpy():
 
 # ---- exact masking -----------------------------------------------------------------------
 
+
 def test_padded_rows_have_no_influence(compiled, problem):
     """Same data, unpadded vs scattered among 20 garbage rows (NaN, inf, huge): identical up
     to float32 rounding (a 50- and a 30-row factorization round differently: measured 3e-6
@@ -222,11 +242,16 @@ def test_padded_rows_have_no_influence(compiled, problem):
     inputs[rows], targets[rows], valid[rows] = p["inputs"], p["targets"], True
     plain, padded = dataset_of(p["inputs"], p["targets"]), dataset_of(inputs, targets, valid)
 
-    np.testing.assert_allclose(compiled["lml"](p["params"], padded, active, CONTEXT_DIMS),
-                               compiled["lml"](p["params"], plain, active, CONTEXT_DIMS),
-                               rtol=1e-6)
-    for g_pad, g_plain in zip(compiled["grad"](p["params"], padded, active, CONTEXT_DIMS),
-                              compiled["grad"](p["params"], plain, active, CONTEXT_DIMS), strict=True):
+    np.testing.assert_allclose(
+        compiled["lml"](p["params"], padded, active, CONTEXT_DIMS),
+        compiled["lml"](p["params"], plain, active, CONTEXT_DIMS),
+        rtol=1e-6,
+    )
+    for g_pad, g_plain in zip(
+        compiled["grad"](p["params"], padded, active, CONTEXT_DIMS),
+        compiled["grad"](p["params"], plain, active, CONTEXT_DIMS),
+        strict=True,
+    ):
         np.testing.assert_allclose(g_pad, g_plain, rtol=1e-4, atol=1e-4)
     queries = jnp.asarray(p["queries"], jnp.float32)
     scale = np.std(p["targets"], ddof=1)
@@ -243,6 +268,7 @@ def test_padded_rows_have_no_influence(compiled, problem):
 
 # ---- the fit -----------------------------------------------------------------------------
 
+
 def test_fit_reaches_a_stationary_point_and_finds_relevant_inputs(compiled):
     """y depends on inputs 0 and 1 only; the fit's lengthscales must say so, and the reference
     log posterior must be (nearly) flat at the fitted hyperparameters."""
@@ -258,16 +284,18 @@ def test_fit_reaches_a_stationary_point_and_finds_relevant_inputs(compiled):
 
     def ref_objective(flat):
         params = gp.GPParams(flat[:4], flat[4], flat[5], flat[6])
-        return RefGP(params, x, y, active, 0, gp.JITTER_RATIO).log_marginal_likelihood() + ref_log_prior(
-            params, active)
+        return RefGP(params, x, y, active, 0, gp.JITTER_RATIO).log_marginal_likelihood() + ref_log_prior(params, active)
 
     def ref_gradient(params):
         flat = np.concatenate([np.asarray(leaf, np.float64).ravel() for leaf in params])
-        return np.array([(ref_objective(flat + 1e-5 * e) - ref_objective(flat - 1e-5 * e)) / 2e-5
-                         for e in np.eye(len(flat))])
+        return np.array(
+            [(ref_objective(flat + 1e-5 * e) - ref_objective(flat - 1e-5 * e)) / 2e-5 for e in np.eye(len(flat))]
+        )
 
-    assert ref_objective(np.concatenate([np.ravel(v) for v in fitted])) > ref_objective(
-        np.concatenate([np.ravel(v) for v in start])) + 10.0
+    assert (
+        ref_objective(np.concatenate([np.ravel(v) for v in fitted]))
+        > ref_objective(np.concatenate([np.ravel(v) for v in start])) + 10.0
+    )
     assert np.linalg.norm(ref_gradient(fitted)) < 0.05 * np.linalg.norm(ref_gradient(start))
 
 
@@ -291,8 +319,9 @@ def test_float32_robust_with_duplicates_and_near_duplicates(compiled, targets_ki
     queries = np.concatenate([base[:10], rng.random((10, 6))])
     mean, var = compiled["predict"](fitted, data, active, jnp.asarray(queries, jnp.float32))
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var > 0)
-    ref = RefGP(fitted, np.asarray(x, np.float32), np.asarray(y, np.float32), np.ones(6, bool),
-                CONTEXT_DIMS, gp.JITTER_RATIO)
+    ref = RefGP(
+        fitted, np.asarray(x, np.float32), np.asarray(y, np.float32), np.ones(6, bool), CONTEXT_DIMS, gp.JITTER_RATIO
+    )
     ref_mean, ref_var = ref.predict(np.asarray(queries, np.float32))
     np.testing.assert_allclose(mean, ref_mean, atol=2e-3 * ref.y_std + 1e-3 * abs(ref.y_mean))
     np.testing.assert_allclose(var, ref_var, atol=2e-3 * ref.y_std**2)
@@ -305,8 +334,12 @@ def test_cholesky_finite_at_hyperparameter_extremes(compiled, log_lengthscale, l
     base = rng.random((50, 6))
     x = np.concatenate([base, base, base + 1e-7, base[:10]])
     data = dataset_of(x, rng.normal(size=len(x)))
-    params = gp.GPParams(jnp.full(6, log_lengthscale, jnp.float32),
-                         jnp.float32(log_outputscale), jnp.float32(np.log(1e-6)), jnp.float32(0))
+    params = gp.GPParams(
+        jnp.full(6, log_lengthscale, jnp.float32),
+        jnp.float32(log_outputscale),
+        jnp.float32(np.log(1e-6)),
+        jnp.float32(0),
+    )
     active = jnp.ones(6, bool)
     assert np.isfinite(compiled["lml"](params, data, active, CONTEXT_DIMS))
     assert all(np.all(np.isfinite(g)) for g in compiled["grad"](params, data, active, CONTEXT_DIMS))
@@ -316,6 +349,7 @@ def test_cholesky_finite_at_hyperparameter_extremes(compiled, log_lengthscale, l
 
 # ---- acquisition maximizer -------------------------------------------------------------------
 
+
 def test_maximize_acquisition_finds_a_known_maximum_and_respects_the_box():
     optimum = jnp.array([0.3, 0.8, 0.5, 0.05, 0.97])
     active = jnp.array([True, True, False, True, True])
@@ -323,8 +357,7 @@ def test_maximize_acquisition_finds_a_known_maximum_and_respects_the_box():
     def bowl(points):  # maximum at `optimum` (clipped value 1 for the inactive input)
         return -jnp.sum(jnp.where(active, (points - optimum) ** 2, 0.0), axis=-1)
 
-    best, value = jax.jit(
-        lambda key: acquisition.maximize_acquisition(bowl, key, active))(jax.random.PRNGKey(0))
+    best, value = jax.jit(lambda key: acquisition.maximize_acquisition(bowl, key, active))(jax.random.PRNGKey(0))
     np.testing.assert_allclose(best[active], optimum[active], atol=2e-3)
     assert best[2] == acquisition.INACTIVE_VALUE
     assert value > -1e-5
@@ -369,8 +402,12 @@ def test_two_concurrent_batched_fits_complete_on_a_two_thread_pool():
     if len(cpus) < 2:
         pytest.skip("needs two CPUs: the stall needs a thread pool of two")
     child = subprocess.run(
-        [sys.executable, "-c", _CONCURRENT_FITS], env={**os.environ, "JAX_PLATFORMS": "cpu"},
-        preexec_fn=lambda: os.sched_setaffinity(0, cpus), capture_output=True, text=True,
-        timeout=300)
+        [sys.executable, "-c", _CONCURRENT_FITS],
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+        preexec_fn=lambda: os.sched_setaffinity(0, cpus),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert child.returncode == 0, child.stderr[-2000:]
     assert child.stdout.strip().endswith("done")

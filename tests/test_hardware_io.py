@@ -57,8 +57,15 @@ def _run(robot, controller, run_ticks=600, fault=None, safety=SAFETY, schedule=N
         robot.inject(kind, value, after_ticks=RUN_STARTS_AT + 100, ticks=ticks)
     transport = transport or go1_transport.LockstepTransport(robot.address)
     try:
-        result = hio.run_loop(transport, controller, schedule or hio.FixedParams(params.midpoint(), run_ticks),
-                              deploy.sim_calibration(), GATES, LOOP, safety)
+        result = hio.run_loop(
+            transport,
+            controller,
+            schedule or hio.FixedParams(params.midpoint(), run_ticks),
+            deploy.sim_calibration(),
+            GATES,
+            LOOP,
+            safety,
+        )
     finally:
         transport.close()
     return result, transport, robot.stats()
@@ -77,8 +84,8 @@ def _stale_run_ticks(result) -> int:
 
 # ------------------------------------------------------------------------------------- tolerated faults
 
-@pytest.mark.parametrize("kind, value", [("drop", True), ("late_ms", 3.0), ("corrupt_crc", True),
-                                         ("wrong_head", True)])
+
+@pytest.mark.parametrize("kind, value", [("drop", True), ("late_ms", 3.0), ("corrupt_crc", True), ("wrong_head", True)])
 def test_short_packet_faults_are_ridden_out(robot, controller, kind, value):
     result, transport, stats = _run(robot, controller, fault=(kind, value, 5))
     assert result.trip is None, result.events
@@ -90,15 +97,18 @@ def test_short_packet_faults_are_ridden_out(robot, controller, kind, value):
 
 # ------------------------------------------------------------------------------------- trips → damping
 
+
 def test_stale_tick_trips_the_watchdog(robot, controller):
-    result, _, stats = _run(robot, controller, run_ticks=5000, fault=("freeze_tick", True, 10**6),
-                            safety=SAFETY._replace(watchdog_ticks=20))
+    result, _, stats = _run(
+        robot, controller, run_ticks=5000, fault=("freeze_tick", True, 10**6), safety=SAFETY._replace(watchdog_ticks=20)
+    )
     _assert_damped_after_trip(result, stats, "stale state")
 
 
 def test_persistent_corrupt_crc_trips_the_watchdog(robot, controller):
-    result, transport, stats = _run(robot, controller, run_ticks=5000, fault=("corrupt_crc", True, 10**6),
-                                    safety=SAFETY._replace(watchdog_ticks=20))
+    result, transport, stats = _run(
+        robot, controller, run_ticks=5000, fault=("corrupt_crc", True, 10**6), safety=SAFETY._replace(watchdog_ticks=20)
+    )
     _assert_damped_after_trip(result, stats, "stale state")
     assert transport.rejected["crc"] >= 20
 
@@ -179,7 +189,8 @@ def test_overrun_causes_name_the_largest_share_of_the_tick():
         late_s=np.array([0.9e-3, 0.0, 0.1e-3, 0.0], np.float32),  # woke late
         work_s=np.array([0.3e-3, 1.5e-3, 1.2e-3, 0.2e-3], np.float32),
         work_cpu_s=np.array([0.3e-3, 0.2e-3, 1.1e-3, 0.2e-3], np.float32),  # 1.3 ms not running; 1.1 ms of CPU
-        overrun=np.array([True, True, True, False]))
+        overrun=np.array([True, True, True, False]),
+    )
     assert [hio.OVERRUN_CAUSES[c] for c in hio.overrun_causes(log)] == ["late_start", "not_running", "work_cpu"]
 
 
@@ -209,8 +220,13 @@ def test_the_controller_step_runs_on_the_loop_thread_unless_jax_computed_first(w
     """The loop thread must not block on an XLA worker thread in each step (priority inversion): with inline CPU
     dispatch its 500 steps make (almost) no voluntary context switch; a process that computed with JAX before the
     controller keeps asynchronous dispatch, which the controller reports and warns about."""
-    out = subprocess.run([sys.executable, "-c", _BLOCKING_WAITS, when], capture_output=True, text=True, timeout=120,
-                         env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    out = subprocess.run(
+        [sys.executable, "-c", _BLOCKING_WAITS, when],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
     assert out.returncode == 0, out.stderr
     inline, waits = out.stdout.split()
     if when == "first":
@@ -225,8 +241,15 @@ def test_no_robot_gives_up_after_the_connect_timeout(controller):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
         silent.bind(("127.0.0.1", 0))  # a port where nobody answers
         transport = go1_transport.UdpTransport(silent.getsockname())
-        result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(),
-                              GATES, LOOP._replace(connect_timeout_s=0.05), SAFETY)
+        result = hio.run_loop(
+            transport,
+            controller,
+            hio.FixedParams(params.midpoint(), 10),
+            deploy.sim_calibration(),
+            GATES,
+            LOOP._replace(connect_timeout_s=0.05),
+            SAFETY,
+        )
         transport.close()
     assert result.trip.startswith("no robot state")
 
@@ -237,8 +260,15 @@ def test_busy_wait_loop_never_sleeps(robot, controller, monkeypatch):
     transport = go1_transport.LockstepTransport(robot.address)
     robot.reset()
     try:
-        result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 200), deploy.sim_calibration(),
-                              GATES, LOOP._replace(busy_wait=True), SAFETY)
+        result = hio.run_loop(
+            transport,
+            controller,
+            hio.FixedParams(params.midpoint(), 200),
+            deploy.sim_calibration(),
+            GATES,
+            LOOP._replace(busy_wait=True),
+            SAFETY,
+        )
     finally:
         transport.close()
     assert result.trip is None and "busy-wait" in result.realtime and result.ticks > 500
@@ -251,19 +281,34 @@ def test_busy_wait_at_realtime_priority_is_refused_while_the_kernel_throttles(co
     monkeypatch.setattr(hio, "rt_throttling", lambda: (950_000, 1_000_000))
     transport = go1_transport.UdpTransport(("127.0.0.1", 9))  # never used: refused before the first tick
     with pytest.raises(ValueError, match=r"sched_rt_runtime_us = 950000.*50 ms every 1000 ms"):
-        hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(), GATES,
-                     LOOP._replace(busy_wait=True, realtime_priority=80), SAFETY)
+        hio.run_loop(
+            transport,
+            controller,
+            hio.FixedParams(params.midpoint(), 10),
+            deploy.sim_calibration(),
+            GATES,
+            LOOP._replace(busy_wait=True, realtime_priority=80),
+            SAFETY,
+        )
     transport.close()
     monkeypatch.setattr(hio, "rt_throttling", lambda: None)  # throttling off: allowed (priority where permitted)
     transport = go1_transport.UdpTransport(("127.0.0.1", 9))
-    result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 10), deploy.sim_calibration(),
-                          GATES, LOOP._replace(busy_wait=True, realtime_priority=80, connect_timeout_s=0.02), SAFETY)
+    result = hio.run_loop(
+        transport,
+        controller,
+        hio.FixedParams(params.midpoint(), 10),
+        deploy.sim_calibration(),
+        GATES,
+        LOOP._replace(busy_wait=True, realtime_priority=80, connect_timeout_s=0.02),
+        SAFETY,
+    )
     transport.close()
     assert result.trip.startswith("no robot state")
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # restored after the loop
 
 
 # ------------------------------------------------------------------------------------- guards and units
+
 
 def test_guard_clamps_before_encoding_and_refuses_nan():
     safety = go1_safety.SafetyConfig()
@@ -283,9 +328,20 @@ def test_guard_clamps_before_encoding_and_refuses_nan():
 
 def test_power_protection_counts_like_the_sdk():
     safety = go1_safety.SafetyConfig(power_level=1)
-    hot = wire.RobotState(0, np.array([1.0, 0, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3),
-                           np.full(12, 10, np.uint8), np.zeros(12), np.full(12, 1.0), np.full(12, 10.0),
-                           np.zeros(12), np.zeros(4), bytes(40))  # 120 W > 100 W
+    hot = wire.RobotState(
+        0,
+        np.array([1.0, 0, 0, 0]),
+        np.zeros(3),
+        np.zeros(3),
+        np.zeros(3),
+        np.full(12, 10, np.uint8),
+        np.zeros(12),
+        np.full(12, 1.0),
+        np.full(12, 10.0),
+        np.zeros(12),
+        np.zeros(4),
+        bytes(40),
+    )  # 120 W > 100 W
     cold = hot._replace(dq_rad_s=np.zeros(12))
     counter, reasons = 0, []
     for state in [hot] * 5 + [cold] + [hot] * 2:
@@ -304,26 +360,32 @@ def test_foot_force_calibration_recovers_the_simulated_sensor(tmp_path):
     np.testing.assert_allclose(cal.offset_counts, true.offset_counts)
     np.testing.assert_allclose(cal.newton_per_count, true.newton_per_count, rtol=0.02)
     cal.save(tmp_path / "cal.json")
-    np.testing.assert_array_equal(foot_force.FootForceCalibration.load(tmp_path / "cal.json").offset_counts,
-                                  cal.offset_counts)
+    np.testing.assert_array_equal(
+        foot_force.FootForceCalibration.load(tmp_path / "cal.json").offset_counts, cal.offset_counts
+    )
 
 
 # ------------------------------------------------------------------------------------- parity and walking
 
+
 def _rollout_torques(obs_sequence: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Torques of the MJX rollout's controller path (``cpg.controller_step`` vmapped over instances and scanned
     over ticks, as in ``mjx_go1``) for a given flat observation sequence (T, OBSERVATION.size)."""
+
     def rollout(obs_seq, p_inst, gates):
         state0 = cpg.init_state(compiled_controller.OBSERVATION.unravel(obs_seq[0]))
 
         def body(state, x):
-            state, torque, _ = cpg.controller_step(cpg.CPGConfig(), state, p_inst, gates,
-                                                   compiled_controller.OBSERVATION.unravel(x))
+            state, torque, _ = cpg.controller_step(
+                cpg.CPGConfig(), state, p_inst, gates, compiled_controller.OBSERVATION.unravel(x)
+            )
             return state, torque
+
         return jax.lax.scan(body, state0, obs_seq)[1]
 
-    batched = jax.jit(jax.vmap(rollout))(jnp.asarray(obs_sequence)[None], jnp.asarray(p, jnp.float32)[None],
-                                         protocol.check_gates(GATES, 1))
+    batched = jax.jit(jax.vmap(rollout))(
+        jnp.asarray(obs_sequence)[None], jnp.asarray(p, jnp.float32)[None], protocol.check_gates(GATES, 1)
+    )
     return np.asarray(batched[0])
 
 
@@ -335,8 +397,9 @@ def test_loop_torques_equal_the_rollout_for_the_same_observations(robot, control
     expected = _rollout_torques(obs, params.midpoint())
     np.testing.assert_allclose(loop_torque, expected, rtol=1e-4, atol=1e-3)
     sent = result.log.torque_nm[run]  # after the guard; the wire then truncates to 1/256 N·m
-    np.testing.assert_allclose(sent, np.clip(expected, -constants.TORQUE_LIMIT_NM, constants.TORQUE_LIMIT_NM),
-                               atol=1e-3)
+    np.testing.assert_allclose(
+        sent, np.clip(expected, -constants.TORQUE_LIMIT_NM, constants.TORQUE_LIMIT_NM), atol=1e-3
+    )
 
 
 def test_the_simulated_go1_walks_forward_under_the_deployed_controller(robot, controller):
@@ -361,8 +424,15 @@ def test_a_replay_reports_how_the_robot_walked_in_each_trial(robot, controller):
     replay = robot_trials.ReplayTrials(params.midpoint(), 2000, protocol.TrialConfig(300, 600))
     result, _, _ = _run(robot, controller, schedule=replay)
     assert result.trip is None, result.events
-    tuned_for = dict(controller="vmc_tegotae", gait="trot", physics="go1", friction=0.6, slope_deg=0.0,
-                     payload_kg=0.0, target_velocity_mps=0.5)
+    tuned_for = dict(
+        controller="vmc_tegotae",
+        gait="trot",
+        physics="go1",
+        friction=0.6,
+        slope_deg=0.0,
+        payload_kg=0.0,
+        target_velocity_mps=0.5,
+    )
     rows = replay.rows(12.74, 0.5, 0, tuned_for)
     assert [r["trial"] for r in rows] == [0, 1]
     for r in rows:
@@ -375,12 +445,29 @@ def test_online_optimization_of_a_few_short_trials(robot, controller, tmp_path):
     """Random search stands in for the contextual BO (cpgjax.optim.bo) until that lands."""
     robot.reset()
     transport = go1_transport.LockstepTransport(robot.address)
-    tuned_for = dict(controller="vmc_tegotae", gait="trot", physics="go1", friction=0.6, slope_deg=0.0,
-                     payload_kg=0.0, target_velocity_mps=0.5)
+    tuned_for = dict(
+        controller="vmc_tegotae",
+        gait="trot",
+        physics="go1",
+        friction=0.6,
+        slope_deg=0.0,
+        payload_kg=0.0,
+        target_velocity_mps=0.5,
+    )
     spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), tuned_for)
     try:
-        result, rows, _ = robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
-                                                  params.midpoint(), 3, protocol.TrialConfig(300, 600), LOOP, SAFETY)
+        result, rows, _ = robot_trials.online_optimization(
+            transport,
+            controller,
+            deploy.sim_calibration(),
+            GATES,
+            spec,
+            params.midpoint(),
+            3,
+            protocol.TrialConfig(300, 600),
+            LOOP,
+            SAFETY,
+        )
     finally:
         transport.close()
     assert result.trip is None, result.events
@@ -407,19 +494,37 @@ def _optimize_with_a_fault(robot, controller, tmp_path, kind, value, recover):
     robot.reset()
     robot.inject(kind, value, after_ticks=RUN_STARTS_AT + 900 + 200, ticks=10**6)
     transport = go1_transport.LockstepTransport(robot.address)
-    tuned_for = dict(controller="vmc_tegotae", gait="trot", physics="go1", friction=0.6, slope_deg=0.0,
-                     payload_kg=0.0, target_velocity_mps=0.5)
+    tuned_for = dict(
+        controller="vmc_tegotae",
+        gait="trot",
+        physics="go1",
+        friction=0.6,
+        slope_deg=0.0,
+        payload_kg=0.0,
+        target_velocity_mps=0.5,
+    )
     spec = robot_trials.OptimizerSpec("random", 0, 0.5, True, 12.74, str(tmp_path), tuned_for)
     try:
-        return robot_trials.online_optimization(transport, controller, deploy.sim_calibration(), GATES, spec,
-                                                params.midpoint(), 3, protocol.TrialConfig(300, 600), LOOP, SAFETY,
-                                                recover=recover)
+        return robot_trials.online_optimization(
+            transport,
+            controller,
+            deploy.sim_calibration(),
+            GATES,
+            spec,
+            params.midpoint(),
+            3,
+            protocol.TrialConfig(300, 600),
+            LOOP,
+            SAFETY,
+            recover=recover,
+        )
     finally:
         transport.close()
 
 
-def test_a_tilt_stop_during_online_optimization_is_an_unsafe_trial_then_the_robot_stands_up(robot, controller,
-                                                                                             tmp_path):
+def test_a_tilt_stop_during_online_optimization_is_an_unsafe_trial_then_the_robot_stands_up(
+    robot, controller, tmp_path
+):
     """docs/decisions.md §17: the stop ends trial 1 as fallen, with a margin ≤ 0 and J at its minimum; the robot is
     put back on its feet (here the simulated Go1's reset, which also ends the push), stands up through the soft start
     and walks trial 2."""
@@ -473,16 +578,19 @@ def test_deploys_recovery_asks_the_operator_on_the_robot_and_rights_the_simulate
     monkeypatch.setattr("builtins.input", lambda prompt: prompts.append(prompt) or "")
     assert deploy.stand_up(None)(4, "tilt: roll +0.9 rad") and "trial 4" in prompts[0] and "Enter" in prompts[0]
     for interruption in (EOFError, KeyboardInterrupt):
+
         def refuse(prompt, interruption=interruption):
             raise interruption
+
         monkeypatch.setattr("builtins.input", refuse)
         assert not deploy.stand_up(None)(4, "tilt: roll +0.9 rad")
 
 
 def test_a_stop_not_caused_by_the_gait_still_ends_an_online_optimization(robot, controller, tmp_path):
     calls = []
-    result, rows, _ = _optimize_with_a_fault(robot, controller, tmp_path, "buttons", ["L2", "B"],
-                                             lambda trial, reason: calls.append(trial) or True)
+    result, rows, _ = _optimize_with_a_fault(
+        robot, controller, tmp_path, "buttons", ["L2", "B"], lambda trial, reason: calls.append(trial) or True
+    )
     assert result.trip is not None and "remote stop" in result.trip and calls == []
     assert [r["trial"] for r in rows] == [0] and not rows[0]["fell"] and result.safety_stops == ()
 
@@ -493,9 +601,27 @@ def test_deploy_optimize_starts_from_the_optimizers_random_proposal(tmp_path):
     import pyarrow.parquet as pq
 
     run = tmp_path / "run"
-    code = cli.main(["deploy", "--robot", "sim", "--sim-pacing", "lockstep", "--no-realtime", "--optimize",
-                     "--trials", "2", "--transition-s", "0.1", "--steady-s", "0.2", "--seed", "3",
-                     "--log-dir", str(run)])
+    code = cli.main(
+        [
+            "deploy",
+            "--robot",
+            "sim",
+            "--sim-pacing",
+            "lockstep",
+            "--no-realtime",
+            "--optimize",
+            "--trials",
+            "2",
+            "--transition-s",
+            "0.1",
+            "--steady-s",
+            "0.2",
+            "--seed",
+            "3",
+            "--log-dir",
+            str(run),
+        ]
+    )
     assert code == 0
     table = pq.read_table(run / "trials.parquet").to_pydict()
     first = np.array([table[name][0] for name in params.PARAM_NAMES])
@@ -505,12 +631,19 @@ def test_deploy_optimize_starts_from_the_optimizers_random_proposal(tmp_path):
     assert np.all((first >= params.PARAM_LOWER) & (first <= params.PARAM_UPPER))
     replayed = tuned.load(run / "best_params.json")
     assert replayed.params.shape == (8,)
-    assert replayed.tuned_for == dict(controller="vmc_tegotae", gait="trot", physics="go1", friction=0.6,
-                                      slope_deg=0.0, payload_kg=0.0,
-                                      target_velocity_mps=0.5)  # deploy's defaults, all recorded
+    assert replayed.tuned_for == dict(
+        controller="vmc_tegotae",
+        gait="trot",
+        physics="go1",
+        friction=0.6,
+        slope_deg=0.0,
+        payload_kg=0.0,
+        target_velocity_mps=0.5,
+    )  # deploy's defaults, all recorded
 
 
 # ------------------------------------------------------------------------------------- foot-force calibration
+
 
 def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robot, tmp_path):
     def lifted(hung_up):
@@ -522,8 +655,9 @@ def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robo
 
     transport = go1_transport.LockstepTransport(robot.address)
     try:
-        m = calibrate.measure(transport, deploy.robot_mass_kg(0.0), lifted, air_s=0.3, stand_s=0.5, settle_s=0.3,
-                              loop=LOOP, safety=SAFETY)
+        m = calibrate.measure(
+            transport, deploy.robot_mass_kg(0.0), lifted, air_s=0.3, stand_s=0.5, settle_s=0.3, loop=LOOP, safety=SAFETY
+        )
     finally:
         transport.close()
     true = deploy.sim_calibration()
@@ -535,8 +669,25 @@ def test_calibration_measured_through_the_simulated_go1_recovers_its_sensor(robo
 
 def test_deploy_calibrate_command_writes_the_file_the_loop_loads(tmp_path):
     out = tmp_path / "cal.json"
-    code = cli.main(["deploy", "calibrate", "--robot", "sim", "--sim-pacing", "lockstep", "--no-realtime",
-                     "--out", str(out), "--air-s", "0.3", "--stand-s", "0.5", "--settle-s", "0.3"])
+    code = cli.main(
+        [
+            "deploy",
+            "calibrate",
+            "--robot",
+            "sim",
+            "--sim-pacing",
+            "lockstep",
+            "--no-realtime",
+            "--out",
+            str(out),
+            "--air-s",
+            "0.3",
+            "--stand-s",
+            "0.5",
+            "--settle-s",
+            "0.3",
+        ]
+    )
     assert code == 0
     cal = foot_force.FootForceCalibration.load(out)
     np.testing.assert_array_equal(cal.offset_counts, deploy.sim_calibration().offset_counts)
@@ -563,8 +714,27 @@ def test_go1_profile_foot_sensor_is_recovered_by_deploy_calibrate(tmp_path):
     """The loopback Go1 under the go1 physics profile (latency, envelope, joint friction, quantized counts of the
     contact normal force): the calibration recovers the simulated sensor's offsets and scale."""
     out = tmp_path / "cal.json"
-    code = cli.main(["deploy", "calibrate", "--robot", "sim", "--physics", "go1", "--sim-pacing", "lockstep",
-                     "--no-realtime", "--out", str(out), "--air-s", "0.3", "--stand-s", "0.5", "--settle-s", "0.3"])
+    code = cli.main(
+        [
+            "deploy",
+            "calibrate",
+            "--robot",
+            "sim",
+            "--physics",
+            "go1",
+            "--sim-pacing",
+            "lockstep",
+            "--no-realtime",
+            "--out",
+            str(out),
+            "--air-s",
+            "0.3",
+            "--stand-s",
+            "0.5",
+            "--settle-s",
+            "0.3",
+        ]
+    )
     assert code == 0
     cal = foot_force.FootForceCalibration.load(out)
     np.testing.assert_array_equal(cal.offset_counts, sim.FOOT_FORCE_OFFSET_COUNTS)
@@ -626,6 +796,7 @@ def test_the_simulated_go1_motor_law():
 def test_a_lost_optimizer_process_ends_the_run_with_a_trip_and_damping(robot, controller, tmp_path):
     """The runner waits for trial 1's parameters from a process that is gone: the loop damps, and the run ends on a
     trip naming it, instead of an exception out of the 1 kHz loop (which would send no damping)."""
+
     class Gone:  # the loop's end of a pipe whose other end closed
         def poll(self, timeout=0.0):
             return True

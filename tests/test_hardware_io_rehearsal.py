@@ -63,8 +63,11 @@ def test_the_simulated_go1_reports_its_imu_as_the_numpy_attitude_defines_it():
     while it stands (soft profile: the contact normal force, no sensor noise)."""
     physics = sim.Go1Physics(physics="soft")
     stand_q_rad = go1_model.standing_qpos()[physics.ids.joint_qpos]
-    stand = sim.command_vector(wire.MotorCommand(np.full(12, wire.MODE_SERVO), stand_q_rad, np.zeros(12),
-                                                  np.zeros(12), np.full(12, 70.0), np.full(12, 1.5)))
+    stand = sim.command_vector(
+        wire.MotorCommand(
+            np.full(12, wire.MODE_SERVO), stand_q_rad, np.zeros(12), np.zeros(12), np.full(12, 70.0), np.full(12, 1.5)
+        )
+    )
     for _ in range(1500):  # settle on its feet under a standing PD command (1.5 s)
         physics.step(stand)
     state = sim.robot_state(physics.sense(), np.zeros(12), 7)
@@ -80,9 +83,25 @@ def test_the_simulated_go1_reports_its_imu_as_the_numpy_attitude_defines_it():
 
 
 def _deploy_args(**kw):
-    base = dict(robot="sim", transport=None, robot_ip="192.168.123.10", robot_port=8007, local_port=8082,
-                power_level=9, sim_pacing="realtime", friction=0.6, slope_deg=0.0, payload_kg=0.0, physics="go1",
-                seed=0, no_realtime=False, cpu=None, busy_wait=False, idle_halt=False, overwrite=False)
+    base = dict(
+        robot="sim",
+        transport=None,
+        robot_ip="192.168.123.10",
+        robot_port=8007,
+        local_port=8082,
+        power_level=9,
+        sim_pacing="realtime",
+        friction=0.6,
+        slope_deg=0.0,
+        payload_kg=0.0,
+        physics="go1",
+        seed=0,
+        no_realtime=False,
+        cpu=None,
+        busy_wait=False,
+        idle_halt=False,
+        overwrite=False,
+    )
     return RobotOptions(**{**base, **kw})
 
 
@@ -122,12 +141,19 @@ def test_deploy_puts_the_simulated_go1_on_the_loops_cpu_and_the_rest_elsewhere()
 def test_memory_lock_keeps_the_process_pages_resident():
     """In a child process (the lock is process-wide): after lock() the kernel counts locked memory, or lock() says
     why not."""
-    code = ("from cpgjax.robot import memory_lock; import numpy as np; note = memory_lock.lock(); "
-            "a = np.ones(1 << 20); "
-            "lck = [l for l in open('/proc/self/status') if l.startswith('VmLck')][0].split()[1]; "
-            "print(note, '|', lck)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                         env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    code = (
+        "from cpgjax.robot import memory_lock; import numpy as np; note = memory_lock.lock(); "
+        "a = np.ones(1 << 20); "
+        "lck = [l for l in open('/proc/self/status') if l.startswith('VmLck')][0].split()[1]; "
+        "print(note, '|', lck)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
     note, locked_kb = out.stdout.strip().splitlines()[-1].split(" | ")
     if note != "memory locked":
         assert note.startswith("memory not locked (")

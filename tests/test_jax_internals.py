@@ -10,13 +10,20 @@ from cpgjax import jax_internals
 
 
 def test_the_cpu_client_is_reported_missing_before_the_first_computation_and_present_after():
-    code = ("from cpgjax import jax_internals\n"
-            "before = jax_internals.cpu_client_exists()\n"
-            "import jax.numpy as jnp\n"
-            "jnp.zeros(1).block_until_ready()\n"
-            "print(before, jax_internals.cpu_client_exists())\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    code = (
+        "from cpgjax import jax_internals\n"
+        "before = jax_internals.cpu_client_exists()\n"
+        "import jax.numpy as jnp\n"
+        "jnp.zeros(1).block_until_ready()\n"
+        "print(before, jax_internals.cpu_client_exists())\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["False", "True"]
 

@@ -23,8 +23,9 @@ class Outer(NamedTuple):
     last: np.ndarray
 
 
-EXAMPLE = Outer(np.zeros(3, np.float32), Inner(np.zeros((2, 2), np.float32), np.zeros((), np.float32)),
-                np.zeros(4, np.float32))
+EXAMPLE = Outer(
+    np.zeros(3, np.float32), Inner(np.zeros((2, 2), np.float32), np.zeros((), np.float32)), np.zeros(4, np.float32)
+)
 
 
 def test_offsets_sizes_and_field_slices():

@@ -23,8 +23,10 @@ def test_model_names_and_mass():
     m = go1_model.load_model()
     ids = go1_model.indices()
     assert m.opt.timestep == pytest.approx(0.001)
-    assert [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n))
-            for n in go1_model.JOINT_NAMES] == list(go1_model.JOINT_NAMES)
+    assert [
+        mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n))
+        for n in go1_model.JOINT_NAMES
+    ] == list(go1_model.JOINT_NAMES)
     assert m.body_subtreemass[ids.trunk_body] == pytest.approx(13.10, abs=0.01)  # docs/go1-model.md: 13.10 kg
     np.testing.assert_allclose(m.actuator_ctrlrange[ids.actuator, 1], constants.TORQUE_LIMIT_NM)
     heavy = go1_model.model_with_payload(15.0)
@@ -37,11 +39,14 @@ def test_the_trunk_carries_the_four_hip_rotors_as_gazebo_lumps_them():
     rotors = "".join(
         f'<body pos="{0.11215 * sx} {0.04675 * sy} 0"><inertial pos="0 0 0" mass="0.089" '
         f'fullinertia="0.000111842 0.000059647 0.000059647 0 0 0"/></body>'
-        for sx in (1, -1) for sy in (1, -1))
+        for sx in (1, -1)
+        for sy in (1, -1)
+    )
     lumped = mujoco.MjModel.from_xml_string(
         '<mujoco><compiler fusestatic="true" inertiafromgeom="false"/><worldbody><body><freejoint/>'
         '<inertial pos="0.0223 0.002 -0.0005" mass="5.204" fullinertia="0.0168128557 0.063009565 0.0716547275 '
-        f'-0.0002296769 -0.0002945293 -0.0000418731"/>{rotors}</body></worldbody></mujoco>')
+        f'-0.0002296769 -0.0002945293 -0.0000418731"/>{rotors}</body></worldbody></mujoco>'
+    )
     assert lumped.nbody == 2  # the rotors are inside the trunk
     m = go1_model.load_model()
     trunk = go1_model.indices().trunk_body
@@ -50,6 +55,7 @@ def test_the_trunk_carries_the_four_hip_rotors_as_gazebo_lumps_them():
     np.testing.assert_allclose(m.body_inertia[trunk], lumped.body_inertia[1], rtol=1e-5)
     # The same principal axes (a quaternion and its negative are one rotation).
     assert abs(np.dot(m.body_iquat[trunk], lumped.body_iquat[1])) == pytest.approx(1.0, abs=1e-6)
+
 
 def test_c_mujoco_agrees_with_mjx_over_a_short_closed_loop_rollout(short_sim):
     """MJX (float32, JAX) and C MuJoCo (float64) driven by the same jitted controller for 300 ticks (0.3 s)."""
@@ -134,19 +140,29 @@ def test_objective_recomputed_for_a_new_target_from_a_stored_record(two_trials, 
     np.savez(tmp_path / "record.npz", **one._asdict())
     loaded = protocol.TrialRecord(**dict(np.load(tmp_path / "record.npz")))
     for target in (0.3, 0.5, 0.8):
-        assert float(objective.objective(loaded, target)) == pytest.approx(_reference_objective(one, target),
-                                                                             rel=1e-4, abs=1e-4)
+        assert float(objective.objective(loaded, target)) == pytest.approx(
+            _reference_objective(one, target), rel=1e-4, abs=1e-4
+        )
     assert float(objective.objective(loaded, 0.5)) == float(objective.objective(one, 0.5))
 
 
 def test_degenerate_trials_get_a_finite_floor():
     steps = 100
     base = protocol.TrialRecord(
-        velocity_xy_mps=np.tile([0.5, 0.0], (steps, 1)), energy_j=np.float32(2.0), distance_m=np.float32(0.05),
-        total_mass_kg=np.float32(12.74), c_load_n=np.float32(31.0), c_slope_rad=np.float32(0.0),
-        roll_mean_rad=np.float32(0), roll_std_rad=np.float32(0), pitch_std_rad=np.float32(0),
-        saturation_fraction=np.float32(0), fell=np.float32(0), failed=np.float32(0),
-        safety_margin=np.float32(1.0))
+        velocity_xy_mps=np.tile([0.5, 0.0], (steps, 1)),
+        energy_j=np.float32(2.0),
+        distance_m=np.float32(0.05),
+        total_mass_kg=np.float32(12.74),
+        c_load_n=np.float32(31.0),
+        c_slope_rad=np.float32(0.0),
+        roll_mean_rad=np.float32(0),
+        roll_std_rad=np.float32(0),
+        pitch_std_rad=np.float32(0),
+        saturation_fraction=np.float32(0),
+        fell=np.float32(0),
+        failed=np.float32(0),
+        safety_margin=np.float32(1.0),
+    )
     backwards = base._replace(velocity_xy_mps=np.tile([-0.5, 0.0], (steps, 1)), distance_m=np.float32(-0.05))
     nan = base._replace(energy_j=np.float32(np.nan))
     fell = base._replace(fell=np.float32(1.0))
@@ -187,8 +203,14 @@ assert len(state.data.qpos.sharding.device_set) == 2
 print(json.dumps({k: np.asarray(v).tolist() for k, v in record._asdict().items()}))
 """
     env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600,
-                         cwd=pathlib.Path(__file__).resolve().parents[1])
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=pathlib.Path(__file__).resolve().parents[1],
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     two = json.loads(out.stdout.strip().splitlines()[-1])
     _, one = two_trials

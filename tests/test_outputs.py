@@ -21,10 +21,11 @@ def documented(section: str) -> set[str]:
     """The names in the first cells of the table below ``<!-- columns: section -->`` (or ``keys:``) in
     docs/outputs.md; a row naming "the 8 CPG parameters" stands for their names."""
     lines = DOC.read_text().splitlines()
-    start = next(i for i, line in enumerate(lines) if re.fullmatch(rf"<!-- (columns|keys): {re.escape(section)} -->",
-                                                                    line))
+    start = next(
+        i for i, line in enumerate(lines) if re.fullmatch(rf"<!-- (columns|keys): {re.escape(section)} -->", line)
+    )
     names: set[str] = set()
-    for line in lines[start + 3:]:
+    for line in lines[start + 3 :]:
         if not line.startswith("|"):
             break
         first = line.split("|")[1]
@@ -47,8 +48,16 @@ def test_every_tick_log_column_is_documented_with_its_phase_codes():
 
 def test_every_parameter_file_key_is_documented(tmp_path):
     path = tmp_path / "best_params.json"
-    tuned.save(path, param_space.midpoint(), dict.fromkeys(tuned.TUNED_FOR), objective=1.0, trial=0, instance=0,
-               seed=0, study="friction")
+    tuned.save(
+        path,
+        param_space.midpoint(),
+        dict.fromkeys(tuned.TUNED_FOR),
+        objective=1.0,
+        trial=0,
+        instance=0,
+        seed=0,
+        study="friction",
+    )
     assert undocumented("best_params.json", json.loads(path.read_text())) == []
     assert tuned.load(path).tuned_for == {}  # nulls: nothing recorded
     np.testing.assert_allclose(tuned.load(path).params, param_space.midpoint())
@@ -78,8 +87,10 @@ def test_walk_out_writes_every_trial_documented(tmp_path, capsys, monkeypatch):
     short = protocol.TrialConfig(transition_steps=100, steady_steps=200)
     monkeypatch.setattr(walk, "walk_trials", functools.partial(walk.walk_trials, trial_config=short))
     out = tmp_path / "walk"
-    assert cli.main(["walk", "--controllers", "vmc,tegotae", "--trials", "3", "--backend", "native", "--out",
-                     str(out)]) == 0
+    assert (
+        cli.main(["walk", "--controllers", "vmc,tegotae", "--trials", "3", "--backend", "native", "--out", str(out)])
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "| walk | trial | controller |" in printed and "| 1 | 2 | tegotae |" in printed
     table = pq.read_table(out / "walk.parquet")
@@ -90,13 +101,20 @@ def test_walk_out_writes_every_trial_documented(tmp_path, capsys, monkeypatch):
     rows = table.to_pydict()
     assert rows["trial"] == [0, 1, 2, 0, 1, 2] and rows["controller"] == ["vmc"] * 3 + ["tegotae"] * 3
     assert cli.main(["show", str(out)]) == 0 and "a `cpgjax walk` folder" in capsys.readouterr().out
-    summary, _ = walk.walk(controllers=("vmc", "tegotae"), num_trials=3, backend="native", physics=("paper",),
-                           trial_config=short, progress=lambda _: None)
+    summary, _ = walk.walk(
+        controllers=("vmc", "tegotae"),
+        num_trials=3,
+        backend="native",
+        physics=("paper",),
+        trial_config=short,
+        progress=lambda _: None,
+    )
     for w, row in enumerate(summary):  # the same simulation: each walk's last trial
-        assert row.objective == rows["objective"][3 * w + 2] and row.falls == sum(rows["fell"][3 * w:3 * w + 3])
+        assert row.objective == rows["objective"][3 * w + 2] and row.falls == sum(rows["fell"][3 * w : 3 * w + 3])
 
 
 # ----------------------------------------------------------------------------------------------- the catalogue
+
 
 def _owners() -> dict[str, tuple]:
     """cpgjax module (dotted, below ``cpgjax``) → the entries it declares (its ``OUTPUTS``)."""
@@ -146,8 +164,12 @@ def test_docs_outputs_names_exactly_the_catalogues_files():
 
 def _example(name: str) -> str:
     """A file name of an entry's family (``NAME.air.ticks.arrows`` → ``go1_calibration.air.ticks.arrows``)."""
-    for family, example in (("<rank>of<N>.t<trial>", "0of2.t3"), ("<group>", "tegotae"), ("NAME", "go1_calibration"),
-                            ("*", "learning_curves")):
+    for family, example in (
+        ("<rank>of<N>.t<trial>", "0of2.t3"),
+        ("<group>", "tegotae"),
+        ("NAME", "go1_calibration"),
+        ("*", "learning_curves"),
+    ):
         name = name.replace(family, example)
     return name
 
@@ -188,12 +210,19 @@ def test_overwrite_removes_every_catalogue_file_and_no_other(tmp_path):
 def test_the_checks_find_each_kind_of_damage(tmp_path):
     from cpgjax import outputs
 
-    cases = {"a.json": (b"{", None), "b.png": (b"GIF89a", "not a PNG image"),
-             "c.mp4": (b"\0\0\0\x18ftypisom", "not a complete MP4 video"),
-             "d.rrd": (outputs.RRD_MAGIC + bytes(40), "truncated (no rerun footer"),
-             "e.rrd": (b"RIFF" + bytes(40), "not a rerun recording")}
-    checks = {".json": outputs.check_json, ".png": outputs.check_png, ".mp4": outputs.check_mp4,
-              ".rrd": outputs.check_recording}
+    cases = {
+        "a.json": (b"{", None),
+        "b.png": (b"GIF89a", "not a PNG image"),
+        "c.mp4": (b"\0\0\0\x18ftypisom", "not a complete MP4 video"),
+        "d.rrd": (outputs.RRD_MAGIC + bytes(40), "truncated (no rerun footer"),
+        "e.rrd": (b"RIFF" + bytes(40), "not a rerun recording"),
+    }
+    checks = {
+        ".json": outputs.check_json,
+        ".png": outputs.check_png,
+        ".mp4": outputs.check_mp4,
+        ".rrd": outputs.check_recording,
+    }
     for name, (data, problem) in cases.items():
         path = tmp_path / name
         path.write_bytes(data)
@@ -222,8 +251,14 @@ def test_no_file_name_is_written_out_outside_its_owner():
 
     package = pathlib.Path(cpgjax.__file__).parent
     owner = {e.name: module for module, entries in _owners().items() for e in entries if e.pattern is None}
-    beyond_its_imports = {tick_log.FILE_NAME, tick_log.RUN_FILE, deploy.TRUTH_FILE, deploy.CALIBRATION_FILE,
-                          robot_trials.RECORDING, transfer.EVALUATIONS}
+    beyond_its_imports = {
+        tick_log.FILE_NAME,
+        tick_log.RUN_FILE,
+        deploy.TRUTH_FILE,
+        deploy.CALIBRATION_FILE,
+        robot_trials.RECORDING,
+        transfer.EVALUATIONS,
+    }
     found = []
     for path in sorted(package.rglob("*.py")):
         module = ".".join(path.relative_to(package).with_suffix("").parts)

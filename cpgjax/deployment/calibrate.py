@@ -47,9 +47,15 @@ class Measurement(NamedTuple):
 
 STANDS = ("air", "standing")
 # Each stand's per-tick log, NAME.<stand>.ticks.arrows beside the calibration file NAME.json (tick_log_paths).
-STAND_LOGS = {stand: outputs.OutputFile(f"NAME.{stand}.{tick_log.FILE_NAME}", "the per-tick log of a calibration stand",
-                                        tick_log.check_tick_log,
-                                        pattern=rf".+\.{stand}\.{re.escape(tick_log.FILE_NAME)}") for stand in STANDS}
+STAND_LOGS = {
+    stand: outputs.OutputFile(
+        f"NAME.{stand}.{tick_log.FILE_NAME}",
+        "the per-tick log of a calibration stand",
+        tick_log.check_tick_log,
+        pattern=rf".+\.{stand}\.{re.escape(tick_log.FILE_NAME)}",
+    )
+    for stand in STANDS
+}
 OUTPUTS = tuple(STAND_LOGS.values())
 
 
@@ -66,8 +72,14 @@ def calibration_file(stand_log: Path) -> Path:
     return stand_log.with_name(stand_log.name.removesuffix(f".{stand}.{tick_log.FILE_NAME}") + ".json")
 
 
-def measure_counts(transport: go1_transport.Transport, measure_s: float, settle_s: float, loop: hio.LoopConfig,
-                   safety: go1_safety.SafetyConfig, tick_log_path: Path | None = None) -> np.ndarray:
+def measure_counts(
+    transport: go1_transport.Transport,
+    measure_s: float,
+    settle_s: float,
+    loop: hio.LoopConfig,
+    safety: go1_safety.SafetyConfig,
+    tick_log_path: Path | None = None,
+) -> np.ndarray:
     """Raw foot counts (K, 4) of the robot states received while the loop holds the standing pose, after the first
     ``settle_s`` of holding it. ``tick_log_path``: where the stand's per-tick log goes (None: not kept).
 
@@ -81,17 +93,24 @@ def measure_counts(transport: go1_transport.Transport, measure_s: float, settle_
         kept = "" if tick_log_path is None else f" (per-tick log {tick_log_path})"
         raise CalibrationError(f"the measuring stand stopped: {result.trip}{kept}")
     ticks = result.log
-    window = np.flatnonzero(ticks.phase == hio.STAND)[round(settle_s / loop.period_s):]
+    window = np.flatnonzero(ticks.phase == hio.STAND)[round(settle_s / loop.period_s) :]
     counts = ticks.foot_force_raw[window[ticks.fresh[window]]]
     if counts.shape[0] == 0:
         raise CalibrationError("no robot state arrived while measuring")
     return counts.astype(np.int64)
 
 
-def measure(transport: go1_transport.Transport, total_mass_kg: float, lifted: Callable[[bool], None],
-            air_s: float = 2.0, stand_s: float = 3.0, settle_s: float = 1.0, loop: hio.LoopConfig = hio.LoopConfig(),
-            safety: go1_safety.SafetyConfig = go1_safety.SafetyConfig(),
-            tick_logs: dict[str, Path] | None = None) -> Measurement:
+def measure(
+    transport: go1_transport.Transport,
+    total_mass_kg: float,
+    lifted: Callable[[bool], None],
+    air_s: float = 2.0,
+    stand_s: float = 3.0,
+    settle_s: float = 1.0,
+    loop: hio.LoopConfig = hio.LoopConfig(),
+    safety: go1_safety.SafetyConfig = go1_safety.SafetyConfig(),
+    tick_logs: dict[str, Path] | None = None,
+) -> Measurement:
     """The two measuring stands and the fit. ``lifted(True)`` must leave the robot hung up with its feet in the air,
     ``lifted(False)`` put it down on the ground (it stands up in the second stand). ``tick_logs``: each stand's
     per-tick log path (:func:`tick_log_paths`; None: not kept)."""
@@ -104,8 +123,11 @@ def measure(transport: go1_transport.Transport, total_mass_kg: float, lifted: Ca
 
 
 def _ask_operator(hung_up: bool) -> None:
-    input("Hang the robot up so that its four feet are in the air, then press Enter: " if hung_up else
-          "Put the robot down on the ground (lying or on its feet), then press Enter; it will stand up: ")
+    input(
+        "Hang the robot up so that its four feet are in the air, then press Enter: "
+        if hung_up
+        else "Put the robot down on the ground (lying or on its feet), then press Enter; it will stand up: "
+    )
 
 
 def _sim_lifter(server, lift_m: float) -> Callable[[bool], None]:
@@ -123,18 +145,26 @@ def run(options: CalibrateOptions) -> int:
     with deploy.connect(options) as (transport, server):
         lifted = _ask_operator if server is None else _sim_lifter(server, options.lift_m)
         try:
-            m = measure(transport, mass_kg, lifted, options.air_s, options.stand_s, options.settle_s, loop, safety,
-                        tick_logs)
+            m = measure(
+                transport, mass_kg, lifted, options.air_s, options.stand_s, options.settle_s, loop, safety, tick_logs
+            )
         except (CalibrationError, ValueError) as e:
             print(f"cpgjax deploy calibrate: {e}", file=sys.stderr)
             return 2
     standing_n = m.calibration.to_newtons(np.mean(m.standing_counts, axis=0))
-    m.calibration.save(options.out, robot=options.robot, total_mass_kg=mass_kg, air_samples=len(m.air_counts),
-                       standing_samples=len(m.standing_counts),
-                       air_counts_max=np.max(m.air_counts, axis=0).tolist(),
-                       standing_counts_mean=np.mean(m.standing_counts, axis=0).round(2).tolist(),
-                       standing_n=standing_n.round(2).tolist())
-    print(f"offsets {m.calibration.offset_counts} counts, {m.calibration.newton_per_count[0]:.4f} N/count; "
-          f"standing: {standing_n.round(1)} N per foot (sum {standing_n.sum():.1f} N = {mass_kg:.2f} kg · g); "
-          f"saved {options.out} (per-tick logs: {', '.join(str(p) for p in tick_logs.values())})")
+    m.calibration.save(
+        options.out,
+        robot=options.robot,
+        total_mass_kg=mass_kg,
+        air_samples=len(m.air_counts),
+        standing_samples=len(m.standing_counts),
+        air_counts_max=np.max(m.air_counts, axis=0).tolist(),
+        standing_counts_mean=np.mean(m.standing_counts, axis=0).round(2).tolist(),
+        standing_n=standing_n.round(2).tolist(),
+    )
+    print(
+        f"offsets {m.calibration.offset_counts} counts, {m.calibration.newton_per_count[0]:.4f} N/count; "
+        f"standing: {standing_n.round(1)} N per foot (sum {standing_n.sum():.1f} N = {mass_kg:.2f} kg · g); "
+        f"saved {options.out} (per-tick logs: {', '.join(str(p) for p in tick_logs.values())})"
+    )
     return 0

@@ -36,9 +36,15 @@ log = logging.getLogger(__name__)
 def loop_and_safety(options: RobotOptions) -> tuple[hio.LoopConfig, go1_safety.SafetyConfig]:
     """(LoopConfig, SafetyConfig) of the run's options (their safety limits checked when the options were
     made)."""
-    return (hio.LoopConfig(realtime_priority=None if options.no_realtime else LOOP_PRIORITY, cpu=loop_cpu(options),
-                           busy_wait=options.busy_wait, poll_idle=not options.idle_halt),
-            options.safety)
+    return (
+        hio.LoopConfig(
+            realtime_priority=None if options.no_realtime else LOOP_PRIORITY,
+            cpu=loop_cpu(options),
+            busy_wait=options.busy_wait,
+            poll_idle=not options.idle_halt,
+        ),
+        options.safety,
+    )
 
 
 LOOP_PRIORITY = 80  # SCHED_FIFO of the 1 kHz loop
@@ -66,8 +72,11 @@ def tick_log_writer(path, loop: hio.LoopConfig) -> tick_log.TickLogWriter:
     """The per-tick log's writer for ``loop``: on the other CPUs, and at real-time priority below the loop's when
     the loop has one (a writer thread that holds the GIL must not be preempted by the simulated Go1 while the loop
     waits for it)."""
-    return tick_log.TickLogWriter(path, cpus=hio.cpus_besides(loop.cpu),
-                                  realtime_priority=None if loop.realtime_priority is None else LOG_WRITER_PRIORITY)
+    return tick_log.TickLogWriter(
+        path,
+        cpus=hio.cpus_besides(loop.cpu),
+        realtime_priority=None if loop.realtime_priority is None else LOG_WRITER_PRIORITY,
+    )
 
 
 def robot_mass_kg(payload_kg: float) -> float:
@@ -85,18 +94,24 @@ def connect(options: RobotOptions):
         # virtual CPU stops both. Its clock's phase is locked to the loop's commands (sim_server.phase_correction),
         # so in the steady state its tick falls between the loop's command and the loop's next tick.
         cpu = loop_cpu(options)
-        server = sim.SimGo1Client(pacing=options.sim_pacing, friction=options.friction, slope_deg=options.slope_deg,
-                                  payload_kg=options.payload_kg,
-                                  realtime_priority=None if options.no_realtime else SIM_PRIORITY,
-                                  cpus=None if cpu is None else {cpu}, physics=options.physics,
-                                  noise_seed=options.seed)
+        server = sim.SimGo1Client(
+            pacing=options.sim_pacing,
+            friction=options.friction,
+            slope_deg=options.slope_deg,
+            payload_kg=options.payload_kg,
+            realtime_priority=None if options.no_realtime else SIM_PRIORITY,
+            cpus=None if cpu is None else {cpu},
+            physics=options.physics,
+            noise_seed=options.seed,
+        )
         ip, port, local_port = server.address[0], server.port, 0
     else:
         ip, port, local_port = options.robot_ip, options.robot_port, options.local_port
     try:
         if (options.transport or ("sdk" if options.robot == "go1" else "udp")) == "sdk":
-            transport = go1_transport.SdkTransport(ip, port, local_port or _free_port(),
-                                                   power_level=options.power_level)
+            transport = go1_transport.SdkTransport(
+                ip, port, local_port or _free_port(), power_level=options.power_level
+            )
         elif options.robot == "sim" and options.sim_pacing == "lockstep":
             transport = go1_transport.LockstepTransport((ip, port))
         else:
@@ -112,8 +127,9 @@ def connect(options: RobotOptions):
 
 def sim_calibration():
     """The simulated Go1's foot-sensor calibration (its offsets and scale are known by construction)."""
-    return foot_force.FootForceCalibration(sim.FOOT_FORCE_OFFSET_COUNTS.astype(np.float64),
-                                    np.full(4, sim.FOOT_FORCE_N_PER_COUNT))
+    return foot_force.FootForceCalibration(
+        sim.FOOT_FORCE_OFFSET_COUNTS.astype(np.float64), np.full(4, sim.FOOT_FORCE_N_PER_COUNT)
+    )
 
 
 def run(options: DeployOptions) -> int:
@@ -125,21 +141,40 @@ def run(options: DeployOptions) -> int:
     loop, safety = loop_and_safety(options)
     options.log_dir.mkdir(parents=True, exist_ok=True)
     calibration = sim_calibration() if options.calibration is None else options.calibration
-    log.info("foot-force calibration: offsets %s counts, %s N/count", calibration.offset_counts,
-             calibration.newton_per_count)
+    log.info(
+        "foot-force calibration: offsets %s counts, %s N/count", calibration.offset_counts, calibration.newton_per_count
+    )
     calibration.save(options.log_dir / CALIBRATION_FILE)
     hint = stale_hint(options)
-    with (connect(options) as (transport, server),
-          tick_log_writer(options.log_dir / tick_log.FILE_NAME, loop) as ticks):
+    with connect(options) as (transport, server), tick_log_writer(options.log_dir / tick_log.FILE_NAME, loop) as ticks:
         controller = compiled_controller.CompiledController(cpg.with_startup(cpg.CPGConfig(), options.startup))
         start_xy = None if server is None else server.stats()["trunk_xy_m"]
         if options.optimize:
-            spec = OptimizerSpec(options.optimizer, options.seed, options.target_velocity_mps, bool(gates.tegotae),
-                                 robot_mass_kg(options.payload_kg), str(options.log_dir), tuned_for(options),
-                                 safe=options.safe)
-            result, rows, windows = online_optimization(transport, controller, calibration, gates, spec, params,
-                                                        options.trials, timing, loop, safety, ticks, hint,
-                                                        recover=stand_up(server))
+            spec = OptimizerSpec(
+                options.optimizer,
+                options.seed,
+                options.target_velocity_mps,
+                bool(gates.tegotae),
+                robot_mass_kg(options.payload_kg),
+                str(options.log_dir),
+                tuned_for(options),
+                safe=options.safe,
+            )
+            result, rows, windows = online_optimization(
+                transport,
+                controller,
+                calibration,
+                gates,
+                spec,
+                params,
+                options.trials,
+                timing,
+                loop,
+                safety,
+                ticks,
+                hint,
+                recover=stand_up(server),
+            )
         else:
             replay = ReplayTrials(params, constants.ticks(options.duration_s), timing)
             result = hio.run_loop(transport, controller, replay, calibration, gates, loop, safety, ticks, hint)
@@ -149,8 +184,9 @@ def run(options: DeployOptions) -> int:
             truth = dict(trunk_start_xy_m=start_xy, trunk_end_xy_m=server.stats()["trunk_xy_m"])
             server.save_truth(options.log_dir / TRUTH_FILE)
     if not options.optimize:  # the figures after the loop: the robot is damped
-        rows = replay.rows(robot_mass_kg(options.payload_kg), options.target_velocity_mps, options.seed,
-                           tuned_for(options))
+        rows = replay.rows(
+            robot_mass_kg(options.payload_kg), options.target_velocity_mps, options.seed, tuned_for(options)
+        )
     if server is not None:
         rows = with_truth(rows, windows, options.log_dir)
     if rows:
@@ -163,9 +199,12 @@ def run(options: DeployOptions) -> int:
 
 TRUTH_FILE = "sim_truth.parquet"
 CALIBRATION_FILE = "calibration.json"  # the foot-force calibration a run used, copied into its folder
-OUTPUTS = (outputs.OutputFile(TRUTH_FILE, "the simulated Go1's true trunk state, one row per physics step",
-                              outputs.check_parquet),
-           outputs.OutputFile(CALIBRATION_FILE, "the foot-force calibration the run used", outputs.check_json))
+OUTPUTS = (
+    outputs.OutputFile(
+        TRUTH_FILE, "the simulated Go1's true trunk state, one row per physics step", outputs.check_parquet
+    ),
+    outputs.OutputFile(CALIBRATION_FILE, "the foot-force calibration the run used", outputs.check_json),
+)
 
 
 def first_params(options: DeployOptions) -> np.ndarray | None:
@@ -188,34 +227,47 @@ def what_ran(options: DeployOptions, rows: list[dict]) -> dict:
     conditions (friction and slope the simulated Go1's, null on the Go1), v*, each trial's timing, the parameter
     file, the first parameters by name (:func:`first_params`) and each trial's (``rows``) with --optimize."""
     timing, params = trial_timing(options), first_params(options)
-    return {"mode": "optimize" if options.optimize else "replay", "robot": options.robot, **tuned_for(options),
-            "physics": options.physics if options.robot == "sim" else "robot", "startup": options.startup,
-            "transition_s": constants.seconds(timing.transition_steps),
-            "steady_s": constants.seconds(timing.steady_steps),
-            "duration_s": None if options.optimize else options.duration_s,
-            "num_trials": options.trials if options.optimize else None,
-            "optimizer": options.optimizer if options.optimize else None, "seed": options.seed,
-            "params_file": options.params_path,
-            "params": None if params is None else param_space.as_dict(params),
-            "trial_params": [{"trial": row["trial"], **{name: row[name] for name in param_space.PARAM_NAMES}}
-                             for row in rows] if options.optimize else None}
+    return {
+        "mode": "optimize" if options.optimize else "replay",
+        "robot": options.robot,
+        **tuned_for(options),
+        "physics": options.physics if options.robot == "sim" else "robot",
+        "startup": options.startup,
+        "transition_s": constants.seconds(timing.transition_steps),
+        "steady_s": constants.seconds(timing.steady_steps),
+        "duration_s": None if options.optimize else options.duration_s,
+        "num_trials": options.trials if options.optimize else None,
+        "optimizer": options.optimizer if options.optimize else None,
+        "seed": options.seed,
+        "params_file": options.params_path,
+        "params": None if params is None else param_space.as_dict(params),
+        "trial_params": [
+            {"trial": row["trial"], **{name: row[name] for name in param_space.PARAM_NAMES}} for row in rows
+        ]
+        if options.optimize
+        else None,
+    }
 
 
 def stand_up(server: sim.SimGo1Client | None):
     """How an online optimization recovers from a safety stop that its gait caused (``trials.Recover``): the
     simulated Go1 is put back on its feet; on a real Go1 the operator is asked to, and nothing moves until they
     press Enter (end of input or Ctrl-C ends the run). The loop's soft start then stands the robot up."""
+
     def recover(trial: int, reason: str) -> bool:
         if server is not None:
             server.upright()
             return True
         try:
-            input(f"trial {trial} ended with a safety stop ({reason}); the motors are damped. Put the robot on its "
-                  "feet, then press Enter to stand it up for the next trial (Ctrl-C ends the run): ")
+            input(
+                f"trial {trial} ended with a safety stop ({reason}); the motors are damped. Put the robot on its "
+                "feet, then press Enter to stand it up for the next trial (Ctrl-C ends the run): "
+            )
         except (EOFError, KeyboardInterrupt):
             log.info("no recovery: the run ends after trial %d", trial)
             return False
         return True
+
     return recover
 
 
@@ -241,17 +293,23 @@ def tuned_for(options: DeployOptions) -> dict:
     """What a run's ``best_params.json`` records it was tuned for (:mod:`cpgjax.trial.tuned`): on the simulated Go1
     its physics profile and scenario; on the robot only the payload, the floor's friction and slope being unknown."""
     sim_only = dict(physics=options.physics, friction=options.friction, slope_deg=options.slope_deg)
-    return dict(controller=options.controller, gait=options.gait, target_velocity_mps=options.target_velocity_mps,
-                payload_kg=options.payload_kg,
-                **(sim_only if options.robot == "sim" else dict.fromkeys(sim_only)))
+    return dict(
+        controller=options.controller,
+        gait=options.gait,
+        target_velocity_mps=options.target_velocity_mps,
+        payload_kg=options.payload_kg,
+        **(sim_only if options.robot == "sim" else dict.fromkeys(sim_only)),
+    )
 
 
 def stale_hint(options: RobotOptions) -> str:
     """What a stale-state trip adds to its reason: with the simulated Go1 in real time, where lockstep goes."""
     if options.robot != "sim" or options.sim_pacing != "realtime":
         return ""
-    return (" (the simulated Go1 shares this machine's CPUs and did not keep time; `--sim-pacing lockstep` runs "
-            "without deadlines, docs/hardware.md)")
+    return (
+        " (the simulated Go1 shares this machine's CPUs and did not keep time; `--sim-pacing lockstep` runs "
+        "without deadlines, docs/hardware.md)"
+    )
 
 
 WALKED = ("trial", "objective", "velocity_x_mps", "distance_m", "cost_of_transport", "c_load_n", "c_slope_rad")
@@ -261,16 +319,18 @@ TRUE = ("true_velocity_x_mps", "true_velocity_y_mps", "true_distance_m")  # the 
 def walked_line(row: dict) -> str:
     if row.get("safety_stop"):
         return f"trial {row['trial']}: ended by a safety stop ({row['safety_stop']}), learned as unsafe"
-    line = (f"trial {row['trial']}: J {row['objective']:.3f}, v_x {row['velocity_x_mps']:.3f} m/s, "
-            f"{row['distance_m']:.2f} m in its steady phase, CoT {row['cost_of_transport']:.3f}")
+    line = (
+        f"trial {row['trial']}: J {row['objective']:.3f}, v_x {row['velocity_x_mps']:.3f} m/s, "
+        f"{row['distance_m']:.2f} m in its steady phase, CoT {row['cost_of_transport']:.3f}"
+    )
     if row.get("true_velocity_x_mps") is not None:
-        line += (f" (the simulated Go1's truth: v_x {row['true_velocity_x_mps']:.3f} m/s, "
-                 f"{row['true_distance_m']:.2f} m)")
+        line += (
+            f" (the simulated Go1's truth: v_x {row['true_velocity_x_mps']:.3f} m/s, {row['true_distance_m']:.2f} m)"
+        )
     return line
 
 
-def report(options: DeployOptions, result: hio.LoopResult, rows: list[dict] = (),
-           truth: dict | None = None) -> int:
+def report(options: DeployOptions, result: hio.LoopResult, rows: list[dict] = (), truth: dict | None = None) -> int:
     """Write ``run.json`` (how the run ended, how the robot walked in each complete trial, its timing, what it walked
     (:func:`what_ran`), and what ran it: the command line, cpgjax's version and commit, the machine) and print how
     the run ended, each trial's J, velocity, distance and CoT (from the robot's own sensors) and the timing. Returns
@@ -278,36 +338,63 @@ def report(options: DeployOptions, result: hio.LoopResult, rows: list[dict] = ()
     simulated Go1's true trunk position before and after the loop (its own state, beside the robot's estimate),
     None on the robot."""
     lockstep = options.robot == "sim" and options.sim_pacing == "lockstep"
-    summary = {"trip": result.trip, "stopped": result.stopped, "events": result.events,
-               "safety_stops": [{"tick": tick, "reason": reason} for tick, reason in result.safety_stops],
-               "realtime": result.realtime,
-               "pacing": "lockstep" if lockstep else "realtime", "rejected_packets": result.rejected_packets,
-               "trials": [{k: _finite_or_none(row[k]) for k in (*WALKED, *TRUE) if k in row} for row in rows],
-               "sim_truth": truth, "ran": what_ran(options, rows),
-               "timing": result.timing(), "command": options.command_line,
-               "cpgjax_version": cpgjax.__version__, "git_commit": provenance.git_commit(),
-               "environment": provenance.environment()}
+    summary = {
+        "trip": result.trip,
+        "stopped": result.stopped,
+        "events": result.events,
+        "safety_stops": [{"tick": tick, "reason": reason} for tick, reason in result.safety_stops],
+        "realtime": result.realtime,
+        "pacing": "lockstep" if lockstep else "realtime",
+        "rejected_packets": result.rejected_packets,
+        "trials": [{k: _finite_or_none(row[k]) for k in (*WALKED, *TRUE) if k in row} for row in rows],
+        "sim_truth": truth,
+        "ran": what_ran(options, rows),
+        "timing": result.timing(),
+        "command": options.command_line,
+        "cpgjax_version": cpgjax.__version__,
+        "git_commit": provenance.git_commit(),
+        "environment": provenance.environment(),
+    }
     (options.log_dir / tick_log.RUN_FILE).write_text(json.dumps(summary, indent=1, default=str))
-    ended = (f"safety trip: {result.trip}" if result.trip else "stopped by Ctrl-C (damped)" if result.stopped
-             else "clean end")
+    ended = (
+        f"safety trip: {result.trip}"
+        if result.trip
+        else "stopped by Ctrl-C (damped)"
+        if result.stopped
+        else "clean end"
+    )
     if result.safety_stops:
-        ended += (f" after {len(result.safety_stops)} safety stop(s) learned as unsafe trials, each followed by a "
-                  "stand-up: " + "; ".join(reason for _, reason in result.safety_stops))
-    shared = ("\nthe simulated Go1 shared the loop's CPU: its ticks are in these figures "
-              "(the loop on a CPU of its own: benchmarks/hardware_loop.py)"
-              if options.robot == "sim" and not lockstep and loop_cpu(options) is not None else "")
+        ended += (
+            f" after {len(result.safety_stops)} safety stop(s) learned as unsafe trials, each followed by a "
+            "stand-up: " + "; ".join(reason for _, reason in result.safety_stops)
+        )
+    shared = (
+        "\nthe simulated Go1 shared the loop's CPU: its ticks are in these figures "
+        "(the loop on a CPU of its own: benchmarks/hardware_loop.py)"
+        if options.robot == "sim" and not lockstep and loop_cpu(options) is not None
+        else ""
+    )
     if truth is not None:
         moved = np.subtract(truth["trunk_end_xy_m"], truth["trunk_start_xy_m"])
-        truth_line = (f"\nthe simulated Go1's true trunk moved {moved[0]:+.2f} m along x, {moved[1]:+.2f} m along y "
-                      f"over the whole run")
+        truth_line = (
+            f"\nthe simulated Go1's true trunk moved {moved[0]:+.2f} m along x, {moved[1]:+.2f} m along y "
+            f"over the whole run"
+        )
     else:
         truth_line = ""
-    walked = ("\n".join(walked_line(row) for row in rows) if rows else
-              "no trial completed (a trial is 1.5 s of settling then 3 s measured)" if not options.optimize else
-              "no trial completed")
+    walked = (
+        "\n".join(walked_line(row) for row in rows)
+        if rows
+        else "no trial completed (a trial is 1.5 s of settling then 3 s measured)"
+        if not options.optimize
+        else "no trial completed"
+    )
     # the run's outcome on stdout (its progress was logged on stderr)
-    print(f"{ended}; per-tick log {options.log_dir / tick_log.FILE_NAME}\nhow the robot walked (its own sensors):\n"
-          f"{walked}{truth_line}\n{hio.timing_table(summary['timing'], deadlines=not lockstep)}{shared}", flush=True)
+    print(
+        f"{ended}; per-tick log {options.log_dir / tick_log.FILE_NAME}\nhow the robot walked (its own sensors):\n"
+        f"{walked}{truth_line}\n{hio.timing_table(summary['timing'], deadlines=not lockstep)}{shared}",
+        flush=True,
+    )
     return 2 if result.trip else 130 if result.stopped else 0
 
 
@@ -320,4 +407,3 @@ def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-

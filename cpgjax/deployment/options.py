@@ -69,9 +69,14 @@ class RobotOptions:
 
     def rules(self) -> list[tuple[tuple[str, ...], bool, str]]:
         """(fields, whether giving any of them is refused, why) of each class of options that may not apply."""
-        return [(GO1_ONLY, self.robot == "sim",
-                 "to --robot go1 only (the simulated Go1 listens on 127.0.0.1 on a port of its own)"),
-                (self.sim_only, self.robot == "go1", "to --robot sim only")]
+        return [
+            (
+                GO1_ONLY,
+                self.robot == "sim",
+                "to --robot go1 only (the simulated Go1 listens on 127.0.0.1 on a port of its own)",
+            ),
+            (self.sim_only, self.robot == "go1", "to --robot sim only"),
+        ]
 
     def missing(self) -> str | None:
         """What the chosen robot needs and the options lack; None if nothing."""
@@ -131,10 +136,15 @@ class DeployOptions(RobotOptions):
             foot_force.check_calibration(self.calibration)
 
     def rules(self) -> list[tuple[tuple[str, ...], bool, str]]:
-        return [*super().rules(),
-                (("trials", "optimizer", "transition_s", "steady_s"), not self.optimize,
-                 "to --optimize only (a replay walks one set of parameters for --duration-s)"),
-                (("duration_s",), self.optimize, "to a replay only (--optimize runs --trials trials)")]
+        return [
+            *super().rules(),
+            (
+                ("trials", "optimizer", "transition_s", "steady_s"),
+                not self.optimize,
+                "to --optimize only (a replay walks one set of parameters for --duration-s)",
+            ),
+            (("duration_s",), self.optimize, "to a replay only (--optimize runs --trials trials)"),
+        ]
 
     def missing(self) -> str | None:
         if self.robot == "go1" and self.calibration is None:

@@ -33,23 +33,44 @@ FILE_NAME = "ticks.arrows"
 RUN_FILE = "run.json"  # how a deploy run ended, its timing and what ran it (cpgjax.deployment.deploy writes it)
 # Column (TickLog field, or derived) → Arrow type, for the columns that are written as they are.
 _SCALARS = {
-    "late_s": pa.float32(), "step_s": pa.float32(), "work_s": pa.float32(), "work_cpu_s": pa.float32(),
-    "overrun": pa.bool_(), "phase": pa.int8(), "fresh": pa.bool_(), "robot_tick_ms": pa.uint32(),
-    "stale_ticks": pa.int32(), "power_counter": pa.int16(), "trial": pa.int16(), "command_kp": pa.float32(),
+    "late_s": pa.float32(),
+    "step_s": pa.float32(),
+    "work_s": pa.float32(),
+    "work_cpu_s": pa.float32(),
+    "overrun": pa.bool_(),
+    "phase": pa.int8(),
+    "fresh": pa.bool_(),
+    "robot_tick_ms": pa.uint32(),
+    "stale_ticks": pa.int32(),
+    "power_counter": pa.int16(),
+    "trial": pa.int16(),
+    "command_kp": pa.float32(),
     "command_kd": pa.float32(),
 }
 _VECTORS = {  # (n, width) fields, stored as fixed-size lists
-    "q_rad": 12, "dq_rad_s": 12, "quaternion_wxyz": 4, "gyro_rad_s": 3, "foot_force_raw": 4, "obs": OBSERVATION.size,
-    "command_q_rad": 12, "torque_nm": 12, "controller_torque_nm": 12,
+    "q_rad": 12,
+    "dq_rad_s": 12,
+    "quaternion_wxyz": 4,
+    "gyro_rad_s": 3,
+    "foot_force_raw": 4,
+    "obs": OBSERVATION.size,
+    "command_q_rad": 12,
+    "torque_nm": 12,
+    "controller_torque_nm": 12,
 }
 _DESCRIPTION = {
-    "tick": "loop tick since the start of the loop", "t_s": "start of the tick [s] since the loop's first tick",
-    "late_s": "start of the tick − its deadline [s]", "phase": "loop phase: " + ", ".join(
-        f"{i} {name}" for i, name in enumerate(hio.PHASE_NAMES)),
-    "fresh": "a new robot state arrived this tick", "stale_ticks": "ticks without a new robot tick (watchdog)",
-    "power_counter": "the power-protection counter", "trial": "the trial the parameters belong to",
-    "q_rad": "latest robot state: joint angles", "obs": "observation given to the controller (run phase)",
-    "torque_nm": "torque sent (after the guard)", "command_q_rad": "position target sent (PosStopF: off)",
+    "tick": "loop tick since the start of the loop",
+    "t_s": "start of the tick [s] since the loop's first tick",
+    "late_s": "start of the tick − its deadline [s]",
+    "phase": "loop phase: " + ", ".join(f"{i} {name}" for i, name in enumerate(hio.PHASE_NAMES)),
+    "fresh": "a new robot state arrived this tick",
+    "stale_ticks": "ticks without a new robot tick (watchdog)",
+    "power_counter": "the power-protection counter",
+    "trial": "the trial the parameters belong to",
+    "q_rad": "latest robot state: joint angles",
+    "obs": "observation given to the controller (run phase)",
+    "torque_nm": "torque sent (after the guard)",
+    "command_q_rad": "position target sent (PosStopF: off)",
     "controller_torque_nm": "torque the controller returned (run phase, before the guard)",
 }
 
@@ -57,8 +78,10 @@ _DESCRIPTION = {
 def schema() -> pa.Schema:
     fields = [pa.field("tick", pa.int64()), pa.field("t_s", pa.float64())]
     fields += [pa.field(name, kind) for name, kind in _SCALARS.items()]
-    fields += [pa.field(name, pa.list_(pa.int16() if name == "foot_force_raw" else pa.float32(), width))
-               for name, width in _VECTORS.items()]
+    fields += [
+        pa.field(name, pa.list_(pa.int16() if name == "foot_force_raw" else pa.float32(), width))
+        for name, width in _VECTORS.items()
+    ]
     return pa.schema(fields, metadata={"columns": json.dumps(_DESCRIPTION)})
 
 
@@ -178,8 +201,10 @@ def summarize_run(run_dir: Path) -> str:
         run = None
     lines = [f"deploy run {run_dir}", f"ended: {damaged or end_reason(run)}"]
     if run is not None and run.get("command"):
-        lines.append(f"command: {run['command']} (cpgjax {run.get('cpgjax_version')}, commit {run.get('git_commit')}, "
-                     f"scheduling: {run.get('realtime')})")
+        lines.append(
+            f"command: {run['command']} (cpgjax {run.get('cpgjax_version')}, commit {run.get('git_commit')}, "
+            f"scheduling: {run.get('realtime')})"
+        )
     if run is not None and run.get("events"):
         tick, phase, message = run["events"][-1]
         lines.append(f"last event: tick {tick}, {phase} ({message})")
@@ -189,26 +214,37 @@ def summarize_run(run_dir: Path) -> str:
         return "\n".join(lines)
     table, complete = read_tick_log(path)
     n = table.num_rows
-    lines.append(f"per-tick log {path.name}: {n} ticks ({constants.seconds(n):.1f} s)" + ("" if complete else
-                 ", truncated: its writer stopped mid-batch (the complete batches are shown)"))
+    lines.append(
+        f"per-tick log {path.name}: {n} ticks ({constants.seconds(n):.1f} s)"
+        + ("" if complete else ", truncated: its writer stopped mid-batch (the complete batches are shown)")
+    )
     if n == 0:
         return "\n".join(lines)
     phase = table["phase"].to_numpy()
-    spans = [f"{name} {constants.seconds(np.sum(phase == i)):.2f} s" for i, name in enumerate(hio.PHASE_NAMES)
-             if np.any(phase == i)]
+    spans = [
+        f"{name} {constants.seconds(np.sum(phase == i)):.2f} s"
+        for i, name in enumerate(hio.PHASE_NAMES)
+        if np.any(phase == i)
+    ]
     lines.append("time per phase: " + ", ".join(spans))
     last = table.slice(n - 1)
-    lines.append(f"last tick: {last['tick'][0].as_py()}, phase {hio.PHASE_NAMES[last['phase'][0].as_py()]}, "
-                 f"trial {last['trial'][0].as_py()}")
+    lines.append(
+        f"last tick: {last['tick'][0].as_py()}, phase {hio.PHASE_NAMES[last['phase'][0].as_py()]}, "
+        f"trial {last['trial'][0].as_py()}"
+    )
     active = phase > hio.CONNECT
     late_us = table["late_s"].to_numpy()[active] * 1e6
     work_us = table["work_s"].to_numpy()[active] * 1e6
     if late_us.size:
-        lines.append(f"lateness p99 {np.percentile(late_us, 99):.0f} µs, max {late_us.max():.0f} µs; tick work p99 "
-                     f"{np.percentile(work_us, 99):.0f} µs; overruns {int(table['overrun'].to_numpy().sum())}")
+        lines.append(
+            f"lateness p99 {np.percentile(late_us, 99):.0f} µs, max {late_us.max():.0f} µs; tick work p99 "
+            f"{np.percentile(work_us, 99):.0f} µs; overruns {int(table['overrun'].to_numpy().sum())}"
+        )
     stale = table["stale_ticks"].to_numpy()[active]
-    lines.append(f"watchdog: longest wait for a new robot tick {int(stale.max()) if stale.size else 0} ticks; "
-                 f"trials reached {int(table['trial'].to_numpy().max()) + 1}")
+    lines.append(
+        f"watchdog: longest wait for a new robot tick {int(stale.max()) if stale.size else 0} ticks; "
+        f"trials reached {int(table['trial'].to_numpy().max()) + 1}"
+    )
     trials_file = run_dir / outputs.TRIALS
     if trials_file.exists():
         import pyarrow.parquet as pq
@@ -222,5 +258,7 @@ def check_tick_log(path: Path) -> str | None:
     return None if read_tick_log(path)[1] else "truncated (its writer stopped mid-batch)"
 
 
-OUTPUTS = (outputs.OutputFile(FILE_NAME, "the 1 kHz loop's per-tick log", check_tick_log),
-           outputs.OutputFile(RUN_FILE, "how the robot run ended, its timing and what ran it", outputs.check_json))
+OUTPUTS = (
+    outputs.OutputFile(FILE_NAME, "the 1 kHz loop's per-tick log", check_tick_log),
+    outputs.OutputFile(RUN_FILE, "how the robot run ended, its timing and what ran it", outputs.check_json),
+)

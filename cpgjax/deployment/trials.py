@@ -85,8 +85,9 @@ class RandomSearch:
         self._active = param_space.active_parameters(tegotae)
 
     def propose(self, context: np.ndarray) -> np.ndarray:
-        return param_space.hold_inactive(param_space.from_unit(self._rng.uniform(size=param_space.NUM_PARAMS)),
-                                         self._active)
+        return param_space.hold_inactive(
+            param_space.from_unit(self._rng.uniform(size=param_space.NUM_PARAMS)), self._active
+        )
 
     def observe(self, params, context, record, objective) -> None:
         pass
@@ -111,26 +112,37 @@ class BayesianOptimizer:
         self._key, key = jax.random.split(self._key)
         x, fell_back = self._opt.propose_with_fallback(self._state, jnp.asarray(context, jnp.float32), key)
         if bool(fell_back):
-            log.info("no parameters certified safe for context (%.1f N, %.3f rad): the safe trial with the highest "
-                     "expected margin there is repeated", *np.asarray(context, np.float64))
+            log.info(
+                "no parameters certified safe for context (%.1f N, %.3f rad): the safe trial with the highest "
+                "expected margin there is repeated",
+                *np.asarray(context, np.float64),
+            )
         return np.asarray(x, np.float64)
 
     def _margin(self, record):
         return jnp.asarray(record.safety_margin, jnp.float32) if self._safe else None
 
     def observe(self, params, context, record, objective) -> None:
-        self._state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
-                                           jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32),
-                                           self._margin(record))
+        self._state, _ = self._opt.observe(
+            self._state,
+            jnp.asarray(params, jnp.float32),
+            jnp.asarray(context, jnp.float32),
+            jnp.asarray(objective, jnp.float32),
+            self._margin(record),
+        )
 
     def warm_up(self, params, context, record, objective) -> None:
         """Compile ``observe`` and ``propose`` on a throwaway state, and the key's split (13.4 s on a 2-core
         machine), before the robot walks: compiled during a trial, they would hold the robot on its old parameters
         and take the CPUs from the loop (and from a simulated robot on the same machine). The state and the key stay
         as they were."""
-        state, _ = self._opt.observe(self._state, jnp.asarray(params, jnp.float32),
-                                     jnp.asarray(context, jnp.float32), jnp.asarray(objective, jnp.float32),
-                                     self._margin(record))
+        state, _ = self._opt.observe(
+            self._state,
+            jnp.asarray(params, jnp.float32),
+            jnp.asarray(context, jnp.float32),
+            jnp.asarray(objective, jnp.float32),
+            self._margin(record),
+        )
         _, key = jax.random.split(self._key)  # as propose splits it (the split and the unpacking are compiled)
         jax.block_until_ready(self._opt.propose_with_fallback(state, jnp.asarray(context, jnp.float32), key))
 
@@ -151,8 +163,12 @@ class OptimizerSpec(NamedTuple):
     safe: bool = False  # the safe BO (kind "bo" only; docs/decisions.md §17)
 
 
-def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = TICK_S,
-                 timing: protocol.TrialConfig = protocol.TrialConfig()) -> protocol.TrialRecord:
+def trial_record(
+    signals: np.ndarray,
+    total_mass_kg: float,
+    dt_s: float = TICK_S,
+    timing: protocol.TrialConfig = protocol.TrialConfig(),
+) -> protocol.TrialRecord:
     """The trial record of the steady phase's per-tick robot signals (T, len(_SIGNALS)), summarized by
     ``protocol.summarize`` exactly as in simulation.
 
@@ -163,8 +179,17 @@ def trial_record(signals: np.ndarray, total_mass_kg: float, dt_s: float = TICK_S
     s = jnp.asarray(signals, jnp.float32)
     zero = jnp.zeros(s.shape[0], jnp.float32)
     margin = protocol.safety_margin(timing, s[:, 4], s[:, 5])
-    ticks = protocol.Tick(velocity_xy_mps=s[:, 0:2], power_w=s[:, 2], load_n=s[:, 3], roll_rad=s[:, 4],
-                          pitch_rad=s[:, 5], saturated=s[:, 6], fell=zero, failed=zero, margin=margin)
+    ticks = protocol.Tick(
+        velocity_xy_mps=s[:, 0:2],
+        power_w=s[:, 2],
+        load_n=s[:, 3],
+        roll_rad=s[:, 4],
+        pitch_rad=s[:, 5],
+        saturated=s[:, 6],
+        fell=zero,
+        failed=zero,
+        margin=margin,
+    )
     return protocol.summarize(ticks, jnp.float32(total_mass_kg), dt_s, protocol.TransitionSummary.nothing())
 
 
@@ -200,32 +225,59 @@ class _TrialLog:
         self._rec.disconnect()
 
 
-def trial_row(trial: int, x: np.ndarray, record: protocol.TrialRecord, j: float, c: np.ndarray, seed: int,
-              tuned_for: dict, safety_stop: str | None = None) -> dict:
+def trial_row(
+    trial: int,
+    x: np.ndarray,
+    record: protocol.TrialRecord,
+    j: float,
+    c: np.ndarray,
+    seed: int,
+    tuned_for: dict,
+    safety_stop: str | None = None,
+) -> dict:
     """One trial on the robot as a row of its ``trials.parquet``: the columns of a study's where they apply
     (docs/outputs.md). ``safety_stop``: the reason of the stop that ended the trial (an unsafe trial, which fell)."""
-    return {"trial": trial, "seed": seed, **tuned_for, **param_space.as_dict(x),
-            "c_load_n": float(c[0]), "c_slope_rad": float(c[1]), "objective": float(j),
-            "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
-            "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])),
-            "cost_of_transport": float(objective.cost_of_transport(record)),
-            "roll_std_rad": float(record.roll_std_rad), "pitch_std_rad": float(record.pitch_std_rad),
-            "saturation_fraction": float(record.saturation_fraction), "energy_j": float(record.energy_j),
-            "distance_m": float(record.distance_m), "total_mass_kg": float(record.total_mass_kg),
-            "safety_margin": float(record.safety_margin),
-            "fell": safety_stop is not None, "failed": False, "safety_stop": safety_stop}
+    return {
+        "trial": trial,
+        "seed": seed,
+        **tuned_for,
+        **param_space.as_dict(x),
+        "c_load_n": float(c[0]),
+        "c_slope_rad": float(c[1]),
+        "objective": float(j),
+        "velocity_x_mps": float(np.mean(record.velocity_xy_mps[:, 0])),
+        "velocity_y_mps": float(np.mean(record.velocity_xy_mps[:, 1])),
+        "cost_of_transport": float(objective.cost_of_transport(record)),
+        "roll_std_rad": float(record.roll_std_rad),
+        "pitch_std_rad": float(record.pitch_std_rad),
+        "saturation_fraction": float(record.saturation_fraction),
+        "energy_j": float(record.energy_j),
+        "distance_m": float(record.distance_m),
+        "total_mass_kg": float(record.total_mass_kg),
+        "safety_margin": float(record.safety_margin),
+        "fell": safety_stop is not None,
+        "failed": False,
+        "safety_stop": safety_stop,
+    }
 
 
-def stopped_trial_record(signals: np.ndarray, stop_margin: float, total_mass_kg: float, dt_s: float = TICK_S,
-                         timing: protocol.TrialConfig = protocol.TrialConfig()) -> protocol.TrialRecord:
+def stopped_trial_record(
+    signals: np.ndarray,
+    stop_margin: float,
+    total_mass_kg: float,
+    dt_s: float = TICK_S,
+    timing: protocol.TrialConfig = protocol.TrialConfig(),
+) -> protocol.TrialRecord:
     """The record of a trial that a safety stop ended: fallen, so J is at its minimum (``objective.objective``), and
     its safety margin the worst of its steady ticks (``signals``, possibly none) and of the stop's
     (``stop_margin``, ≤ 0). Its walking figures are those of the steady ticks it walked, NaN without any."""
     if len(signals):
         record = trial_record(signals, total_mass_kg, dt_s, timing)
     else:  # stopped during the transition: nothing was measured
-        record = jax.tree.map(lambda leaf: jnp.full_like(leaf, jnp.nan),  # every field is a float
-                              trial_record(np.zeros((1, len(_SIGNALS)), np.float32), total_mass_kg, dt_s, timing))
+        record = jax.tree.map(
+            lambda leaf: jnp.full_like(leaf, jnp.nan),  # every field is a float
+            trial_record(np.zeros((1, len(_SIGNALS)), np.float32), total_mass_kg, dt_s, timing),
+        )
         record = record._replace(total_mass_kg=jnp.float32(total_mass_kg))
     margin = jnp.fmin(record.safety_margin, jnp.float32(stop_margin))  # fmin: the stop's where nothing was measured
     return record._replace(fell=jnp.float32(1.0), safety_margin=margin)
@@ -281,8 +333,9 @@ class ReplayTrials:
                 self.trials_done += 1
                 self.trial = self.trials_done
 
-    def rows(self, total_mass_kg: float, target_velocity_mps: float, seed: int, tuned_for: dict,
-             dt_s: float = TICK_S) -> list[dict]:
+    def rows(
+        self, total_mass_kg: float, target_velocity_mps: float, seed: int, tuned_for: dict, dt_s: float = TICK_S
+    ) -> list[dict]:
         """Each complete trial's row (:func:`trial_row`): J, velocity, distance, CoT and the context from the
         robot's own sensors, summarized as in simulation."""
         rows = []
@@ -290,8 +343,9 @@ class ReplayTrials:
         for trial in range(self.trials_done):
             record = trial_record(self._signals[trial], total_mass_kg, dt_s)
             j = float(objective.objective(record, target_velocity_mps))
-            rows.append(trial_row(trial, x, record, j, np.asarray(objective.context(record), np.float64), seed,
-                                  tuned_for))
+            rows.append(
+                trial_row(trial, x, record, j, np.asarray(objective.context(record), np.float64), seed, tuned_for)
+            )
         return rows
 
 
@@ -317,8 +371,11 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
     if spec.cpus:
         os.sched_setaffinity(0, spec.cpus)  # before JAX starts its threads (they inherit it)
     jax.config.update("jax_platforms", "cpu")  # before this process's first JAX computation
-    optimizer: OnlineOptimizer = (BayesianOptimizer(spec.seed, spec.tegotae, spec.safe) if spec.kind == "bo"
-                                  else RandomSearch(spec.seed, spec.tegotae))
+    optimizer: OnlineOptimizer = (
+        BayesianOptimizer(spec.seed, spec.tegotae, spec.safe)
+        if spec.kind == "bo"
+        else RandomSearch(spec.seed, spec.tegotae)
+    )
     _, _, _, c_gp = _evaluate(np.zeros((spec.steady_steps, len(_SIGNALS)), np.float32), spec, optimizer.warm_up, -1)
     # Idle while each trial walks: unlocked, its pages were evicted and the next proposal waited on the disk.
     log.info("optimizer process: %s", memory_lock.lock())
@@ -344,16 +401,32 @@ def _optimizer_worker(conn, spec: OptimizerSpec) -> None:
             reason = None
             record, j, c, c_gp = _evaluate(signals, spec, optimizer.observe, trial, x)
         conn.send(("params", optimizer.propose(c_gp)))
-        row = {**trial_row(trial, x, record, j, c, spec.seed, spec.tuned_for, reason), "optimizer": spec.kind,
-               "wait_s": wait_ticks * spec.dt_s}
+        row = {
+            **trial_row(trial, x, record, j, c, spec.seed, spec.tuned_for, reason),
+            "optimizer": spec.kind,
+            "wait_s": wait_ticks * spec.dt_s,
+        }
         trial_log.append(row)
         if reason is not None:
-            log.info("trial %d: stopped by the safety layer (%s): learned as unsafe, safety margin %.3f, J = %.3f",
-                     trial, reason, row["safety_margin"], j)
+            log.info(
+                "trial %d: stopped by the safety layer (%s): learned as unsafe, safety margin %.3f, J = %.3f",
+                trial,
+                reason,
+                row["safety_margin"],
+                j,
+            )
             continue
-        log.info("trial %d: J = %.3f, v_x = %.2f m/s, CoT = %.2f, context (%.1f N, %.3f rad); its parameters came "
-                 "%.2f s after the previous trial", trial, j, row["velocity_x_mps"], row["cost_of_transport"], c[0],
-                 c[1], row["wait_s"])
+        log.info(
+            "trial %d: J = %.3f, v_x = %.2f m/s, CoT = %.2f, context (%.1f N, %.3f rad); its parameters came "
+            "%.2f s after the previous trial",
+            trial,
+            j,
+            row["velocity_x_mps"],
+            row["cost_of_transport"],
+            c[0],
+            c[1],
+            row["wait_s"],
+        )
         if j > best:
             best = j
             tuned.save(Path(spec.log_dir) / tuned.FILE_NAME, x, spec.tuned_for, objective=j, trial=trial)
@@ -397,9 +470,15 @@ class TrialRunner:
     finished trial is handed to ``mailer`` (a queue put).
     """
 
-    def __init__(self, conn, initial_params: np.ndarray, num_trials: int,
-                 timing: protocol.TrialConfig = protocol.TrialConfig(), mailer: _Mailer | None = None,
-                 first_trial: int = 0):
+    def __init__(
+        self,
+        conn,
+        initial_params: np.ndarray,
+        num_trials: int,
+        timing: protocol.TrialConfig = protocol.TrialConfig(),
+        mailer: _Mailer | None = None,
+        first_trial: int = 0,
+    ):
         self._conn = conn
         self._mailer = mailer or conn
         self._timing = timing
@@ -446,8 +525,10 @@ class TrialRunner:
                 answered = self._conn.poll()
                 _, proposal = self._conn.recv() if answered else (None, None)
             except (EOFError, OSError):  # the optimizer process is gone: no parameters will come
-                self.failure = (f"the optimizer process ended while trial {self.trials_done} waited for its "
-                                "parameters (its log is above)")
+                self.failure = (
+                    f"the optimizer process ended while trial {self.trials_done} waited for its "
+                    "parameters (its log is above)"
+                )
                 self.finished = True
                 return
             if answered:
@@ -462,8 +543,9 @@ class TrialRunner:
         self._tick_in_trial += 1
         if steady + 1 == self._timing.steady_steps:
             self.steady_windows.append((run_tick - steady, run_tick))
-            self._mailer.send(("trial", self.trials_done, self._current.astype(np.float64), self._signals.copy(),
-                             self._wait_ticks))
+            self._mailer.send(
+                ("trial", self.trials_done, self._current.astype(np.float64), self._signals.copy(), self._wait_ticks)
+            )
             self.trials_done += 1
             self.finished = self.trials_done >= self._num_trials
             self._waiting_since = run_tick
@@ -474,18 +556,31 @@ def _answer(conn, worker, timeout_s: float = 600.0):
     while not conn.poll(1.0):
         timeout_s -= 1.0
         if not worker.is_alive() or timeout_s <= 0:
-            raise RuntimeError("the optimizer process ended or stopped answering after a safety stop (its log is "
-                               "above); the robot is damped")
+            raise RuntimeError(
+                "the optimizer process ended or stopped answering after a safety stop (its log is "
+                "above); the robot is damped"
+            )
     return conn.recv()
 
 
 Recover = Callable[[int, str], bool]  # (the stopped trial, the stop's reason) → whether to stand up and go on
 
 
-def online_optimization(transport, controller, calibration, gates, spec: OptimizerSpec,
-                        initial_params: np.ndarray | None, num_trials: int,
-                        timing: protocol.TrialConfig = protocol.TrialConfig(), loop=None, safety=None, sink=None,
-                        stale_hint: str = "", recover: Recover | None = None):
+def online_optimization(
+    transport,
+    controller,
+    calibration,
+    gates,
+    spec: OptimizerSpec,
+    initial_params: np.ndarray | None,
+    num_trials: int,
+    timing: protocol.TrialConfig = protocol.TrialConfig(),
+    loop=None,
+    safety=None,
+    sink=None,
+    stale_hint: str = "",
+    recover: Recover | None = None,
+):
     """Algorithm 1 on the robot: ``num_trials`` trials back to back, the optimizer in its own process (its
     compilation done before the robot walks, off the loop's CPU when the loop has one). Trial 0 walks with
     ``initial_params``, or with None with the optimizer's first (random) proposal, as in simulation
@@ -514,8 +609,10 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
             raise RuntimeError("the optimizer process did not start")
         _, first = conn.recv()  # ready: its imports and compilation are done before the robot walks
         initial_params = first if initial_params is None else initial_params
-        log.info("trial 0 walks with %s parameters", "the given" if initial_params is not first else
-                 "the optimizer's first (random, docs/decisions.md §16)")
+        log.info(
+            "trial 0 walks with %s parameters",
+            "the given" if initial_params is not first else "the optimizer's first (random, docs/decisions.md §16)",
+        )
         mailer = _Mailer(conn, spec.cpus)
         results, windows = [], []
         params, first_trial, run_ticks = initial_params, 0, 0
@@ -523,25 +620,51 @@ def online_optimization(transport, controller, calibration, gates, spec: Optimiz
             while True:
                 runner = TrialRunner(conn, params, num_trials, timing, mailer, first_trial)
                 ticks = sum(r.ticks for r in results)
-                result = hio.run_loop(transport, controller, runner, calibration, gates, loop,
-                                      safety or go1_safety.SafetyConfig(), hio.offset_sink(sink, ticks), stale_hint)
+                result = hio.run_loop(
+                    transport,
+                    controller,
+                    runner,
+                    calibration,
+                    gates,
+                    loop,
+                    safety or go1_safety.SafetyConfig(),
+                    hio.offset_sink(sink, ticks),
+                    stale_hint,
+                )
                 results.append(result)
                 windows += [(first + run_ticks, last + run_ticks) for first, last in runner.steady_windows]
                 run_ticks += runner.run_ticks
-                if recover is None or not go1_safety.is_gait_trip(result.trip) or runner.run_ticks == 0 \
-                        or runner.trials_done >= num_trials:
+                if (
+                    recover is None
+                    or not go1_safety.is_gait_trip(result.trip)
+                    or runner.run_ticks == 0
+                    or runner.trials_done >= num_trials
+                ):
                     break
                 stopped = runner.trials_done
                 if runner.waiting:
                     _answer(conn, worker)  # the proposal for this trial, made before its stop: superseded
-                mailer.send(("unsafe", stopped, runner.walked_params.astype(np.float64), runner.steady_signals(),
-                             stop_margin(result, timing), result.trip, 0))
+                mailer.send(
+                    (
+                        "unsafe",
+                        stopped,
+                        runner.walked_params.astype(np.float64),
+                        runner.steady_signals(),
+                        stop_margin(result, timing),
+                        result.trip,
+                        0,
+                    )
+                )
                 _, params = _answer(conn, worker)  # proposed once the stop was learned
                 first_trial = stopped + 1
                 if first_trial >= num_trials or not recover(stopped, result.trip):
                     break
-                log.info("trial %d ended with a safety stop (%s), learned as unsafe; standing up for trial %d",
-                         stopped, result.trip, first_trial)
+                log.info(
+                    "trial %d ended with a safety stop (%s), learned as unsafe; standing up for trial %d",
+                    stopped,
+                    result.trip,
+                    first_trial,
+                )
         finally:
             mailer.close()
         result = hio.joined(results)

@@ -16,8 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-_SCALAR = SimpleNamespace(arctan2=math.atan2, arcsin=math.asin, clip=lambda v, lo, hi: max(lo, min(hi, v)),
-                          stack=tuple)
+_SCALAR = SimpleNamespace(arctan2=math.atan2, arcsin=math.asin, clip=lambda v, lo, hi: max(lo, min(hi, v)), stack=tuple)
 
 
 def _xp(*xs):
@@ -43,8 +42,14 @@ def quat_mul(a, b):
     xp = _xp(a, b)
     aw, ax, ay, az = a[0], a[1], a[2], a[3]
     bw, bx, by, bz = b[0], b[1], b[2], b[3]
-    return xp.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+    return xp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def quat_rotate(quat_wxyz, v):
@@ -59,9 +64,13 @@ def quat_to_matrix(quat_wxyz):
     """The rotation matrix (3, 3) of a unit quaternion: body-frame vectors → world-frame vectors."""
     xp = _xp(quat_wxyz)
     w, x, y, z = quat_wxyz[0], quat_wxyz[1], quat_wxyz[2], quat_wxyz[3]
-    return xp.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return xp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def gravity_frame_quat(gravity):

@@ -21,8 +21,9 @@ CALF_LENGTH_M = 0.213  # l3
 SIDE_SIGN = np.array([-1.0, 1.0, -1.0, 1.0])  # -1 right, +1 left
 FRONT_SIGN = np.array([1.0, 1.0, -1.0, -1.0])  # +1 front, -1 hind
 # Hip-abduction joint positions in the trunk frame [m].
-HIP_POS_M = np.array([[0.1881, -0.04675, 0.0], [0.1881, 0.04675, 0.0],
-                       [-0.1881, -0.04675, 0.0], [-0.1881, 0.04675, 0.0]])
+HIP_POS_M = np.array(
+    [[0.1881, -0.04675, 0.0], [0.1881, 0.04675, 0.0], [-0.1881, -0.04675, 0.0], [-0.1881, 0.04675, 0.0]]
+)
 
 
 def leg_fk(q_rad: jax.Array, side: jax.Array) -> jax.Array:
@@ -33,11 +34,13 @@ def leg_fk(q_rad: jax.Array, side: jax.Array) -> jax.Array:
     s2, c2 = jnp.sin(q2), jnp.cos(q2)
     s23, c23 = jnp.sin(q2 + q3), jnp.cos(q2 + q3)
     reach = l2 * c2 + l3 * c23  # length of the sagittal leg projected on the leg plane's -z axis
-    return jnp.stack([
+    return jnp.stack(
+        [
             -l3 * s23 - l2 * s2,
             side * l1 * c1 + s1 * reach,
             side * l1 * s1 - c1 * reach,
-    ])
+        ]
+    )
 
 
 # d(foot position)/dq (3, 3) in the leg frame, rows x, y, z, columns q1, q2, q3: JAX's forward-mode derivative of

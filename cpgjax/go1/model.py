@@ -58,17 +58,32 @@ def _with_terrain(xml: str) -> str:
     FOOT_CONTACT_SLOTS contacts, deepest first. The heights are the model's ``hfield_data`` (``terrain``)."""
     root = ElementTree.fromstring(xml)
     nrow = ncol = str(terrains.FIELD_VERTICES)
-    ElementTree.SubElement(root.find("asset"), "hfield", name="terrain", nrow=nrow, ncol=ncol,
-                           size=" ".join(repr(v) for v in terrains.hfield_size()))
+    ElementTree.SubElement(
+        root.find("asset"),
+        "hfield",
+        name="terrain",
+        nrow=nrow,
+        ncol=ncol,
+        size=" ".join(repr(v) for v in terrains.hfield_size()),
+    )
     world = root.find("worldbody")
     floor = world.find("geom[@name='floor']")
     low_m = -terrains.MAX_AMPLITUDE_M / 2.0
     floor.attrib.update(type="hfield", hfield="terrain", pos=f"0 0 {low_m!r}", contype=str(_FEET_BIT))
     floor.attrib.pop("size")
     below = ElementTree.SubElement(world, "body", name="floor_below", pos=f"0 0 {low_m!r}")
-    ElementTree.SubElement(below, "geom", name="floor_below", type="plane", size="0 0 0.05", contype=str(_BODY_BIT),
-                           conaffinity="0", priority=floor.get("priority"), friction=floor.get("friction"),
-                           group="3")
+    ElementTree.SubElement(
+        below,
+        "geom",
+        name="floor_below",
+        type="plane",
+        size="0 0 0.05",
+        contype=str(_BODY_BIT),
+        conaffinity="0",
+        priority=floor.get("priority"),
+        friction=floor.get("friction"),
+        group="3",
+    )
     for geom in root.iter("geom"):
         if geom.get("name", "").endswith("_foot"):
             geom.set("conaffinity", str(_FEET_BIT))
@@ -204,9 +219,21 @@ class Scenario(NamedTuple):
         return int(self.friction.shape[0])
 
 
-def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_profiles.DEFAULT_PROFILE,
-                   mass_scale=1.0, latency_ticks=-1, noise_scale=-1.0, noise_seed=0, terrain=terrains.FLAT,
-                   terrain_amplitude_m=0.0, terrain_seed=0, terrain_step_m=0.0, foot_friction=-1.0) -> Scenario:
+def make_scenarios(
+    friction=0.6,
+    slope_deg=0.0,
+    payload_kg=0.0,
+    physics=physics_profiles.DEFAULT_PROFILE,
+    mass_scale=1.0,
+    latency_ticks=-1,
+    noise_scale=-1.0,
+    noise_seed=0,
+    terrain=terrains.FLAT,
+    terrain_amplitude_m=0.0,
+    terrain_seed=0,
+    terrain_step_m=0.0,
+    foot_friction=-1.0,
+) -> Scenario:
     """Broadcast scalars or sequences to a batch of scenarios and validate them.
 
     A floor μ above the feet's, which the contact does not feel (:func:`friction_notes`), is logged as a warning
@@ -220,49 +247,73 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
         value, the instance and the allowed range.
     """
     numbers = [np.atleast_1d(np.asarray(v, np.float64)) for v in (friction, foot_friction, slope_deg, payload_kg)]
-    arrays = np.broadcast_arrays(*numbers, np.atleast_1d(np.asarray(physics, str)),
-                                 np.atleast_1d(np.asarray(mass_scale, np.float64)),
-                                 np.atleast_1d(np.asarray(latency_ticks, np.float64)),
-                                 np.atleast_1d(np.asarray(noise_scale, np.float64)),
-                                 np.atleast_1d(np.asarray(noise_seed, np.float64)),
-                                 np.atleast_1d(np.asarray(terrain, str)),
-                                 np.atleast_1d(np.asarray(terrain_amplitude_m, np.float64)),
-                                 np.atleast_1d(np.asarray(terrain_seed, np.float64)),
-                                 np.atleast_1d(np.asarray(terrain_step_m, np.float64)))
+    arrays = np.broadcast_arrays(
+        *numbers,
+        np.atleast_1d(np.asarray(physics, str)),
+        np.atleast_1d(np.asarray(mass_scale, np.float64)),
+        np.atleast_1d(np.asarray(latency_ticks, np.float64)),
+        np.atleast_1d(np.asarray(noise_scale, np.float64)),
+        np.atleast_1d(np.asarray(noise_seed, np.float64)),
+        np.atleast_1d(np.asarray(terrain, str)),
+        np.atleast_1d(np.asarray(terrain_amplitude_m, np.float64)),
+        np.atleast_1d(np.asarray(terrain_seed, np.float64)),
+        np.atleast_1d(np.asarray(terrain_step_m, np.float64)),
+    )
     scenario = Scenario(*(np.array(a) for a in arrays))
     if scenario.friction.ndim != 1:
         raise ValueError(f"scenario fields must be scalars or 1-D sequences, got shape {scenario.friction.shape}")
     checks = (
         ("friction", scenario.friction, lambda v: v > 0.0, "(0, inf)"),
         ("foot_friction", scenario.foot_friction, lambda v: (v == -1.0) | (v > 0.0), "-1 (the profile's) or (0, inf)"),
-        ("slope_deg", scenario.slope_deg, lambda v: np.abs(v) < MAX_ABS_SLOPE_DEG,
-         f"(-{MAX_ABS_SLOPE_DEG}, {MAX_ABS_SLOPE_DEG})"),
+        (
+            "slope_deg",
+            scenario.slope_deg,
+            lambda v: np.abs(v) < MAX_ABS_SLOPE_DEG,
+            f"(-{MAX_ABS_SLOPE_DEG}, {MAX_ABS_SLOPE_DEG})",
+        ),
         ("payload_kg", scenario.payload_kg, lambda v: v >= 0.0, "[0, inf)"),
         ("mass_scale", scenario.mass_scale, lambda v: (v >= 0.5) & (v <= 1.5), "[0.5, 1.5]"),
-        ("latency_ticks", scenario.latency_ticks,
-         lambda v: (v == np.round(v)) & (v >= -1) & (v <= physics_profiles.MAX_LATENCY_TICKS),
-         f"-1 (the profile's) or 0 … {physics_profiles.MAX_LATENCY_TICKS} ticks"),
-        ("noise_scale", scenario.noise_scale, lambda v: (v == -1.0) | ((v >= 0.0) & (v <= 5.0)),
-         "-1 (the profile's) or [0, 5] × the go1 profile's"),
-        ("noise_seed", scenario.noise_seed, lambda v: (v == np.round(v)) & (v >= 0) & (v < 2.0 ** 32),
-         "an integer in [0, 2**32)"),
+        (
+            "latency_ticks",
+            scenario.latency_ticks,
+            lambda v: (v == np.round(v)) & (v >= -1) & (v <= physics_profiles.MAX_LATENCY_TICKS),
+            f"-1 (the profile's) or 0 … {physics_profiles.MAX_LATENCY_TICKS} ticks",
+        ),
+        (
+            "noise_scale",
+            scenario.noise_scale,
+            lambda v: (v == -1.0) | ((v >= 0.0) & (v <= 5.0)),
+            "-1 (the profile's) or [0, 5] × the go1 profile's",
+        ),
+        (
+            "noise_seed",
+            scenario.noise_seed,
+            lambda v: (v == np.round(v)) & (v >= 0) & (v < 2.0**32),
+            "an integer in [0, 2**32)",
+        ),
     )
     for name, values, ok, allowed in checks:
         bad = ~np.isfinite(values) | ~ok(np.where(np.isfinite(values), values, 0.0))
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range "
-                             f"{allowed}")
-    terrains.check_terrain(scenario.terrain, scenario.terrain_amplitude_m, scenario.terrain_seed,
-                           scenario.terrain_step_m)
-    scenario = scenario._replace(latency_ticks=scenario.latency_ticks.astype(np.int64),
-                                 noise_seed=scenario.noise_seed.astype(np.int64),
-                                 terrain_seed=scenario.terrain_seed.astype(np.int64))
+            raise ValueError(
+                f"scenario {name} = {float(values[i])!r} (instance {i}) is outside the allowed range {allowed}"
+            )
+    terrains.check_terrain(
+        scenario.terrain, scenario.terrain_amplitude_m, scenario.terrain_seed, scenario.terrain_step_m
+    )
+    scenario = scenario._replace(
+        latency_ticks=scenario.latency_ticks.astype(np.int64),
+        noise_seed=scenario.noise_seed.astype(np.int64),
+        terrain_seed=scenario.terrain_seed.astype(np.int64),
+    )
     unknown = [i for i, name in enumerate(scenario.physics) if name not in physics_profiles.PROFILES]
     if unknown:
         i = unknown[0]
-        raise ValueError(f"scenario physics = {str(scenario.physics[i])!r} (instance {i}) is not a profile; allowed: "
-                         f"{tuple(physics_profiles.PROFILES)}")
+        raise ValueError(
+            f"scenario physics = {str(scenario.physics[i])!r} (instance {i}) is not a profile; allowed: "
+            f"{tuple(physics_profiles.PROFILES)}"
+        )
     for key, line in friction_notes(scenario).items():
         _warn_once(key, line)
     return scenario
@@ -270,9 +321,13 @@ def make_scenarios(friction=0.6, slope_deg=0.0, payload_kg=0.0, physics=physics_
 
 def effective_friction(scenario: Scenario) -> np.ndarray:
     """(batch,) the sliding μ each instance's feet feel on its floor (``physics.contact_friction``)."""
-    return np.array([physics_profiles.contact_friction(physics_profiles.get(str(name)), mu, foot)
-                     for name, mu, foot in zip(scenario.physics, scenario.friction, scenario.foot_friction,
-                                               strict=True)], np.float64).reshape(-1)
+    return np.array(
+        [
+            physics_profiles.contact_friction(physics_profiles.get(str(name)), mu, foot)
+            for name, mu, foot in zip(scenario.physics, scenario.friction, scenario.foot_friction, strict=True)
+        ],
+        np.float64,
+    ).reshape(-1)
 
 
 def friction_notes(scenario: Scenario) -> dict[tuple[str, float], str]:
@@ -280,8 +335,9 @@ def friction_notes(scenario: Scenario) -> dict[tuple[str, float], str]:
     the contact takes the smaller μ, so those floors walk as the feet's."""
     effective = effective_friction(scenario)
     capped: dict[tuple[str, float], list[float]] = {}
-    for name, mu, foot, mu_in_effect in zip(scenario.physics, scenario.friction, scenario.foot_friction, effective,
-                                            strict=True):
+    for name, mu, foot, mu_in_effect in zip(
+        scenario.physics, scenario.friction, scenario.foot_friction, effective, strict=True
+    ):
         if mu > mu_in_effect:
             capped.setdefault((str(name), float(foot)), []).append(float(mu))
     notes = {}
@@ -289,12 +345,16 @@ def friction_notes(scenario: Scenario) -> dict[tuple[str, float], str]:
         feet = float(physics_profiles.feet_friction(physics_profiles.get(name), foot))
         whose = "the scenario's foot_friction" if foot >= 0.0 else f"the {name} profile's feet"
         asked = sorted(set(floors))
-        shown = (", ".join(f"{mu:g}" for mu in asked) if len(asked) <= 4
-                 else f"{len(asked)} values from {asked[0]:g} to {asked[-1]:g}")
+        shown = (
+            ", ".join(f"{mu:g}" for mu in asked)
+            if len(asked) <= 4
+            else f"{len(asked)} values from {asked[0]:g} to {asked[-1]:g}"
+        )
         notes[(name, feet)] = (
             f"friction above {feet:g} under physics {name} walks as {feet:g} (asked: {shown}): a contact takes the "
             f"smaller μ of floor and feet (Gazebo's rule), and the feet's is {feet:g} ({whose}); a foot friction at "
-            "least the floor's (--foot-friction, scenario foot_friction) lets the floor's count")
+            "least the floor's (--foot-friction, scenario foot_friction) lets the floor's count"
+        )
     return notes
 
 
@@ -327,8 +387,9 @@ def payload_inertia(payload_kg: float) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=512)
-def model_with_payload(payload_kg: float, physics: str = physics_profiles.DEFAULT_PROFILE,
-                       mass_scale: float = 1.0, terrain: bool = False) -> mujoco.MjModel:
+def model_with_payload(
+    payload_kg: float, physics: str = physics_profiles.DEFAULT_PROFILE, mass_scale: float = 1.0, terrain: bool = False
+) -> mujoco.MjModel:
     """A copy of the nominal model (the terrain model if ``terrain``) carrying ``payload_kg`` under the ``physics``
     profile's contact and joint fields, its links' masses and inertias × ``mass_scale``, with every derived quantity
     recomputed (``mj_setConst``: subtree masses, inverse weights, actuator_acc0, ...). Cached per (payload, profile,
@@ -355,11 +416,14 @@ def foot_contact_slots(nsensordata: int) -> np.ndarray:
         return indices().foot_contact_data
     m = load_terrain_model()
     if nsensordata != m.nsensordata:
-        raise ValueError(f"sensordata of {nsensordata} entries: the Go1 models have {load_model().nsensordata} (flat) "
-                         f"or {m.nsensordata} (terrain)")
+        raise ValueError(
+            f"sensordata of {nsensordata} entries: the Go1 models have {load_model().nsensordata} (flat) "
+            f"or {m.nsensordata} (terrain)"
+        )
     sensors = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SENSOR, n) for n in FOOT_SENSOR_NAMES]
-    return np.array([m.sensor_adr[s] + np.arange(FOOT_CONTACT_SLOTS * 9).reshape(FOOT_CONTACT_SLOTS, 9)
-                     for s in sensors])
+    return np.array(
+        [m.sensor_adr[s] + np.arange(FOOT_CONTACT_SLOTS * 9).reshape(FOOT_CONTACT_SLOTS, 9) for s in sensors]
+    )
 
 
 def has_terrain(scenario: Scenario) -> bool:
@@ -371,24 +435,32 @@ def check_same_model(scenario: Scenario, other: Scenario) -> None:
     """Raise ValueError in one line where two batches run different models (the plane and the terrain model: their
     states and compiled programs differ), so a backend cannot switch from one to the other."""
     if has_terrain(scenario) != has_terrain(other):
-        raise ValueError("a batch cannot switch between all-flat terrain and some rough terrain (the model and its "
-                         "states differ): start a backend for the new scenarios")
+        raise ValueError(
+            "a batch cannot switch between all-flat terrain and some rough terrain (the model and its "
+            "states differ): start a backend for the new scenarios"
+        )
 
 
 def scenario_ground(scenario: Scenario, i: int) -> terrains.Ground:
     """Instance i's ground (its four terrain fields)."""
-    return terrains.Ground(str(scenario.terrain[i]), float(scenario.terrain_amplitude_m[i]),
-                           int(scenario.terrain_seed[i]), float(scenario.terrain_step_m[i]))
+    return terrains.Ground(
+        str(scenario.terrain[i]),
+        float(scenario.terrain_amplitude_m[i]),
+        int(scenario.terrain_seed[i]),
+        float(scenario.terrain_step_m[i]),
+    )
 
 
 def scenario_model(scenario: Scenario, i: int) -> mujoco.MjModel:
     """The C-MuJoCo model of instance i: profile, payload, the μ in effect on the floor (:func:`effective_friction`)
     and gravity applied (a fresh copy)."""
     terrain = has_terrain(scenario)
-    m = model_with_payload(float(scenario.payload_kg[i]), str(scenario.physics[i]),
-                           float(scenario.mass_scale[i]), terrain).__copy__()
+    m = model_with_payload(
+        float(scenario.payload_kg[i]), str(scenario.physics[i]), float(scenario.mass_scale[i]), terrain
+    ).__copy__()
     m.geom_friction[indices().floor_geom, 0] = physics_profiles.contact_friction(
-        physics_profiles.get(str(scenario.physics[i])), scenario.friction[i], scenario.foot_friction[i])
+        physics_profiles.get(str(scenario.physics[i])), scenario.friction[i], scenario.foot_friction[i]
+    )
     m.opt.gravity[:] = gravity_vector(scenario.slope_deg[i])
     if terrain:
         m.hfield_data[:] = terrains.hfield_data(scenario_ground(scenario, i))
@@ -399,20 +471,30 @@ def scenario_dependent_fields() -> tuple[str, ...]:
     """Names of the model's float arrays that a payload or a physics profile changes (found by comparing models, not
     from a hand-kept list)."""
     base = model_with_payload(0.0)
-    others = ([model_with_payload(15.0), model_with_payload(0.0, physics_profiles.DEFAULT_PROFILE, 1.1)]
-              + [model_with_payload(0.0, name) for name in physics_profiles.PROFILES])
+    others = [model_with_payload(15.0), model_with_payload(0.0, physics_profiles.DEFAULT_PROFILE, 1.1)] + [
+        model_with_payload(0.0, name) for name in physics_profiles.PROFILES
+    ]
     names = []
     for name in dir(base):
         a = getattr(base, name, None)
-        if isinstance(a, np.ndarray) and a.dtype.kind == "f" and any(
-                not np.array_equal(a, getattr(other, name)) for other in others):
+        if (
+            isinstance(a, np.ndarray)
+            and a.dtype.kind == "f"
+            and any(not np.array_equal(a, getattr(other, name)) for other in others)
+        ):
             names.append(name)
     return tuple(names)
 
 
 # Leg-frame feet (4, 3) of the standing pose: STAND_FOOT_X_M in x, under the hips in y, STAND_FOOT_Z_M below them.
-_STANDING_FEET_M = np.stack([np.full(4, STAND_FOOT_X_M), np.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M,
-                             np.full(4, STAND_FOOT_Z_M)], axis=-1)
+_STANDING_FEET_M = np.stack(
+    [
+        np.full(4, STAND_FOOT_X_M),
+        np.asarray(kinematics.SIDE_SIGN) * kinematics.HIP_OFFSET_M,
+        np.full(4, STAND_FOOT_Z_M),
+    ],
+    axis=-1,
+)
 
 
 def standing_legs_rad(foot_x_shift_m=0.0) -> jax.Array:
@@ -449,6 +531,6 @@ def standing_qpos(model: mujoco.MjModel | None = None, foot_x_shift_m: float = 0
     m = load_model() if model is None else model
     ids = indices()
     qpos = np.array(m.qpos0, np.float64)
-    qpos[ids.root_qpos:ids.root_qpos + 7] = [0.0, 0.0, -STAND_FOOT_Z_M + FOOT_RADIUS_M, 1.0, 0.0, 0.0, 0.0]
+    qpos[ids.root_qpos : ids.root_qpos + 7] = [0.0, 0.0, -STAND_FOOT_Z_M + FOOT_RADIUS_M, 1.0, 0.0, 0.0, 0.0]
     qpos[ids.joint_qpos] = _standing_legs_rad(float(foot_x_shift_m))
     return qpos

@@ -79,45 +79,69 @@ PROFILES: dict[str, PhysicsProfile] = {
     "soft": PhysicsProfile(
         floor_solref=(0.02, 1.0),  # MuJoCo's default (XML reference, geom/solref)
         floor_solimp=_MUJOCO_DEFAULT_SOLIMP,
-        armature_kg_m2=(0.01, 0.01, 0.01), damping_nm_s_rad=(0.05, 0.05, 0.05), frictionloss_nm=(0.0, 0.0, 0.0),
-        velocity_limit_rad_s=(np.inf,) * 3, no_load_speed_rad_s=(np.inf,) * 3, latency_ticks=0,
-        foot_force_frame="contact", foot_force_period_ticks=1, foot_force_contact_mean=False,
-        foot_contact_layer_m=0.0, foot_force_n_per_count=0.0,
+        armature_kg_m2=(0.01, 0.01, 0.01),
+        damping_nm_s_rad=(0.05, 0.05, 0.05),
+        frictionloss_nm=(0.0, 0.0, 0.0),
+        velocity_limit_rad_s=(np.inf,) * 3,
+        no_load_speed_rad_s=(np.inf,) * 3,
+        latency_ticks=0,
+        foot_force_frame="contact",
+        foot_force_period_ticks=1,
+        foot_force_contact_mean=False,
+        foot_contact_layer_m=0.0,
+        foot_force_n_per_count=0.0,
         context_load_range_n=(15.0, 75.0),  # the world-frame normal reads ≈ 31 N standing: the widened range
-        foot_friction=np.inf),
+        foot_friction=np.inf,
+    ),
     "paper": PhysicsProfile(
         # The stiffest reference MuJoCo integrates stably: time constant 2 Δt (MuJoCo clamps smaller ones to 2 Δt,
         # XML reference, flag/refsafe), critically damped; impedance near 1 so the force follows it (near-rigid,
         # like the unitree_ros Gazebo foot contact kp 1e6, kd 1).
-        floor_solref=(0.002, 1.0), floor_solimp=(0.99, 0.999, 0.001, 0.5, 2.0),
+        floor_solref=(0.002, 1.0),
+        floor_solimp=(0.99, 0.999, 0.001, 0.5, 2.0),
         armature_kg_m2=(0.0, 0.0, 0.0),  # Gazebo models no rotor
-        damping_nm_s_rad=(0.01, 0.01, 0.01), frictionloss_nm=(0.2, 0.2, 0.2),  # unitree_ros go1_description
+        damping_nm_s_rad=(0.01, 0.01, 0.01),
+        frictionloss_nm=(0.2, 0.2, 0.2),  # unitree_ros go1_description
         velocity_limit_rad_s=(30.1, 30.1, 20.06),  # URDF joint velocity limits, applied as Gazebo does
-        no_load_speed_rad_s=(np.inf,) * 3, latency_ticks=0,
+        no_load_speed_rad_s=(np.inf,) * 3,
+        latency_ticks=0,
         # unitree_ros foot contact plugin: 100 Hz, the mean over the update's in-contact physics steps
-        foot_force_frame="calf", foot_force_period_ticks=10, foot_force_contact_mean=True,
+        foot_force_frame="calf",
+        foot_force_period_ticks=10,
+        foot_force_contact_mean=True,
         foot_contact_layer_m=0.001,  # unitree_gazebo earth.world: contact_surface_layer 0.001
-        foot_force_n_per_count=0.0, context_load_range_n=(15.0, 55.0),  # the paper's range
-        foot_friction=0.6),  # unitree_ros go1_description gazebo.xacro: the feet's mu1 = mu2 = 0.6
+        foot_force_n_per_count=0.0,
+        context_load_range_n=(15.0, 55.0),  # the paper's range
+        foot_friction=0.6,
+    ),  # unitree_ros go1_description gazebo.xacro: the feet's mu1 = mu2 = 0.6
     "go1": PhysicsProfile(
-        floor_solref=(0.02, 1.0), floor_solimp=_MUJOCO_DEFAULT_SOLIMP,  # no measured foot contact: MuJoCo's default
+        floor_solref=(0.02, 1.0),
+        floor_solimp=_MUJOCO_DEFAULT_SOLIMP,  # no measured foot contact: MuJoCo's default
         # Rotor inertia 0.000111842 kg·m² (unitree_ros go1.urdf) × gear ratio² (6 hip and thigh, 9 knee: mjlab's Go1).
-        armature_kg_m2=(0.000111842 * 6.0 ** 2, 0.000111842 * 6.0 ** 2, 0.000111842 * 9.0 ** 2),
-        damping_nm_s_rad=(0.01, 0.01, 0.01), frictionloss_nm=(0.2, 0.2, 0.2),  # unitree_ros go1_description
+        armature_kg_m2=(0.000111842 * 6.0**2, 0.000111842 * 6.0**2, 0.000111842 * 9.0**2),
+        damping_nm_s_rad=(0.01, 0.01, 0.01),
+        frictionloss_nm=(0.2, 0.2, 0.2),  # unitree_ros go1_description
         velocity_limit_rad_s=(np.inf,) * 3,
         no_load_speed_rad_s=(30.1, 30.1, 20.06),  # URDF velocity limits as the no-load speed of the envelope
         latency_ticks=2,  # SDK UDP round trip + motor driver, 1-2 ms: the upper end
         # The foot pad's pressure sensor, calibrated on the robot so that the four feet carry its weight standing
         # (docs/decisions.md §3): the contact normal force, in counts of the loopback simulated Go1's scale.
-        foot_force_frame="contact", foot_force_period_ticks=1, foot_force_contact_mean=False,
-        foot_contact_layer_m=0.0, foot_force_n_per_count=0.5,  # cpgjax.robot.sim_server.FOOT_FORCE_N_PER_COUNT
+        foot_force_frame="contact",
+        foot_force_period_ticks=1,
+        foot_force_contact_mean=False,
+        foot_contact_layer_m=0.0,
+        foot_force_n_per_count=0.5,  # cpgjax.robot.sim_server.FOOT_FORCE_N_PER_COUNT
         context_load_range_n=(15.0, 75.0),  # a weight-calibrated signal: ≈ 31 N standing, ≈ 68 N with 15 kg
         foot_friction=np.inf,  # MuJoCo's rule: the floor's μ
         # legged_gym's LeggedRobotCfg.noise.noise_scales (dof_pos, dof_vel, ang_vel, gravity), the proprioceptive
         # noise walk-these-ways uses for the Go1; no public Go1 foot-sensor noise figure: ±1 count, ours
         # (docs/physics.md).
-        joint_pos_noise_rad=0.01, joint_vel_noise_rad_s=1.5, gyro_noise_rad_s=0.2, tilt_noise_rad=0.05,
-        foot_force_noise_n=0.5),
+        joint_pos_noise_rad=0.01,
+        joint_vel_noise_rad_s=1.5,
+        gyro_noise_rad_s=0.2,
+        tilt_noise_rad=0.05,
+        foot_force_noise_n=0.5,
+    ),
 }
 # `paper` with unitree_ros's physics rate: earth.world steps ODE every 0.2 ms (max_step_size 0.0002, commit 7325aa5
 # of 2022-02-09 to this day) where `paper` steps every 1 ms; the one-change run of the step (docs/physics.md).
@@ -144,13 +168,17 @@ def _per_joint(values) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------------- model fields
 
+
 def model_fields(profile: PhysicsProfile, floor_geom: int, joint_dof: np.ndarray, model: mujoco.MjModel) -> dict:
     """The profile's values of the MuJoCo model fields it sets (full arrays, shaped like ``model``'s)."""
     solref, solimp = np.array(model.geom_solref), np.array(model.geom_solimp)
     solref[floor_geom], solimp[floor_geom] = profile.floor_solref, profile.floor_solimp
     fields = {"geom_solref": solref, "geom_solimp": solimp}
-    for name, values in (("dof_armature", profile.armature_kg_m2), ("dof_damping", profile.damping_nm_s_rad),
-                         ("dof_frictionloss", profile.frictionloss_nm)):
+    for name, values in (
+        ("dof_armature", profile.armature_kg_m2),
+        ("dof_damping", profile.damping_nm_s_rad),
+        ("dof_frictionloss", profile.frictionloss_nm),
+    ):
         array = np.array(getattr(model, name))
         array[joint_dof] = _per_joint(values)
         fields[name] = array
@@ -177,6 +205,7 @@ def apply_to_model(model: mujoco.MjModel, profile: PhysicsProfile, floor_geom: i
 
 
 # ----------------------------------------------------------------------------------------------- per-tick arrays
+
 
 class NoisyReadings(NamedTuple):
     """The sensor readings that carry noise, by name: per reading its noise amplitude (a profile's, shape ()) or one
@@ -223,10 +252,20 @@ def arrays(profile: PhysicsProfile) -> ProfileArrays:
         force_contact_mean=np.bool_(profile.foot_force_contact_mean),
         contact_layer_m=np.float32(profile.foot_contact_layer_m),
         force_n_per_count=np.float32(profile.foot_force_n_per_count),
-        noise=NoisyReadings(*(np.float32(a) for a in (
-            profile.joint_pos_noise_rad, profile.joint_vel_noise_rad_s, profile.gyro_noise_rad_s,
-            profile.tilt_noise_rad, profile.foot_force_noise_n))),
-        noise_seed=np.uint32(0))
+        noise=NoisyReadings(
+            *(
+                np.float32(a)
+                for a in (
+                    profile.joint_pos_noise_rad,
+                    profile.joint_vel_noise_rad_s,
+                    profile.gyro_noise_rad_s,
+                    profile.tilt_noise_rad,
+                    profile.foot_force_noise_n,
+                )
+            )
+        ),
+        noise_seed=np.uint32(0),
+    )
 
 
 def batch_arrays(names, latency_ticks=None, noise_scale=None, noise_seed=None) -> ProfileArrays:
@@ -241,15 +280,20 @@ def batch_arrays(names, latency_ticks=None, noise_scale=None, noise_seed=None) -
         batch = batch._replace(latency_ticks=np.where(override >= 0, override, batch.latency_ticks).astype(np.int32))
     if noise_scale is not None:
         scale = np.asarray(noise_scale, np.float32)
-        batch = batch._replace(noise=jax.tree.map(
-            lambda robot, own: np.where(scale >= 0, scale * robot, own).astype(np.float32),
-            arrays(get(ROBOT_PROFILE)).noise, batch.noise))
+        batch = batch._replace(
+            noise=jax.tree.map(
+                lambda robot, own: np.where(scale >= 0, scale * robot, own).astype(np.float32),
+                arrays(get(ROBOT_PROFILE)).noise,
+                batch.noise,
+            )
+        )
     if noise_seed is not None:
         batch = batch._replace(noise_seed=np.asarray(noise_seed, np.uint32))
     return batch
 
 
 # ----------------------------------------------------------------------------------------------- sensor and motors
+
 
 class ActuatorSensorState(NamedTuple):
     """What the profile's sensor and motors remember between ticks (per instance)."""
@@ -264,15 +308,17 @@ class ActuatorSensorState(NamedTuple):
 def calf_rotations(qpos: jax.Array, root_qpos: int, joint_qpos: np.ndarray) -> jax.Array:
     """Calf-body rotation matrices (4, 3, 3), calf frame → floor frame, from qpos: trunk ⊗ Rx(hip) ⊗ Ry(thigh + knee)
     (the model's body frames carry no rotation of their own)."""
-    trunk = attitude.quat_to_matrix(qpos[root_qpos + 3:root_qpos + 7])
+    trunk = attitude.quat_to_matrix(qpos[root_qpos + 3 : root_qpos + 7])
     q = qpos[joint_qpos].reshape(4, 3)
     c1, s1 = jnp.cos(q[:, 0]), jnp.sin(q[:, 0])
     c23, s23 = jnp.cos(q[:, 1] + q[:, 2]), jnp.sin(q[:, 1] + q[:, 2])
     one, zero = jnp.ones_like(c1), jnp.zeros_like(c1)
-    rx = jnp.stack([jnp.stack([one, zero, zero], -1), jnp.stack([zero, c1, -s1], -1),
-                    jnp.stack([zero, s1, c1], -1)], -2)
-    ry = jnp.stack([jnp.stack([c23, zero, s23], -1), jnp.stack([zero, one, zero], -1),
-                    jnp.stack([-s23, zero, c23], -1)], -2)
+    rx = jnp.stack(
+        [jnp.stack([one, zero, zero], -1), jnp.stack([zero, c1, -s1], -1), jnp.stack([zero, s1, c1], -1)], -2
+    )
+    ry = jnp.stack(
+        [jnp.stack([c23, zero, s23], -1), jnp.stack([zero, one, zero], -1), jnp.stack([-s23, zero, c23], -1)], -2
+    )
     return trunk @ rx @ ry
 
 
@@ -294,8 +340,9 @@ def foot_normal_force(contact_data: jax.Array) -> jax.Array:
     return contact_data[:, 0]
 
 
-def foot_force_signal(profile: ProfileArrays, qpos: jax.Array, contact_data: jax.Array, root_qpos: int,
-                      joint_qpos: np.ndarray) -> jax.Array:
+def foot_force_signal(
+    profile: ProfileArrays, qpos: jax.Array, contact_data: jax.Array, root_qpos: int, joint_qpos: np.ndarray
+) -> jax.Array:
     """The profile's instantaneous foot-force signal (4,) [N]: the contact normal force, or the z component of the
     contact force in the calf frame (noise-free, continuous). ``contact_data`` as :func:`foot_normal_force` takes
     it; with several contacts per foot the normal forces add, and the calf-frame force is that of the sum of the
@@ -342,15 +389,18 @@ def noise_draws(profile: ProfileArrays, tick: jax.Array) -> NoisyReadings:
     seed = jnp.asarray(profile.noise_seed, jnp.uint32)
     state = _fmix32(_fmix32(seed + _GOLDEN_GAMMA) ^ jnp.asarray(tick).astype(jnp.uint32))
     counter = state + _GOLDEN_GAMMA * jnp.arange(1, NUM_NOISY_READINGS + 1, dtype=jnp.uint32)
-    return NOISE_DRAWS.unravel((_fmix32(counter) >> 8).astype(jnp.float32) * np.float32(2.0 ** -23) - 1.0)
+    return NOISE_DRAWS.unravel((_fmix32(counter) >> 8).astype(jnp.float32) * np.float32(2.0**-23) - 1.0)
 
 
 def init_state(force_n: jax.Array) -> ActuatorSensorState:
     """At a reset: the sensor holds the force of the reset state, the command queue is empty."""
-    return ActuatorSensorState(held_force_n=jnp.asarray(force_n, jnp.float32),
-                               force_sum_n=jnp.zeros(4, jnp.float32), contact_ticks=jnp.zeros(4, jnp.float32),
-                               commands_nm=jnp.zeros((MAX_LATENCY_TICKS + 1, constants.NUM_JOINTS), jnp.float32),
-                               tick=jnp.zeros((), jnp.int32))
+    return ActuatorSensorState(
+        held_force_n=jnp.asarray(force_n, jnp.float32),
+        force_sum_n=jnp.zeros(4, jnp.float32),
+        contact_ticks=jnp.zeros(4, jnp.float32),
+        commands_nm=jnp.zeros((MAX_LATENCY_TICKS + 1, constants.NUM_JOINTS), jnp.float32),
+        tick=jnp.zeros((), jnp.int32),
+    )
 
 
 def touching(profile: ProfileArrays, foot_clearance_m: jax.Array) -> jax.Array:
@@ -359,8 +409,9 @@ def touching(profile: ProfileArrays, foot_clearance_m: jax.Array) -> jax.Array:
     return foot_clearance_m < profile.contact_layer_m
 
 
-def foot_sensor_update(profile: ProfileArrays, state: ActuatorSensorState, force_n: jax.Array,
-                       contact: jax.Array) -> tuple[ActuatorSensorState, jax.Array]:
+def foot_sensor_update(
+    profile: ProfileArrays, state: ActuatorSensorState, force_n: jax.Array, contact: jax.Array
+) -> tuple[ActuatorSensorState, jax.Array]:
     """The force the controller reads at this tick (4,) [N], updated every ``force_period_ticks`` ticks and held
     between updates.
 
@@ -374,12 +425,14 @@ def foot_sensor_update(profile: ProfileArrays, state: ActuatorSensorState, force
     update = state.tick % profile.force_period_ticks == 0
     mean = jnp.where(ticks > 0, sums / jnp.maximum(ticks, 1.0), 0.0)
     held = jnp.where(update, jnp.where(profile.force_contact_mean, mean, force_n), state.held_force_n)
-    return state._replace(held_force_n=held, force_sum_n=jnp.where(update, 0.0, sums),
-                          contact_ticks=jnp.where(update, 0.0, ticks)), held
+    return state._replace(
+        held_force_n=held, force_sum_n=jnp.where(update, 0.0, sums), contact_ticks=jnp.where(update, 0.0, ticks)
+    ), held
 
 
-def actuate(profile: ProfileArrays, state: ActuatorSensorState, command_nm: jax.Array,
-            joint_vel_rad_s: jax.Array) -> tuple[ActuatorSensorState, jax.Array]:
+def actuate(
+    profile: ProfileArrays, state: ActuatorSensorState, command_nm: jax.Array, joint_vel_rad_s: jax.Array
+) -> tuple[ActuatorSensorState, jax.Array]:
     """The torque the motors apply this tick (12,) [N·m] for the controller's command, and the next state.
 
     The command of ``latency_ticks`` ticks ago, limited by the DC-motor envelope (when motoring, |τ| ≤
@@ -389,8 +442,9 @@ def actuate(profile: ProfileArrays, state: ActuatorSensorState, command_nm: jax.
     commands = jnp.concatenate([command_nm[None].astype(jnp.float32), state.commands_nm[:-1]])
     torque = commands[profile.latency_ticks]
     motoring = torque * joint_vel_rad_s > 0
-    envelope = profile.stall_torque_nm * jnp.clip(1.0 - jnp.abs(joint_vel_rad_s) / profile.no_load_speed_rad_s,
-                                                  0.0, 1.0)
+    envelope = profile.stall_torque_nm * jnp.clip(
+        1.0 - jnp.abs(joint_vel_rad_s) / profile.no_load_speed_rad_s, 0.0, 1.0
+    )
     limit = jnp.where(motoring, envelope, profile.stall_torque_nm)
     torque = jnp.clip(torque, -limit, limit)
     beyond = (jnp.abs(joint_vel_rad_s) > profile.velocity_limit_rad_s) & motoring

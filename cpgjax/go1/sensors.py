@@ -37,12 +37,12 @@ def observe(qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: ja
     """
     ids = go1_model.indices()
     r = ids.root_qpos
-    quat_floor = qpos[r + 3:r + 7]
+    quat_floor = qpos[r + 3 : r + 7]
     return Observation(
         joint_pos_rad=qpos[ids.joint_qpos],
         joint_vel_rad_s=qvel[ids.joint_dof],
         imu_quat_wxyz=attitude.quat_mul(attitude.gravity_frame_quat(gravity), quat_floor),
-        gyro_rad_s=qvel[ids.root_dof + 3:ids.root_dof + 6],
+        gyro_rad_s=qvel[ids.root_dof + 3 : ids.root_dof + 6],
         foot_force_n=foot_normal_force_n(sensordata),
     )
 
@@ -56,9 +56,14 @@ def foot_normal_force_n(sensordata: jax.Array) -> jax.Array:
     return physics_profiles.foot_normal_force(sensordata[slots])
 
 
-def measure(profile: physics_profiles.ProfileArrays, io: physics_profiles.ActuatorSensorState, qpos: jax.Array,
-            qvel: jax.Array, sensordata: jax.Array,
-            gravity: jax.Array) -> tuple[physics_profiles.ActuatorSensorState, Observation]:
+def measure(
+    profile: physics_profiles.ProfileArrays,
+    io: physics_profiles.ActuatorSensorState,
+    qpos: jax.Array,
+    qvel: jax.Array,
+    sensordata: jax.Array,
+    gravity: jax.Array,
+) -> tuple[physics_profiles.ActuatorSensorState, Observation]:
     """The observation under a physics profile: :func:`observe` with the profile's foot-force signal (contact normal
     or calf-frame z), its sensor noise (uniform, drawn every tick), the force counted when the sensor counts, and
     updated and held at the profile's rate (``physics_profiles.foot_sensor_update``). On a height field a foot counts
@@ -81,18 +86,20 @@ def measure(profile: physics_profiles.ProfileArrays, io: physics_profiles.Actuat
     turn = amplitude.tilt * jnp.concatenate([u.tilt, jnp.zeros(1, u.tilt.dtype)])
     angle = jnp.linalg.norm(turn)
     tilt = jnp.concatenate([jnp.cos(angle / 2)[None], 0.5 * jnp.sinc(angle / (2 * jnp.pi)) * turn])
-    return io, obs._replace(joint_pos_rad=obs.joint_pos_rad + amplitude.joint_pos * u.joint_pos,
-                            joint_vel_rad_s=obs.joint_vel_rad_s + amplitude.joint_vel * u.joint_vel,
-                            imu_quat_wxyz=attitude.quat_mul(obs.imu_quat_wxyz, tilt.astype(obs.imu_quat_wxyz.dtype)),
-                            gyro_rad_s=obs.gyro_rad_s + amplitude.gyro * u.gyro,
-                            foot_force_n=held)
+    return io, obs._replace(
+        joint_pos_rad=obs.joint_pos_rad + amplitude.joint_pos * u.joint_pos,
+        joint_vel_rad_s=obs.joint_vel_rad_s + amplitude.joint_vel * u.joint_vel,
+        imu_quat_wxyz=attitude.quat_mul(obs.imu_quat_wxyz, tilt.astype(obs.imu_quat_wxyz.dtype)),
+        gyro_rad_s=obs.gyro_rad_s + amplitude.gyro * u.gyro,
+        foot_force_n=held,
+    )
 
 
 def heading_velocity(qpos: jax.Array, qvel: jax.Array) -> jax.Array:
     """Trunk linear velocity (v_x, v_y) [m/s] in the heading (yaw-only) frame on the floor (docs/decisions.md §9)."""
     ids = go1_model.indices()
-    yaw = attitude.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])[2]
-    return attitude.to_heading_frame(qvel[ids.root_dof:ids.root_dof + 2], yaw)
+    yaw = attitude.quat_to_rpy(qpos[ids.root_qpos + 3 : ids.root_qpos + 7])[2]
+    return attitude.to_heading_frame(qvel[ids.root_dof : ids.root_dof + 2], yaw)
 
 
 def foot_positions(qpos: jax.Array) -> jax.Array:
@@ -100,5 +107,6 @@ def foot_positions(qpos: jax.Array) -> jax.Array:
     ids = go1_model.indices()
     r = ids.root_qpos
     legs = kinematics.legs_fk(qpos[ids.joint_qpos].reshape(4, 3), jnp.asarray(kinematics.SIDE_SIGN, qpos.dtype))
-    return qpos[r:r + 3] + attitude.quat_rotate(qpos[r + 3:r + 7],
-                                                jnp.asarray(kinematics.HIP_POS_M, qpos.dtype) + legs)
+    return qpos[r : r + 3] + attitude.quat_rotate(
+        qpos[r + 3 : r + 7], jnp.asarray(kinematics.HIP_POS_M, qpos.dtype) + legs
+    )

@@ -75,20 +75,30 @@ def check_terrain(terrain, amplitude_m, seed, step_m=None) -> None:
         if kind not in TERRAINS:
             raise ValueError(f"scenario terrain = {str(kind)!r} (instance {i}) is not a terrain; allowed: {TERRAINS}")
         if not (np.isfinite(a) and 0.0 <= a <= MAX_AMPLITUDE_M):
-            raise ValueError(f"scenario terrain_amplitude_m = {float(a)!r} (instance {i}) is outside the allowed range "
-                             f"[0, {MAX_AMPLITUDE_M}]")
+            raise ValueError(
+                f"scenario terrain_amplitude_m = {float(a)!r} (instance {i}) is outside the allowed range "
+                f"[0, {MAX_AMPLITUDE_M}]"
+            )
         if kind == FLAT and a != 0.0:
-            raise ValueError(f"scenario terrain_amplitude_m = {float(a)!r} (instance {i}) on flat terrain: allowed 0 "
-                             "(give terrain rough for a height)")
-        if not (np.isfinite(s) and s == np.round(s) and 0 <= s < 2.0 ** 32):
-            raise ValueError(f"scenario terrain_seed = {float(s)!r} (instance {i}) is outside the allowed range "
-                             "an integer in [0, 2**32)")
+            raise ValueError(
+                f"scenario terrain_amplitude_m = {float(a)!r} (instance {i}) on flat terrain: allowed 0 "
+                "(give terrain rough for a height)"
+            )
+        if not (np.isfinite(s) and s == np.round(s) and 0 <= s < 2.0**32):
+            raise ValueError(
+                f"scenario terrain_seed = {float(s)!r} (instance {i}) is outside the allowed range "
+                "an integer in [0, 2**32)"
+            )
         if kind == BLOCKS and not (np.isfinite(d) and BLOCK_DEPTH_M[0] <= d <= BLOCK_DEPTH_M[1]):
-            raise ValueError(f"scenario terrain_step_m = {float(d)!r} (instance {i}) is outside the allowed range "
-                             f"[{BLOCK_DEPTH_M[0]}, {BLOCK_DEPTH_M[1]}] (the blocks' depth)")
+            raise ValueError(
+                f"scenario terrain_step_m = {float(d)!r} (instance {i}) is outside the allowed range "
+                f"[{BLOCK_DEPTH_M[0]}, {BLOCK_DEPTH_M[1]}] (the blocks' depth)"
+            )
         if kind != BLOCKS and d != 0.0:
-            raise ValueError(f"scenario terrain_step_m = {float(d)!r} (instance {i}) on {kind} terrain: allowed 0 "
-                             "(a depth is the blocks')")
+            raise ValueError(
+                f"scenario terrain_step_m = {float(d)!r} (instance {i}) on {kind} terrain: allowed 0 "
+                "(a depth is the blocks')"
+            )
 
 
 def _periodic_distance_m(coord_m: np.ndarray) -> np.ndarray:
@@ -114,8 +124,9 @@ def period_heights_m(ground: Ground) -> np.ndarray:
     elif terrain != FLAT:
         heights = amplitude_m * (np.random.default_rng(seed).random((PERIOD_CELLS, PERIOD_CELLS)) - 0.5)
     if terrain != FLAT:
-        pad = ((_periodic_distance_m(coord)[:, None] <= PAD_HALF_M[1])
-               & (_periodic_distance_m(coord)[None, :] <= PAD_HALF_M[0]))
+        pad = (_periodic_distance_m(coord)[:, None] <= PAD_HALF_M[1]) & (
+            _periodic_distance_m(coord)[None, :] <= PAD_HALF_M[0]
+        )
         heights[pad] = 0.0
     heights.flags.writeable = False
     return heights
@@ -125,8 +136,14 @@ def field_heights_m(ground: Ground) -> np.ndarray:
     """Ground heights (FIELD_VERTICES, FIELD_VERTICES) [m] of the whole field, [row (y), column (x)], vertex (r, c)
     at (c, r) · CELL_M − FIELD_HALF_M: the period repeated, the vertex at (x, y) being the period's vertex at
     (x, y) modulo PERIOD_M."""
-    period = period_heights_m(Ground(str(ground.terrain), float(ground.terrain_amplitude_m), int(ground.terrain_seed),
-                                     float(ground.terrain_step_m)))
+    period = period_heights_m(
+        Ground(
+            str(ground.terrain),
+            float(ground.terrain_amplitude_m),
+            int(ground.terrain_seed),
+            float(ground.terrain_step_m),
+        )
+    )
     index = (np.arange(FIELD_VERTICES) - round(FIELD_HALF_M / CELL_M)) % PERIOD_CELLS
     return period[np.ix_(index, index)]
 

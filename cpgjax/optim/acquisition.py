@@ -164,9 +164,7 @@ def maximize_acquisition(
         updates, opt_state = optimizer.update(grads, opt_state, points)
         return (_project(optax.apply_updates(points, updates), active), opt_state), None
 
-    (refined, _), _ = jax.lax.scan(
-        step, (starts, optimizer.init(starts)), None, length=config.num_steps
-    )
+    (refined, _), _ = jax.lax.scan(step, (starts, optimizer.init(starts)), None, length=config.num_steps)
     finalists = jnp.concatenate([refined, candidates[start_index[:1]]])
     finalist_values = feasible_values(finalists)
     best = jnp.argmax(finalist_values)

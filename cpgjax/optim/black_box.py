@@ -84,9 +84,15 @@ def maximize(
     if num_trials < 1:
         raise ValueError(f"num_trials must be >= 1, got {num_trials}")
     config = OptimizerConfig(
-        parameter_lower=tuple(bounds[0]), parameter_upper=tuple(bounds[1]),
-        capacity=num_trials, num_random_proposals=num_random_proposals, ucb_form=ucb_form,
-        fit=fit, acquisition=acquisition, safe=safe, safe_beta=safe_beta,
+        parameter_lower=tuple(bounds[0]),
+        parameter_upper=tuple(bounds[1]),
+        capacity=num_trials,
+        num_random_proposals=num_random_proposals,
+        ucb_form=ucb_form,
+        fit=fit,
+        acquisition=acquisition,
+        safe=safe,
+        safe_beta=safe_beta,
     )
     optimizer = _black_box_optimizer(config)
     state = optimizer.init(schedule=schedule)
@@ -103,8 +109,13 @@ def maximize(
             x, back = np.asarray(x), bool(back)
         evaluated = fn(np.asarray(x, np.float64))
         value, margin = (float(evaluated[0]), float(evaluated[1])) if safe else (float(evaluated), None)
-        state, _ = optimizer.observe(state, jnp.asarray(x, jnp.float32), no_context, jnp.float32(value),
-                                     None if margin is None else jnp.float32(margin))
+        state, _ = optimizer.observe(
+            state,
+            jnp.asarray(x, jnp.float32),
+            no_context,
+            jnp.float32(value),
+            None if margin is None else jnp.float32(margin),
+        )
         xs.append(np.asarray(x, np.float64))
         values.append(value)
         margins.append(margin)

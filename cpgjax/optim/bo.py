@@ -75,7 +75,10 @@ from cpgjax.optim.exploration import (
 )
 
 __all__ = [
-    "BOX_TOLERANCE", "ContextualBO", "OptimizerState", "make_optimizer",
+    "BOX_TOLERANCE",
+    "ContextualBO",
+    "OptimizerState",
+    "make_optimizer",
 ]
 
 BOX_TOLERANCE = 1e-5
@@ -141,17 +144,20 @@ def first_rows(state: OptimizerState, rows: int) -> OptimizerState:
     ``rows`` trials). :func:`full_rows` puts the rest back. A checkpoint of a study with data reuse then holds the
     trial records stored so far, not the whole capacity's."""
     cut = (slice(None),) * _rows_axis(state) + (slice(0, rows),)
-    return state._replace(**{f: jax.tree.map(lambda leaf: np.asarray(leaf)[cut], getattr(state, f))
-                             for f in OBSERVATION_FIELDS})
+    return state._replace(
+        **{f: jax.tree.map(lambda leaf: np.asarray(leaf)[cut], getattr(state, f)) for f in OBSERVATION_FIELDS}
+    )
 
 
 def full_rows(fresh: OptimizerState, cut: OptimizerState) -> OptimizerState:
     """The state :func:`first_rows` cut, as host arrays: ``cut``'s observation rows written over the buffers of
     ``fresh``, a state from ``init`` with the same batch axes."""
+
     def put(full, part):
         full = np.array(full)
         full[(slice(None),) * _rows_axis(fresh) + (slice(0, np.shape(part)[_rows_axis(fresh)]),)] = part
         return full
+
     return cut._replace(**{f: jax.tree.map(put, getattr(fresh, f), getattr(cut, f)) for f in OBSERVATION_FIELDS})
 
 
@@ -230,20 +236,29 @@ def _static(config: OptimizerConfig, objective_fn, record_template) -> _Static:
     context_lower = jnp.asarray(config.context_lower, jnp.float32)
     context_width = jnp.asarray(config.context_upper, jnp.float32) - context_lower
     return _Static(
-        config=config, objective_fn=objective_fn, record_template=record_template, template_tree=tree,
-        template_specs=specs, lower=lower, width=jnp.asarray(config.parameter_upper, jnp.float32) - lower,
+        config=config,
+        objective_fn=objective_fn,
+        record_template=record_template,
+        template_tree=tree,
+        template_specs=specs,
+        lower=lower,
+        width=jnp.asarray(config.parameter_upper, jnp.float32) - lower,
         # Proposals are clipped to these, so float32 rounding never leaves the float64 box.
         lower_inside=jnp.asarray(_float32_inside(config.parameter_lower, np.inf)),
         upper_inside=jnp.asarray(_float32_inside(config.parameter_upper, -np.inf)),
-        context_lower=context_lower, context_width=context_width,
-        context_tolerance=jnp.asarray(config.context_thresholds, jnp.float32) * context_width)
+        context_lower=context_lower,
+        context_width=context_width,
+        context_tolerance=jnp.asarray(config.context_thresholds, jnp.float32) * context_width,
+    )
 
 
 # ----------------------------------------------------------------------------------------------- pure cores (jitted)
 
+
 def _inputs(s: _Static, state: OptimizerState) -> jax.Array:
-    return jnp.concatenate([(state.parameters - s.lower) / s.width, (state.contexts - s.context_lower) /
-                            s.context_width], axis=-1)
+    return jnp.concatenate(
+        [(state.parameters - s.lower) / s.width, (state.contexts - s.context_lower) / s.context_width], axis=-1
+    )
 
 
 def _learned(s: _Static, state: OptimizerState) -> jax.Array:
@@ -269,8 +284,7 @@ def _kernel_active(s: _Static, state: OptimizerState) -> jax.Array:
 
 
 def _refit_objective(s: _Static, state: OptimizerState) -> OptimizerState:
-    params = gp.fit(_dataset(s, state), _kernel_active(s, state), state.gp_params, s.config.num_contexts,
-                    s.config.fit)
+    params = gp.fit(_dataset(s, state), _kernel_active(s, state), state.gp_params, s.config.num_contexts, s.config.fit)
     return state._replace(gp_params=params)
 
 
@@ -279,14 +293,27 @@ def _refit(s: _Static, state: OptimizerState) -> OptimizerState:
     state = _refit_objective(s, state)
     if not s.config.safe:
         return state
-    params = gp.fit(_margin_dataset(s, state), _kernel_active(s, state), state.margin_gp_params,
-                    s.config.num_contexts, s.config.fit, s.config.margin_priors)
+    params = gp.fit(
+        _margin_dataset(s, state),
+        _kernel_active(s, state),
+        state.margin_gp_params,
+        s.config.num_contexts,
+        s.config.fit,
+        s.config.margin_priors,
+    )
     return state._replace(margin_gp_params=params)
 
 
 def _beta(s: _Static, state: OptimizerState, context) -> BetaInfo:
-    return exploration_beta(state.schedule, state.contexts, state.stored, context, s.context_tolerance,
-                            state.inference_mode, s.config.inference_beta)
+    return exploration_beta(
+        state.schedule,
+        state.contexts,
+        state.stored,
+        context,
+        s.context_tolerance,
+        state.inference_mode,
+        s.config.inference_beta,
+    )
 
 
 def _to_physical(s: _Static, unit_point) -> jax.Array:
@@ -298,8 +325,9 @@ def _condition(s: _Static, state: OptimizerState) -> gp.Posterior:
 
 
 def _condition_margin(s: _Static, state: OptimizerState) -> gp.Posterior:
-    return gp.posterior(state.margin_gp_params, _margin_dataset(s, state), _kernel_active(s, state),
-                        s.config.num_contexts)
+    return gp.posterior(
+        state.margin_gp_params, _margin_dataset(s, state), _kernel_active(s, state), s.config.num_contexts
+    )
 
 
 def _queries(s: _Static, context, unit_points) -> jax.Array:
@@ -318,11 +346,11 @@ def _maximize_ucb(s: _Static, post, state: OptimizerState, context, key, multipl
         return upper_confidence_bound(post, _queries(s, context, unit_points), multiplier, num_contexts)
 
     def margin_lower_bound(unit_points):
-        return lower_confidence_bound(margin_post, _queries(s, context, unit_points), s.config.safe_beta,
-                                      num_contexts)
+        return lower_confidence_bound(margin_post, _queries(s, context, unit_points), s.config.safe_beta, num_contexts)
 
-    return maximize_acquisition(acquisition, key, state.active_dims, s.config.acquisition,
-                                None if margin_post is None else margin_lower_bound)
+    return maximize_acquisition(
+        acquisition, key, state.active_dims, s.config.acquisition, None if margin_post is None else margin_lower_bound
+    )
 
 
 def _safe_observations(state: OptimizerState) -> jax.Array:
@@ -362,8 +390,7 @@ def _propose(s: _Static, state: OptimizerState, context, key) -> tuple[jax.Array
             point, _ = _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier)
             return point, jnp.zeros((), bool)
         margin_post = _condition_margin(s, state)
-        point, value = _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier,
-                                     margin_post)
+        point, value = _maximize_ucb(s, _condition(s, state), state, context, acquisition_key, multiplier, margin_post)
         found = jnp.isfinite(value)
         repeat, any_safe = _safest_safe_observed(s, state, context, margin_post)
         fallback = jnp.where(any_safe, repeat, random_point())
@@ -382,8 +409,13 @@ def _observe(s: _Static, state: OptimizerState, x, context, observation, margin)
         objective = jnp.asarray(observation, jnp.float32)
     slack = BOX_TOLERANCE * s.width
     in_box = jnp.where(state.active_dims, (x >= s.lower - slack) & (x <= s.lower + s.width + slack), True)
-    accepted = (jnp.isfinite(objective) & jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(context))
-                & jnp.all(in_box) & (state.num_stored < capacity))
+    accepted = (
+        jnp.isfinite(objective)
+        & jnp.all(jnp.isfinite(x))
+        & jnp.all(jnp.isfinite(context))
+        & jnp.all(in_box)
+        & (state.num_stored < capacity)
+    )
     if s.config.safe:
         accepted = accepted & jnp.isfinite(margin)
     row = jnp.minimum(state.num_stored, capacity - 1)
@@ -392,8 +424,11 @@ def _observe(s: _Static, state: OptimizerState, x, context, observation, margin)
         contexts=state.contexts.at[row].set(context),
         objectives=state.objectives.at[row].set(objective),
         stored=state.stored.at[row].set(True),
-        records=(jax.tree.map(lambda buf, r: buf.at[row].set(r), state.records, observation)
-                 if s.reuses_data else state.records),
+        records=(
+            jax.tree.map(lambda buf, r: buf.at[row].set(r), state.records, observation)
+            if s.reuses_data
+            else state.records
+        ),
         num_stored=state.num_stored + 1,
         margins=(state.margins.at[row].set(jnp.asarray(margin, jnp.float32)) if s.config.safe else state.margins),
     )
@@ -436,6 +471,7 @@ class _Compiled(NamedTuple):
 # ----------------------------------------------------------------------------------------------- public functions
 # Python-level validation of the arguments (clear errors before any compute), then the jitted core.
 
+
 def _check_state(s: _Static, state) -> None:
     if not isinstance(state, OptimizerState):
         raise TypeError(f"expected an OptimizerState, got {type(state).__name__}")
@@ -463,8 +499,7 @@ def _init(s: _Static, active_dims=None, schedule=None, target_velocity=None) -> 
         if target_velocity is None:
             raise ValueError("target_velocity is required with objective_fn (data reuse)")
         target = jnp.asarray(target_velocity, jnp.float32)
-        records = jax.tree.map(lambda leaf: jnp.zeros((config.capacity, *leaf.shape), leaf.dtype),
-                               s.record_template)
+        records = jax.tree.map(lambda leaf: jnp.zeros((config.capacity, *leaf.shape), leaf.dtype), s.record_template)
     else:
         if target_velocity is not None:
             raise ValueError("target_velocity needs an objective_fn (data reuse)")
@@ -541,12 +576,18 @@ def _observe_checked(s: _Static, jitted: _Compiled, state, x, context, observati
     _check_context(s, context)
     _check_observation(s, state, x, context, observation)
     _check_margin(s, margin)
-    new_state, accepted = jitted.observe(state, jnp.asarray(x, jnp.float32), jnp.asarray(context, jnp.float32),
-                                         observation, jnp.zeros((), jnp.float32) if margin is None else
-                                         jnp.asarray(margin, jnp.float32))
+    new_state, accepted = jitted.observe(
+        state,
+        jnp.asarray(x, jnp.float32),
+        jnp.asarray(context, jnp.float32),
+        observation,
+        jnp.zeros((), jnp.float32) if margin is None else jnp.asarray(margin, jnp.float32),
+    )
     if _is_concrete(accepted) and not bool(accepted):
-        raise ValueError("observation rejected: objective_fn returned a non-finite objective for this trial "
-                         "record; the state is unchanged")
+        raise ValueError(
+            "observation rejected: objective_fn returned a non-finite objective for this trial "
+            "record; the state is unchanged"
+        )
     return new_state, accepted
 
 
@@ -606,10 +647,13 @@ def make_optimizer(
     """
     s = _static(config, objective_fn, record_template)
     jitted = _Compiled(
-        propose=jax.jit(functools.partial(_propose, s)), observe=jax.jit(functools.partial(_observe, s)),
-        set_target=jax.jit(functools.partial(_set_target, s)), beta=jax.jit(functools.partial(_beta, s)),
+        propose=jax.jit(functools.partial(_propose, s)),
+        observe=jax.jit(functools.partial(_observe, s)),
+        set_target=jax.jit(functools.partial(_set_target, s)),
+        beta=jax.jit(functools.partial(_beta, s)),
         best_observed=jax.jit(_best_observed),
-        posterior_mean_argmax=jax.jit(functools.partial(_posterior_mean_argmax, s)))
+        posterior_mean_argmax=jax.jit(functools.partial(_posterior_mean_argmax, s)),
+    )
     return ContextualBO(
         init=functools.partial(_init, s),
         propose=functools.partial(_propose_checked, s, jitted),

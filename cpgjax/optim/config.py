@@ -95,12 +95,12 @@ def _check_box(name, lower, upper):
         raise ValueError(f"{name} bounds differ in length: {len(lower)} vs {len(upper)}")
     for i, (lo, hi) in enumerate(zip(lower, upper, strict=True)):
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise ValueError(f"{name} bounds [{i}] must be finite with lower < upper, got"
-                             f" [{lo}, {hi}]")
+            raise ValueError(f"{name} bounds [{i}] must be finite with lower < upper, got [{lo}, {hi}]")
 
 
-def clip_context(config: OptimizerConfig, context: np.ndarray, names: Sequence[str],
-                 units: Sequence[str]) -> tuple[np.ndarray, list[str]]:
+def clip_context(
+    config: OptimizerConfig, context: np.ndarray, names: Sequence[str], units: Sequence[str]
+) -> tuple[np.ndarray, list[str]]:
     """Contexts (..., C) clipped to the normalization ranges for the GP input, and one message per clipped value
     naming the instance (the leading index), the component (``names``, ``units``: one per component) and the range
     (docs/decisions.md §11: never silently). The caller logs the messages; the unclipped values stay in the record.
@@ -114,7 +114,9 @@ def clip_context(config: OptimizerConfig, context: np.ndarray, names: Sequence[s
     lower, upper = np.asarray(config.context_lower), np.asarray(config.context_upper)
     # Compared in the context's precision, so a value already clipped to a bound (rounded to it) is inside.
     clipped = np.clip(context, lower, upper).astype(context.dtype)
-    messages = [f"instance {idx[0] if len(idx) > 1 else 0}: {names[idx[-1]]} = {context[idx]:.4g} "
-                f"{units[idx[-1]]} outside [{lower[idx[-1]]:g}, {upper[idx[-1]]:g}], clipped for the GP"
-                for idx in zip(*np.nonzero(clipped != context), strict=True)]
+    messages = [
+        f"instance {idx[0] if len(idx) > 1 else 0}: {names[idx[-1]]} = {context[idx]:.4g} "
+        f"{units[idx[-1]]} outside [{lower[idx[-1]]:g}, {upper[idx[-1]]:g}], clipped for the GP"
+        for idx in zip(*np.nonzero(clipped != context), strict=True)
+    ]
     return clipped, messages

@@ -40,11 +40,11 @@ class BetaSchedule(NamedTuple):
     n_decay_changed: jax.Array
 
 
-def paper_schedule(beta_init=5.0, gamma=0.7, n_decay=10, beta_init_changed=1.5,
-                   n_decay_changed=3) -> BetaSchedule:
+def paper_schedule(beta_init=5.0, gamma=0.7, n_decay=10, beta_init_changed=1.5, n_decay_changed=3) -> BetaSchedule:
     """A :class:`BetaSchedule` of float32 scalars; defaults are the paper's Table III."""
-    return BetaSchedule(*(jnp.asarray(v, jnp.float32) for v in
-                          (beta_init, gamma, n_decay, beta_init_changed, n_decay_changed)))
+    return BetaSchedule(
+        *(jnp.asarray(v, jnp.float32) for v in (beta_init, gamma, n_decay, beta_init_changed, n_decay_changed))
+    )
 
 
 class BetaInfo(NamedTuple):
@@ -82,9 +82,7 @@ def exploration_beta(
     within = jnp.all(jnp.abs(stored_contexts - context) <= context_tolerance, axis=-1)
     num_in_context = jnp.sum(stored & within)
     changed = jnp.any(stored & ~within)
-    normal = schedule.beta_init * schedule.gamma ** jnp.maximum(
-        num_in_context - schedule.n_decay, 0.0)
-    adapted = schedule.beta_init_changed * schedule.gamma ** jnp.maximum(
-        num_in_context - schedule.n_decay_changed, 0.0)
+    normal = schedule.beta_init * schedule.gamma ** jnp.maximum(num_in_context - schedule.n_decay, 0.0)
+    adapted = schedule.beta_init_changed * schedule.gamma ** jnp.maximum(num_in_context - schedule.n_decay_changed, 0.0)
     beta = jnp.where(inference_mode, inference_beta, jnp.where(changed, adapted, normal))
     return BetaInfo(beta, num_in_context, changed)

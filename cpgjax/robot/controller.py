@@ -26,7 +26,6 @@ from cpgjax.trial import protocol
 log = logging.getLogger(__name__)
 
 
-
 def _zeros(*shape) -> np.ndarray:
     return np.zeros(shape, np.float32)
 
@@ -60,10 +59,25 @@ class ControllerOutput(NamedTuple):
 OBSERVATION = FlatLayout(sensors.Observation(_zeros(12), _zeros(12), _zeros(4), _zeros(3), _zeros(4)))
 STATE = FlatLayout(cpg.CPGState(_zeros(4), _zeros(4), _zeros(), _zeros(), _zeros()))
 GATES = FlatLayout(cpg.Gates(_zeros(), _zeros(), _zeros(4, 4)))
-INPUT = FlatLayout(ControllerInput(OBSERVATION.unravel(OBSERVATION.zeros()), _zeros(8), GATES.unravel(GATES.zeros()),
-                                   STATE.unravel(STATE.zeros())))
-OUTPUT = FlatLayout(ControllerOutput(_zeros(12), STATE.unravel(STATE.zeros()), _zeros(3), _zeros(4), _zeros(2),
-                                     _zeros(), _zeros(), _zeros(), _zeros(12), _zeros()))
+INPUT = FlatLayout(
+    ControllerInput(
+        OBSERVATION.unravel(OBSERVATION.zeros()), _zeros(8), GATES.unravel(GATES.zeros()), STATE.unravel(STATE.zeros())
+    )
+)
+OUTPUT = FlatLayout(
+    ControllerOutput(
+        _zeros(12),
+        STATE.unravel(STATE.zeros()),
+        _zeros(3),
+        _zeros(4),
+        _zeros(2),
+        _zeros(),
+        _zeros(),
+        _zeros(),
+        _zeros(12),
+        _zeros(),
+    )
+)
 
 
 def leg_odometry_velocity(obs: sensors.Observation, stance: jax.Array) -> jax.Array:
@@ -86,11 +100,20 @@ def flat_step(config: cpg.CPGConfig, x: jax.Array) -> jax.Array:
     obs = inputs.obs
     state, torque, diag = cpg.controller_step(config, inputs.state, inputs.params, inputs.gates, obs)
     pre = protocol.pre_step(obs, torque, diag, obs.joint_vel_rad_s)  # the trial's per-tick power, load, clipping
-    return OUTPUT.ravel(ControllerOutput(
-        torque_nm=torque, state=state, rpy_rad=diag.rpy_rad, stance=diag.stance,
-        velocity_mps=leg_odometry_velocity(obs, diag.stance), power_w=pre.power_w, load_n=pre.load_n,
-        saturated=pre.saturated, guarded_torque_nm=jnp.clip(torque, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM),
-        finite=jnp.all(jnp.isfinite(torque)).astype(torque.dtype)))
+    return OUTPUT.ravel(
+        ControllerOutput(
+            torque_nm=torque,
+            state=state,
+            rpy_rad=diag.rpy_rad,
+            stance=diag.stance,
+            velocity_mps=leg_odometry_velocity(obs, diag.stance),
+            power_w=pre.power_w,
+            load_n=pre.load_n,
+            saturated=pre.saturated,
+            guarded_torque_nm=jnp.clip(torque, -TORQUE_LIMIT_NM, TORQUE_LIMIT_NM),
+            finite=jnp.all(jnp.isfinite(torque)).astype(torque.dtype),
+        )
+    )
 
 
 def flat_initial_state(config: cpg.CPGConfig, x_obs: jax.Array, x_gates: jax.Array) -> jax.Array:
@@ -110,18 +133,26 @@ class CompiledController:
     def __init__(self, config: cpg.CPGConfig = cpg.CPGConfig(), warmup_calls: int = 200):
         self.inline_dispatch = cpu_dispatch.request_inline()
         if not self.inline_dispatch:
-            log.warning("JAX's CPU client was created with asynchronous dispatch before the controller: each step "
-                        "runs on an XLA worker thread at normal priority while the loop thread waits for it. Call "
-                        "cpgjax.robot.cpu_dispatch.request_inline() at program start, before any JAX computation.")
+            log.warning(
+                "JAX's CPU client was created with asynchronous dispatch before the controller: each step "
+                "runs on an XLA worker thread at normal priority while the loop thread waits for it. Call "
+                "cpgjax.robot.cpu_dispatch.request_inline() at program start, before any JAX computation."
+            )
         self.config = config
         x = INPUT.zeros()
         INPUT.unravel(x).obs.imu_quat_wxyz[0] = 1.0  # identity quaternion
         self._step = jax.jit(lambda v: flat_step(config, v)).lower(x).compile()
-        self._init = jax.jit(lambda v, g: flat_initial_state(config, v, g)).lower(
-            x[INPUT.slices.obs], x[INPUT.slices.gates]).compile()
+        self._init = (
+            jax.jit(lambda v, g: flat_initial_state(config, v, g))
+            .lower(x[INPUT.slices.obs], x[INPUT.slices.gates])
+            .compile()
+        )
         # Without the lean the standing pose is the constant one: nothing to compile.
-        self._stand = (jax.jit(lambda q: cpg.standing_pose_rad(config, q)).lower(np.float32([1, 0, 0, 0])).compile()
-                       if config.start_lean else None)
+        self._stand = (
+            jax.jit(lambda q: cpg.standing_pose_rad(config, q)).lower(np.float32([1, 0, 0, 0])).compile()
+            if config.start_lean
+            else None
+        )
         for _ in range(warmup_calls):
             self.step(x)
         self.initial_state(x[INPUT.slices.obs], x[INPUT.slices.gates])

@@ -30,8 +30,16 @@ class FootForceCalibration(NamedTuple):
 
     def save(self, path, **info) -> None:
         """JSON {offset_counts, newton_per_count, ...info} (``info``: how it was measured; :meth:`load` ignores it)."""
-        Path(path).write_text(json.dumps({"offset_counts": self.offset_counts.tolist(),
-                                          "newton_per_count": self.newton_per_count.tolist(), **info}, indent=1))
+        Path(path).write_text(
+            json.dumps(
+                {
+                    "offset_counts": self.offset_counts.tolist(),
+                    "newton_per_count": self.newton_per_count.tolist(),
+                    **info,
+                },
+                indent=1,
+            )
+        )
 
     @classmethod
     def load(cls, path) -> FootForceCalibration:
@@ -62,21 +70,25 @@ def check_calibration(cal: FootForceCalibration, what: str = "calibration") -> F
     Raises:
       ValueError: the message names the field, the foot, the value and the allowed range.
     """
-    for key, (lo, hi), unit in (("offset_counts", COUNT_RANGE, "counts"), ("newton_per_count", N_PER_COUNT_RANGE,
-                                                                            "N/count")):
+    for key, (lo, hi), unit in (
+        ("offset_counts", COUNT_RANGE, "counts"),
+        ("newton_per_count", N_PER_COUNT_RANGE, "N/count"),
+    ):
         values = np.asarray(getattr(cal, key), np.float64)
         if values.shape != (NUM_FEET,):
             raise ValueError(f"{what}: {key} needs exactly {NUM_FEET} values (FR, FL, RR, RL), got {values.tolist()}")
         bad = ~(np.isfinite(values) & (values >= lo) & (values <= hi))
         if bad.any():
             foot = int(np.argmax(bad))
-            raise ValueError(f"{what}: {key}[{foot}] = {float(values[foot])!r} is outside the allowed range "
-                             f"[{lo:g}, {hi:g}] {unit}")
+            raise ValueError(
+                f"{what}: {key}[{foot}] = {float(values[foot])!r} is outside the allowed range [{lo:g}, {hi:g}] {unit}"
+            )
     return cal
 
 
-def calibrate_foot_force(air_counts: np.ndarray, standing_counts: np.ndarray,
-                         total_mass_kg: float) -> FootForceCalibration:
+def calibrate_foot_force(
+    air_counts: np.ndarray, standing_counts: np.ndarray, total_mass_kg: float
+) -> FootForceCalibration:
     """Calibration from raw samples: the offset is each foot's median with the robot lifted, feet in the air
     (``air_counts`` (K, 4); the median, not the minimum, so the sensor's noise does not bias it); one common scale
     makes the four feet carry the robot's weight while standing still (``standing_counts`` (M, 4)).
@@ -88,5 +100,7 @@ def calibrate_foot_force(air_counts: np.ndarray, standing_counts: np.ndarray,
     loaded = np.sum(np.mean(np.asarray(standing_counts, np.float64), axis=0) - offset)
     if not loaded > 0:
         raise ValueError(f"standing foot counts are not above the in-air offsets {offset}; cannot calibrate")
-    return check_calibration(FootForceCalibration(offset, np.full(4, total_mass_kg * constants.GRAVITY_MPS2 / loaded)),
-                             what="measured calibration")
+    return check_calibration(
+        FootForceCalibration(offset, np.full(4, total_mass_kg * constants.GRAVITY_MPS2 / loaded)),
+        what="measured calibration",
+    )

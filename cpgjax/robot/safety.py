@@ -41,6 +41,7 @@ def check_safety(safety: SafetyConfig) -> SafetyConfig:
     Raises:
       ValueError: the message names the limit, its value and the allowed range.
     """
+
     def need(ok: bool, name: str, allowed: str) -> None:
         if not ok:
             raise ValueError(f"safety {name} = {getattr(safety, name)!r} is outside the allowed range {allowed}")
@@ -50,17 +51,23 @@ def check_safety(safety: SafetyConfig) -> SafetyConfig:
         return float(value) if isinstance(value, (int, float, np.number)) and not isinstance(value, bool) else np.nan
 
     level = safety.power_level
-    need(isinstance(level, (int, np.integer)) and not isinstance(level, bool) and level in POWER_LEVELS,
-         "power_level", f"{POWER_LEVELS.start} … {POWER_LEVELS.stop - 1} (100 W each)")
+    need(
+        isinstance(level, (int, np.integer)) and not isinstance(level, bool) and level in POWER_LEVELS,
+        "power_level",
+        f"{POWER_LEVELS.start} … {POWER_LEVELS.stop - 1} (100 W each)",
+    )
     need(0.0 < number("max_tilt_rad") <= MAX_TILT_RAD, "max_tilt_rad", f"(0, {MAX_TILT_RAD}] rad")
-    need(isinstance(safety.watchdog_ticks, int) and 1 <= safety.watchdog_ticks <= 100, "watchdog_ticks",
-         "1 … 100 ticks")
-    need(0 < number("max_motor_temperature_c") <= MAX_MOTOR_TEMPERATURE_C, "max_motor_temperature_c",
-         f"(0, {MAX_MOTOR_TEMPERATURE_C}] °C")
+    need(
+        isinstance(safety.watchdog_ticks, int) and 1 <= safety.watchdog_ticks <= 100, "watchdog_ticks", "1 … 100 ticks"
+    )
+    need(
+        0 < number("max_motor_temperature_c") <= MAX_MOTOR_TEMPERATURE_C,
+        "max_motor_temperature_c",
+        f"(0, {MAX_MOTOR_TEMPERATURE_C}] °C",
+    )
     need(isinstance(safety.power_trip_count, int) and safety.power_trip_count >= 1, "power_trip_count", "integers >= 1")
     need(0.0 <= number("kp_max_nm_rad") <= wire.KP_RANGE[1], "kp_max_nm_rad", f"[0, {wire.KP_RANGE[1]}] N·m/rad")
-    need(0.0 <= number("kd_max_nm_s_rad") <= wire.KD_RANGE[1], "kd_max_nm_s_rad",
-         f"[0, {wire.KD_RANGE[1]}] N·m·s/rad")
+    need(0.0 <= number("kd_max_nm_s_rad") <= wire.KD_RANGE[1], "kd_max_nm_s_rad", f"[0, {wire.KD_RANGE[1]}] N·m·s/rad")
     unknown = [b for b in safety.stop_buttons if b not in wire.REMOTE_BUTTON_BITS]
     need(not unknown, "stop_buttons", f"names of {tuple(wire.REMOTE_BUTTON_BITS)}")
     return safety
@@ -105,8 +112,9 @@ def power_protect(counter: int, state: wire.RobotState, safety: SafetyConfig) ->
     limit_w = 100.0 * min(max(safety.power_level, 1), 10)
     counter = counter + 1 if power_w > limit_w else max(counter - 1, 0)
     if counter >= safety.power_trip_count:
-        return counter, (f"power protection: Σ|tauEst·dq| = {power_w:.0f} W > {limit_w:.0f} W "
-                         f"(level {safety.power_level})")
+        return counter, (
+            f"power protection: Σ|tauEst·dq| = {power_w:.0f} W > {limit_w:.0f} W (level {safety.power_level})"
+        )
     return counter, None
 
 
@@ -150,6 +158,10 @@ def guard_command(cmd: wire.MotorCommand, safety: SafetyConfig) -> tuple[wire.Mo
     if position_active.any():
         q = np.where(position_active, np.minimum(np.maximum(q, JOINT_LOWER_RAD), JOINT_UPPER_RAD), q)
     return wire.MotorCommand(
-        cmd.mode, q, cmd.dq_rad_s, np.minimum(np.maximum(cmd.tau_nm, -TORQUE_LIMIT_NM), TORQUE_LIMIT_NM),
+        cmd.mode,
+        q,
+        cmd.dq_rad_s,
+        np.minimum(np.maximum(cmd.tau_nm, -TORQUE_LIMIT_NM), TORQUE_LIMIT_NM),
         np.minimum(np.maximum(cmd.kp_nm_rad, 0.0), safety.kp_max_nm_rad),
-        np.minimum(np.maximum(cmd.kd_nm_s_rad, 0.0), safety.kd_max_nm_s_rad)), None
+        np.minimum(np.maximum(cmd.kd_nm_s_rad, 0.0), safety.kd_max_nm_s_rad),
+    ), None

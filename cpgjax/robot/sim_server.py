@@ -53,8 +53,19 @@ FOOT_FORCE_OFFSET_COUNTS = np.array([14, -6, 22, 9])
 FOOT_FORCE_N_PER_COUNT = 0.5
 BRAKE_KD_NM_S_RAD = 20.0  # mode 0x00 (damping): Unitree's Gazebo motor model brakes with Kd = 20
 MOTOR_TEMPERATURE_C = 38
-FAULT_KINDS = ("drop", "late_ms", "corrupt_crc", "wrong_head", "freeze_tick", "silence", "push_roll_nm",
-               "buttons", "power", "temperature_c", "nan_q")
+FAULT_KINDS = (
+    "drop",
+    "late_ms",
+    "corrupt_crc",
+    "wrong_head",
+    "freeze_tick",
+    "silence",
+    "push_roll_nm",
+    "buttons",
+    "power",
+    "temperature_c",
+    "nan_q",
+)
 
 
 def motor_torque(cmd: wire.MotorCommand, q_rad, dq_rad_s):
@@ -112,8 +123,7 @@ class _SenseOut(NamedTuple):
 
 
 COMMAND = FlatLayout(wire.MotorCommand(*(_joints() for _ in wire.MotorCommand._fields)))
-REPORT = FlatLayout(SensorReport(np.zeros(4), np.zeros(3), np.zeros(3), np.zeros(3), _joints(), _joints(),
-                                 np.zeros(4)))
+REPORT = FlatLayout(SensorReport(np.zeros(4), np.zeros(3), np.zeros(3), np.zeros(3), _joints(), _joints(), np.zeros(4)))
 
 
 class _Layouts(NamedTuple):
@@ -129,8 +139,12 @@ def _layouts() -> _Layouts:
     computation, and none may run at import (the process sets JAX's CPU dispatch and its CPUs first, ``main``)."""
     io = physics_profiles.init_state(np.zeros(4, np.float32))  # the sensor and motor state after a reset
     io_layout = FlatLayout(io)
-    return _Layouts(io_layout, FlatLayout(_DriveIn(io, COMMAND.unravel(COMMAND.zeros()), _joints(), _joints())),
-                    FlatLayout(_DriveOut(io, _joints(), _joints())), np.asarray(io_layout.ravel(io, np.float32)))
+    return _Layouts(
+        io_layout,
+        FlatLayout(_DriveIn(io, COMMAND.unravel(COMMAND.zeros()), _joints(), _joints())),
+        FlatLayout(_DriveOut(io, _joints(), _joints())),
+        np.asarray(io_layout.ravel(io, np.float32)),
+    )
 
 
 def command_vector(cmd: wire.MotorCommand) -> np.ndarray:
@@ -145,8 +159,14 @@ class Go1Physics:
     C-MuJoCo backend would replace.
     """
 
-    def __init__(self, friction: float = 0.6, slope_deg: float = 0.0, payload_kg: float = 0.0,
-                 physics: str = physics_profiles.ROBOT_PROFILE, noise_seed: int = 0):
+    def __init__(
+        self,
+        friction: float = 0.6,
+        slope_deg: float = 0.0,
+        payload_kg: float = 0.0,
+        physics: str = physics_profiles.ROBOT_PROFILE,
+        noise_seed: int = 0,
+    ):
         scenario = go1_model.make_scenarios(friction, slope_deg, payload_kg, physics, noise_seed=noise_seed)
         self.model = go1_model.scenario_model(scenario, 0)
         self.data = mujoco.MjData(self.model)
@@ -155,7 +175,8 @@ class Go1Physics:
         self._standing = go1_model.standing_qpos(self.model)
         gravity = jax.numpy.asarray(self.model.opt.gravity, jax.numpy.float32)
         profile = physics_profiles.arrays(physics_profiles.get(physics))._replace(  # the sensors' noise stream
-            noise_seed=np.uint32(scenario.noise_seed[0]))
+            noise_seed=np.uint32(scenario.noise_seed[0])
+        )
         profile = jax.tree.map(jax.numpy.asarray, profile)
         # The simulators' sensor model and the profile's foot sensor and motors, compiled ahead of time on one flat
         # float32 vector in and out (a compiled call costs per argument), each laid out by name: one definition of
@@ -198,7 +219,7 @@ class Go1Physics:
         """Hold the trunk ``height_m`` above its standing pose, like a robot hung from a crane for calibration: from
         the next step on its root is kept there at rest, and the legs move freely in the air."""
         root = self.ids.root_qpos
-        self.held_root_qpos = self.data.qpos[root:root + 7].copy()
+        self.held_root_qpos = self.data.qpos[root : root + 7].copy()
         self.held_root_qpos[2] += height_m
 
     def step(self, cmd: np.ndarray, push_roll_nm: float = 0.0) -> np.ndarray:
@@ -208,8 +229,8 @@ class Go1Physics:
         (12,) [N·m]."""
         if self.held_root_qpos is not None:
             root, dof = self.ids.root_qpos, self.ids.root_dof
-            self.data.qpos[root:root + 7] = self.held_root_qpos
-            self.data.qvel[dof:dof + 6] = 0.0
+            self.data.qpos[root : root + 7] = self.held_root_qpos
+            self.data.qvel[dof : dof + 6] = 0.0
         x, d, into, out_of = self._drive_in, self._drive_views, self._layouts.drive_in, self._layouts.drive_out
         x[into.slices.io] = self._io
         x[into.slices.command] = cmd
@@ -243,20 +264,37 @@ def _report(obs: sensors.Observation) -> SensorReport:
     quat = obs.imu_quat_wxyz
     gravity_body = GRAVITY_MPS2 * attitude.quat_to_matrix(quat)[2]
     counts = FOOT_FORCE_OFFSET_COUNTS + jnp.round(obs.foot_force_n / FOOT_FORCE_N_PER_COUNT)
-    return SensorReport(quat, obs.gyro_rad_s, gravity_body, attitude.quat_to_rpy(quat), obs.joint_pos_rad,
-                        obs.joint_vel_rad_s, jnp.clip(counts, -32768, 32767))
+    return SensorReport(
+        quat,
+        obs.gyro_rad_s,
+        gravity_body,
+        attitude.quat_to_rpy(quat),
+        obs.joint_pos_rad,
+        obs.joint_vel_rad_s,
+        jnp.clip(counts, -32768, 32767),
+    )
 
 
-def robot_state(sensed: np.ndarray, torque_nm: np.ndarray, tick_ms: int, *,
-                buttons: tuple[str, ...] = ()) -> wire.RobotState:
+def robot_state(
+    sensed: np.ndarray, torque_nm: np.ndarray, tick_ms: int, *, buttons: tuple[str, ...] = ()
+) -> wire.RobotState:
     """The LowState of the sensors' report (:meth:`Go1Physics.sense`, read by :data:`REPORT`'s field slices: views,
     cheaper per tick than building the pytree), tauEst = the applied torque."""
     at = REPORT.slices
     return wire.RobotState(
-        tick_ms=tick_ms, quaternion_wxyz=sensed[at.quaternion_wxyz], gyro_rad_s=sensed[at.gyro_rad_s],
-        accel_mps2=sensed[at.accel_mps2], rpy_rad=sensed[at.rpy_rad], motor_mode=_SERVO_MODES, q_rad=sensed[at.q_rad],
-        dq_rad_s=sensed[at.dq_rad_s], tau_est_nm=torque_nm, motor_temperature_c=_TEMPERATURES_C,
-        foot_force_raw=sensed[at.foot_force_raw].astype(np.int16), wireless_remote=wire.remote_with_buttons(*buttons))
+        tick_ms=tick_ms,
+        quaternion_wxyz=sensed[at.quaternion_wxyz],
+        gyro_rad_s=sensed[at.gyro_rad_s],
+        accel_mps2=sensed[at.accel_mps2],
+        rpy_rad=sensed[at.rpy_rad],
+        motor_mode=_SERVO_MODES,
+        q_rad=sensed[at.q_rad],
+        dq_rad_s=sensed[at.dq_rad_s],
+        tau_est_nm=torque_nm,
+        motor_temperature_c=_TEMPERATURES_C,
+        foot_force_raw=sensed[at.foot_force_raw].astype(np.int16),
+        wireless_remote=wire.remote_with_buttons(*buttons),
+    )
 
 
 _SERVO_MODES = np.full(12, wire.MODE_SERVO, np.uint8)
@@ -294,12 +332,12 @@ class TruthLog:
             self._n = 0
         row = self._chunks[-1][self._n]
         row[0] = tick_ms
-        row[1:8] = qpos[ids.root_qpos:ids.root_qpos + 7]
-        row[8:11] = qvel[ids.root_dof:ids.root_dof + 3]
+        row[1:8] = qpos[ids.root_qpos : ids.root_qpos + 7]
+        row[8:11] = qvel[ids.root_dof : ids.root_dof + 3]
         self._n += 1
 
     def rows(self) -> np.ndarray:
-        return np.concatenate([*self._chunks[:-1], self._chunks[-1][:self._n]])
+        return np.concatenate([*self._chunks[:-1], self._chunks[-1][: self._n]])
 
     def save(self, path: str) -> int:
         """Write every row to ``path`` (parquet; docs/outputs.md); returns the number of rows."""
@@ -318,14 +356,20 @@ def trial_truth(truth: dict[str, np.ndarray], robot_ticks: tuple[int, int] | Non
     of its steady phase (None: not known, every figure null): the mean trunk velocity (v_x, v_y) in the heading
     (yaw-only) frame and the forward distance Σ v_x Δt, the definitions of the trial's own figures
     (``trial.protocol``, docs/decisions.md §9)."""
-    m = (np.zeros(len(truth["tick_ms"]), bool) if robot_ticks is None
-         else (truth["tick_ms"] >= robot_ticks[0]) & (truth["tick_ms"] <= robot_ticks[1]))
+    m = (
+        np.zeros(len(truth["tick_ms"]), bool)
+        if robot_ticks is None
+        else (truth["tick_ms"] >= robot_ticks[0]) & (truth["tick_ms"] <= robot_ticks[1])
+    )
     if not m.any():
         return dict(true_velocity_x_mps=None, true_velocity_y_mps=None, true_distance_m=None)
     yaw = attitude.quat_to_rpy(np.stack([truth[k][m] for k in ("qw", "qx", "qy", "qz")]))[2]  # per tick
     v_x, v_y = attitude.to_heading_frame(np.stack([truth["vx_mps"][m], truth["vy_mps"][m]]), yaw)
-    return dict(true_velocity_x_mps=float(v_x.mean()), true_velocity_y_mps=float(v_y.mean()),
-                true_distance_m=float(v_x.sum() * dt_s))
+    return dict(
+        true_velocity_x_mps=float(v_x.mean()),
+        true_velocity_y_mps=float(v_y.mean()),
+        true_distance_m=float(v_x.sum() * dt_s),
+    )
 
 
 class SimGo1Server:
@@ -353,8 +397,16 @@ class SimGo1Server:
         self.command_time_s = 0.0  # perf_counter when the newest command arrived
         self._pending: list = []  # datagrams received since the last tick: (bytes, address)
         self.torque = np.zeros(12)
-        self.stats = {"commands": 0, "bad_packets": 0, "states_sent": 0, "max_abs_tau_cmd_nm": 0.0,
-                      "min_kp_cmd": float("inf"), "max_kp_cmd": 0.0, "max_kd_cmd": 0.0, "damping_commands": 0}
+        self.stats = {
+            "commands": 0,
+            "bad_packets": 0,
+            "states_sent": 0,
+            "max_abs_tau_cmd_nm": 0.0,
+            "min_kp_cmd": float("inf"),
+            "max_kp_cmd": 0.0,
+            "max_kd_cmd": 0.0,
+            "damping_commands": 0,
+        }
         self._last_state = robot_state(self.physics.sense(), self.torque, self.tick)
         self.truth = TruthLog()
 
@@ -390,11 +442,21 @@ class SimGo1Server:
                     reply = {"ok": False, "error": f"unknown fault {kind!r}; allowed {FAULT_KINDS}"}
                 else:
                     start = self.tick + int(request.get("after_ticks", 0))
-                    self.faults.append({"kind": kind, "value": request.get("value", True), "start": start,
-                                        "stop": start + int(request.get("ticks", 10**9))})
+                    self.faults.append(
+                        {
+                            "kind": kind,
+                            "value": request.get("value", True),
+                            "start": start,
+                            "stop": start + int(request.get("ticks", 10**9)),
+                        }
+                    )
             elif op == "stats":
-                reply.update(self.stats, tick=self.tick, trunk_height_m=self.physics.trunk_height_m(),
-                             trunk_xy_m=[float(v) for v in self.physics.data.qpos[:2]])
+                reply.update(
+                    self.stats,
+                    tick=self.tick,
+                    trunk_height_m=self.physics.trunk_height_m(),
+                    trunk_xy_m=[float(v) for v in self.physics.data.qpos[:2]],
+                )
             elif op == "truth":
                 reply.update(rows=self.truth.save(request["path"]))
             elif op == "quit":
@@ -451,8 +513,9 @@ class SimGo1Server:
         if "late_ms" in faults:
             time.sleep(float(faults["late_ms"]) / 1000.0)
         state = apply_sensor_faults(self._last_state, faults)
-        packet = wire.encode_low_state(state, corrupt_crc="corrupt_crc" in faults,
-                                        head=(0x00, 0x00) if "wrong_head" in faults else wire.HEAD)
+        packet = wire.encode_low_state(
+            state, corrupt_crc="corrupt_crc" in faults, head=(0x00, 0x00) if "wrong_head" in faults else wire.HEAD
+        )
         self.sock.sendto(packet, self.client)
         self.stats["states_sent"] += 1
 
@@ -522,13 +585,36 @@ class SimGo1Client:
     ...     sim.inject("corrupt_crc", ticks=5)
     """
 
-    def __init__(self, pacing: str = "realtime", friction: float = 0.6, slope_deg: float = 0.0,
-                 payload_kg: float = 0.0, realtime_priority: int | None = None, cpus: set[int] | None = None,
-                 startup_timeout_s: float = 60.0, physics: str = physics_profiles.ROBOT_PROFILE, noise_seed: int = 0):
+    def __init__(
+        self,
+        pacing: str = "realtime",
+        friction: float = 0.6,
+        slope_deg: float = 0.0,
+        payload_kg: float = 0.0,
+        realtime_priority: int | None = None,
+        cpus: set[int] | None = None,
+        startup_timeout_s: float = 60.0,
+        physics: str = physics_profiles.ROBOT_PROFILE,
+        noise_seed: int = 0,
+    ):
         physics_profiles.get(physics)  # an unknown name fails here, not in the child process
-        cmd = [sys.executable, "-m", "cpgjax.robot.sim_server", "--pacing", pacing, "--friction", str(friction),
-               "--slope-deg", str(slope_deg), "--payload-kg", str(payload_kg), "--physics", physics,
-               "--noise-seed", str(noise_seed)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "cpgjax.robot.sim_server",
+            "--pacing",
+            pacing,
+            "--friction",
+            str(friction),
+            "--slope-deg",
+            str(slope_deg),
+            "--payload-kg",
+            str(payload_kg),
+            "--physics",
+            physics,
+            "--noise-seed",
+            str(noise_seed),
+        ]
         if realtime_priority is not None:
             cmd += ["--realtime-priority", str(realtime_priority)]
         if cpus:
@@ -609,12 +695,19 @@ def main(argv=None) -> None:
     parser.add_argument("--friction", type=float, default=0.6)
     parser.add_argument("--slope-deg", type=float, default=0.0)
     parser.add_argument("--payload-kg", type=float, default=0.0)
-    parser.add_argument("--physics", choices=tuple(physics_profiles.PROFILES), default=physics_profiles.ROBOT_PROFILE,
-                        help="physics profile (docs/physics.md)")
+    parser.add_argument(
+        "--physics",
+        choices=tuple(physics_profiles.PROFILES),
+        default=physics_profiles.ROBOT_PROFILE,
+        help="physics profile (docs/physics.md)",
+    )
     parser.add_argument("--noise-seed", type=int, default=0, help="the sensors' noise stream")
-    parser.add_argument("--realtime-priority", type=int,
-                        help="SCHED_FIFO priority for the physics loop, when permitted (a robot is not starved "
-                             "by other processes; on a shared machine its simulation can be)")
+    parser.add_argument(
+        "--realtime-priority",
+        type=int,
+        help="SCHED_FIFO priority for the physics loop, when permitted (a robot is not starved "
+        "by other processes; on a shared machine its simulation can be)",
+    )
     parser.add_argument("--cpus", help="comma-separated CPUs to run on, when permitted (keep it off the loop's CPU)")
     args = parser.parse_args(argv)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C meant for the loop: it stops, then closes this process
@@ -629,9 +722,16 @@ def main(argv=None) -> None:
         except OSError as e:
             print(f"real-time priority not permitted ({e})", file=sys.stderr)
     cpu_dispatch.request_inline()
-    server = SimGo1Server(args.port, args.control_port, args.pacing, friction=args.friction,
-                          slope_deg=args.slope_deg, payload_kg=args.payload_kg, physics=args.physics,
-                          noise_seed=args.noise_seed)
+    server = SimGo1Server(
+        args.port,
+        args.control_port,
+        args.pacing,
+        friction=args.friction,
+        slope_deg=args.slope_deg,
+        payload_kg=args.payload_kg,
+        physics=args.physics,
+        noise_seed=args.noise_seed,
+    )
     note = memory_lock.lock()  # a robot's motor boards never wait on a disk; nor may their stand-in
     if note != memory_lock.LOCKED:
         print(note, file=sys.stderr)

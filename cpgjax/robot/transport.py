@@ -129,8 +129,13 @@ class SdkTransport:
 
     power_tripped = False
 
-    def __init__(self, robot_ip: str = GO1_ROBOT_IP, robot_port: int = GO1_ROBOT_PORT,
-                 local_port: int = GO1_LOCAL_PORT, power_level: int | None = None):
+    def __init__(
+        self,
+        robot_ip: str = GO1_ROBOT_IP,
+        robot_port: int = GO1_ROBOT_PORT,
+        local_port: int = GO1_LOCAL_PORT,
+        power_level: int | None = None,
+    ):
         from unitree_legged_sdk import robot_interface as sdk  # optional extra "go1"
 
         _check_port_free(local_port)
@@ -149,13 +154,19 @@ class SdkTransport:
         s, ms = self.state, self.state.motorState
         imu = s.imu
         return wire.RobotState(
-            tick_ms=s.tick, quaternion_wxyz=np.array(imu.quaternion), gyro_rad_s=np.array(imu.gyroscope),
-            accel_mps2=np.array(imu.accelerometer), rpy_rad=np.array(imu.rpy),
+            tick_ms=s.tick,
+            quaternion_wxyz=np.array(imu.quaternion),
+            gyro_rad_s=np.array(imu.gyroscope),
+            accel_mps2=np.array(imu.accelerometer),
+            rpy_rad=np.array(imu.rpy),
             motor_mode=np.array([ms[i].mode for i in range(12)], np.uint8),
-            q_rad=np.array([ms[i].q for i in range(12)]), dq_rad_s=np.array([ms[i].dq for i in range(12)]),
+            q_rad=np.array([ms[i].q for i in range(12)]),
+            dq_rad_s=np.array([ms[i].dq for i in range(12)]),
             tau_est_nm=np.array([ms[i].tauEst for i in range(12)]),
             motor_temperature_c=np.array([ms[i].temperature for i in range(12)]),
-            foot_force_raw=np.array(s.footForce), wireless_remote=bytes(s.wirelessRemote))
+            foot_force_raw=np.array(s.footForce),
+            wireless_remote=bytes(s.wirelessRemote),
+        )
 
     def send(self, cmd: wire.MotorCommand, state: wire.RobotState | None) -> None:
         for i, m in enumerate(self._motors[:12]):

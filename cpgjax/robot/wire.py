@@ -40,30 +40,96 @@ KD_RANGE = (0.0, 4096.0)
 
 # wirelessRemote (40 B, joystick.h xRockerBtnDataStruct): btn u16 at byte 2, little-endian.
 REMOTE_BUTTON_BITS = {
-    "R1": 0x0001, "L1": 0x0002, "start": 0x0004, "select": 0x0008, "R2": 0x0010, "L2": 0x0020, "F1": 0x0040,
-    "F2": 0x0080, "A": 0x0100, "B": 0x0200, "X": 0x0400, "Y": 0x0800, "up": 0x1000, "right": 0x2000,
-    "down": 0x4000, "left": 0x8000,
+    "R1": 0x0001,
+    "L1": 0x0002,
+    "start": 0x0004,
+    "select": 0x0008,
+    "R2": 0x0010,
+    "L2": 0x0020,
+    "F1": 0x0040,
+    "F2": 0x0080,
+    "A": 0x0100,
+    "B": 0x0200,
+    "X": 0x0400,
+    "Y": 0x0800,
+    "up": 0x1000,
+    "right": 0x2000,
+    "down": 0x4000,
+    "left": 0x8000,
 }
 
-_MOTOR_CMD_WIRE = np.dtype([("mode", "u1"), ("q", "<f4"), ("dq", "<f4"), ("tau", "<i2"), ("kp", "<u2"),
-                            ("kd", "<u2"), ("reserve", "<u4", 3)])  # 27 B
-_MOTOR_STATE_WIRE = np.dtype([("mode", "u1"), ("q", "<f4"), ("dq", "<f4"), ("ddq", "<i2"), ("tau_est", "<i2"),
-                              ("q_raw", "<f4"), ("dq_raw", "<f4"), ("ddq_raw", "<i2"), ("temperature", "i1"),
-                              ("reserve", "<u4", 2)])  # 32 B
-_IMU_WIRE = np.dtype([("quaternion", "<f4", 4), ("gyroscope", "<f4", 3), ("accelerometer", "<f4", 3),
-                      ("rpy", "<f4", 3), ("temperature", "i1")])  # 53 B
-_BMS_STATE_WIRE = np.dtype([("version_h", "u1"), ("version_l", "u1"), ("bms_status", "u1"), ("soc", "u1"),
-                            ("current", "<i4"), ("cycle", "<u2"), ("bq_ntc", "i1", 2), ("mcu_ntc", "i1", 2),
-                            ("cell_vol", "u1", 10)])  # 24 B; cell_vol × 32 → mV
-_HEADER = [("head", "u1", 2), ("level_flag", "u1"), ("frame_reserve", "u1"), ("sn", "<u4", 2),
-           ("version", "<u4", 2), ("bandwidth", "<u2")]  # 22 B
+_MOTOR_CMD_WIRE = np.dtype(
+    [("mode", "u1"), ("q", "<f4"), ("dq", "<f4"), ("tau", "<i2"), ("kp", "<u2"), ("kd", "<u2"), ("reserve", "<u4", 3)]
+)  # 27 B
+_MOTOR_STATE_WIRE = np.dtype(
+    [
+        ("mode", "u1"),
+        ("q", "<f4"),
+        ("dq", "<f4"),
+        ("ddq", "<i2"),
+        ("tau_est", "<i2"),
+        ("q_raw", "<f4"),
+        ("dq_raw", "<f4"),
+        ("ddq_raw", "<i2"),
+        ("temperature", "i1"),
+        ("reserve", "<u4", 2),
+    ]
+)  # 32 B
+_IMU_WIRE = np.dtype(
+    [
+        ("quaternion", "<f4", 4),
+        ("gyroscope", "<f4", 3),
+        ("accelerometer", "<f4", 3),
+        ("rpy", "<f4", 3),
+        ("temperature", "i1"),
+    ]
+)  # 53 B
+_BMS_STATE_WIRE = np.dtype(
+    [
+        ("version_h", "u1"),
+        ("version_l", "u1"),
+        ("bms_status", "u1"),
+        ("soc", "u1"),
+        ("current", "<i4"),
+        ("cycle", "<u2"),
+        ("bq_ntc", "i1", 2),
+        ("mcu_ntc", "i1", 2),
+        ("cell_vol", "u1", 10),
+    ]
+)  # 24 B; cell_vol × 32 → mV
+_HEADER = [
+    ("head", "u1", 2),
+    ("level_flag", "u1"),
+    ("frame_reserve", "u1"),
+    ("sn", "<u4", 2),
+    ("version", "<u4", 2),
+    ("bandwidth", "<u2"),
+]  # 22 B
 
-LOW_CMD_DTYPE = np.dtype(_HEADER + [("motor", _MOTOR_CMD_WIRE, NUM_MOTORS), ("bms", "u1", 4),
-                                    ("wireless_remote", "u1", 40), ("reserve", "<u4"), ("crc", "<u4")])
-LOW_STATE_DTYPE = np.dtype(_HEADER + [("imu", _IMU_WIRE), ("motor", _MOTOR_STATE_WIRE, NUM_MOTORS),
-                                      ("bms", _BMS_STATE_WIRE), ("foot_force", "<i2", 4),
-                                      ("foot_force_est", "<i2", 4), ("tick", "<u4"), ("wireless_remote", "u1", 40),
-                                      ("reserve", "<u4"), ("crc", "<u4")])
+LOW_CMD_DTYPE = np.dtype(
+    _HEADER
+    + [
+        ("motor", _MOTOR_CMD_WIRE, NUM_MOTORS),
+        ("bms", "u1", 4),
+        ("wireless_remote", "u1", 40),
+        ("reserve", "<u4"),
+        ("crc", "<u4"),
+    ]
+)
+LOW_STATE_DTYPE = np.dtype(
+    _HEADER
+    + [
+        ("imu", _IMU_WIRE),
+        ("motor", _MOTOR_STATE_WIRE, NUM_MOTORS),
+        ("bms", _BMS_STATE_WIRE),
+        ("foot_force", "<i2", 4),
+        ("foot_force_est", "<i2", 4),
+        ("tick", "<u4"),
+        ("wireless_remote", "u1", 40),
+        ("reserve", "<u4"),
+        ("crc", "<u4"),
+    ]
+)
 assert LOW_CMD_DTYPE.itemsize == LOW_CMD_LENGTH and LOW_STATE_DTYPE.itemsize == LOW_STATE_LENGTH
 assert LOW_CMD_DTYPE.fields["motor"][1] == 22 and LOW_CMD_DTYPE.fields["crc"][1] == 610
 assert LOW_STATE_DTYPE.fields["motor"][1] == 75 and LOW_STATE_DTYPE.fields["foot_force"][1] == 739
@@ -126,7 +192,7 @@ def crc32_words(data: bytes) -> int:
 def packet_crc(packet: bytes) -> int:
     """The CRC a packet must carry: over its first (len // 4 − 1) words (bytes [0, 608) of LowCmd, [0, 800) of
     LowState)."""
-    return crc32_words(packet[:(len(packet) // 4 - 1) * 4])
+    return crc32_words(packet[: (len(packet) // 4 - 1) * 4])
 
 
 def _finish(record: np.ndarray) -> bytes:
@@ -168,8 +234,10 @@ def check_encodable(cmd: MotorCommand) -> None:
     if not ((_FIXED_POINT_LOW <= fixed) & (fixed < _FIXED_POINT_HIGH)).all():  # NaN fails both comparisons
         bad = _GAIN_FIELDS[int(np.argmin((_FIXED_POINT_LOW <= fixed) & (fixed < _FIXED_POINT_HIGH))) // NUM_LEG_MOTORS]
         i = _GAIN_FIELDS.index(bad)
-        raise ProtocolError(f"{bad} = {getattr(cmd, bad)} is not encodable; allowed finite values in "
-                            f"[{_FIXED_POINT_LOW[i * NUM_LEG_MOTORS]}, {_FIXED_POINT_HIGH[i * NUM_LEG_MOTORS]})")
+        raise ProtocolError(
+            f"{bad} = {getattr(cmd, bad)} is not encodable; allowed finite values in "
+            f"[{_FIXED_POINT_LOW[i * NUM_LEG_MOTORS]}, {_FIXED_POINT_HIGH[i * NUM_LEG_MOTORS]})"
+        )
     if not np.isfinite(np.concatenate((cmd.q_rad, cmd.dq_rad_s))).all():
         raise ProtocolError(f"q/dq not finite: {cmd.q_rad}, {cmd.dq_rad_s}")
 
@@ -211,7 +279,7 @@ def encode_low_cmd(cmd: MotorCommand, wireless_remote: bytes = bytes(40)) -> byt
     motors["kd"] = np.trunc(cmd.kd_nm_s_rad * KD_SCALE)
     packet = bytearray(_LOW_CMD_TEMPLATE)
     packet[_MOTOR_CMD_START:_LEG_MOTORS_END] = motors.tobytes()
-    packet[_WIRELESS_START:_WIRELESS_START + 40] = wireless_remote
+    packet[_WIRELESS_START : _WIRELESS_START + 40] = wireless_remote
     packet[_CMD_CRC_START:] = packet_crc(packet).to_bytes(4, "little")
     return bytes(packet)
 
@@ -224,8 +292,13 @@ def decode_low_cmd(data: bytes) -> MotorCommand:
     """
     m = _parse(data, LOW_CMD_DTYPE)["motor"][:NUM_LEG_MOTORS]
     return MotorCommand(
-        mode=m["mode"].copy(), q_rad=m["q"].astype(np.float64), dq_rad_s=m["dq"].astype(np.float64),
-        tau_nm=m["tau"] / TAU_SCALE, kp_nm_rad=m["kp"] / KP_SCALE, kd_nm_s_rad=m["kd"] / KD_SCALE)
+        mode=m["mode"].copy(),
+        q_rad=m["q"].astype(np.float64),
+        dq_rad_s=m["dq"].astype(np.float64),
+        tau_nm=m["tau"] / TAU_SCALE,
+        kp_nm_rad=m["kp"] / KP_SCALE,
+        kd_nm_s_rad=m["kd"] / KD_SCALE,
+    )
 
 
 def encode_low_state(state: RobotState, *, corrupt_crc: bool = False, head: tuple[int, int] = HEAD) -> bytes:
@@ -266,12 +339,19 @@ def decode_low_state(data: bytes) -> RobotState:
     m = r["motor"][:NUM_LEG_MOTORS]
     imu = r["imu"]
     return RobotState(
-        tick_ms=int(r["tick"]), quaternion_wxyz=imu["quaternion"].astype(np.float64),
-        gyro_rad_s=imu["gyroscope"].astype(np.float64), accel_mps2=imu["accelerometer"].astype(np.float64),
-        rpy_rad=imu["rpy"].astype(np.float64), motor_mode=m["mode"].copy(), q_rad=m["q"].astype(np.float64),
-        dq_rad_s=m["dq"].astype(np.float64), tau_est_nm=m["tau_est"] / TAU_EST_SCALE,
-        motor_temperature_c=m["temperature"].astype(np.int64), foot_force_raw=r["foot_force"].astype(np.int64),
-        wireless_remote=r["wireless_remote"].tobytes())
+        tick_ms=int(r["tick"]),
+        quaternion_wxyz=imu["quaternion"].astype(np.float64),
+        gyro_rad_s=imu["gyroscope"].astype(np.float64),
+        accel_mps2=imu["accelerometer"].astype(np.float64),
+        rpy_rad=imu["rpy"].astype(np.float64),
+        motor_mode=m["mode"].copy(),
+        q_rad=m["q"].astype(np.float64),
+        dq_rad_s=m["dq"].astype(np.float64),
+        tau_est_nm=m["tau_est"] / TAU_EST_SCALE,
+        motor_temperature_c=m["temperature"].astype(np.int64),
+        foot_force_raw=r["foot_force"].astype(np.int64),
+        wireless_remote=r["wireless_remote"].tobytes(),
+    )
 
 
 def remote_buttons(wireless_remote: bytes) -> int:

@@ -25,7 +25,7 @@ BACKENDS = ("auto", "mjx", "native")
 
 
 def default_backend() -> str:
-    """"mjx" when JAX's default backend is an accelerator (GPU, TPU, ...), else "native"."""
+    """ "mjx" when JAX's default backend is an accelerator (GPU, TPU, ...), else "native"."""
     return "native" if jax.default_backend() == "cpu" else "mjx"
 
 
@@ -53,18 +53,29 @@ def check_mjx_layout(instances_per_device: int, devices) -> None:
     """
     devices = list(devices)
     cores = native_physics.available_cores()
-    if (len(devices) > 1 and devices[0].platform == "cpu" and len(devices) >= cores
-            and instances_per_device > MAX_MJX_INSTANCES_PER_CPU_DEVICE):
+    if (
+        len(devices) > 1
+        and devices[0].platform == "cpu"
+        and len(devices) >= cores
+        and instances_per_device > MAX_MJX_INSTANCES_PER_CPU_DEVICE
+    ):
         raise ValueError(
             f"MJX with {instances_per_device} instances on each of {len(devices)} CPU devices ({cores} cores) never "
             f"finishes: above {MAX_MJX_INSTANCES_PER_CPU_DEVICE} per device jaxlib's batched Cholesky waits for "
             "XLA CPU threads that are all busy running the devices' programs. Use one CPU device per process "
             f"(cpgjax study --processes {len(devices)}), at most {MAX_MJX_INSTANCES_PER_CPU_DEVICE} instances per "
-            "device, or the native backend")
+            "device, or the native backend"
+        )
 
 
-def make_backend(scenario: go1_model.Scenario, backend: str = "auto", cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
-                 trial_config: protocol.TrialConfig = protocol.TrialConfig(), *, devices=None) -> Backend:
+def make_backend(
+    scenario: go1_model.Scenario,
+    backend: str = "auto",
+    cpg_config: cpg.CPGConfig = cpg.CPGConfig(),
+    trial_config: protocol.TrialConfig = protocol.TrialConfig(),
+    *,
+    devices=None,
+) -> Backend:
     """A batch simulator (``MJXBackend`` or ``NativeBackend``) for ``scenario``; its ``.name`` says which one.
     ``devices``: what MJX shards the batch over (default: all of this process's that divide it: a simulator never
     spans processes); the native backend's physics runs on host threads and ignores it."""
@@ -81,5 +92,9 @@ def make_backend(scenario: go1_model.Scenario, backend: str = "auto", cpg_config
 
 def add_backend_argument(parser: argparse.ArgumentParser) -> None:
     """``--backend {auto,mjx,native}`` for command-line tools (default auto)."""
-    parser.add_argument("--backend", choices=BACKENDS, default="auto",
-                        help="physics backend: auto = MJX with an accelerator, C MuJoCo (native) on CPU only")
+    parser.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="auto",
+        help="physics backend: auto = MJX with an accelerator, C MuJoCo (native) on CPU only",
+    )

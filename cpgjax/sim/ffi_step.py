@@ -80,9 +80,23 @@ def request_accounts() -> None:
 def _command(compiler: str, output: pathlib.Path) -> list[str]:
     lib = mujoco_library()
     accounts = ["-DCPGJAX_STEPPER_ACCOUNTS"] if _accounts else []
-    return [compiler, "-O2", "-std=c++17", *accounts, "-shared", "-fPIC", "-w", f"-I{jax.ffi.include_dir()}",
-            f"-I{lib.parent / 'include'}", str(SOURCE), "-o", str(output), f"-L{lib.parent}", f"-l:{lib.name}",
-            f"-Wl,-rpath,{lib.parent}"]
+    return [
+        compiler,
+        "-O2",
+        "-std=c++17",
+        *accounts,
+        "-shared",
+        "-fPIC",
+        "-w",
+        f"-I{jax.ffi.include_dir()}",
+        f"-I{lib.parent / 'include'}",
+        str(SOURCE),
+        "-o",
+        str(output),
+        f"-L{lib.parent}",
+        f"-l:{lib.name}",
+        f"-Wl,-rpath,{lib.parent}",
+    ]
 
 
 def library_path(compiler: str) -> pathlib.Path:
@@ -110,8 +124,10 @@ def load() -> ctypes.CDLL | None:
     """The built library with its FFI target registered, or None (logged) where it cannot be built."""
     compiler = _compiler()
     if compiler is None:
-        log.warning("no C++ compiler (CXX, c++, g++, clang++): the native backend steps tick by tick from Python, "
-                    "slower (docs/backends.md)")
+        log.warning(
+            "no C++ compiler (CXX, c++, g++, clang++): the native backend steps tick by tick from Python, "
+            "slower (docs/backends.md)"
+        )
         return None
     path = library_path(compiler)
     try:
@@ -119,19 +135,37 @@ def load() -> ctypes.CDLL | None:
             _build(compiler, path)
         lib = ctypes.CDLL(str(path))
     except (OSError, RuntimeError, FileNotFoundError) as err:
-        log.warning("the native physics step could not be built (%s): the native backend steps tick by tick from "
-                    "Python instead (docs/backends.md)", err)
+        log.warning(
+            "the native physics step could not be built (%s): the native backend steps tick by tick from "
+            "Python instead (docs/backends.md)",
+            err,
+        )
         return None
     lib.cpgjax_stepper_new.restype = ctypes.c_void_p
-    lib.cpgjax_stepper_new.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p,
-                                       ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_char_p, ctypes.c_int]
+    lib.cpgjax_stepper_new.argtypes = [
+        ctypes.c_void_p,
+        ctypes.c_int,
+        ctypes.c_int,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_int,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_char_p,
+        ctypes.c_int,
+    ]
     for name in ("cpgjax_stepper_rows", "cpgjax_stepper_sensordata"):
         getattr(lib, name).restype = ctypes.POINTER(ctypes.c_double)
         getattr(lib, name).argtypes = [ctypes.c_void_p]
     for name in ("cpgjax_stepper_nstate", "cpgjax_stepper_nthread"):
         getattr(lib, name).argtypes = [ctypes.c_void_p]
-    lib.cpgjax_stepper_step.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_char_p,
-                                        ctypes.c_int]
+    lib.cpgjax_stepper_step.argtypes = [
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_char_p,
+        ctypes.c_int,
+    ]
     lib.cpgjax_stepper_accounts.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
     lib.cpgjax_stepper_delete.argtypes = [ctypes.c_void_p]
     for target in (TARGET, ALTERNATE, FINISH):
@@ -146,9 +180,15 @@ def available() -> bool:
 class RowOffsets(ctypes.Structure):
     """Where a ``mujoco.batch`` state row keeps what the step reads and writes (``Offsets`` in batch_step.cc)."""
 
-    _fields_ = [("nphysics", ctypes.c_int), ("qvel_at", ctypes.c_int), ("nv", ctypes.c_int),
-                ("warmstart_at", ctypes.c_int), ("ctrl_at", ctypes.c_int), ("nsensordata", ctypes.c_int),
-                ("substeps", ctypes.c_int)]
+    _fields_ = [
+        ("nphysics", ctypes.c_int),
+        ("qvel_at", ctypes.c_int),
+        ("nv", ctypes.c_int),
+        ("warmstart_at", ctypes.c_int),
+        ("ctrl_at", ctypes.c_int),
+        ("nsensordata", ctypes.c_int),
+        ("substeps", ctypes.c_int),
+    ]
 
 
 class Stepper:
@@ -158,8 +198,15 @@ class Stepper:
     (B, nstate) and ``sensordata`` (B, nsensordata) are views of the library's arrays: the state the next step
     starts from."""
 
-    def __init__(self, models: list[mujoco.MjModel], nthread: int, offsets: RowOffsets, actuator: np.ndarray,
-                 standing_physics: np.ndarray, standing_sensordata: np.ndarray):
+    def __init__(
+        self,
+        models: list[mujoco.MjModel],
+        nthread: int,
+        offsets: RowOffsets,
+        actuator: np.ndarray,
+        standing_physics: np.ndarray,
+        standing_sensordata: np.ndarray,
+    ):
         self._handle = 0  # what close() (and so __del__) frees: nothing until the library made the batch
         lib = load()
         if lib is None:
@@ -173,16 +220,27 @@ class Stepper:
         standing_physics = np.ascontiguousarray(standing_physics, np.float64)
         standing_sensordata = np.ascontiguousarray(standing_sensordata, np.float64)
         error = ctypes.create_string_buffer(1000)
-        self._handle = lib.cpgjax_stepper_new(self._pointers, batch, nthread, ctypes.byref(offsets),
-                                              actuator.ctypes.data, actuator.size, standing_physics.ctypes.data,
-                                              standing_sensordata.ctypes.data, error, len(error))
+        self._handle = lib.cpgjax_stepper_new(
+            self._pointers,
+            batch,
+            nthread,
+            ctypes.byref(offsets),
+            actuator.ctypes.data,
+            actuator.size,
+            standing_physics.ctypes.data,
+            standing_sensordata.ctypes.data,
+            error,
+            len(error),
+        )
         if not self._handle:
             raise RuntimeError(f"the native physics step refused the batch: {error.value.decode()}")
         self.nthread = lib.cpgjax_stepper_nthread(self._handle)  # its threads, as it clamped them
-        self.rows = np.ctypeslib.as_array(lib.cpgjax_stepper_rows(self._handle),
-                                          shape=(batch, lib.cpgjax_stepper_nstate(self._handle)))
-        self.sensordata = np.ctypeslib.as_array(lib.cpgjax_stepper_sensordata(self._handle),
-                                                shape=(batch, offsets.nsensordata))
+        self.rows = np.ctypeslib.as_array(
+            lib.cpgjax_stepper_rows(self._handle), shape=(batch, lib.cpgjax_stepper_nstate(self._handle))
+        )
+        self.sensordata = np.ctypeslib.as_array(
+            lib.cpgjax_stepper_sensordata(self._handle), shape=(batch, offsets.nsensordata)
+        )
         self._failed = np.zeros(batch, np.bool_)
         self._error = error
         # The pointer as two uint32 (JAX's default integers are 32-bit): an argument of the compiled trial, so that
@@ -192,8 +250,12 @@ class Stepper:
     def step(self, torque_nm: np.ndarray) -> np.ndarray:
         """One step with joint torques (B, 12) float32; returns the (B,) bool mask of failed instances (reset)."""
         torque = np.ascontiguousarray(torque_nm, np.float32)
-        if self._lib.cpgjax_stepper_step(self._handle, torque.ctypes.data, self._failed.ctypes.data, self._error,
-                                         len(self._error)) < 0:
+        if (
+            self._lib.cpgjax_stepper_step(
+                self._handle, torque.ctypes.data, self._failed.ctypes.data, self._error, len(self._error)
+            )
+            < 0
+        ):
             raise RuntimeError(f"MuJoCo: {self._error.value.decode()}")
         return self._failed.copy()
 
@@ -235,6 +297,5 @@ def alternate(handle: jax.Array, torque_nm: jax.Array, which: jax.Array, width: 
 def finish(handle: jax.Array, after: jax.Array, part: tuple[int, int], width: int) -> jax.Array:
     """Inside a jitted program: finish the started step of the instances ``part`` = [lo, hi) (as
     :func:`alternate`, starting nothing), after what computes the float32 ``after`` (not read)."""
-    end = jax.ffi.ffi_call(FINISH, jax.ShapeDtypeStruct((part[1] - part[0], width), jnp.float32),
-                           has_side_effect=True)
+    end = jax.ffi.ffi_call(FINISH, jax.ShapeDtypeStruct((part[1] - part[0], width), jnp.float32), has_side_effect=True)
     return end(handle, after, lo=np.int32(part[0]), hi=np.int32(part[1]))

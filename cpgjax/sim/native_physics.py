@@ -55,8 +55,12 @@ class PhysicsLayout(NamedTuple):
 def physics_layout(model: mujoco.MjModel) -> PhysicsLayout:
     qpos_at = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_TIME.value)
     qvel_at = qpos_at + model.nq
-    return PhysicsLayout(time=0, qpos=slice(qpos_at, qvel_at), qvel=slice(qvel_at, qvel_at + model.nv),
-                         size=mujoco.mj_stateSize(model, _PHYSICS_SPEC))
+    return PhysicsLayout(
+        time=0,
+        qpos=slice(qpos_at, qvel_at),
+        qvel=slice(qvel_at, qvel_at + model.nv),
+        size=mujoco.mj_stateSize(model, _PHYSICS_SPEC),
+    )
 
 
 class BatchPhysics:
@@ -78,8 +82,14 @@ class BatchPhysics:
     ``mj_step``).
     """
 
-    def __init__(self, scenario: go1_model.Scenario, *, nthread: int | None = None, stepping: str | None = None,
-                 stand_foot_shift_m: np.ndarray | None = None):
+    def __init__(
+        self,
+        scenario: go1_model.Scenario,
+        *,
+        nthread: int | None = None,
+        stepping: str | None = None,
+        stand_foot_shift_m: np.ndarray | None = None,
+    ):
         stepping = default_stepping() if stepping is None else stepping
         if stepping not in STEPPINGS:
             raise ValueError(f"stepping {stepping!r}: allowed {STEPPINGS}")
@@ -88,11 +98,18 @@ class BatchPhysics:
         m, batch = self.models[0], scenario.batch_size
         if stepping == "ffi":
             rows = _RowLayout.of(m, mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_INTEGRATION.value))
-            offsets = ffi_step.RowOffsets(nphysics=self.layout.size, qvel_at=self.layout.qvel.start, nv=m.nv,
-                                          warmstart_at=rows.warmstart.start, ctrl_at=rows.ctrl.start,
-                                          nsensordata=m.nsensordata, substeps=self.substeps)
-            self._stepper = ffi_step.Stepper(self.models, self.nthread, offsets, self.actuator, self.standing_physics,
-                                             self.standing_sensordata)
+            offsets = ffi_step.RowOffsets(
+                nphysics=self.layout.size,
+                qvel_at=self.layout.qvel.start,
+                nv=m.nv,
+                warmstart_at=rows.warmstart.start,
+                ctrl_at=rows.ctrl.start,
+                nsensordata=m.nsensordata,
+                substeps=self.substeps,
+            )
+            self._stepper = ffi_step.Stepper(
+                self.models, self.nthread, offsets, self.actuator, self.standing_physics, self.standing_sensordata
+            )
             self.physics = self._stepper.rows[:, rows.physics]  # views of the library's arrays
             self.warmstart = self._stepper.rows[:, rows.warmstart]
             self.sensordata = self._stepper.sensordata
@@ -112,8 +129,9 @@ class BatchPhysics:
             np.copyto(self.physics, self.standing_physics)
         self.warmstart[:] = 0.0
 
-    def _set_up_standing(self, scenario: go1_model.Scenario, nthread: int | None,
-                         stand_foot_shift_m: np.ndarray | None) -> None:
+    def _set_up_standing(
+        self, scenario: go1_model.Scenario, nthread: int | None, stand_foot_shift_m: np.ndarray | None
+    ) -> None:
         """What every stepping shares: the instances' models, the physics rate, the thread count and the standing
         states (each instance at rest on its ground, its feet shifted by ``stand_foot_shift_m`` (B,) [m])."""
         self.scenario = scenario
@@ -127,8 +145,10 @@ class BatchPhysics:
         substeps = {physics_profiles.get(str(name)).physics_substeps for name in scenario.physics}
         if len(substeps) > 1:
             names = sorted(set(scenario.physics.tolist()))
-            raise ValueError(f"one batch steps its physics at one rate: profiles {names} take {sorted(substeps)} "
-                             "physics steps per tick")
+            raise ValueError(
+                f"one batch steps its physics at one rate: profiles {names} take {sorted(substeps)} "
+                "physics steps per tick"
+            )
         self.substeps = substeps.pop()  # physics steps per step() (per control tick), the torques held
         self.timestep_s = float(m.opt.timestep)  # of one physics step
         self.actuator = go1_model.indices().actuator
@@ -238,8 +258,10 @@ class _RowLayout(NamedTuple):
     def of(model: mujoco.MjModel, nstate: int) -> _RowLayout:
         spec = mujoco.mjtState.mjSTATE_INTEGRATION.value
         if mujoco.mj_stateSize(model, spec) != nstate:
-            raise ValueError(f"mujoco.batch rows of {nstate} numbers, expected mjSTATE_INTEGRATION's "
-                             f"{mujoco.mj_stateSize(model, spec)}")
+            raise ValueError(
+                f"mujoco.batch rows of {nstate} numbers, expected mjSTATE_INTEGRATION's "
+                f"{mujoco.mj_stateSize(model, spec)}"
+            )
 
         def at(component: mujoco.mjtState) -> int:  # the size of every component ordered before it
             return mujoco.mj_stateSize(model, spec & (component.value - 1))
@@ -248,6 +270,8 @@ class _RowLayout(NamedTuple):
         physics_size = mujoco.mj_stateSize(model, _PHYSICS_SPEC)
         if warmstart_at != physics_size:  # e.g. plugin state, which FULLPHYSICS holds and the row keeps further on
             raise ValueError("the model's mjSTATE_FULLPHYSICS is not the start of a mujoco.batch row")
-        return _RowLayout(physics=slice(0, physics_size), warmstart=slice(warmstart_at, warmstart_at + model.nv),
-                          ctrl=slice(ctrl_at, ctrl_at + model.nu))
-
+        return _RowLayout(
+            physics=slice(0, physics_size),
+            warmstart=slice(warmstart_at, warmstart_at + model.nv),
+            ctrl=slice(ctrl_at, ctrl_at + model.nu),
+        )

@@ -90,9 +90,11 @@ def find(name_or_path) -> pathlib.Path:
         return path
     if (STUDY_FOLDER / f"{text}{study_spec.STUDY_FILE_SUFFIX}").is_file():
         return STUDY_FOLDER / f"{text}{study_spec.STUDY_FILE_SUFFIX}"
-    raise study_spec.StudyError(f"unknown study {text!r}: the paper's studies are {', '.join(paper_studies())}, the "
-                                f"ones beyond it {', '.join(BEYOND_THE_PAPER)}; or give a study file "
-                                f"(PATH{study_spec.STUDY_FILE_SUFFIX}, docs/studies.md)")
+    raise study_spec.StudyError(
+        f"unknown study {text!r}: the paper's studies are {', '.join(paper_studies())}, the "
+        f"ones beyond it {', '.join(BEYOND_THE_PAPER)}; or give a study file "
+        f"(PATH{study_spec.STUDY_FILE_SUFFIX}, docs/studies.md)"
+    )
 
 
 def read(name_or_path, **overrides) -> study_spec.StudyFile:
@@ -105,14 +107,18 @@ def read(name_or_path, **overrides) -> study_spec.StudyFile:
     study = study_spec.read(find(name_or_path), **overrides)
     known = (*registry.REPORTS, transfer.NAME)
     if study.report and study.report not in known:
-        raise study_spec.StudyError(f"{study.path}: report: {study.report!r} is not a report; allowed: "
-                                    f"{', '.join(known)}, or leave it out for the generic report")
+        raise study_spec.StudyError(
+            f"{study.path}: report: {study.report!r} is not a report; allowed: "
+            f"{', '.join(known)}, or leave it out for the generic report"
+        )
     if (study.report == transfer.NAME) != bool(study.arms):
-        raise study_spec.StudyError(f"{study.path}: a [transfer] table with its arms goes with report = "
-                                    f"{transfer.NAME!r}, and only with it")
+        raise study_spec.StudyError(
+            f"{study.path}: a [transfer] table with its arms goes with report = {transfer.NAME!r}, and only with it"
+        )
     if study.arms and (overrides.get("physics") is not None or overrides.get("max_trials") is not None):
-        raise study_spec.StudyError(f"{study.path}: its arms set their own physics and are not extended: drop "
-                                    "--physics and --max-trials")
+        raise study_spec.StudyError(
+            f"{study.path}: its arms set their own physics and are not extended: drop --physics and --max-trials"
+        )
     return study
 
 
@@ -120,8 +126,14 @@ def notify_stderr(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def write_outputs(result: ablation.StudyResult, evaluation: registry.Evaluation, report_text: str, out: pathlib.Path,
-                  report: registry.Report, notify: Callable[[str], None] = notify_stderr) -> str:
+def write_outputs(
+    result: ablation.StudyResult,
+    evaluation: registry.Evaluation,
+    report_text: str,
+    out: pathlib.Path,
+    report: registry.Report,
+    notify: Callable[[str], None] = notify_stderr,
+) -> str:
     """The files of a finished one-folder study after its trial table and metadata; returns the table text. Each
     group's best gait (``best_params/<group>.json``, ``gaits.save_gaits``; a line to ``notify`` for a group none of
     whose trials walked) first, then table.md (``report_text``), then the study's figures (the ablation's table then
@@ -138,38 +150,53 @@ def write_outputs(result: ablation.StudyResult, evaluation: registry.Evaluation,
         study_gaits.save_gaits(out, result, gaits)
     for gait in gaits:
         if not gait.walked:
-            notify(f"best gait of {gait.group}: no trial of the group walked (every one fell or stood still); its "
-                   "file holds the best of its final phase")
-    tail = (f"{registry.safety_summary(result)}{registry.notes(result)}\nRun: "
-            f"{study_figures.run_line(result, study_io.run_figures(result))}\n")
+            notify(
+                f"best gait of {gait.group}: no trial of the group walked (every one fell or stood still); its "
+                "file holds the best of its final phase"
+            )
+    tail = (
+        f"{registry.safety_summary(result)}{registry.notes(result)}\nRun: "
+        f"{study_figures.run_line(result, study_io.run_figures(result))}\n"
+    )
     with study_io.writing(out, study_io.TABLE):
         text = f"# {result.spec.name}\n\n{report_text}{tail}"
         (out / study_io.TABLE).write_text(text)
     with study_io.writing(out, "the study's figures"):
         extra = report.figures(result, evaluation, out)
-        study_figures.optimization_progress(out / "optimization_progress.png", result,
-                                            list(study_gaits.group_names(result)))
+        study_figures.optimization_progress(
+            out / "optimization_progress.png", result, list(study_gaits.group_names(result))
+        )
     if extra:
         with study_io.writing(out, study_io.TABLE):
             text = f"# {result.spec.name}\n\n{report_text}{extra}{tail}"
             (out / study_io.TABLE).write_text(text)
     with study_io.writing(out, study_io.RECORDING):
-        study_io.write_recording(result, out / study_io.RECORDING, [
-            study_scene.Rollout(log=log, group=g.group, controller=g.controller,
-                                seed=result.labels[g.instance]["seed"], condition=g.condition)
-            for g, log in zip(gaits, logs, strict=True)])
+        study_io.write_recording(
+            result,
+            out / study_io.RECORDING,
+            [
+                study_scene.Rollout(
+                    log=log,
+                    group=g.group,
+                    controller=g.controller,
+                    seed=result.labels[g.instance]["seed"],
+                    condition=g.condition,
+                )
+                for g, log in zip(gaits, logs, strict=True)
+            ],
+        )
     with study_io.writing(out, "the best gaits' figures and videos"):
         study_figures.attitude_by_group(out / "attitude_best_gaits.png", gaits, logs)
         filmed = study_video.write_videos(out, gaits, logs, notify)
         # filmed: the videos written, for a prefix of the gaits (none where no OpenGL backend works)
         strips = {g.group: list(info["strip"]) for g, info in zip(gaits, filmed, strict=False)}
-        study_figures.summary(out / study_figures.SUMMARY, result, text, gaits, strips,
-                              report.paper_marks(result))
+        study_figures.summary(out / study_figures.SUMMARY, result, text, gaits, strips, report.paper_marks(result))
     return text
 
 
-def one_folder(spec: study_spec.StudySpec, report: registry.Report | None = None,
-               metadata: dict | None = None) -> registry.Study:
+def one_folder(
+    spec: study_spec.StudySpec, report: registry.Report | None = None, metadata: dict | None = None
+) -> registry.Study:
     """The study of one engine run of ``spec`` with ``report`` (default: the generic one), written into one folder
     (:func:`write_outputs`). Its evaluate step walks each group's best gait (for the recording, the figures and
     the videos) and what ``report.evaluate`` asks for."""
@@ -178,13 +205,22 @@ def one_folder(spec: study_spec.StudySpec, report: registry.Report | None = None
     def evaluate(results, backend: str) -> registry.Evaluation:
         result = registry.only(results)
         gaits = study_gaits.best_gaits(result)
-        return {"gaits": gaits, "gait_logs": study_gaits.gait_rollouts(gaits, backend),
-                **report.evaluate(result, backend)}
+        return {
+            "gaits": gaits,
+            "gait_logs": study_gaits.gait_rollouts(gaits, backend),
+            **report.evaluate(result, backend),
+        }
 
     return registry.Study(
-        spec.name, (spec,), evaluate, lambda results, evaluation: report.report(registry.only(results), evaluation),
-        lambda results, evaluation, text, out, notify: write_outputs(registry.only(results), evaluation, text, out,
-                                                                     report, notify), metadata)
+        spec.name,
+        (spec,),
+        evaluate,
+        lambda results, evaluation: report.report(registry.only(results), evaluation),
+        lambda results, evaluation, text, out, notify: write_outputs(
+            registry.only(results), evaluation, text, out, report, notify
+        ),
+        metadata,
+    )
 
 
 def of_file(study: study_spec.StudyFile) -> registry.Study:
@@ -204,8 +240,9 @@ def check_processes(study: registry.Study, options: study_options.StudyOptions) 
       StudyError: several runs (a transfer study's arms) with processes.
     """
     if len(study.specs) > 1 and (options.processes is not None or options.distributed):
-        raise study_spec.StudyError(f"{study.name} runs its arms one after another in one process: drop --processes "
-                                    "/ --distributed")
+        raise study_spec.StudyError(
+            f"{study.name} runs its arms one after another in one process: drop --processes / --distributed"
+        )
 
 
 def resumable_folder(study: registry.Study, out: pathlib.Path) -> pathlib.Path | None:
@@ -213,8 +250,7 @@ def resumable_folder(study: registry.Study, out: pathlib.Path) -> pathlib.Path |
     their folders with a checkpoint (None: none has one)."""
     if len(study.specs) == 1:
         return out
-    return next((out / spec.name for spec in reversed(study.specs) if study_io.checkpoint_files(out / spec.name)),
-                None)
+    return next((out / spec.name for spec in reversed(study.specs) if study_io.checkpoint_files(out / spec.name)), None)
 
 
 def run(study: registry.Study, options: study_options.RunOptions | None = None) -> StudyRun:
@@ -242,14 +278,16 @@ def run(study: registry.Study, options: study_options.RunOptions | None = None) 
         if options.resume:
             resumed = {name: (folder / study_io.CHECKPOINT).exists() for name, folder in run_folders.items()}
             if not any(resumed.values()):
-                raise study_spec.StudyError(f"--resume: no arm of {out} has a checkpoint; run without --resume to "
-                                            "start")
+                raise study_spec.StudyError(
+                    f"--resume: no arm of {out} has a checkpoint; run without --resume to start"
+                )
         study_io.claim_folder(out, overwrite=options.overwrite, resume=options.resume, dry_run=options.dry_run)
     plans = []
     for spec in study.specs:
         folder = run_folders[spec.name]
-        start = study_io.open_run(folder, spec, backend_name, resume=resumed[spec.name],
-                                  overwrite=options.overwrite, dry_run=options.dry_run)
+        start = study_io.open_run(
+            folder, spec, backend_name, resume=resumed[spec.name], overwrite=options.overwrite, dry_run=options.dry_run
+        )
         if options.dry_run:
             plans.append(study_io.run_plan(spec, folder, backend_name, start))
         elif start and jax.process_index() == 0:
@@ -273,8 +311,14 @@ def folders(study: registry.Study, out: pathlib.Path) -> dict[str, pathlib.Path]
     return {spec.name: out / spec.name if several else out for spec in study.specs}
 
 
-def write_study(study: registry.Study, results: dict[str, ablation.StudyResult], out: pathlib.Path, backend: str,
-                notify: Callable[[str], None] = notify_stderr, command: str | None = None) -> str:
+def write_study(
+    study: registry.Study,
+    results: dict[str, ablation.StudyResult],
+    out: pathlib.Path,
+    backend: str,
+    notify: Callable[[str], None] = notify_stderr,
+    command: str | None = None,
+) -> str:
     """Every file of ``study``'s finished runs ``results`` into ``out``: each run's trial table and metadata (with
     ``command``, the command line) first, then the study's evaluate step (on ``backend``), its report and its files;
     returns the table text.
@@ -286,14 +330,16 @@ def write_study(study: registry.Study, results: dict[str, ablation.StudyResult],
         with study_io.writing(folder, outputs.TRIALS):
             study_io.write_trials(results[name], folder / outputs.TRIALS)
         with study_io.writing(folder, outputs.METADATA):
-            study_io.write_metadata(results[name], folder / outputs.METADATA, study.metadata, command=command,
-                                    written_by=study.written_by)
+            study_io.write_metadata(
+                results[name], folder / outputs.METADATA, study.metadata, command=command, written_by=study.written_by
+            )
     evaluation = study.evaluate(results, backend)
     return study.write(results, evaluation, study.report(results, evaluation), out, notify)
 
 
-def run_spec(spec: study_spec.StudySpec, options: study_options.RunOptions | None = None,
-             report: registry.Report | None = None) -> StudyRun:
+def run_spec(
+    spec: study_spec.StudySpec, options: study_options.RunOptions | None = None, report: registry.Report | None = None
+) -> StudyRun:
     """Run the study ``spec`` with ``report`` (default: the generic one) into one folder (:func:`one_folder`,
     :func:`run`): the Python API's study of a ``StudySpec``."""
     return run(one_folder(spec, report), options)

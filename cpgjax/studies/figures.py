@@ -71,16 +71,27 @@ def _figure_label(fig, x: float, y: float, label: str, size: float) -> None:
 def _legend_beside(ax):
     """``ax``'s legend to the right of it, off the data, in LEGEND_WIDTH_IN (its labels wrapped to fit)."""
     handles, labels = ax.get_legend_handles_labels()
-    return ax.legend(handles, [textwrap.fill(label, LEGEND_LABEL_CHARS) for label in labels], loc="upper left",
-                     bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=LEGEND_FONT_PT)
+    return ax.legend(
+        handles,
+        [textwrap.fill(label, LEGEND_LABEL_CHARS) for label in labels],
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
+        borderaxespad=0.0,
+        fontsize=LEGEND_FONT_PT,
+    )
 
 
 def _legend_outside(fig, ax, where: str = "right upper", **kwargs):
     """``ax``'s curves' legend in the figure's margin (``where``: matplotlib's "outside …" places), off every panel's
     data (the figure's constrained layout makes the room)."""
     handles, labels = ax.get_legend_handles_labels()
-    return fig.legend(handles, [textwrap.fill(label, LEGEND_LABEL_CHARS) for label in labels], loc=f"outside {where}",
-                      fontsize=LEGEND_FONT_PT, **kwargs)
+    return fig.legend(
+        handles,
+        [textwrap.fill(label, LEGEND_LABEL_CHARS) for label in labels],
+        loc=f"outside {where}",
+        fontsize=LEGEND_FONT_PT,
+        **kwargs,
+    )
 
 
 def _colors(count: int) -> list:
@@ -103,8 +114,16 @@ def _runs_per_curve(labels: np.ndarray) -> str:
     return f"{low}{'' if low == high else f'–{high}'} run{'s' if high > 1 else ''} per curve"
 
 
-def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), target=None,
-                    context_index: int = 1, groups: list[str] | None = None) -> pathlib.Path:
+def learning_curves(
+    path: pathlib.Path,
+    result,
+    group_key: str,
+    *,
+    changes=(),
+    target=None,
+    context_index: int = 1,
+    groups: list[str] | None = None,
+) -> pathlib.Path:
     """Velocity, CoT, J and one context component per trial, mean ± std over the instances of each group.
 
     Args:
@@ -119,8 +138,12 @@ def learning_curves(path: pathlib.Path, result, group_key: str, *, changes=(), t
     tr = result.trials
     n = tr.objective.shape[0]
     trials = np.arange(n)  # numbered from 0, as in trials.parquet, the schedules and the progress lines
-    rows = (("velocity $v_x$ [m/s]", tr.velocity_xy_mps[..., 0]), ("CoT", tr.cot), ("objective J", tr.objective),
-            (CONTEXT_LABELS[context_index], tr.context[..., context_index]))
+    rows = (
+        ("velocity $v_x$ [m/s]", tr.velocity_xy_mps[..., 0]),
+        ("CoT", tr.cot),
+        ("objective J", tr.objective),
+        (CONTEXT_LABELS[context_index], tr.context[..., context_index]),
+    )
     labels = np.array(groups if groups is not None else [str(lab[group_key]) for lab in result.labels])
     order = list(dict.fromkeys(labels))
     colors, alpha = _colors(len(order)), _band_alpha(len(order))
@@ -158,8 +181,9 @@ def optimization_progress(path: pathlib.Path, result, groups: list[str]) -> path
     n = tr.objective.shape[0]
     trials = np.arange(n)
     names = np.array(groups)
-    unit = (np.asarray(tr.params, np.float64) - param_space.PARAM_LOWER) / (param_space.PARAM_UPPER
-                                                                          - param_space.PARAM_LOWER)
+    unit = (np.asarray(tr.params, np.float64) - param_space.PARAM_LOWER) / (
+        param_space.PARAM_UPPER - param_space.PARAM_LOWER
+    )
     order = list(dict.fromkeys(groups))
     size_in = (6.5 + LEGEND_WIDTH_IN, 2.2 * (1 + len(order)) + 0.5)  # below: the parameters' legend
     fig, axes = plt.subplots(1 + len(order), 1, figsize=size_in, sharex=True, squeeze=False, layout="constrained")
@@ -168,8 +192,14 @@ def optimization_progress(path: pathlib.Path, result, groups: list[str]) -> path
     for group, color in zip(order, _colors(len(order)), strict=True):
         b = best[:, names == group]
         axes[0].plot(trials, b.mean(axis=1), lw=1.4, label=group, color=color)
-        axes[0].fill_between(trials, b.mean(axis=1) - b.std(axis=1), b.mean(axis=1) + b.std(axis=1),
-                             color=color, alpha=_band_alpha(len(order)), lw=0)
+        axes[0].fill_between(
+            trials,
+            b.mean(axis=1) - b.std(axis=1),
+            b.mean(axis=1) + b.std(axis=1),
+            color=color,
+            alpha=_band_alpha(len(order)),
+            lw=0,
+        )
     axes[0].set_ylabel("best J so far")
     _legend_outside(fig, axes[0])
     for ax, group in zip(axes[1:], order, strict=True):
@@ -183,8 +213,9 @@ def optimization_progress(path: pathlib.Path, result, groups: list[str]) -> path
     for ax in axes:
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("trial (from 0)")
-    axes[0].set_title(f"{result.spec.name}: best-so-far J and the parameters ({_runs_per_curve(names)})",
-                      fontsize=10)  # over the panel, clear of the legend
+    axes[0].set_title(
+        f"{result.spec.name}: best-so-far J and the parameters ({_runs_per_curve(names)})", fontsize=10
+    )  # over the panel, clear of the legend
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
@@ -196,8 +227,13 @@ def attitude(path: pathlib.Path, logs: dict) -> pathlib.Path:
     fig, ax = plt.subplots(figsize=(4.8, 4.2 + 0.25 * len(logs)), layout="constrained")
     for label, lg in logs.items():
         rpy = np.degrees(np.asarray(lg.rpy_rad))
-        ax.plot(rpy[:, 0], rpy[:, 1], lw=0.8, alpha=0.8,
-                label=f"{label} (std roll {rpy[:, 0].std():.2f}°, pitch {rpy[:, 1].std():.2f}°)")
+        ax.plot(
+            rpy[:, 0],
+            rpy[:, 1],
+            lw=0.8,
+            alpha=0.8,
+            label=f"{label} (std roll {rpy[:, 0].std():.2f}°, pitch {rpy[:, 1].std():.2f}°)",
+        )
     ax.set_xlabel("roll [deg]")
     ax.set_ylabel("pitch [deg]")
     ax.set_aspect("equal", adjustable="datalim")
@@ -211,11 +247,13 @@ def attitude(path: pathlib.Path, logs: dict) -> pathlib.Path:
 
 def run_line(result, figures: dict) -> str:
     """One line of run figures for table.md."""
-    return (f"{len(result.labels)} instances × {result.trials.objective.shape[0]} trials, backend {result.backend}, "
-            f"wall {figures['wall_s']:.0f} s, {figures['env_steps_per_s']:,.0f} env-steps/s, real-time factor "
-            f"{figures['real_time_factor']:.1f}× (simulation {figures['simulation_s']:.0f} s, optimizer "
-            f"{figures['optimizer_s']:.0f} s, transfers {figures['transfer_s']:.1f} s, checkpoints "
-            f"{figures['checkpoint_s']:.1f} s).")
+    return (
+        f"{len(result.labels)} instances × {result.trials.objective.shape[0]} trials, backend {result.backend}, "
+        f"wall {figures['wall_s']:.0f} s, {figures['env_steps_per_s']:,.0f} env-steps/s, real-time factor "
+        f"{figures['real_time_factor']:.1f}× (simulation {figures['simulation_s']:.0f} s, optimizer "
+        f"{figures['optimizer_s']:.0f} s, transfers {figures['transfer_s']:.1f} s, checkpoints "
+        f"{figures['checkpoint_s']:.1f} s)."
+    )
 
 
 def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
@@ -225,9 +263,16 @@ def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
     columns = min(len(gaits), ATTITUDE_PANELS_PER_ROW)
     rows = math.ceil(len(gaits) / columns)
     width_in = max(3.2 * columns, 5.0)  # one panel still leaves its title the width it needs
-    fig, axes = plt.subplots(rows, columns, figsize=(width_in, 3.4 * rows + 0.3), sharex=True, sharey=True,
-                             squeeze=False, layout="constrained")
-    for ax in axes.flat[len(gaits):]:
+    fig, axes = plt.subplots(
+        rows,
+        columns,
+        figsize=(width_in, 3.4 * rows + 0.3),
+        sharex=True,
+        sharey=True,
+        squeeze=False,
+        layout="constrained",
+    )
+    for ax in axes.flat[len(gaits) :]:
         ax.set_visible(False)
     for ax, gait, lg in zip(axes.flat, gaits, logs, strict=False):
         rpy = np.degrees(np.asarray(lg.rpy_rad))
@@ -237,8 +282,10 @@ def attitude_by_group(path: pathlib.Path, gaits, logs) -> pathlib.Path:
         ax.grid(alpha=0.3)
     for ax in axes[:, 0]:
         ax.set_ylabel("pitch [deg]")
-    fig.suptitle(f"roll–pitch of each group's best gait, {constants.seconds(len(logs[0].rpy_rad)):g} s after a "
-                 "settling trial", fontsize=9)
+    fig.suptitle(
+        f"roll–pitch of each group's best gait, {constants.seconds(len(logs[0].rpy_rad)):g} s after a settling trial",
+        fontsize=9,
+    )
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
@@ -250,8 +297,11 @@ def _first_table(text: str) -> list[list[str]]:
     lines = text.splitlines()
     start = next((i for i, line in enumerate(lines) if line.startswith("|")), len(lines))
     end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
-    return [[cell.strip() for cell in line.strip().strip("|").split("|")] for line in lines[start:end]
-            if not line.startswith("|---")]
+    return [
+        [cell.strip() for cell in line.strip().strip("|").split("|")]
+        for line in lines[start:end]
+        if not line.startswith("|---")
+    ]
 
 
 def _wrap(cell: str, width: int) -> str:
@@ -267,8 +317,14 @@ def _wrapped(rows: list[list[str]]) -> tuple[list[list[str]], list[float]]:
     column gets its longest cell's length (at least its header's longest word, and its header's length up to
     TABLE_HEADER_CHARS), the widest ones cut to one common width where they do not all fit."""
     columns = len(rows[0])
-    need = [max([len(r[c]) for r in rows[1:]] + [len(word) for word in rows[0][c].split()]
-                + [min(len(rows[0][c]), TABLE_HEADER_CHARS)]) for c in range(columns)]
+    need = [
+        max(
+            [len(r[c]) for r in rows[1:]]
+            + [len(word) for word in rows[0][c].split()]
+            + [min(len(rows[0][c]), TABLE_HEADER_CHARS)]
+        )
+        for c in range(columns)
+    ]
     cap = max(need)
     while cap > 4 and sum(min(n, cap) for n in need) > TABLE_CHARS_PER_LINE:
         cap -= 1
@@ -291,8 +347,9 @@ def _draw_table(ax, cells: list[list[str]], shares: list[float]) -> None:
             cell.set_facecolor("#eeeeee")
 
 
-def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict,
-            paper_marks: list[PaperMark] = ()) -> pathlib.Path:
+def summary(
+    path: pathlib.Path, result, table_text: str, gaits, frames: dict, paper_marks: list[PaperMark] = ()
+) -> pathlib.Path:
     """One page SUMMARY_WIDTH_IN wide and as tall as it needs: the objective J per trial (mean ± std per group, the
     legend beside it) with the paper's values (``paper_marks``: dashed segments, a band for the paper's std; the
     title says where the paper gives none), the study's main table (the first of ``table_text``) drawn as a table,
@@ -325,23 +382,36 @@ def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict,
     for group in order:
         v = np.asarray(tr.objective)[:, labels == group]
         ax.plot(trials, v.mean(axis=1), label=f"{group_key} = {group}", lw=1.4, color=colors[group])
-        ax.fill_between(trials, v.mean(axis=1) - v.std(axis=1), v.mean(axis=1) + v.std(axis=1),
-                        color=colors[group], alpha=_band_alpha(len(order)), lw=0)
+        ax.fill_between(
+            trials,
+            v.mean(axis=1) - v.std(axis=1),
+            v.mean(axis=1) + v.std(axis=1),
+            color=colors[group],
+            alpha=_band_alpha(len(order)),
+            lw=0,
+        )
     for mark in paper_marks:
         color = colors.get(mark.group, "black")
         span = [mark.first_trial - 0.4, mark.last_trial + 0.4]
         ax.plot(span, [mark.objective] * 2, ls="--", lw=1.6, color=color, label=mark.label)
         if mark.std is not None:
-            ax.fill_between(span, mark.objective - mark.std, mark.objective + mark.std, color=color, alpha=0.12,
-                            lw=0, hatch="//")
+            ax.fill_between(
+                span, mark.objective - mark.std, mark.objective + mark.std, color=color, alpha=0.12, lw=0, hatch="//"
+            )
     ax.set_xlabel("trial (from 0)")
     ax.set_ylabel("objective J")
     ax.grid(alpha=0.3)
     _legend_beside(ax)
-    paper = ("dashed: the paper's J" + (" ± std" if any(m.std is not None for m in paper_marks) else "")
-             if paper_marks else "the paper gives no J for this result")
-    ax.set_title(f"{result.spec.name}: {len(result.labels)} runs × {len(trials)} trials, mean ± std per group; "
-                 f"{paper}", fontsize=8, loc="left")
+    paper = (
+        "dashed: the paper's J" + (" ± std" if any(m.std is not None for m in paper_marks) else "")
+        if paper_marks
+        else "the paper gives no J for this result"
+    )
+    ax.set_title(
+        f"{result.spec.name}: {len(result.labels)} runs × {len(trials)} trials, mean ± std per group; {paper}",
+        fontsize=8,
+        loc="left",
+    )
     top = sum(blocks[:3])
     if table:
         panel = fig.add_axes(box(top + 0.25, table_in, x_in=0.2, w_in=SUMMARY_WIDTH_IN - 0.4))
@@ -353,17 +423,24 @@ def summary(path: pathlib.Path, result, table_text: str, gaits, frames: dict,
     for k, gait in enumerate(filmed):
         row_top, x0_in = top + (k // per_row) * SUMMARY_STRIP_IN, 0.2 + (k % per_row) * STRIP_FRAMES * frame_w_in
         for c, frame in enumerate(frames[gait.group][:STRIP_FRAMES]):
-            ax = fig.add_axes(box(row_top + 0.2, SUMMARY_STRIP_IN - 0.25, x_in=x0_in + c * frame_w_in,
-                                  w_in=frame_w_in * 0.96))
+            ax = fig.add_axes(
+                box(row_top + 0.2, SUMMARY_STRIP_IN - 0.25, x_in=x0_in + c * frame_w_in, w_in=frame_w_in * 0.96)
+            )
             ax.axis("off")
             ax.imshow(frame)
         j = "" if gait.objective is None else f", J {gait.objective:.3f}"
-        _figure_label(fig, (x0_in + 0.02) / SUMMARY_WIDTH_IN, 1.0 - (row_top + 0.15) / height_in,
-                      f"best_{gait.group}{j}", 7)
+        _figure_label(
+            fig, (x0_in + 0.02) / SUMMARY_WIDTH_IN, 1.0 - (row_top + 0.15) / height_in, f"best_{gait.group}{j}", 7
+        )
     missing = [g.group for g in gaits if not frames.get(g.group)]
     if missing:
-        _figure_label(fig, 0.2 / SUMMARY_WIDTH_IN, 0.1 / height_in,
-                      textwrap.shorten(f"no video frames of: {', '.join(missing)}", 160), 6)
+        _figure_label(
+            fig,
+            0.2 / SUMMARY_WIDTH_IN,
+            0.1 / height_in,
+            textwrap.shorten(f"no video frames of: {', '.join(missing)}", 160),
+            6,
+        )
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -32,8 +32,14 @@ def group_name(labels: dict, spec: study_spec.StudySpec) -> str:
     by its name where the study gives one, other labels as label + value), arrows as ``-`` and anything else but
     letters, digits, ``.``, ``-`` and ``_`` dropped."""
     names = {s.label: s.name for s in spec.schedules if s.name}
-    parts = [str(labels[k]) if k == "controller" else names[labels[k]] if k == "schedule" and labels[k] in names
-             else f"{k}{labels[k]}" for k in spec.group_by]
+    parts = [
+        str(labels[k])
+        if k == "controller"
+        else names[labels[k]]
+        if k == "schedule" and labels[k] in names
+        else f"{k}{labels[k]}"
+        for k in spec.group_by
+    ]
     return re.sub(r"[^A-Za-z0-9._-]", "", "_".join(parts).replace("→", "-"))
 
 
@@ -65,9 +71,11 @@ def phase_text(result, b: int, phase: Phase) -> str:
     """A phase as the reports write it: its trials and conditions."""
     cond, (start, stop) = result.walked, phase
     mode = ", inference mode" if cond.inference[b, start] else ""
-    return (f"trials {start}–{stop - 1}: {registry.friction_text(float(cond.friction[b, start]), result.labels[b])}, "
-            f"{cond.slope_deg[b, start]:g}°, "
-            f"{cond.payload_kg[b, start]:g} kg, v* {cond.target_velocity_mps[b, start]:g} m/s{mode}")
+    return (
+        f"trials {start}–{stop - 1}: {registry.friction_text(float(cond.friction[b, start]), result.labels[b])}, "
+        f"{cond.slope_deg[b, start]:g}°, "
+        f"{cond.payload_kg[b, start]:g} kg, v* {cond.target_velocity_mps[b, start]:g} m/s{mode}"
+    )
 
 
 def best_run(result, mask: np.ndarray, all_phases: list[list[Phase]]) -> tuple[int, int, Phase, bool]:
@@ -78,8 +86,11 @@ def best_run(result, mask: np.ndarray, all_phases: list[list[Phase]]) -> tuple[i
     final = registry.last_mean(tr.objective, stop)
     runs = {int(b): [(s, min(e, stop)) for s, e in all_phases[b] if s < stop] for b in np.flatnonzero(mask)}
     for k in range(1, max(len(p) for p in runs.values()) + 1):
-        walking = {b: [t for t in range(*p[-k]) if tr.fell[t, b] == 0 and tr.objective[t, b] > objective.MIN_OBJECTIVE]
-                   for b, p in runs.items() if len(p) >= k}
+        walking = {
+            b: [t for t in range(*p[-k]) if tr.fell[t, b] == 0 and tr.objective[t, b] > objective.MIN_OBJECTIVE]
+            for b, p in runs.items()
+            if len(p) >= k
+        }
         walking = {b: ts for b, ts in walking.items() if ts}
         if walking:
             b = max(walking, key=lambda b: final[b])
@@ -96,18 +107,31 @@ def best_gaits(result) -> list[study_video.Gait]:
     gaits = []
     for name in dict.fromkeys(names):
         b, t, phase, walked = best_run(result, names == name, all_phases)
-        condition = Condition(friction=float(cond.friction[b, t]), slope_deg=float(cond.slope_deg[b, t]),
-                              payload_kg=float(cond.payload_kg[b, t]),
-                              target_velocity_mps=float(cond.target_velocity_mps[b, t]),
-                              gait=str(result.labels[b]["gait"]),
-                              foot_friction=float(result.labels[b]["foot_friction"]),
-                              ground=study_spec.ground(result.labels[b]))
-        gaits.append(study_video.Gait(
-            group=str(name), params=np.asarray(tr.params[t, b], np.float64), controller=result.labels[b]["controller"],
-            physics=str(result.labels[b]["physics"]), condition=condition,
-            transition_steps=result.spec.trial.transition_steps, steady_steps=result.spec.trial.steady_steps,
-            objective=float(tr.objective[t, b]), instance=b, trial=t, phase=phase_text(result, b, phase),
-            walked=walked))
+        condition = Condition(
+            friction=float(cond.friction[b, t]),
+            slope_deg=float(cond.slope_deg[b, t]),
+            payload_kg=float(cond.payload_kg[b, t]),
+            target_velocity_mps=float(cond.target_velocity_mps[b, t]),
+            gait=str(result.labels[b]["gait"]),
+            foot_friction=float(result.labels[b]["foot_friction"]),
+            ground=study_spec.ground(result.labels[b]),
+        )
+        gaits.append(
+            study_video.Gait(
+                group=str(name),
+                params=np.asarray(tr.params[t, b], np.float64),
+                controller=result.labels[b]["controller"],
+                physics=str(result.labels[b]["physics"]),
+                condition=condition,
+                transition_steps=result.spec.trial.transition_steps,
+                steady_steps=result.spec.trial.steady_steps,
+                objective=float(tr.objective[t, b]),
+                instance=b,
+                trial=t,
+                phase=phase_text(result, b, phase),
+                walked=walked,
+            )
+        )
     return gaits
 
 
@@ -125,14 +149,23 @@ def gait_rollouts(gaits: list[study_video.Gait], backend: str, steps: int | None
     if any((g.transition_steps, g.steady_steps) != (config.transition_steps, config.steady_steps) for g in gaits):
         raise study_spec.StudyError("the gaits were found with different trial lengths; film them one at a time")
     conditions = [g.condition for g in gaits]
-    scenario = go1_model.make_scenarios(friction=[c.friction for c in conditions],
-                                        slope_deg=[c.slope_deg for c in conditions],
-                                        payload_kg=[c.payload_kg for c in conditions],
-                                        physics=[g.physics for g in gaits],
-                                        foot_friction=[c.foot_friction for c in conditions],
-                                        **terrains.ground_fields(c.ground for c in conditions))
-    return registry.rollouts(np.stack([g.params for g in gaits]), [g.controller for g in gaits], scenario, config,
-                             backend, config.steady_steps if steps is None else steps, [c.gait for c in conditions])
+    scenario = go1_model.make_scenarios(
+        friction=[c.friction for c in conditions],
+        slope_deg=[c.slope_deg for c in conditions],
+        payload_kg=[c.payload_kg for c in conditions],
+        physics=[g.physics for g in gaits],
+        foot_friction=[c.foot_friction for c in conditions],
+        **terrains.ground_fields(c.ground for c in conditions),
+    )
+    return registry.rollouts(
+        np.stack([g.params for g in gaits]),
+        [g.controller for g in gaits],
+        scenario,
+        config,
+        backend,
+        config.steady_steps if steps is None else steps,
+        [c.gait for c in conditions],
+    )
 
 
 def film(path: pathlib.Path, gait: study_video.Gait, backend: str, seconds: float) -> dict:

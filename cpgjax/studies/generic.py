@@ -27,7 +27,7 @@ PROSPECTIVE_FRACTION = 0.9  # a prospective solution: a trial that walked with J
 def _final(values: np.ndarray, runs: np.ndarray, phase: tuple[int, int]) -> np.ndarray:
     """(R,) each run's mean of its last LAST_TRIALS trials of ``phase`` of (N, B) ``values``."""
     start, stop = phase
-    return np.asarray(values)[max(stop - LAST_TRIALS, start):stop][:, runs].mean(axis=0)
+    return np.asarray(values)[max(stop - LAST_TRIALS, start) : stop][:, runs].mean(axis=0)
 
 
 def trials_to_prospective(objective: np.ndarray, fell: np.ndarray, phase: tuple[int, int]) -> float:
@@ -35,7 +35,7 @@ def trials_to_prospective(objective: np.ndarray, fell: np.ndarray, phase: tuple[
     J (the mean of its last LAST_TRIALS trials of the phase); NaN where the final J is not positive or no trial
     reaches it."""
     start, stop = phase
-    final = objective[max(stop - LAST_TRIALS, start):stop].mean()
+    final = objective[max(stop - LAST_TRIALS, start) : stop].mean()
     ok = (objective[start:stop] >= PROSPECTIVE_FRACTION * final) & (fell[start:stop] == 0)
     return float(np.argmax(ok) + 1) if final > 0 and ok.any() else np.nan
 
@@ -43,16 +43,22 @@ def trials_to_prospective(objective: np.ndarray, fell: np.ndarray, phase: tuple[
 def _metrics(result) -> dict[str, tuple]:
     """Each metric's (interval over seeds, (N, B) values): CoT cannot be negative."""
     tr = result.trials
-    return {"v_x [m/s]": (stats.mean_ci, tr.velocity_xy_mps[..., 0]), "CoT": (stats.nonnegative_ci, tr.cot),
-            "J": (stats.mean_ci, tr.objective)}
+    return {
+        "v_x [m/s]": (stats.mean_ci, tr.velocity_xy_mps[..., 0]),
+        "CoT": (stats.nonnegative_ci, tr.cot),
+        "J": (stats.mean_ci, tr.objective),
+    }
 
 
 def group_table(result) -> str:
     """Per group and phase: v_x, CoT, J, falls and trials to a prospective solution."""
     tr, cond = result.trials, result.conditions
     names, all_phases = study_gaits.group_names(result), study_gaits.phases(result)
-    rows = [f"| group | phase | v_x [m/s] | CoT | J | falls in the last {LAST_TRIALS} trials | falls / trials | trials "
-            "to a prospective solution (runs never reaching one) |", "|---|---|---|---|---|---|---|---|"]
+    rows = [
+        f"| group | phase | v_x [m/s] | CoT | J | falls in the last {LAST_TRIALS} trials | falls / trials | trials "
+        "to a prospective solution (runs never reaching one) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name in dict.fromkeys(names):
         runs = np.flatnonzero(names == name)
         for phase in all_phases[runs[0]]:
@@ -64,8 +70,11 @@ def group_table(result) -> str:
             reached = f"{stats.nonnegative_ci(counts)} ({never})" if never < counts.size else f"– ({never})"
             falls = tr.fell[start:stop][:, runs]
             ramp = ", on the ramp" if cond.ramp[runs[0], start] else ""
-            rows.append(f"| {name} | {study_gaits.phase_text(result, runs[0], phase)}{ramp} | " + " | ".join(cells)
-                        + f" | {int(falls.sum())}/{falls.size} | {reached} |")
+            rows.append(
+                f"| {name} | {study_gaits.phase_text(result, runs[0], phase)}{ramp} | "
+                + " | ".join(cells)
+                + f" | {int(falls.sum())}/{falls.size} | {reached} |"
+            )
     return "\n".join(rows) + "\n"
 
 
@@ -83,12 +92,13 @@ def contrasts(result, given: tuple[study_spec.Contrast, ...]) -> list[tuple[str,
             axis = group_by.index(c.axis)
             for g in groups:
                 if g[axis] == c.a:
-                    other = g[:axis] + (c.b,) + g[axis + 1:]
+                    other = g[:axis] + (c.b,) + g[axis + 1 :]
                     if other in runs:
                         pairs.append((g, other))
     else:
-        pairs = [(a, b) for a, b in itertools.combinations(groups, 2)
-                 if sum(x != y for x, y in zip(a, b, strict=True)) == 1]
+        pairs = [
+            (a, b) for a, b in itertools.combinations(groups, 2) if sum(x != y for x, y in zip(a, b, strict=True)) == 1
+        ]
     return [(f"{names[a]} − {names[b]}", runs[a], runs[b]) for a, b in pairs]
 
 
@@ -101,42 +111,53 @@ def comparison_table(result, given: tuple[study_spec.Contrast, ...]) -> str:
     for name, a, b in pairs:
         pa, pb = all_phases[a[0]], all_phases[b[0]]
         for phase in pa if pa == pb else pa[-1:]:
-            cells = [str(stats.compare(_final(v, a, phase), _final(v, b, phase)))
-                     if min(a.size, b.size) >= stats.MIN_SEEDS
-                     else f"no test below {stats.MIN_SEEDS} seeds ({a.size} and {b.size})"
-                     for v in (tr.objective, tr.cot)]
+            cells = [
+                str(stats.compare(_final(v, a, phase), _final(v, b, phase)))
+                if min(a.size, b.size) >= stats.MIN_SEEDS
+                else f"no test below {stats.MIN_SEEDS} seeds ({a.size} and {b.size})"
+                for v in (tr.objective, tr.cot)
+            ]
             rows.append(f"| {name} | trials {phase[0]}–{phase[1] - 1} | {cells[0]} | {cells[1]} |")
     if not pairs:
         return "\nNo two groups differ in one label: nothing to compare.\n"
-    return ("\nComparisons (Welch's t and Mann–Whitney U, two-sided, on the seeds' final values; not corrected for "
-            "multiple comparisons):\n\n" + "\n".join(rows) + "\n")
+    return (
+        "\nComparisons (Welch's t and Mann–Whitney U, two-sided, on the seeds' final values; not corrected for "
+        "multiple comparisons):\n\n" + "\n".join(rows) + "\n"
+    )
 
 
 def paper_lines(paper: dict) -> str:
     """The study file's [paper] figures, as given."""
     if not paper:
         return ""
-    return "\nThe paper (the study file's [paper] table):\n\n" + "\n".join(
-        f"- {key}: {value}" for key, value in paper.items()) + "\n"
+    return (
+        "\nThe paper (the study file's [paper] table):\n\n"
+        + "\n".join(f"- {key}: {value}" for key, value in paper.items())
+        + "\n"
+    )
 
 
-def report_for(given: tuple[study_spec.Contrast, ...] = (), paper: dict | None = None,
-               description: str = "") -> registry.Report:
+def report_for(
+    given: tuple[study_spec.Contrast, ...] = (), paper: dict | None = None, description: str = ""
+) -> registry.Report:
     """The generic report of a study whose file names ``given`` comparisons, ``paper`` figures and a
     ``description``."""
+
     def report(result: ablation.StudyResult) -> str:
         n = result.trials.objective.shape[0]
         head = f"{description}\n\n" if description else ""
-        return (head + f"{result.spec.name}: per group and phase, each run's mean of its last {LAST_TRIALS} trials "
-                f"of the phase, then {stats.over_seeds(len(result.spec.seeds))}; a prospective solution: the "
-                f"first trial of the phase that walked with J ≥ {PROSPECTIVE_FRACTION:g} × the run's final J. {n} "
-                f"trials per run.\n\n" + group_table(result) + comparison_table(result, given)
-                + paper_lines(paper or {}))
+        return (
+            head + f"{result.spec.name}: per group and phase, each run's mean of its last {LAST_TRIALS} trials "
+            f"of the phase, then {stats.over_seeds(len(result.spec.seeds))}; a prospective solution: the "
+            f"first trial of the phase that walked with J ≥ {PROSPECTIVE_FRACTION:g} × the run's final J. {n} "
+            f"trials per run.\n\n" + group_table(result) + comparison_table(result, given) + paper_lines(paper or {})
+        )
 
     def figures(result: ablation.StudyResult, out: pathlib.Path) -> str:
         changes = sorted({s for p in study_gaits.phases(result) for s, _ in p} - {0})
-        study_figures.learning_curves(out / "learning_curves.png", result, "group", changes=changes,
-                                      groups=list(study_gaits.group_names(result)))
+        study_figures.learning_curves(
+            out / "learning_curves.png", result, "group", changes=changes, groups=list(study_gaits.group_names(result))
+        )
         return ""
 
     return registry.Report(registry.of_result(report), registry.of_result(figures))

@@ -35,8 +35,13 @@ def free_port() -> int:
 
 def process_env(rank: int, num_processes: int, port: int, base: dict | None = None) -> dict:
     """The environment of process ``rank``: the coordinator on 127.0.0.1:``port``, the count and the rank."""
-    return dict(os.environ if base is None else base, JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}",
-                JAX_NUM_PROCESSES=str(num_processes), JAX_PROCESS_ID=str(rank), PYTHONUNBUFFERED="1")
+    return dict(
+        os.environ if base is None else base,
+        JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}",
+        JAX_NUM_PROCESSES=str(num_processes),
+        JAX_PROCESS_ID=str(rank),
+        PYTHONUNBUFFERED="1",
+    )
 
 
 def core_blocks(num_processes: int) -> list[set[int]] | None:
@@ -48,7 +53,7 @@ def core_blocks(num_processes: int) -> list[set[int]] | None:
     if len(cores) < num_processes:
         return None
     per = len(cores) // num_processes
-    return [set(cores[i * per:(i + 1) * per]) for i in range(num_processes)]
+    return [set(cores[i * per : (i + 1) * per]) for i in range(num_processes)]
 
 
 def _describe(rank: int, num_processes: int, code: int) -> str:
@@ -63,8 +68,7 @@ def _forward(rank: int, stream, out) -> None:
     stream.close()
 
 
-def run(command: list[str], num_processes: int, *, env: dict | None = None, out=None,
-        poll_s: float = 0.05) -> Outcome:
+def run(command: list[str], num_processes: int, *, env: dict | None = None, out=None, poll_s: float = 0.05) -> Outcome:
     """Run ``command`` as ranks 0 … ``num_processes`` − 1 and wait for all; stop every process as soon as one fails.
 
     Raises:
@@ -77,8 +81,9 @@ def run(command: list[str], num_processes: int, *, env: dict | None = None, out=
     blocks = core_blocks(num_processes)
     procs, threads = [], []
     for rank in range(num_processes):
-        proc = subprocess.Popen(command, env=process_env(rank, num_processes, port, env), stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            command, env=process_env(rank, num_processes, port, env), stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        )
         if blocks is not None:  # pinned long before its interpreter has imported JAX and started threads
             try:
                 os.sched_setaffinity(proc.pid, blocks[rank])

@@ -19,8 +19,14 @@ from cpgjax.study import spec as study_spec
 from cpgjax.trial import limits, tuned
 
 
-def _count(value: int | None, option: str, minimum: int, reason: str = "", maximum: int = limits.MAX_TRIALS,
-           maximum_reason: str = limits.MAX_TRIALS_REASON) -> None:
+def _count(
+    value: int | None,
+    option: str,
+    minimum: int,
+    reason: str = "",
+    maximum: int = limits.MAX_TRIALS,
+    maximum_reason: str = limits.MAX_TRIALS_REASON,
+) -> None:
     if value is None:
         return
     try:
@@ -55,8 +61,9 @@ class RunOptions:
 
     def __post_init__(self):
         if self.resume and self.overwrite:
-            raise study_spec.StudyError("--resume and --overwrite exclude each other (resume keeps the folder's "
-                                        "trials, overwrite removes them)")
+            raise study_spec.StudyError(
+                "--resume and --overwrite exclude each other (resume keeps the folder's trials, overwrite removes them)"
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,15 +100,25 @@ class StudyOptions(RunOptions):
             if not 1 <= self.processes <= cpus:
                 raise study_spec.StudyError(
                     f"--processes {self.processes} is outside the allowed range 1 … {cpus} (local processes, at most "
-                    "one per CPU of this machine; a cluster starts its processes itself: --distributed)")
+                    "one per CPU of this machine; a cluster starts its processes itself: --distributed)"
+                )
             if self.distributed:
-                raise study_spec.StudyError("--processes and --distributed exclude each other (--processes starts "
-                                            "--distributed processes)")
+                raise study_spec.StudyError(
+                    "--processes and --distributed exclude each other (--processes starts --distributed processes)"
+                )
 
     def overrides(self) -> dict[str, Any]:
         """The keyword arguments of ``cpgjax.study.spec.read`` these options give."""
-        return dict(quick=self.quick, seeds=self.seeds, trials=self.trials, physics=self.physics, safe=self.safe,
-                    max_trials=self.max_trials, startup=self.startup, gaits=self.gaits)
+        return dict(
+            quick=self.quick,
+            seeds=self.seeds,
+            trials=self.trials,
+            physics=self.physics,
+            safe=self.safe,
+            max_trials=self.max_trials,
+            startup=self.startup,
+            gaits=self.gaits,
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,13 +154,22 @@ class OptimizeOptions(RunOptions):
 
     def spec(self) -> study_spec.StudySpec:
         """The one-instance study of these options."""
-        return study_spec.StudySpec("optimize", num_trials=self.trials, controllers=(self.controller,),
-                                    gaits=None if self.gait == cpg.DEFAULT_GAIT else (self.gait,),
-                                    seeds=(self.seed,), friction=(self.friction,), slope_deg=(self.slope_deg,),
-                                    payload_kg=(self.payload_kg,), target_velocity_mps=(self.target_velocity_mps,),
-                                    physics=(self.physics,), safe=self.safe, max_trials=self.max_trials,
-                                    startup=study_spec.startup_field(self.startup),
-                                    foot_friction=None if self.foot_friction is None else (self.foot_friction,))
+        return study_spec.StudySpec(
+            "optimize",
+            num_trials=self.trials,
+            controllers=(self.controller,),
+            gaits=None if self.gait == cpg.DEFAULT_GAIT else (self.gait,),
+            seeds=(self.seed,),
+            friction=(self.friction,),
+            slope_deg=(self.slope_deg,),
+            payload_kg=(self.payload_kg,),
+            target_velocity_mps=(self.target_velocity_mps,),
+            physics=(self.physics,),
+            safe=self.safe,
+            max_trials=self.max_trials,
+            startup=study_spec.startup_field(self.startup),
+            foot_friction=None if self.foot_friction is None else (self.foot_friction,),
+        )
 
     def tuned_for(self) -> dict[str, Any]:
         """What the run's best parameters were tuned for (``cpgjax.trial.tuned.TUNED_FOR``'s keys)."""

@@ -56,7 +56,8 @@ PAPER_LOAD_TABLE = {  # load kg: (velocity, CoT, J) after adaptation, (same) wit
 
 
 PAPER_HARDWARE_COT = {  # paper Sec. "Hardware Experiments": CoT ≈ these once tracked
-    "flat 0.4 m/s": 0.8, "taped feet 0.4 m/s": 0.95,
+    "flat 0.4 m/s": 0.8,
+    "taped feet 0.4 m/s": 0.95,
     "0.6→0.3→0.5→0.6 m/s": {0.6: 0.95, 0.3: 0.70, 0.5: 0.90},
 }
 PAPER_HARDWARE_SLOPE_TRIALS = 20  # "stabilizes around this target once more within approximately 20 trials"
@@ -64,9 +65,10 @@ PAPER_HARDWARE_SLOPE_TRIALS = 20  # "stabilizes around this target once more wit
 
 # ----------------------------------------------------------------------------------------------- analysis helpers
 
+
 def last_mean(values: np.ndarray, stop: int, k: int = LAST_TRIALS) -> np.ndarray:
     """Mean over trials [stop − k, stop) of (N, B) values → (B,)."""
-    return np.asarray(values)[max(stop - k, 0):stop].mean(axis=0)
+    return np.asarray(values)[max(stop - k, 0) : stop].mean(axis=0)
 
 
 def mean_ci(values: np.ndarray) -> str:
@@ -83,8 +85,11 @@ def nonnegative_ci(values: np.ndarray) -> str:
 def in_effect(friction: float, labels: dict) -> float:
     """The μ an instance of ``labels`` (its physics profile and feet's μ) feels on a floor of μ ``friction``
     (``physics.contact_friction``)."""
-    return float(physics_profiles.contact_friction(physics_profiles.get(str(labels["physics"])), friction,
-                                                   labels["foot_friction"]))
+    return float(
+        physics_profiles.contact_friction(
+            physics_profiles.get(str(labels["physics"])), friction, labels["foot_friction"]
+        )
+    )
 
 
 def friction_text(friction: float, labels: dict) -> str:
@@ -103,11 +108,15 @@ def friction_note(result) -> str | None:
                 capped.setdefault((str(lab["physics"]), feet), set()).add(mu)
     if not capped:
         return None
-    said = "; ".join(f"under physics {name}, μ {', '.join(f'{mu:g}' for mu in sorted(floors))} walked as {feet:g}"
-                     for (name, feet), floors in capped.items())
-    return (f"- Friction: a contact takes the smaller μ of floor and feet (Gazebo's rule, the paper's simulator), so a "
-            f"floor above the feet's μ walks as the feet's ({said}): such rows are the feet's μ's rows. A study's "
-            "`grid.foot_friction` at least the floor's makes the floor count (docs/physics.md \"Friction\").")
+    said = "; ".join(
+        f"under physics {name}, μ {', '.join(f'{mu:g}' for mu in sorted(floors))} walked as {feet:g}"
+        for (name, feet), floors in capped.items()
+    )
+    return (
+        f"- Friction: a contact takes the smaller μ of floor and feet (Gazebo's rule, the paper's simulator), so a "
+        f"floor above the feet's μ walks as the feet's ({said}): such rows are the feet's μ's rows. A study's "
+        '`grid.foot_friction` at least the floor\'s makes the floor count (docs/physics.md "Friction").'
+    )
 
 
 def notes(result) -> str:
@@ -137,8 +146,15 @@ def phase_starts(values: np.ndarray) -> list[int]:
     return [0] + [t for t in range(1, len(values)) if values[t] != values[t - 1]]
 
 
-def evaluate(params: np.ndarray, controllers, scenario: go1_model.Scenario, trial_config, backend: str,
-             target_mps: float, settle_trials: int = 1):
+def evaluate(
+    params: np.ndarray,
+    controllers,
+    scenario: go1_model.Scenario,
+    trial_config,
+    backend: str,
+    target_mps: float,
+    settle_trials: int = 1,
+):
     """Fixed parameters (B, 8) on ``scenario``: ``settle_trials`` trials, then one measured trial.
 
     Returns (velocity_x, CoT, J, fell) arrays (B,), the first three of the measured trial, ``fell`` 1 where any of
@@ -152,12 +168,17 @@ def evaluate(params: np.ndarray, controllers, scenario: go1_model.Scenario, tria
         record = study_placement.fetch(record)
         fell = np.maximum(fell, np.asarray(record.fell))
     j = jax.vmap(objective.objective, in_axes=(0, None))(record, np.float32(target_mps))
-    return (np.asarray(objective.mean_velocity(record))[:, 0], np.asarray(objective.cost_of_transport(record)),
-            np.asarray(j), fell)
+    return (
+        np.asarray(objective.mean_velocity(record))[:, 0],
+        np.asarray(objective.cost_of_transport(record)),
+        np.asarray(j),
+        fell,
+    )
 
 
-def rollouts(params: np.ndarray, controllers, scenario, trial_config, backend: str, steps: int = 3000,
-             gaits=None) -> list:
+def rollouts(
+    params: np.ndarray, controllers, scenario, trial_config, backend: str, steps: int = 3000, gaits=None
+) -> list:
     """Per-step logs (``protocol.StepLog`` of NumPy (T, ...)) of fixed parameters after one settling trial, each
     instance with its controller and gait (``gaits`` None: the trot)."""
     sim = backends.make_backend(scenario, backend, trial_config=trial_config)
@@ -177,6 +198,7 @@ def best_params(result, mask: np.ndarray, stop: int | None = None) -> tuple[np.n
 
 # ----------------------------------------------------------------------------------------------- reports
 
+
 def _labels(result, key) -> np.ndarray:
     return np.array([lab[key] for lab in result.labels])
 
@@ -184,20 +206,28 @@ def _labels(result, key) -> np.ndarray:
 def report_ablation(result: ablation.StudyResult) -> str:
     tr, n = result.trials, result.trials.objective.shape[0]
     controllers = _labels(result, "controller")
-    rows = ["| controller | velocity [m/s] ours | paper | CoT ours | paper | J ours | paper | falls (all trials) |",
-            "|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| controller | velocity [m/s] ours | paper | CoT ours | paper | J ours | paper | falls (all trials) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for c in cpg.CONTROLLERS:
         m = controllers == c
         if not m.any():
             continue
         v, cot, j = (last_mean(x[:, m], n) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
         p = PAPER_CONTROLLER_TABLE[c]
-        rows.append(f"| {c} | {mean_ci(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {nonnegative_ci(cot)} | "
-                    f"{p[1][0]:.3f} ± {p[1][1]:.3f} | {mean_ci(j)} | {p[2][0]:.3f} ± {p[2][1]:.3f} | "
-                    f"{int(tr.fell[:, m].sum())}/{tr.fell[:, m].size} |")
-    return (f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then "
-            f"{stats.over_seeds(len(result.spec.seeds))}; the paper's mean ± std over {PAPER_SEEDS} seeds.\n\n"
-            + "\n".join(rows) + "\n" + ablation_verdicts(result))
+        rows.append(
+            f"| {c} | {mean_ci(v)} | {p[0][0]:.3f} ± {p[0][1]:.3f} | {nonnegative_ci(cot)} | "
+            f"{p[1][0]:.3f} ± {p[1][1]:.3f} | {mean_ci(j)} | {p[2][0]:.3f} ± {p[2][1]:.3f} | "
+            f"{int(tr.fell[:, m].sum())}/{tr.fell[:, m].size} |"
+        )
+    return (
+        f"Controller ablation, v* = 0.5 m/s: mean of the last {LAST_TRIALS} of {n} trials per run, then "
+        f"{stats.over_seeds(len(result.spec.seeds))}; the paper's mean ± std over {PAPER_SEEDS} seeds.\n\n"
+        + "\n".join(rows)
+        + "\n"
+        + ablation_verdicts(result)
+    )
 
 
 def evaluate_ablation(result: ablation.StudyResult, backend: str) -> Evaluation:
@@ -209,10 +239,13 @@ def evaluate_ablation(result: ablation.StudyResult, backend: str) -> Evaluation:
         return {"best": [], "logs": {}}
     best = [best_params(result, controllers == c) for c in picks]
     params = np.stack([b[0] for b in best])
-    scenario = go1_model.make_scenarios(friction=[result.spec.friction[0]] * len(picks),
-                                        physics=[result.labels[b]["physics"] for _, b, _ in best])
-    logs = {f"best_{c}": lg for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend),
-                                             strict=True)}
+    scenario = go1_model.make_scenarios(
+        friction=[result.spec.friction[0]] * len(picks), physics=[result.labels[b]["physics"] for _, b, _ in best]
+    )
+    logs = {
+        f"best_{c}": lg
+        for c, lg in zip(picks, rollouts(params, picks, scenario, result.spec.trial, backend), strict=True)
+    }
     return {"best": best, "logs": logs}
 
 
@@ -245,21 +278,38 @@ def ablation_verdicts(result) -> str:
     present = [c for c in cpg.CONTROLLERS if (controllers == c).sum() >= stats.MIN_SEEDS]
     if not present:
         return ""
-    lines = ["", "Ours − paper (Welch's test from the paper's mean ± std, n = 5):", "",
-             "| controller | CoT | J |", "|---|---|---|"]
+    lines = [
+        "",
+        "Ours − paper (Welch's test from the paper's mean ± std, n = 5):",
+        "",
+        "| controller | CoT | J |",
+        "|---|---|---|",
+    ]
     for c in present:
         p = PAPER_CONTROLLER_TABLE[c]
-        cells = [stats.compare_to_summary(_final(result, m, controllers == c), *p[k], PAPER_SEEDS)
-                 for k, m in ((1, "cot"), (2, "objective"))]
+        cells = [
+            stats.compare_to_summary(_final(result, m, controllers == c), *p[k], PAPER_SEEDS)
+            for k, m in ((1, "cot"), (2, "objective"))
+        ]
         lines.append(f"| {c} | {cells[0]} | {cells[1]} |")
-    pairs = [(a, b) for a, b in (("tegotae", "open_loop"), ("vmc_tegotae", "vmc"), ("vmc", "open_loop"),
-                                 ("vmc_tegotae", "tegotae")) if a in present and b in present]
+    pairs = [
+        (a, b)
+        for a, b in (("tegotae", "open_loop"), ("vmc_tegotae", "vmc"), ("vmc", "open_loop"), ("vmc_tegotae", "tegotae"))
+        if a in present and b in present
+    ]
     if pairs:
-        lines += ["", "Between controllers (ours; Welch's t and Mann–Whitney U, two-sided):", "",
-                  "| comparison | CoT | J |", "|---|---|---|"]
+        lines += [
+            "",
+            "Between controllers (ours; Welch's t and Mann–Whitney U, two-sided):",
+            "",
+            "| comparison | CoT | J |",
+            "|---|---|---|",
+        ]
         for a, b in pairs:
-            cells = [stats.compare(_final(result, m, controllers == a), _final(result, m, controllers == b))
-                     for m in ("cot", "objective")]
+            cells = [
+                stats.compare(_final(result, m, controllers == a), _final(result, m, controllers == b))
+                for m in ("cot", "objective")
+            ]
             lines.append(f"| {a} − {b} | {cells[0]} | {cells[1]} |")
     return "\n".join(lines) + "\n"
 
@@ -272,9 +322,11 @@ def phase_diagnostics(result, start: int, stop: int) -> str:
     c_load = np.where(steady, tr.context[start:stop, :, 0], np.nan)
     spread = np.nanmean(np.nanstd(c_load, axis=0)) if steady.any() else np.nan
     beta = tr.beta[start:stop]
-    return (f"{int(tr.fell[start:stop].sum())}/{tr.fell[start:stop].size} | {np.nanmean(c_load):.1f} | {spread:.1f} | "
-            f"{int(tr.context_changed[start:stop].sum())}/{tr.context_changed[start:stop].size} | "
-            f"{beta.min():.2g} – {beta.max():.2g}")
+    return (
+        f"{int(tr.fell[start:stop].sum())}/{tr.fell[start:stop].size} | {np.nanmean(c_load):.1f} | {spread:.1f} | "
+        f"{int(tr.context_changed[start:stop].sum())}/{tr.context_changed[start:stop].size} | "
+        f"{beta.min():.2g} – {beta.max():.2g}"
+    )
 
 
 def _load_phases(result: ablation.StudyResult) -> tuple[list[int], list[float]]:
@@ -289,8 +341,12 @@ def evaluate_load(result: ablation.StudyResult, backend: str) -> Evaluation:
     (``registry.evaluate``: a settling trial, then a measured one): ``flat_optimum`` maps a payload to the (velocity,
     CoT, J, fell) arrays over the runs."""
     starts, loads = _load_phases(result)
-    flat = np.stack([best_params(result, np.eye(len(result.labels), dtype=bool)[b], starts[1])[0]
-                     for b in range(len(result.labels))])
+    flat = np.stack(
+        [
+            best_params(result, np.eye(len(result.labels), dtype=bool)[b], starts[1])[0]
+            for b in range(len(result.labels))
+        ]
+    )
     walked = {}
     for load in loads:
         if load > 0:
@@ -302,12 +358,18 @@ def evaluate_load(result: ablation.StudyResult, backend: str) -> Evaluation:
 def report_load(result: ablation.StudyResult, evaluation: Evaluation) -> str:
     tr = result.trials
     starts, loads = _load_phases(result)
-    rows = ["| load [kg] | velocity ours (flat optimum) | paper | CoT ours (flat optimum) | paper | "
-            "J ours (flat optimum) | paper |", "|---|---|---|---|---|---|---|"]
+    rows = [
+        "| load [kg] | velocity ours (flat optimum) | paper | CoT ours (flat optimum) | paper | "
+        "J ours (flat optimum) | paper |",
+        "|---|---|---|---|---|---|---|",
+    ]
     config = result.spec.optimizer_config()
     tolerance = config.context_thresholds[0] * (config.context_upper[0] - config.context_lower[0])  # eq. (14)
-    phases = ["| load [kg] (trials) | falls | c_load [N] | c_load spread within a run [N] (same-context tolerance "
-              f"t_load·r_load = {tolerance:g} N) | trials with β_init,c | β |", "|---|---|---|---|---|---|"]
+    phases = [
+        "| load [kg] (trials) | falls | c_load [N] | c_load spread within a run [N] (same-context tolerance "
+        f"t_load·r_load = {tolerance:g} N) | trials with β_init,c | β |",
+        "|---|---|---|---|---|---|",
+    ]
     for load, start, stop in zip(loads, starts[:-1], starts[1:], strict=True):
         after = [last_mean(x, stop) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective)]
         before = evaluation["flat_optimum"].get(load)
@@ -316,24 +378,31 @@ def report_load(result: ablation.StudyResult, evaluation: Evaluation) -> str:
         for k in range(3):
             ci = nonnegative_ci if k == 1 else mean_ci  # CoT cannot be negative
             ours = ci(after[k]) + (f" ({ci(before[k])})" if before is not None else " (-)")
-            paper = "" if paper_after is None else f"{paper_after[k]:.3f}" + (
-                f" ({paper_before[k]:.3f})" if paper_before else " (-)")
+            paper = (
+                ""
+                if paper_after is None
+                else f"{paper_after[k]:.3f}" + (f" ({paper_before[k]:.3f})" if paper_before else " (-)")
+            )
             cells += [ours, paper]
         rows.append(f"| {load:g} | " + " | ".join(cells) + " |")
         phases.append(f"| {load:g} ({start}–{stop - 1}) | {phase_diagnostics(result, start, stop)} |")
-    text = (f"Load adaptation, v* = 0.5 m/s, payload changes at trials {starts[1:-1]} of {starts[-1]}; after: the last "
-            f"{LAST_TRIALS} trials of each phase, {stats.over_seeds(len(result.spec.seeds))}; in "
-            "parentheses: the best parameters found before the first payload change, re-run on the loaded robot. The "
-            "paper gives no spread for this table.\n\n" + "\n".join(rows) + "\n\nPer phase:\n\n"
-            + "\n".join(phases) + "\n")
+    text = (
+        f"Load adaptation, v* = 0.5 m/s, payload changes at trials {starts[1:-1]} of {starts[-1]}; after: the last "
+        f"{LAST_TRIALS} trials of each phase, {stats.over_seeds(len(result.spec.seeds))}; in "
+        "parentheses: the best parameters found before the first payload change, re-run on the loaded robot. The "
+        "paper gives no spread for this table.\n\n" + "\n".join(rows) + "\n\nPer phase:\n\n" + "\n".join(phases) + "\n"
+    )
     return text
 
 
 def report_friction(result: ablation.StudyResult) -> str:
     tr, n = result.trials, result.trials.objective.shape[0]
     friction = _labels(result, "friction")
-    rows = ["| friction | μ in effect | velocity [m/s] | CoT | J | trials to a prospective solution (J ≥ 90 % of the "
-            "run's best) |", "|---|---|---|---|---|---|"]
+    rows = [
+        "| friction | μ in effect | velocity [m/s] | CoT | J | trials to a prospective solution (J ≥ 90 % of the "
+        "run's best) |",
+        "|---|---|---|---|---|---|",
+    ]
     for f in result.spec.friction:
         m = friction == f
         mu = in_effect(f, result.labels[int(np.argmax(m))])
@@ -341,11 +410,15 @@ def report_friction(result: ablation.StudyResult) -> str:
         first = [int(np.argmax(j[:, b] >= 0.9 * j[:, b].max())) + 1 for b in range(j.shape[1])]
         v, cot, final_j = (last_mean(x[:, m], n) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
         feet = "" if mu == f else " (the feet's)"
-        rows.append(f"| {f} | {mu:g}{feet} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(final_j)} "
-                    f"| {nonnegative_ci(first)} |")
-    text = (f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, "
-            f"{stats.over_seeds(len(result.spec.seeds))}. Paper: prospective solutions within < 10 trials for every "
-            "friction (no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction"))
+        rows.append(
+            f"| {f} | {mu:g}{feet} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(final_j)} "
+            f"| {nonnegative_ci(first)} |"
+        )
+    text = (
+        f"Friction, v* = 0.5 m/s, VMC+Tegotae: last {LAST_TRIALS} of {n} trials, "
+        f"{stats.over_seeds(len(result.spec.seeds))}. Paper: prospective solutions within < 10 trials for every "
+        "friction (no table).\n\n" + "\n".join(rows) + "\n" + _versus(result, friction, 0.6, "friction")
+    )
     return text
 
 
@@ -355,8 +428,13 @@ def _versus(result, labels: np.ndarray, reference, name: str) -> str:
     others = [g for g in dict.fromkeys(labels.tolist()) if g != reference and (labels == g).sum() >= stats.MIN_SEEDS]
     if ref.sum() < stats.MIN_SEEDS or not others:
         return ""
-    lines = ["", f"Against {name} = {reference} (Welch's t and Mann–Whitney U, two-sided):", "",
-             f"| {name} | CoT | J |", "|---|---|---|"]
+    lines = [
+        "",
+        f"Against {name} = {reference} (Welch's t and Mann–Whitney U, two-sided):",
+        "",
+        f"| {name} | CoT | J |",
+        "|---|---|---|",
+    ]
     for g in others:
         cells = [stats.compare(_final(result, m, labels == g), _final(result, m, ref)) for m in ("cot", "objective")]
         lines.append(f"| {g} − {reference} | {cells[0]} | {cells[1]} |")
@@ -375,33 +453,51 @@ def report_multi_velocity(result: ablation.StudyResult) -> str:
     n = tr.objective.shape[0]
     starts = phase_starts(cond.target_velocity_mps[0]) + [n]
     reuse = _labels(result, "data_reuse")
-    rows = ["| target [m/s] (trials) | data reuse | trials to track (mean [95 % CI]; a run that never tracks counts "
-            "as the phase's length + 1) | runs never tracking | final velocity | final CoT |",
-            "|---|---|---|---|---|---|"]
+    rows = [
+        "| target [m/s] (trials) | data reuse | trials to track (mean [95 % CI]; a run that never tracks counts "
+        "as the phase's length + 1) | runs never tracking | final velocity | final CoT |",
+        "|---|---|---|---|---|---|",
+    ]
     tracked = {}
     for s, e in zip(starts[:-1], starts[1:], strict=True):
         target = float(cond.target_velocity_mps[0, s])
         for flag in result.spec.data_reuse:
             bs = np.flatnonzero(reuse == flag)
-            counts = np.array([trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b],
-                                               s, e) for b in bs])
+            counts = np.array(
+                [
+                    trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b], s, e)
+                    for b in bs
+                ]
+            )
             never = int(np.sum(counts > e - s))
             tracked[(s, flag)] = counts
-            rows.append(f"| {target:g} ({s}–{e - 1}) | {'yes' if flag else 'no (restart)'} | "
-                        f"{nonnegative_ci(counts)} | {never} | "
-                        f"{mean_ci(last_mean(tr.velocity_xy_mps[:, bs, 0], e))} | "
-                        f"{nonnegative_ci(last_mean(tr.cot[:, bs], e))} |")
-    text = (f"Multi-velocity tracking: a target counts as tracked from the first trial with |v_x − v*| ≤ "
-            f"{TRACKING_TOLERANCE_MPS} m/s and no fall; final = mean of the last {LAST_TRIALS} trials of the phase; "
-            f"{len(result.spec.seeds)} seeds. Paper: fewer trials after each change with data reuse (figure only).\n\n"
-            + "\n".join(rows) + "\n")
+            rows.append(
+                f"| {target:g} ({s}–{e - 1}) | {'yes' if flag else 'no (restart)'} | "
+                f"{nonnegative_ci(counts)} | {never} | "
+                f"{mean_ci(last_mean(tr.velocity_xy_mps[:, bs, 0], e))} | "
+                f"{nonnegative_ci(last_mean(tr.cot[:, bs], e))} |"
+            )
+    text = (
+        f"Multi-velocity tracking: a target counts as tracked from the first trial with |v_x − v*| ≤ "
+        f"{TRACKING_TOLERANCE_MPS} m/s and no fall; final = mean of the last {LAST_TRIALS} trials of the phase; "
+        f"{len(result.spec.seeds)} seeds. Paper: fewer trials after each change with data reuse (figure only).\n\n"
+        + "\n".join(rows)
+        + "\n"
+    )
     if set(result.spec.data_reuse) == {True, False}:
-        lines = ["", "Trials to track, reuse − restart (every run, the never-tracking ones censored as above; Welch's "
-                 "t and Mann–Whitney U):", ""]
+        lines = [
+            "",
+            "Trials to track, reuse − restart (every run, the never-tracking ones censored as above; Welch's "
+            "t and Mann–Whitney U):",
+            "",
+        ]
         for s in starts[1:-1]:
             a, b = tracked[(s, True)], tracked[(s, False)]
-            verdict = (stats.compare(a, b) if min(a.size, b.size) >= stats.MIN_SEEDS
-                       else f"no test below {stats.MIN_SEEDS} runs per group")
+            verdict = (
+                stats.compare(a, b)
+                if min(a.size, b.size) >= stats.MIN_SEEDS
+                else f"no test below {stats.MIN_SEEDS} runs per group"
+            )
             lines.append(f"- {float(cond.target_velocity_mps[0, s]):g} m/s (from trial {s}): {verdict}")
         text += "\n".join(lines) + "\n"
     return text
@@ -414,12 +510,17 @@ def report_slope(result: ablation.StudyResult) -> str:
     learn = starts[-1]
     rows = ["| slope [deg] (trials) | velocity | CoT | J | c_slope [rad] | falls |", "|---|---|---|---|---|---|"]
     for s, e in zip(starts[:-1], starts[1:], strict=True):
-        v, cot, j, c_slope = (last_mean(x, e) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective,
-                                                        tr.context[..., 1]))
-        rows.append(f"| {cond.slope_deg[0, s]:g} ({s}–{e - 1}) | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(j)} | "
-                    f"{mean_ci(c_slope)} | {int(tr.fell[s:e].sum())} |")
-    text = (f"Slope adaptation, v* = 0.5 m/s, contextual BO; last {LAST_TRIALS} trials of each phase, "
-            f"{len(result.spec.seeds)} seeds.\n\n" + "\n".join(rows) + "\n")
+        v, cot, j, c_slope = (
+            last_mean(x, e) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective, tr.context[..., 1])
+        )
+        rows.append(
+            f"| {cond.slope_deg[0, s]:g} ({s}–{e - 1}) | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(j)} | "
+            f"{mean_ci(c_slope)} | {int(tr.fell[s:e].sum())} |"
+        )
+    text = (
+        f"Slope adaptation, v* = 0.5 m/s, contextual BO; last {LAST_TRIALS} trials of each phase, "
+        f"{len(result.spec.seeds)} seeds.\n\n" + "\n".join(rows) + "\n"
+    )
     ramp = ramp_start(result)
     if learn < ramp:
         rows = ["| slope [deg] | velocity | J | falls / trials | paper |", "|---|---|---|---|---|"]
@@ -428,9 +529,11 @@ def report_slope(result: ablation.StudyResult) -> str:
         for s, e in zip(bounds[:-1], bounds[1:], strict=True):
             slope = float(cond.slope_deg[0, s])
             paper = "walks" if slope <= 15.0 else "not reported as walking"
-            rows.append(f"| {slope:g} | {mean_ci(tr.velocity_xy_mps[s:e, :, 0])} | {mean_ci(tr.objective[s:e])} | "
-                        f"{int(tr.fell[s:e].sum())}/{tr.fell[s:e].size} | {paper} |")
-        text += ("\nInference mode (β = 1e-6), trials " + f"{learn}–{ramp - 1}:\n\n" + "\n".join(rows) + "\n")
+            rows.append(
+                f"| {slope:g} | {mean_ci(tr.velocity_xy_mps[s:e, :, 0])} | {mean_ci(tr.objective[s:e])} | "
+                f"{int(tr.fell[s:e].sum())}/{tr.fell[s:e].size} | {paper} |"
+            )
+        text += "\nInference mode (β = 1e-6), trials " + f"{learn}–{ramp - 1}:\n\n" + "\n".join(rows) + "\n"
     if ramp < n:
         text += report_ramp(result, ramp)
     return text
@@ -455,26 +558,34 @@ def report_ramp(result, start: int) -> str:
     for lo, hi in zip(RAMP_BANDS_DEG[:-1], RAMP_BANDS_DEG[1:], strict=True):
         band = (slope >= lo) & ((slope < hi) | (hi == RAMP_BANDS_DEG[-1]))  # the top band holds the top
         paper = "walks" if hi <= 15.0 else "walks up to 15°"
-        figures = (f"{mean_ci(tr.velocity_xy_mps[start:, :, 0][band])} | {mean_ci(tr.objective[start:][band])} | "
-                   f"{int(fell[band].sum())}/{int(band.sum())}" if band.any() else "– | – | –")
+        figures = (
+            f"{mean_ci(tr.velocity_xy_mps[start:, :, 0][band])} | {mean_ci(tr.objective[start:][band])} | "
+            f"{int(fell[band].sum())}/{int(band.sum())}"
+            if band.any()
+            else "– | – | –"
+        )
         rows.append(f"| {lo:g}–{hi:g} | {int(band.sum())} | {figures} | {paper} |")
     steepest = np.where(~fell, slope, -np.inf).max(axis=0)  # per seed; −inf: every ramp trial fell
     walked = np.isfinite(steepest)
     top = int(np.sum(steepest >= ramp.end_deg))
-    return (f"\nContinuous ramp {ramp.start_deg:g}° → {ramp.end_deg:g}° over {ramp.length_m:g} m (the paper's Fig. "
-            f"slope_setting), inference mode, trials {start}–{tr.objective.shape[0] - 1}; each trial starts on the "
-            f"slope the instance has climbed to, a fall puts it back at the bottom:\n\n" + "\n".join(rows) + "\n\n"
-            f"Steepest slope walked without a fall: {mean_ci(steepest[walked])}° over the {int(walked.sum())} of "
-            f"{walked.size} seeds with one; {top} reached the top.\n")
+    return (
+        f"\nContinuous ramp {ramp.start_deg:g}° → {ramp.end_deg:g}° over {ramp.length_m:g} m (the paper's Fig. "
+        f"slope_setting), inference mode, trials {start}–{tr.objective.shape[0] - 1}; each trial starts on the "
+        f"slope the instance has climbed to, a fall puts it back at the bottom:\n\n" + "\n".join(rows) + "\n\n"
+        f"Steepest slope walked without a fall: {mean_ci(steepest[walked])}° over the {int(walked.sum())} of "
+        f"{walked.size} seeds with one; {top} reached the top.\n"
+    )
 
 
 def report_hardware(result: ablation.StudyResult) -> str:
     tr, cond = result.trials, result.walked
     n = tr.objective.shape[0]
     schedules = _labels(result, "schedule")
-    rows = ["| schedule | phase (trials) | v* [m/s] | v_x [m/s] | CoT | J | falls | trials to track after the change, "
-            "a run never tracking counted as the phase's length + 1 (runs never tracking) | paper |",
-            "|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| schedule | phase (trials) | v* [m/s] | v_x [m/s] | CoT | J | falls | trials to track after the change, "
+        "a run never tracking counted as the phase's length + 1 (runs never tracking) | paper |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for label in dict.fromkeys(schedules):
         bs = np.flatnonzero(schedules == label)
         b0 = bs[0]
@@ -482,10 +593,15 @@ def report_hardware(result: ablation.StudyResult) -> str:
         starts = [0] + [t for t in range(1, n) if np.any(fields[:, t] != fields[:, t - 1])] + [n]
         for s, e in zip(starts[:-1], starts[1:], strict=True):
             target = float(cond.target_velocity_mps[b0, s])
-            phase = (f"μ {cond.friction[b0, s]:g}, {cond.slope_deg[b0, s]:g}°, {cond.payload_kg[b0, s]:g} kg "
-                     f"({s}–{e - 1})")
-            counts = np.array([trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b],
-                                               s, e) for b in bs])
+            phase = (
+                f"μ {cond.friction[b0, s]:g}, {cond.slope_deg[b0, s]:g}°, {cond.payload_kg[b0, s]:g} kg ({s}–{e - 1})"
+            )
+            counts = np.array(
+                [
+                    trials_to_track(tr.velocity_xy_mps[:, b, 0], cond.target_velocity_mps[b], tr.fell[:, b], s, e)
+                    for b in bs
+                ]
+            )
             never = int(np.sum(counts > e - s))
             track = f"{nonnegative_ci(counts)} ({never})"
             paper = PAPER_HARDWARE_COT.get(label)
@@ -495,14 +611,17 @@ def report_hardware(result: ablation.StudyResult) -> str:
             if label == "flat → 10°" and s > 0:
                 paper_text = f"tracked again within ≈ {PAPER_HARDWARE_SLOPE_TRIALS} trials"
             v, cot, j = (last_mean(x[:, bs], e) for x in (tr.velocity_xy_mps[..., 0], tr.cot, tr.objective))
-            rows.append(f"| {label} | {phase} | {target:g} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(j)} | "
-                        f"{int(tr.fell[s:e, bs].sum())}/{tr.fell[s:e, bs].size} | {track} | {paper_text} |")
-    text = (f"The paper's hardware experiments predicted under the `{result.labels[0]['physics']}` profile; per phase: "
-            f"its last {LAST_TRIALS} trials, {stats.over_seeds(len(result.spec.seeds))}; tracked: the first "
-            f"trial with |v_x − v*| ≤ {TRACKING_TOLERANCE_MPS} m/s and no fall. Taped feet: floor μ "
-            f"{_taped_feet_friction(result)} (the paper gives none). The paper's figures are from one robot run "
-            "each.\n\n"
-            + "\n".join(rows) + "\n")
+            rows.append(
+                f"| {label} | {phase} | {target:g} | {mean_ci(v)} | {nonnegative_ci(cot)} | {mean_ci(j)} | "
+                f"{int(tr.fell[s:e, bs].sum())}/{tr.fell[s:e, bs].size} | {track} | {paper_text} |"
+            )
+    text = (
+        f"The paper's hardware experiments predicted under the `{result.labels[0]['physics']}` profile; per phase: "
+        f"its last {LAST_TRIALS} trials, {stats.over_seeds(len(result.spec.seeds))}; tracked: the first "
+        f"trial with |v_x − v*| ≤ {TRACKING_TOLERANCE_MPS} m/s and no fall. Taped feet: floor μ "
+        f"{_taped_feet_friction(result)} (the paper gives none). The paper's figures are from one robot run "
+        "each.\n\n" + "\n".join(rows) + "\n"
+    )
     return text
 
 
@@ -517,10 +636,12 @@ def _taped_feet_friction(result) -> str:
 def _figure(name: str, group_key: str, changes_of=None, **kwargs):
     """A study's learning-curve figure ``name``: J (and the context) per trial per ``group_key``, with a line at each
     trial where ``changes_of(result)`` changes (the condition's phases)."""
+
     def draw(result: ablation.StudyResult, out: pathlib.Path) -> str:
         changes = [] if changes_of is None else changes_of(result)
         study_figures.learning_curves(out / name, result, group_key, changes=changes, **kwargs)
         return ""
+
     return draw
 
 
@@ -534,8 +655,9 @@ def _slope_phases(result) -> list[int]:
 
 def figures_multi_velocity(result: ablation.StudyResult, out: pathlib.Path) -> str:
     target = result.conditions.target_velocity_mps[0]
-    study_figures.learning_curves(out / "multi_velocity.png", result, "data_reuse",
-                                  changes=phase_starts(target)[1:], target=target)
+    study_figures.learning_curves(
+        out / "multi_velocity.png", result, "data_reuse", changes=phase_starts(target)[1:], target=target
+    )
     return ""
 
 
@@ -547,34 +669,52 @@ def safety_summary(result) -> str:
     optimizing = cond.inference[:, :n].T == 0  # (n, B)
     names = np.array([", ".join(str(lab[g]) for g in result.spec.group_by) for lab in result.labels])
     safe = result.spec.safe
-    rows = [f"| {', '.join(result.spec.group_by)} | falls during optimization / trials | fall rate [95 % CI] | "
-            "runs' worst margin (median) |" + (" fallbacks |" if safe else ""),
-            "|---|---|---|---|" + ("---|" if safe else "")]
+    rows = [
+        f"| {', '.join(result.spec.group_by)} | falls during optimization / trials | fall rate [95 % CI] | "
+        "runs' worst margin (median) |" + (" fallbacks |" if safe else ""),
+        "|---|---|---|---|" + ("---|" if safe else ""),
+    ]
     for name in dict.fromkeys(names):
         m = names == name
         falls, trials = int(((tr.fell[:, m] > 0) & optimizing[:, m]).sum()), int(optimizing[:, m].sum())
         worst = np.min(np.where(optimizing[:, m], tr.safety_margin[:, m], np.inf), axis=0)
         rate = stats.proportion_ci(falls, trials)
-        rows.append(f"| {name} | {falls}/{trials} | {rate.mean:.3f} [{rate.low:.3f}, {rate.high:.3f}] | "
-                    f"{np.median(worst):.2f} |" + (f" {int(tr.safe_fallback[:, m].sum())} |" if safe else ""))
-    return ("\nSafety during optimization (" + ("safe optimization, --safe" if safe else "unconstrained optimization")
-            + "; margin < 0: a fall or a tilt stop, docs/decisions.md §17):\n\n" + "\n".join(rows) + "\n")
+        rows.append(
+            f"| {name} | {falls}/{trials} | {rate.mean:.3f} [{rate.low:.3f}, {rate.high:.3f}] | "
+            f"{np.median(worst):.2f} |" + (f" {int(tr.safe_fallback[:, m].sum())} |" if safe else "")
+        )
+    return (
+        "\nSafety during optimization ("
+        + ("safe optimization, --safe" if safe else "unconstrained optimization")
+        + "; margin < 0: a fall or a tilt stop, docs/decisions.md §17):\n\n"
+        + "\n".join(rows)
+        + "\n"
+    )
 
 
 def ablation_paper_marks(result) -> list[study_figures.PaperMark]:
     """The paper's J per controller (mean ± std over its 5 seeds) over the last trials it averages."""
     n = result.trials.objective.shape[0]
-    return [study_figures.PaperMark(f"paper {c}", max(n - LAST_TRIALS, 0), n - 1, j[0], j[1], group=c)
-            for c, (_, _, j) in PAPER_CONTROLLER_TABLE.items()]
+    return [
+        study_figures.PaperMark(f"paper {c}", max(n - LAST_TRIALS, 0), n - 1, j[0], j[1], group=c)
+        for c, (_, _, j) in PAPER_CONTROLLER_TABLE.items()
+    ]
 
 
 def load_paper_marks(result) -> list[study_figures.PaperMark]:
     """The paper's J after adaptation per payload (no spread given) over the last trials of each payload phase."""
     payload = result.conditions.payload_kg[0]
     starts = phase_starts(payload) + [result.trials.objective.shape[0]]
-    return [study_figures.PaperMark(f"paper {float(payload[start]):g} kg", max(stop - LAST_TRIALS, start), stop - 1,
-                                    PAPER_LOAD_TABLE[float(payload[start])][0][2])
-            for start, stop in zip(starts[:-1], starts[1:], strict=True) if float(payload[start]) in PAPER_LOAD_TABLE]
+    return [
+        study_figures.PaperMark(
+            f"paper {float(payload[start]):g} kg",
+            max(stop - LAST_TRIALS, start),
+            stop - 1,
+            PAPER_LOAD_TABLE[float(payload[start])][0][2],
+        )
+        for start, stop in zip(starts[:-1], starts[1:], strict=True)
+        if float(payload[start]) in PAPER_LOAD_TABLE
+    ]
 
 
 def walks_nothing(*given) -> Evaluation:
@@ -642,13 +782,27 @@ class Study(NamedTuple):
 
 
 REPORTS = {
-    "controller_ablation": Report(of_result(report_ablation), figures_ablation, evaluate_ablation,
-                                  ablation_paper_marks),
-    "load_adaptation": Report(report_load, of_result(_figure("load_adaptation.png", "schedule", lambda r: phase_starts(
-        r.conditions.payload_kg[0])[1:], context_index=0)), evaluate_load, load_paper_marks),
+    "controller_ablation": Report(
+        of_result(report_ablation), figures_ablation, evaluate_ablation, ablation_paper_marks
+    ),
+    "load_adaptation": Report(
+        report_load,
+        of_result(
+            _figure(
+                "load_adaptation.png",
+                "schedule",
+                lambda r: phase_starts(r.conditions.payload_kg[0])[1:],
+                context_index=0,
+            )
+        ),
+        evaluate_load,
+        load_paper_marks,
+    ),
     "friction": Report(of_result(report_friction), of_result(_figure("friction.png", "friction"))),
     "multi_velocity": Report(of_result(report_multi_velocity), of_result(figures_multi_velocity)),
-    "slope_adaptation": Report(of_result(report_slope), of_result(_figure(
-        "slope_adaptation.png", "schedule", lambda r: _slope_phases(r)[1:], context_index=1))),
+    "slope_adaptation": Report(
+        of_result(report_slope),
+        of_result(_figure("slope_adaptation.png", "schedule", lambda r: _slope_phases(r)[1:], context_index=1)),
+    ),
     "paper_hardware": Report(of_result(report_hardware), of_result(_figure("paper_hardware.png", "schedule"))),
 }

@@ -46,8 +46,11 @@ def unavailable(err: BaseException) -> int:
     :data:`UNAVAILABLE`."""
     backend = gl_backend()
     what = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
-    print(f"no video: MuJoCo's {backend!r} OpenGL backend (MUJOCO_GL) does not work here ({what[:120]}); "
-          f"{GL_HELP.get(backend, _OSMESA)}", file=sys.stderr)
+    print(
+        f"no video: MuJoCo's {backend!r} OpenGL backend (MUJOCO_GL) does not work here ({what[:120]}); "
+        f"{GL_HELP.get(backend, _OSMESA)}",
+        file=sys.stderr,
+    )
     return UNAVAILABLE
 
 
@@ -73,7 +76,7 @@ def render_frames(qpos, slope_deg: float, width: int, height: int, ground=None, 
         for row in np.asarray(qpos, np.float64):
             d.qpos[:] = row
             mujoco.mj_kinematics(m, d)
-            camera.lookat[:] = attitude.quat_rotate(tilt, row[root:root + 3])
+            camera.lookat[:] = attitude.quat_rotate(tilt, row[root : root + 3])
             renderer.update_scene(d, camera)
             scene = renderer.scene
             if payload_kg > 0.0:
@@ -97,8 +100,14 @@ def _add_payload(scene, d, body: int) -> None:
     if scene.ngeom >= scene.maxgeom:
         raise RuntimeError(f"the scene holds its most geoms ({scene.maxgeom}): no room for the payload's box")
     half_m = np.asarray(go1_model.PAYLOAD_BOX_M) / 2
-    mujoco.mjv_initGeom(scene.geoms[scene.ngeom], int(mujoco.mjtGeom.mjGEOM_BOX), half_m, d.xpos[body], d.xmat[body],
-                        np.asarray(go1_model.PAYLOAD_RGBA, np.float32))
+    mujoco.mjv_initGeom(
+        scene.geoms[scene.ngeom],
+        int(mujoco.mjtGeom.mjGEOM_BOX),
+        half_m,
+        d.xpos[body],
+        d.xmat[body],
+        np.asarray(go1_model.PAYLOAD_RGBA, np.float32),
+    )
     scene.ngeom += 1
 
 
@@ -107,8 +116,9 @@ def _encode(path: str, frames, fps: int, keep: np.ndarray) -> tuple[int, np.ndar
     import imageio.v2 as imageio
 
     count, kept = 0, {}
-    with imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7,
-                            pixelformat="yuv420p", macro_block_size=16) as writer:
+    with imageio.get_writer(
+        path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7, pixelformat="yuv420p", macro_block_size=16
+    ) as writer:
         for frame in frames:
             writer.append_data(frame)
             if count in keep:
@@ -127,8 +137,12 @@ def render_jobs(jobs_file: str) -> int:
         slopes, fps, width, height = z["slope_deg"], int(z["fps"]), int(z["width"]), int(z["height"])
         payloads = z["payload_kg"]
         paths, qpos = [str(p) for p in z["paths"]], [z[f"qpos_{k}"] for k in range(len(z["paths"]))]
-        grounds = [terrains.Ground(str(kind), float(a), int(s), float(d)) for kind, a, s, d in zip(
-            z["terrain"], z["terrain_amplitude_m"], z["terrain_seed"], z["terrain_step_m"], strict=True)]
+        grounds = [
+            terrains.Ground(str(kind), float(a), int(s), float(d))
+            for kind, a, s, d in zip(
+                z["terrain"], z["terrain_amplitude_m"], z["terrain_seed"], z["terrain_step_m"], strict=True
+            )
+        ]
     for k, path in enumerate(paths):
         t0 = time.perf_counter()
         frames = render_frames(qpos[k], float(slopes[k]), width, height, grounds[k], float(payloads[k]))
@@ -140,8 +154,10 @@ def render_jobs(jobs_file: str) -> int:
         count, strip = _encode(path, itertools.chain([first], frames), fps, keep)
         strip_file = pathlib.Path(jobs_file).with_name(f"strip_{k}.npy")
         np.save(strip_file, strip)
-        print(json.dumps(dict(frames=count, render_s=round(time.perf_counter() - t0, 3), strip=str(strip_file))),
-              flush=True)
+        print(
+            json.dumps(dict(frames=count, render_s=round(time.perf_counter() - t0, 3), strip=str(strip_file))),
+            flush=True,
+        )
     return 0
 
 

@@ -47,7 +47,7 @@ class Interval(NamedTuple):
         return self.cell()
 
     def cell(self, sign: str = "") -> str:
-        """"mean [low, high]", or the mean alone where there is no interval; ``sign`` "+" writes every sign."""
+        """ "mean [low, high]", or the mean alone where there is no interval; ``sign`` "+" writes every sign."""
         if np.isnan(self.low) or np.isnan(self.high):
             return f"{self.mean:{sign}.3f}"
         return f"{self.mean:{sign}.3f} [{self.low:{sign}.3f}, {self.high:{sign}.3f}]"
@@ -55,8 +55,11 @@ class Interval(NamedTuple):
 
 def over_seeds(n: int) -> str:
     """What a table's cells are over ``n`` seeds: "mean [95 % CI] over n seeds", or below MIN_SEEDS the mean alone."""
-    return (f"mean [95 % CI] over {n} seeds" if n >= MIN_SEEDS
-            else f"mean over {n} seed{'' if n == 1 else 's'} (no interval below {MIN_SEEDS})")
+    return (
+        f"mean [95 % CI] over {n} seeds"
+        if n >= MIN_SEEDS
+        else f"mean over {n} seed{'' if n == 1 else 's'} (no interval below {MIN_SEEDS})"
+    )
 
 
 def too_few_line(n: int) -> str:
@@ -76,7 +79,7 @@ def mann_whitney_least_p(n_a: int, n_b: int) -> float:
 def wilcoxon_least_p(n: int) -> float:
     """The smallest two-sided p of Wilcoxon's exact signed-rank test on n non-zero differences: every sign alike,
     probability 1 / 2^n per tail, so 2 / 2^n, at most 1 (n = 5: 0.0625)."""
-    return min(1.0, 2.0 / 2.0 ** n)
+    return min(1.0, 2.0 / 2.0**n)
 
 
 def rank_p_text(p: float, least_p: float, label: str = "") -> str:
@@ -111,11 +114,16 @@ class Comparison(NamedTuple):
         return rank_p_text(self.rank_p, self.rank_least_p)
 
     def __str__(self) -> str:
-        rank = "" if np.isnan(self.rank_p) else (
-            f", {self.tests[1]} {rank_p_text(self.rank_p, self.rank_least_p, 'p = ')}")
+        rank = (
+            ""
+            if np.isnan(self.rank_p)
+            else (f", {self.tests[1]} {rank_p_text(self.rank_p, self.rank_least_p, 'p = ')}")
+        )
         n = f"n = {self.n_a}" if self.tests[0] == "paired t" else f"n = {self.n_a}, {self.n_b}"
-        return (f"Δ = {self.difference:+.3f} [{self.low:+.3f}, {self.high:+.3f}], {self.tests[0]} p = "
-                f"{self.t_p:.2g}{rank} ({n})")
+        return (
+            f"Δ = {self.difference:+.3f} [{self.low:+.3f}, {self.high:+.3f}], {self.tests[0]} p = "
+            f"{self.t_p:.2g}{rank} ({n})"
+        )
 
 
 def _finite(values) -> np.ndarray:
@@ -145,8 +153,10 @@ def nonnegative_ci(values) -> Interval:
     """
     x = _finite(values)
     if np.any(x < 0.0):
-        raise ValueError(f"nonnegative_ci got {int(np.sum(x < 0.0))} negative values (the least {x.min():g}); a "
-                         "quantity of either sign takes mean_ci")
+        raise ValueError(
+            f"nonnegative_ci got {int(np.sum(x < 0.0))} negative values (the least {x.min():g}); a "
+            "quantity of either sign takes mean_ci"
+        )
     ci = mean_ci(x)
     return ci._replace(low=max(ci.low, 0.0)) if ci.n >= MIN_SEEDS else ci
 
@@ -169,8 +179,9 @@ def compare(a, b) -> Comparison:
         raise ValueError(f"compare needs at least {MIN_SEEDS} finite values per group, got {x.size} and {y.size}")
     diff, low, high, p = _welch(x.mean(), x.var(ddof=1), x.size, y.mean(), y.var(ddof=1), y.size)
     mw = float(stats.mannwhitneyu(x, y, alternative="two-sided").pvalue)
-    return Comparison(diff, low, high, p, mw, int(x.size), int(y.size),
-                      rank_least_p=mann_whitney_least_p(x.size, y.size))
+    return Comparison(
+        diff, low, high, p, mw, int(x.size), int(y.size), rank_least_p=mann_whitney_least_p(x.size, y.size)
+    )
 
 
 def compare_to_summary(a, mean_b: float, std_b: float, n_b: int) -> Comparison:
@@ -178,9 +189,10 @@ def compare_to_summary(a, mean_b: float, std_b: float, n_b: int) -> Comparison:
     published std is taken as the sample std)."""
     x = _finite(a)
     if x.size < MIN_SEEDS or n_b < 2:
-        raise ValueError(f"compare_to_summary needs at least {MIN_SEEDS} values of ours and 2 of theirs, got "
-                         f"{x.size} and {n_b}")
-    diff, low, high, p = _welch(x.mean(), x.var(ddof=1), x.size, mean_b, std_b ** 2, n_b)
+        raise ValueError(
+            f"compare_to_summary needs at least {MIN_SEEDS} values of ours and 2 of theirs, got {x.size} and {n_b}"
+        )
+    diff, low, high, p = _welch(x.mean(), x.var(ddof=1), x.size, mean_b, std_b**2, n_b)
     return Comparison(diff, low, high, p, np.nan, int(x.size), int(n_b))
 
 
@@ -242,8 +254,11 @@ class Effect(NamedTuple):
 
     def two_sided_p(self) -> float:
         """H0: no difference."""
-        return float(2.0 * stats.t.sf(abs(self.difference) / self.se, self.dof)) if self.se > 0 else float(
-            self.difference == 0.0)
+        return (
+            float(2.0 * stats.t.sf(abs(self.difference) / self.se, self.dof))
+            if self.se > 0
+            else float(self.difference == 0.0)
+        )
 
     def equivalence_p(self, margin: float) -> float:
         """The two one-sided tests (TOST) of H0: |difference| ≥ margin; p < α shows equivalence within ±margin (the
@@ -273,7 +288,7 @@ def _welch_effect(mean_a, var_a, n_a, mean_b, var_b, n_b) -> Effect:
     se2 = var_a / n_a + var_b / n_b
     if se2 == 0.0:
         return Effect(float(mean_a - mean_b), 0.0, float(n_a + n_b - 2))
-    dof = se2 ** 2 / ((var_a / n_a) ** 2 / (n_a - 1) + (var_b / n_b) ** 2 / (n_b - 1))
+    dof = se2**2 / ((var_a / n_a) ** 2 / (n_a - 1) + (var_b / n_b) ** 2 / (n_b - 1))
     return Effect(float(mean_a - mean_b), float(np.sqrt(se2)), float(dof))
 
 
@@ -282,7 +297,7 @@ def effect_to_summary(a, mean_b: float, std_b: float, n_b: int) -> Effect:
     x = _finite(a)
     if x.size < 2 or n_b < 2:
         raise ValueError(f"effect_to_summary needs at least 2 values per group, got {x.size} and {n_b}")
-    return _welch_effect(x.mean(), x.var(ddof=1), x.size, mean_b, std_b ** 2, n_b)
+    return _welch_effect(x.mean(), x.var(ddof=1), x.size, mean_b, std_b**2, n_b)
 
 
 def effect_to_value(a, value: float) -> Effect:

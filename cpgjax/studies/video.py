@@ -74,9 +74,12 @@ def video_file(out, group: str) -> pathlib.Path:
     return pathlib.Path(out) / f"best_{group}.mp4"
 
 
-VIDEO = outputs.OutputFile(video_file("", "<group>").name,
-                           "video of the group's best gait (show --video films it again)", outputs.check_mp4,
-                           pattern=r"best_.+\.mp4")
+VIDEO = outputs.OutputFile(
+    video_file("", "<group>").name,
+    "video of the group's best gait (show --video films it again)",
+    outputs.check_mp4,
+    pattern=r"best_.+\.mp4",
+)
 OUTPUTS = (VIDEO,)
 
 
@@ -105,19 +108,31 @@ def load_gaits(out) -> list[Gait]:
         try:
             read = tuned.load(path)
             data = json.loads(path.read_text())
-            missing = ([k for k in tuned.TUNED_FOR if k not in read.tuned_for]
-                       + [k for k in _FILM_FIELDS if data.get(k) is None])
+            missing = [k for k in tuned.TUNED_FOR if k not in read.tuned_for] + [
+                k for k in _FILM_FIELDS if data.get(k) is None
+            ]
             if missing:
-                raise StudyError(f"{path} is not a study's gait file (missing key {missing[0]!r}); run the study "
-                                 "again")
+                raise StudyError(f"{path} is not a study's gait file (missing key {missing[0]!r}); run the study again")
             fields = {k: data[k] for k in Gait._fields if k not in _RECORD_FIELDS and k in data}
             ground = terrains.Ground(**{k: data[k] for k in terrains.Ground._fields if k in data})
-            terrains.check_terrain([ground.terrain], [ground.terrain_amplitude_m], [ground.terrain_seed],
-                                   [ground.terrain_step_m])
-            condition = Condition(**{k: read.tuned_for[k] for k in Condition._fields if k in read.tuned_for},
-                                  **{k: data[k] for k in ("foot_friction",) if k in data}, ground=ground)
-            gaits.append(Gait(group=path.stem, params=read.params, controller=read.tuned_for["controller"],
-                              physics=read.tuned_for["physics"], condition=condition, **fields))
+            terrains.check_terrain(
+                [ground.terrain], [ground.terrain_amplitude_m], [ground.terrain_seed], [ground.terrain_step_m]
+            )
+            condition = Condition(
+                **{k: read.tuned_for[k] for k in Condition._fields if k in read.tuned_for},
+                **{k: data[k] for k in ("foot_friction",) if k in data},
+                ground=ground,
+            )
+            gaits.append(
+                Gait(
+                    group=path.stem,
+                    params=read.params,
+                    controller=read.tuned_for["controller"],
+                    physics=read.tuned_for["physics"],
+                    condition=condition,
+                    **fields,
+                )
+            )
         except ValueError as err:  # tuned.load's one line: unreadable, bad JSON, a value out of range
             raise StudyError(str(err)) from None
     return gaits
@@ -155,14 +170,24 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
     tmps = [str(pathlib.Path(j.path).with_name(f".{pathlib.Path(j.path).name}.tmp.mp4")) for j in jobs]
     with tempfile.TemporaryDirectory() as folder:
         frames_file = pathlib.Path(folder) / "jobs.npz"
-        arrays = {f"qpos_{k}": np.asarray(j.qpos, np.float64)[frame_ticks(len(j.qpos), fps)]
-                  for k, j in enumerate(jobs)}
+        arrays = {
+            f"qpos_{k}": np.asarray(j.qpos, np.float64)[frame_ticks(len(j.qpos), fps)] for k, j in enumerate(jobs)
+        }
         grounds = terrains.ground_fields(j.condition.ground for j in jobs)
-        np.savez(frames_file, slope_deg=np.array([float(j.condition.slope_deg) for j in jobs]),
-                 payload_kg=np.array([float(j.condition.payload_kg) for j in jobs]), fps=fps, width=width,
-                 height=height, paths=np.array(tmps), **grounds, **arrays)
-        child = subprocess.run([sys.executable, "-m", "cpgjax.studies.renderer", str(frames_file)], env=env,
-                               capture_output=True, text=True)
+        np.savez(
+            frames_file,
+            slope_deg=np.array([float(j.condition.slope_deg) for j in jobs]),
+            payload_kg=np.array([float(j.condition.payload_kg) for j in jobs]),
+            fps=fps,
+            width=width,
+            height=height,
+            paths=np.array(tmps),
+            **grounds,
+            **arrays,
+        )
+        child = subprocess.run(
+            [sys.executable, "-m", "cpgjax.studies.renderer", str(frames_file)], env=env, capture_output=True, text=True
+        )
         done = [json.loads(line) for line in child.stdout.splitlines() if line.startswith("{")]
         for info in done:
             info["strip"] = np.load(info["strip"])
@@ -171,7 +196,7 @@ def render_videos(jobs: list[Job], *, fps: int = FPS, width: int = WIDTH, height
     for job, tmp, info in zip(jobs, tmps, done, strict=False):  # done: the videos the child finished, a prefix
         os.replace(tmp, job.path)
         infos.append(dict(info, path=str(job.path), rollout_s=len(job.qpos) * TICK_S, backend=backend))
-    for tmp in tmps[len(done):]:
+    for tmp in tmps[len(done) :]:
         pathlib.Path(tmp).unlink(missing_ok=True)
     if child.returncode == renderer.UNAVAILABLE:
         raise RenderUnavailable(last)
@@ -184,8 +209,10 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
     """``best_<group>.mp4`` of each gait from its rollout log (``protocol.StepLog``, arrays (T, ...)), a line to
     ``notify`` for each. Where no OpenGL backend works, one line says so and no video is written; another rendering
     failure is one line too. Either way the caller's other files are left as they are."""
-    jobs = [Job(path=video_file(out, g.group), qpos=log.qpos, condition=g.condition)
-            for g, log in zip(gaits, logs, strict=True)]
+    jobs = [
+        Job(path=video_file(out, g.group), qpos=log.qpos, condition=g.condition)
+        for g, log in zip(gaits, logs, strict=True)
+    ]
     try:
         infos = render_videos(jobs)
     except (RenderUnavailable, RuntimeError) as err:
@@ -193,9 +220,14 @@ def write_videos(out, gaits: list[Gait], logs: list, notify: Callable[[str], Non
         return []
     for gait, info in zip(gaits, infos, strict=True):
         c, g = gait.condition, gait.condition.ground
-        ground = "" if g.terrain == terrains.FLAT else f", {g.terrain} ground {g.terrain_amplitude_m:g} m (seed " \
-            f"{g.terrain_seed})"
-        notify(f"{info['path']}: {info['rollout_s']:.1f} s of {gait.controller} ({c.gait}) at friction "
-               f"{c.friction:g}, slope {c.slope_deg:g}°, payload {c.payload_kg:g} kg{ground}; "
-               f"{info['frames']} frames rendered in {info['render_s']:.1f} s ({info['backend']})")
+        ground = (
+            ""
+            if g.terrain == terrains.FLAT
+            else f", {g.terrain} ground {g.terrain_amplitude_m:g} m (seed {g.terrain_seed})"
+        )
+        notify(
+            f"{info['path']}: {info['rollout_s']:.1f} s of {gait.controller} ({c.gait}) at friction "
+            f"{c.friction:g}, slope {c.slope_deg:g}°, payload {c.payload_kg:g} kg{ground}; "
+            f"{info['frames']} frames rendered in {info['render_s']:.1f} s ({info['backend']})"
+        )
     return infos

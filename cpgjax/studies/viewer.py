@@ -149,9 +149,21 @@ def serve(recording, web_port: int = DEFAULT_WEB_PORT) -> Served:
         raise StudyError(f"--port {web_port} is in use on {HOST}: pass another --port") from None
     threading.Thread(target=front.serve_forever, name="viewer-front", daemon=True).start()
     # its own process group: the rerun command is a launcher whose server is a child, and stop() ends both
-    proc = subprocess.Popen([rerun, "--serve-web", "--bind", HOST, "--web-viewer-port", str(viewer_port),
-                             "--hide-welcome-screen", f"http://{HOST}:{web_port}{RECORDING_PATH}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            rerun,
+            "--serve-web",
+            "--bind",
+            HOST,
+            "--web-viewer-port",
+            str(viewer_port),
+            "--hide-welcome-screen",
+            f"http://{HOST}:{web_port}{RECORDING_PATH}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     served = Served(proc, front)
     deadline = time.monotonic() + START_S
     while not _listening(viewer_port):

@@ -129,15 +129,26 @@ def checkpoint_files(out_dir) -> list[pathlib.Path]:
 
 # Fields a study sets only where it uses them; unset (None), they are not part of its definition, so a study without
 # them keeps the fingerprint of its other fields (and the checkpoints written before the fields existed resume).
-_UNSET_UNLESS_GIVEN = ("max_trials", "ramp", "startup", "switches", "gaits", "terrain_amplitude_m", "terrain_seed",
-                       "foot_friction")
+_UNSET_UNLESS_GIVEN = (
+    "max_trials",
+    "ramp",
+    "startup",
+    "switches",
+    "gaits",
+    "terrain_amplitude_m",
+    "terrain_seed",
+    "foot_friction",
+)
 
 
 def definition(spec) -> dict[str, str]:
     """Each field of the study's definition, as its repr (a checkpoint records them to name what differs); the
     fields of ``_UNSET_UNLESS_GIVEN`` only where they are set."""
-    return {f.name: repr(getattr(spec, f.name)) for f in dataclasses.fields(spec)
-            if not (f.name in _UNSET_UNLESS_GIVEN and getattr(spec, f.name) is None)}
+    return {
+        f.name: repr(getattr(spec, f.name))
+        for f in dataclasses.fields(spec)
+        if not (f.name in _UNSET_UNLESS_GIVEN and getattr(spec, f.name) is None)
+    }
 
 
 def fingerprint(spec) -> str:
@@ -160,8 +171,11 @@ def extension_of(meta: dict, spec) -> bool:
     if not isinstance(theirs, dict) or "num_trials" not in theirs:
         return False
     try:
-        ran = dataclasses.replace(spec, num_trials=int(theirs["num_trials"]),
-                                  max_trials=int(theirs["max_trials"]) if "max_trials" in theirs else None)
+        ran = dataclasses.replace(
+            spec,
+            num_trials=int(theirs["num_trials"]),
+            max_trials=int(theirs["max_trials"]) if "max_trials" in theirs else None,
+        )
     except ValueError:
         return False
     if fingerprint(ran) != meta.get("fingerprint") or ran == spec:
@@ -169,27 +183,36 @@ def extension_of(meta: dict, spec) -> bool:
     capacity, wanted = ran.optimizer_config().capacity, spec.optimizer_config().capacity
     again = "run it afresh in another --out (a run started with --max-trials M can be extended up to M trials)"
     if capacity != wanted:
-        how = (f"resume with --trials {spec.num_trials} --max-trials {capacity} to continue it as that run"
-               if capacity >= spec.num_trials else again)
-        raise StudyError(f"--trials {spec.num_trials}: the run in this folder holds {capacity} trials in its "
-                         f"optimizers (its --max-trials, by default its --trials), and the GP's arithmetic depends "
-                         f"on it: a run of {spec.num_trials} with room for {wanted} computes every trial otherwise; "
-                         f"{how}")
+        how = (
+            f"resume with --trials {spec.num_trials} --max-trials {capacity} to continue it as that run"
+            if capacity >= spec.num_trials
+            else again
+        )
+        raise StudyError(
+            f"--trials {spec.num_trials}: the run in this folder holds {capacity} trials in its "
+            f"optimizers (its --max-trials, by default its --trials), and the GP's arithmetic depends "
+            f"on it: a run of {spec.num_trials} with room for {wanted} computes every trial otherwise; "
+            f"{how}"
+        )
     done = int(meta["trial"])
     if done > spec.num_trials:
-        raise StudyError(f"--trials {spec.num_trials}: the run in this folder has done {done} trials already; "
-                         f"--resume with --trials {done} or more")
+        raise StudyError(
+            f"--trials {spec.num_trials}: the run in this folder has done {done} trials already; "
+            f"--resume with --trials {done} or more"
+        )
     ran_conditions, conditions = study_spec.conditions(ran), study_spec.conditions(spec)
     for field, values in ran_conditions._asdict().items():
         if not np.array_equal(values[:, :done], getattr(conditions, field)[:, :done]):
-            raise StudyError(f"--trials {spec.num_trials}: the study's {field} schedule scales with its trials, so a "
-                             f"run of {spec.num_trials} runs trials 0…{done - 1} under other conditions than this "
-                             f"run did: {again}")
+            raise StudyError(
+                f"--trials {spec.num_trials}: the study's {field} schedule scales with its trials, so a "
+                f"run of {spec.num_trials} runs trials 0…{done - 1} under other conditions than this "
+                f"run did: {again}"
+            )
     return True
 
 
 def _shortened(text: str, size: int = 80) -> str:
-    return text if len(text) <= size else text[:size - 3] + "..."
+    return text if len(text) <= size else text[: size - 3] + "..."
 
 
 def different_definition(path, meta: dict, spec) -> StudyError:
@@ -197,18 +220,26 @@ def different_definition(path, meta: dict, spec) -> StudyError:
     theirs, ours = meta.get("definition"), definition(spec)
     differ: list[str] = []
     if isinstance(theirs, dict):
+
         def value(fields: dict, name: str) -> str:  # an unset field is not recorded (see definition)
             return fields.get(name, "None" if name in _UNSET_UNLESS_GIVEN else "(not recorded)")
+
         names = [*ours, *(n for n in theirs if n not in ours)]
         differ = [n for n in names if value(theirs, n) != value(ours, n)]
-        fields = "; ".join(f"{n} {_shortened(str(value(theirs, n)))} there, {_shortened(value(ours, n))} here"
-                           for n in differ)
+        fields = "; ".join(
+            f"{n} {_shortened(str(value(theirs, n)))} there, {_shortened(value(ours, n))} here" for n in differ
+        )
     else:
         fields = "it does not record its fields"
-    extend = (" (its condition changes scale with --trials: a run of another length is another study)"
-              if {"num_trials", "schedules"} <= set(differ) <= {"num_trials", "max_trials", "schedules"} else "")
-    return StudyError(f"{path} was written by a different study definition ({fields}){extend}; use another --out, "
-                      f"or --overwrite to start afresh")
+    extend = (
+        " (its condition changes scale with --trials: a run of another length is another study)"
+        if {"num_trials", "schedules"} <= set(differ) <= {"num_trials", "max_trials", "schedules"}
+        else ""
+    )
+    return StudyError(
+        f"{path} was written by a different study definition ({fields}){extend}; use another --out, "
+        f"or --overwrite to start afresh"
+    )
 
 
 def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard = Shard()) -> pathlib.Path:
@@ -221,9 +252,17 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard 
     arrays["context"] = np.asarray(ckpt.context)
     for name in TrialLog._fields:
         arrays[f"log_{name}"] = np.stack([np.asarray(getattr(lg, name)) for lg in ckpt.logs])
-    meta = dict(trial=ckpt.trial, fingerprint=fingerprint(spec), definition=definition(spec), backend=backend,
-                wall_s=ckpt.wall_s,
-                timing=ckpt.timing, num_opt=len(ckpt.opt_leaves), num_sim=len(ckpt.sim_leaves), **shard._asdict())
+    meta = dict(
+        trial=ckpt.trial,
+        fingerprint=fingerprint(spec),
+        definition=definition(spec),
+        backend=backend,
+        wall_s=ckpt.wall_s,
+        timing=ckpt.timing,
+        num_opt=len(ckpt.opt_leaves),
+        num_sim=len(ckpt.sim_leaves),
+        **shard._asdict(),
+    )
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     path = shard_path(out, shard, ckpt.trial)
     tmp = path.with_name(path.name + ".tmp")
@@ -236,8 +275,10 @@ def save_checkpoint(out_dir, spec, ckpt: Checkpoint, backend: str, shard: Shard 
     except OSError as err:  # a full disk: the previous checkpoint is untouched
         tmp.unlink(missing_ok=True)
         kept = f"trials 0…{ckpt.trial - 2} are kept in its checkpoint" if ckpt.trial > 1 else "no trial is kept"
-        raise OutputError(f"writing the checkpoint of trial {ckpt.trial - 1} in {out} failed ({err.strerror}); "
-                          f"{kept}: free space, then the same command with --resume continues") from None
+        raise OutputError(
+            f"writing the checkpoint of trial {ckpt.trial - 1} in {out} failed ({err.strerror}); "
+            f"{kept}: free space, then the same command with --resume continues"
+        ) from None
     except BaseException:  # Ctrl-C while writing: the previous checkpoint is the run's, and no half file is left
         tmp.unlink(missing_ok=True)
         raise
@@ -273,7 +314,7 @@ def prune_checkpoints(out_dir, shard: Shard, complete_trial: int) -> None:
     checkpoints of another process count, which a resume no longer needs."""
     for path in checkpoint_files(out_dir):
         m = _SHARD.fullmatch(path.name)
-        layout = (int(m[2]) if m else 1)
+        layout = int(m[2]) if m else 1
         if layout != shard.num_processes:
             if shard.rank == 0:
                 path.unlink(missing_ok=True)
@@ -323,19 +364,21 @@ def resume_point(out_dir, spec, backend: str) -> int:
     if meta.get("fingerprint") != fingerprint(spec) and not extension_of(meta, spec):
         raise different_definition(path, meta, spec)
     if meta.get("backend", backend) != backend:
-        raise StudyError(f"{path} was written on the {meta['backend']} backend, this run would use {backend}: resume "
-                         f"with --backend {meta['backend']} (one run, one simulator)")
+        raise StudyError(
+            f"{path} was written on the {meta['backend']} backend, this run would use {backend}: resume "
+            f"with --backend {meta['backend']} (one run, one simulator)"
+        )
     return meta["trial"]
 
 
-def open_run(out_dir, spec, backend: str, *, resume: bool = False, overwrite: bool = False,
-             dry_run: bool = False) -> int:
+def open_run(
+    out_dir, spec, backend: str, *, resume: bool = False, overwrite: bool = False, dry_run: bool = False
+) -> int:
     """Check a study's output folder before any compute (:func:`claim_folder`; with ``resume``,
     :func:`resume_point`) and return the trial the run starts at (0: afresh). ``dry_run``: check only."""
     start = resume_point(out_dir, spec, backend) if resume else 0
     claim_folder(out_dir, overwrite=overwrite, resume=resume, dry_run=dry_run)
     return start
-
 
 
 def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Checkpoint | None:
@@ -357,8 +400,7 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
             with np.load(path, allow_pickle=False) as z:
                 first = meta.get("first_row", 0)
                 count = z["context"].shape[0]
-                lo, hi = ((first, first + count) if rows is None
-                          else (max(rows[0], first), min(rows[1], first + count)))
+                lo, hi = (first, first + count) if rows is None else (max(rows[0], first), min(rows[1], first + count))
                 take = slice(lo - first, max(hi - first, lo - first))
                 opt = [z[f"opt_{i}"][take] for i in range(meta["num_opt"])]
                 sim = [z[f"sim_{i}"][take] for i in range(meta["num_sim"])]
@@ -371,14 +413,30 @@ def load_checkpoint(out_dir, spec, rows: tuple[int, int] | None = None) -> Check
 
     def joined(k, axis=0):
         return [np.concatenate(leaves, axis=axis) for leaves in zip(*(p[k] for p in parts), strict=True)]
+
     stacked = joined(5, axis=1)
     logs = [TrialLog(*(field[t] for field in stacked)) for t in range(first_meta["trial"])]
-    return Checkpoint(first_meta["trial"], joined(2), joined(3), np.concatenate([p[4] for p in parts]), logs,
-                      first_meta["wall_s"], first_meta["timing"])
+    return Checkpoint(
+        first_meta["trial"],
+        joined(2),
+        joined(3),
+        np.concatenate([p[4] for p in parts]),
+        logs,
+        first_meta["wall_s"],
+        first_meta["timing"],
+    )
 
 
-def process_checkpoint(trial: int, opt_state: bo.OptimizerState, sim_state, context: np.ndarray, logs: list,
-                       rows: tuple[int, int], wall_s: float, timing: dict) -> Checkpoint:
+def process_checkpoint(
+    trial: int,
+    opt_state: bo.OptimizerState,
+    sim_state,
+    context: np.ndarray,
+    logs: list,
+    rows: tuple[int, int],
+    wall_s: float,
+    timing: dict,
+) -> Checkpoint:
     """The checkpoint of one process's instances after ``trial`` trials, what :func:`save_checkpoint` writes.
 
     Args:
@@ -396,14 +454,19 @@ def process_checkpoint(trial: int, opt_state: bo.OptimizerState, sim_state, cont
     """
     first, count = rows
     return Checkpoint(
-        trial=trial, opt_leaves=[leaf[:count] for leaf in jax.tree.leaves(bo.first_rows(opt_state, trial))],
-        sim_leaves=[np.asarray(leaf)[:count] for leaf in jax.tree.leaves(sim_state)], context=context[:count],
-        logs=[TrialLog(*(np.asarray(f)[first:first + count] for f in lg)) for lg in logs], wall_s=wall_s,
-        timing=dict(timing))
+        trial=trial,
+        opt_leaves=[leaf[:count] for leaf in jax.tree.leaves(bo.first_rows(opt_state, trial))],
+        sim_leaves=[np.asarray(leaf)[:count] for leaf in jax.tree.leaves(sim_state)],
+        context=context[:count],
+        logs=[TrialLog(*(np.asarray(f)[first : first + count] for f in lg)) for lg in logs],
+        wall_s=wall_s,
+        timing=dict(timing),
+    )
 
 
-def resume_checkpoint(out_dir, spec, fresh: bo.OptimizerState, placement: study_placement.Placement,
-                      batch_size: int) -> Checkpoint | None:
+def resume_checkpoint(
+    out_dir, spec, fresh: bo.OptimizerState, placement: study_placement.Placement, batch_size: int
+) -> Checkpoint | None:
     """The newest checkpoint in ``out_dir`` for this process's rows of the padded batch (None if there is none), the
     inverse of :func:`process_checkpoint`: a padding row takes the saved state of the last instance, which another
     process may hold.
@@ -428,9 +491,11 @@ def resume_checkpoint(out_dir, spec, fresh: bo.OptimizerState, placement: study_
     index = np.minimum(np.arange(first, stop), last) - min(first, last)
     saved = jax.tree.unflatten(jax.tree.structure(fresh), [leaf[index] for leaf in ckpt.opt_leaves])
     return ckpt._replace(
-        opt_leaves=jax.tree.leaves(bo.full_rows(fresh, saved)), sim_leaves=[leaf[index] for leaf in ckpt.sim_leaves],
+        opt_leaves=jax.tree.leaves(bo.full_rows(fresh, saved)),
+        sim_leaves=[leaf[index] for leaf in ckpt.sim_leaves],
         context=ckpt.context[index],
-        logs=[TrialLog(*(placement.pad(np.asarray(f)[:batch_size]) for f in lg)) for lg in ckpt.logs])
+        logs=[TrialLog(*(placement.pad(np.asarray(f)[:batch_size]) for f in lg)) for lg in ckpt.logs],
+    )
 
 
 # ----------------------------------------------------------------------------------------------- output paths
@@ -456,15 +521,24 @@ def _check_checkpoint(path: pathlib.Path) -> str | None:
 # A study's files (and optimize's), beside the trial table (cpgjax.outputs) and best_params.json (cpgjax.trial.tuned).
 OUTPUTS = (
     outputs.OutputFile(TABLE, "the study's table (a paper study's: ours beside the paper's)", outputs.check_none),
-    outputs.OutputFile(CHECKPOINT, "the state after the last finished trial (--resume continues from it)",
-                       _check_checkpoint),
-    outputs.OutputFile("checkpoint.<rank>of<N>.t<trial>.npz", "one process's checkpoint shard (--processes)",
-                       _check_checkpoint, pattern=_SHARD.pattern),
-    outputs.OutputFile(RECORDING, "rerun recording: optimization curves and representative rollouts",
-                       outputs.check_recording),
-    outputs.OutputFile(f"{BEST_PARAMS}/<group>.json",
-                       "the best parameters of each group and what they were tuned for (deploy / walk --params)",
-                       outputs.check_none, pattern=re.escape(BEST_PARAMS)),
+    outputs.OutputFile(
+        CHECKPOINT, "the state after the last finished trial (--resume continues from it)", _check_checkpoint
+    ),
+    outputs.OutputFile(
+        "checkpoint.<rank>of<N>.t<trial>.npz",
+        "one process's checkpoint shard (--processes)",
+        _check_checkpoint,
+        pattern=_SHARD.pattern,
+    ),
+    outputs.OutputFile(
+        RECORDING, "rerun recording: optimization curves and representative rollouts", outputs.check_recording
+    ),
+    outputs.OutputFile(
+        f"{BEST_PARAMS}/<group>.json",
+        "the best parameters of each group and what they were tuned for (deploy / walk --params)",
+        outputs.check_none,
+        pattern=re.escape(BEST_PARAMS),
+    ),
 )
 
 # Every file name a cpgjax command writes into its output folder, beside the figures (*.png), the checkpoint shards,
@@ -473,10 +547,19 @@ OUTPUTS = (
 # study's evaluations are named here by their names: their writers sit beside this module or above it, where it
 # cannot import them (tests/test_outputs.py checks that this list and the catalogue, cpgjax.show.catalogue, name
 # the same files).
-OUTPUT_FILES = frozenset({tuned.FILE_NAME, walk.TABLE,
-                          *(e.name for e in (*outputs.OUTPUTS, *OUTPUTS) if e.pattern is None),
-                          "trials.rrd", "run.json", "ticks.arrows", "calibration.json", "sim_truth.parquet",
-                          "evaluations.parquet"})
+OUTPUT_FILES = frozenset(
+    {
+        tuned.FILE_NAME,
+        walk.TABLE,
+        *(e.name for e in (*outputs.OUTPUTS, *OUTPUTS) if e.pattern is None),
+        "trials.rrd",
+        "run.json",
+        "ticks.arrows",
+        "calibration.json",
+        "sim_truth.parquet",
+        "evaluations.parquet",
+    }
+)
 
 
 def _is_output(path: pathlib.Path) -> bool:
@@ -505,8 +588,9 @@ def _remove_outputs(folder: pathlib.Path) -> None:
             path.unlink()
 
 
-def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resumable: bool = True,
-                 dry_run: bool = False) -> pathlib.Path:
+def claim_folder(
+    folder, *, overwrite: bool = False, resume: bool = False, resumable: bool = True, dry_run: bool = False
+) -> pathlib.Path:
     """Make sure a command may write into ``folder`` before it computes anything, and create it.
 
     A missing or empty folder is fine; a non-empty one only with ``resume`` (its checkpoint is continued) or
@@ -528,15 +612,18 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resum
         if entries and not overwrite:
             hint = " --resume to continue its checkpoint," if resumable and checkpoint_files(folder) else ""
             shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
-            raise StudyError(f"{folder} is not empty ({shown}): pass{hint} --overwrite to replace its files, or "
-                             f"write somewhere else")
+            raise StudyError(
+                f"{folder} is not empty ({shown}): pass{hint} --overwrite to replace its files, or write somewhere else"
+            )
         if overwrite:
             foreign = [name for name in entries if not _is_output(folder / name)]
             if foreign:
                 shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
-                raise StudyError(f"{folder}: --overwrite replaces only what cpgjax wrote, and {shown} "
-                                 f"{'is' if len(foreign) == 1 else 'are'} not cpgjax's: move "
-                                 f"{'it' if len(foreign) == 1 else 'them'}, or write somewhere else")
+                raise StudyError(
+                    f"{folder}: --overwrite replaces only what cpgjax wrote, and {shown} "
+                    f"{'is' if len(foreign) == 1 else 'are'} not cpgjax's: move "
+                    f"{'it' if len(foreign) == 1 else 'them'}, or write somewhere else"
+                )
             if not dry_run:
                 _remove_outputs(folder)
     if dry_run:
@@ -549,8 +636,11 @@ def claim_folder(folder, *, overwrite: bool = False, resume: bool = False, resum
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         parent = next(p for p in folder.absolute().parents if p.exists())
-        why = (f"{parent} takes no new folders ({err.strerror})" if err.errno == errno.ENOENT and parent.is_dir()
-               else err.strerror)
+        why = (
+            f"{parent} takes no new folders ({err.strerror})"
+            if err.errno == errno.ENOENT and parent.is_dir()
+            else err.strerror
+        )
         raise StudyError(f"cannot create the folder {folder}: {why}") from None
     check_writable(folder)
     return folder
@@ -591,6 +681,7 @@ def claim_file(path, *, overwrite: bool = False) -> pathlib.Path:
 
 
 # ----------------------------------------------------------------------------------------------- trial table
+
 
 def profile_noise_scale(name: str) -> float:
     """The sensor noise of physics profile ``name`` as a multiple of the robot's (the go1 profile's), NaN where it
@@ -649,13 +740,27 @@ def trial_columns(result) -> dict[str, np.ndarray]:
     vel = per(tr.velocity_xy_mps)
     cols["velocity_x_mps"], cols["velocity_y_mps"] = vel[:, 0], vel[:, 1]
     cols["cost_of_transport"] = per(tr.cot)
-    for name in ("beta", "roll_std_rad", "pitch_std_rad", "saturation_fraction", "energy_j", "distance_m",
-                 "total_mass_kg", "safety_margin"):
+    for name in (
+        "beta",
+        "roll_std_rad",
+        "pitch_std_rad",
+        "saturation_fraction",
+        "energy_j",
+        "distance_m",
+        "total_mass_kg",
+        "safety_margin",
+    ):
         cols[name] = per(getattr(tr, name))
     for name in ("context_changed", "accepted", "fell", "failed", "safe_fallback"):
         cols[name] = per(getattr(tr, name)) > 0
-    return {k: v.astype(np.float64) if np.issubdtype(v.dtype, np.floating) else
-            v.astype(np.int64) if np.issubdtype(v.dtype, np.integer) else v for k, v in cols.items()}
+    return {
+        k: v.astype(np.float64)
+        if np.issubdtype(v.dtype, np.floating)
+        else v.astype(np.int64)
+        if np.issubdtype(v.dtype, np.integer)
+        else v
+        for k, v in cols.items()
+    }
 
 
 def write_trials(result, path) -> pathlib.Path:
@@ -694,11 +799,14 @@ def writing(out_dir, what: str):
     except Exception as err:  # an output's failure, whatever its kind, must not hide the results already kept
         out = pathlib.Path(out_dir)
         kept = ", ".join(_entries(out)) if out.is_dir() else "nothing"
-        raise OutputError(f"writing {what} in {out} failed ({type(err).__name__}: {err}); kept: {kept}. Every trial "
-                          f"is in its checkpoint: the same command with --resume writes the outputs again") from err
+        raise OutputError(
+            f"writing {what} in {out} failed ({type(err).__name__}: {err}); kept: {kept}. Every trial "
+            f"is in its checkpoint: the same command with --resume writes the outputs again"
+        ) from err
 
 
 # --------------------------------------------------------------------------------------- a run's folder and plan
+
 
 def output_folder(name: str, out=None) -> pathlib.Path:
     """A study's output folder: ``out``, by default ``results/<name>``."""
@@ -711,13 +819,27 @@ def run_plan(spec, out_dir, backend: str, start: int) -> str:
     batch = len(study_spec.instances(spec))
     steps = spec.trial.transition_steps + spec.trial.steady_steps
     remaining = batch * (spec.num_trials - start) * steps
-    axes = ", ".join(f"{len(getattr(spec, a))} {a}" for a in ("controllers", "seeds", "friction", "slope_deg",
-                                                               "payload_kg", "target_velocity_mps", "schedules",
-                                                               "data_reuse", "physics") if len(getattr(spec, a)) > 1)
+    axes = ", ".join(
+        f"{len(getattr(spec, a))} {a}"
+        for a in (
+            "controllers",
+            "seeds",
+            "friction",
+            "slope_deg",
+            "payload_kg",
+            "target_velocity_mps",
+            "schedules",
+            "data_reuse",
+            "physics",
+        )
+        if len(getattr(spec, a)) > 1
+    )
     where = f"resuming {out_dir} at trial {start}" if start else f"writing {out_dir}/"
-    return (f"{spec.name}: {batch} instances ({axes or 'one'}) × {spec.num_trials} trials of {steps * TICK_S:g} s"
-            f"{', safe' if spec.safe else ''}: {remaining:,} env-steps ({remaining * TICK_S / 3600:.2f} robot-hours) "
-            f"on the {backend} backend, {where}; {rate.estimate(backend, remaining)}")
+    return (
+        f"{spec.name}: {batch} instances ({axes or 'one'}) × {spec.num_trials} trials of {steps * TICK_S:g} s"
+        f"{', safe' if spec.safe else ''}: {remaining:,} env-steps ({remaining * TICK_S / 3600:.2f} robot-hours) "
+        f"on the {backend} backend, {where}; {rate.estimate(backend, remaining)}"
+    )
 
 
 def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
@@ -726,6 +848,7 @@ def resume_notice(out: pathlib.Path, start: int, num_trials: int) -> str:
 
 # ----------------------------------------------------------------------------------------------- metadata
 
+
 def run_figures(result) -> dict[str, float]:
     """Wall time, env-steps/s and real-time factor (simulated robot-seconds per wall-second) of a study."""
     spec = result.spec
@@ -733,28 +856,47 @@ def run_figures(result) -> dict[str, float]:
     env_steps = len(result.labels) * result.trials.objective.shape[0] * steps_per_trial
     robot_s = env_steps * TICK_S
     wall = max(result.wall_s, 1e-9)
-    return dict(wall_s=round(result.wall_s, 2), env_steps=env_steps, robot_s=round(robot_s, 1),
-                env_steps_per_s=round(env_steps / wall, 1), real_time_factor=round(robot_s / wall, 2),
-                simulation_s=round(result.timing.simulation_s, 2), optimizer_s=round(result.timing.optimizer_s, 2),
-                propose_s=round(result.timing.propose_s, 2), observe_s=round(result.timing.observe_s, 2),
-                transfer_s=round(result.timing.transfer_s, 2), exchange_s=round(result.timing.exchange_s, 2),
-                checkpoint_s=round(result.timing.checkpoint_s, 2))
+    return dict(
+        wall_s=round(result.wall_s, 2),
+        env_steps=env_steps,
+        robot_s=round(robot_s, 1),
+        env_steps_per_s=round(env_steps / wall, 1),
+        real_time_factor=round(robot_s / wall, 2),
+        simulation_s=round(result.timing.simulation_s, 2),
+        optimizer_s=round(result.timing.optimizer_s, 2),
+        propose_s=round(result.timing.propose_s, 2),
+        observe_s=round(result.timing.observe_s, 2),
+        transfer_s=round(result.timing.transfer_s, 2),
+        exchange_s=round(result.timing.exchange_s, 2),
+        checkpoint_s=round(result.timing.checkpoint_s, 2),
+    )
 
 
-def write_metadata(result, path, extra: dict | None = None, command: str | None = None,
-                   written_by: str = "study") -> dict:
+def write_metadata(
+    result, path, extra: dict | None = None, command: str | None = None, written_by: str = "study"
+) -> dict:
     """``metadata.json``: the study, the cpgjax command that wrote the folder (``written_by``: ``study`` or
     ``optimize``), how it was run (``command``: the exact command line) and its run figures (``compiled_programs``:
     how many of the process's programs were loaded from the cache of compiled programs and how many compiled, which
     the first trial's time depends on; null without the cache)."""
     figures = run_figures(result)
-    meta = dict(study=result.spec.name, written_by=written_by, command=command, cpgjax_version=cpgjax.__version__,
-                git_commit=provenance.git_commit(),
-                instances=len(result.labels), trials=int(result.trials.objective.shape[0]),
-                backend=result.backend, sharded_over=result.devices, spec=repr(result.spec),
-                optimizer=dataclasses.asdict(result.spec.optimizer_config()),
-                **figures, environment=provenance.environment(),
-                compiled_programs=compile_cache.counts(), **(extra or {}))
+    meta = dict(
+        study=result.spec.name,
+        written_by=written_by,
+        command=command,
+        cpgjax_version=cpgjax.__version__,
+        git_commit=provenance.git_commit(),
+        instances=len(result.labels),
+        trials=int(result.trials.objective.shape[0]),
+        backend=result.backend,
+        sharded_over=result.devices,
+        spec=repr(result.spec),
+        optimizer=dataclasses.asdict(result.spec.optimizer_config()),
+        **figures,
+        environment=provenance.environment(),
+        compiled_programs=compile_cache.counts(),
+        **(extra or {}),
+    )
     pathlib.Path(path).write_text(json.dumps(meta, indent=2, default=str))
     if result.wall_s > 0.0:
         rate.record(result.backend, figures, result.spec.name, len(result.labels))
@@ -762,6 +904,7 @@ def write_metadata(result, path, extra: dict | None = None, command: str | None 
 
 
 # ----------------------------------------------------------------------------------------------- rerun
+
 
 def instance_path(labels: list[dict[str, Any]], b: int) -> str:
     """Instance ``b``'s entity path below each recorded series: every label that differs between the study's
@@ -785,14 +928,23 @@ def write_recording(result, path, rollouts: list | None = None) -> pathlib.Path:
     tr = result.trials
     n = tr.objective.shape[0]
     trial_index = rr.TimeColumn("trial", sequence=np.arange(n))
-    series = dict(objective=tr.objective, velocity_x_mps=tr.velocity_xy_mps[..., 0], cost_of_transport=tr.cot,
-                  c_load_n=tr.context[..., 0], c_slope_rad=tr.context[..., 1], beta=tr.beta)
+    series = dict(
+        objective=tr.objective,
+        velocity_x_mps=tr.velocity_xy_mps[..., 0],
+        cost_of_transport=tr.cot,
+        c_load_n=tr.context[..., 0],
+        c_slope_rad=tr.context[..., 1],
+        beta=tr.beta,
+    )
     for b in range(len(result.labels)):
         name = instance_path(result.labels, b)
         for key, values in series.items():
-            rr.send_columns(f"optimization/{key}/{name}", indexes=[trial_index],
-                            columns=rr.Scalars.columns(scalars=np.asarray(values[:, b], np.float64)),
-                            recording=rec)
+            rr.send_columns(
+                f"optimization/{key}/{name}",
+                indexes=[trial_index],
+                columns=rr.Scalars.columns(scalars=np.asarray(values[:, b], np.float64)),
+                recording=rec,
+            )
     bases = [study_scene.log_rollout(rec, rollout) for rollout in rollouts or ()]
     rec.send_blueprint(study_scene.blueprint(bases))
     rec.flush()

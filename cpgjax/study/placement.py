@@ -46,8 +46,12 @@ def initialize_distributed() -> None:
     address = os.environ.get("JAX_COORDINATOR_ADDRESS")
     count, rank = os.environ.get("JAX_NUM_PROCESSES"), os.environ.get("JAX_PROCESS_ID")
     loopback = address is not None and address.rsplit(":", 1)[0] in ("127.0.0.1", "localhost")
-    jax.distributed.initialize(address, None if count is None else int(count), None if rank is None else int(rank),
-                               coordinator_bind_address=address if loopback else None)
+    jax.distributed.initialize(
+        address,
+        None if count is None else int(count),
+        None if rank is None else int(rank),
+        coordinator_bind_address=address if loopback else None,
+    )
 
 
 def exchange_timeout_s() -> float:
@@ -92,8 +96,10 @@ def exchange(local: np.ndarray | Any, timeout_s: float | None = None) -> list:
                 if "DEADLINE_EXCEEDED" not in str(err):
                     raise ProcessLost(f"process {rank}: exchange {n} with process {other} failed: {err}") from err
             if time.monotonic() > deadline:
-                raise ProcessLost(f"process {rank}: no trial data from process {other} of {count} within "
-                                  f"{timeout_s:g} s ({EXCHANGE_TIMEOUT_ENV}); is it hung?")
+                raise ProcessLost(
+                    f"process {rank}: no trial data from process {other} of {count} within "
+                    f"{timeout_s:g} s ({EXCHANGE_TIMEOUT_ENV}); is it hung?"
+                )
         with np.load(io.BytesIO(data)) as z:
             out.append(jax.tree.unflatten(treedef, [z[f"arr_{i}"] for i in range(len(leaves))]))
     return out
@@ -125,12 +131,22 @@ class Placement(NamedTuple):
         partitioner, the GP's loop over its instances' matrices (``cpgjax.gp``, one matrix per LAPACK call) made
         every device gather the whole batch and compute all of it (all-gathers in propose and observe: on 2 CPU
         devices 1.9× slower, and each process of a multi-process run computed every instance's optimizer)."""
-        specs = (tuple(PartitionSpec() if axis is None else PartitionSpec("batch") for axis in in_axes)
-                 if isinstance(in_axes, tuple) else PartitionSpec("batch"))
+        specs = (
+            tuple(PartitionSpec() if axis is None else PartitionSpec("batch") for axis in in_axes)
+            if isinstance(in_axes, tuple)
+            else PartitionSpec("batch")
+        )
         # check_vma=False: the optimizer's scans carry values that the mesh's manual axis would otherwise have to
         # mark as varying by hand (jax.lax.pcast); every value here varies along the batch.
-        return jax.jit(jax.shard_map(jax.vmap(fn, in_axes=in_axes), mesh=self.mesh, in_specs=specs,
-                                     out_specs=PartitionSpec("batch"), check_vma=False))
+        return jax.jit(
+            jax.shard_map(
+                jax.vmap(fn, in_axes=in_axes),
+                mesh=self.mesh,
+                in_specs=specs,
+                out_specs=PartitionSpec("batch"),
+                check_vma=False,
+            )
+        )
 
     def instance_rows(self, batch_size: int) -> tuple[int, int]:
         """[first, stop): the rows of :attr:`rows` that hold instances of a batch of ``batch_size``, not the padding's
@@ -151,13 +167,16 @@ class Placement(NamedTuple):
         def one(x):
             x = np.asarray(x)
             return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
         return jax.tree.map(one, tree)
 
     def put_local(self, tree):
         """Host arrays of this process's rows → arrays of the whole batch sharded along it."""
+
         def one(x):
             x = np.asarray(x)
             return jax.make_array_from_process_local_data(self.sharding, x, (self.padded_size,) + x.shape[1:])
+
         return jax.tree.map(one, tree)
 
     def local(self, tree):
@@ -172,8 +191,9 @@ class Placement(NamedTuple):
                 lo, hi, _ = shard.index[0].indices(x.shape[0]) if shard.index else (0, x.shape[0], 1)
                 a, b = max(lo, first), min(hi, stop)
                 if a < b:
-                    out[a - first:b - first] = np.asarray(shard.data)[a - lo:b - lo]
+                    out[a - first : b - first] = np.asarray(shard.data)[a - lo : b - lo]
             return out
+
         return jax.tree.map(one, tree)
 
 
@@ -194,4 +214,5 @@ def fetch(tree):
         if isinstance(x, jax.Array) and not x.is_fully_addressable:
             return np.asarray(multihost_utils.process_allgather(x, tiled=True))
         return np.asarray(x)
+
     return jax.tree.map(one, tree)

@@ -47,9 +47,13 @@ class Rollout(NamedTuple):
 def entity_path(rollout: Rollout) -> str:
     import rerun as rr
 
-    parts = (f"best_{rollout.group}", rollout.controller, f"seed={rollout.seed}",
-             f"friction={rollout.condition.friction:g},slope_deg={rollout.condition.slope_deg:g},"
-             f"payload_kg={rollout.condition.payload_kg:g}")
+    parts = (
+        f"best_{rollout.group}",
+        rollout.controller,
+        f"seed={rollout.seed}",
+        f"friction={rollout.condition.friction:g},slope_deg={rollout.condition.slope_deg:g},"
+        f"payload_kg={rollout.condition.payload_kg:g}",
+    )
     return "rollout/" + "/".join(rr.escape_entity_path_part(p) for p in parts)
 
 
@@ -80,8 +84,11 @@ def _log_geoms(rec, base: str, m: mujoco.MjModel, body: int) -> None:
     import rerun as rr
 
     geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body and m.geom_group[g] == go1_model.VISUAL_GROUP]
-    kinds = {int(mujoco.mjtGeom.mjGEOM_BOX): "boxes", int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinders",
-             int(mujoco.mjtGeom.mjGEOM_SPHERE): "spheres"}
+    kinds = {
+        int(mujoco.mjtGeom.mjGEOM_BOX): "boxes",
+        int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinders",
+        int(mujoco.mjtGeom.mjGEOM_SPHERE): "spheres",
+    }
     for kind, name in kinds.items():
         these = [g for g in geoms if int(m.geom_type[g]) == kind]
         if not these:
@@ -92,16 +99,25 @@ def _log_geoms(rec, base: str, m: mujoco.MjModel, body: int) -> None:
         if name == "boxes":
             shape = rr.Boxes3D(half_sizes=size, centers=centers, quaternions=quats, colors=colors, fill_mode="solid")
         elif name == "cylinders":  # MuJoCo's and rerun's cylinders both lie along their z
-            shape = rr.Cylinders3D(radii=size[:, 0], lengths=2 * size[:, 1], centers=centers, quaternions=quats,
-                                   colors=colors, fill_mode="solid")
+            shape = rr.Cylinders3D(
+                radii=size[:, 0],
+                lengths=2 * size[:, 1],
+                centers=centers,
+                quaternions=quats,
+                colors=colors,
+                fill_mode="solid",
+            )
         else:
-            shape = rr.Ellipsoids3D(half_sizes=np.repeat(size[:, :1], 3, axis=1), centers=centers, colors=colors,
-                                    fill_mode="solid")
+            shape = rr.Ellipsoids3D(
+                half_sizes=np.repeat(size[:, :1], 3, axis=1), centers=centers, colors=colors, fill_mode="solid"
+            )
         rr.log(f"{base}/{name}", shape, static=True, recording=rec)
     unknown = [g for g in geoms if int(m.geom_type[g]) not in kinds]
     if unknown:
-        raise ValueError(f"visual geom {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, unknown[0])!r}: only boxes, "
-                         "cylinders and spheres are recorded")
+        raise ValueError(
+            f"visual geom {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, unknown[0])!r}: only boxes, "
+            "cylinders and spheres are recorded"
+        )
 
 
 def payload_box():
@@ -109,8 +125,11 @@ def payload_box():
     geom), in ``go1_model.PAYLOAD_RGBA``."""
     import rerun as rr
 
-    return rr.Boxes3D(half_sizes=[np.asarray(go1_model.PAYLOAD_BOX_M) / 2],
-                      colors=[[int(round(255 * c)) for c in go1_model.PAYLOAD_RGBA]], fill_mode="solid")
+    return rr.Boxes3D(
+        half_sizes=[np.asarray(go1_model.PAYLOAD_BOX_M) / 2],
+        colors=[[int(round(255 * c)) for c in go1_model.PAYLOAD_RGBA]],
+        fill_mode="solid",
+    )
 
 
 def field_mesh(ground: terrains.Ground, low_m: np.ndarray, high_m: np.ndarray) -> dict[str, np.ndarray]:
@@ -123,12 +142,18 @@ def field_mesh(ground: terrains.Ground, low_m: np.ndarray, high_m: np.ndarray) -
     last = np.clip(np.ceil((np.asarray(high_m) + terrains.FIELD_HALF_M) / terrains.CELL_M).astype(int), 1, n - 1)
     cols, rows = np.arange(first[0], last[0] + 1), np.arange(first[1], last[1] + 1)
     c, r = np.meshgrid(cols, rows)  # (rows, cols)
-    vertices = np.stack([c * terrains.CELL_M - terrains.FIELD_HALF_M, r * terrains.CELL_M - terrains.FIELD_HALF_M,
-                         heights[r, c]], axis=-1).reshape(-1, 3)
+    vertices = np.stack(
+        [c * terrains.CELL_M - terrains.FIELD_HALF_M, r * terrains.CELL_M - terrains.FIELD_HALF_M, heights[r, c]],
+        axis=-1,
+    ).reshape(-1, 3)
     width = len(cols)
     at = (np.arange(len(rows) - 1)[:, None] * width + np.arange(width - 1)[None, :]).reshape(-1)  # cell (c, r)
-    triangles = np.concatenate([np.stack([at, at + 1, at + width + 1], -1),  # (0, 0), (1, 0), (1, 1)
-                                np.stack([at, at + width + 1, at + width], -1)])  # (0, 0), (1, 1), (0, 1)
+    triangles = np.concatenate(
+        [
+            np.stack([at, at + 1, at + width + 1], -1),  # (0, 0), (1, 0), (1, 1)
+            np.stack([at, at + width + 1, at + width], -1),
+        ]
+    )  # (0, 0), (1, 1), (0, 1)
     return {"vertex_positions": vertices, "triangle_indices": triangles}
 
 
@@ -148,11 +173,15 @@ def log_rollout(rec, rollout: Rollout) -> str:
 
     tilt = _xyzw(go1_model.slope_quaternion(rollout.condition.slope_deg))
     rr.log(f"{base}/world", rr.Transform3D(quaternion=tilt), static=True, recording=rec)
-    trunk_xy = qpos[:, go1_model.indices().root_qpos:go1_model.indices().root_qpos + 2]
+    trunk_xy = qpos[:, go1_model.indices().root_qpos : go1_model.indices().root_qpos + 2]
     low, high = trunk_xy.min(axis=0) - FLOOR_MARGIN_M, trunk_xy.max(axis=0) + FLOOR_MARGIN_M
     if rollout.condition.ground.terrain == terrains.FLAT:
-        floor = rr.Boxes3D(mins=[[*low, -FLOOR_THICKNESS_M]], sizes=[[*(high - low), FLOOR_THICKNESS_M]],
-                           colors=[[190, 190, 185, 255]], fill_mode="solid")
+        floor = rr.Boxes3D(
+            mins=[[*low, -FLOOR_THICKNESS_M]],
+            sizes=[[*(high - low), FLOOR_THICKNESS_M]],
+            colors=[[190, 190, 185, 255]],
+            fill_mode="solid",
+        )
     else:
         mesh = field_mesh(rollout.condition.ground, low, high)
         shade = 150 + 80 * (mesh["vertex_positions"][:, 2] / terrains.MAX_AMPLITUDE_M + 0.5)  # lighter higher
@@ -168,25 +197,42 @@ def log_rollout(rec, rollout: Rollout) -> str:
             rr.log(f"{path}/boxes", payload_box(), static=True, recording=rec)
         else:
             _log_geoms(rec, path, m, body)
-        rr.send_columns(path, indexes=index(every),
-                        columns=rr.Transform3D.columns(translation=pos[:, body], quaternion=_xyzw(quat[:, body])),
-                        recording=rec)
+        rr.send_columns(
+            path,
+            indexes=index(every),
+            columns=rr.Transform3D.columns(translation=pos[:, body], quaternion=_xyzw(quat[:, body])),
+            recording=rec,
+        )
     feet = np.asarray(log.foot_pos_m, np.float64)[every]  # (T', 4, 3) floor frame
     force = np.asarray(log.foot_force_n, np.float64)[every]  # (T', 4) normal force
     for k, leg in enumerate(constants.LEG_NAMES):
         vectors = np.zeros((len(every), 3))
         vectors[:, 2] = force[:, k] * FORCE_ARROW_M_PER_N
-        rr.send_columns(f"{base}/world/contact_force/{leg}", indexes=index(every),
-                        columns=rr.Arrows3D.columns(origins=feet[:, k], vectors=vectors, colors=[[220, 60, 40, 255]] *
-                                                    len(every)), recording=rec)
+        rr.send_columns(
+            f"{base}/world/contact_force/{leg}",
+            indexes=index(every),
+            columns=rr.Arrows3D.columns(origins=feet[:, k], vectors=vectors, colors=[[220, 60, 40, 255]] * len(every)),
+            recording=rec,
+        )
     for k, leg in enumerate(constants.LEG_NAMES):
-        for key, values in (("cpg/phase_rad", log.phase_rad), ("cpg/amplitude", log.amplitude),
-                            ("foot_force_n", log.foot_force_n)):
-            rr.send_columns(f"{base}/{key}/{leg}", indexes=index(ticks),
-                            columns=rr.Scalars.columns(scalars=np.asarray(values[:, k], np.float64)), recording=rec)
+        for key, values in (
+            ("cpg/phase_rad", log.phase_rad),
+            ("cpg/amplitude", log.amplitude),
+            ("foot_force_n", log.foot_force_n),
+        ):
+            rr.send_columns(
+                f"{base}/{key}/{leg}",
+                indexes=index(ticks),
+                columns=rr.Scalars.columns(scalars=np.asarray(values[:, k], np.float64)),
+                recording=rec,
+            )
     for k, axis in enumerate(("roll", "pitch", "yaw")):
-        rr.send_columns(f"{base}/attitude_rad/{axis}", indexes=index(ticks),
-                        columns=rr.Scalars.columns(scalars=np.asarray(log.rpy_rad[:, k], np.float64)), recording=rec)
+        rr.send_columns(
+            f"{base}/attitude_rad/{axis}",
+            indexes=index(ticks),
+            columns=rr.Scalars.columns(scalars=np.asarray(log.rpy_rad[:, k], np.float64)),
+            recording=rec,
+        )
     return base
 
 
@@ -195,12 +241,25 @@ def blueprint(bases: list[str]):
     optimization's curves."""
     import rerun.blueprint as rrb
 
-    tabs = [rrb.Horizontal(
-        rrb.Spatial3DView(origin=f"{base}/world", name=base.split("/")[1]),
-        rrb.Vertical(rrb.TimeSeriesView(origin=f"{base}/cpg/phase_rad", name="CPG phase [rad]"),
-                     rrb.TimeSeriesView(origin=f"{base}/foot_force_n", name="foot normal force [N]")),
-        column_shares=[2, 1], name=base.split("/")[1]) for base in bases]
-    tabs.append(rrb.Grid(*(rrb.TimeSeriesView(origin=f"/optimization/{key}", name=key) for key in
-                           ("objective", "velocity_x_mps", "cost_of_transport", "c_load_n", "c_slope_rad", "beta")),
-                         name="optimization"))
+    tabs = [
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin=f"{base}/world", name=base.split("/")[1]),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=f"{base}/cpg/phase_rad", name="CPG phase [rad]"),
+                rrb.TimeSeriesView(origin=f"{base}/foot_force_n", name="foot normal force [N]"),
+            ),
+            column_shares=[2, 1],
+            name=base.split("/")[1],
+        )
+        for base in bases
+    ]
+    tabs.append(
+        rrb.Grid(
+            *(
+                rrb.TimeSeriesView(origin=f"/optimization/{key}", name=key)
+                for key in ("objective", "velocity_x_mps", "cost_of_transport", "c_load_n", "c_slope_rad", "beta")
+            ),
+            name="optimization",
+        )
+    )
     return rrb.Blueprint(rrb.Tabs(*tabs), collapse_panels=True)

@@ -114,8 +114,11 @@ class Switches(NamedTuple):
 
 
 SWITCH_VALUES: dict[str, tuple[str, ...] | limits.Range] = {
-    "amplitude_form": cpg.AMPLITUDE_FORMS, "ucb_form": acquisition.UCB_FORMS, "vmc_gate": VMC_GATES,
-    "objective_floor": limits.OBJECTIVE_FLOOR}
+    "amplitude_form": cpg.AMPLITUDE_FORMS,
+    "ucb_form": acquisition.UCB_FORMS,
+    "vmc_gate": VMC_GATES,
+    "objective_floor": limits.OBJECTIVE_FLOOR,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,8 +202,11 @@ class StudySpec:
         """``optimizer``, or the paper's setting with capacity ``max_trials`` (default ``num_trials``) and the c_load
         range of the physics profiles' foot-force signal (docs/decisions.md §11; :func:`validate` checks the profiles
         agree); safe with ``safe``."""
-        config = (self.optimizer if self.optimizer is not None
-                  else optimizer_setting.profile_config(self.physics[0], capacity=self.max_trials or self.num_trials))
+        config = (
+            self.optimizer
+            if self.optimizer is not None
+            else optimizer_setting.profile_config(self.physics[0], capacity=self.max_trials or self.num_trials)
+        )
         config = dataclasses.replace(config, safe=True) if self.safe and not config.safe else config
         if self.switches is None or config.ucb_form == self.switches.ucb_form:
             return config
@@ -212,21 +218,55 @@ def startup_field(name: str | None) -> str | None:
     return None if name == cpg.DEFAULT_STARTUP else name
 
 
-UNSET_AXES = {"gaits": (cpg.DEFAULT_GAIT,), "terrain_amplitude_m": (0.0,), "terrain_seed": (0,),
-              "foot_friction": (-1.0,)}
+UNSET_AXES = {
+    "gaits": (cpg.DEFAULT_GAIT,),
+    "terrain_amplitude_m": (0.0,),
+    "terrain_seed": (0,),
+    "foot_friction": (-1.0,),
+}
 """The values of the grid axes a study leaves unset (None): the paper's trot on the flat plane, on each profile's own
 feet."""
 
-LABELS = ("controller", "gait", "seed", "friction", "slope_deg", "payload_kg", "target_velocity_mps", "schedule",
-          "data_reuse", "physics", "terrain_amplitude_m", "terrain_seed", "foot_friction")
+LABELS = (
+    "controller",
+    "gait",
+    "seed",
+    "friction",
+    "slope_deg",
+    "payload_kg",
+    "target_velocity_mps",
+    "schedule",
+    "data_reuse",
+    "physics",
+    "terrain_amplitude_m",
+    "terrain_seed",
+    "foot_friction",
+)
 
 
 def label_values(spec: StudySpec) -> dict[str, tuple]:
     """Each label of :data:`LABELS` → the values its grid axis takes, in batch order."""
-    return dict(zip(LABELS, (spec.controllers, spec.axis("gaits"), spec.seeds, spec.friction, spec.slope_deg,
-                             spec.payload_kg, spec.target_velocity_mps, tuple(s.label for s in spec.schedules),
-                             spec.data_reuse, spec.physics, spec.axis("terrain_amplitude_m"),
-                             spec.axis("terrain_seed"), spec.axis("foot_friction")), strict=True))
+    return dict(
+        zip(
+            LABELS,
+            (
+                spec.controllers,
+                spec.axis("gaits"),
+                spec.seeds,
+                spec.friction,
+                spec.slope_deg,
+                spec.payload_kg,
+                spec.target_velocity_mps,
+                tuple(s.label for s in spec.schedules),
+                spec.data_reuse,
+                spec.physics,
+                spec.axis("terrain_amplitude_m"),
+                spec.axis("terrain_seed"),
+                spec.axis("foot_friction"),
+            ),
+            strict=True,
+        )
+    )
 
 
 def ground(labels: dict[str, Any]) -> terrains.Ground:
@@ -266,7 +306,7 @@ def conditions(spec: StudySpec) -> Conditions:
         for f in CONDITION_FIELDS:
             out[f][b] = lab[f]
         for change in sorted(schedules[lab["schedule"]].changes, key=lambda c: c.trial):
-            out[change.field][b, change.trial:] = change.value
+            out[change.field][b, change.trial :] = change.value
     out["inference"], out["ramp"] = out["inference"] > 0.5, out["ramp"] > 0.5
     out["mass_scale"], out["latency_ticks"] = np.ones((len(labels), n)), np.full((len(labels), n), -1, np.int64)
     out["noise_scale"] = np.full((len(labels), n), -1.0)
@@ -293,7 +333,7 @@ def walked(planned: Conditions, ramp: Ramp | None, distance_m, fell, trial: prot
       ``planned`` with the slopes of the ramp's trials 0 … k walked; the later trials' slopes are the planned ones.
     """
     done = len(distance_m)
-    if ramp is None or not planned.ramp[:, :done + 1].any():
+    if ramp is None or not planned.ramp[:, : done + 1].any():
         return planned
     scale = (trial.transition_steps + trial.steady_steps) / trial.steady_steps
     slope_deg = np.array(planned.slope_deg, copy=True)
@@ -328,17 +368,34 @@ def validate(spec: StudySpec) -> Conditions:
     Raises:
       StudyError: the message names the option, the bad value and what is allowed.
     """
+
     def fail(msg):
         raise StudyError(f"study {spec.name!r}: {msg}")
 
     if not isinstance(spec.num_trials, int) or spec.num_trials < 1:
         fail(f"num_trials = {spec.num_trials!r}; need an integer >= 1")
-    if spec.max_trials is not None and (not isinstance(spec.max_trials, int)
-                                        or not spec.num_trials <= spec.max_trials <= limits.MAX_TRIALS):
-        fail(f"max_trials = {spec.max_trials!r}; need an integer in [num_trials = {spec.num_trials}, "
-             f"{limits.MAX_TRIALS}]")
-    for axis in ("controllers", "gaits", "seeds", "friction", "slope_deg", "payload_kg", "target_velocity_mps",
-                 "schedules", "data_reuse", "physics", "terrain_amplitude_m", "terrain_seed", "foot_friction"):
+    if spec.max_trials is not None and (
+        not isinstance(spec.max_trials, int) or not spec.num_trials <= spec.max_trials <= limits.MAX_TRIALS
+    ):
+        fail(
+            f"max_trials = {spec.max_trials!r}; need an integer in [num_trials = {spec.num_trials}, "
+            f"{limits.MAX_TRIALS}]"
+        )
+    for axis in (
+        "controllers",
+        "gaits",
+        "seeds",
+        "friction",
+        "slope_deg",
+        "payload_kg",
+        "target_velocity_mps",
+        "schedules",
+        "data_reuse",
+        "physics",
+        "terrain_amplitude_m",
+        "terrain_seed",
+        "foot_friction",
+    ):
         values = spec.axis(axis)
         if len(values) == 0:
             fail(f"grid axis {axis} is empty")
@@ -364,8 +421,10 @@ def validate(spec: StudySpec) -> Conditions:
             fail(f"unknown physics profile {name!r}; allowed: {tuple(physics_profiles.PROFILES)}")
     ranges = {physics_profiles.get(name).context_load_range_n for name in spec.physics}
     if spec.optimizer is None and len(ranges) > 1:
-        fail(f"physics profiles {spec.physics} normalize c_load over different ranges {sorted(ranges)}; run them as "
-             f"separate studies or give an optimizer config")
+        fail(
+            f"physics profiles {spec.physics} normalize c_load over different ranges {sorted(ranges)}; run them as "
+            f"separate studies or give an optimizer config"
+        )
     for s in spec.seeds:
         if not isinstance(s, (int, np.integer)) or s < 0:
             fail(f"seed {s!r}: need a non-negative integer")
@@ -394,8 +453,12 @@ def validate(spec: StudySpec) -> Conditions:
         fail(f"trial timing {spec.trial} needs steady_steps >= 1 and transition_steps >= 0")
     cond = conditions(spec)
     # the same ranges as the command line's options (cpgjax.trial.limits), for every trial's conditions
-    for field, allowed in (("friction", limits.FRICTION), ("slope_deg", limits.SLOPE_DEG),
-                           ("payload_kg", limits.PAYLOAD_KG), ("target_velocity_mps", limits.TARGET_VELOCITY_MPS)):
+    for field, allowed in (
+        ("friction", limits.FRICTION),
+        ("slope_deg", limits.SLOPE_DEG),
+        ("payload_kg", limits.PAYLOAD_KG),
+        ("target_velocity_mps", limits.TARGET_VELOCITY_MPS),
+    ):
         values = np.asarray(getattr(cond, field), np.float64)
         bad = ~np.vectorize(allowed.contains)(values)
         if bad.any():
@@ -409,9 +472,17 @@ def validate(spec: StudySpec) -> Conditions:
     physics, feet = ([lab[k] for lab in labels] for k in ("physics", "foot_friction"))
     try:
         for t in range(spec.num_trials):
-            go1_model.make_scenarios(cond.friction[:, t], cond.slope_deg[:, t], cond.payload_kg[:, t], physics,
-                                     mass_scale=cond.mass_scale[:, t], latency_ticks=cond.latency_ticks[:, t],
-                                     noise_scale=cond.noise_scale[:, t], foot_friction=feet, **terrain)
+            go1_model.make_scenarios(
+                cond.friction[:, t],
+                cond.slope_deg[:, t],
+                cond.payload_kg[:, t],
+                physics,
+                mass_scale=cond.mass_scale[:, t],
+                latency_ticks=cond.latency_ticks[:, t],
+                noise_scale=cond.noise_scale[:, t],
+                foot_friction=feet,
+                **terrain,
+            )
     except ValueError as err:
         fail(f"trial {t}: {err}")
     return cond
@@ -436,10 +507,33 @@ GRID_AXES = {  # a study file's [grid] key → (StudySpec field, element kind, a
     "terrain_seed": ("terrain_seed", "int", limits.TERRAIN_SEEDS),
     "foot_friction": ("foot_friction", "float", limits.FRICTION),
 }
-SCHEDULE_RANGES = {"friction": limits.FRICTION, "slope_deg": limits.SLOPE_DEG, "payload_kg": limits.PAYLOAD_KG,
-                   "target_velocity_mps": limits.TARGET_VELOCITY_MPS}  # inference and ramp: true or false
-TOP_KEYS = ("name", "description", "report", "trials", "max_trials", "seeds", "group_by", "safe", "startup",
-            "switches", "comparisons", "grid", "schedules", "ramp", "randomize", "trial", "quick", "paper", "transfer")
+SCHEDULE_RANGES = {
+    "friction": limits.FRICTION,
+    "slope_deg": limits.SLOPE_DEG,
+    "payload_kg": limits.PAYLOAD_KG,
+    "target_velocity_mps": limits.TARGET_VELOCITY_MPS,
+}  # inference and ramp: true or false
+TOP_KEYS = (
+    "name",
+    "description",
+    "report",
+    "trials",
+    "max_trials",
+    "seeds",
+    "group_by",
+    "safe",
+    "startup",
+    "switches",
+    "comparisons",
+    "grid",
+    "schedules",
+    "ramp",
+    "randomize",
+    "trial",
+    "quick",
+    "paper",
+    "transfer",
+)
 QUICK_KEYS = ("trials", "seeds", "max_trials", "schedules")
 STUDY_FILE_SUFFIX = ".toml"
 WORD = r"[A-Za-z0-9._-]+"  # a schedule's name: it becomes part of file names
@@ -502,8 +596,10 @@ class _Reader:
                 close = difflib.get_close_matches(k, allowed, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
                 where = f"{key}.{k}" if key else k
-                raise StudyError(f"{self.path}: unknown key {where!r}{hint}; allowed{' in ' + key if key else ''}: "
-                                 f"{', '.join(allowed)}")
+                raise StudyError(
+                    f"{self.path}: unknown key {where!r}{hint}; allowed{' in ' + key if key else ''}: "
+                    f"{', '.join(allowed)}"
+                )
         for k in required:
             if k not in value:
                 self.fail(f"{key}.{k}" if key else k, "missing (required)")
@@ -514,8 +610,10 @@ class _Reader:
             self.fail(key, f"need an integer, got {_kind(value)} {value!r}")
         if value < low or (high is not None and value > high):
             bounds = f"in [{low}, {high}]" if high is not None else f">= {low}"
-            self.fail(key, f"{value} is outside the allowed range: need an integer {bounds}"
-                           + (f" ({reason})" if reason else ""))
+            self.fail(
+                key,
+                f"{value} is outside the allowed range: need an integer {bounds}" + (f" ({reason})" if reason else ""),
+            )
         return value
 
     def number(self, value, key: str, allowed: limits.Range | None = None) -> float:
@@ -602,8 +700,13 @@ class _Reader:
             for i, change in enumerate(self.array(entry["changes"], f"{key}.changes")):
                 where = f"{key}.changes[{i}]"
                 change = self.table(change, where, ("trial", *SCHEDULE_FIELDS), ("trial",))
-                trial = self.integer(change["trial"], f"{where}.trial", 0, written - 1,
-                                     f"the trials are numbered 0 … {written - 1}, trials = {written}")
+                trial = self.integer(
+                    change["trial"],
+                    f"{where}.trial",
+                    0,
+                    written - 1,
+                    f"the trials are numbered 0 … {written - 1}, trials = {written}",
+                )
                 values = self.fields(change, where)
                 if not values:
                     self.fail(where, f"changes nothing; give one of {', '.join(SCHEDULE_FIELDS)}")
@@ -645,8 +748,11 @@ def _phase_starts(lengths: list[int], fixed: list[bool], run: int, reader: _Read
     fixed_total = sum(n for n, f in zip(lengths, fixed, strict=True) if f)
     scaled_total, left = sum(lengths) - fixed_total, run - fixed_total
     if (scaled_total == 0 and left != 0) or (scaled_total > 0 and left < sum(not f for f in fixed)):
-        reader.fail(f"{key}.phases", f"a run of {run} trials: the fixed phases hold {fixed_total} trials and each "
-                                     f"other phase needs at least one")
+        reader.fail(
+            f"{key}.phases",
+            f"a run of {run} trials: the fixed phases hold {fixed_total} trials and each "
+            f"other phase needs at least one",
+        )
     starts, fixed_before, scaled_before = [], 0, 0
     for n, f in zip(lengths, fixed, strict=True):
         starts.append(fixed_before + (scaled_trial(scaled_before, scaled_total, left) if scaled_total else 0))
@@ -658,13 +764,28 @@ def _phase_starts(lengths: list[int], fixed: list[bool], run: int, reader: _Read
 
 
 def _kind(value) -> str:
-    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "a list",
-            dict: "a table"}.get(type(value), type(value).__name__)
+    return {
+        bool: "a boolean",
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        list: "a list",
+        dict: "a table",
+    }.get(type(value), type(value).__name__)
 
 
-def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | None = None,
-         physics: str | None = None, safe: bool = False, max_trials: int | None = None,
-         startup: str | None = None, gaits: tuple[str, ...] | None = None) -> StudyFile:
+def read(
+    path,
+    *,
+    quick: bool = False,
+    seeds: int | None = None,
+    trials: int | None = None,
+    physics: str | None = None,
+    safe: bool = False,
+    max_trials: int | None = None,
+    startup: str | None = None,
+    gaits: tuple[str, ...] | None = None,
+) -> StudyFile:
     """Read and check the study file ``path`` with the command line's overrides (each as ``cpgjax study``'s
     option: ``quick`` the file's [quick] values, ``seeds`` seeds 0 … n − 1, ``trials`` the run's length with every
     change trial scaled to it, ``physics`` one profile for every instance, ``safe``, ``max_trials``, ``startup``,
@@ -692,8 +813,10 @@ def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | N
 
     name = r.string(data["name"], "name", pattern=WORD)
     default = StudySpec(name)
-    length = {k: r.integer(t.get("trials", default.num_trials), f"{k}trials", 1, limits.MAX_TRIALS,
-                           limits.MAX_TRIALS_REASON) for k, t in (("", data), ("quick.", quick_table))}
+    length = {
+        k: r.integer(t.get("trials", default.num_trials), f"{k}trials", 1, limits.MAX_TRIALS, limits.MAX_TRIALS_REASON)
+        for k, t in (("", data), ("quick.", quick_table))
+    }
     run = length["quick." if quick and "trials" in quick_table else ""] if trials is None else trials
     # a schedule's trial numbers are those of a run of the trials beside it
     written = length["quick." if quick and {"schedules", "trials"} <= set(quick_table) else ""]
@@ -709,43 +832,56 @@ def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | N
     if "schedules" in level:
         fields["schedules"] = r.schedules(level["schedules"], at("schedules"), written, run)
     if "max_trials" in level:
-        fields["max_trials"] = r.integer(level["max_trials"], at("max_trials"), 1, limits.MAX_TRIALS,
-                                         limits.MAX_TRIALS_REASON)
+        fields["max_trials"] = r.integer(
+            level["max_trials"], at("max_trials"), 1, limits.MAX_TRIALS, limits.MAX_TRIALS_REASON
+        )
     if max_trials is not None:
         if max_trials < run:
             raise StudyError(f"--max-trials {max_trials}: need at least the run's {run} trials")
         fields["max_trials"] = max_trials
     if "group_by" in data:
-        fields["group_by"] = tuple(r.string(g, f"group_by[{i}]", LABELS)
-                                   for i, g in enumerate(r.array(data["group_by"], "group_by", True)))
+        fields["group_by"] = tuple(
+            r.string(g, f"group_by[{i}]", LABELS) for i, g in enumerate(r.array(data["group_by"], "group_by", True))
+        )
         if not fields["group_by"]:
             r.fail("group_by", f"empty; name one or more of {', '.join(LABELS)}")
     fields["safe"] = safe or r.boolean(data.get("safe", False), "safe")
-    chosen = startup_field(startup or (r.string(data["startup"], "startup", tuple(cpg.STARTUPS))
-                                       if "startup" in data else None))
+    chosen = startup_field(
+        startup or (r.string(data["startup"], "startup", tuple(cpg.STARTUPS)) if "startup" in data else None)
+    )
     if chosen is not None:
         fields["startup"] = chosen
     if "switches" in data:
         switches = r.table(data["switches"], "switches", Switches._fields, ())
+
         def switch(key, value):
             allowed = SWITCH_VALUES[key]
-            return (r.number(value, f"switches.{key}", allowed) if isinstance(allowed, limits.Range)
-                    else r.string(value, f"switches.{key}", allowed))
+            return (
+                r.number(value, f"switches.{key}", allowed)
+                if isinstance(allowed, limits.Range)
+                else r.string(value, f"switches.{key}", allowed)
+            )
 
         fields["switches"] = Switches(**{key: switch(key, value) for key, value in switches.items()})
     if "ramp" in data:
         ramp = r.table(data["ramp"], "ramp", Ramp._fields, Ramp._fields)
-        fields["ramp"] = Ramp(r.number(ramp["start_deg"], "ramp.start_deg", limits.SLOPE_DEG),
-                              r.number(ramp["end_deg"], "ramp.end_deg", limits.SLOPE_DEG),
-                              r.number(ramp["length_m"], "ramp.length_m", _RAMP_LENGTH_M))
+        fields["ramp"] = Ramp(
+            r.number(ramp["start_deg"], "ramp.start_deg", limits.SLOPE_DEG),
+            r.number(ramp["end_deg"], "ramp.end_deg", limits.SLOPE_DEG),
+            r.number(ramp["length_m"], "ramp.length_m", _RAMP_LENGTH_M),
+        )
     if "randomize" in data:
         fields["randomize"] = _randomization(r, data["randomize"])
     if "trial" in data:
         timing = r.table(data["trial"], "trial", ("transition_s", "steady_s"))
         base = default.trial
-        fields["trial"] = base._replace(**{
-            f"{k}_steps": int(round(r.number(timing[f"{k}_s"], f"trial.{k}_s", allowed) / TICK_S))
-            for k, allowed in (("transition", limits.TRANSITION_S), ("steady", limits.STEADY_S)) if f"{k}_s" in timing})
+        fields["trial"] = base._replace(
+            **{
+                f"{k}_steps": int(round(r.number(timing[f"{k}_s"], f"trial.{k}_s", allowed) / TICK_S))
+                for k, allowed in (("transition", limits.TRANSITION_S), ("steady", limits.STEADY_S))
+                if f"{k}_s" in timing
+            }
+        )
     if physics is not None:
         fields["physics"] = (physics,)
     if gaits is not None:
@@ -755,8 +891,9 @@ def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | N
     arms = ()
     if "transfer" in data:
         transfer = r.table(data["transfer"], "transfer", ("arms",), ("arms",))
-        arms = tuple(_arm(r, a, f"transfer.arms[{i}]") for i, a in enumerate(r.array(transfer["arms"],
-                                                                                      "transfer.arms")))
+        arms = tuple(
+            _arm(r, a, f"transfer.arms[{i}]") for i, a in enumerate(r.array(transfer["arms"], "transfer.arms"))
+        )
         if not arms:
             r.fail("transfer.arms", "empty; need at least one arm")
     paper = r.table(data.get("paper", {}), "paper", tuple(data.get("paper", {})))
@@ -764,8 +901,16 @@ def read(path, *, quick: bool = False, seeds: int | None = None, trials: int | N
         validate(spec)
     except StudyError as err:
         raise StudyError(f"{path}: {err}") from None
-    return StudyFile(spec, path, text, r.string(data.get("description", ""), "description"),
-                     r.string(data.get("report", ""), "report"), contrasts, paper, arms)
+    return StudyFile(
+        spec,
+        path,
+        text,
+        r.string(data.get("description", ""), "description"),
+        r.string(data.get("report", ""), "report"),
+        contrasts,
+        paper,
+        arms,
+    )
 
 
 def load(path, **overrides) -> StudySpec:
@@ -816,8 +961,10 @@ def _contrasts(r: _Reader, value, spec: StudySpec) -> tuple[Contrast, ...]:
             v = schedule_names.get(entry[side], entry[side]) if axis == "schedule" else entry[side]
             match = [x for x in allowed if x == v and type(x) is not bool or x is v]
             if not match:
-                r.fail(f"{key}.{side}", f"{v!r} is not a value of the study's {axis} axis; allowed: "
-                                        f"{', '.join(map(str, allowed))}")
+                r.fail(
+                    f"{key}.{side}",
+                    f"{v!r} is not a value of the study's {axis} axis; allowed: {', '.join(map(str, allowed))}",
+                )
             pair.append(match[0])
         if pair[0] == pair[1]:
             r.fail(key, "a and b are the same group")
@@ -827,9 +974,11 @@ def _contrasts(r: _Reader, value, spec: StudySpec) -> tuple[Contrast, ...]:
 
 def _arm(r: _Reader, value, key: str) -> Arm:
     arm = r.table(value, key, ("name", "physics", "randomize"), ("name", "physics"))
-    return Arm(r.string(arm["name"], f"{key}.name", pattern=WORD),
-               r.string(arm["physics"], f"{key}.physics", tuple(physics_profiles.PROFILES)),
-               r.boolean(arm.get("randomize", False), f"{key}.randomize"))
+    return Arm(
+        r.string(arm["name"], f"{key}.name", pattern=WORD),
+        r.string(arm["physics"], f"{key}.physics", tuple(physics_profiles.PROFILES)),
+        r.boolean(arm.get("randomize", False), f"{key}.randomize"),
+    )
 
 
 def template() -> str:
@@ -837,9 +986,11 @@ def template() -> str:
     study starts from (``cpgjax study --template PATH``); it runs as written."""
     d, r = StudySpec("my_study"), Randomization()
     # the axes a study may leave unset keep the trial table of the trot on the flat plane: left as comments
-    grid = "\n".join(f"# {key}: {kind}s in {_allowed_text(allowed)}; default {list(d.axis(field))}\n"
-                     f"{'# ' if field in UNSET_AXES else ''}{key} = {_toml(list(d.axis(field)))}"
-                     for key, (field, kind, allowed) in GRID_AXES.items())
+    grid = "\n".join(
+        f"# {key}: {kind}s in {_allowed_text(allowed)}; default {list(d.axis(field))}\n"
+        f"{'# ' if field in UNSET_AXES else ''}{key} = {_toml(list(d.axis(field)))}"
+        for key, (field, kind, allowed) in GRID_AXES.items()
+    )
     fields = ", ".join(SCHEDULE_RANGES)
     ranges = "; ".join(f"{k} in {v}" for k, v in SCHEDULE_RANGES.items())
     timing = f"{d.trial.transition_steps * TICK_S:g} s of transition, {d.trial.steady_steps * TICK_S:g} s measured"

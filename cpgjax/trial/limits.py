@@ -49,17 +49,23 @@ class Range(NamedTuple):
         return value
 
 
-FRICTION = Range(0.1, 1.5, "Coulomb friction of the feet on the floor, from wet ice ≈ 0.1 to grippy rubber on dry "
-                 "concrete ≈ 1.5")
-SLOPE_DEG = Range(-MAX_ABS_SLOPE_DEG, MAX_ABS_SLOPE_DEG, "uphill along +x; the model's gravity tilt", low_open=True,
-                  high_open=True)
+FRICTION = Range(
+    0.1, 1.5, "Coulomb friction of the feet on the floor, from wet ice ≈ 0.1 to grippy rubber on dry concrete ≈ 1.5"
+)
+SLOPE_DEG = Range(
+    -MAX_ABS_SLOPE_DEG, MAX_ABS_SLOPE_DEG, "uphill along +x; the model's gravity tilt", low_open=True, high_open=True
+)
 PAYLOAD_KG = Range(0.0, 20.0, "a load on the ~12 kg robot; the paper's heaviest is 15 kg")
-TERRAIN_AMPLITUDE_M = Range(0.0, MAX_AMPLITUDE_M, "rough ground's peak-to-peak height; at most the smallest swing "
-                            "clearance g_c", low_open=True)
+TERRAIN_AMPLITUDE_M = Range(
+    0.0, MAX_AMPLITUDE_M, "rough ground's peak-to-peak height; at most the smallest swing clearance g_c", low_open=True
+)
 BLOCK_DEPTH_M = Range(*BLOCK_DEPTH, "blocks' side: two cells of the height field (a top between the edges) to 4 m")
-ROUGHNESS_M = Range(0.0, MAX_AMPLITUDE_M, "a study's rough ground: its peak-to-peak height, 0 the flat plane; at most "
-                    "the smallest swing clearance g_c")
-TERRAIN_SEEDS = 2 ** 32  # a rough ground's seeds: the integers 0 … 2³² − 1
+ROUGHNESS_M = Range(
+    0.0,
+    MAX_AMPLITUDE_M,
+    "a study's rough ground: its peak-to-peak height, 0 the flat plane; at most the smallest swing clearance g_c",
+)
+TERRAIN_SEEDS = 2**32  # a rough ground's seeds: the integers 0 … 2³² − 1
 TARGET_VELOCITY_MPS = Range(0.0, 2.0, "forward walking; the paper's targets are 0.3…0.8 m/s", low_open=True)
 ROBOT_MASS_KG = Range(5.0, 40.0, "the Go1 weighs ~12 kg, with at most a 20 kg payload")
 RUN_DURATION_S = Range(0.0, 3600.0, "a run of at most an hour", low_open=True)
@@ -72,18 +78,29 @@ OBJECTIVE_FLOOR = Range(-20.0, -0.5, "J's lower bound and a fall's J, below ever
 
 MIN_TRIALS = 1
 MAX_TRIALS = 1000
-MAX_TRIALS_REASON = ("the GP keeps every trial, its work per trial grows with the cube of their number; the paper's "
-                     "runs have 40 to 100")
+MAX_TRIALS_REASON = (
+    "the GP keeps every trial, its work per trial grows with the cube of their number; the paper's runs have 40 to 100"
+)
 MAX_SEEDS = 10_000
-MAX_SEEDS_REASON = ("seeds per group, each one more simulated robot in the batch; the paper's studies use 5, a "
-                    "cluster run of docs/scaling.md 250")
+MAX_SEEDS_REASON = (
+    "seeds per group, each one more simulated robot in the batch; the paper's studies use 5, a "
+    "cluster run of docs/scaling.md 250"
+)
 MIN_STUDY_TRIALS = 8
-MIN_STUDY_TRIALS_REASON = ("a paper study changes its conditions at trials scaled to the run length and starts with "
-                           "random trials; below 8 a phase has no optimized trial")
+MIN_STUDY_TRIALS_REASON = (
+    "a paper study changes its conditions at trials scaled to the run length and starts with "
+    "random trials; below 8 a phase has no optimized trial"
+)
 
 
-def check_count(value: int, name: str | None = None, minimum: int = MIN_TRIALS, reason: str = "",
-                maximum: int = MAX_TRIALS, maximum_reason: str = MAX_TRIALS_REASON) -> int:
+def check_count(
+    value: int,
+    name: str | None = None,
+    minimum: int = MIN_TRIALS,
+    reason: str = "",
+    maximum: int = MAX_TRIALS,
+    maximum_reason: str = MAX_TRIALS_REASON,
+) -> int:
     """An integer count in ``minimum`` … ``maximum``.
 
     Raises:

@@ -21,8 +21,13 @@ def profile_config(physics: str, **overrides) -> OptimizerConfig:
     """:func:`paper_config` with the c_load normalization range of a physics profile's foot-force signal
     (docs/decisions.md §11)."""
     load_lower, load_upper = physics_profiles.get(physics).context_load_range_n
-    return paper_config(**{"context_lower": (load_lower, PAPER_CONTEXT_LOWER[1]),
-                           "context_upper": (load_upper, PAPER_CONTEXT_UPPER[1]), **overrides})
+    return paper_config(
+        **{
+            "context_lower": (load_lower, PAPER_CONTEXT_LOWER[1]),
+            "context_upper": (load_upper, PAPER_CONTEXT_UPPER[1]),
+            **overrides,
+        }
+    )
 
 
 def paper_config(**overrides) -> OptimizerConfig:

@@ -93,17 +93,27 @@ def pre_step(obs: sensors.Observation, torque: jax.Array, diag: cpg.Diagnostics,
 
     The power is |τ|·|q̇| with ``joint_vel_rad_s`` the joints' true velocity in a simulator (sensor noise would bias
     it upwards) and the measured one on the robot; the load is the force the controller read (the context)."""
-    return PreStep(power_w=jnp.sum(jnp.abs(torque) * jnp.abs(joint_vel_rad_s)),
-                   load_n=jnp.mean(obs.foot_force_n), roll_rad=diag.rpy_rad[0], pitch_rad=diag.rpy_rad[1],
-                   saturated=jnp.sum(diag.saturated))
+    return PreStep(
+        power_w=jnp.sum(jnp.abs(torque) * jnp.abs(joint_vel_rad_s)),
+        load_n=jnp.mean(obs.foot_force_n),
+        roll_rad=diag.rpy_rad[0],
+        pitch_rad=diag.rpy_rad[1],
+        saturated=jnp.sum(diag.saturated),
+    )
 
 
 FAILED_MARGIN = -1.0
 """The safety margin of a tick whose simulation became non-finite (it is reset, so nothing else is known)."""
 
 
-def safety_margin(trial_config: TrialConfig, imu_roll_rad, imu_pitch_rad, trunk_height_m=None, floor_roll_rad=None,
-                  floor_pitch_rad=None):
+def safety_margin(
+    trial_config: TrialConfig,
+    imu_roll_rad,
+    imu_pitch_rad,
+    trunk_height_m=None,
+    floor_roll_rad=None,
+    floor_pitch_rad=None,
+):
     r"""How far one state is from unsafe, signed and continuous (docs/decisions.md §17): the worst of
 
     * the tilt stop's margin :math:`1 - \max(|\phi|, |\theta|) / \theta_{stop}` with the IMU's roll and pitch (gravity
@@ -127,8 +137,14 @@ def safety_margin(trial_config: TrialConfig, imu_roll_rad, imu_pitch_rad, trunk_
     return margin
 
 
-def tick_row(trial_config: TrialConfig, pre: PreStep, qpos: jax.Array, qvel: jax.Array, failed: jax.Array,
-             ground_height_m: jax.Array | None = None) -> Tick:
+def tick_row(
+    trial_config: TrialConfig,
+    pre: PreStep,
+    qpos: jax.Array,
+    qvel: jax.Array,
+    failed: jax.Array,
+    ground_height_m: jax.Array | None = None,
+) -> Tick:
     """A tick's record from its pre-step half and the state after the step (and after a reset, if ``failed``).
 
     Fall: trunk origin less than ``fall_height_m`` above the ground under it (``ground_height_m``, from
@@ -137,13 +153,15 @@ def tick_row(trial_config: TrialConfig, pre: PreStep, qpos: jax.Array, qvel: jax
     angles of the state the controller saw (the pre-step half) and the trunk's height and floor-frame tilt after the
     step."""
     ids = go1_model.indices()
-    floor_rpy = attitude.quat_to_rpy(qpos[ids.root_qpos + 3:ids.root_qpos + 7])
+    floor_rpy = attitude.quat_to_rpy(qpos[ids.root_qpos + 3 : ids.root_qpos + 7])
     height_m = qpos[ids.root_qpos + 2]
     if ground_height_m is not None:
         height_m = height_m - ground_height_m
-    fell = ((height_m < trial_config.fall_height_m)
-            | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
-            | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad))
+    fell = (
+        (height_m < trial_config.fall_height_m)
+        | (jnp.abs(floor_rpy[0]) > trial_config.fall_tilt_rad)
+        | (jnp.abs(floor_rpy[1]) > trial_config.fall_tilt_rad)
+    )
     margin = safety_margin(trial_config, pre.roll_rad, pre.pitch_rad, height_m, floor_rpy[0], floor_rpy[1])
     finite = jnp.where(failed, 0.0, 1.0)
     return Tick(
@@ -169,9 +187,11 @@ class TransitionSummary(NamedTuple):
     @classmethod
     def of(cls, ticks: Tick, axis: int = 0) -> TransitionSummary:
         """The summary of transition ticks stacked along ``axis`` (none: nothing to add)."""
-        return cls(fell=jnp.max(ticks.fell, axis=axis, initial=0.0),
-                   failed=jnp.max(ticks.failed, axis=axis, initial=0.0),
-                   margin=jnp.min(ticks.margin, axis=axis, initial=jnp.inf))
+        return cls(
+            fell=jnp.max(ticks.fell, axis=axis, initial=0.0),
+            failed=jnp.max(ticks.failed, axis=axis, initial=0.0),
+            margin=jnp.min(ticks.margin, axis=axis, initial=jnp.inf),
+        )
 
     @classmethod
     def nothing(cls) -> TransitionSummary:
@@ -180,8 +200,11 @@ class TransitionSummary(NamedTuple):
 
     def add(self, tick: Tick) -> TransitionSummary:
         """The summary with one more transition tick (a scan's carry)."""
-        return TransitionSummary(fell=jnp.maximum(self.fell, tick.fell), failed=jnp.maximum(self.failed, tick.failed),
-                                 margin=jnp.minimum(self.margin, tick.margin))
+        return TransitionSummary(
+            fell=jnp.maximum(self.fell, tick.fell),
+            failed=jnp.maximum(self.failed, tick.failed),
+            margin=jnp.minimum(self.margin, tick.margin),
+        )
 
 
 def summarize(steady: Tick, total_mass_kg: jax.Array, dt_s: float, transition: TransitionSummary) -> TrialRecord:
@@ -217,9 +240,18 @@ class Control(NamedTuple):
     diag: cpg.Diagnostics
 
 
-def control(cpg_config: cpg.CPGConfig, profile: physics_profiles.ProfileArrays,
-            io: physics_profiles.ActuatorSensorState, cpg_state: cpg.CPGState, params: jax.Array, gates: cpg.Gates,
-            qpos: jax.Array, qvel: jax.Array, sensordata: jax.Array, gravity: jax.Array) -> Control:
+def control(
+    cpg_config: cpg.CPGConfig,
+    profile: physics_profiles.ProfileArrays,
+    io: physics_profiles.ActuatorSensorState,
+    cpg_state: cpg.CPGState,
+    params: jax.Array,
+    gates: cpg.Gates,
+    qpos: jax.Array,
+    qvel: jax.Array,
+    sensordata: jax.Array,
+    gravity: jax.Array,
+) -> Control:
     """Sensors → controller → motors for one instance, under its physics profile; every backend's tick."""
     io, obs = sensors.measure(profile, io, qpos, qvel, sensordata, gravity)
     cpg_state, command, diag = cpg.controller_step(cpg_config, cpg_state, params, gates, obs)
@@ -242,8 +274,10 @@ def transition_params(previous, new, fraction):
 def where_batch(mask, a, b):
     """Pytree ``a`` where ``mask`` else ``b``, leaf by leaf; ``mask`` has the leading batch axes of every leaf
     (a scalar mask selects whole trees) and is broadcast over the trailing axes."""
+
     def one(x, y):
         return jnp.where(jnp.reshape(mask, jnp.shape(mask) + (1,) * (jnp.ndim(x) - jnp.ndim(mask))), x, y)
+
     return jax.tree.map(one, a, b)
 
 
@@ -257,8 +291,10 @@ def check_params(params, batch_size: int) -> jax.Array:
 
 def check_gates(gates: cpg.Gates, batch_size: int) -> cpg.Gates:
     """Gates broadcast to the batch as float32: the modules (batch_size,), the phase lags (batch_size, 4, 4)."""
+
     def batched(g, shape):
         return jnp.broadcast_to(jnp.asarray(g, jnp.float32), (batch_size,) + shape)
+
     return cpg.Gates(batched(gates.vmc, ()), batched(gates.tegotae, ()), batched(gates.phase_lag_rad, (4, 4)))
 
 

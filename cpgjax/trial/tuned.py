@@ -24,13 +24,22 @@ from cpgjax.trial import limits
 from cpgjax.trial import params as param_space
 
 FILE_NAME = "best_params.json"
-OUTPUTS = (outputs.OutputFile(FILE_NAME, "the best trial's parameters and what they were tuned for (deploy / walk "
-                              "--params)", outputs.check_json),)
+OUTPUTS = (
+    outputs.OutputFile(
+        FILE_NAME,
+        "the best trial's parameters and what they were tuned for (deploy / walk --params)",
+        outputs.check_json,
+    ),
+)
 
 # What a run was tuned for, in the order a replay names them; the numeric ones with their allowed ranges.
 TUNED_FOR = ("controller", "gait", "physics", "friction", "slope_deg", "payload_kg", "target_velocity_mps")
-RANGES = {"friction": limits.FRICTION, "slope_deg": limits.SLOPE_DEG, "payload_kg": limits.PAYLOAD_KG,
-          "target_velocity_mps": limits.TARGET_VELOCITY_MPS}
+RANGES = {
+    "friction": limits.FRICTION,
+    "slope_deg": limits.SLOPE_DEG,
+    "payload_kg": limits.PAYLOAD_KG,
+    "target_velocity_mps": limits.TARGET_VELOCITY_MPS,
+}
 NAMES = {"controller": cpg.CONTROLLERS, "gait": tuple(cpg.GAITS), "physics": tuple(physics_profiles.PROFILES)}
 
 
@@ -100,13 +109,22 @@ def load(path) -> ParamsFile:
 def describe(tuned_for: dict[str, Any]) -> str:
     """'controller tegotae, gait trot, physics paper, friction 0.6, slope 0°, payload 0 kg, v* 0.5 m/s' (the
     recorded ones)."""
-    shown = {"controller": "controller {}", "gait": "gait {}", "physics": "physics {}", "friction": "friction {:g}",
-             "slope_deg": "slope {:g}°", "payload_kg": "payload {:g} kg", "target_velocity_mps": "v* {:g} m/s"}
+    shown = {
+        "controller": "controller {}",
+        "gait": "gait {}",
+        "physics": "physics {}",
+        "friction": "friction {:g}",
+        "slope_deg": "slope {:g}°",
+        "payload_kg": "payload {:g} kg",
+        "target_velocity_mps": "v* {:g} m/s",
+    }
     return ", ".join(shown[name].format(tuned_for[name]) for name in TUNED_FOR if name in tuned_for) or "nothing"
 
 
 def replay_hint(params_path) -> str:
     """The commands that replay a ``best_params.json`` as it was tuned (the file carries the controller, the physics
     profile, the scenario and the target, which both commands use)."""
-    return (f"replay the best: cpgjax deploy --robot sim --params {shlex.quote(str(params_path))}; "
-            f"check it in simulation: cpgjax walk --params {shlex.quote(str(params_path))}")
+    return (
+        f"replay the best: cpgjax deploy --robot sim --params {shlex.quote(str(params_path))}; "
+        f"check it in simulation: cpgjax walk --params {shlex.quote(str(params_path))}"
+    )

@@ -29,9 +29,14 @@ def _columns(finals: dict[tuple[str, float], tuple[np.ndarray, np.ndarray, np.nd
             cot.append(np.r_[np.full(TRIALS - 5, 99.0), np.full(5, cot_final[s])])
             fell.append(np.r_[np.ones(TRIALS - 5, bool), [False] * 4, [bool(fell_final[s])]])
     n = len(gait)
-    return {"gait": np.tile(np.array(gait), (TRIALS, 1)), "target_velocity_mps": np.tile(np.array(target), (TRIALS, 1)),
-            "velocity_x_mps": np.array(vx).T, "cost_of_transport": np.array(cot).T, "fell": np.array(fell).T,
-            "failed": np.zeros((TRIALS, n), bool)}
+    return {
+        "gait": np.tile(np.array(gait), (TRIALS, 1)),
+        "target_velocity_mps": np.tile(np.array(target), (TRIALS, 1)),
+        "velocity_x_mps": np.array(vx).T,
+        "cost_of_transport": np.array(cot).T,
+        "fell": np.array(fell).T,
+        "failed": np.zeros((TRIALS, n), bool),
+    }
 
 
 def test_the_cheapest_walking_gait_and_its_corrected_tests():
@@ -39,13 +44,16 @@ def test_the_cheapest_walking_gait_and_its_corrected_tests():
     ok = np.zeros(SEEDS, bool)
     trot_cot, walk_cot = 0.5 + 0.02 * rng.standard_normal(SEEDS), 0.8 + 0.02 * rng.standard_normal(SEEDS)
     pace_cot = 0.52 + 0.02 * rng.standard_normal(SEEDS)
-    columns = _columns({
-        ("trot", 0.3): (np.full(SEEDS, 0.31), trot_cot, ok),
-        ("walk", 0.3): (np.full(SEEDS, 0.29), walk_cot, ok),
-        ("pace", 0.3): (np.full(SEEDS, 0.33), pace_cot, ok),
-        # pronk: two seeds off target by 0.06 m/s and two falling in their last trial: 2 of 6 track, it does not walk
-        ("pronk", 0.3): (np.r_[0.36, 0.36, 0.3, 0.3, 0.3, 0.3], np.full(SEEDS, 0.1), np.r_[0, 0, 1, 1, 0, 0]),
-    })
+    columns = _columns(
+        {
+            ("trot", 0.3): (np.full(SEEDS, 0.31), trot_cot, ok),
+            ("walk", 0.3): (np.full(SEEDS, 0.29), walk_cot, ok),
+            ("pace", 0.3): (np.full(SEEDS, 0.33), pace_cot, ok),
+            # pronk: two seeds off target by 0.06 m/s and two falling in their last trial: 2 of 6 track,
+            # it does not walk
+            ("pronk", 0.3): (np.r_[0.36, 0.36, 0.3, 0.3, 0.3, 0.3], np.full(SEEDS, 0.1), np.r_[0, 0, 1, 1, 0, 0]),
+        }
+    )
     cells = {c.gait: c for c in gait_speeds.cells(columns)}
     assert [int(c.tracks.sum()) for c in cells.values()] == [6, 6, 6, 2] and not cells["pronk"].walks
     # the first TRIALS − 5 trials fell in every seed, and pronk's seeds 2 and 3 in their last trial too

@@ -35,10 +35,16 @@ def _columns(j_by_group: dict[tuple[str, float], np.ndarray]) -> dict[str, np.nd
         j += list(values)
     n = len(j)
     tile = lambda x: np.tile(np.asarray(x), (TRIALS, 1))  # noqa: E731
-    return {"controller": tile(controller), "terrain_amplitude_m": tile(height), "objective": tile(j),
-            "cost_of_transport": np.full((TRIALS, n), 0.5), "fell": np.zeros((TRIALS, n), bool),
-            "failed": np.zeros((TRIALS, n), bool), "c_load_n": tile(30.0 + 10.0 * np.asarray(height)),
-            "c_slope_rad": np.zeros((TRIALS, n))}
+    return {
+        "controller": tile(controller),
+        "terrain_amplitude_m": tile(height),
+        "objective": tile(j),
+        "cost_of_transport": np.full((TRIALS, n), 0.5),
+        "fell": np.zeros((TRIALS, n), bool),
+        "failed": np.zeros((TRIALS, n), bool),
+        "c_load_n": tile(30.0 + 10.0 * np.asarray(height)),
+        "c_slope_rad": np.zeros((TRIALS, n)),
+    }
 
 
 def test_an_advantage_that_grows_and_one_that_does_not_change():
@@ -51,8 +57,10 @@ def test_an_advantage_that_grows_and_one_that_does_not_change():
         groups[("tegotae", a)] = 1.2 + noise()  # Tegotae's: 0.2 on either ground
         groups[("vmc_tegotae", a)] = 1.0 + noise()
     text = rough_terrain.advantage_table(_columns(groups))
-    row = {tuple(cell.strip() for cell in line.split("|")[1:4]): line.split("|")[-2].strip()
-           for line in text.splitlines()[2:]}
+    row = {
+        tuple(cell.strip() for cell in line.split("|")[1:4]): line.split("|")[-2].strip()
+        for line in text.splitlines()[2:]
+    }
     assert row[("vmc", "0.04", "J")] == "grows"
     assert row[("tegotae", "0.04", "J")] == "unchanged"
     assert row[("vmc", "0.04", "CoT")] == "unchanged"  # CoT is 0.5 everywhere

@@ -17,7 +17,8 @@ from cpgjax.studies import registry, stats
 from cpgjax.study import files as study_io
 
 _SPEC = importlib.util.spec_from_file_location(
-    "verdicts", pathlib.Path(__file__).resolve().parents[2] / "studies" / "verdicts.py")
+    "verdicts", pathlib.Path(__file__).resolve().parents[2] / "studies" / "verdicts.py"
+)
 verdicts = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(verdicts)
 
@@ -27,16 +28,24 @@ def _row(family, difference, se, margin=0.1, kind="figure"):
 
 
 def test_the_rule_and_holm_within_a_family():
-    judged = verdicts.verdicts([
-        _row("a", 0.0, 0.01),  # 90 % interval ±0.017 inside ±0.1: agrees
-        _row("a", 0.5, 0.05),  # far outside the margin, p ≈ 1e-9: differs
-        _row("a", 0.05, 0.2),  # wide: neither
-        _row("b", -0.3, 0.05, kind="claim_below"),  # the claimed direction, clearly: reproduced
-        _row("b", 0.0, 0.01, margin=0.1, kind="claim_below"),  # an effect of −0.1 excluded: not reproduced
-        _row("b", -0.05, 0.2, kind="claim_below"),
-    ])
-    assert [v for *_, v in judged] == ["agrees", "differs", "inconclusive", "reproduced", "not reproduced",
-                                       "inconclusive"]
+    judged = verdicts.verdicts(
+        [
+            _row("a", 0.0, 0.01),  # 90 % interval ±0.017 inside ±0.1: agrees
+            _row("a", 0.5, 0.05),  # far outside the margin, p ≈ 1e-9: differs
+            _row("a", 0.05, 0.2),  # wide: neither
+            _row("b", -0.3, 0.05, kind="claim_below"),  # the claimed direction, clearly: reproduced
+            _row("b", 0.0, 0.01, margin=0.1, kind="claim_below"),  # an effect of −0.1 excluded: not reproduced
+            _row("b", -0.05, 0.2, kind="claim_below"),
+        ]
+    )
+    assert [v for *_, v in judged] == [
+        "agrees",
+        "differs",
+        "inconclusive",
+        "reproduced",
+        "not reproduced",
+        "inconclusive",
+    ]
     # Holm within family a (3 tests): the differs row's two-sided p, raw ≈ 1e-9, is multiplied by 3 (the smallest)
     raw = 2 * scipy_stats.t.sf(0.5 / 0.05, 19.0)
     assert judged[1][2] == pytest.approx(3 * raw, rel=1e-6)

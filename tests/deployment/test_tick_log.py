@@ -23,8 +23,9 @@ from cpgjax.robot import transport as go1_transport
 from cpgjax.trial import params
 from tests.test_outputs import undocumented
 
-LOOP = hio.LoopConfig(hold_s=0.1, ramp_s=0.2, end_damping_s=0.05, realtime_priority=None, flush_ticks=250,
-                      log_ticks=1000)
+LOOP = hio.LoopConfig(
+    hold_s=0.1, ramp_s=0.2, end_damping_s=0.05, realtime_priority=None, flush_ticks=250, log_ticks=1000
+)
 
 
 def test_a_trip_keeps_every_tick_up_to_it(tmp_path):
@@ -36,9 +37,16 @@ def test_a_trip_keeps_every_tick_up_to_it(tmp_path):
         robot.inject("temperature_c", 80, after_ticks=1200)
         transport = go1_transport.LockstepTransport(robot.address)
         with tick_log.TickLogWriter(tmp_path / tick_log.FILE_NAME) as sink:
-            result = hio.run_loop(transport, controller, hio.FixedParams(params.midpoint(), 5000),
-                                  deploy.sim_calibration(), cpg.controller_gates("vmc_tegotae"), LOOP,
-                                  go1_safety.SafetyConfig(), sink)
+            result = hio.run_loop(
+                transport,
+                controller,
+                hio.FixedParams(params.midpoint(), 5000),
+                deploy.sim_calibration(),
+                cpg.controller_gates("vmc_tegotae"),
+                LOOP,
+                go1_safety.SafetyConfig(),
+                sink,
+            )
         transport.close()
     assert result.trip is not None and "motor temperature" in result.trip
     table, complete = tick_log.read_tick_log(tmp_path / tick_log.FILE_NAME)
@@ -50,8 +58,9 @@ def test_a_trip_keeps_every_tick_up_to_it(tmp_path):
     assert np.any(phase[:trip_tick] == hio.RUN)
     tail = slice(result.ticks - result.log.phase.shape[0], result.ticks)  # what the ring buffer still holds
     np.testing.assert_array_equal(np.stack(table["q_rad"].to_numpy(zero_copy_only=False))[tail], result.log.q_rad)
-    np.testing.assert_array_equal(np.stack(table["torque_nm"].to_numpy(zero_copy_only=False))[tail],
-                                  result.log.torque_nm)
+    np.testing.assert_array_equal(
+        np.stack(table["torque_nm"].to_numpy(zero_copy_only=False))[tail], result.log.torque_nm
+    )
     damping = np.stack(table["torque_nm"].to_numpy(zero_copy_only=False))[phase == hio.DAMP]
     assert np.all(damping == 0.0) and np.all(table["command_kd"].to_numpy()[phase == hio.DAMP] > 0)
 
@@ -59,10 +68,27 @@ def test_a_trip_keeps_every_tick_up_to_it(tmp_path):
 def _start_deploy(log_dir):
     """``cpgjax deploy`` replaying for a minute against a lockstep simulated Go1, in a session of its own (a
     signal to its process group reaches every process, like a terminal's Ctrl-C); returns once a batch is logged."""
-    proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", "deploy", "--robot", "sim", "--sim-pacing",
-                             "lockstep", "--duration-s", "60", "--log-dir", str(log_dir)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
-                            env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cpgjax.cli",
+            "deploy",
+            "--robot",
+            "sim",
+            "--sim-pacing",
+            "lockstep",
+            "--duration-s",
+            "60",
+            "--log-dir",
+            str(log_dir),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
     path, give_up = log_dir / tick_log.FILE_NAME, time.monotonic() + 240
     while not (path.exists() and tick_log.read_tick_log(path)[0].num_rows >= 2000):
         if proc.poll() is not None or time.monotonic() > give_up:
@@ -103,11 +129,25 @@ def test_a_killed_deploy_keeps_its_logged_batches(tmp_path):
 
 
 # A parameter file's parameters and what they were tuned for, none of them deploy's defaults.
-REPLAYED = {"ground_clearance_m": 0.085, "ground_penetration_m": 0.012, "omega_swing_rad_s": 20.5,
-            "omega_stance_rad_s": 12.0, "amplitude_mu": 1.2, "x_offset_front_m": -0.03, "x_offset_hind_m": -0.04,
-            "sigma_n": 0.2}
-TUNED_FOR = dict(controller="tegotae", gait="trot", physics="paper", friction=0.8, slope_deg=2.0, payload_kg=1.5,
-                 target_velocity_mps=0.4)
+REPLAYED = {
+    "ground_clearance_m": 0.085,
+    "ground_penetration_m": 0.012,
+    "omega_swing_rad_s": 20.5,
+    "omega_stance_rad_s": 12.0,
+    "amplitude_mu": 1.2,
+    "x_offset_front_m": -0.03,
+    "x_offset_hind_m": -0.04,
+    "sigma_n": 0.2,
+}
+TUNED_FOR = dict(
+    controller="tegotae",
+    gait="trot",
+    physics="paper",
+    friction=0.8,
+    slope_deg=2.0,
+    payload_kg=1.5,
+    target_velocity_mps=0.4,
+)
 
 
 def test_a_replay_on_the_simulated_go1_logs_its_true_state_beside_the_estimate(tmp_path):
@@ -121,10 +161,30 @@ def test_a_replay_on_the_simulated_go1_logs_its_true_state_beside_the_estimate(t
     params_file = tmp_path / "tuned.json"
     params_file.write_text(json.dumps({"params": REPLAYED, **TUNED_FOR}))
     run_dir = tmp_path / "run"
-    out = subprocess.run([sys.executable, "-m", "cpgjax.cli", "deploy", "--robot", "sim", "--sim-pacing", "lockstep",
-                          "--params", str(params_file), "--friction", "0.9", "--duration-s", "9.5", "--log-dir",
-                          str(run_dir)], capture_output=True, text=True, timeout=300,
-                         env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cpgjax.cli",
+            "deploy",
+            "--robot",
+            "sim",
+            "--sim-pacing",
+            "lockstep",
+            "--params",
+            str(params_file),
+            "--friction",
+            "0.9",
+            "--duration-s",
+            "9.5",
+            "--log-dir",
+            str(run_dir),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     truth = pq.read_table(run_dir / deploy.TRUTH_FILE)
     assert undocumented("sim_truth.parquet", truth.column_names) == []
@@ -143,23 +203,46 @@ def test_a_replay_on_the_simulated_go1_logs_its_true_state_beside_the_estimate(t
     run = json.loads((run_dir / "run.json").read_text())
     assert run["trials"][1]["true_velocity_x_mps"] == pytest.approx(rows[1]["true_velocity_x_mps"])
     assert undocumented("run.json", run) == []
-    assert run["ran"] == {**TUNED_FOR, "friction": 0.9, "mode": "replay", "robot": "sim", "startup": "paper",
-                          "transition_s": 1.5, "steady_s": 3.0, "duration_s": 9.5, "num_trials": None,
-                          "optimizer": None, "seed": 0,
-                          "params_file": str(params_file), "params": REPLAYED, "trial_params": None}
+    assert run["ran"] == {
+        **TUNED_FOR,
+        "friction": 0.9,
+        "mode": "replay",
+        "robot": "sim",
+        "startup": "paper",
+        "transition_s": 1.5,
+        "steady_s": 3.0,
+        "duration_s": 9.5,
+        "num_trials": None,
+        "optimizer": None,
+        "seed": 0,
+        "params_file": str(params_file),
+        "params": REPLAYED,
+        "trial_params": None,
+    }
     # the outcome on stdout, the progress on stderr
     assert "(the simulated Go1's truth: v_x" in out.stdout and "how the robot walked" in out.stdout
     assert "overruns         do not apply: lockstep pacing" in out.stdout
     assert "how the robot walked" not in out.stderr
 
 
-@pytest.mark.parametrize("overruns, causes, verdict", [
-    (1, (1, 0, 0), "verdict: met the loop's target of at most 1 per 10k ticks"),
-    (2, (0, 0, 2), "verdict: missed the loop's target of at most 1 per 10k ticks (2.00); most were work cpu: "),
-    (30, (25, 5, 0), "verdict: missed the loop's target of at most 1 per 10k ticks (30.00); most were late start: "
-                     "--busy-wait")])
+@pytest.mark.parametrize(
+    "overruns, causes, verdict",
+    [
+        (1, (1, 0, 0), "verdict: met the loop's target of at most 1 per 10k ticks"),
+        (2, (0, 0, 2), "verdict: missed the loop's target of at most 1 per 10k ticks (2.00); most were work cpu: "),
+        (
+            30,
+            (25, 5, 0),
+            "verdict: missed the loop's target of at most 1 per 10k ticks (30.00); most were late start: --busy-wait",
+        ),
+    ],
+)
 def test_the_timing_says_whether_the_overruns_met_the_loops_target(overruns, causes, verdict):
-    timing = {"ticks": 10_000, "overruns": overruns, "overruns_per_10k_ticks": float(overruns),
-              **{f"overruns_{name}": n for name, n in zip(hio.OVERRUN_CAUSES, causes, strict=True)},
-              **{f"{k}_{q}_us": 100.0 for k in ("step", "work", "period") for q in ("median", "p99", "max")}}
+    timing = {
+        "ticks": 10_000,
+        "overruns": overruns,
+        "overruns_per_10k_ticks": float(overruns),
+        **{f"overruns_{name}": n for name, n in zip(hio.OVERRUN_CAUSES, causes, strict=True)},
+        **{f"{k}_{q}_us": 100.0 for k in ("step", "work", "period") for q in ("median", "p99", "max")},
+    }
     assert hio.timing_table(timing).splitlines()[-1].startswith(verdict)

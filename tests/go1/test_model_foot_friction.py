@@ -49,8 +49,11 @@ def test_the_contact_takes_the_smaller_mu_of_floor_and_feet_in_both_backends():
 
 @pytest.mark.parametrize("bad", [0.0, -0.5, np.nan, np.inf])
 def test_a_foot_friction_neither_the_profiles_nor_positive_is_refused_in_one_line(bad):
-    with pytest.raises(ValueError, match=r"^scenario foot_friction = .* \(instance 1\) is outside the allowed range "
-                                         r"-1 \(the profile's\) or \(0, inf\)$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^scenario foot_friction = .* \(instance 1\) is outside the allowed range "
+        r"-1 \(the profile's\) or \(0, inf\)$",
+    ):
         go1_model.make_scenarios(friction=[0.6, 0.6], foot_friction=[-1.0, bad])
 
 
@@ -59,8 +62,10 @@ def test_a_floor_above_the_feet_mu_is_said_once_with_the_mu_in_effect(notes):
     go1_model.make_scenarios(friction=[0.9], physics="paper")  # the same again: nothing more
     lines = _lines(notes)
     assert len(lines) == 1, lines
-    assert lines[0].startswith("friction above 0.6 under physics paper walks as 0.6 (asked: 0.9): a contact takes the "
-                               "smaller μ of floor and feet")
+    assert lines[0].startswith(
+        "friction above 0.6 under physics paper walks as 0.6 (asked: 0.9): a contact takes the "
+        "smaller μ of floor and feet"
+    )
     assert "the feet's is 0.6 (the paper profile's feet)" in lines[0] and "--foot-friction" in lines[0]
 
 
@@ -75,9 +80,14 @@ def test_many_floors_above_the_feet_make_one_line(notes):
     assert "(the scenario's foot_friction)" in lines[1]
 
 
-@pytest.mark.parametrize("fields", [dict(friction=[0.9], physics="soft"),  # MuJoCo's rule: the floor's μ
-                                    dict(friction=[0.6], physics="paper"),  # at the feet's, nothing lost
-                                    dict(friction=[0.9], physics="paper", foot_friction=1.0)])
+@pytest.mark.parametrize(
+    "fields",
+    [
+        dict(friction=[0.9], physics="soft"),  # MuJoCo's rule: the floor's μ
+        dict(friction=[0.6], physics="paper"),  # at the feet's, nothing lost
+        dict(friction=[0.9], physics="paper", foot_friction=1.0),
+    ],
+)
 def test_nothing_is_said_where_the_floor_counts(fields, notes):
     go1_model.make_scenarios(**fields)
     assert _lines(notes) == []
@@ -107,8 +117,10 @@ def test_walk_prints_the_mu_in_effect_beside_the_asked_one(capsys, notes):
     rows = [[c.strip() for c in line.split("|")] for line in out.splitlines() if line.startswith(("| 0 |", "| 1 |"))]
     assert [r[5:7] for r in rows] == [["0.6", "0.6"], ["0.9", "0.6"]]
     assert rows[0][10:14] == rows[1][10:14]  # v_x, CoT, J, c_load: the 0.9 floor walked as the 0.6 one
-    assert cli.main(["walk", "--controllers", "open_loop", "--friction", "0.9", "--foot-friction", "1.0",
-                     "--trials", "1"]) == 0
+    assert (
+        cli.main(["walk", "--controllers", "open_loop", "--friction", "0.9", "--foot-friction", "1.0", "--trials", "1"])
+        == 0
+    )
     out, _ = capsys.readouterr()
     assert _lines(notes) == []
     row = [c.strip() for c in next(line for line in out.splitlines() if line.startswith("| 0 |")).split("|")]
@@ -127,15 +139,35 @@ def test_the_friction_tables_say_why_a_09_floor_equals_06_under_paper():
     from cpgjax.studies import registry
     from tests.study.test_spec_files import _fake_result
 
-    paper = _fake_result(study_spec.StudySpec("friction", num_trials=8, seeds=(0, 1, 2), friction=(0.3, 0.6, 0.9),
-                                              group_by=("friction",), physics=("paper",)))
+    paper = _fake_result(
+        study_spec.StudySpec(
+            "friction",
+            num_trials=8,
+            seeds=(0, 1, 2),
+            friction=(0.3, 0.6, 0.9),
+            group_by=("friction",),
+            physics=("paper",),
+        )
+    )
     table = registry.report_friction(paper)
     assert "| friction | μ in effect |" in table
     assert [line.split("|")[1:3] for line in table.splitlines() if line.startswith("| 0.") and " − " not in line] == [
-        [" 0.3 ", " 0.3 "], [" 0.6 ", " 0.6 "], [" 0.9 ", " 0.6 (the feet's) "]]
+        [" 0.3 ", " 0.3 "],
+        [" 0.6 ", " 0.6 "],
+        [" 0.9 ", " 0.6 (the feet's) "],
+    ]
     note = registry.notes(paper)
     assert "a floor above the feet's μ walks as the feet's (under physics paper, μ 0.9 walked as 0.6)" in note
-    feet = _fake_result(study_spec.StudySpec("friction", num_trials=8, seeds=(0, 1, 2), friction=(0.3, 0.6, 0.9),
-                                             group_by=("friction",), physics=("paper",), foot_friction=(1.0,)))
+    feet = _fake_result(
+        study_spec.StudySpec(
+            "friction",
+            num_trials=8,
+            seeds=(0, 1, 2),
+            friction=(0.3, 0.6, 0.9),
+            group_by=("friction",),
+            physics=("paper",),
+            foot_friction=(1.0,),
+        )
+    )
     assert "| 0.9 | 0.9 |" in registry.report_friction(feet)
     assert "Friction:" not in registry.notes(feet)

@@ -2,7 +2,6 @@
 physics (no contact, no mass): C MuJoCo steps bit for bit the same with them, and a study's trials.parquet is
 byte-identical with and without them; both simulators run the model without them (go1_model.load_model)."""
 
-
 import mujoco
 import numpy as np
 import pytest
@@ -48,7 +47,7 @@ def test_visual_geoms_have_the_urdf_sizes():
     for name, (kind, size) in expected.items():
         g = _geom(m, name)
         assert m.geom_type[g] == kind, name
-        np.testing.assert_allclose(m.geom_size[g, :len(size)], size, rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(m.geom_size[g, : len(size)], size, rtol=0, atol=1e-12, err_msg=name)
 
 
 def test_visual_geoms_sit_at_the_link_frames():
@@ -81,8 +80,15 @@ def test_visual_geoms_neither_collide_nor_weigh():
     assert m.ngeom - bare.ngeom == len(_visual_geoms(m)) == 1 + 4 * 7
     for g in _visual_geoms(m):
         assert m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0
-    for field in ("body_mass", "body_inertia", "body_ipos", "body_iquat", "body_subtreemass", "dof_invweight0",
-                  "actuator_acc0"):
+    for field in (
+        "body_mass",
+        "body_inertia",
+        "body_ipos",
+        "body_iquat",
+        "body_subtreemass",
+        "dof_invweight0",
+        "actuator_acc0",
+    ):
         np.testing.assert_array_equal(getattr(m, field), getattr(bare, field), err_msg=field)
     # the same motion, bit for bit: 300 steps from the standing pose under a fixed torque that makes the legs move
     states = []
@@ -99,8 +105,14 @@ def test_visual_geoms_neither_collide_nor_weigh():
 
 
 def _study_table(tmp_path, backend: str) -> bytes:
-    spec = StudySpec("visual_check", num_trials=3, controllers=("vmc_tegotae",), seeds=(0, 1),
-                     trial=protocol.TrialConfig(transition_steps=100, steady_steps=200), optimizer=small_optimizer(3))
+    spec = StudySpec(
+        "visual_check",
+        num_trials=3,
+        controllers=("vmc_tegotae",),
+        seeds=(0, 1),
+        trial=protocol.TrialConfig(transition_steps=100, steady_steps=200),
+        optimizer=small_optimizer(3),
+    )
     result = ablation.Engine(spec, backend=backend).run(tmp_path)
     return study_io.write_trials(result, tmp_path / "trials.parquet").read_bytes()
 

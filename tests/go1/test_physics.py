@@ -28,7 +28,7 @@ def _settled(profile: str):
     m = go1_model.model_with_payload(0.0, profile).__copy__()
     d = mujoco.MjData(m)
     d.qpos[:] = go1_model.standing_qpos(m)
-    d.qpos[IDS.root_qpos + 3:IDS.root_qpos + 7] = [0.999, 0.02, 0.03, 0.0]  # a little roll and pitch
+    d.qpos[IDS.root_qpos + 3 : IDS.root_qpos + 7] = [0.999, 0.02, 0.03, 0.0]  # a little roll and pitch
     target = d.qpos[IDS.joint_qpos].copy()
     for _ in range(500):
         d.ctrl[IDS.actuator] = 70.0 * (target - d.qpos[IDS.joint_qpos]) - 1.3 * d.qvel[IDS.joint_dof]
@@ -55,13 +55,15 @@ def test_calf_frame_force_is_the_contact_force_rotated_into_the_calf_body(profil
         reference[leg] = (calf_to_world.T @ force_on_foot)[2]
     assert np.all(reference > 5.0)  # every foot loaded
     paper = physics.arrays(physics.get("paper"))
-    signal = physics.foot_force_signal(paper, jnp.asarray(d.qpos), jnp.asarray(d.sensordata[IDS.foot_contact_data]),
-                                       IDS.root_qpos, IDS.joint_qpos)
+    signal = physics.foot_force_signal(
+        paper, jnp.asarray(d.qpos), jnp.asarray(d.sensordata[IDS.foot_contact_data]), IDS.root_qpos, IDS.joint_qpos
+    )
     np.testing.assert_allclose(np.asarray(signal), reference, rtol=1e-5, atol=1e-4)
     # The soft profile's signal is the contact normal force (the sensor's first component), as before profiles.
     soft = physics.arrays(physics.get("soft"))
-    normal = physics.foot_force_signal(soft, jnp.asarray(d.qpos), jnp.asarray(d.sensordata[IDS.foot_contact_data]),
-                                       IDS.root_qpos, IDS.joint_qpos)
+    normal = physics.foot_force_signal(
+        soft, jnp.asarray(d.qpos), jnp.asarray(d.sensordata[IDS.foot_contact_data]), IDS.root_qpos, IDS.joint_qpos
+    )
     np.testing.assert_array_equal(np.asarray(normal), d.sensordata[IDS.foot_force_sensor].astype(np.float32))
 
 
@@ -71,8 +73,9 @@ def _sensor_sequence(profile_name: str, forces: np.ndarray, contact: np.ndarray)
     state = physics.init_state(jnp.zeros(4))
     seen = []
     for k in range(len(forces)):
-        state, held = physics.foot_sensor_update(profile, state, jnp.asarray(forces[k], jnp.float32),
-                                                 jnp.asarray(contact[k]))
+        state, held = physics.foot_sensor_update(
+            profile, state, jnp.asarray(forces[k], jnp.float32), jnp.asarray(contact[k])
+        )
         state, _ = physics.actuate(profile, state, jnp.zeros(12), jnp.zeros(12))  # one tick passes
         seen.append(np.asarray(held))
     return np.array(seen)
@@ -168,7 +171,7 @@ def test_a_latency_of_k_ticks_shifts_the_applied_torques_by_k(latency):
     for command in commands:
         state, torque = physics.actuate(profile, state, jnp.asarray(command), jnp.zeros(12))
         applied.append(np.asarray(torque))
-    expected = np.concatenate([np.zeros((latency, 12), np.float32), commands[:12 - latency]])
+    expected = np.concatenate([np.zeros((latency, 12), np.float32), commands[: 12 - latency]])
     np.testing.assert_array_equal(np.array(applied), expected)
 
 
@@ -176,7 +179,7 @@ def test_go1_armature_is_the_rotor_inertia_times_the_gear_ratio_squared():
     rotor_kg_m2 = 0.000111842  # unitree_ros go1.urdf, the motor rotor's inertia about its axis
     ratios = np.tile([6.0, 6.0, 9.0], 4)  # mjlab's Go1: 6 hip and thigh, 1.5 × 6 knee
     m = go1_model.model_with_payload(0.0, "go1")
-    np.testing.assert_allclose(m.dof_armature[IDS.joint_dof], rotor_kg_m2 * ratios ** 2, rtol=1e-12)
+    np.testing.assert_allclose(m.dof_armature[IDS.joint_dof], rotor_kg_m2 * ratios**2, rtol=1e-12)
     assert np.all(go1_model.model_with_payload(0.0, "paper").dof_armature[IDS.joint_dof] == 0.0)
 
 
@@ -195,8 +198,11 @@ def test_profiles_set_the_sources_values():
 
 
 def test_unknown_profile_is_refused_with_the_allowed_names():
-    with pytest.raises(ValueError, match=r"physics = 'gazebo' \(instance 1\).*allowed: \('soft', 'paper', 'go1', "
-                                         r"'paper_5khz'\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"physics = 'gazebo' \(instance 1\).*allowed: \('soft', 'paper', 'go1', "
+        r"'paper_5khz'\)",
+    ):
         go1_model.make_scenarios(physics=["soft", "gazebo"])
 
 
@@ -227,7 +233,8 @@ def test_mjx_batches_profile_fields_per_instance():
     np.testing.assert_allclose(np.asarray(batch.model.geom_solref)[:, IDS.floor_geom, 0], [0.02, 0.002, 0.02])
     assert np.asarray(batch.profile.calf_frame).tolist() == [False, True, False]
     assert jax.tree.structure(batch.model) == jax.tree.structure(
-        mjx_go1.make_batch_model(go1_model.make_scenarios(physics=["paper"] * 3)).model)
+        mjx_go1.make_batch_model(go1_model.make_scenarios(physics=["paper"] * 3)).model
+    )
 
 
 def test_context_ranges_follow_the_profile_and_clipping_is_reported():
@@ -236,36 +243,52 @@ def test_context_ranges_follow_the_profile_and_clipping_is_reported():
     assert study_spec.StudySpec("t", physics=("soft",)).optimizer_config().context_upper == (75.0, 0.1)  # widened
     with pytest.raises(study_spec.StudyError, match="normalize c_load over different ranges"):
         study_spec.validate(study_spec.StudySpec("t", physics=("soft", "paper")))
-    clipped, messages = optimizer_config.clip_context(paper, np.array([[60.0, -0.1], [30.0, 0.2], [40.0, 0.0]]),
-                                                      objective.CONTEXT_NAMES, objective.CONTEXT_UNITS)
+    clipped, messages = optimizer_config.clip_context(
+        paper, np.array([[60.0, -0.1], [30.0, 0.2], [40.0, 0.0]]), objective.CONTEXT_NAMES, objective.CONTEXT_UNITS
+    )
     np.testing.assert_array_equal(clipped, [[55.0, -0.1], [30.0, 0.1], [40.0, 0.0]])
-    assert messages == ["instance 0: c_load = 60 N outside [15, 55], clipped for the GP",
-                        "instance 1: c_slope = 0.2 rad outside [-0.4, 0.1], clipped for the GP"]
+    assert messages == [
+        "instance 0: c_load = 60 N outside [15, 55], clipped for the GP",
+        "instance 1: c_slope = 0.2 rad outside [-0.4, 0.1], clipped for the GP",
+    ]
 
 
 def test_domain_randomization_draws_each_trials_physics_and_the_engine_simulates_it():
-    ranges = study_spec.Randomization(friction=(0.4, 1.0), payload_kg=(0.0, 5.0), mass_scale=(0.9, 1.1),
-                                      latency_ticks=(0, 2), seed=3)
+    ranges = study_spec.Randomization(
+        friction=(0.4, 1.0), payload_kg=(0.0, 5.0), mass_scale=(0.9, 1.1), latency_ticks=(0, 2), seed=3
+    )
     draws = study_spec.randomized(ranges, 2, 50)
     assert np.all((draws["friction"] >= 0.4) & (draws["friction"] <= 1.0))
     assert set(np.unique(draws["latency_ticks"])) == {0, 1, 2}
     np.testing.assert_array_equal(study_spec.randomized(ranges, 3, 50)["mass_scale"][:2], draws["mass_scale"])
-    spec = study_spec.StudySpec("dr", num_trials=3, controllers=("open_loop",), randomize=ranges,
-                                trial=protocol.TrialConfig(transition_steps=20, steady_steps=60),
-                                optimizer=optimizer_setting.paper_config(capacity=3))
+    spec = study_spec.StudySpec(
+        "dr",
+        num_trials=3,
+        controllers=("open_loop",),
+        randomize=ranges,
+        trial=protocol.TrialConfig(transition_steps=20, steady_steps=60),
+        optimizer=optimizer_setting.paper_config(capacity=3),
+    )
     result = ablation.Engine(spec, backend="native").run()
     cond = result.conditions
     urdf_mass_kg = 13.10  # docs/go1-model.md: the model's total mass
-    np.testing.assert_allclose(result.trials.total_mass_kg[:, 0],
-                               urdf_mass_kg * cond.mass_scale[0] + cond.payload_kg[0], atol=0.01)
+    np.testing.assert_allclose(
+        result.trials.total_mass_kg[:, 0], urdf_mass_kg * cond.mass_scale[0] + cond.payload_kg[0], atol=0.01
+    )
     assert len(set(cond.friction[0].tolist())) == 3
 
 
 def test_transfer_evaluates_every_run_in_every_environment():
     env = transfer.Environments("paper")
     assert env.names[:3] == ["soft", "paper", "go1"] and len(env.names) == 3 + transfer.EVALUATION_DRAWS
-    j, v, cot, fell = transfer.evaluate(np.tile(params.midpoint(), (2, 1)), ["open_loop", "vmc_tegotae"], env,
-                                        protocol.TrialConfig(transition_steps=20, steady_steps=100), "native", 0.5)
+    j, v, cot, fell = transfer.evaluate(
+        np.tile(params.midpoint(), (2, 1)),
+        ["open_loop", "vmc_tegotae"],
+        env,
+        protocol.TrialConfig(transition_steps=20, steady_steps=100),
+        "native",
+        0.5,
+    )
     assert j.shape == v.shape == cot.shape == fell.shape == (2, len(env.names))
     assert np.all(np.isfinite(j)) and np.all(j >= -1.0)
 
@@ -278,8 +301,11 @@ def test_mjx_profile_switch_keeps_the_compiled_trial(short_sim, mid_params, vmc_
     _, soft = short_sim.trial(state, mid_params, vmc_tegotae_gates)
     compiled = short_sim._trial._cache_size()
     scenario = short_sim.scenario
-    switched = short_sim.with_scenario(go1_model.make_scenarios(
-        scenario.friction, scenario.slope_deg, scenario.payload_kg, physics=["paper"] * short_sim.batch_size))
+    switched = short_sim.with_scenario(
+        go1_model.make_scenarios(
+            scenario.friction, scenario.slope_deg, scenario.payload_kg, physics=["paper"] * short_sim.batch_size
+        )
+    )
     _, paper = switched.trial(switched.reset(mid_params), mid_params, vmc_tegotae_gates)
     assert switched._trial._cache_size() == compiled
     flat = (scenario.slope_deg == 0) & (scenario.payload_kg == 0) & (scenario.friction >= 0.6)
@@ -310,11 +336,14 @@ def test_go1_sensor_noise_is_uniform_within_its_amplitudes_and_a_pure_function_o
         assert np.abs(error).max() > 0.95 * amplitude, field  # the draws fill the range
         np.testing.assert_allclose(error.mean(), 0.0, atol=0.03 * amplitude)
         np.testing.assert_allclose(error.std(), amplitude / np.sqrt(3.0), rtol=0.05)  # uniform's std
+
     # Uncorrelated across readings, from tick to tick, and between seeds (|r| ≤ 0.1 over 2000 draws; 4.5 σ).
     def flat_draws(noise_seed):
         profile = jax.tree.map(lambda x: x[0], physics.batch_arrays(["go1"], noise_seed=noise_seed))
-        return np.asarray(jax.vmap(lambda t: physics.NOISE_DRAWS.ravel(physics.noise_draws(profile, t)))(
-            jnp.arange(2000)))
+        return np.asarray(
+            jax.vmap(lambda t: physics.NOISE_DRAWS.ravel(physics.noise_draws(profile, t)))(jnp.arange(2000))
+        )
+
     u, other = flat_draws(None), flat_draws([1])
     r = np.corrcoef(np.concatenate([u, u[1:].tolist() + [u[0]], other], axis=1).T)
     n = physics.NUM_NOISY_READINGS
@@ -328,8 +357,9 @@ def test_go1_sensor_noise_is_uniform_within_its_amplitudes_and_a_pure_function_o
     assert np.all(np.abs(turn[:, 3]) < 1e-3)
     force_error = np.asarray(draws.foot_force_n) - np.asarray(truth.foot_force_n)
     assert np.all(np.abs(force_error) <= 0.5 + 0.25 + 1e-3)  # ±1 count of noise, then counted in 0.5 N steps
-    np.testing.assert_allclose(np.asarray(draws.foot_force_n) / 0.5, np.round(np.asarray(draws.foot_force_n) / 0.5),
-                               atol=1e-3)
+    np.testing.assert_allclose(
+        np.asarray(draws.foot_force_n) / 0.5, np.round(np.asarray(draws.foot_force_n) / 0.5), atol=1e-3
+    )
     # Pure function of (seed, tick); another seed draws differently; the paper profile has no noise.
     a, b, c = read("go1", 7), read("go1", 7), read("go1", 7, seed=1)
     np.testing.assert_array_equal(np.asarray(a.joint_vel_rad_s), np.asarray(b.joint_vel_rad_s))
@@ -361,13 +391,17 @@ def test_paper_5khz_is_paper_at_unitree_ros_physics_rate():
     assert go1_model.model_with_payload(0.0, "paper_5khz").opt.timestep == pytest.approx(0.0002)
     assert go1_model.model_with_payload(0.0, "paper").opt.timestep == pytest.approx(0.001)
     mixed = go1_model.make_scenarios(friction=[0.6, 0.6], physics=["paper", "paper_5khz"])
-    with pytest.raises(ValueError, match=r"one batch steps its physics at one rate: profiles \['paper', "
-                                         r"'paper_5khz'\] take \[1, 5\] physics steps per tick"):
+    with pytest.raises(
+        ValueError,
+        match=r"one batch steps its physics at one rate: profiles \['paper', "
+        r"'paper_5khz'\] take \[1, 5\] physics steps per tick",
+    ):
         native_physics.BatchPhysics(mixed)
     with pytest.raises(ValueError, match="'paper_5khz' steps its physics more than once per control tick"):
         mjx_go1.make_batch_model(go1_model.make_scenarios(friction=[0.6], physics="paper_5khz"))
     # The loopback Go1 steps five times per 1 ms tick too: its clock keeps the tick.
     from cpgjax.robot import sim_server
+
     go1 = sim_server.Go1Physics(physics="paper_5khz")
     start = go1.data.time
     for _ in range(10):

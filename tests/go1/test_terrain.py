@@ -28,20 +28,34 @@ from tests.conftest import SHORT_TRIAL
 ROUGH = dict(terrain="rough", terrain_amplitude_m=0.04, terrain_seed=3)
 
 
-@pytest.mark.parametrize(("fields", "message"), [
-    (dict(terrain="hills"), r"scenario terrain = 'hills' \(instance 0\) is not a terrain; allowed: \('flat', "),
-    (dict(terrain="rough", terrain_amplitude_m=0.07),
-     r"scenario terrain_amplitude_m = 0.07 \(instance 0\) is outside the allowed range \[0, 0.06\]"),
-    (dict(terrain="rough", terrain_amplitude_m=[0.02, -0.01]),
-     r"scenario terrain_amplitude_m = -0.01 \(instance 1\) is outside the allowed range"),
-    (dict(terrain_amplitude_m=0.02), r"terrain_amplitude_m = 0.02 \(instance 0\) on flat terrain: allowed 0"),
-    (dict(terrain="rough", terrain_amplitude_m=0.02, terrain_seed=1.5),
-     r"scenario terrain_seed = 1.5 \(instance 0\) is outside the allowed range an integer in \[0, 2\*\*32\)"),
-    (dict(terrain="blocks", terrain_amplitude_m=0.02, terrain_step_m=0.1),
-     r"scenario terrain_step_m = 0.1 \(instance 0\) is outside the allowed range \[0.15, 4.0\] \(the blocks' depth\)"),
-    (dict(terrain="rough", terrain_amplitude_m=0.02, terrain_step_m=0.3),
-     r"scenario terrain_step_m = 0.3 \(instance 0\) on rough terrain: allowed 0"),
-])
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        (dict(terrain="hills"), r"scenario terrain = 'hills' \(instance 0\) is not a terrain; allowed: \('flat', "),
+        (
+            dict(terrain="rough", terrain_amplitude_m=0.07),
+            r"scenario terrain_amplitude_m = 0.07 \(instance 0\) is outside the allowed range \[0, 0.06\]",
+        ),
+        (
+            dict(terrain="rough", terrain_amplitude_m=[0.02, -0.01]),
+            r"scenario terrain_amplitude_m = -0.01 \(instance 1\) is outside the allowed range",
+        ),
+        (dict(terrain_amplitude_m=0.02), r"terrain_amplitude_m = 0.02 \(instance 0\) on flat terrain: allowed 0"),
+        (
+            dict(terrain="rough", terrain_amplitude_m=0.02, terrain_seed=1.5),
+            r"scenario terrain_seed = 1.5 \(instance 0\) is outside the allowed range an integer in \[0, 2\*\*32\)",
+        ),
+        (
+            dict(terrain="blocks", terrain_amplitude_m=0.02, terrain_step_m=0.1),
+            r"scenario terrain_step_m = 0.1 \(instance 0\) is outside the allowed range \[0.15, 4.0\] "
+            r"\(the blocks' depth\)",
+        ),
+        (
+            dict(terrain="rough", terrain_amplitude_m=0.02, terrain_step_m=0.3),
+            r"scenario terrain_step_m = 0.3 \(instance 0\) on rough terrain: allowed 0",
+        ),
+    ],
+)
 def test_an_impossible_terrain_is_refused_in_one_line(fields, message):
     with pytest.raises(ValueError, match=message):
         go1_model.make_scenarios(**fields)
@@ -102,8 +116,9 @@ def test_the_blocks_are_numpys_heights_one_per_block_with_a_flat_pad():
 def test_a_slope_combines_with_rough_ground():
     """Rough ground on a 10° incline: the instance's model has the height field and the slope's gravity, and a short
     native trial of it walks (no failure)."""
-    scenario = go1_model.make_scenarios(slope_deg=[10.0, 0.0], terrain="rough", terrain_amplitude_m=0.02,
-                                        terrain_seed=3)
+    scenario = go1_model.make_scenarios(
+        slope_deg=[10.0, 0.0], terrain="rough", terrain_amplitude_m=0.02, terrain_seed=3
+    )
     m = go1_model.scenario_model(scenario, 0)
     assert m.nhfield == 1 and m.geom_type[go1_model.indices().floor_geom] == mujoco.mjtGeom.mjGEOM_HFIELD
     np.testing.assert_allclose(m.opt.gravity, go1_model.gravity_vector(10.0))
@@ -131,7 +146,8 @@ def test_the_ground_height_is_where_c_mujoco_finds_the_height_field():
         assert geomid[0] == floor
         reference.append(1.0 - distance)
     heights = jax.vmap(terrains.ground_height_m, in_axes=(None, 0, 0))(
-        jnp.asarray(m.hfield_data, jnp.float32), points[:, 0], points[:, 1])
+        jnp.asarray(m.hfield_data, jnp.float32), points[:, 0], points[:, 1]
+    )
     np.testing.assert_allclose(np.asarray(heights), reference, atol=2e-5)  # float32 of a 28.8 m grid
     assert np.ptp(reference) > 0.03
 
@@ -202,13 +218,18 @@ def test_mjx_sums_the_same_contacts_of_the_same_state():
     d = _stand_on_rough_ground(m, x_m=1.0)
     reference, _ = _foot_contact_normals(m, d)
     mx = mjx_go1.mjx.put_model(m)
-    dx = jax.jit(mjx_go1.mjx.forward)(mx, mjx_go1.mjx.make_data(mx).replace(
-        qpos=jnp.asarray(d.qpos, jnp.float32), qvel=jnp.asarray(d.qvel, jnp.float32),
-        qacc_warmstart=jnp.asarray(d.qacc_warmstart, jnp.float32), ctrl=jnp.asarray(d.ctrl, jnp.float32)))
+    dx = jax.jit(mjx_go1.mjx.forward)(
+        mx,
+        mjx_go1.mjx.make_data(mx).replace(
+            qpos=jnp.asarray(d.qpos, jnp.float32),
+            qvel=jnp.asarray(d.qvel, jnp.float32),
+            qacc_warmstart=jnp.asarray(d.qacc_warmstart, jnp.float32),
+            ctrl=jnp.asarray(d.ctrl, jnp.float32),
+        ),
+    )
     obs = sensors.observe(dx.qpos, dx.qvel, dx.sensordata, mx.opt.gravity)
     np.testing.assert_allclose(np.asarray(obs.foot_force_n), reference, rtol=0.1, atol=1.0)
-    world = physics_profiles.contact_force_world(np.asarray(dx.sensordata)[go1_model.foot_contact_slots(
-        m.nsensordata)])
+    world = physics_profiles.contact_force_world(np.asarray(dx.sensordata)[go1_model.foot_contact_slots(m.nsensordata)])
     weight_n = m.body_subtreemass[go1_model.indices().trunk_body] * constants.GRAVITY_MPS2
     assert float(np.sum(world[..., 2])) == pytest.approx(weight_n, rel=0.02)
 
@@ -228,11 +249,17 @@ def rough_pair():
     """Both backends on one batch: rough 4 cm (seed 3), rough 2 cm (seed 4), flat ground in the terrain model, and
     blocks of 0.3 m, 3 cm peak-to-peak (seed 5); under soft, as the flat comparison of the backends (its foot force
     the contact normal at 1 kHz, which carries m g / 4 standing)."""
-    scenario = go1_model.make_scenarios(terrain=["rough", "rough", "flat", "blocks"],
-                                        terrain_amplitude_m=[0.04, 0.02, 0.0, 0.03], terrain_seed=[3, 4, 0, 5],
-                                        terrain_step_m=[0.0, 0.0, 0.0, 0.3], physics="soft")
-    return (native_go1.NativeBackend(scenario, trial_config=SHORT_TRIAL),
-            mjx_go1.MJXBackend(scenario, trial_config=SHORT_TRIAL))
+    scenario = go1_model.make_scenarios(
+        terrain=["rough", "rough", "flat", "blocks"],
+        terrain_amplitude_m=[0.04, 0.02, 0.0, 0.03],
+        terrain_seed=[3, 4, 0, 5],
+        terrain_step_m=[0.0, 0.0, 0.0, 0.3],
+        physics="soft",
+    )
+    return (
+        native_go1.NativeBackend(scenario, trial_config=SHORT_TRIAL),
+        mjx_go1.MJXBackend(scenario, trial_config=SHORT_TRIAL),
+    )
 
 
 def test_both_backends_walk_off_the_pad_onto_the_field(rough_pair):
@@ -251,8 +278,9 @@ def test_both_backends_walk_off_the_pad_onto_the_field(rough_pair):
     state.physics[:, native.physics.layout.qpos.start + r] = 1.0
     _, native_log = native.rollout(state, params, gates, 300)
     state = mjx.reset(params)
-    _, mjx_log = mjx.rollout(state._replace(data=state.data.replace(qpos=state.data.qpos.at[:, r].set(1.0))),
-                             params, gates, 300)
+    _, mjx_log = mjx.rollout(
+        state._replace(data=state.data.replace(qpos=state.data.qpos.at[:, r].set(1.0))), params, gates, 300
+    )
     for log in (native_log, mjx_log):
         assert np.all(np.asarray(log.qpos)[:, :, r + 2] > 0.25)
         load_n = np.asarray(log.foot_force_n).mean(axis=(1, 2))
@@ -277,15 +305,22 @@ def test_native_and_mjx_trial_figures_agree_on_rough_terrain(rough_pair):
         for _ in range(2):
             state, record = sim.trial(state, params, gates)
             records.append(record)
-        figures.append({"v_x": np.concatenate([np.asarray(objective.mean_velocity(r))[:, 0] for r in records]),
-                        "cot": np.concatenate([np.asarray(objective.cost_of_transport(r)) for r in records]),
-                        "c_load": np.concatenate([np.asarray(r.c_load_n) for r in records]),
-                        "c_slope": np.concatenate([np.asarray(r.c_slope_rad) for r in records]),
-                        "fell": np.concatenate([np.asarray(r.fell) for r in records])})
+        figures.append(
+            {
+                "v_x": np.concatenate([np.asarray(objective.mean_velocity(r))[:, 0] for r in records]),
+                "cot": np.concatenate([np.asarray(objective.cost_of_transport(r)) for r in records]),
+                "c_load": np.concatenate([np.asarray(r.c_load_n) for r in records]),
+                "c_slope": np.concatenate([np.asarray(r.c_slope_rad) for r in records]),
+                "fell": np.concatenate([np.asarray(r.fell) for r in records]),
+            }
+        )
     n, m = figures
-    differences = {"v_x": np.abs(n["v_x"] - m["v_x"]), "cot": np.abs(n["cot"] - m["cot"]) / m["cot"],
-                   "c_load": np.abs(n["c_load"] - m["c_load"]) / m["c_load"],
-                   "c_slope": np.abs(n["c_slope"] - m["c_slope"])}
+    differences = {
+        "v_x": np.abs(n["v_x"] - m["v_x"]),
+        "cot": np.abs(n["cot"] - m["cot"]) / m["cot"],
+        "c_load": np.abs(n["c_load"] - m["c_load"]) / m["c_load"],
+        "c_slope": np.abs(n["c_slope"] - m["c_slope"]),
+    }
     tight = {"v_x": 0.02, "cot": 0.05, "c_load": 0.02, "c_slope": 0.01}
     same_outcome = n["fell"] == m["fell"]
     agree = same_outcome & np.all([differences[k] <= tight[k] for k in tight], axis=0)
@@ -323,6 +358,7 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys):
     def fake_walk(**kwargs):
         walks.append(kwargs)
         raise SystemExit(0)  # stop before the table: only what walk was asked for matters here
+
     monkeypatch.setattr(walk, "walk_trials", fake_walk)
     with pytest.raises(SystemExit):
         cli.main(["walk", "--terrain", "rough", "--terrain-amplitude", "0.04", "--terrain-seed", "3"])
@@ -341,9 +377,11 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys):
     assert "cpgjax walk: --terrain-amplitude applies to --terrain rough or blocks only" in capsys.readouterr().err
     assert cli.main(["walk", "--terrain", "rough"]) == 2
     assert "--terrain rough needs --terrain-amplitude (peak-to-peak [m] in (0, 0.06])" in capsys.readouterr().err
-    for argv, message in ((["--terrain-amplitude", "0.07"], "0.07 is outside the allowed range (0, 0.06]"),
-                          (["--terrain", "hills"], "invalid choice: 'hills'"),
-                          (["--terrain-seed", "-1"], "-1 is outside the allowed range 0 … 4294967295")):
+    for argv, message in (
+        (["--terrain-amplitude", "0.07"], "0.07 is outside the allowed range (0, 0.06]"),
+        (["--terrain", "hills"], "invalid choice: 'hills'"),
+        (["--terrain-seed", "-1"], "-1 is outside the allowed range 0 … 4294967295"),
+    ):
         with pytest.raises(SystemExit) as exit_:
             cli.main(["walk", *argv])
         assert exit_.value.code == 2 and message in capsys.readouterr().err
@@ -352,10 +390,19 @@ def test_walk_takes_the_terrain_from_the_command_line(monkeypatch, capsys):
 
 def test_walk_parquet_names_the_terrain():
     record = protocol.TrialRecord(*(np.zeros(()) for _ in protocol.TrialRecord._fields))
-    trial = walk.WalkTrial(walk=0, trial=0, controller="vmc", physics="soft",
-                           condition=Condition(ground=terrains.Ground("rough", 0.04, 3)), friction_in_effect=0.6,
-                           params=param_space.midpoint(), record=record, objective=0.0, velocity_xy_mps=np.zeros(2),
-                           cot=0.0)
+    trial = walk.WalkTrial(
+        walk=0,
+        trial=0,
+        controller="vmc",
+        physics="soft",
+        condition=Condition(ground=terrains.Ground("rough", 0.04, 3)),
+        friction_in_effect=0.6,
+        params=param_space.midpoint(),
+        record=record,
+        objective=0.0,
+        velocity_xy_mps=np.zeros(2),
+        cot=0.0,
+    )
     cols = walk.trial_columns([trial])
     assert (cols["terrain"][0], cols["terrain_amplitude_m"][0], cols["terrain_seed"][0]) == ("rough", 0.04, 3)
     assert not test_outputs.undocumented("walk.parquet", cols)
@@ -369,12 +416,15 @@ def test_a_video_draws_the_terrain(tmp_path):
     stand[go1_model.indices().root_qpos] = 1.5
     qpos = np.tile(stand, (40, 1))
     rough = terrains.Ground("rough", 0.04, 3)
-    jobs = [video.Job(path=tmp_path / "flat.mp4", qpos=qpos),
-            video.Job(path=tmp_path / "rough.mp4", qpos=qpos, condition=Condition(ground=rough)),
-            video.Job(path=tmp_path / "again.mp4", qpos=qpos, condition=Condition(ground=rough))]
+    jobs = [
+        video.Job(path=tmp_path / "flat.mp4", qpos=qpos),
+        video.Job(path=tmp_path / "rough.mp4", qpos=qpos, condition=Condition(ground=rough)),
+        video.Job(path=tmp_path / "again.mp4", qpos=qpos, condition=Condition(ground=rough)),
+    ]
     try:
-        flat, bumpy, again = (info["strip"][0].astype(float) for info in video.render_videos(jobs, width=320,
-                                                                                              height=240))
+        flat, bumpy, again = (
+            info["strip"][0].astype(float) for info in video.render_videos(jobs, width=320, height=240)
+        )
     except video.RenderUnavailable as err:
         pytest.skip(f"no OpenGL backend: {err}")
     np.testing.assert_array_equal(bumpy, again)
@@ -391,23 +441,36 @@ def test_a_recording_draws_the_field_under_the_path(tmp_path):
     qpos = np.tile(go1_model.standing_qpos(), (ticks, 1))
     qpos[:, ids.root_qpos] = np.linspace(1.0, 1.4, ticks)
     zeros = {name: np.zeros((ticks, 4)) for name in ("foot_force_n", "amplitude", "phase_rad")}
-    log = protocol.StepLog(qpos=qpos, qvel=np.zeros((ticks, 18)), torque_nm=np.zeros((ticks, 12)),
-                           foot_pos_m=np.zeros((ticks, 4, 3)), foot_target_m=np.zeros((ticks, 4, 3)),
-                           rpy_rad=np.zeros((ticks, 3)), **zeros)
+    log = protocol.StepLog(
+        qpos=qpos,
+        qvel=np.zeros((ticks, 18)),
+        torque_nm=np.zeros((ticks, 12)),
+        foot_pos_m=np.zeros((ticks, 4, 3)),
+        foot_target_m=np.zeros((ticks, 4, 3)),
+        rpy_rad=np.zeros((ticks, 3)),
+        **zeros,
+    )
     ground = terrains.Ground("rough", 0.04, 3)
     path = tmp_path / "rough.rrd"
     rec = rr.RecordingStream("test_terrain")
     rec.save(str(path))
-    base = scene.log_rollout(rec, scene.Rollout(log=log, group="rough", controller="vmc", seed=0,
-                                                condition=Condition(ground=ground)))
+    base = scene.log_rollout(
+        rec, scene.Rollout(log=log, group="rough", controller="vmc", seed=0, condition=Condition(ground=ground))
+    )
     rec.flush()
     rec.disconnect()
-    vertices = [row for chunk in RrdReader(path).stream() if chunk.entity_path == f"/{base}/world/floor"
-                for batch in [chunk.to_record_batch()] if "Mesh3D:vertex_positions" in batch.schema.names
-                for row in batch.column("Mesh3D:vertex_positions").to_pylist()]
+    vertices = [
+        row
+        for chunk in RrdReader(path).stream()
+        if chunk.entity_path == f"/{base}/world/floor"
+        for batch in [chunk.to_record_batch()]
+        if "Mesh3D:vertex_positions" in batch.schema.names
+        for row in batch.column("Mesh3D:vertex_positions").to_pylist()
+    ]
     points = np.array(vertices[0], float)
-    data = jnp.asarray(go1_model.scenario_model(go1_model.make_scenarios(**ground._asdict()), 0).hfield_data,
-                       jnp.float32)
+    data = jnp.asarray(
+        go1_model.scenario_model(go1_model.make_scenarios(**ground._asdict()), 0).hfield_data, jnp.float32
+    )
     heights = jax.vmap(terrains.ground_height_m, in_axes=(None, 0, 0))(data, points[:, 0], points[:, 1])
     np.testing.assert_allclose(points[:, 2], np.asarray(heights), atol=2e-5)
     assert points[:, 0].min() <= 1.0 - scene.FLOOR_MARGIN_M and points[:, 0].max() >= 1.4 + scene.FLOOR_MARGIN_M

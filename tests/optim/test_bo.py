@@ -16,8 +16,9 @@ from cpgjax.optim import config as optimizer_config
 from cpgjax.optim.acquisition import AcquisitionConfig
 from cpgjax.trial import optimizer_setting
 
-SMALL = optimizer_setting.paper_config(capacity=12, fit=gp.FitConfig(30, 0.2),
-                        acquisition=AcquisitionConfig(128, 4, 15, 0.05))
+SMALL = optimizer_setting.paper_config(
+    capacity=12, fit=gp.FitConfig(30, 0.2), acquisition=AcquisitionConfig(128, 4, 15, 0.05)
+)
 LOWER, UPPER = np.array(SMALL.parameter_lower), np.array(SMALL.parameter_upper)
 MIDPOINT = 0.5 * (LOWER + UPPER)
 NOMINAL = jnp.array([40.0, -0.1])  # c = [c_load N, c_slope rad]
@@ -50,18 +51,27 @@ def history(opt, contexts, objectives=None):
 
 # ---- beta, eqs. (12)-(14), docs/decisions.md §11-12 -------------------------------------------------
 
-@pytest.mark.parametrize("contexts, query, beta, n, changed", [
-    ([], NOMINAL, 5.0, 0, False),
-    ([[40.0, -0.1]] * 10, NOMINAL, 5.0, 10, False),  # decay starts after n_decay = 10
-    ([[40.0, -0.1]] * 12, NOMINAL, 5.0 * 0.7**2, 12, False),
-    # 8 trials at 40 N, then 4 at 55 N (|15 N| > t_load r_load = 0.2 * 40 = 8 N): changed.
-    ([[40.0, -0.1]] * 8 + [[55.0, -0.1]] * 4, [55.0, -0.1], 1.5 * 0.7**1, 4, True),
-    ([[40.0, -0.1]] * 8 + [[55.0, -0.1]] * 4, NOMINAL, 1.5 * 0.7**5, 8, True),
-    # Threshold edges: 8 N in load (r_load = 55 − 15 = 40 N, docs/decisions.md §11), t_slope r_slope = 0.1 * 0.5 =
-    # 0.05 rad in slope.
-    ([[47.9, -0.1], [48.1, -0.1], [32.1, -0.1], [31.9, -0.1], [40.0, -0.149], [40.0, -0.151]],
-     NOMINAL, 1.5, 3, True),
-])
+
+@pytest.mark.parametrize(
+    "contexts, query, beta, n, changed",
+    [
+        ([], NOMINAL, 5.0, 0, False),
+        ([[40.0, -0.1]] * 10, NOMINAL, 5.0, 10, False),  # decay starts after n_decay = 10
+        ([[40.0, -0.1]] * 12, NOMINAL, 5.0 * 0.7**2, 12, False),
+        # 8 trials at 40 N, then 4 at 55 N (|15 N| > t_load r_load = 0.2 * 40 = 8 N): changed.
+        ([[40.0, -0.1]] * 8 + [[55.0, -0.1]] * 4, [55.0, -0.1], 1.5 * 0.7**1, 4, True),
+        ([[40.0, -0.1]] * 8 + [[55.0, -0.1]] * 4, NOMINAL, 1.5 * 0.7**5, 8, True),
+        # Threshold edges: 8 N in load (r_load = 55 − 15 = 40 N, docs/decisions.md §11), t_slope r_slope = 0.1 * 0.5 =
+        # 0.05 rad in slope.
+        (
+            [[47.9, -0.1], [48.1, -0.1], [32.1, -0.1], [31.9, -0.1], [40.0, -0.149], [40.0, -0.151]],
+            NOMINAL,
+            1.5,
+            3,
+            True,
+        ),
+    ],
+)
 def test_beta_schedule_and_context_counting(opt, contexts, query, beta, n, changed):
     info = opt.beta(history(opt, np.reshape(contexts, (-1, 2))), jnp.asarray(query))
     assert info.beta == pytest.approx(beta, rel=1e-5)
@@ -71,13 +81,15 @@ def test_beta_schedule_and_context_counting(opt, contexts, query, beta, n, chang
 
 def test_beta_custom_schedule_and_inference_mode(opt):
     state = history(opt, [[40.0, -0.1]] * 3)._replace(
-        schedule=exploration.paper_schedule(beta_init=2.0, gamma=0.5, n_decay=1))
+        schedule=exploration.paper_schedule(beta_init=2.0, gamma=0.5, n_decay=1)
+    )
     assert opt.beta(state, NOMINAL).beta == pytest.approx(2.0 * 0.5**2)
     inference = opt.set_inference_mode(state, True)
     assert opt.beta(inference, NOMINAL).beta == pytest.approx(1e-6)
 
 
 # ---- proposals ------------------------------------------------------------------------------
+
 
 def test_random_phase_then_acquisition_and_inactive_midpoint(opt):
     key = jax.random.PRNGKey(0)
@@ -128,9 +140,16 @@ def test_queries_best_observed_and_posterior_mean_argmax(opt, trained):
     assert np.all(np.asarray(x_mean) >= LOWER) and np.all(np.asarray(x_mean) <= UPPER)
     # It maximizes the posterior mean: at least its value at every stored point.
     dataset = gp.Dataset(
-        jnp.concatenate([(trained.parameters - LOWER) / (UPPER - LOWER),
-                         (trained.contexts - np.array([15.0, -0.4])) / np.array([40.0, 0.5])], 1),
-        trained.objectives, trained.stored)
+        jnp.concatenate(
+            [
+                (trained.parameters - LOWER) / (UPPER - LOWER),
+                (trained.contexts - np.array([15.0, -0.4])) / np.array([40.0, 0.5]),
+            ],
+            1,
+        ),
+        trained.objectives,
+        trained.stored,
+    )
     post = gp.posterior(trained.gp_params, dataset, jnp.ones(10, bool), 2)
     stored_means, _ = gp.predict(post, dataset.inputs[:10], 2)
     assert float(mean_value) >= float(stored_means.max()) - 1e-5
@@ -145,6 +164,7 @@ def test_queries_best_observed_and_posterior_mean_argmax(opt, trained):
 
 # ---- data reuse ---------------------------------------------------------------------------
 
+
 class Record(NamedTuple):
     velocity_xy_mps: jax.Array  # (50, 2)
     energy: jax.Array  # ()
@@ -152,14 +172,12 @@ class Record(NamedTuple):
 
 def record_objective(record, target_velocity):
     target = jnp.stack([target_velocity, 0.0])
-    reward = jnp.minimum(jnp.exp(-jnp.sum((record.velocity_xy_mps - target) ** 2, -1) / 0.05),
-                         0.85)
+    reward = jnp.minimum(jnp.exp(-jnp.sum((record.velocity_xy_mps - target) ** 2, -1) / 0.05), 0.85)
     return jnp.mean(reward) - 0.5 * record.energy
 
 
 def numpy_record_objective(record, target_velocity):
-    error = np.sum((np.asarray(record.velocity_xy_mps, np.float64) - [target_velocity, 0.0]) ** 2,
-                   -1)
+    error = np.sum((np.asarray(record.velocity_xy_mps, np.float64) - [target_velocity, 0.0]) ** 2, -1)
     return np.mean(np.minimum(np.exp(-error / 0.05), 0.85)) - 0.5 * float(record.energy)
 
 
@@ -173,8 +191,13 @@ def reuse_opt():
 
 def make_records(num):
     rng = np.random.default_rng(7)
-    return [Record(jnp.asarray(rng.uniform(0.2, 0.9) + 0.05 * rng.normal(size=(50, 2)), jnp.float32),
-                   jnp.float32(rng.uniform(0.1, 0.5))) for _ in range(num)]
+    return [
+        Record(
+            jnp.asarray(rng.uniform(0.2, 0.9) + 0.05 * rng.normal(size=(50, 2)), jnp.float32),
+            jnp.float32(rng.uniform(0.1, 0.5)),
+        )
+        for _ in range(num)
+    ]
 
 
 def test_data_reuse_equals_recomputation_from_scratch(reuse_opt):
@@ -235,6 +258,7 @@ def test_non_finite_record_is_rejected(reuse_opt):
 
 # ---- validation ---------------------------------------------------------------------------
 
+
 def test_bad_calls_fail_with_clear_errors(opt):
     state = opt.init()
     x = jnp.asarray(MIDPOINT, jnp.float32)
@@ -254,8 +278,7 @@ def test_bad_calls_fail_with_clear_errors(opt):
     with pytest.raises(ValueError, match="no observation stored"):
         opt.best_observed(state)
     with pytest.raises(ValueError, match=r"state.parameters must have shape \(12, 8\)"):
-        opt.propose(jax.tree.map(lambda a: jnp.stack([a, a]), state), NOMINAL,
-                    jax.random.PRNGKey(0))
+        opt.propose(jax.tree.map(lambda a: jnp.stack([a, a]), state), NOMINAL, jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="lower < upper"):
         optimizer_config.OptimizerConfig((0.0, 1.0), (1.0, 1.0))
     with pytest.raises(ValueError, match="context_thresholds"):
@@ -270,6 +293,7 @@ def test_bad_calls_fail_with_clear_errors(opt):
 
 # ---- batching -----------------------------------------------------------------------------
 
+
 def test_vmapped_instances_equal_unbatched_runs(opt):
     """Three instances with their own keys, contexts, schedules and active inputs (7 and 8
     parameters), run 4 trials vmapped and one by one on the same data: same random-phase
@@ -278,8 +302,11 @@ def test_vmapped_instances_equal_unbatched_runs(opt):
     steps and the acquisition's top-k choice amplify (measured <= 0.5 % of the box width;
     asserted <= 2 %). Then a non-finite and an over-capacity observation are rejected per
     instance under vmap."""
-    inits = [opt.init(), opt.init(active_dims=jnp.arange(8) < 7),
-             opt.init(schedule=exploration.paper_schedule(beta_init=1.0, gamma=0.5, n_decay=2))]
+    inits = [
+        opt.init(),
+        opt.init(active_dims=jnp.arange(8) < 7),
+        opt.init(schedule=exploration.paper_schedule(beta_init=1.0, gamma=0.5, n_decay=2)),
+    ]
     contexts = jnp.array([[40.0, -0.1], [55.0, 0.0], [20.0, -0.3]])
     keys = jax.random.split(jax.random.PRNGKey(3), 3)
     stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)  # noqa: E731
@@ -299,8 +326,11 @@ def test_vmapped_instances_equal_unbatched_runs(opt):
             single[i], _ = opt.observe(single[i], xs[i], contexts[i], ys[i])
     for i in range(3):
         instance = jax.tree.map(operator.itemgetter(i), batched)
-        for a, b in zip(jax.tree.leaves(instance._replace(gp_params=())),
-                        jax.tree.leaves(single[i]._replace(gp_params=())), strict=True):
+        for a, b in zip(
+            jax.tree.leaves(instance._replace(gp_params=())),
+            jax.tree.leaves(single[i]._replace(gp_params=())),
+            strict=True,
+        ):
             np.testing.assert_array_equal(a, b)
         for a, b in zip(instance.gp_params, single[i].gp_params, strict=True):
             np.testing.assert_allclose(a, b, atol=0.05)
@@ -317,15 +347,23 @@ def test_vmapped_instances_equal_unbatched_runs(opt):
 
 # ---- optimization of standard test functions (known optima) ------------------------------
 
+
 def branin(x):
     b, c, t = 5.1 / (4 * np.pi**2), 5 / np.pi, 1 / (8 * np.pi)
     return (x[1] - b * x[0] ** 2 + c * x[0] - 6) ** 2 + 10 * (1 - t) * np.cos(x[0]) + 10
 
 
-H6_A = np.array([[10, 3, 17, 3.5, 1.7, 8], [0.05, 10, 17, 0.1, 8, 14],
-                 [3, 3.5, 1.7, 10, 17, 8], [17, 8, 0.05, 10, 0.1, 14]])
-H6_P = 1e-4 * np.array([[1312, 1696, 5569, 124, 8283, 5886], [2329, 4135, 8307, 3736, 1004, 9991],
-                        [2348, 1451, 3522, 2883, 3047, 6650], [4047, 8828, 8732, 5743, 1091, 381]])
+H6_A = np.array(
+    [[10, 3, 17, 3.5, 1.7, 8], [0.05, 10, 17, 0.1, 8, 14], [3, 3.5, 1.7, 10, 17, 8], [17, 8, 0.05, 10, 0.1, 14]]
+)
+H6_P = 1e-4 * np.array(
+    [
+        [1312, 1696, 5569, 124, 8283, 5886],
+        [2329, 4135, 8307, 3736, 1004, 9991],
+        [2348, 1451, 3522, 2883, 3047, 6650],
+        [4047, 8828, 8732, 5743, 1091, 381],
+    ]
+)
 H6_ALPHA = np.array([1.0, 1.2, 3.0, 3.2])
 
 
@@ -358,8 +396,7 @@ def test_maximize_finds_the_branin_minimum():
     (measured: 0.059, 0.0098, 0.0011)."""
     regrets = []
     for seed in range(3):
-        result = black_box.maximize(lambda x: -branin(x), [[-5.0, 0.0], [10.0, 15.0]], num_trials=40,
-                             seed=seed)
+        result = black_box.maximize(lambda x: -branin(x), [[-5.0, 0.0], [10.0, 15.0]], num_trials=40, seed=seed)
         assert result.xs.shape == (40, 2) and result.best_value == result.values.max()
         assert branin(result.best_x) == pytest.approx(-result.best_value)
         regrets.append(-result.best_value - 0.397887)

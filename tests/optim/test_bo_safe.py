@@ -35,26 +35,41 @@ def quaternion_wxyz(roll, pitch):
     qy = np.array([np.cos(pitch / 2), 0.0, np.sin(pitch / 2), 0.0])
     w1, x1, y1, z1 = qy
     w2, x2, y2, z2 = qx
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+    return np.array(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
 
 
-@pytest.mark.parametrize("height_m, floor_roll, floor_pitch, imu_roll, imu_pitch", [
-    (0.30, 0.0, 0.0, 0.0, 0.0),  # standing level: 1
-    (0.21, 0.05, -0.1, 0.02, 0.03),  # half the clearance: 0.5
-    (0.28, 0.6, 0.1, 0.1, 0.1),  # floor roll 0.6 of 0.8 rad
-    (0.28, 0.1, 0.1, -0.1, 0.65),  # the IMU near the tilt stop
-    (0.08, 0.0, 0.0, 0.0, 0.0),  # below the fall height: negative
-    (0.25, 0.0, 1.2, 0.0, 1.0),  # beyond both tilts: negative
-])
-def test_tick_margin_is_the_worst_of_height_fall_tilt_and_tilt_stop(height_m, floor_roll, floor_pitch, imu_roll,
-                                                                      imu_pitch):
+@pytest.mark.parametrize(
+    "height_m, floor_roll, floor_pitch, imu_roll, imu_pitch",
+    [
+        (0.30, 0.0, 0.0, 0.0, 0.0),  # standing level: 1
+        (0.21, 0.05, -0.1, 0.02, 0.03),  # half the clearance: 0.5
+        (0.28, 0.6, 0.1, 0.1, 0.1),  # floor roll 0.6 of 0.8 rad
+        (0.28, 0.1, 0.1, -0.1, 0.65),  # the IMU near the tilt stop
+        (0.08, 0.0, 0.0, 0.0, 0.0),  # below the fall height: negative
+        (0.25, 0.0, 1.2, 0.0, 1.0),  # beyond both tilts: negative
+    ],
+)
+def test_tick_margin_is_the_worst_of_height_fall_tilt_and_tilt_stop(
+    height_m, floor_roll, floor_pitch, imu_roll, imu_pitch
+):
     ids = go1_model.indices()
     qpos = np.asarray(go1_model.standing_qpos(), np.float64).copy()
     qpos[ids.root_qpos + 2] = height_m
-    qpos[ids.root_qpos + 3:ids.root_qpos + 7] = quaternion_wxyz(floor_roll, floor_pitch)
-    pre = protocol.PreStep(power_w=jnp.float32(0), load_n=jnp.float32(0), roll_rad=jnp.float32(imu_roll),
-                           pitch_rad=jnp.float32(imu_pitch), saturated=jnp.float32(0))
+    qpos[ids.root_qpos + 3 : ids.root_qpos + 7] = quaternion_wxyz(floor_roll, floor_pitch)
+    pre = protocol.PreStep(
+        power_w=jnp.float32(0),
+        load_n=jnp.float32(0),
+        roll_rad=jnp.float32(imu_roll),
+        pitch_rad=jnp.float32(imu_pitch),
+        saturated=jnp.float32(0),
+    )
     qpos = jnp.asarray(qpos, jnp.float32)
     qvel = jnp.zeros(6 + 12, jnp.float32)  # the free trunk and 12 joints
     row = protocol.tick_row(TRIAL, pre, qpos, qvel, jnp.asarray(False))
@@ -67,14 +82,34 @@ def test_tick_margin_is_the_worst_of_height_fall_tilt_and_tilt_stop(height_m, fl
 
 def test_a_trials_margin_is_its_worst_tick_transition_included():
     steady_margins = np.array([0.9, 0.4, 0.7], np.float32)
-    ticks = protocol.Tick(velocity_xy_mps=jnp.zeros((3, 2)), power_w=jnp.zeros(3), load_n=jnp.zeros(3),
-                          roll_rad=jnp.zeros(3), pitch_rad=jnp.zeros(3), saturated=jnp.zeros(3), fell=jnp.zeros(3),
-                          failed=jnp.zeros(3), margin=jnp.asarray(steady_margins))
-    calm = protocol.summarize(ticks, jnp.float32(12.0), 0.001, protocol.TransitionSummary.of(
-        ticks._replace(margin=jnp.asarray([0.8, 0.95], jnp.float32), fell=jnp.zeros(2), failed=jnp.zeros(2))))
+    ticks = protocol.Tick(
+        velocity_xy_mps=jnp.zeros((3, 2)),
+        power_w=jnp.zeros(3),
+        load_n=jnp.zeros(3),
+        roll_rad=jnp.zeros(3),
+        pitch_rad=jnp.zeros(3),
+        saturated=jnp.zeros(3),
+        fell=jnp.zeros(3),
+        failed=jnp.zeros(3),
+        margin=jnp.asarray(steady_margins),
+    )
+    calm = protocol.summarize(
+        ticks,
+        jnp.float32(12.0),
+        0.001,
+        protocol.TransitionSummary.of(
+            ticks._replace(margin=jnp.asarray([0.8, 0.95], jnp.float32), fell=jnp.zeros(2), failed=jnp.zeros(2))
+        ),
+    )
     assert float(calm.safety_margin) == pytest.approx(0.4)
-    shaky = protocol.summarize(ticks, jnp.float32(12.0), 0.001, protocol.TransitionSummary.of(
-        ticks._replace(margin=jnp.asarray([0.8, -0.2], jnp.float32), fell=jnp.zeros(2), failed=jnp.zeros(2))))
+    shaky = protocol.summarize(
+        ticks,
+        jnp.float32(12.0),
+        0.001,
+        protocol.TransitionSummary.of(
+            ticks._replace(margin=jnp.asarray([0.8, -0.2], jnp.float32), fell=jnp.zeros(2), failed=jnp.zeros(2))
+        ),
+    )
     assert float(shaky.safety_margin) == pytest.approx(-0.2)
     alone = protocol.summarize(ticks, jnp.float32(12.0), 0.001, protocol.TransitionSummary.nothing())
     assert float(alone.safety_margin) == pytest.approx(0.4)
@@ -83,8 +118,14 @@ def test_a_trials_margin_is_its_worst_tick_transition_included():
 # ---- the safe optimizer ---------------------------------------------------------------------------------------
 
 SAFE = optimizer_config.OptimizerConfig(
-    parameter_lower=(0.0, 0.0), parameter_upper=(1.0, 1.0), capacity=12, safe=True, safe_beta=2.0,
-    fit=gp.FitConfig(40, 0.2), acquisition=AcquisitionConfig(256, 8, 40, 0.05))
+    parameter_lower=(0.0, 0.0),
+    parameter_upper=(1.0, 1.0),
+    capacity=12,
+    safe=True,
+    safe_beta=2.0,
+    fit=gp.FitConfig(40, 0.2),
+    acquisition=AcquisitionConfig(256, 8, 40, 0.05),
+)
 PEAK = np.array([0.85, 0.85])  # the objective's peak, outside the safe disk
 SAFE_CENTRE, SAFE_RADIUS = np.array([0.3, 0.3]), 0.3
 NO_CONTEXT = jnp.zeros((0,), jnp.float32)
@@ -102,8 +143,9 @@ def safe_opt():
 
 @pytest.fixture(scope="module")
 def observed(safe_opt):
-    points = np.array([[0.3, 0.3], [0.45, 0.3], [0.3, 0.5], [0.45, 0.45], [0.15, 0.2], [0.9, 0.9], [0.75, 0.2],
-                       [0.15, 0.65]])
+    points = np.array(
+        [[0.3, 0.3], [0.45, 0.3], [0.3, 0.5], [0.45, 0.45], [0.15, 0.2], [0.9, 0.9], [0.75, 0.2], [0.15, 0.65]]
+    )
     state = safe_opt.init()
     for u in points:
         j, g = toy(u)
@@ -116,16 +158,18 @@ def test_the_margin_gp_fits_under_its_own_priors(observed):
     fit's objective is higher there than the default fit's), the objective's GP does not change."""
     state, points = observed
     values = np.array([toy(u) for u in points])
-    priors = gp.Priors(lengthscale=gp.GammaPrior(8.0, 4.0), outputscale=gp.GammaPrior(2.0, 2.0),
-                       noise=gp.GammaPrior(2.0, 100.0))
+    priors = gp.Priors(
+        lengthscale=gp.GammaPrior(8.0, 4.0), outputscale=gp.GammaPrior(2.0, 2.0), noise=gp.GammaPrior(2.0, 100.0)
+    )
     own = bo.make_optimizer(dataclasses.replace(SAFE, margin_priors=priors))
     other = own.init()
     for u, (j, g) in zip(points, values, strict=True):
         other, _ = own.observe(other, jnp.asarray(u, jnp.float32), NO_CONTEXT, jnp.float32(j), jnp.float32(g))
     for a, b in zip(jax.tree.leaves(other.gp_params), jax.tree.leaves(state.gp_params), strict=True):
         np.testing.assert_array_equal(a, b)
-    data = gp.Dataset(jnp.asarray(points, jnp.float32), jnp.asarray(values[:, 1], jnp.float32),
-                      jnp.ones(len(points), bool))
+    data = gp.Dataset(
+        jnp.asarray(points, jnp.float32), jnp.asarray(values[:, 1], jnp.float32), jnp.ones(len(points), bool)
+    )
     active = jnp.ones(2, bool)
 
     def log_map(params):
@@ -182,15 +226,23 @@ def test_fallback_does_not_repeat_parameters_that_fell_in_this_context():
     """One context dimension: two gaits safe at c = 0.1; the better one (a) fell at c = 0.9. At c = 0.9 nothing is
     certified, and the fallback walks b, the safe gait with the higher expected margin there, not a again."""
     config = optimizer_config.OptimizerConfig(
-        parameter_lower=(0.0, 0.0), parameter_upper=(1.0, 1.0), context_lower=(0.0,), context_upper=(1.0,),
-        context_thresholds=(0.1,), capacity=6, safe=True, fit=gp.FitConfig(40, 0.2),
-        acquisition=AcquisitionConfig(256, 8, 40, 0.05))
+        parameter_lower=(0.0, 0.0),
+        parameter_upper=(1.0, 1.0),
+        context_lower=(0.0,),
+        context_upper=(1.0,),
+        context_thresholds=(0.1,),
+        capacity=6,
+        safe=True,
+        fit=gp.FitConfig(40, 0.2),
+        acquisition=AcquisitionConfig(256, 8, 40, 0.05),
+    )
     opt = bo.make_optimizer(config)
     a, b = [0.3, 0.3], [0.7, 0.7]
     state = opt.init()
     for x, c, j, g in ((a, 0.1, 2.0, 0.5), (b, 0.1, 1.0, 0.4), (a, 0.9, -1.0, -2.0), ([0.2, 0.8], 0.9, -1.0, -1.5)):
-        state, _ = opt.observe(state, jnp.asarray(x, jnp.float32), jnp.asarray([c], jnp.float32), jnp.float32(j),
-                               jnp.float32(g))
+        state, _ = opt.observe(
+            state, jnp.asarray(x, jnp.float32), jnp.asarray([c], jnp.float32), jnp.float32(j), jnp.float32(g)
+        )
     x, back = opt.propose_with_fallback(state, jnp.asarray([0.9], jnp.float32), jax.random.PRNGKey(1))
     assert bool(back)
     np.testing.assert_allclose(np.asarray(x), b, atol=1e-6)
@@ -240,14 +292,23 @@ def test_black_box_safe_run_violates_far_less_and_finds_the_constrained_optimum(
 
 # ------------------------------------------------------------------------------------- safety stops on the robot
 
+
 def test_only_the_trips_a_gait_causes_become_unsafe_trials():
     from cpgjax.robot import safety
 
-    state_reasons = ["tilt: roll +0.812 rad, pitch +0.010 rad beyond ±0.7 rad",
-                     "power protection: Σ|tauEst·dq| = 1210 W > 900 W (level 9)", "the SDK's power protection tripped"]
-    other = ["remote stop buttons L2+B pressed", "motor temperature: motor 3 at 80 °C ≥ 70 °C",
-             "no robot state within 2.0 s", "non-finite command (tau)",
-             "stale state: no new robot tick for 6 ticks", None]
+    state_reasons = [
+        "tilt: roll +0.812 rad, pitch +0.010 rad beyond ±0.7 rad",
+        "power protection: Σ|tauEst·dq| = 1210 W > 900 W (level 9)",
+        "the SDK's power protection tripped",
+    ]
+    other = [
+        "remote stop buttons L2+B pressed",
+        "motor temperature: motor 3 at 80 °C ≥ 70 °C",
+        "no robot state within 2.0 s",
+        "non-finite command (tau)",
+        "stale state: no new robot tick for 6 ticks",
+        None,
+    ]
     assert [safety.is_gait_trip(r) for r in state_reasons] == [True] * 3
     assert [safety.is_gait_trip(r) for r in other] == [False] * len(other)
 

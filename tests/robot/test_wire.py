@@ -24,28 +24,51 @@ def _reference_crc(data: bytes) -> int:
 
 def _state(**overrides) -> wire.RobotState:
     fields = dict(
-        tick_ms=1234, quaternion_wxyz=np.array([0.9, 0.1, 0.2, 0.3]), gyro_rad_s=np.array([1.0, 2.0, 3.0]),
-        accel_mps2=np.array([0.0, 0.0, 9.8]), rpy_rad=np.array([0.1, 0.2, 0.3]),
-        motor_mode=np.full(12, wire.MODE_SERVO, np.uint8), q_rad=np.linspace(-1, 1, 12),
-        dq_rad_s=np.linspace(2, -2, 12), tau_est_nm=np.linspace(-20, 20, 12),
-        motor_temperature_c=np.arange(12) + 30, foot_force_raw=np.array([10, -20, 300, 4000]),
-        wireless_remote=wire.remote_with_buttons("L2", "B"))
+        tick_ms=1234,
+        quaternion_wxyz=np.array([0.9, 0.1, 0.2, 0.3]),
+        gyro_rad_s=np.array([1.0, 2.0, 3.0]),
+        accel_mps2=np.array([0.0, 0.0, 9.8]),
+        rpy_rad=np.array([0.1, 0.2, 0.3]),
+        motor_mode=np.full(12, wire.MODE_SERVO, np.uint8),
+        q_rad=np.linspace(-1, 1, 12),
+        dq_rad_s=np.linspace(2, -2, 12),
+        tau_est_nm=np.linspace(-20, 20, 12),
+        motor_temperature_c=np.arange(12) + 30,
+        foot_force_raw=np.array([10, -20, 300, 4000]),
+        wireless_remote=wire.remote_with_buttons("L2", "B"),
+    )
     fields.update(overrides)
     return wire.RobotState(**fields)
 
 
 def _command(tau=None, kp=None, kd=None) -> wire.MotorCommand:
     i = np.arange(12)
-    return wire.MotorCommand(np.full(12, wire.MODE_SERVO, np.uint8), 0.1 * i, -0.2 * i,
-                              1.7 * i - 10 if tau is None else tau, 3.3 * i if kp is None else kp,
-                              0.7 * i if kd is None else kd)
+    return wire.MotorCommand(
+        np.full(12, wire.MODE_SERVO, np.uint8),
+        0.1 * i,
+        -0.2 * i,
+        1.7 * i - 10 if tau is None else tau,
+        3.3 * i if kp is None else kp,
+        0.7 * i if kd is None else kd,
+    )
 
 
 def test_sizes_and_offsets_match_the_sdk_wire_layout():
     assert wire.LOW_CMD_DTYPE.itemsize == 614 and wire.LOW_STATE_DTYPE.itemsize == 807
     cmd_fields = {name: wire.LOW_CMD_DTYPE.fields[name][1] for name in wire.LOW_CMD_DTYPE.names}
-    assert cmd_fields == {"head": 0, "level_flag": 2, "frame_reserve": 3, "sn": 4, "version": 12, "bandwidth": 20,
-                          "motor": 22, "bms": 562, "wireless_remote": 566, "reserve": 606, "crc": 610}
+    assert cmd_fields == {
+        "head": 0,
+        "level_flag": 2,
+        "frame_reserve": 3,
+        "sn": 4,
+        "version": 12,
+        "bandwidth": 20,
+        "motor": 22,
+        "bms": 562,
+        "wireless_remote": 566,
+        "reserve": 606,
+        "crc": 610,
+    }
     state_fields = {name: wire.LOW_STATE_DTYPE.fields[name][1] for name in wire.LOW_STATE_DTYPE.names}
     assert state_fields["imu"] == 22 and state_fields["motor"] == 75 and state_fields["bms"] == 715
     assert state_fields["foot_force"] == 739 and state_fields["tick"] == 755
@@ -75,8 +98,19 @@ def test_low_cmd_fixed_point_encoding_truncates_toward_zero():
     assert int.from_bytes(packet[610:], "little") == _reference_crc(packet[:608])
 
 
-@pytest.mark.parametrize("field, value", [("tau", 128.0), ("tau", -128.5), ("tau", np.nan), ("kp", -1.0),
-                                          ("kp", 2048.0), ("kd", -0.1), ("kd", 4096.0), ("kd", np.inf)])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("tau", 128.0),
+        ("tau", -128.5),
+        ("tau", np.nan),
+        ("kp", -1.0),
+        ("kp", 2048.0),
+        ("kd", -0.1),
+        ("kd", 4096.0),
+        ("kd", np.inf),
+    ],
+)
 def test_values_the_wire_would_wrap_are_refused(field, value):
     values = {"tau": np.zeros(12), "kp": np.zeros(12), "kd": np.zeros(12)}
     values[field][5] = value
@@ -111,16 +145,18 @@ def test_low_state_round_trip_and_encodings():
     np.testing.assert_array_equal(back.motor_temperature_c, state.motor_temperature_c)
     np.testing.assert_allclose(back.q_rad, state.q_rad, rtol=1e-6)
     np.testing.assert_allclose(back.tau_est_nm, state.tau_est_nm, atol=1 / 512)
-    assert wire.remote_buttons(back.wireless_remote) == (wire.REMOTE_BUTTON_BITS["L2"]
-                                                          | wire.REMOTE_BUTTON_BITS["B"])
+    assert wire.remote_buttons(back.wireless_remote) == (wire.REMOTE_BUTTON_BITS["L2"] | wire.REMOTE_BUTTON_BITS["B"])
 
 
-@pytest.mark.parametrize("damage, match", [
-    (lambda p: p[:-4] + bytes(4), "crc"),
-    (lambda p: b"\x00\x00" + p[2:], "head"),
-    (lambda p: p[:2] + b"\xee" + p[3:], "level"),
-    (lambda p: p[:-1], "bytes"),
-])
+@pytest.mark.parametrize(
+    "damage, match",
+    [
+        (lambda p: p[:-4] + bytes(4), "crc"),
+        (lambda p: b"\x00\x00" + p[2:], "head"),
+        (lambda p: p[:2] + b"\xee" + p[3:], "level"),
+        (lambda p: p[:-1], "bytes"),
+    ],
+)
 def test_invalid_state_datagrams_are_rejected(damage, match):
     with pytest.raises(wire.ProtocolError, match=match):
         wire.decode_low_state(damage(wire.encode_low_state(_state())))
@@ -134,6 +170,7 @@ def test_fault_injection_helpers_break_exactly_one_thing():
 
 
 # ------------------------------------------------------------------------------------ against the real SDK wheel
+
 
 @pytest.fixture
 def sdk_pair():
@@ -160,8 +197,11 @@ def test_the_sdk_sends_what_we_decode_and_we_encode_what_it_sends(sdk_pair):
     motors = cmd.motorCmd
     for i in range(12):
         motors[i].q, motors[i].dq = float(ours.q_rad[i]), float(ours.dq_rad_s[i])
-        motors[i].tau, motors[i].Kp, motors[i].Kd = (float(ours.tau_nm[i]), float(ours.kp_nm_rad[i]),
-                                                     float(ours.kd_nm_s_rad[i]))
+        motors[i].tau, motors[i].Kp, motors[i].Kd = (
+            float(ours.tau_nm[i]),
+            float(ours.kp_nm_rad[i]),
+            float(ours.kd_nm_s_rad[i]),
+        )
     udp.SetSend(cmd)
     udp.Send()
     packet, _ = robot.recvfrom(2048)

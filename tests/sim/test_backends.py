@@ -33,8 +33,9 @@ def _with_joints(sim, state, qpos, qvel):
     """``state`` with the instances' qpos and qvel replaced."""
     if sim.name == "mjx":
         data = state.data
-        return state._replace(data=data.replace(qpos=jnp.asarray(qpos, data.qpos.dtype),
-                                                qvel=jnp.asarray(qvel, data.qvel.dtype)))
+        return state._replace(
+            data=data.replace(qpos=jnp.asarray(qpos, data.qpos.dtype), qvel=jnp.asarray(qvel, data.qvel.dtype))
+        )
     layout, physics = sim.physics.layout, state.physics.copy()
     physics[:, layout.qpos], physics[:, layout.qvel] = qpos, qvel
     return state._replace(physics=physics)
@@ -53,8 +54,9 @@ def test_both_backends_have_every_member_of_the_interface_with_its_signature(sim
     for name, member in _members(base.Backend).items():
         if callable(member):
             ours, interface = inspect.signature(getattr(type(sim), name)), inspect.signature(member)
-            assert [(p.name, p.kind, p.default) for p in ours.parameters.values()] == \
-                [(p.name, p.kind, p.default) for p in interface.parameters.values()], name
+            assert [(p.name, p.kind, p.default) for p in ours.parameters.values()] == [
+                (p.name, p.kind, p.default) for p in interface.parameters.values()
+            ], name
 
 
 def test_bad_parameters_are_rejected_before_simulation(sim, mid_params):
@@ -66,8 +68,7 @@ def test_bad_parameters_are_rejected_before_simulation(sim, mid_params):
         sim.reset(mid_params[:2])
 
 
-def test_one_exploding_instance_leaves_the_others_unchanged(sim, mid_params, vmc_tegotae_gates, tmp_path,
-                                                            monkeypatch):
+def test_one_exploding_instance_leaves_the_others_unchanged(sim, mid_params, vmc_tegotae_gates, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # C MuJoCo logs its instability warning to ./MUJOCO_LOG.TXT
     start = sim.reset(mid_params)
     start, _ = sim.trial(start, mid_params, vmc_tegotae_gates)

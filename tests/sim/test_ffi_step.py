@@ -33,8 +33,9 @@ def test_the_cache_name_changes_with_the_compiler():
 
 
 @pytest.mark.parametrize("case", ["no compiler", "failing compiler"])
-def test_without_a_working_compiler_one_line_says_so_and_the_backend_steps_tick_by_tick(case, tmp_path, monkeypatch,
-                                                                                        caplog):
+def test_without_a_working_compiler_one_line_says_so_and_the_backend_steps_tick_by_tick(
+    case, tmp_path, monkeypatch, caplog
+):
     monkeypatch.setenv("CPGJAX_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(ffi_step, "_compiler", lambda: None if case == "no compiler" else "false")
     monkeypatch.setattr(ffi_step, "load", ffi_step.load.__wrapped__)  # not the process's cached library
@@ -54,18 +55,22 @@ def test_one_pool_thread_is_asked_for_before_the_client_and_a_preset_size_is_kep
     then has one pool thread (``tf_XLAEigen``); after a computation it reports False. A size the environment sets is
     kept (3 threads, although this machine may have fewer cores). It appends the depth-first schedule to XLA_FLAGS,
     which XLA accepts (it aborts the process on a flag it does not know), unless XLA_FLAGS already name it."""
-    code = ("import glob, os\n"
-            "from cpgjax.robot import cpu_dispatch\n"
-            "first = cpu_dispatch.request_one_pool_thread()\n"
-            "import jax.numpy as jnp\n"
-            "(jnp.ones((256, 256)) @ jnp.ones((256, 256))).block_until_ready()\n"
-            "names = [open(f).read().strip() for f in glob.glob('/proc/self/task/*/comm')]\n"
-            "print(first, os.environ['NPROC'], cpu_dispatch.request_one_pool_thread(), names.count('tf_XLAEigen'))\n"
-            "print(os.environ['XLA_FLAGS'])\n")
+    code = (
+        "import glob, os\n"
+        "from cpgjax.robot import cpu_dispatch\n"
+        "first = cpu_dispatch.request_one_pool_thread()\n"
+        "import jax.numpy as jnp\n"
+        "(jnp.ones((256, 256)) @ jnp.ones((256, 256))).block_until_ready()\n"
+        "names = [open(f).read().strip() for f in glob.glob('/proc/self/task/*/comm')]\n"
+        "print(first, os.environ['NPROC'], cpu_dispatch.request_one_pool_thread(), names.count('tf_XLAEigen'))\n"
+        "print(os.environ['XLA_FLAGS'])\n"
+    )
     env = {k: v for k, v in os.environ.items() if k not in ("NPROC", "XLA_FLAGS")} | {"JAX_PLATFORMS": "cpu"}
     if preset:  # a size and a schedule of the user's, beside another flag
-        env |= {"NPROC": preset, "XLA_FLAGS": "--xla_cpu_enable_fast_min_max=true "
-                                              "--xla_cpu_enable_concurrency_optimized_scheduler=true"}
+        env |= {
+            "NPROC": preset,
+            "XLA_FLAGS": "--xla_cpu_enable_fast_min_max=true --xla_cpu_enable_concurrency_optimized_scheduler=true",
+        }
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
     threads, flags = out.stdout.splitlines()
@@ -110,8 +115,13 @@ physics.close()
 after, _ = run()
 print(on > 0, off, off_again, calls_during, after > 0, len(calls) > 0, np.array_equal(q_on, q_off))
 """
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                         env=os.environ | {"JAX_PLATFORMS": "cpu"})
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=os.environ | {"JAX_PLATFORMS": "cpu"},
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["True", "0.0", "0.0", "0", "True", "True", "True"]
 
@@ -145,8 +155,10 @@ else:
           int(physics.accounts().sum()), physics.physics.tobytes().hex())
 """
     env = os.environ | {"JAX_PLATFORMS": "cpu"}
-    out = {build: subprocess.run([sys.executable, "-c", code, build], capture_output=True, text=True, timeout=300,
-                                 env=env) for build in ("accounts", "plain")}
+    out = {
+        build: subprocess.run([sys.executable, "-c", code, build], capture_output=True, text=True, timeout=300, env=env)
+        for build in ("accounts", "plain")
+    }
     for build, done in out.items():
         assert done.returncode == 0, (build, done.stderr[-2000:])
     counted, plain = out["accounts"].stdout.split("\n")[0], out["plain"].stdout.split()

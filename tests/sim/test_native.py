@@ -36,10 +36,14 @@ def native_two_trials(native_sim, mid_params, vmc_tegotae_gates):
 
 
 def _figures(record) -> dict[str, np.ndarray]:
-    return {"v_x": np.asarray(objective.mean_velocity(record))[..., 0],
-            "cot": np.asarray(objective.cost_of_transport(record)),
-            "c_load": np.asarray(record.c_load_n), "c_slope": np.asarray(record.c_slope_rad),
-            "fell": np.asarray(record.fell), "margin": np.asarray(record.safety_margin)}
+    return {
+        "v_x": np.asarray(objective.mean_velocity(record))[..., 0],
+        "cot": np.asarray(objective.cost_of_transport(record)),
+        "c_load": np.asarray(record.c_load_n),
+        "c_slope": np.asarray(record.c_slope_rad),
+        "fell": np.asarray(record.fell),
+        "margin": np.asarray(record.safety_margin),
+    }
 
 
 @pytest.mark.parametrize("stepping", [*native_physics.STEPPINGS, native_oracle.STEPPING])
@@ -93,8 +97,9 @@ def test_trajectories_agree_with_mjx_over_a_short_horizon(short_sim, native_sim,
     np.testing.assert_allclose(nq[:, :200, :3], mq[:, :200, :3], atol=2e-3)
     np.testing.assert_allclose(nq[:, :200][..., ids.joint_qpos], mq[:, :200][..., ids.joint_qpos], atol=3e-2)
     # Feet (kinematics of qpos here, geom_xpos in MJX): 5 mm, i.e. the 0.01 rad joint tolerance over a 0.43 m leg.
-    np.testing.assert_allclose(np.asarray(native_log.foot_pos_m)[STEADY], np.asarray(mjx_log.foot_pos_m)[STEADY],
-                               atol=5e-3)
+    np.testing.assert_allclose(
+        np.asarray(native_log.foot_pos_m)[STEADY], np.asarray(mjx_log.foot_pos_m)[STEADY], atol=5e-3
+    )
     phase_error = np.angle(np.exp(1j * (np.asarray(native_log.phase_rad) - np.asarray(mjx_log.phase_rad))))
     assert np.abs(phase_error[STEADY]).max() < 0.05
 
@@ -137,10 +142,12 @@ def test_trial_figures_agree_statistically_over_random_parameters(short_sim, nat
         native.append(_figures(native_record))
     n = {k: np.concatenate([f[k] for f in native]) for k in native[0]}
     m = {k: np.concatenate([f[k] for f in mjx]) for k in mjx[0]}
-    differences = {"v_x": np.abs(n["v_x"] - m["v_x"]),
-                   "cot": np.abs(n["cot"] - m["cot"]) / np.maximum(m["cot"], 1e-3),
-                   "c_load": np.abs(n["c_load"] - m["c_load"]) / np.maximum(m["c_load"], 1.0),  # 0 N after a fall
-                   "c_slope": np.abs(n["c_slope"] - m["c_slope"])}
+    differences = {
+        "v_x": np.abs(n["v_x"] - m["v_x"]),
+        "cot": np.abs(n["cot"] - m["cot"]) / np.maximum(m["cot"], 1e-3),
+        "c_load": np.abs(n["c_load"] - m["c_load"]) / np.maximum(m["c_load"], 1.0),  # 0 N after a fall
+        "c_slope": np.abs(n["c_slope"] - m["c_slope"]),
+    }
     tight = {"v_x": 0.02, "cot": 0.05, "c_load": 0.02, "c_slope": 0.01}
     same_outcome = n["fell"] == m["fell"]
     agree = same_outcome & np.all([differences[k] <= tight[k] for k in tight], axis=0)

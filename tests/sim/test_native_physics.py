@@ -32,16 +32,22 @@ from tests import native_oracle
 
 TRIAL = protocol.TrialConfig(transition_steps=60, steady_steps=120)
 TRIALS = 4
-needs_ffi = pytest.mark.skipif(not ffi_step.available(), reason="the native physics step could not be built here "
-                               "(no C++ compiler, or the build failed: see the warning it logs)")
+needs_ffi = pytest.mark.skipif(
+    not ffi_step.available(),
+    reason="the native physics step could not be built here "
+    "(no C++ compiler, or the build failed: see the warning it logs)",
+)
 
 
 def _optimizer():
     ranges = StudySpec("ranges", physics=("paper",)).optimizer_config()
-    return optimizer_setting.paper_config(capacity=TRIALS, fit=gp.FitConfig(num_steps=4),
-                                          context_lower=ranges.context_lower, context_upper=ranges.context_upper,
-                                          acquisition=acquisition.AcquisitionConfig(num_candidates=16, num_restarts=1,
-                                                                                   num_steps=3))
+    return optimizer_setting.paper_config(
+        capacity=TRIALS,
+        fit=gp.FitConfig(num_steps=4),
+        context_lower=ranges.context_lower,
+        context_upper=ranges.context_upper,
+        acquisition=acquisition.AcquisitionConfig(num_candidates=16, num_restarts=1, num_steps=3),
+    )
 
 
 def _spec(study: str, batch: int) -> StudySpec:
@@ -55,8 +61,9 @@ def _spec(study: str, batch: int) -> StudySpec:
 
 def _three_scenarios(physics: str = "paper"):
     """The physics tests' batch: three floors, slopes and payloads under the paper profile."""
-    return go1_model.make_scenarios(friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0],
-                                    payload_kg=[0.0, 7.5, 15.0], physics=physics)
+    return go1_model.make_scenarios(
+        friction=[0.6, 0.3, 0.9], slope_deg=[0.0, 5.0, -5.0], payload_kg=[0.0, 7.5, 15.0], physics=physics
+    )
 
 
 def _assert_the_reference_steps_so(ref, new, torques, outputs):
@@ -104,8 +111,7 @@ def test_a_study_writes_the_same_bytes_with_either_stepping(study, batch, tmp_pa
 
 @pytest.mark.parametrize("physics", ["paper", "paper_5khz"])
 @pytest.mark.parametrize("stepping", ["batch", pytest.param("ffi", marks=needs_ffi)])
-def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(stepping, physics, tmp_path,
-                                                                             monkeypatch):
+def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(stepping, physics, tmp_path, monkeypatch):
     """The physics alone, 200 PD-driven ticks of three scenarios with instance 1 sent to an infinite velocity at
     tick 50: every array equal bit for bit after every tick, and the diverged instance flagged once and back to
     standing; under ``paper_5khz`` a tick is five physics steps of 0.2 ms, the torques held."""
@@ -120,8 +126,9 @@ def test_every_stepping_steps_and_resets_a_diverged_instance_as_the_reference(st
             for p in (ref, new):
                 p.physics[1, p.layout.qvel] = np.inf
         q, dq = new.physics[:, new.layout.qpos][:, ids.joint_qpos], new.physics[:, new.layout.qvel][:, ids.joint_dof]
-        torque = (60.0 * (q_stand + 0.3 * np.sin(0.03 * k) - q)
-                  - np.nan_to_num(dq, posinf=0.0, neginf=0.0)).astype(np.float32)
+        torque = (60.0 * (q_stand + 0.3 * np.sin(0.03 * k) - q) - np.nan_to_num(dq, posinf=0.0, neginf=0.0)).astype(
+            np.float32
+        )
         failed_ref, failed_new = ref.step(torque), new.step(torque)
         np.testing.assert_array_equal(failed_new, failed_ref)
         for a, b in zip(new.get_state(), ref.get_state(), strict=True):
@@ -154,6 +161,7 @@ def test_the_step_called_inside_a_compiled_loop_equals_the_reference():
     def run(handle, torques):
         def step(k, outputs):
             return outputs.at[k].set(ffi_step.call(handle, torques[k], shape))
+
         return jax.lax.fori_loop(0, len(torques), step, jax.numpy.zeros((len(torques), *shape)))
 
     _assert_the_reference_steps_so(ref, new, torques, np.asarray(run(new.ffi_handle, torques)))
@@ -165,8 +173,12 @@ def test_the_overlapped_steps_of_two_halves_equal_the_reference():
     ``ffi_step.finish`` at the end) in one jitted loop, four instances in halves of two, 100 random torques: every
     half's output of every step is the reference's (the ``batch`` stepping from Python), and so are the states
     after, bit for bit, whichever thread stepped an instance."""
-    scenario = go1_model.make_scenarios(friction=[0.6, 0.3, 0.9, 0.45], slope_deg=[0.0, 5.0, -5.0, 2.5],
-                                        payload_kg=[0.0, 7.5, 15.0, 3.0], physics="paper")
+    scenario = go1_model.make_scenarios(
+        friction=[0.6, 0.3, 0.9, 0.45],
+        slope_deg=[0.0, 5.0, -5.0, 2.5],
+        payload_kg=[0.0, 7.5, 15.0, 3.0],
+        physics="paper",
+    )
     ref, new = (native_physics.BatchPhysics(scenario, stepping=s) for s in ("batch", "ffi"))
     torques = np.random.default_rng(1).normal(scale=3.0, size=(100, 4, 12)).astype(np.float32)
     n, half, width = len(torques), 2, new.layout.size + new.sensordata.shape[1] + 1
@@ -182,8 +194,9 @@ def test_the_overlapped_steps_of_two_halves_equal_the_reference():
             other = ffi_step.alternate(handle, torque, p, width)  # the other half after its step ⌊(j − 1)/2⌋
             return jax.numpy.where(j == 0, outputs, outputs.at[(j - 1) // 2, 1 - p].set(other)), other
 
-        outputs, last = jax.lax.fori_loop(0, 2 * n, half_step, (jax.numpy.zeros((n, 2, half, width)),
-                                                                 jax.numpy.zeros((half, width))))
+        outputs, last = jax.lax.fori_loop(
+            0, 2 * n, half_step, (jax.numpy.zeros((n, 2, half, width)), jax.numpy.zeros((half, width)))
+        )
         outputs = outputs.at[n - 1, 1].set(ffi_step.finish(handle, last, (half, 2 * half), width))
         return outputs.reshape(n, 2 * half, width)
 
@@ -202,8 +215,9 @@ def test_a_half_started_out_of_turn_is_refused_in_one_line_and_the_stepper_goes_
 
 
 @needs_ffi
-def test_an_ffi_trial_follows_the_per_tick_trial_to_rounding_until_the_dynamics_amplify_it(native_sim, mid_params,
-                                                                                          vmc_tegotae_gates):
+def test_an_ffi_trial_follows_the_per_tick_trial_to_rounding_until_the_dynamics_amplify_it(
+    native_sim, mid_params, vmc_tegotae_gates
+):
     """The session batch (nominal, 15 kg, uphill, μ = 0.1, coarse, nominal) from standing, 300 logged ticks with
     each stepping from the same state: every logged quantity (state, torques, foot forces and positions, CPG, foot
     targets, attitude) agrees within 1e-4 of its size (of 1 where smaller). Measured (the ffi trial in two
@@ -220,5 +234,4 @@ def test_an_ffi_trial_follows_the_per_tick_trial_to_rounding_until_the_dynamics_
     for name, per_tick, fused in zip(protocol.StepLog._fields, *logs, strict=True):
         per_tick, fused = np.asarray(per_tick), np.asarray(fused)
         assert np.all(np.isfinite(fused)), name
-        np.testing.assert_array_less(np.abs(fused - per_tick), 1e-4 * np.maximum(np.abs(per_tick), 1.0),
-                                     err_msg=name)
+        np.testing.assert_array_less(np.abs(fused - per_tick), 1e-4 * np.maximum(np.abs(per_tick), 1.0), err_msg=name)

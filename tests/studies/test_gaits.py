@@ -20,8 +20,14 @@ from tests import test_outputs
 # The phase offsets of FL, RR, RL behind FR [multiples of π], typed from the CPG-RL code of Bellegarda & Ijspeert
 # (leg order FR, FL, RR, RL, as cpgjax.go1.constants.LEG_NAMES): trot, pace, bound and its walk (a diagonal
 # sequence); the lateral-sequence walk is that walk negated; the pronk has every leg together.
-SOURCE_OFFSETS_PI = {"trot": (1, 1, 0), "pace": (1, 0, 1), "bound": (0, 1, 1), "walk_diagonal": (1, 1.5, 0.5),
-                     "walk": (1, 0.5, 1.5), "pronk": (0, 0, 0)}
+SOURCE_OFFSETS_PI = {
+    "trot": (1, 1, 0),
+    "pace": (1, 0, 1),
+    "bound": (0, 1, 1),
+    "walk_diagonal": (1, 1.5, 0.5),
+    "walk": (1, 0.5, 1.5),
+    "pronk": (0, 0, 0),
+}
 # Each walk's footfalls after FR's, in time: the lateral sequence puts a hind foot before the fore foot of its own
 # side (RL → FL → RR → FR), the diagonal one before the fore foot of the other side (RR → FL → RL → FR).
 FOOTFALLS_AFTER_FR = {"walk": ("RL", "FL", "RR"), "walk_diagonal": ("RR", "FL", "RL")}
@@ -36,8 +42,15 @@ def logs():
     names = list(cpg.GAITS)
     scenario = go1_model.make_scenarios(friction=[0.6] * len(names), physics="paper")
     params = np.tile(param_space.midpoint(), (len(names), 1))
-    return dict(zip(names, registry.rollouts(params, ["open_loop"] * len(names), scenario, protocol.TrialConfig(),
-                                             "native", 3000, names), strict=True))
+    return dict(
+        zip(
+            names,
+            registry.rollouts(
+                params, ["open_loop"] * len(names), scenario, protocol.TrialConfig(), "native", 3000, names
+            ),
+            strict=True,
+        )
+    )
 
 
 def test_every_gait_of_the_source_is_offered():
@@ -96,8 +109,9 @@ def _run(tmp_path, gaits):
     path.write_text(STUDY.format(gaits=json.dumps(gaits)))
     study = study_driver.read(path)
     out = tmp_path / "_".join(gaits)
-    text, out, result = study_driver.run_file(study, study_options.RunOptions(
-        out=out, backend="native", notify=lambda line: None))
+    text, out, result = study_driver.run_file(
+        study, study_options.RunOptions(out=out, backend="native", notify=lambda line: None)
+    )
     return out, result
 
 
@@ -107,8 +121,9 @@ def test_a_gaits_axis_runs_each_gait_as_data_and_its_files_carry_it(tmp_path):
     every one documented) and each group's best_params names its gait."""
     out, result = _run(tmp_path, ["trot", "bound"])
     engine = ablation.Engine(result.spec, backend="native")
-    np.testing.assert_array_equal(engine.gates.phase_lag_rad[:2],
-                                  np.float32([cpg.gait_phase_lags("trot"), cpg.gait_phase_lags("bound")]))
+    np.testing.assert_array_equal(
+        engine.gates.phase_lag_rad[:2], np.float32([cpg.gait_phase_lags("trot"), cpg.gait_phase_lags("bound")])
+    )
     table = pq.read_table(out / "trials.parquet").to_pydict()
     assert table["gait"] == ["trot", "trot", "bound", "bound"] and set(table["terrain"]) == {"flat"}
     assert test_outputs.undocumented("study trials.parquet", table) == []

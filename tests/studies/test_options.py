@@ -33,8 +33,10 @@ def test_a_studys_trials_and_max_trials_in_their_range():
     low = limits.MIN_STUDY_TRIALS
     for option, key in (("--trials", "trials"), ("--max-trials", "max_trials")):
         _refused(rf"{option} = {low - 1}: need an integer >= {low}", **{key: low - 1})
-        _refused(rf"{option} = {limits.MAX_TRIALS + 1}: need an integer <= {limits.MAX_TRIALS}",
-                 **{key: limits.MAX_TRIALS + 1})
+        _refused(
+            rf"{option} = {limits.MAX_TRIALS + 1}: need an integer <= {limits.MAX_TRIALS}",
+            **{key: limits.MAX_TRIALS + 1},
+        )
         assert getattr(study_options.StudyOptions(**{key: low}), key) == low
 
 
@@ -47,27 +49,35 @@ def test_processes_within_this_machines_cpus_and_not_with_distributed():
 
 def test_an_optimizations_trials_and_max_trials():
     kind = study_options.OptimizeOptions
-    _refused(rf"--trials = {limits.MIN_TRIALS - 1}: need an integer >= {limits.MIN_TRIALS}", kind,
-             trials=limits.MIN_TRIALS - 1)
+    _refused(
+        rf"--trials = {limits.MIN_TRIALS - 1}: need an integer >= {limits.MIN_TRIALS}",
+        kind,
+        trials=limits.MIN_TRIALS - 1,
+    )
     _refused(r"--max-trials 4: need at least --trials \(8\)", kind, trials=8, max_trials=4)
     spec = kind(trials=8, max_trials=12, friction=0.9, controller="tegotae").spec()
     assert (spec.num_trials, spec.max_trials, spec.friction, spec.controllers) == (8, 12, (0.9,), ("tegotae",))
 
 
 def test_the_overrides_are_the_study_file_readers_keywords():
-    given = study_options.StudyOptions(quick=True, seeds=3, trials=12, physics="soft", safe=True, max_trials=20,
-                                       startup="lean_ramp", gaits=("trot",))
-    assert given.overrides() == dict(quick=True, seeds=3, trials=12, physics="soft", safe=True, max_trials=20,
-                                     startup="lean_ramp", gaits=("trot",))
+    given = study_options.StudyOptions(
+        quick=True, seeds=3, trials=12, physics="soft", safe=True, max_trials=20, startup="lean_ramp", gaits=("trot",)
+    )
+    assert given.overrides() == dict(
+        quick=True, seeds=3, trials=12, physics="soft", safe=True, max_trials=20, startup="lean_ramp", gaits=("trot",)
+    )
     study = study_spec.read(study_driver.find("friction"), **given.overrides())
     assert (len(study.spec.seeds), study.spec.num_trials, study.spec.max_trials) == (3, 12, 20)
 
 
-@pytest.mark.parametrize("argv, said", [
-    (["study", "friction", "--trials", "3"], "cpgjax study: --trials = 3: need an integer >= "),
-    (["study", "friction", "--seeds", "0"], "cpgjax study: --seeds = 0: need an integer >= 1"),
-    (["optimize", "--trials", "8", "--max-trials", "4"], "cpgjax optimize: --max-trials 4: need at least --trials"),
-])
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["study", "friction", "--trials", "3"], "cpgjax study: --trials = 3: need an integer >= "),
+        (["study", "friction", "--seeds", "0"], "cpgjax study: --seeds = 0: need an integer >= 1"),
+        (["optimize", "--trials", "8", "--max-trials", "4"], "cpgjax optimize: --max-trials 4: need at least --trials"),
+    ],
+)
 def test_the_command_line_refuses_through_the_options(argv, said, capsys, tmp_path):
     assert cli.main([*argv, "--out", str(tmp_path / "never")]) == 2
     err = capsys.readouterr().err

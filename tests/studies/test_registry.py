@@ -29,6 +29,7 @@ from tests.test_outputs import undocumented
 
 # ----------------------------------------------------------------------------------------------- specifications
 
+
 def _spec(name, **overrides):
     return study_driver.read(name, **overrides).spec
 
@@ -40,8 +41,10 @@ ABLATION_REPORT = registry.REPORTS["controller_ablation"]
 
 def _write_ablation(result, out, **kwargs) -> str:
     """Every file of the ablation's finished run, as ``cpgjax study`` writes them."""
-    return study_driver.write_study(study_driver.one_folder(result.spec, ABLATION_REPORT), {result.spec.name: result},
-                                    out, "native", **kwargs)
+    return study_driver.write_study(
+        study_driver.one_folder(result.spec, ABLATION_REPORT), {result.spec.name: result}, out, "native", **kwargs
+    )
+
 
 def test_specs_follow_the_paper():
     spec = _spec("controller_ablation")
@@ -83,16 +86,20 @@ def test_specs_follow_the_paper():
         assert quick.num_trials < _spec(name).num_trials and len(quick.seeds) == 2
 
 
-@pytest.mark.parametrize("name, message", [
-    ("nope", "unknown study 'nope': the paper's studies are controller_ablation, friction"),
-    ("nope.toml", "study file nope.toml does not exist"),
-])
+@pytest.mark.parametrize(
+    "name, message",
+    [
+        ("nope", "unknown study 'nope': the paper's studies are controller_ablation, friction"),
+        ("nope.toml", "study file nope.toml does not exist"),
+    ],
+)
 def test_bad_study_names(name, message):
     with pytest.raises(study_spec.StudyError, match=message):
         study_driver.read(name)
 
 
 # ----------------------------------------------------------------------------------------------- analyses
+
 
 def test_trials_to_track_counts_from_the_change():
     v = np.array([0.1, 0.2, 0.79, 0.5, 0.35, 0.31, 0.3])
@@ -113,10 +120,14 @@ def test_last_mean_and_phase_starts():
 
 # ----------------------------------------------------------------------------------------------- outputs
 
+
 @pytest.fixture(scope="module")
 def tiny_ablation(tmp_path_factory):
-    spec = dataclasses.replace(_spec("controller_ablation", seeds=1, trials=4), optimizer=small_optimizer(4),
-                               trial=protocol.TrialConfig(transition_steps=100, steady_steps=200))
+    spec = dataclasses.replace(
+        _spec("controller_ablation", seeds=1, trials=4),
+        optimizer=small_optimizer(4),
+        trial=protocol.TrialConfig(transition_steps=100, steady_steps=200),
+    )
     out = tmp_path_factory.mktemp("controller_ablation")
     engine = ablation.Engine(spec, backend="native")
     result = engine.run(out)
@@ -148,13 +159,29 @@ def test_ablation_outputs(tiny_ablation):
     assert "- 1 seed: no interval or test below 3 seeds." in text.splitlines()
     assert (out / "table.md").read_text().startswith("# controller_ablation")
     assert "Roll–pitch of the best parameters" in (out / "table.md").read_text()  # the attitude figure's rows
-    for png in ("learning_curves.png", "attitude.png", "attitude_best_gaits.png", "summary.png",
-                "optimization_progress.png"):
+    for png in (
+        "learning_curves.png",
+        "attitude.png",
+        "attitude_best_gaits.png",
+        "summary.png",
+        "optimization_progress.png",
+    ):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     table = pq.read_table(out / "trials.parquet").to_pydict()
     assert len(table["objective"]) == 4 * 4
-    for col in ("controller", "seed", "trial", "c_load_n", "c_slope_rad", "objective", "velocity_x_mps",
-                "cost_of_transport", "fell", "payload_kg", *param_space.PARAM_NAMES):
+    for col in (
+        "controller",
+        "seed",
+        "trial",
+        "c_load_n",
+        "c_slope_rad",
+        "objective",
+        "velocity_x_mps",
+        "cost_of_transport",
+        "fell",
+        "payload_kg",
+        *param_space.PARAM_NAMES,
+    ):
         assert col in table, col
     b, t = 2, 3
     row = table["instance"].index(b) + t
@@ -201,7 +228,7 @@ def test_best_gaits_are_each_groups_best_run_and_trial(tiny_ablation):
         # a trial walked: it did not fall, and its J is above the floor of standing still (-1); one phase here
         ok = (result.trials.fell == 0) & (result.trials.objective > -1.0)
         walked = [b for b in runs if ok[:, b].any()]
-        b = max(walked or runs, key=lambda i: result.trials.objective[n - 5:, i].mean())
+        b = max(walked or runs, key=lambda i: result.trials.objective[n - 5 :, i].mean())
         j = np.where(ok[:, b] | (not walked), result.trials.objective[:, b], -np.inf)
         t = int(np.argmax(j))
         assert gait.walked == bool(walked) and gait.phase.startswith(f"trials 0–{n - 1}: μ 0.6, 0°, 0 kg")
@@ -215,15 +242,19 @@ def test_group_names_are_file_names():
     def named(labels, group_by, schedules=None):
         schedules = schedules or (study_spec.Schedule("constant"),)
         return study_gaits.group_name(labels, study_spec.StudySpec("s", group_by=group_by, schedules=schedules))
+
     assert named({"controller": "vmc_tegotae", "seed": 0}, ("controller",)) == "vmc_tegotae"
     assert named({"friction": 0.3}, ("friction",)) == "friction0.3"
-    assert named({"schedule": "0→7.5→15 kg"}, ("schedule",), (study_spec.Schedule("0→7.5→15 kg"),)) == \
-        "schedule0-7.5-15kg"  # a schedule without a name: its label
+    assert (
+        named({"schedule": "0→7.5→15 kg"}, ("schedule",), (study_spec.Schedule("0→7.5→15 kg"),)) == "schedule0-7.5-15kg"
+    )  # a schedule without a name: its label
     assert named({"data_reuse": True, "controller": "vmc"}, ("controller", "data_reuse")) == "vmc_data_reuseTrue"
     # a study file names its schedules: the quick slope study's group is a word, not its label
     slope = _spec("slope_adaptation", quick=True)
-    assert named({"schedule": slope.schedules[0].label}, ("schedule",), slope.schedules) == \
-        "slope_0_10_12.5deg_inference_ramp"
+    assert (
+        named({"schedule": slope.schedules[0].label}, ("schedule",), slope.schedules)
+        == "slope_0_10_12.5deg_inference_ramp"
+    )
 
 
 def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tiny_ablation):
@@ -245,11 +276,20 @@ def test_each_group_writes_its_best_parameters_with_what_they_were_tuned_for(tin
         run = final[final.index.isin(walking.instance)].idxmax()
         best = walking[walking.instance == run].sort_values("objective", kind="stable").iloc[::-1].iloc[0]
         assert saved["walked"] == bool(ok.any())
-        assert (saved["instance"], saved["trial"], saved["objective"]) == (run, best.trial,
-                                                                          pytest.approx(best.objective))
+        assert (saved["instance"], saved["trial"], saved["objective"]) == (
+            run,
+            best.trial,
+            pytest.approx(best.objective),
+        )
         assert {k: saved[k] for k in tuned.TUNED_FOR} == dict(
-            controller=c, gait="trot", physics=best.physics, friction=pytest.approx(best.friction),
-            slope_deg=best.slope_deg, payload_kg=best.payload_kg, target_velocity_mps=best.target_velocity_mps)
+            controller=c,
+            gait="trot",
+            physics=best.physics,
+            friction=pytest.approx(best.friction),
+            slope_deg=best.slope_deg,
+            payload_kg=best.payload_kg,
+            target_velocity_mps=best.target_velocity_mps,
+        )
         read = tuned.load(path)
         np.testing.assert_allclose(read.params, [best[name] for name in param_space.PARAM_NAMES])
         np.testing.assert_array_equal(filmed[c].params, read.params)
@@ -262,10 +302,14 @@ def test_a_failing_output_keeps_the_results_written_before_it(tiny_ablation, tmp
 
     def broken(*args, **kwargs):
         raise OSError(28, "No space left on device")
+
     monkeypatch.setattr(study_figures, "learning_curves", broken)
-    with pytest.raises(study_io.OutputError, match=r"writing the study's figures in .* failed \(OSError: "
-                       r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, table.md, "
-                       r"trials.parquet"):
+    with pytest.raises(
+        study_io.OutputError,
+        match=r"writing the study's figures in .* failed \(OSError: "
+        r"\[Errno 28\] No space left on device\); kept: best_params, metadata.json, table.md, "
+        r"trials.parquet",
+    ):
         _write_ablation(result, tmp_path)
     assert pq.read_table(tmp_path / "trials.parquet").num_rows == 16 and (tmp_path / "metadata.json").exists()
     table = (tmp_path / "table.md").read_text()
@@ -283,14 +327,19 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
     study = study_driver.read("transfer", seeds=1, trials=4)
 
     def tiny(study=study):
-        return [dataclasses.replace(s, optimizer=small_optimizer(4),
-                                    trial=protocol.TrialConfig(transition_steps=100, steady_steps=200))
-                for s in real_specs(study)]
+        return [
+            dataclasses.replace(
+                s, optimizer=small_optimizer(4), trial=protocol.TrialConfig(transition_steps=100, steady_steps=200)
+            )
+            for s in real_specs(study)
+        ]
 
     monkeypatch.setattr(transfer, "specs", tiny)
     lines = []
-    text, out, _ = study_driver.run(transfer.study(study), study_options.RunOptions(
-        out=tmp_path / "transfer", backend="native", notify=lines.append))
+    text, out, _ = study_driver.run(
+        transfer.study(study),
+        study_options.RunOptions(out=tmp_path / "transfer", backend="native", notify=lines.append),
+    )
     assert (out / "table.md").read_text() == text
     filmed = [line for line in lines if ".mp4: " in line]
     for (arm, home, _), spec in zip(study.arms, tiny(), strict=True):
@@ -306,9 +355,14 @@ def test_transfer_arms_keep_their_best_gaits_and_film_them_after_the_table(tmp_p
         assert undocumented("evaluations.parquet", rows) == []
         environments = transfer.Environments(home).names
         assert len(rows["objective"]) == len(cpg.CONTROLLERS) * len(environments)
-        assert rows["environment"][:len(environments)] == environments
-        j_home = np.mean([j for j, c, e in zip(rows["objective"], rows["controller"], rows["environment"], strict=True)
-                          if c == "vmc" and e == home])
+        assert rows["environment"][: len(environments)] == environments
+        j_home = np.mean(
+            [
+                j
+                for j, c, e in zip(rows["objective"], rows["controller"], rows["environment"], strict=True)
+                if c == "vmc" and e == home
+            ]
+        )
         label = home + (" + randomization" if randomized else "")
         assert f"| vmc | {label} | {j_home:.3f} |" in text, arm  # one seed: the mean, no interval
     assert "1 seed: no interval or test below 3 seeds." in text.splitlines()
@@ -328,15 +382,18 @@ def test_transfer_drops_and_their_tests_over_seeds_match_scipy():
     labels = [{"controller": c} for c in cpg.CONTROLLERS for _ in range(seeds)]
     rng = np.random.default_rng(3)
     results = {arm: type("Result", (), {"labels": labels}) for arm, _, _ in TRANSFER_ARMS}
-    evaluations = {arm: tuple(rng.normal(2.0, 0.3, (len(labels), environments)) for _ in range(3))
-                   + (rng.random((len(labels), environments)) < 0.08,) for arm, _, _ in TRANSFER_ARMS}
+    evaluations = {
+        arm: tuple(rng.normal(2.0, 0.3, (len(labels), environments)) for _ in range(3))
+        + (rng.random((len(labels), environments)) < 0.08,)
+        for arm, _, _ in TRANSFER_ARMS
+    }
 
     def drops(arm, home, controller):
         j = evaluations[arm][0][[lab["controller"] == controller for lab in labels]]
         h = fixed.index(home)
         away = [k for k in range(len(fixed)) if k != h]
         worst = away[int(np.argmin(j[:, away].mean(axis=0)))]
-        return j[:, h], j[:, worst] - j[:, h], j[:, len(fixed):].mean(axis=1) - j[:, h]
+        return j[:, h], j[:, worst] - j[:, h], j[:, len(fixed) :].mean(axis=1) - j[:, h]
 
     text, falls = transfer.comparisons(TRANSFER_ARMS, results, evaluations).split("\n\n")
     rows = {tuple(cell.strip() for cell in line.split("|")[1:3]): line for line in text.splitlines()[2:]}
@@ -376,19 +433,29 @@ def _hand_made_ablation(seeds: int, cot_final: np.ndarray):
     spec = dataclasses.replace(_spec("controller_ablation"), seeds=tuple(range(seeds)))
     labels = study_spec.instances(spec)  # controllers × seeds
     b = len(labels)
-    trials = type("T", (), {"objective": rng.normal(1.5, 0.5, (6, b)),
-                            "velocity_xy_mps": rng.normal(0.5, 0.1, (6, b, 2)),
-                            "cot": np.broadcast_to(cot_final, (6, b)).copy(), "fell": np.zeros((6, b))})
-    return type("Result", (), {"trials": trials, "labels": labels, "spec": spec,
-                               "conditions": study_spec.conditions(spec)})
+    trials = type(
+        "T",
+        (),
+        {
+            "objective": rng.normal(1.5, 0.5, (6, b)),
+            "velocity_xy_mps": rng.normal(0.5, 0.1, (6, b, 2)),
+            "cot": np.broadcast_to(cot_final, (6, b)).copy(),
+            "fell": np.zeros((6, b)),
+        },
+    )
+    return type(
+        "Result", (), {"trials": trials, "labels": labels, "spec": spec, "conditions": study_spec.conditions(spec)}
+    )
 
 
 def test_a_two_seed_table_gives_means_without_intervals_or_tests_and_says_why():
     result = _hand_made_ablation(2, np.tile([0.4, 47.6], len(cpg.CONTROLLERS)))
     text = ABLATION_REPORT.report(result, "native") + registry.notes(result)
     rows = [line for line in text.splitlines() if line.startswith("| open_loop |")]
-    assert rows == [f"| open_loop | {result.trials.velocity_xy_mps[1:, :2, 0].mean():.3f} | 0.477 ± 0.045 | 24.000 | "
-                    f"0.931 ± 0.138 | {result.trials.objective[1:, :2].mean():.3f} | 1.638 ± 0.516 | 0/12 |"]
+    assert rows == [
+        f"| open_loop | {result.trials.velocity_xy_mps[1:, :2, 0].mean():.3f} | 0.477 ± 0.045 | 24.000 | "
+        f"0.931 ± 0.138 | {result.trials.objective[1:, :2].mean():.3f} | 1.638 ± 0.516 | 0/12 |"
+    ]
     assert "[" not in "".join(rows) and " p = " not in text and "Welch" not in text
     assert "- 2 seeds: no interval or test below 3 seeds." in text.splitlines()
     assert "then mean over 2 seeds (no interval below 3);" in text and "95 % CI" not in text.splitlines()[0]
@@ -412,11 +479,20 @@ def test_summary_marks_the_papers_j_where_the_paper_gives_it():
     """The load study's marks: the paper's J after adaptation (Table "load": 2.175, 2.213, 2.189) over the last 5
     trials of each payload phase; the ablation's: each controller's J ± std over the last 5 trials."""
     payload = np.array([0.0] * 36 + [7.5] * 22 + [15.0] * 22)
-    result = type("Result", (), {"conditions": type("C", (), {"payload_kg": payload[None, :]}),
-                                 "trials": type("T", (), {"objective": np.zeros((80, 1))})})
+    result = type(
+        "Result",
+        (),
+        {
+            "conditions": type("C", (), {"payload_kg": payload[None, :]}),
+            "trials": type("T", (), {"objective": np.zeros((80, 1))}),
+        },
+    )
     marks = registry.load_paper_marks(result)
     assert [(m.first_trial, m.last_trial, m.objective, m.std) for m in marks] == [
-        (31, 35, 2.175, None), (53, 57, 2.213, None), (75, 79, 2.189, None)]
+        (31, 35, 2.175, None),
+        (53, 57, 2.213, None),
+        (75, 79, 2.189, None),
+    ]
     ablation_marks = {m.group: m for m in registry.ablation_paper_marks(result)}
     assert (ablation_marks["tegotae"].first_trial, ablation_marks["tegotae"].last_trial) == (75, 79)
     assert (ablation_marks["tegotae"].objective, ablation_marks["tegotae"].std) == (2.153, 0.042)
@@ -427,9 +503,11 @@ def test_summary_draws_the_main_table_as_cells_that_fit_the_page():
     """summary.png's table: the first Markdown table's cells (not its rule, not the tables after it), each wrapped
     to its column's width, the columns together no wider than the page's line."""
     long_name = "gaittrot_target_velocity_mps0.3"
-    text = ("intro\n\n| group | phase | trials to a prospective solution (runs never reaching one) |\n|---|---|---|\n"
-            f"| {long_name} | trials 0–39: μ 0.6, 0°, 0 kg, v* 0.3 m/s | 5.350 [3.860, 6.840] (0) |\n"
-            "| b | c | d |\n\nComparisons:\n\n| x | y |\n|---|---|\n| 1 | 2 |\n")
+    text = (
+        "intro\n\n| group | phase | trials to a prospective solution (runs never reaching one) |\n|---|---|---|\n"
+        f"| {long_name} | trials 0–39: μ 0.6, 0°, 0 kg, v* 0.3 m/s | 5.350 [3.860, 6.840] (0) |\n"
+        "| b | c | d |\n\nComparisons:\n\n| x | y |\n|---|---|\n| 1 | 2 |\n"
+    )
     rows = study_figures._first_table(text)
     assert rows[0] == ["group", "phase", "trials to a prospective solution (runs never reaching one)"]
     assert rows[1][0] == long_name and rows[2] == ["b", "c", "d"] and len(rows) == 3
@@ -448,19 +526,27 @@ def test_fall_chains_counts_falls_after_a_fall_and_after_a_walk(tmp_path):
     counted); instance 0's trial 4 is in inference mode (neither it nor its pair is counted). The table goes through a
     parquet file and ``study_io.read_trials``, as a study's does."""
     import importlib.util
-    spec = importlib.util.spec_from_file_location("fall_chains", pathlib.Path(__file__).resolve().parents[2] / "studies"
-                                                  / "fall_chains.py")
+
+    spec = importlib.util.spec_from_file_location(
+        "fall_chains", pathlib.Path(__file__).resolve().parents[2] / "studies" / "fall_chains.py"
+    )
     fall_chains = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(fall_chains)
     fell = {0: [0, 1, 1, 0, 1], 1: [0, 0, 0, 1, 0]}
     rows = [(i, t) for i in (0, 1) for t in range(5)]
-    columns = {"instance": np.array([i for i, _ in rows]), "trial": np.array([t for _, t in rows]),
-               "fell": np.array([fell[i][t] for i, t in rows], float), "failed": np.zeros(10),
-               "inference": np.array([float(i == 0 and t == 4) for i, t in rows]),
-               "friction": np.full(10, 0.6), "slope_deg": np.array([10.0 * (i == 1 and t >= 3) for i, t in rows]),
-               "payload_kg": np.zeros(10), "target_velocity_mps": np.full(10, 0.5),
-               "c_load_n": np.array([1.0 if fell[i][t] else 20.0 + t for i, t in rows]),
-               "c_slope_rad": np.zeros(10)}
+    columns = {
+        "instance": np.array([i for i, _ in rows]),
+        "trial": np.array([t for _, t in rows]),
+        "fell": np.array([fell[i][t] for i, t in rows], float),
+        "failed": np.zeros(10),
+        "inference": np.array([float(i == 0 and t == 4) for i, t in rows]),
+        "friction": np.full(10, 0.6),
+        "slope_deg": np.array([10.0 * (i == 1 and t >= 3) for i, t in rows]),
+        "payload_kg": np.zeros(10),
+        "target_velocity_mps": np.full(10, 0.5),
+        "c_load_n": np.array([1.0 if fell[i][t] else 20.0 + t for i, t in rows]),
+        "c_slope_rad": np.zeros(10),
+    }
     pq.write_table(pa.table(columns), tmp_path / "trials.parquet")
     counted = fall_chains.chains(study_io.read_trials(tmp_path / "trials.parquet"))
     assert list(counted) == ["slope_deg 0", "slope_deg 10"]

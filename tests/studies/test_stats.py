@@ -91,7 +91,9 @@ def test_the_nonnegative_interval_is_scipys_t_interval_cut_at_zero():
     y = np.random.default_rng(4).lognormal(-0.5, 0.3, 7)
     reference = scipy_stats.ttest_1samp(y, 0.0).confidence_interval(0.95)
     assert (stats.nonnegative_ci(y).low, stats.nonnegative_ci(y).high) == (
-        pytest.approx(reference.low, rel=1e-12), pytest.approx(reference.high, rel=1e-12))
+        pytest.approx(reference.low, rel=1e-12),
+        pytest.approx(reference.high, rel=1e-12),
+    )
 
 
 def test_a_nonnegative_interval_never_goes_below_zero_and_keeps_the_t_coverage():
@@ -103,7 +105,7 @@ def test_a_nonnegative_interval_never_goes_below_zero_and_keeps_the_t_coverage()
         assert stats.nonnegative_ci(x).low >= 0.0
     zero = stats.nonnegative_ci(np.zeros(4))
     assert (zero.low, zero.high) == (0.0, 0.0)
-    true, covered_cut, covered_t = np.exp(0.5 ** 2 / 2), 0, 0
+    true, covered_cut, covered_t = np.exp(0.5**2 / 2), 0, 0
     for _ in range(2000):
         x = rng.lognormal(0.0, 0.5, 4)
         cut, t = stats.nonnegative_ci(x), stats.mean_ci(x)
@@ -156,8 +158,16 @@ def test_effect_tests_equal_scipys_shifted_one_sided_tests():
     margin = 0.04
 
     def welch(shift, alternative):
-        return scipy_stats.ttest_ind_from_stats(a.mean() - shift, a.std(ddof=1), a.size, b.mean(), b.std(ddof=1),
-                                                b.size, equal_var=False, alternative=alternative).pvalue
+        return scipy_stats.ttest_ind_from_stats(
+            a.mean() - shift,
+            a.std(ddof=1),
+            a.size,
+            b.mean(),
+            b.std(ddof=1),
+            b.size,
+            equal_var=False,
+            alternative=alternative,
+        ).pvalue
 
     assert effect.two_sided_p() == pytest.approx(welch(0.0, "two-sided"), rel=1e-9)
     tost = max(welch(-margin, "greater"), welch(margin, "less"))

@@ -67,8 +67,15 @@ def test_no_gl_backend_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     stand = np.tile(go1_model.standing_qpos(), (80, 1))
-    gait = video.Gait(group="vmc_tegotae", params=param_space.midpoint(), controller="vmc_tegotae", physics="soft",
-                      condition=Condition(friction=0.6), transition_steps=100, steady_steps=200)
+    gait = video.Gait(
+        group="vmc_tegotae",
+        params=param_space.midpoint(),
+        controller="vmc_tegotae",
+        physics="soft",
+        condition=Condition(friction=0.6),
+        transition_steps=100,
+        steady_steps=200,
+    )
     lines = []
     log = type("Log", (), {"qpos": stand})
     assert video.write_videos(tmp_path, [gait, gait._replace(group="other")], [log, log], lines.append) == []
@@ -78,19 +85,41 @@ def test_no_gl_backend_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
 
 
 def test_gait_files_round_trip_and_refuse_damage(tmp_path):
-    condition = Condition(friction=0.3, slope_deg=5.0, payload_kg=7.5, target_velocity_mps=0.5, gait="bound",
-                          ground=terrains.Ground("rough", 0.04, 7))
-    gait = video.Gait(group="friction0.3", params=param_space.midpoint(), controller="vmc_tegotae", physics="paper",
-                      condition=condition, transition_steps=1500, steady_steps=3000, objective=1.9, instance=4,
-                      trial=11)
+    condition = Condition(
+        friction=0.3,
+        slope_deg=5.0,
+        payload_kg=7.5,
+        target_velocity_mps=0.5,
+        gait="bound",
+        ground=terrains.Ground("rough", 0.04, 7),
+    )
+    gait = video.Gait(
+        group="friction0.3",
+        params=param_space.midpoint(),
+        controller="vmc_tegotae",
+        physics="paper",
+        condition=condition,
+        transition_steps=1500,
+        steady_steps=3000,
+        objective=1.9,
+        instance=4,
+        trial=11,
+    )
     path = video.save_gait(tmp_path, gait, seed=3)
     assert path == tmp_path / "best_params" / "friction0.3.json"
     data = json.loads(path.read_text())
     assert list(data["params"]) == list(param_space.PARAM_NAMES) and data["seed"] == 3
     assert (data["terrain"], data["terrain_amplitude_m"], data["terrain_seed"]) == ("rough", 0.04, 7)
     replayed = tuned.load(path)  # what `cpgjax deploy --params` and `walk --params` read
-    assert replayed.tuned_for == dict(controller="vmc_tegotae", gait="bound", physics="paper", friction=0.3,
-                                      slope_deg=5.0, payload_kg=7.5, target_velocity_mps=0.5)
+    assert replayed.tuned_for == dict(
+        controller="vmc_tegotae",
+        gait="bound",
+        physics="paper",
+        friction=0.3,
+        slope_deg=5.0,
+        payload_kg=7.5,
+        target_velocity_mps=0.5,
+    )
     (back,) = video.load_gaits(tmp_path)
     np.testing.assert_array_equal(back.params, gait.params)
     assert back._replace(params=None) == gait._replace(params=None)
@@ -107,8 +136,15 @@ def test_gait_files_round_trip_and_refuse_damage(tmp_path):
 
 
 def test_cli_show_video_films_the_gait_files(tmp_path, capsys):
-    gait = video.Gait(group="vmc_tegotae", params=param_space.midpoint(), controller="vmc_tegotae", physics="soft",
-                      condition=Condition(friction=0.6, slope_deg=4.0), transition_steps=100, steady_steps=200)
+    gait = video.Gait(
+        group="vmc_tegotae",
+        params=param_space.midpoint(),
+        controller="vmc_tegotae",
+        physics="soft",
+        condition=Condition(friction=0.6, slope_deg=4.0),
+        transition_steps=100,
+        steady_steps=200,
+    )
     video.save_gait(tmp_path, gait)
     (tmp_path / "best_vmc_tegotae.mp4").write_bytes(b"an older video")
     code = cli.main(["show", str(tmp_path), "--video", "--video-s", "0.08", "--backend", "native", "--no-viewer"])
@@ -135,21 +171,28 @@ def test_cli_video_options_are_checked_before_compute(tmp_path, capsys):
 
 
 def test_show_names_a_study_video_and_a_cut_one(tmp_path, capsys):
-    gait = video.Gait(group="vmc", params=param_space.midpoint(), controller="vmc", physics="soft",
-                      condition=Condition(friction=0.6), transition_steps=100, steady_steps=200)
+    gait = video.Gait(
+        group="vmc",
+        params=param_space.midpoint(),
+        controller="vmc",
+        physics="soft",
+        condition=Condition(friction=0.6),
+        transition_steps=100,
+        steady_steps=200,
+    )
     video.save_gait(tmp_path, gait)
     stand = np.tile(go1_model.standing_qpos(), (80, 1))
     lines = []
     if not video.write_videos(tmp_path, [gait], [type("Log", (), {"qpos": stand})], lines.append):
         pytest.skip(f"no OpenGL backend: {lines}")
     assert cli.main(["show", str(tmp_path), "--no-viewer"]) == 0
-    listed, = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  best_vmc.mp4 ")]
+    (listed,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  best_vmc.mp4 ")]
     assert "video of the group's best gait" in listed and "[" not in listed
     data = video.video_file(tmp_path, "vmc").read_bytes()
-    cut = data[:len(data) // 2] if data.find(b"moov") > len(data) // 2 else data.replace(b"moov", b"free")
+    cut = data[: len(data) // 2] if data.find(b"moov") > len(data) // 2 else data.replace(b"moov", b"free")
     video.video_file(tmp_path, "vmc").write_bytes(cut)
     assert cli.main(["show", str(tmp_path), "--no-viewer"]) == 1
-    listed, = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  best_vmc.mp4 ")]
+    (listed,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  best_vmc.mp4 ")]
     assert "[best_vmc.mp4: not a complete MP4 video" in listed, listed
 
 
@@ -157,8 +200,10 @@ def test_a_payload_is_drawn_on_the_trunk(tmp_path):
     """The same standing frame with and without a 15 kg payload: the payload's box (a geom of the scene, not of the
     model) changes the picture around the trunk, in the payload's colour, and nothing away from the robot."""
     stand = np.tile(go1_model.standing_qpos(go1_model.load_visual_model()), (40, 1))
-    jobs = [video.Job(path=tmp_path / "unladen.mp4", qpos=stand),
-            video.Job(path=tmp_path / "laden.mp4", qpos=stand, condition=Condition(payload_kg=15.0))]
+    jobs = [
+        video.Job(path=tmp_path / "unladen.mp4", qpos=stand),
+        video.Job(path=tmp_path / "laden.mp4", qpos=stand, condition=Condition(payload_kg=15.0)),
+    ]
     try:
         unladen, laden = (info["strip"][0].astype(int) for info in video.render_videos(jobs, width=320, height=240))
     except video.RenderUnavailable as err:

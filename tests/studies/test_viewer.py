@@ -68,8 +68,11 @@ class _DevTools:
 
     def call(self, method: str, session: str | None = None, **params):
         self.n += 1
-        self.ws.send(json.dumps({"id": self.n, "method": method, "params": params,
-                                 **({"sessionId": session} if session else {})}))
+        self.ws.send(
+            json.dumps(
+                {"id": self.n, "method": method, "params": params, **({"sessionId": session} if session else {})}
+            )
+        )
         while True:
             answer = json.loads(self.ws.recv(timeout=60))
             if answer.get("id") == self.n:
@@ -78,8 +81,13 @@ class _DevTools:
 
 def _record(folder) -> str:
     """``folder/recording.rrd``: one rollout; returns its entity path."""
-    rollout = scene.Rollout(log=_synthetic_log(), group="vmc_tegotae", controller="vmc_tegotae", seed=0,
-                            condition=Condition(friction=0.6, slope_deg=5.0, payload_kg=0.0))
+    rollout = scene.Rollout(
+        log=_synthetic_log(),
+        group="vmc_tegotae",
+        controller="vmc_tegotae",
+        seed=0,
+        condition=Condition(friction=0.6, slope_deg=5.0, payload_kg=0.0),
+    )
     rec = rr.RecordingStream("cpgjax_web_test")
     rec.save(str(folder / "recording.rrd"))
     base = "/" + scene.log_rollout(rec, rollout)
@@ -117,11 +125,13 @@ def test_the_plain_address_leads_to_the_viewer_with_the_recording(tmp_path):
         with pytest.raises(urllib.error.HTTPError) as redirect:
             urllib.request.build_opener(_NoRedirect).open(through_a_tunnel, timeout=30)
         assert redirect.value.headers["Location"] == (
-            "/?renderer=webgl&url=" + urllib.parse.quote("http://localhost:8000/recording.rrd", safe=""))
+            "/?renderer=webgl&url=" + urllib.parse.quote("http://localhost:8000/recording.rrd", safe="")
+        )
         for path in ("", "recording.rrd"):  # another site's name for this address gets nothing
             with pytest.raises(urllib.error.HTTPError) as refused:
-                urllib.request.urlopen(urllib.request.Request(plain + path, headers={"Host": f"evil.example:{port}"}),
-                                       timeout=30)
+                urllib.request.urlopen(
+                    urllib.request.Request(plain + path, headers={"Host": f"evil.example:{port}"}), timeout=30
+                )
             assert refused.value.code == 403
         with urllib.request.urlopen(urllib.parse.urljoin(plain, "re_viewer_bg.wasm"), timeout=60) as wasm:
             assert wasm.headers["Content-Type"] == "application/wasm" and wasm.read(4) == b"\0asm"
@@ -132,9 +142,14 @@ def test_the_plain_address_leads_to_the_viewer_with_the_recording(tmp_path):
 
 def test_the_idle_viewer_uses_almost_no_cpu():
     """benchmarks/viewer_idle.py over a few seconds: `cpgjax show --web` and every process it started, idle."""
-    done = subprocess.run([sys.executable, str(REPO / "benchmarks" / "viewer_idle.py"), "--seconds", "6",
-                           "--settle-s", "3"], capture_output=True, text=True, timeout=180, cwd=REPO,
-                          env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    done = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "viewer_idle.py"), "--seconds", "6", "--settle-s", "3"],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        cwd=REPO,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     figures = json.loads(done.stdout.splitlines()[-1])
     assert len(figures["processes"]) >= 2, figures  # the command and rerun's viewer server at least
@@ -143,17 +158,24 @@ def test_the_idle_viewer_uses_almost_no_cpu():
 
 # Python keeps SIGINT ignored in a child of a shell that ignores it (a background job): give the command Python's own
 # Ctrl-C handler, as a terminal would.
-_WITH_CTRL_C = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-                "sys.argv = ['cpgjax', *sys.argv[1:]]; runpy.run_module('cpgjax.cli', run_name='__main__')")
+_WITH_CTRL_C = (
+    "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "sys.argv = ['cpgjax', *sys.argv[1:]]; runpy.run_module('cpgjax.cli', run_name='__main__')"
+)
 
 
 def test_ctrl_c_stops_the_viewer_and_says_so(tmp_path):
     """Ctrl-C on a running `cpgjax show --web`: exit 0, "the viewer is stopped" (not a study's "its outputs are
     written"), and no process of it left."""
     _record(tmp_path)
-    proc = subprocess.Popen([sys.executable, "-c", _WITH_CTRL_C, "show", str(tmp_path), "--web", "--port",
-                             str(study_launch.free_port())], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, cwd=REPO, env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO)))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _WITH_CTRL_C, "show", str(tmp_path), "--web", "--port", str(study_launch.free_port())],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO)),
+    )
     try:
         printed = ""
         while "Ctrl-C stops it" not in printed:
@@ -176,9 +198,13 @@ def test_ctrl_c_stops_the_viewer_and_says_so(tmp_path):
 def served(tmp_path):
     base = _record(tmp_path)
     port = study_launch.free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "cpgjax.cli", "show", str(tmp_path), "--web", "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cpgjax.cli", "show", str(tmp_path), "--web", "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
     lines = []
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not any("ssh -N" in line for line in lines):
@@ -196,8 +222,10 @@ def served(tmp_path):
             proc.kill()
 
 
-@pytest.mark.skipif(shutil.which("chromium") is None or shutil.which("ss") is None,
-                    reason="needs Debian's chromium (headless) and ss (iproute2); .ci/run installs them")
+@pytest.mark.skipif(
+    shutil.which("chromium") is None or shutil.which("ss") is None,
+    reason="needs Debian's chromium (headless) and ss (iproute2); .ci/run installs them",
+)
 def test_show_web_serves_the_recording_on_loopback_only(served, tmp_path):
     port, proc, printed, base = served
     url = f"http://127.0.0.1:{port}/"  # the plain address
@@ -205,8 +233,11 @@ def test_show_web_serves_the_recording_on_loopback_only(served, tmp_path):
     assert f"ssh -N -L {port}:127.0.0.1:{port} " in printed
     # what listens, and where: every socket of the command's processes is on 127.0.0.1, its port among them
     ours = _descendants(proc.pid)
-    listening = [line for line in subprocess.run(["ss", "-Hltnup"], capture_output=True, text=True).stdout.splitlines()
-                 if any(int(p) in ours for p in re.findall(r"pid=(\d+)", line))]
+    listening = [
+        line
+        for line in subprocess.run(["ss", "-Hltnup"], capture_output=True, text=True).stdout.splitlines()
+        if any(int(p) in ours for p in re.findall(r"pid=(\d+)", line))
+    ]
     local = {line.split()[4] for line in listening}
     assert f"127.0.0.1:{port}" in local, listening
     assert all(address.startswith("127.0.0.1:") for address in local), listening
@@ -217,10 +248,22 @@ def test_show_web_serves_the_recording_on_loopback_only(served, tmp_path):
 
     log = open(tmp_path / "chromium.log", "w")
     browser = subprocess.Popen(
-        ["chromium", "--headless=new", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-         "--enable-unsafe-swiftshader", "--window-size=1280,800", "--remote-debugging-address=127.0.0.1",
-         "--remote-debugging-port=0", f"--user-data-dir={tmp_path / 'profile'}", "about:blank"],
-        stdout=subprocess.DEVNULL, stderr=log)
+        [
+            "chromium",
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--window-size=1280,800",
+            "--remote-debugging-address=127.0.0.1",
+            "--remote-debugging-port=0",
+            f"--user-data-dir={tmp_path / 'profile'}",
+            "about:blank",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=log,
+    )
     try:
         deadline = time.monotonic() + 30
         found = None
@@ -228,7 +271,7 @@ def test_show_web_serves_the_recording_on_loopback_only(served, tmp_path):
             time.sleep(0.2)
             found = re.search(r"DevTools listening on (ws://\S+)", (tmp_path / "chromium.log").read_text())
         assert found is not None, (tmp_path / "chromium.log").read_text()[-2000:]
-        with connect(found[1], max_size=2 ** 28, open_timeout=30) as ws:
+        with connect(found[1], max_size=2**28, open_timeout=30) as ws:
             _look_at_the_viewer(_DevTools(ws), url, base, tmp_path)
     finally:
         browser.terminate()
@@ -242,14 +285,21 @@ def _look_at_the_viewer(devtools: _DevTools, url: str, base: str, tmp_path) -> N
     target = devtools.call("Target.createTarget", url=url)["targetId"]
     session = devtools.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
     # The viewer's handle (window._handle, rerun's WebHandle) saves the recording it has loaded.
-    state = ("(() => { try { const h = window._handle; if (!h) return 'no viewer yet';"
-             " if (h.has_panicked()) return 'panicked: ' + h.panic_message();"
-             " const b = h.save_recording(); let s = '';"
-             " for (let i = 0; i < b.length; i += 8192) s += String.fromCharCode(...b.subarray(i, i + 8192));"
-             " return btoa(s); } catch (e) { return String(e); } })()")
+    state = (
+        "(() => { try { const h = window._handle; if (!h) return 'no viewer yet';"
+        " if (h.has_panicked()) return 'panicked: ' + h.panic_message();"
+        " const b = h.save_recording(); let s = '';"
+        " for (let i = 0; i < b.length; i += 8192) s += String.fromCharCode(...b.subarray(i, i + 8192));"
+        " return btoa(s); } catch (e) { return String(e); } })()"
+    )
     saved, entities, deadline = "", set(), time.monotonic() + LOAD_S
-    wanted = {f"{base}/world/robot/trunk", f"{base}/world/robot/FR_calf/spheres", f"{base}/world/contact_force/RL",
-              f"{base}/world/floor", f"{base}/cpg/phase_rad/FL"}
+    wanted = {
+        f"{base}/world/robot/trunk",
+        f"{base}/world/robot/FR_calf/spheres",
+        f"{base}/world/contact_force/RL",
+        f"{base}/world/floor",
+        f"{base}/cpg/phase_rad/FL",
+    }
     while time.monotonic() < deadline and not wanted <= entities:
         saved = devtools.call("Runtime.evaluate", session, expression=state, returnByValue=True)["result"]["value"]
         if saved.startswith("panicked"):
@@ -259,8 +309,9 @@ def _look_at_the_viewer(devtools: _DevTools, url: str, base: str, tmp_path) -> N
             entities = {chunk.entity_path for chunk in RrdReader(tmp_path / "held.rrd").stream()}
         time.sleep(1.0)
     assert wanted <= entities, (saved[:300], sorted(entities)[:20])
-    location = devtools.call("Runtime.evaluate", session, expression="window.location.href",
-                             returnByValue=True)["result"]["value"]
+    location = devtools.call("Runtime.evaluate", session, expression="window.location.href", returnByValue=True)[
+        "result"
+    ]["value"]
     assert urllib.parse.parse_qs(urllib.parse.urlsplit(location).query)["url"] == [url + "recording.rrd"], location
     time.sleep(2.0)  # let it draw
     shot = base64.b64decode(devtools.call("Page.captureScreenshot", session, format="png")["data"])

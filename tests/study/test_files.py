@@ -33,6 +33,7 @@ def _tree(folder: pathlib.Path) -> list[str]:
 
 # ----------------------------------------------------------------------------------------------- claim_folder
 
+
 def test_a_missing_folder_is_created_with_its_parents(tmp_path):
     out = tmp_path / "a" / "b" / "run"
     assert study_io.claim_folder(out) == out
@@ -61,8 +62,9 @@ def test_a_folder_with_files_is_refused_naming_the_folder_and_the_flags(tmp_path
     _touch(tmp_path / "notes.txt")
     with pytest.raises(StudyError) as err:
         study_io.claim_folder(tmp_path)
-    assert str(err.value) == (f"{tmp_path} is not empty (notes.txt): pass --overwrite to replace its files, or "
-                              f"write somewhere else")
+    assert str(err.value) == (
+        f"{tmp_path} is not empty (notes.txt): pass --overwrite to replace its files, or write somewhere else"
+    )
     assert _tree(tmp_path) == ["notes.txt"]
 
 
@@ -71,20 +73,38 @@ def test_the_refusal_shows_three_entries_and_offers_resume_where_a_checkpoint_is
         _touch(tmp_path / name)
     with pytest.raises(StudyError) as err:
         study_io.claim_folder(tmp_path)
-    assert str(err.value) == (f"{tmp_path} is not empty (a.txt, b.txt, checkpoint.npz, ...): pass --resume to "
-                              f"continue its checkpoint, --overwrite to replace its files, or write somewhere else")
+    assert str(err.value) == (
+        f"{tmp_path} is not empty (a.txt, b.txt, checkpoint.npz, ...): pass --resume to "
+        f"continue its checkpoint, --overwrite to replace its files, or write somewhere else"
+    )
     with pytest.raises(StudyError) as err:
         study_io.claim_folder(tmp_path, resumable=False)
-    assert str(err.value) == (f"{tmp_path} is not empty (a.txt, b.txt, checkpoint.npz, ...): pass --overwrite to "
-                              f"replace its files, or write somewhere else")
+    assert str(err.value) == (
+        f"{tmp_path} is not empty (a.txt, b.txt, checkpoint.npz, ...): pass --overwrite to "
+        f"replace its files, or write somewhere else"
+    )
 
 
 def _every_kind_of_output(out: pathlib.Path) -> None:
     """One file of each kind cpgjax writes, made by hand."""
-    for name in ("trials.parquet", "metadata.json", "table.md", "checkpoint.npz", "checkpoint.npz.tmp",
-                 "checkpoint.1of2.t000003.npz", "recording.rrd", "best_params.json", "walk.parquet",
-                 "friction.png", "best_tegotae.mp4", "best_params/tegotae.json", "best_params/open_loop.json",
-                 "arm_go1/trials.parquet", "arm_go1/checkpoint.npz", "arm_go1/best_params/vmc.json"):
+    for name in (
+        "trials.parquet",
+        "metadata.json",
+        "table.md",
+        "checkpoint.npz",
+        "checkpoint.npz.tmp",
+        "checkpoint.1of2.t000003.npz",
+        "recording.rrd",
+        "best_params.json",
+        "walk.parquet",
+        "friction.png",
+        "best_tegotae.mp4",
+        "best_params/tegotae.json",
+        "best_params/open_loop.json",
+        "arm_go1/trials.parquet",
+        "arm_go1/checkpoint.npz",
+        "arm_go1/best_params/vmc.json",
+    ):
         _touch(out / name)
 
 
@@ -95,13 +115,16 @@ def test_overwrite_removes_every_kind_of_cpgjax_output_and_keeps_the_folder(tmp_
     assert out.is_dir() and list(out.iterdir()) == []
 
 
-@pytest.mark.parametrize("foreign, named", [
-    ("notes.txt", "notes.txt"),
-    ("best_params/readme.md", "best_params"),  # best_params/ holding anything but JSON
-    ("arm_go1/notes.txt", "arm_go1"),  # an arm folder holding a file of someone else's
-    ("best_tegotae.avi", "best_tegotae.avi"),
-    ("trials.csv", "trials.csv"),
-])
+@pytest.mark.parametrize(
+    "foreign, named",
+    [
+        ("notes.txt", "notes.txt"),
+        ("best_params/readme.md", "best_params"),  # best_params/ holding anything but JSON
+        ("arm_go1/notes.txt", "arm_go1"),  # an arm folder holding a file of someone else's
+        ("best_tegotae.avi", "best_tegotae.avi"),
+        ("trials.csv", "trials.csv"),
+    ],
+)
 def test_overwrite_refuses_a_foreign_file_naming_it_and_removes_nothing(foreign, named, tmp_path):
     out = tmp_path / "run"
     _every_kind_of_output(out)
@@ -109,8 +132,10 @@ def test_overwrite_refuses_a_foreign_file_naming_it_and_removes_nothing(foreign,
     before = _tree(out)
     with pytest.raises(StudyError) as err:
         study_io.claim_folder(out, overwrite=True)
-    assert str(err.value) == (f"{out}: --overwrite replaces only what cpgjax wrote, and {named} is not cpgjax's: "
-                              f"move it, or write somewhere else")
+    assert str(err.value) == (
+        f"{out}: --overwrite replaces only what cpgjax wrote, and {named} is not cpgjax's: "
+        f"move it, or write somewhere else"
+    )
     assert _tree(out) == before
 
 
@@ -120,8 +145,10 @@ def test_overwrite_names_several_foreign_entries_and_an_empty_folder_is_foreign(
     (tmp_path / "empty").mkdir()
     with pytest.raises(StudyError) as err:
         study_io.claim_folder(tmp_path, overwrite=True)
-    assert str(err.value) == (f"{tmp_path}: --overwrite replaces only what cpgjax wrote, and empty, z.txt are not "
-                              f"cpgjax's: move them, or write somewhere else")
+    assert str(err.value) == (
+        f"{tmp_path}: --overwrite replaces only what cpgjax wrote, and empty, z.txt are not "
+        f"cpgjax's: move them, or write somewhere else"
+    )
     assert _tree(tmp_path) == ["empty", "trials.parquet", "z.txt"]
 
 
@@ -136,8 +163,10 @@ def test_a_symlink_is_never_followed_nor_removed(tmp_path):
     (out / "arm_go1").symlink_to(elsewhere, target_is_directory=True)
     with pytest.raises(StudyError) as err:
         study_io.claim_folder(out, overwrite=True)
-    assert str(err.value) == (f"{out}: --overwrite replaces only what cpgjax wrote, and arm_go1, trials.parquet are "
-                              f"not cpgjax's: move them, or write somewhere else")
+    assert str(err.value) == (
+        f"{out}: --overwrite replaces only what cpgjax wrote, and arm_go1, trials.parquet are "
+        f"not cpgjax's: move them, or write somewhere else"
+    )
     assert (out / "trials.parquet").is_symlink() and (out / "arm_go1").is_symlink()
     assert (out / "metadata.json").is_file() and _tree(elsewhere) == ["trials.parquet"]
 
@@ -172,14 +201,16 @@ def test_resume_keeps_the_folder_as_it_is(tmp_path):
 def test_a_folder_below_a_parent_that_takes_no_folders_is_refused_in_one_line():
     with pytest.raises(StudyError) as err:
         study_io.claim_folder("/proc/x/out")
-    assert str(err.value) in {f"cannot create the folder /proc/x/out: /proc takes no new folders ({why})"
-                              for why in PROC_REFUSES}
+    assert str(err.value) in {
+        f"cannot create the folder /proc/x/out: /proc takes no new folders ({why})" for why in PROC_REFUSES
+    }
     with pytest.raises(StudyError) as err:
         study_io.claim_folder("/proc/x/out", dry_run=True)
     assert str(err.value) in {f"cannot write in /proc: it takes no new files ({why})" for why in PROC_REFUSES}
 
 
 # ----------------------------------------------------------------------------------------------- single files
+
 
 def test_check_writable_leaves_no_file_behind(tmp_path):
     study_io.check_writable(tmp_path)
@@ -223,15 +254,18 @@ def test_claim_file_refuses_a_folder_that_cannot_be_created():
 
 # ----------------------------------------------------------------------------------------------- writing
 
+
 def test_writing_turns_an_error_into_an_output_error_naming_the_file_and_what_was_kept(tmp_path):
     _touch(tmp_path / "checkpoint.npz")
     _touch(tmp_path / "trials.parquet")
     with pytest.raises(study_io.OutputError) as err:
         with study_io.writing(tmp_path, "table.md"):
             raise OSError("disk full")
-    assert str(err.value) == (f"writing table.md in {tmp_path} failed (OSError: disk full); kept: checkpoint.npz, "
-                              f"trials.parquet. Every trial is in its checkpoint: the same command with --resume "
-                              f"writes the outputs again")
+    assert str(err.value) == (
+        f"writing table.md in {tmp_path} failed (OSError: disk full); kept: checkpoint.npz, "
+        f"trials.parquet. Every trial is in its checkpoint: the same command with --resume "
+        f"writes the outputs again"
+    )
     with pytest.raises(study_io.OutputError, match=r"; kept: nothing\. "):
         with study_io.writing(tmp_path / "missing", "table.md"):
             raise ValueError("bad")
@@ -250,6 +284,7 @@ def test_output_folder_is_out_or_results_slash_the_name(tmp_path):
 
 # ----------------------------------------------------------------------------------------------- checkpoints
 
+
 def _log(rows: list[float]) -> study_io.TrialLog:
     """A trial log whose every field is ``rows`` (one value per instance)."""
     return study_io.TrialLog(*(np.array(rows) for _ in study_io.TrialLog._fields))
@@ -257,9 +292,14 @@ def _log(rows: list[float]) -> study_io.TrialLog:
 
 def _checkpoint(trial: int = 2) -> study_io.Checkpoint:
     return study_io.Checkpoint(
-        trial=trial, opt_leaves=[np.array([[1.0, 2.0], [3.0, 4.0]]), np.array([5, 6], np.int32)],
-        sim_leaves=[np.array([[0.5], [0.25]], np.float32)], context=np.array([[10.0, 0.1], [20.0, 0.2]]),
-        logs=[_log([1.0, 2.0]), _log([3.0, 4.0])][:trial], wall_s=12.5, timing={"simulation_s": 3.0})
+        trial=trial,
+        opt_leaves=[np.array([[1.0, 2.0], [3.0, 4.0]]), np.array([5, 6], np.int32)],
+        sim_leaves=[np.array([[0.5], [0.25]], np.float32)],
+        context=np.array([[10.0, 0.1], [20.0, 0.2]]),
+        logs=[_log([1.0, 2.0]), _log([3.0, 4.0])][:trial],
+        wall_s=12.5,
+        timing={"simulation_s": 3.0},
+    )
 
 
 def test_a_saved_checkpoint_loads_back_the_same_arrays(tmp_path):
@@ -294,9 +334,12 @@ def test_a_folder_without_a_checkpoint_loads_none(tmp_path):
 
 def test_shards_are_merged_once_every_process_wrote_the_trial(tmp_path):
     """Two processes' rows 0–1 and 2–3: rank 1 alone is no checkpoint; both give the four rows in order."""
+
     def shard_checkpoint(rows):
-        return study_io.Checkpoint(1, [np.array(rows)], [np.array(rows) * 10.0], np.array([[r, -r] for r in rows]),
-                                   [_log(rows)], 1.0, {})
+        return study_io.Checkpoint(
+            1, [np.array(rows)], [np.array(rows) * 10.0], np.array([[r, -r] for r in rows]), [_log(rows)], 1.0, {}
+        )
+
     second = study_io.save_checkpoint(tmp_path, SPEC, shard_checkpoint([3.0, 4.0]), "native", study_io.Shard(1, 2, 2))
     assert second == tmp_path / "checkpoint.1of2.t000001.npz"
     assert study_io.load_checkpoint(tmp_path, SPEC) is None
@@ -313,12 +356,15 @@ def test_a_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch)
 
     def full_disk(_fd):
         raise OSError(errno.ENOSPC, "No space left on device")
+
     monkeypatch.setattr(study_io.os, "fsync", full_disk)
     with pytest.raises(study_io.OutputError) as err:
         study_io.save_checkpoint(tmp_path, SPEC, _checkpoint(2), "native")
-    assert str(err.value) == (f"writing the checkpoint of trial 1 in {tmp_path} failed (No space left on device); "
-                              f"trials 0…0 are kept in its checkpoint: free space, then the same command with "
-                              f"--resume continues")
+    assert str(err.value) == (
+        f"writing the checkpoint of trial 1 in {tmp_path} failed (No space left on device); "
+        f"trials 0…0 are kept in its checkpoint: free space, then the same command with "
+        f"--resume continues"
+    )
     assert _tree(tmp_path) == ["checkpoint.npz"] and study_io.load_checkpoint(tmp_path, SPEC).trial == 1
 
 
@@ -326,18 +372,22 @@ def test_a_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch)
 def test_a_damaged_checkpoint_is_a_study_error_naming_it(damage, tmp_path):
     path = study_io.save_checkpoint(tmp_path, SPEC, _checkpoint(), "native")
     data = path.read_bytes()
-    path.write_bytes(b"not a checkpoint" if damage == "garbage" else data[:len(data) // 2])
-    for read in (lambda: study_io.load_checkpoint(tmp_path, SPEC), lambda: study_io.resume_point(tmp_path, SPEC,
-                                                                                                "native")):
+    path.write_bytes(b"not a checkpoint" if damage == "garbage" else data[: len(data) // 2])
+    for read in (
+        lambda: study_io.load_checkpoint(tmp_path, SPEC),
+        lambda: study_io.resume_point(tmp_path, SPEC, "native"),
+    ):
         with pytest.raises(StudyError) as err:
             read()
         message = str(err.value)
         assert message.startswith(f"checkpoint {path} is corrupt (") and message.endswith(
-            "); delete it, or use another --out")
+            "); delete it, or use another --out"
+        )
         assert "pickle" not in message
 
 
 # ----------------------------------------------------------------------------------------------- open_run
+
 
 def test_open_run_afresh_starts_at_trial_zero_in_a_new_folder(tmp_path):
     out = tmp_path / "run"
@@ -362,8 +412,10 @@ def test_resume_on_another_backend_is_refused(tmp_path):
     study_io.save_checkpoint(tmp_path, SPEC, _checkpoint(), "native")
     with pytest.raises(StudyError) as err:
         study_io.resume_point(tmp_path, SPEC, "mjx")
-    assert str(err.value) == (f"{tmp_path / 'checkpoint.npz'} was written on the native backend, this run would "
-                              f"use mjx: resume with --backend native (one run, one simulator)")
+    assert str(err.value) == (
+        f"{tmp_path / 'checkpoint.npz'} was written on the native backend, this run would "
+        f"use mjx: resume with --backend native (one run, one simulator)"
+    )
 
 
 def test_resume_of_another_study_names_the_field_that_differs(tmp_path):
@@ -371,33 +423,53 @@ def test_resume_of_another_study_names_the_field_that_differs(tmp_path):
     other = study_spec.StudySpec("other_study", num_trials=2, seeds=(0, 1))
     with pytest.raises(StudyError) as err:
         study_io.resume_point(tmp_path, other, "native")
-    assert str(err.value) == (f"{tmp_path / 'checkpoint.npz'} was written by a different study definition (name "
-                              f"'files_test' there, 'other_study' here); use another --out, or --overwrite to start "
-                              f"afresh")
+    assert str(err.value) == (
+        f"{tmp_path / 'checkpoint.npz'} was written by a different study definition (name "
+        f"'files_test' there, 'other_study' here); use another --out, or --overwrite to start "
+        f"afresh"
+    )
 
 
 # ----------------------------------------------------------------------------------------------- rows
+
 
 def _optimizer_state(parameters: np.ndarray, num_stored: np.ndarray) -> bo.OptimizerState:
     """A batched optimizer state built by hand: (B, capacity, 2) parameters, nothing else stored."""
     batch, capacity = parameters.shape[:2]
     return bo.OptimizerState(
-        parameters=parameters, contexts=np.zeros((batch, capacity, 2)), objectives=np.zeros((batch, capacity)),
-        stored=np.arange(capacity)[None, :] < num_stored[:, None], records=(), num_stored=num_stored,
-        target_velocity=np.zeros((batch, 0)), active_dims=np.ones((batch, 2), bool), schedule=(),
-        inference_mode=np.zeros(batch, bool), gp_params=(), margins=(), margin_gp_params=())
+        parameters=parameters,
+        contexts=np.zeros((batch, capacity, 2)),
+        objectives=np.zeros((batch, capacity)),
+        stored=np.arange(capacity)[None, :] < num_stored[:, None],
+        records=(),
+        num_stored=num_stored,
+        target_velocity=np.zeros((batch, 0)),
+        active_dims=np.ones((batch, 2), bool),
+        schedule=(),
+        inference_mode=np.zeros(batch, bool),
+        gp_params=(),
+        margins=(),
+        margin_gp_params=(),
+    )
 
 
 def test_a_process_checkpoint_resumes_as_the_padded_batch(tmp_path):
     """3 instances padded to 4, capacity 3, after 1 trial: the checkpoint keeps the instances' first observation
     row; resumed, the padding row is the last instance's again and the rows past the trial are init's (zeros)."""
-    parameters = np.array([[[0.0, 1.0], [2.0, 3.0], [4.0, 5.0]], [[6.0, 7.0], [8.0, 9.0], [10.0, 11.0]],
-                           [[12.0, 13.0], [14.0, 15.0], [16.0, 17.0]], [[18.0, 19.0], [20.0, 21.0], [22.0, 23.0]]])
+    parameters = np.array(
+        [
+            [[0.0, 1.0], [2.0, 3.0], [4.0, 5.0]],
+            [[6.0, 7.0], [8.0, 9.0], [10.0, 11.0]],
+            [[12.0, 13.0], [14.0, 15.0], [16.0, 17.0]],
+            [[18.0, 19.0], [20.0, 21.0], [22.0, 23.0]],
+        ]
+    )
     state = _optimizer_state(parameters, np.array([1, 1, 1, 1], np.int32))
     sim = {"q": np.array([[10.0], [20.0], [30.0], [99.0]])}
     context = np.array([[0.1, 0.2], [0.3, 0.4], [0.5, 0.6], [9.0, 9.0]])
-    ckpt = study_io.process_checkpoint(1, state, sim, context, [_log([1.0, 2.0, 3.0, 9.0])], (0, 3), 4.0,
-                                       {"simulation_s": 1.0})
+    ckpt = study_io.process_checkpoint(
+        1, state, sim, context, [_log([1.0, 2.0, 3.0, 9.0])], (0, 3), 4.0, {"simulation_s": 1.0}
+    )
     np.testing.assert_array_equal(ckpt.opt_leaves[0], [[[0.0, 1.0]], [[6.0, 7.0]], [[12.0, 13.0]]])
     np.testing.assert_array_equal(ckpt.sim_leaves[0], [[10.0], [20.0], [30.0]])
     np.testing.assert_array_equal(ckpt.context, [[0.1, 0.2], [0.3, 0.4], [0.5, 0.6]])
@@ -408,9 +480,15 @@ def test_a_process_checkpoint_resumes_as_the_padded_batch(tmp_path):
     placement = study_placement.Placement(mesh=None, padded_size=4, rows=(0, 4))
     got = study_io.resume_checkpoint(tmp_path, SPEC, fresh, placement, batch_size=3)
     resumed = jax.tree.unflatten(jax.tree.structure(fresh), got.opt_leaves)
-    np.testing.assert_array_equal(resumed.parameters, [
-        [[0.0, 1.0], [0.0, 0.0], [0.0, 0.0]], [[6.0, 7.0], [0.0, 0.0], [0.0, 0.0]],
-        [[12.0, 13.0], [0.0, 0.0], [0.0, 0.0]], [[12.0, 13.0], [0.0, 0.0], [0.0, 0.0]]])
+    np.testing.assert_array_equal(
+        resumed.parameters,
+        [
+            [[0.0, 1.0], [0.0, 0.0], [0.0, 0.0]],
+            [[6.0, 7.0], [0.0, 0.0], [0.0, 0.0]],
+            [[12.0, 13.0], [0.0, 0.0], [0.0, 0.0]],
+            [[12.0, 13.0], [0.0, 0.0], [0.0, 0.0]],
+        ],
+    )
     np.testing.assert_array_equal(resumed.stored, [[True, False, False]] * 4)
     np.testing.assert_array_equal(resumed.num_stored, [1, 1, 1, 1])
     np.testing.assert_array_equal(got.sim_leaves[0], [[10.0], [20.0], [30.0], [30.0]])
@@ -421,17 +499,26 @@ def test_a_process_checkpoint_resumes_as_the_padded_batch(tmp_path):
 
 # ----------------------------------------------------------------------------------------------- trial table
 
+
 def test_the_trial_table_reads_back_per_trial_and_instance(tmp_path):
     """Two instances (seeds 0 and 1) × two trials; element [t, b] of each column is instance b's trial t."""
     n, batch = 2, 2
     objective = np.array([[1.5, 2.5], [3.5, 4.5]], np.float32)  # [trial, instance]
     fields = {name: np.zeros((n, batch)) for name in study_io.TrialLog._fields}
-    fields.update(params=np.zeros((n, batch, 8)), context=np.zeros((n, batch, 2)),
-                  velocity_xy_mps=np.zeros((n, batch, 2)), objective=objective,
-                  fell=np.array([[0.0, 1.0], [0.0, 0.0]]))
+    fields.update(
+        params=np.zeros((n, batch, 8)),
+        context=np.zeros((n, batch, 2)),
+        velocity_xy_mps=np.zeros((n, batch, 2)),
+        objective=objective,
+        fell=np.array([[0.0, 1.0], [0.0, 0.0]]),
+    )
     fields["params"][1, 0, 0] = 0.07
-    result = types.SimpleNamespace(spec=SPEC, trials=study_io.TrialLog(**fields), walked=study_spec.conditions(SPEC),
-                                   labels=study_spec.instances(SPEC))
+    result = types.SimpleNamespace(
+        spec=SPEC,
+        trials=study_io.TrialLog(**fields),
+        walked=study_spec.conditions(SPEC),
+        labels=study_spec.instances(SPEC),
+    )
     path = study_io.write_trials(result, tmp_path / "trials.parquet")
     assert path == tmp_path / "trials.parquet"
     grids = study_io.read_trials(path)

@@ -24,21 +24,33 @@ def _synthetic_log():
     r = ids.root_qpos
     qpos[:, r] += 0.5 * t
     yaw = 0.3 + 2.0 * t
-    qpos[:, r + 3:r + 7] = np.stack([np.cos(yaw / 2), 0 * t, 0 * t, np.sin(yaw / 2)], axis=1)
+    qpos[:, r + 3 : r + 7] = np.stack([np.cos(yaw / 2), 0 * t, 0 * t, np.sin(yaw / 2)], axis=1)
     qpos[:, ids.joint_qpos] += 0.3 * np.sin(2 * np.pi * 5 * t)[:, None] * np.tile([0.3, 1.0, -0.8], 4)
     rng = np.random.default_rng(0)
-    fields = dict(qpos=qpos, qvel=np.zeros((TICKS, 18)), torque_nm=np.zeros((TICKS, 12)),
-                  foot_force_n=rng.uniform(0, 60, (TICKS, 4)), foot_pos_m=rng.uniform(-1, 1, (TICKS, 4, 3)),
-                  amplitude=rng.uniform(0.8, 1.2, (TICKS, 4)), phase_rad=rng.uniform(0, 6, (TICKS, 4)),
-                  foot_target_m=np.zeros((TICKS, 4, 3)), rpy_rad=rng.uniform(-0.1, 0.1, (TICKS, 3)))
+    fields = dict(
+        qpos=qpos,
+        qvel=np.zeros((TICKS, 18)),
+        torque_nm=np.zeros((TICKS, 12)),
+        foot_force_n=rng.uniform(0, 60, (TICKS, 4)),
+        foot_pos_m=rng.uniform(-1, 1, (TICKS, 4, 3)),
+        amplitude=rng.uniform(0.8, 1.2, (TICKS, 4)),
+        phase_rad=rng.uniform(0, 6, (TICKS, 4)),
+        foot_target_m=np.zeros((TICKS, 4, 3)),
+        rpy_rad=rng.uniform(-0.1, 0.1, (TICKS, 3)),
+    )
     return protocol.StepLog(**fields)
 
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     log = _synthetic_log()
-    rollout = scene.Rollout(log=log, group="friction0.3", controller="vmc_tegotae", seed=1,
-                            condition=Condition(friction=0.3, slope_deg=7.5, payload_kg=2.0))
+    rollout = scene.Rollout(
+        log=log,
+        group="friction0.3",
+        controller="vmc_tegotae",
+        seed=1,
+        condition=Condition(friction=0.3, slope_deg=7.5, payload_kg=2.0),
+    )
     path = tmp_path_factory.mktemp("scene") / "one.rrd"
     rec = rr.RecordingStream("test_scene")
     rec.save(str(path))
@@ -63,8 +75,7 @@ def _first(rows) -> np.ndarray:
 
 def test_the_labels_are_in_the_entity_path(recorded):
     _, _, base, _ = recorded
-    assert base == ("/rollout/best_friction0.3/vmc_tegotae/seed\\=1/"
-                    "friction\\=0.3\\,slope_deg\\=7.5\\,payload_kg\\=2")
+    assert base == ("/rollout/best_friction0.3/vmc_tegotae/seed\\=1/friction\\=0.3\\,slope_deg\\=7.5\\,payload_kg\\=2")
 
 
 def test_every_body_and_geom_is_recorded(recorded):
@@ -74,8 +85,11 @@ def test_every_body_and_geom_is_recorded(recorded):
     for body in ("trunk", *(f"{leg}_{part}" for leg in ("FR", "FL", "RR", "RL") for part in ("hip", "thigh", "calf"))):
         entity = f"{base}/world/robot/{body}"
         assert len(_column(chunks, entity, "Transform3D:translation")) == len(range(0, TICKS, scene.TICK_STRIDE))
-        for kind, size in (("boxes", "Boxes3D:half_sizes"), ("cylinders", "Cylinders3D:radii"),
-                           ("spheres", "Ellipsoids3D:half_sizes")):
+        for kind, size in (
+            ("boxes", "Boxes3D:half_sizes"),
+            ("cylinders", "Cylinders3D:radii"),
+            ("spheres", "Ellipsoids3D:half_sizes"),
+        ):
             if f"{entity}/{kind}" in chunks:
                 shapes += len(_column(chunks, f"{entity}/{kind}", size)[0])
     assert shapes == int(np.sum(m.geom_group == go1_model.VISUAL_GROUP)) == 29
@@ -96,10 +110,10 @@ def test_the_transforms_put_the_feet_where_the_leg_kinematics_does(recorded):
         quat = _first(_column(chunks, entity, "Transform3D:quaternion"))
         for row, tick in enumerate(ticks):
             q = log.qpos[tick]
-            trunk_quat = q[ids.root_qpos + 3:ids.root_qpos + 7]
-            q_leg = q[ids.joint_qpos[3 * k:3 * k + 3]]
+            trunk_quat = q[ids.root_qpos + 3 : ids.root_qpos + 7]
+            q_leg = q[ids.joint_qpos[3 * k : 3 * k + 3]]
             foot_trunk = kinematics.HIP_POS_M[k] + np.asarray(kinematics.leg_fk(q_leg, kinematics.SIDE_SIGN[k]))
-            expected = q[ids.root_qpos:ids.root_qpos + 3] + attitude.quat_rotate(trunk_quat, foot_trunk)
+            expected = q[ids.root_qpos : ids.root_qpos + 3] + attitude.quat_rotate(trunk_quat, foot_trunk)
             recorded_foot = pos[row] + attitude.quat_rotate(quat[row, [3, 0, 1, 2]], np.array(center, float))
             np.testing.assert_allclose(recorded_foot, expected, atol=2e-5)
 
@@ -112,7 +126,7 @@ def test_the_world_is_tilted_by_the_slope_and_the_arrows_are_the_forces(recorded
     (center,) = _first(_column(chunks, f"{base}/world/floor", "Boxes3D:centers"))
     (half,) = _first(_column(chunks, f"{base}/world/floor", "Boxes3D:half_sizes"))
     assert center[2] + half[2] == pytest.approx(0.0, abs=1e-6)  # the floor's top is the floor frame's z = 0
-    trunk = log.qpos[:, go1_model.indices().root_qpos:go1_model.indices().root_qpos + 2]
+    trunk = log.qpos[:, go1_model.indices().root_qpos : go1_model.indices().root_qpos + 2]
     assert np.all(np.abs(trunk - center[:2]) < half[:2])  # under the whole walk
     ticks = np.arange(0, TICKS, scene.TICK_STRIDE)
     for k, leg in enumerate(("FR", "FL", "RR", "RL")):
@@ -140,9 +154,10 @@ def test_the_payload_is_a_box_at_the_carrier_body_and_absent_without_one(recorde
     quat = _first(_column(chunks, f"{base}/world/robot/payload", "Transform3D:quaternion"))
     for row, tick in enumerate(np.arange(0, TICKS, scene.TICK_STRIDE)):
         q = log.qpos[tick]
-        trunk_quat = q[ids.root_qpos + 3:ids.root_qpos + 7]
-        np.testing.assert_allclose(pos[row], q[ids.root_qpos:ids.root_qpos + 3]
-                                   + attitude.quat_rotate(trunk_quat, carrier_m), atol=1e-6)
+        trunk_quat = q[ids.root_qpos + 3 : ids.root_qpos + 7]
+        np.testing.assert_allclose(
+            pos[row], q[ids.root_qpos : ids.root_qpos + 3] + attitude.quat_rotate(trunk_quat, carrier_m), atol=1e-6
+        )
         np.testing.assert_allclose(np.abs(quat[row, [3, 0, 1, 2]] @ trunk_quat), 1.0, atol=1e-6)  # the trunk's axes
 
     path = tmp_path / "unladen.rrd"

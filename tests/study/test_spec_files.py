@@ -22,8 +22,15 @@ from cpgjax.study import files as study_io
 from cpgjax.study import spec as study_spec
 
 DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
-PAPER_STUDIES = ("controller_ablation", "friction", "load_adaptation", "multi_velocity", "paper_hardware",
-                 "slope_adaptation", "transfer")
+PAPER_STUDIES = (
+    "controller_ablation",
+    "friction",
+    "load_adaptation",
+    "multi_velocity",
+    "paper_hardware",
+    "slope_adaptation",
+    "transfer",
+)
 
 
 def _nameless(spec: study_spec.StudySpec) -> study_spec.StudySpec:
@@ -53,8 +60,10 @@ def test_each_paper_study_file_defines_the_study_of_the_code_it_replaced():
             continue
         study = study_driver.read(name, **options)
         specs = transfer.specs(study) if study.arms else [study.spec]
-        later = (", startup=None, switches=None, gaits=None, terrain_amplitude_m=None, terrain_seed=None, "
-                 "foot_friction=None)")  # added since
+        later = (
+            ", startup=None, switches=None, gaits=None, terrain_amplitude_m=None, terrain_seed=None, "
+            "foot_friction=None)"
+        )  # added since
         assert [repr(_nameless(s)).replace(later, ")") for s in specs] == want, key
 
 
@@ -71,8 +80,10 @@ def test_each_quick_paper_study_writes_the_trials_of_the_reproductions_commit(tm
     by the same pyarrow."""
     recorded = json.loads((DATA / "quick_trials_sha256.json").read_text())
     if recorded["pyarrow"] != pyarrow.__version__:
-        pytest.fail(f"the recorded files were written by pyarrow {recorded['pyarrow']}, this is "
-                    f"{pyarrow.__version__}: record them again at {recorded['commit']} with this pyarrow")
+        pytest.fail(
+            f"the recorded files were written by pyarrow {recorded['pyarrow']}, this is "
+            f"{pyarrow.__version__}: record them again at {recorded['commit']} with this pyarrow"
+        )
     found = {}
     for name in PAPER_STUDIES:
         study = study_driver.read(name, quick=True)
@@ -103,34 +114,62 @@ changes = [{ trial = 5, payload_kg = 12.0 }]
 """
 
 
-@pytest.mark.parametrize("edit, key, allowed", [
-    (("seeds = 2", "seeds = 2\nseed = 3"), "unknown key 'seed' (did you mean 'seeds'?)", "allowed: name"),
-    (("friction = [0.4, 0.8]", "frction = [0.4, 0.8]"), "unknown key 'grid.frction'", "allowed in grid"),
-    (("trials = 10", "trials = \"10\""), "trials: need an integer, got a string", ""),
-    (("friction = [0.4, 0.8]", "friction = [0.4, 0.8, 2.0]"), "grid.friction[2] = 2.0 is outside the allowed range",
-     "[0.1, 1.5]"),
-    (("friction = [0.4, 0.8]", "friction = [0.4, true]"), "grid.friction[1]: need a number, got a boolean", ""),
-    (("trial = 5, payload_kg", "trial = 10, payload_kg"), "schedules[0].changes[0].trial: 10 is outside the allowed",
-     "trials are numbered 0 … 9"),
-    (("trial = 5, payload_kg = 12.0", "trial = 5, payload_kg = 25.0"),
-     "schedules[0].changes[0].payload_kg = 25.0 is outside the allowed range", "[0, 20]"),
-    (("friction = [0.4, 0.8]", "friction = []"), "grid.friction: empty", "at least one value"),
-    (("friction = [0.4, 0.8]", "friction = [0.4, 0.4]"), "grid.friction[1]: 0.4 is already in the axis", ""),
-    (('group_by = ["controller", "friction"]', 'group_by = ["controller", "mass"]'),
-     "group_by[1]: 'mass' is not allowed", "allowed: controller, gait, seed, friction"),
-    (("controllers = [\"open_loop\", \"tegotae\"]", "controllers = [\"open_loop\", \"cpg\"]"),
-     "grid.controllers[1]: 'cpg' is not allowed", "open_loop, vmc, tegotae, vmc_tegotae"),
-    (("changes = [{ trial = 5, payload_kg = 12.0 }]", "phases = [{ trials = 4 }, { trials = 5, payload_kg = 12.0 }]"),
-     "schedules[0].phases: the phases' trials add up to 9, the study has 10", ""),
-    (('name = "load"', 'name = "a load"'), "schedules[0].name: 'a load': need a word", "names files"),
-    (("seeds = 2", "seeds = 2\n[comparisons]"), "comparisons: need a list", ""),
-    (("seeds = 2", 'comparisons = [{ axis = "friction", a = 0.4, b = 0.5 }]'),
-     "comparisons[0].b: 0.5 is not a value of the study's friction axis", "allowed: 0.4, 0.8"),
-    (("seeds = 2", "seeds = 2\nreport = \"mine\""), "report: 'mine' is not a report", "controller_ablation"),
-    (("[grid]", "[grid"), "not valid TOML", ""),
-])
-def test_a_bad_study_file_is_refused_in_one_line_before_anything_runs(edit, key, allowed, tmp_path, capsys,
-                                                                     monkeypatch):
+@pytest.mark.parametrize(
+    "edit, key, allowed",
+    [
+        (("seeds = 2", "seeds = 2\nseed = 3"), "unknown key 'seed' (did you mean 'seeds'?)", "allowed: name"),
+        (("friction = [0.4, 0.8]", "frction = [0.4, 0.8]"), "unknown key 'grid.frction'", "allowed in grid"),
+        (("trials = 10", 'trials = "10"'), "trials: need an integer, got a string", ""),
+        (
+            ("friction = [0.4, 0.8]", "friction = [0.4, 0.8, 2.0]"),
+            "grid.friction[2] = 2.0 is outside the allowed range",
+            "[0.1, 1.5]",
+        ),
+        (("friction = [0.4, 0.8]", "friction = [0.4, true]"), "grid.friction[1]: need a number, got a boolean", ""),
+        (
+            ("trial = 5, payload_kg", "trial = 10, payload_kg"),
+            "schedules[0].changes[0].trial: 10 is outside the allowed",
+            "trials are numbered 0 … 9",
+        ),
+        (
+            ("trial = 5, payload_kg = 12.0", "trial = 5, payload_kg = 25.0"),
+            "schedules[0].changes[0].payload_kg = 25.0 is outside the allowed range",
+            "[0, 20]",
+        ),
+        (("friction = [0.4, 0.8]", "friction = []"), "grid.friction: empty", "at least one value"),
+        (("friction = [0.4, 0.8]", "friction = [0.4, 0.4]"), "grid.friction[1]: 0.4 is already in the axis", ""),
+        (
+            ('group_by = ["controller", "friction"]', 'group_by = ["controller", "mass"]'),
+            "group_by[1]: 'mass' is not allowed",
+            "allowed: controller, gait, seed, friction",
+        ),
+        (
+            ('controllers = ["open_loop", "tegotae"]', 'controllers = ["open_loop", "cpg"]'),
+            "grid.controllers[1]: 'cpg' is not allowed",
+            "open_loop, vmc, tegotae, vmc_tegotae",
+        ),
+        (
+            (
+                "changes = [{ trial = 5, payload_kg = 12.0 }]",
+                "phases = [{ trials = 4 }, { trials = 5, payload_kg = 12.0 }]",
+            ),
+            "schedules[0].phases: the phases' trials add up to 9, the study has 10",
+            "",
+        ),
+        (('name = "load"', 'name = "a load"'), "schedules[0].name: 'a load': need a word", "names files"),
+        (("seeds = 2", "seeds = 2\n[comparisons]"), "comparisons: need a list", ""),
+        (
+            ("seeds = 2", 'comparisons = [{ axis = "friction", a = 0.4, b = 0.5 }]'),
+            "comparisons[0].b: 0.5 is not a value of the study's friction axis",
+            "allowed: 0.4, 0.8",
+        ),
+        (("seeds = 2", 'seeds = 2\nreport = "mine"'), "report: 'mine' is not a report", "controller_ablation"),
+        (("[grid]", "[grid"), "not valid TOML", ""),
+    ],
+)
+def test_a_bad_study_file_is_refused_in_one_line_before_anything_runs(
+    edit, key, allowed, tmp_path, capsys, monkeypatch
+):
     """One line naming the file, the key's path and what is allowed; exit 2; no engine built, no folder written."""
     old, new = edit
     assert old in GOOD
@@ -187,6 +226,7 @@ length_m = 5.0
 
 def _write(text: str) -> pathlib.Path:
     import tempfile
+
     path = pathlib.Path(tempfile.mkdtemp()) / "study.toml"
     path.write_text(text)
     return path
@@ -194,12 +234,22 @@ def _write(text: str) -> pathlib.Path:
 
 # ----------------------------------------------------------------------------------------------- template, print
 
+
 def test_the_template_lists_every_key_runs_as_written_and_is_not_overwritten(tmp_path, capsys):
     path = tmp_path / "mine.toml"
     assert cli.main(["study", "--template", str(path)]) == 0
     text = path.read_text()
-    for key in (*study_spec.TOP_KEYS, *study_spec.GRID_AXES, *study_spec.Randomization._fields,
-                *study_spec.Ramp._fields, "transition_s", "steady_s", "phases", "changes", "fixed"):
+    for key in (
+        *study_spec.TOP_KEYS,
+        *study_spec.GRID_AXES,
+        *study_spec.Randomization._fields,
+        *study_spec.Ramp._fields,
+        "transition_s",
+        "steady_s",
+        "phases",
+        "changes",
+        "fixed",
+    ):
         if key != "transfer":  # the transfer report's own table
             assert f"{key} =" in text or f"[{key}]" in text or f"{key}: " in text, key
     spec = study_spec.load(path)
@@ -237,12 +287,19 @@ def test_a_study_in_python_and_the_same_study_as_a_file_write_the_same_files(tmp
 
     path = tmp_path / "tiny.toml"
     path.write_text(TINY)
-    python = study_spec.StudySpec("tiny_file", num_trials=3, seeds=(0, 1), controllers=("open_loop", "tegotae"),
-                                  physics=("paper",), trial=protocol.TrialConfig(transition_steps=100,
-                                                                                 steady_steps=200))
+    python = study_spec.StudySpec(
+        "tiny_file",
+        num_trials=3,
+        seeds=(0, 1),
+        controllers=("open_loop", "tegotae"),
+        physics=("paper",),
+        trial=protocol.TrialConfig(transition_steps=100, steady_steps=200),
+    )
     assert study_spec.load(path) == python
+
     def options(out):
         return study_options.RunOptions(out=out, backend="native", notify=lambda line: None)
+
     a = study_driver.run_spec(python, options(tmp_path / "python"))
     b = study_driver.run_file(study_driver.read(path), options(tmp_path / "file"))
     assert (a.out / "trials.parquet").read_bytes() == (b.out / "trials.parquet").read_bytes()
@@ -254,22 +311,33 @@ def test_a_study_in_python_and_the_same_study_as_a_file_write_the_same_files(tmp
 
 # ----------------------------------------------------------------------------------------------- generic report
 
+
 def _fake_result(spec, seed=0):
     """A finished study's result with random trial figures: what the generic report reads."""
     rng = np.random.default_rng(seed)
     cond = study_spec.conditions(spec)
     batch, n = cond.friction.shape
     trials = types.SimpleNamespace(
-        objective=rng.uniform(-1.0, 2.3, (n, batch)), cot=rng.uniform(0.4, 1.2, (n, batch)),
-        velocity_xy_mps=rng.uniform(0.0, 0.6, (n, batch, 2)), fell=(rng.random((n, batch)) < 0.15).astype(float))
-    return types.SimpleNamespace(spec=spec, trials=trials, conditions=cond, walked=cond,
-                                 labels=study_spec.instances(spec))
+        objective=rng.uniform(-1.0, 2.3, (n, batch)),
+        cot=rng.uniform(0.4, 1.2, (n, batch)),
+        velocity_xy_mps=rng.uniform(0.0, 0.6, (n, batch, 2)),
+        fell=(rng.random((n, batch)) < 0.15).astype(float),
+    )
+    return types.SimpleNamespace(
+        spec=spec, trials=trials, conditions=cond, walked=cond, labels=study_spec.instances(spec)
+    )
 
 
 def test_the_generic_report_per_group_and_phase_matches_numpy_and_scipy():
-    spec = study_spec.StudySpec("g", num_trials=12, controllers=("open_loop", "tegotae"), seeds=(0, 1, 2),
-                                friction=(0.4, 0.8), group_by=("controller", "friction"), schedules=(
-                                    study_spec.Schedule("load", (study_spec.Change(7, "payload_kg", 10.0),), "load"),))
+    spec = study_spec.StudySpec(
+        "g",
+        num_trials=12,
+        controllers=("open_loop", "tegotae"),
+        seeds=(0, 1, 2),
+        friction=(0.4, 0.8),
+        group_by=("controller", "friction"),
+        schedules=(study_spec.Schedule("load", (study_spec.Change(7, "payload_kg", 10.0),), "load"),),
+    )
     result = _fake_result(spec)
     tr = result.trials
     table = generic.group_table(result)
@@ -287,9 +355,14 @@ def test_the_generic_report_per_group_and_phase_matches_numpy_and_scipy():
     assert "| tegotae_friction0.8 | trials 7–11: μ 0.8 (0.6 in effect), 0°, 10 kg" in table
     # by default every pair of groups that differs in one label, per phase: 4 pairs × 2 phases
     pairs = generic.contrasts(result, ())
-    assert sorted(name for name, _, _ in pairs) == sorted([
-        "open_loop_friction0.4 − open_loop_friction0.8", "open_loop_friction0.4 − tegotae_friction0.4",
-        "open_loop_friction0.8 − tegotae_friction0.8", "tegotae_friction0.4 − tegotae_friction0.8"])
+    assert sorted(name for name, _, _ in pairs) == sorted(
+        [
+            "open_loop_friction0.4 − open_loop_friction0.8",
+            "open_loop_friction0.4 − tegotae_friction0.4",
+            "open_loop_friction0.8 − tegotae_friction0.8",
+            "tegotae_friction0.4 − tegotae_friction0.8",
+        ]
+    )
     text = generic.comparison_table(result, ())
     assert text.count("\n| ") == 1 + 8
     a = [b for b, lab in enumerate(labels) if lab["controller"] == "tegotae" and lab["friction"] == 0.4]
@@ -299,8 +372,11 @@ def test_the_generic_report_per_group_and_phase_matches_numpy_and_scipy():
     assert name == "tegotae_friction0.4 − open_loop_friction0.4" and list(got_a) == a and list(got_b) == b
     ja, jb = tr.objective[7:12, a].mean(axis=0), tr.objective[7:12, b].mean(axis=0)
     welch = sp.ttest_ind(ja, jb, equal_var=False).pvalue
-    row = next(line for line in generic.comparison_table(result, given).splitlines()
-               if line.startswith(f"| {name} | trials 7–11"))
+    row = next(
+        line
+        for line in generic.comparison_table(result, given).splitlines()
+        if line.startswith(f"| {name} | trials 7–11")
+    )
     assert f"Δ = {ja.mean() - jb.mean():+.3f}" in row and f"Welch p = {welch:.2g}" in row
 
 

@@ -51,8 +51,9 @@ def test_each_switch_reaches_what_it_names_and_unset_changes_nothing(tmp_path):
 def test_the_phase_gate_gives_an_unloaded_stance_leg_its_virtual_force():
     """FL is in the CPG's stance phase with no load on its foot: the paper's reading (> 10 N) gives it no VMC torque,
     the phase-only reading does."""
-    state = cpg.CPGState(jnp.full(4, 1.0), jnp.array([0.6, 3.9, 3.9, 0.6]), jnp.float32(0.0),
-                         jnp.float32(0.0), jnp.float32(0.0))
+    state = cpg.CPGState(
+        jnp.full(4, 1.0), jnp.array([0.6, 3.9, 3.9, 0.6]), jnp.float32(0.0), jnp.float32(0.0), jnp.float32(0.0)
+    )
     obs = observation(np.array([60.0, 0.0, 60.0, 60.0]), _tilted_quat(0.2, 0.15, 0.3))
     p = jnp.asarray(param_space.midpoint(), jnp.float32)
     taus = {}
@@ -69,8 +70,9 @@ def test_a_fall_scores_the_moved_floor(tmp_path):
     """On 25° under 20 kg the Go1 falls from standing: with the floor at −5 a fallen trial's J is −5, not the paper's
     −1, and no trial's J is below it."""
     text = STUDY.replace("payload_kg = [20.0]", "payload_kg = [20.0]\nslope_deg = [25.0]").replace(
-        "steady_s = 0.2", "steady_s = 2.0")
-    result = ablation.Engine(_load(tmp_path, text + '[switches]\nobjective_floor = -5.0\n'), backend="native").run()
+        "steady_s = 0.2", "steady_s = 2.0"
+    )
+    result = ablation.Engine(_load(tmp_path, text + "[switches]\nobjective_floor = -5.0\n"), backend="native").run()
     fell = np.asarray(result.trials.fell).ravel() > 0
     j = np.asarray(result.trials.objective).ravel()
     assert fell.any()
@@ -78,11 +80,14 @@ def test_a_fall_scores_the_moved_floor(tmp_path):
     assert np.all(j >= -5.0)
 
 
-@pytest.mark.parametrize("line, message", [
-    ('vmc_gate = "always"', "switches.vmc_gate: 'always' is not allowed; allowed: loaded, phase"),
-    ("objective_floor = 1.0", "switches.objective_floor = 1.0 is outside the allowed range [-20, -0.5]"),
-    ('ucb = "botorch"', "unknown key 'switches.ucb'; allowed in switches: amplitude_form, ucb_form"),
-])
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        ('vmc_gate = "always"', "switches.vmc_gate: 'always' is not allowed; allowed: loaded, phase"),
+        ("objective_floor = 1.0", "switches.objective_floor = 1.0 is outside the allowed range [-20, -0.5]"),
+        ('ucb = "botorch"', "unknown key 'switches.ucb'; allowed in switches: amplitude_form, ucb_form"),
+    ],
+)
 def test_a_bad_switch_is_refused_in_one_line(line, message, tmp_path, capsys, monkeypatch):
     path = tmp_path / "study.toml"
     path.write_text(STUDY + "[switches]\n" + line + "\n")
