@@ -46,7 +46,17 @@ DEFAULT_GAIT = "trot"
 
 
 def gait_phase_lags(name: str) -> np.ndarray:
-    """φ_ij (4, 4) [rad] of eq. (3) for the gait ``name`` of :data:`GAITS`: offset_j − offset_i."""
+    """φ_ij (4, 4) [rad] of eq. (3) for the gait ``name`` of :data:`GAITS`: offset_j − offset_i.
+
+    Args:
+      name: a gait of :data:`GAITS`.
+
+    Returns:
+      (4, 4) float64 [rad], row i and column j holding φ_ij.
+
+    Raises:
+      ValueError: ``name`` is not in :data:`GAITS` (the message lists the allowed gaits).
+    """
     if name not in GAITS:
         raise ValueError(f"unknown gait {name!r}; allowed: {', '.join(GAITS)}")
     offsets = np.asarray(GAITS[name], np.float64)
@@ -73,8 +83,8 @@ class CPGConfig(NamedTuple):
     k_att_pitch_n: float = 160.0  # VMC pitch gain k_att,p
     k_dir_n_rad: float = 300.0  # VMC heading gain k_dir
     # VMC acts on legs in stance: CPG stance phase (sin θ ≤ 0) *and* foot loaded beyond this normal force. A virtual
-    # force on a foot in the air only swings the leg (measured: lateral velocity std 0.11 m/s with the phase alone,
-    # vs 0.06 with VMC alone, mid-range parameters). −inf: the stance phase alone (docs/decisions.md §7's switch).
+    # force on a foot in the air only swings the leg (docs/decisions.md, "§7 VMC (reconstruction)"). −inf: the
+    # stance phase alone (docs/decisions.md §7's switch).
     vmc_contact_force_n: float = 10.0
     dt_s: float = constants.TICK_S  # control period (the 1 kHz tick)
     # docs/decisions.md §1 (switch): "paper" integrates α(μ² − r²)r (r → μ); "sqrt" integrates α(μ − r²)r (r → √μ),
@@ -100,7 +110,18 @@ DEFAULT_STARTUP = "paper"
 
 
 def with_startup(config: CPGConfig, name: str) -> CPGConfig:
-    """``config`` with the start-up ``name`` of :data:`STARTUPS` (its other start fields at the paper's)."""
+    """``config`` with the start-up ``name`` of :data:`STARTUPS` (its other start fields at the paper's).
+
+    Args:
+      config: the controller constants; its fields not named ``start_*`` are kept.
+      name: a start-up of :data:`STARTUPS`.
+
+    Returns:
+      A :class:`CPGConfig`: every ``start_*`` field at :class:`CPGConfig`'s default, then the ones ``name`` sets.
+
+    Raises:
+      ValueError: ``name`` is not in :data:`STARTUPS` (the message lists the allowed start-ups).
+    """
     if name not in STARTUPS:
         raise ValueError(f"unknown start-up {name!r}; allowed: {', '.join(STARTUPS)}")
     paper = CPGConfig()
@@ -119,7 +140,20 @@ class Gates(NamedTuple):
 
 
 def controller_gates(name: str, gait: str = DEFAULT_GAIT) -> Gates:
-    """Gates of one of CONTROLLERS ('open_loop', 'vmc', 'tegotae', 'vmc_tegotae') walking one of :data:`GAITS`."""
+    """Gates of one of CONTROLLERS ('open_loop', 'vmc', 'tegotae', 'vmc_tegotae') walking one of :data:`GAITS`.
+
+    Args:
+      name: a controller of :data:`CONTROLLERS`.
+      gait: a gait of :data:`GAITS`.
+
+    Returns:
+      :class:`Gates` of NumPy float32: ``vmc`` and ``tegotae`` () each, 1.0 where ``name`` contains the module,
+      ``phase_lag_rad`` (4, 4) [rad] from :func:`gait_phase_lags`.
+
+    Raises:
+      ValueError: ``name`` is not in :data:`CONTROLLERS`, or ``gait`` not in :data:`GAITS` (from
+        :func:`gait_phase_lags`).
+    """
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}; allowed: {CONTROLLERS}")
     return Gates(
@@ -173,7 +207,11 @@ def oscillator_derivatives(
       foot_force_n: N_i, (4,).
       tegotae_gate: 1.0 adds −σ_N N_i cos θ_i (eq. 6), 0.0 gives the open-loop phase of eq. (2).
       mu_scale: the amplitude target is μ · mu_scale (the start's ramp, :func:`start_ramp`; 1 after it).
+      config: the controller constants (α, w_ij, ``amplitude_form``).
       phase_lag_rad: φ_ij (4, 4), the gait (:func:`gait_phase_lags`).
+
+    Returns:
+      (ṙ_i (4,) [1/s], θ̇_i (4,) [rad/s]).
     """
     mu, sigma_n = params[4] * mu_scale, params[7]
     omega_swing, omega_stance = params[2], params[3]
@@ -188,7 +226,19 @@ def oscillator_derivatives(
 
 def foot_targets(amplitude, phase_rad, params, config: CPGConfig, lean_x_m=0.0) -> jax.Array:
     """Leg-frame foot targets (4, 3) [m] from the oscillator states, eqs. (4)-(5); ``lean_x_m`` is added to every
-    foot's x (the start's lean, :func:`lean_x_m`)."""
+    foot's x (the start's lean, :func:`lean_x_m`).
+
+    Args:
+      amplitude: r_i, (4,).
+      phase_rad: θ_i, (4,) [rad].
+      params: the 8 physical parameters (see ``cpgjax.trial.params``): g_c, g_p and the front and hind x offsets
+        [m] are used.
+      config: the controller constants (d_step, h, the lateral foot position).
+      lean_x_m: shift of every foot's x [m], () (0: none).
+
+    Returns:
+      (4, 3) [m], one row (x, y, z) per leg in the leg frame, legs in the order of ``cpgjax.go1.constants.LEG_NAMES``.
+    """
     g_c, g_p = params[0], params[1]
     x_offset = jnp.where(kinematics.FRONT_SIGN > 0, params[5], params[6]) + lean_x_m
     sin_phase = jnp.sin(phase_rad)
@@ -204,6 +254,16 @@ def vmc_torques(joint_pos_rad, rpy_rad, heading_ref_rad, stance, config: CPGConf
     On stance legs, F_z,i = k_att,r y_i sin(roll) − k_att,p x_i sin(pitch) and F_y,i = k_dir x_i wrap(ψ − ψ_des),
     with x_i = ±1 front/hind and y_i = ±1 left/right; τ_vmc,i = J_iᵀ [0, F_y,i, F_z,i]. F is the force the leg
     applies to its foot (F_z > 0 lifts the foot), so a raised corner is lowered and a yaw error is turned back.
+
+    Args:
+      joint_pos_rad: measured joint angles (12,) [rad], leg by leg.
+      rpy_rad: roll, pitch (nose-down positive), yaw (3,) [rad].
+      heading_ref_rad: ψ_des, () [rad].
+      stance: (4,), 1.0 for legs in stance, 0.0 for the others (no force).
+      config: the controller constants (the gains k_att,r [N], k_att,p [N], k_dir [N/rad]).
+
+    Returns:
+      τ_vmc (12,) [N·m], leg by leg.
     """
     roll, pitch, yaw = rpy_rad[0], rpy_rad[1], rpy_rad[2]
     heading_error = jnp.arctan2(jnp.sin(yaw - heading_ref_rad), jnp.cos(yaw - heading_ref_rad))
@@ -224,7 +284,17 @@ def init_state(
 ) -> CPGState:
     """Controller state at the start of a run: small amplitude, the gait's phases θ_j = φ_0j of ``phase_lag_rad``
     (+ ``config.start_phase_rad``), heading reference = heading now, the start's clock at 0 and the IMU pitch now
-    (the lean's)."""
+    (the lean's).
+
+    Args:
+      obs: the observation at the start (its IMU quaternion is read).
+      config: the controller constants (``start_phase_rad``).
+      initial_amplitude: r_i of every oscillator at the start.
+      phase_lag_rad: φ_ij (4, 4) [rad], the gait (:func:`gait_phase_lags`).
+
+    Returns:
+      A float32 :class:`CPGState`.
+    """
     phase = initial_phase_rad(config, phase_lag_rad)
     rpy = attitude.quat_to_rpy(obs.imu_quat_wxyz).astype(jnp.float32)
     return CPGState(
@@ -238,12 +308,28 @@ def init_state(
 
 def initial_phase_rad(config: CPGConfig, phase_lag_rad) -> jax.Array:
     """The oscillators' phases (4,) at a start: the gait's φ_0j (``phase_lag_rad`` (4, 4)) + ``config.start_phase_rad``,
-    in [0, 2π)."""
+    in [0, 2π).
+
+    Args:
+      config: the controller constants (``start_phase_rad``).
+      phase_lag_rad: φ_ij (4, 4) [rad], the gait (:func:`gait_phase_lags`).
+
+    Returns:
+      θ_j (4,) float32 [rad] in [0, 2π).
+    """
     return jnp.mod(jnp.asarray(phase_lag_rad, jnp.float32)[0] + jnp.float32(config.start_phase_rad), 2.0 * jnp.pi)
 
 
 def start_ramp(duration_s: float, start_s) -> jax.Array:
-    """A start phase's progress in [0, 1] at ``start_s`` after the start: t / ``duration_s``, 1 if it lasts 0."""
+    """A start phase's progress in [0, 1] at ``start_s`` after the start: t / ``duration_s``, 1 if it lasts 0.
+
+    Args:
+      duration_s: the start phase's length [s] (static: a Python float); ≤ 0 for none.
+      start_s: time since the start [s], any shape.
+
+    Returns:
+      min(1, ``start_s`` / ``duration_s``), the shape of ``start_s``; ones when ``duration_s`` ≤ 0.
+    """
     if duration_s <= 0.0:
         return jnp.ones_like(start_s)
     return jnp.minimum(1.0, start_s / duration_s)
@@ -251,14 +337,30 @@ def start_ramp(duration_s: float, start_s) -> jax.Array:
 
 def lean_x_m(config: CPGConfig, pitch_rad) -> jax.Array:
     """The feet's x shift [m] that puts the centre of mass over the feet on a slope: h · tan(pitch) with the IMU
-    pitch (nose-down positive; uphill: negative, the feet move back under the trunk). 0 unless ``start_lean``."""
+    pitch (nose-down positive; uphill: negative, the feet move back under the trunk). 0 unless ``start_lean``.
+
+    Args:
+      config: the controller constants (h, ``start_lean``).
+      pitch_rad: the IMU pitch [rad], any shape.
+
+    Returns:
+      The x shift [m], the shape of ``pitch_rad``.
+    """
     return config.body_height_m * jnp.tan(pitch_rad) * float(config.start_lean)
 
 
 def standing_pose_rad(config: CPGConfig, imu_quat_wxyz: jax.Array) -> jax.Array:
     """The standing joint angles (12,) a start begins from: the standing pose, with the start's lean the feet shifted
     by :func:`lean_x_m` of the IMU's pitch (MJX's reset and the robot's soft start; the native backend's reset stands
-    at the lean of its scenario's slope, the same pitch)."""
+    at the lean of its scenario's slope, the same pitch).
+
+    Args:
+      config: the controller constants (h, ``start_lean``).
+      imu_quat_wxyz: the IMU's orientation (4,), (w, x, y, z).
+
+    Returns:
+      Joint angles (12,) [rad], leg by leg.
+    """
     return go1_model.standing_legs_rad(lean_x_m(config, attitude.quat_to_rpy(imu_quat_wxyz)[1]))
 
 
@@ -270,6 +372,19 @@ def controller_step(
     The oscillators are advanced by one forward-Euler step of dt, then mapped to foot targets (eqs. 4-5), joint
     targets (inverse kinematics) and torques τ_cmd = clip(τ_ref + gate_vmc · τ_vmc) with
     τ_ref = K_p (q_des − q) − K_d q̇.
+
+    Args:
+      config: the controller constants (static).
+      state: the controller state of the previous tick (:func:`init_state` at a start).
+      params: the 8 physical parameters (8,) (see ``cpgjax.trial.params``).
+      gates: the controller variant and gait (:class:`Gates`).
+      obs: this tick's observation (joint angles [rad] and velocities [rad/s], IMU quaternion, foot forces [N]).
+
+    Returns:
+      (the next :class:`CPGState`, joint torques (12,) [N·m] clipped to the motor limits, :class:`Diagnostics`).
+
+    Raises:
+      ValueError: ``params``' last axis does not have ``NUM_PARAMS`` (8) entries.
     """
     if params.shape[-1] != NUM_PARAMS:
         raise ValueError(f"params must have {NUM_PARAMS} entries, got shape {params.shape}")

@@ -123,6 +123,7 @@ class GammaPrior(NamedTuple):
 
     @property
     def mean(self) -> float:
+        """The density's mean, concentration / rate."""
         return self.concentration / self.rate
 
 
@@ -223,7 +224,15 @@ class FitConfig(NamedTuple):
 
 def default_params(num_inputs: int, priors: Priors = BOTORCH_PRIORS) -> GPParams:
     """The fixed default start of the fit: lengthscales at their prior's mean (0.5 under
-    :data:`BOTORCH_PRIORS`), ``s**2 = 1``, noise variance 0.1, mean 0."""
+    :data:`BOTORCH_PRIORS`), ``s**2 = 1``, noise variance 0.1, mean 0.
+
+    Args:
+      num_inputs: d, the number of input columns (parameters and context).
+      priors: the hyperparameters' priors (the lengthscale prior's mean is used).
+
+    Returns:
+      float32 :class:`GPParams`, ``log_lengthscales`` (d,).
+    """
     return GPParams(
         log_lengthscales=jnp.full((num_inputs,), jnp.log(priors.lengthscale.mean), jnp.float32),
         log_outputscale=jnp.zeros((), jnp.float32),
@@ -237,6 +246,12 @@ def matern52(squared_distance: jax.Array) -> jax.Array:
 
     The square root is guarded so the gradient at :math:`r = 0` (duplicates, the diagonal)
     is the correct 0 instead of NaN.
+
+    Args:
+      squared_distance: :math:`r^2`, any shape, ≥ 0.
+
+    Returns:
+      :math:`k_{5/2}(r)`, the shape of ``squared_distance``.
     """
     return matern52_and_derivative(squared_distance)[0]
 
@@ -244,7 +259,14 @@ def matern52(squared_distance: jax.Array) -> jax.Array:
 def matern52_and_derivative(squared_distance: jax.Array) -> tuple[jax.Array, jax.Array]:
     r""":math:`k_{5/2}(r)` and :math:`\mathrm d k_{5/2} / \mathrm d(r^2) =
     -\tfrac56 (1 + \sqrt5 r)\, e^{-\sqrt5 r}` (finite at :math:`r = 0`), sharing one
-    exponential."""
+    exponential.
+
+    Args:
+      squared_distance: :math:`r^2`, any shape, ≥ 0.
+
+    Returns:
+      (:math:`k_{5/2}(r)`, :math:`\mathrm d k_{5/2} / \mathrm d(r^2)`), each the shape of ``squared_distance``.
+    """
     positive = squared_distance > 0.0
     distance = jnp.where(positive, jnp.sqrt(jnp.where(positive, squared_distance, 1.0)), 0.0)
     sqrt5_r = jnp.sqrt(5.0) * distance
@@ -257,6 +279,13 @@ def squared_differences(inputs_a: jax.Array, inputs_b: jax.Array) -> jax.Array:
 
     Computed from exact differences (no ``|a|² + |b|² - 2ab`` cancellation), and once per fit:
     they do not depend on the hyperparameters.
+
+    Args:
+      inputs_a: (n, d) inputs.
+      inputs_b: (m, d) inputs.
+
+    Returns:
+      (d, n, m), entry [k, i, j] = (inputs_a[i, k] − inputs_b[j, k])².
     """
     return (inputs_a.T[:, :, None] - inputs_b.T[:, None, :]) ** 2
 
@@ -314,6 +343,10 @@ def correlation(
 
 def standardize(targets: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Standardize the valid targets; padded entries become 0.
+
+    Args:
+      targets: (capacity,) outcomes in their own units.
+      valid: (capacity,) bool, which entries are data.
 
     Returns:
       (standardized targets (capacity,), mean (), std ()). The std is the unbiased one; with
@@ -391,7 +424,7 @@ def _cholesky_inverse(cholesky: jax.Array) -> jax.Array:
 
     The result of one triangular solve against the identity, but with most of the work in
     matrix products, which XLA's CPU backend runs much faster than its triangular solve
-    (measured at 160 rows, one core: 0.085 ms against 0.19 ms).
+    (benchmarks/RESULTS.md, "GP: the triangular inverse by matrix products").
     """
     size = cholesky.shape[0]
     if size <= _TRIANGULAR_LEAF:
@@ -413,7 +446,17 @@ def _log_marginal_likelihood(factored: _Factored, prepared: _Prepared) -> jax.Ar
 
 def log_marginal_likelihood(params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int) -> jax.Array:
     r"""Log marginal likelihood of the standardized valid targets,
-    :math:`-\tfrac12 r^\top K^{-1} r - \tfrac12\log|K| - \tfrac{n}{2}\log 2\pi`."""
+    :math:`-\tfrac12 r^\top K^{-1} r - \tfrac12\log|K| - \tfrac{n}{2}\log 2\pi`.
+
+    Args:
+      params: the hyperparameters.
+      dataset: the masked training set.
+      active: (d,) bool active-input mask.
+      context_dims: static number of trailing context columns.
+
+    Returns:
+      () the log marginal likelihood of the valid rows (padded rows add 0).
+    """
     prepared = _prepare(dataset)
     return _log_marginal_likelihood(_factor(params, prepared, active, context_dims), prepared)
 
@@ -423,7 +466,16 @@ def _gamma_log_density(value, concentration, rate):
 
 
 def log_prior(params: GPParams, active: jax.Array, priors: Priors = BOTORCH_PRIORS) -> jax.Array:
-    """Sum of the Gamma log densities of ``priors`` (active inputs only)."""
+    """Sum of the Gamma log densities of ``priors`` (active inputs only).
+
+    Args:
+      params: the hyperparameters (the mean has no prior).
+      active: (d,) bool active-input mask; inactive lengthscales add 0.
+      priors: the hyperparameters' priors.
+
+    Returns:
+      () the log prior density of the constrained values (no Jacobian of the log transform).
+    """
     lengthscale_terms = _gamma_log_density(jnp.exp(params.log_lengthscales), *priors.lengthscale)
     return (
         jnp.sum(jnp.where(active, lengthscale_terms, 0.0))
@@ -456,8 +508,8 @@ def _log_marginal_likelihood_gradient(
     context_dims: int,
 ) -> GPParams:
     r"""Analytic gradient of the log marginal likelihood in the (log) hyperparameters. Written out because it pays:
-    with the value, 1.8–2.1× faster than ``jax.value_and_grad`` of the same log posterior (batches 20–80, capacities
-    40–160; ``benchmarks/derivatives.py``), and autodiff cannot pass the one-matrix-per-call LAPACK batching rule.
+    with the value, faster than ``jax.value_and_grad`` of the same log posterior (benchmarks/RESULTS.md,
+    "Hand-written derivatives against JAX's"), and autodiff cannot pass the one-matrix-per-call LAPACK batching rule.
 
     Rasmussen & Williams eq. (5.9): :math:`\partial_\theta \log p =
     \tfrac12 \operatorname{tr}(W \partial_\theta K)` with :math:`W = \alpha\alpha^\top - K^{-1}`
@@ -511,7 +563,18 @@ def _log_marginal_likelihood_gradient(
 def log_posterior(
     params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int, priors: Priors = BOTORCH_PRIORS
 ):
-    """The fit's objective: log marginal likelihood + log prior (unnormalized log MAP)."""
+    """The fit's objective: log marginal likelihood + log prior (unnormalized log MAP).
+
+    Args:
+      params: the hyperparameters.
+      dataset: the masked training set.
+      active: (d,) bool active-input mask.
+      context_dims: static number of trailing context columns.
+      priors: the hyperparameters' priors.
+
+    Returns:
+      () :func:`log_marginal_likelihood` + :func:`log_prior`.
+    """
     return log_marginal_likelihood(params, dataset, active, context_dims) + log_prior(params, active, priors)
 
 
@@ -522,7 +585,18 @@ def log_posterior_and_gradient(
     context_dims: int,
     priors: Priors = BOTORCH_PRIORS,
 ) -> tuple[jax.Array, GPParams]:
-    """:func:`log_posterior` and its analytic gradient in the (log) hyperparameters."""
+    """:func:`log_posterior` and its analytic gradient in the (log) hyperparameters.
+
+    Args:
+      params: the hyperparameters.
+      dataset: the masked training set.
+      active: (d,) bool active-input mask.
+      context_dims: static number of trailing context columns.
+      priors: the hyperparameters' priors.
+
+    Returns:
+      (the log posterior (), its gradient as :class:`GPParams`: 0 for inactive lengthscales).
+    """
     return _log_posterior_and_gradient(params, _prepare(dataset), active, context_dims, priors)
 
 
@@ -608,7 +682,17 @@ def fit(
 
 def posterior(params: GPParams, dataset: Dataset, active: jax.Array, context_dims: int) -> Posterior:
     """Condition the GP on a dataset: one Cholesky factorization and its triangular inverse,
-    reused by every :func:`predict`."""
+    reused by every :func:`predict`.
+
+    Args:
+      params: the hyperparameters, e.g. from :func:`fit`.
+      dataset: the masked training set.
+      active: (d,) bool active-input mask.
+      context_dims: static number of trailing context columns.
+
+    Returns:
+      A :class:`Posterior`.
+    """
     prepared = _prepare(dataset)
     factored = _factor(params, prepared, active, context_dims)
     return Posterior(

@@ -90,6 +90,15 @@ def make_batch_model(scenario: go1_model.Scenario) -> BatchModel:
     ``opt.gravity``; payload and physics profile → every field they change, recomputed by ``mj_setConst`` once per
     distinct (payload, profile); terrain → the terrain model (``go1_model.load_terrain_model``) when some instance
     is not flat, its ``hfield_data`` per instance (a flat batch keeps the plane and its program).
+
+    Args:
+      scenario: the batch of B scenarios.
+
+    Returns:
+      A :class:`BatchModel` (model leaves that vary with the scenario (B, ...), the rest shared).
+
+    Raises:
+      ValueError: a physics profile of ``scenario`` steps its physics more than once per control tick.
     """
     fine = sorted({str(name) for name in scenario.physics if physics_profiles.get(str(name)).physics_substeps != 1})
     if fine:
@@ -278,7 +287,20 @@ def rollout_log(
     gates: cpg.Gates,
     num_steps: int,
 ) -> tuple[SimState, protocol.StepLog]:
-    """``num_steps`` ticks of one instance with constant parameters, logging every tick. Not vmapped: wrap it."""
+    """``num_steps`` ticks of one instance with constant parameters, logging every tick. Not vmapped: wrap it.
+
+    Args:
+      cpg_config: the controller constants (static).
+      model: the instance's MJX model.
+      profile: the instance's physics-profile arrays.
+      state: the instance's state.
+      params: the 8 physical parameters (8,).
+      gates: the instance's controller variant and gait.
+      num_steps: T, the number of ticks (static).
+
+    Returns:
+      (the state after the ticks, ``params`` as its parameters; the ``protocol.StepLog`` of (T, ...) arrays).
+    """
     ids = go1_model.indices()
 
     def body(s, _):
@@ -325,7 +347,16 @@ def per_shard(fn, in_axes, mesh: Mesh):
 
     With the batch merely sharded (GSPMD), the vmapped solver's while-loop condition "any instance not done" becomes
     a cross-device all-reduce in every iteration; per shard, each device loops on its own instances and never waits
-    for another. (``check_vma=False``: MJX's internals are not written for varying-axis typing.)"""
+    for another. (``check_vma=False``: MJX's internals are not written for varying-axis typing.)
+
+    Args:
+      fn: the function of one instance.
+      in_axes: ``jax.vmap``'s in_axes of ``fn``'s arguments: 0 (batched) or None (replicated) per leaf.
+      mesh: a mesh with axis ``batch``.
+
+    Returns:
+      The batched function, its outputs split along the batch axis over ``mesh``.
+    """
     specs = jax.tree.map(
         lambda axis: PartitionSpec() if axis is None else PartitionSpec("batch"),
         in_axes,
@@ -369,6 +400,7 @@ class MJXBackend(Backend):
 
     @property
     def batch_size(self) -> int:
+        """B, the number of instances (``scenario.batch_size``)."""
         return self.scenario.batch_size
 
     @property
@@ -388,14 +420,31 @@ class MJXBackend(Backend):
 
     def reset(self, params, gates: cpg.Gates | None = None) -> SimState:
         """Every instance standing at the origin with its CPG at rest in its gait's phases (``gates``; None: trot);
-        ``params`` become the 'previous' set."""
+        ``params`` become the 'previous' set.
+
+        Args:
+          params: (B, 8) physical parameters, checked by ``protocol.check_params``.
+          gates: the instances' gates, broadcast to the batch; only their phase lags are read here.
+
+        Returns:
+          The batch's :class:`SimState`.
+        """
         gates = protocol.check_gates(cpg.Gates(0.0, 0.0) if gates is None else gates, self.batch_size)
         return self._reset(
             self.batch.model, self._put(protocol.check_params(params, self.batch_size)), self._put(gates.phase_lag_rad)
         )
 
     def trial(self, state: SimState, new_params, gates: cpg.Gates) -> tuple[SimState, protocol.TrialRecord]:
-        """One trial for every instance (the input state is consumed). Returns the next state and the records."""
+        """One trial for every instance (the input state is consumed). Returns the next state and the records.
+
+        Args:
+          state: the batch's :class:`SimState` (consumed: its buffers are donated).
+          new_params: (B, 8) physical parameters of this trial, checked by ``protocol.check_params``.
+          gates: the instances' gates, broadcast to the batch.
+
+        Returns:
+          (the next :class:`SimState`, the ``protocol.TrialRecord`` of (B, ...) arrays).
+        """
         return self._trial(
             self.batch.model,
             self.batch.profile,
@@ -407,7 +456,18 @@ class MJXBackend(Backend):
     def with_scenario(self, scenario: go1_model.Scenario) -> MJXBackend:
         """This backend for another batch of scenarios of the same size, sharing the compiled trial and rollout
         (the scenario enters them as model data, so nothing recompiles). Simulator states carry over unchanged:
-        the lockstep engine (``cpgjax.ablation``) uses it when a payload, slope or friction schedule changes."""
+        the lockstep engine (``cpgjax.ablation``) uses it when a payload, slope or friction schedule changes.
+
+        Args:
+          scenario: the other batch of scenarios, B of them.
+
+        Returns:
+          A copy of this backend with ``scenario`` and its batch model.
+
+        Raises:
+          ValueError: ``scenario``'s batch size differs from this backend's, or it would switch between the plane
+            and the terrain model (``go1_model.check_same_model``).
+        """
         if scenario.batch_size != self.batch_size:
             raise ValueError(f"scenario batch {scenario.batch_size} != backend batch {self.batch_size}")
         go1_model.check_same_model(self.scenario, scenario)
@@ -417,7 +477,17 @@ class MJXBackend(Backend):
         return other
 
     def rollout(self, state: SimState, params, gates: cpg.Gates, num_steps: int) -> tuple[SimState, protocol.StepLog]:
-        """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...))."""
+        """``num_steps`` logged ticks with constant parameters for every instance (log arrays are (B, T, ...)).
+
+        Args:
+          state: the batch's :class:`SimState`.
+          params: (B, 8) physical parameters, checked by ``protocol.check_params``.
+          gates: the instances' gates, broadcast to the batch.
+          num_steps: T, the number of ticks (each new value compiles once).
+
+        Returns:
+          (the state after the ticks, the ``protocol.StepLog`` of (B, T, ...) arrays).
+        """
         if num_steps not in self._rollouts:
             fn = functools.partial(rollout_log, self.cpg_config, num_steps=num_steps)
             self._rollouts[num_steps] = jax.jit(per_shard(fn, (self.batch.in_axes, 0, 0, 0, 0), self.mesh))
