@@ -134,6 +134,10 @@ class Engine:
       spec: the study (validated here; a bad option raises :class:`StudyError` before any compute).
       backend: "auto" (native C MuJoCo on CPU-only machines, MJX with an accelerator), "mjx" or "native".
       devices: devices to shard the batch over (default: all, on every host); every process needs one among them.
+
+    Raises:
+      StudyError: an option :func:`validate` refuses, or (MJX) a batch per device that ``backends.check_mjx_layout``
+        refuses; the message names the study.
     """
 
     def __init__(self, spec: StudySpec, *, backend: str = "auto", devices=None):
@@ -208,13 +212,31 @@ class Engine:
     # -- pieces ---------------------------------------------------------------------------------------------
 
     def scenario(self, trial: int, conditions: Conditions | None = None) -> go1_model.Scenario:
-        """Every instance's scenario of trial ``trial`` (padded batch), under ``conditions`` as :meth:`scenario_at`."""
+        """Every instance's scenario of trial ``trial`` (padded batch), under ``conditions`` as :meth:`scenario_at`.
+
+        Args:
+          trial: the trial, 0 … ``num_trials`` − 1.
+          conditions: the padded batch's conditions, each (padded B, num_trials) (default: :attr:`padded`).
+
+        Returns:
+          The padded batch's scenarios, each field (padded B,).
+        """
         return self.scenario_at(trial, slice(None), conditions)
 
     def scenario_at(self, trials, instances, conditions: Conditions | None = None) -> go1_model.Scenario:
         """The scenarios of (trial, instance) pairs (NumPy indices into the padded conditions, broadcast together):
         one batch of them, e.g. the trials a study's analysis walks again. ``conditions``: the padded batch's (default
-        the planned ones, :attr:`padded`; the engine's trials take them walked, :meth:`walked`)."""
+        the planned ones, :attr:`padded`; the engine's trials take them walked, :meth:`walked`).
+
+        Args:
+          trials: trial indices (an integer or an integer array).
+          instances: row indices of the padded batch (an integer, an integer array or a slice), broadcast with
+            ``trials`` to one dimension.
+          conditions: the padded batch's conditions, each (padded B, num_trials) (default: :attr:`padded`).
+
+        Returns:
+          One scenario per (trial, instance) pair, each field (pairs,).
+        """
         c = self.padded if conditions is None else conditions
         return go1_model.make_scenarios(
             c.friction[instances, trials],
@@ -232,7 +254,16 @@ class Engine:
     def simulator(self, trial: int, conditions: Conditions | None = None) -> Backend:
         """The backend of this process's instances for trial ``trial``'s scenario (under ``conditions``, see
         :meth:`scenario_at`), on this process's devices; rebuilt (reusing its compiled code where the backend allows)
-        only when one of its instances' conditions change."""
+        only when one of its instances' conditions change.
+
+        Args:
+          trial: the trial whose conditions the scenario takes, 0 … ``num_trials`` − 1.
+          conditions: the padded batch's conditions, each (padded B, num_trials) (default: :attr:`padded`).
+
+        Returns:
+          The backend of the padded batch's rows ``placement.rows``; the one of the previous call while their
+          scenario is unchanged.
+        """
         first, stop = self.placement.rows
         scenario = go1_model.Scenario(*(field[first:stop] for field in self.scenario(trial, conditions)))
         if self._sim is None:
@@ -248,11 +279,22 @@ class Engine:
         return self._sim
 
     def initial_opt_state(self) -> bo.OptimizerState:
+        """Every instance's optimizer state before its first trial: ``init`` with its active parameters (and, where
+        the engine observes trial records, the target velocity of its first trial).
+
+        Returns:
+          The padded batch's optimizer state, sharded along the batch over the placement's devices.
+        """
         targets = jnp.asarray(self.padded.target_velocity_mps[:, 0], jnp.float32)
         return self._init(self.placement.put(self.active), self.placement.put(targets))
 
     def initial_context(self) -> np.ndarray:
-        """(local rows, 2): the middle of the optimizer's context ranges."""
+        """(local rows, 2): the middle of the optimizer's context ranges.
+
+        Returns:
+          (local rows, 2) float32, each row [c_load N, c_slope rad] (``objective.CONTEXT_NAMES``), one per row of
+          ``placement.rows``.
+        """
         config = self.optimizer_config
         mid = 0.5 * (np.asarray(config.context_lower) + np.asarray(config.context_upper))
         first, stop = self.placement.rows
@@ -279,6 +321,15 @@ class Engine:
 
         With ``out_dir`` the state is checkpointed atomically after every trial (each process its own instances).
         ``progress`` is called on process 0 only.
+
+        Args:
+          out_dir: the directory of the checkpoints (None: none are written).
+          resume: continue from ``out_dir``'s newest checkpoint; with none there, start at trial 0.
+          progress: called with a :class:`Progress` after every trial (None: not called).
+
+        Returns:
+          The study's :class:`StudyResult`: every instance's trials, this process's final optimizer state, the wall
+          time and its :class:`Timing`, both summed over resumed segments.
         """
         spec, n = self.spec, self.spec.num_trials
         run = self._start(out_dir, resume)
@@ -427,7 +478,15 @@ class Engine:
     def walked(self, logs: list[study_io.TrialLog]) -> Conditions:
         """The padded batch's conditions walked after the trials of ``logs`` (``study_spec.walked``): the ramp's
         trials at the slopes climbed to. The logs hold every instance, so each process computes the same slopes, and
-        a resume computes them again from its logs."""
+        a resume computes them again from its logs.
+
+        Args:
+          logs: one trial log per completed trial, each with every row of the padded batch.
+
+        Returns:
+          The padded batch's conditions, each (padded B, num_trials); the trials after trial ``len(logs)`` keep the
+          planned slopes.
+        """
         distance_m = np.array([np.asarray(lg.distance_m) for lg in logs])
         fell = np.array([np.asarray(lg.fell) for lg in logs])
         return study_spec.walked(self.padded, self.spec.ramp, distance_m, fell, self.spec.trial)
@@ -481,9 +540,22 @@ class Engine:
         return jax.tree.unflatten(treedef, restored)  # the backend places it on its devices
 
     def group_names(self) -> list[str]:
+        """Each instance's group: its labels' values of ``spec.group_by``, joined by ", ".
+
+        Returns:
+          One name per instance (B, without the padding), in the order of :attr:`labels`.
+        """
         return [", ".join(str(lab[g]) for g in self.spec.group_by) for lab in self.labels]
 
     def best_by_group(self, logs: list[study_io.TrialLog]) -> dict[str, float]:
+        """The best objective J so far per group (:meth:`group_names`).
+
+        Args:
+          logs: one trial log per completed trial (at least one), each with every row of the padded batch.
+
+        Returns:
+          Group name → the largest J over the logs' trials and the group's instances.
+        """
         j = np.stack([np.asarray(lg.objective)[: self.batch_size] for lg in logs])  # (t, B)
         best: dict[str, float] = {}
         for b, name in enumerate(self.group_names()):

@@ -70,10 +70,22 @@ class ParamSchedule(Protocol):
     failure: str | None  # why the schedule finished early, if it failed (the run ends with this trip), else None
 
     def params(self, run_tick: int) -> np.ndarray:
-        """Parameters (8,) for this tick of the run phase."""
+        """Parameters (8,) for this tick of the run phase.
+
+        Args:
+          run_tick: the run phase's tick, from 0.
+
+        Returns:
+          (8,) CPG parameters, copied into the controller's float32 input.
+        """
 
     def record(self, run_tick: int, out: np.ndarray) -> None:
-        """The controller's flat output (``robot.controller.OUTPUT``) of this tick."""
+        """The controller's flat output (``robot.controller.OUTPUT``) of this tick.
+
+        Args:
+          run_tick: the run phase's tick, from 0 (that of :meth:`params`).
+          out: (OUTPUT.size,) float32, the compiled controller step's output.
+        """
 
 
 class FixedParams:
@@ -88,9 +100,23 @@ class FixedParams:
         self.finished = run_ticks == 0
 
     def params(self, run_tick: int) -> np.ndarray:
+        """The one parameter set, at every tick.
+
+        Args:
+          run_tick: the run phase's tick (unused).
+
+        Returns:
+          The parameters given, as float32 (the same array at every tick).
+        """
         return self._params
 
     def record(self, run_tick: int, out: np.ndarray) -> None:
+        """Finish once ``run_ticks`` ticks have run (never with ``run_ticks`` None).
+
+        Args:
+          run_tick: the run phase's tick, from 0.
+          out: the controller's flat output (unused).
+        """
         if self._run_ticks is not None and run_tick + 1 >= self._run_ticks:
             self.finished = True
 
@@ -150,8 +176,16 @@ class TickLog(NamedTuple):
 
     @classmethod
     def allocate(cls, n: int) -> TickLog:
-        """Every page written before the loop starts. ``np.zeros`` maps zero pages that are faulted in on first write:
-        inside the loop that cost 0.3–1.8 ms of CPU per 2 MB of log on our VM, an overrun each (docs/hardware.md)."""
+        """Every page written before the loop starts. ``np.zeros`` maps zero pages that are faulted in on first write,
+        which inside the loop would take the tick's CPU time (docs/hardware.md, "Overruns on the 2-vCPU virtual
+        machine (measured, 2026-11-22)").
+
+        Args:
+          n: the ticks it holds (``LoopConfig.log_ticks``).
+
+        Returns:
+          A log of ``n`` rows, every value 0 but ``phase``, −1 (no tick).
+        """
         zeros = lambda shape, dtype=np.float32: np.full(shape, 0, dtype)  # noqa: E731 (np.full writes every page)
         return cls(
             zeros(n, np.float64),
@@ -180,6 +214,15 @@ class TickLog(NamedTuple):
         )
 
     def chronological(self, ticks: int) -> TickLog:
+        """The ring buffer's rows in tick order after a loop of ``ticks`` ticks (tick k at row k mod n): the first
+        ``ticks`` rows, or once the ring has wrapped, all n rows from the oldest tick's.
+
+        Args:
+          ticks: the ticks the loop ran.
+
+        Returns:
+          A log of min(``ticks``, n) rows, the oldest first.
+        """
         n = self.phase.shape[0]
         if ticks <= n:
             return TickLog(*(a[:ticks] for a in self))
@@ -201,17 +244,33 @@ class LoopResult(NamedTuple):
     safety_stops: tuple = ()  # (tick, reason) of each trip that ended a loop of a joined run but the last
 
     def timing(self) -> dict:
+        """:func:`timing_stats` of this run: its log, overruns, ticks and loop starts.
+
+        Returns:
+          The statistics of :func:`timing_stats`.
+        """
         return timing_stats(self.log, self.overruns, self.ticks, self.loop_starts)
 
     def trip_tick(self) -> int:
-        """The loop tick at which the trip was detected (its event's)."""
+        """The loop tick at which the trip was detected (its event's).
+
+        Returns:
+          The tick of the last event whose message is :attr:`trip`.
+        """
         return next(tick for tick, _, message in reversed(self.events) if message == self.trip)
 
 
 def joined(results: list[LoopResult]) -> LoopResult:
     """One run's result from the results of the loops it ran one after the other (an online optimization that stood
     the robot up after a safety stop): ticks, events and logs follow on, the trip and the stop are the last loop's,
-    and each earlier loop's trip is a safety stop."""
+    and each earlier loop's trip is a safety stop.
+
+    Args:
+      results: each loop's result (at least one), in the order they ran.
+
+    Returns:
+      The run's result; a single loop's is returned as it is.
+    """
     if len(results) == 1:
         return results[0]
     offsets = np.cumsum([0] + [r.ticks for r in results[:-1]])
@@ -248,7 +307,14 @@ def overrun_causes(log: TickLog) -> np.ndarray:
     """Index into :data:`OVERRUN_CAUSES` of the largest share of each overrun tick's time (late start + work): the
     tick started late (the wait before it overshot: a late wake-up, or the previous tick's overrun), the thread was
     not running during the work (wall − thread CPU time: preempted, or its virtual CPU descheduled by the
-    hypervisor, which the guest accounts as steal and not as thread time), or the work itself took the CPU time."""
+    hypervisor, which the guest accounts as steal and not as thread time), or the work itself took the CPU time.
+
+    Args:
+      log: the per-tick log.
+
+    Returns:
+      (overrun ticks,) int, one cause per logged overrun tick, in the log's order.
+    """
     late = np.maximum(log.late_s[log.overrun], 0.0)
     cpu = log.work_cpu_s[log.overrun]
     not_running = np.maximum(log.work_s[log.overrun] - cpu, 0.0)
@@ -258,7 +324,19 @@ def overrun_causes(log: TickLog) -> np.ndarray:
 def timing_stats(log: TickLog, overruns: int, ticks: int, loop_starts: tuple[int, ...] = (0,)) -> dict:
     """Controller-step latency and loop-period statistics [µs] over the logged ticks after connection, and the
     overruns by cause (:func:`overrun_causes`, logged ticks only). ``loop_starts``: the rows where a loop began
-    (a period is measured within one loop)."""
+    (a period is measured within one loop).
+
+    Args:
+      log: the per-tick log (chronological, :meth:`TickLog.chronological`).
+      overruns: the overruns of every tick, logged or not (``LoopResult.overruns``).
+      ticks: the ticks the loop ran (``LoopResult.ticks``).
+      loop_starts: the rows of ``log`` where a loop began (``LoopResult.loop_starts``).
+
+    Returns:
+      ``ticks``, ``overruns``, ``overruns_per_10k_ticks``, ``overruns_<cause>`` for each of :data:`OVERRUN_CAUSES`,
+      and the median, p99 and max [µs] of ``step`` (run phase), ``period`` (also p1) and ``work``, each
+      ``<name>_<statistic>_us``; NaN where no logged tick measures it.
+    """
     active = log.phase > CONNECT
     step_us = log.step_s[active & (log.phase == RUN)] * 1e6
     loop = np.cumsum(np.isin(np.arange(len(log.phase)), loop_starts))[active]  # the loop of each active tick
@@ -286,7 +364,15 @@ def timing_stats(log: TickLog, overruns: int, ticks: int, loop_starts: tuple[int
 def timing_table(timing: dict, deadlines: bool = True) -> str:
     """:func:`timing_stats` as a few aligned lines (µs, and as a fraction of the 1 ms period). ``deadlines``
     False (a lockstep simulated robot, which answers each command instead of keeping time): periods and overruns
-    measure the simulation's speed, not the loop's, and are left out."""
+    measure the simulation's speed, not the loop's, and are left out.
+
+    Args:
+      timing: the statistics of :func:`timing_stats`.
+      deadlines: whether the loop kept deadlines (False: lockstep pacing).
+
+    Returns:
+      The lines, joined by newlines; with ``deadlines`` the last is :func:`overrun_verdict`'s.
+    """
     rows = [("controller step", "step"), ("tick work", "work")] + ([("period", "period")] if deadlines else [])
     lines = [f"{'':16s} {'median':>9s} {'p99':>9s} {'max':>9s}   [µs]"]
     for label, key in rows:
@@ -307,7 +393,14 @@ def timing_table(timing: dict, deadlines: bool = True) -> str:
 
 def overrun_verdict(timing: dict) -> str:
     """One line: whether the run's overruns met the loop's target (:data:`OVERRUN_TARGET_PER_10K`), and where they
-    did not, their largest cause and what helps against it (docs/hardware.md)."""
+    did not, their largest cause and what helps against it (docs/hardware.md).
+
+    Args:
+      timing: the statistics of :func:`timing_stats`.
+
+    Returns:
+      "verdict: met …", or "verdict: missed …" with the rate, the largest cause and what helps against it.
+    """
     rate = timing["overruns_per_10k_ticks"]
     target = f"the loop's target of at most {OVERRUN_TARGET_PER_10K:g} per 10k ticks"
     if rate <= OVERRUN_TARGET_PER_10K:
@@ -371,7 +464,14 @@ def _enter_realtime(loop: LoopConfig):
 
 def cpus_besides(loop_cpu: int | None) -> set[int] | None:
     """The CPUs this process may use other than the loop's (for the optimizer, the per-tick log's writer, or a
-    simulated Go1 kept apart), or None: no loop CPU given, or no other CPU left."""
+    simulated Go1 kept apart), or None: no loop CPU given, or no other CPU left.
+
+    Args:
+      loop_cpu: the loop's CPU (``LoopConfig.cpu``), or None.
+
+    Returns:
+      The CPUs of this process's affinity but ``loop_cpu``, or None.
+    """
     if loop_cpu is None:
         return None
     return (set(os.sched_getaffinity(0)) - {loop_cpu}) or None
@@ -379,7 +479,12 @@ def cpus_besides(loop_cpu: int | None) -> set[int] | None:
 
 def rt_throttling() -> tuple[int, int] | None:
     """(sched_rt_runtime_us, sched_rt_period_us) when the kernel throttles real-time threads, None when it does
-    not (runtime −1) or the setting cannot be read."""
+    not (runtime −1) or the setting cannot be read.
+
+    Returns:
+      (runtime [µs], period [µs]) read from /proc/sys/kernel; None where the runtime is negative or not below the
+      period, or either file cannot be read or parsed.
+    """
     try:
         runtime = int(Path("/proc/sys/kernel/sched_rt_runtime_us").read_text())
         period = int(Path("/proc/sys/kernel/sched_rt_period_us").read_text())
@@ -450,6 +555,14 @@ def idle_loop_lateness_s(seconds: float, loop: LoopConfig = LoopConfig()) -> np.
     The floor under :func:`run_loop`'s timing on this machine: a wake-up later than the period minus a tick's work
     is an overrun whatever the tick does, and one later than the period is an overrun even with no work at all. On a
     VM these come from the host (a virtual CPU stopped or woken late), and no code in the guest removes them.
+
+    Args:
+      seconds: how long to wait [s].
+      loop: the scheduling, wait and period of the loop measured.
+
+    Returns:
+      (max(1, round(``seconds`` / ``loop.period_s``)),) float64: each wake-up's time after its deadline [s], the
+      first taken at the start.
     """
     period_s, wait_spin_s = loop.period_s, _spin_s(loop)
     late = np.full(max(1, round(seconds / period_s)), 0.0)  # every page written before the wait starts
@@ -598,7 +711,14 @@ class TickSink(Protocol):
 
     def write(self, log: TickLog, rows: slice, ticks: range) -> None:
         """Rows ``rows`` of the ring buffer ``log`` hold loop ticks ``ticks`` (called every
-        ``LoopConfig.flush_ticks`` ticks, inside a tick after its command was sent, and once at the end)."""
+        ``LoopConfig.flush_ticks`` ticks, inside a tick after its command was sent, and once at the end).
+
+        Args:
+          log: the loop's ring buffer (``LoopConfig.log_ticks`` rows), whose rows the loop writes again after
+            ``LoopConfig.log_ticks`` more ticks.
+          rows: contiguous rows of ``log``, at most ``LoopConfig.flush_ticks`` of them.
+          ticks: the loop ticks those rows hold, one per row.
+        """
 
 
 class _OffsetSink:
@@ -608,11 +728,26 @@ class _OffsetSink:
         self._sink, self._offset = sink, offset
 
     def write(self, log: TickLog, rows: slice, ticks: range) -> None:
+        """The sink's ``write`` with ``ticks`` shifted by the offset.
+
+        Args:
+          log: the loop's ring buffer.
+          rows: contiguous rows of ``log``.
+          ticks: this loop's ticks those rows hold, one per row.
+        """
         self._sink.write(log, rows, range(ticks.start + self._offset, ticks.stop + self._offset))
 
 
 def offset_sink(sink: TickSink | None, offset: int) -> TickSink | None:
-    """``sink`` for a loop that follows ``offset`` ticks of earlier loops of the same run (``sink`` itself at 0)."""
+    """``sink`` for a loop that follows ``offset`` ticks of earlier loops of the same run (``sink`` itself at 0).
+
+    Args:
+      sink: the run's sink, or None.
+      offset: the ticks of the earlier loops.
+
+    Returns:
+      ``sink`` itself where it is None or ``offset`` is 0, else a sink that writes this loop's ticks as the run's.
+    """
     return sink if sink is None or offset == 0 else _OffsetSink(sink, offset)
 
 
@@ -636,6 +771,25 @@ def run_loop(
     ramp / stand: motor PD; run: the compiled controller's torques; damp) → guard (finite, clamped) → power
     protection → send → wait for the next absolute deadline. A schedule finished from the start skips the run phase
     (``controller`` and ``calibration`` are then unused and may be None; see :func:`stand`).
+
+    Args:
+      transport: the robot's (or the simulated Go1's) packets.
+      controller: the compiled controller step; None only with a schedule finished from the start.
+      schedule: the run phase's parameters; the run phase ends when it finishes (its ``failure``, if any, the trip).
+      calibration: the foot-force calibration turning raw counts into N in the observation; None as ``controller``.
+      gates: the controller's gates, set in its input once.
+      loop: the timing, soft start, scheduling and per-tick log of the loop.
+      safety: the limits and trips of the safety layer.
+      sink: takes the per-tick log in batches of ``loop.flush_ticks`` ticks (None: the log is only in the result).
+      stale_hint: appended to a stale-state trip's reason.
+
+    Returns:
+      The run's :class:`LoopResult`, its log the newest ``loop.log_ticks`` ticks (all of them, if fewer ran).
+
+    Raises:
+      ValueError: before the first tick, ``loop.log_ticks`` is not a multiple of ``loop.flush_ticks``, or
+        ``loop.busy_wait`` at SCHED_FIFO (``loop.realtime_priority`` set) while the kernel throttles real-time
+        threads (:func:`rt_throttling`).
     """
     period_s, wait_spin_s = loop.period_s, _spin_s(loop)
     stand_q_rad = go1_model.standing_qpos()[go1_model.indices().joint_qpos]
@@ -782,7 +936,19 @@ def stand(
     stale_hint: str = "",
 ) -> LoopResult:
     """The loop without the controller: connect, soft start, hold the standing pose for ``stand_s``, damp (with
-    every safety check of :func:`run_loop`). What the foot-force calibration measures the sensors with."""
+    every safety check of :func:`run_loop`). What the foot-force calibration measures the sensors with.
+
+    Args:
+      transport: the robot's (or the simulated Go1's) packets.
+      stand_s: how long to hold the standing pose [s] (replaces ``loop.stand_s``).
+      loop: the timing, soft start, scheduling and per-tick log of the loop.
+      safety: the limits and trips of the safety layer.
+      sink: takes the per-tick log as in :func:`run_loop`.
+      stale_hint: appended to a stale-state trip's reason.
+
+    Returns:
+      The loop's :class:`LoopResult` (no run phase).
+    """
     return run_loop(
         transport,
         None,
