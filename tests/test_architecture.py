@@ -503,3 +503,50 @@ def test_tests_sit_by_the_module_they_test():
         if not any(name == home or name.startswith(home + "_") for home in homes):
             misplaced.append(str(path.relative_to(ROOT)))
     assert misplaced == []
+
+
+# The design's five modules (docs/architecture.md): each public function states its contract in its docstring.
+DESIGN_MODULES = ("cpg", "gp", "mjx_go1", "ablation", "hardware_io")
+
+
+def _contract_gaps(function: ast.FunctionDef) -> list[str]:
+    """The sections a public function's docstring lacks: Args (it takes parameters), Returns (it returns a value; a
+    property's docstring says what it is), Raises (its body raises)."""
+    doc = ast.get_docstring(function) or ""
+    params = [
+        a.arg
+        for a in (*function.args.posonlyargs, *function.args.args, *function.args.kwonlyargs)
+        if a.arg not in ("self", "cls")
+    ]
+    is_property = any(isinstance(d, ast.Name) and d.id == "property" for d in function.decorator_list)
+    returns = (
+        not is_property
+        and function.returns is not None
+        and not (isinstance(function.returns, ast.Constant) and function.returns.value is None)
+    )
+    raises = any(isinstance(node, ast.Raise) for node in ast.walk(function))
+    return [
+        section
+        for section, needed in (("Args:", params), ("Returns:", returns), ("Raises:", raises))
+        if needed and section not in doc
+    ]
+
+
+def test_the_design_modules_state_their_contracts():
+    gaps = []
+    for name in DESIGN_MODULES:
+        tree = ast.parse((PACKAGE / f"{name}.py").read_text())
+        for node in tree.body:
+            members = (
+                [node]
+                if isinstance(node, ast.FunctionDef)
+                else (
+                    [n for n in node.body if isinstance(n, ast.FunctionDef)]
+                    if isinstance(node, ast.ClassDef) and not node.name.startswith("_")
+                    else []
+                )
+            )
+            for function in members:
+                if not function.name.startswith("_") and (missing := _contract_gaps(function)):
+                    gaps.append(f"{name}.py:{function.lineno} {function.name}: {', '.join(missing)}")
+    assert gaps == []
