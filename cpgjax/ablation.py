@@ -44,11 +44,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpgjax.go1 import model as go1_model
-from cpgjax.go1 import terrain as terrains
 from cpgjax.optim import bo
 from cpgjax.optim import config as optimizer_config
 from cpgjax.sim import backends
 from cpgjax.sim.base import Backend
+from cpgjax.study import batch as study_batch
 from cpgjax.study import files as study_io
 from cpgjax.study import placement as study_placement
 from cpgjax.study import spec as study_spec
@@ -127,6 +127,105 @@ def _timed(timing: dict[str, float], *keys: str):
         timing[key] += elapsed
 
 
+class _ShardedOptimizer(NamedTuple):
+    """The optimizer's functions of the whole batch, sharded along it (``Placement.per_instance``)."""
+
+    init: Callable  # (active dims, target velocity) → optimizer state
+    propose: Callable  # (state, context, keys) → (x, fell back); eq. (8), or random for the first trials
+    observe: Callable  # (state, x, context, observation, safety margin) → (state, accepted); eqs. (9)-(11)
+    beta: Callable  # (state, context) → β and whether the context changed
+    set_target: Callable | None  # (state, target velocity) → state, every stored J recomputed; None without records
+    keys: Callable  # (seeds, trial) → fold_in(PRNGKey(seed), trial) per instance
+    summary: Callable  # (records, target velocities) → (J, context, mean velocity, CoT), vmapped, jitted
+
+
+def _sharded_optimizer(
+    spec: StudySpec, config: optimizer_config.OptimizerConfig, placement: study_placement.Placement, uses_records: bool
+) -> _ShardedOptimizer:
+    """The optimizer of ``config`` for the batch of ``placement``: observing trial records (``uses_records``: some
+    target changes, and ``set_target`` recomputes every stored J) or J, scored with ``spec``'s objective floor."""
+    score = functools.partial(objective.objective, floor=spec.switch_values().objective_floor)
+    opt = bo.make_optimizer(config, score, _record_template(spec.trial)) if uses_records else bo.make_optimizer(config)
+    init = (
+        (lambda a, t: opt.init(active_dims=a, target_velocity=t))
+        if uses_records
+        else (lambda a, t: opt.init(active_dims=a))
+    )
+
+    def observe_unconstrained(state, x, c, observation, margin):
+        del margin  # only a safe optimizer learns it
+        return opt.observe(state, x, c, observation)
+
+    return _ShardedOptimizer(
+        init=placement.per_instance(init),
+        propose=placement.per_instance(opt.propose_with_fallback),
+        observe=placement.per_instance(opt.observe if config.safe else observe_unconstrained),
+        beta=placement.per_instance(opt.beta),
+        set_target=placement.per_instance(opt.set_target) if uses_records else None,
+        keys=placement.per_instance(lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t), in_axes=(0, None)),
+        summary=jax.jit(
+            jax.vmap(
+                lambda r, v: (
+                    score(r, v),
+                    objective.context(r),
+                    objective.mean_velocity(r),
+                    objective.cost_of_transport(r),
+                )
+            )
+        ),
+    )
+
+
+def _clip_context(config: optimizer_config.OptimizerConfig, trial: int, context: np.ndarray, real: int) -> np.ndarray:
+    """The measured contexts clipped to ``config``'s ranges for the GP (docs/decisions.md §11), with a log line when
+    any of the first ``real`` rows (the instances, not the padding's copies) is; the trial log keeps the measured
+    values."""
+    clipped, messages = optimizer_config.clip_context(
+        config, context[:real], objective.CONTEXT_NAMES, objective.CONTEXT_UNITS
+    )
+    if messages:
+        log.warning(
+            "trial %d: %d context value(s) outside the GP's range, clipped; first: %s",
+            trial,
+            len(messages),
+            messages[0],
+        )
+    return np.concatenate([clipped, np.clip(context[real:], config.context_lower, config.context_upper)]).astype(
+        np.float32
+    )
+
+
+def group_names(spec: StudySpec, labels: list[dict[str, Any]]) -> list[str]:
+    """Each instance's group: its labels' values of ``spec.group_by``, joined by ", ".
+
+    Args:
+      spec: the study.
+      labels: each instance's labels (``study_spec.instances``).
+
+    Returns:
+      One name per instance, in the order of ``labels``.
+    """
+    return [", ".join(str(lab[g]) for g in spec.group_by) for lab in labels]
+
+
+def best_by_group(spec: StudySpec, labels: list[dict[str, Any]], logs: list[study_io.TrialLog]) -> dict[str, float]:
+    """The best objective J so far per group (:func:`group_names`).
+
+    Args:
+      spec: the study.
+      labels: each instance's labels (``study_spec.instances``), B of them.
+      logs: one trial log per completed trial (at least one), each with every row of the padded batch.
+
+    Returns:
+      Group name → the largest J over the logs' trials and the group's instances.
+    """
+    j = np.stack([np.asarray(lg.objective)[: len(labels)] for lg in logs])  # (t, B)
+    best: dict[str, float] = {}
+    for b, name in enumerate(group_names(spec, labels)):
+        best[name] = max(best.get(name, -np.inf), float(j[:, b].max()))
+    return best
+
+
 class Engine:
     """Runs a :class:`StudySpec` in lockstep (see the module docstring).
 
@@ -155,117 +254,28 @@ class Engine:
                 backends.check_mjx_layout((self.placement.rows[1] - self.placement.rows[0]) // len(local), local)
             except ValueError as err:
                 raise study_spec.StudyError(f"study {spec.name!r}: {err}") from None
-        pad = self.placement.pad
-        self.padded = Conditions(*(pad(c) for c in self.conditions))
-        controllers = pad(np.array([lab["controller"] for lab in self.labels]))
-        gaits = pad(np.array([lab["gait"] for lab in self.labels]))
-        self.gates = protocol.batch_gates(controllers.tolist(), gaits.tolist())
-        first, stop = self.placement.rows
-        self.local_gates = jax.tree.map(lambda g: g[first:stop], self.gates)
-        self.seeds = pad(np.array([lab["seed"] for lab in self.labels]))
-        self.physics = pad(np.array([lab["physics"] for lab in self.labels]))
-        self.feet = pad(np.array([lab["foot_friction"] for lab in self.labels], np.float64))
-        self.reuse = pad(np.array([lab["data_reuse"] for lab in self.labels]))
-        grounds = terrains.ground_fields(map(study_spec.ground, self.labels))
-        self.grounds = {field: pad(values) for field, values in grounds.items()}
-        self.active = param_space.active_parameters(self.gates.tegotae > 0)
-        targets = self.padded.target_velocity_mps
-        self.uses_records = bool(np.any(targets[:, 1:] != targets[:, :-1]))
-        config = self.optimizer_config = spec.optimizer_config()
-        score = functools.partial(objective.objective, floor=spec.switch_values().objective_floor)
-        self.optimizer = (
-            bo.make_optimizer(config, score, _record_template(spec.trial))
-            if self.uses_records
-            else bo.make_optimizer(config)
-        )
-        opt = self.optimizer
-        init = (
-            (lambda a, t: opt.init(active_dims=a, target_velocity=t))
-            if self.uses_records
-            else (lambda a, t: opt.init(active_dims=a))
-        )
-        self._init = self.placement.per_instance(init)
-        self._propose = self.placement.per_instance(opt.propose_with_fallback)
-
-        def observe_unconstrained(state, x, c, observation, margin):
-            del margin  # only a safe optimizer learns it
-            return opt.observe(state, x, c, observation)
-
-        self._observe = self.placement.per_instance(opt.observe if config.safe else observe_unconstrained)
-        self._beta = self.placement.per_instance(opt.beta)
-        self._set_target = self.placement.per_instance(opt.set_target) if self.uses_records else None
-        self._keys = self.placement.per_instance(
-            lambda seed, t: jax.random.fold_in(jax.random.PRNGKey(seed), t), in_axes=(0, None)
-        )
-        self._summary = jax.jit(
-            jax.vmap(
-                lambda r, v: (
-                    score(r, v),
-                    objective.context(r),
-                    objective.mean_velocity(r),
-                    objective.cost_of_transport(r),
-                )
-            )
-        )
+        self.batch = study_batch.instance_batch(self.labels, self.conditions, self.placement)
+        self.optimizer_config = spec.optimizer_config()
+        self.sharded = _sharded_optimizer(spec, self.optimizer_config, self.placement, self.batch.uses_records)
         self._sim = None
 
     # -- pieces ---------------------------------------------------------------------------------------------
 
-    def scenario(self, trial: int, conditions: Conditions | None = None) -> go1_model.Scenario:
-        """Every instance's scenario of trial ``trial`` (padded batch), under ``conditions`` as :meth:`scenario_at`.
-
-        Args:
-          trial: the trial, 0 … ``num_trials`` − 1.
-          conditions: the padded batch's conditions, each (padded B, num_trials) (default: :attr:`padded`).
-
-        Returns:
-          The padded batch's scenarios, each field (padded B,).
-        """
-        return self.scenario_at(trial, slice(None), conditions)
-
-    def scenario_at(self, trials, instances, conditions: Conditions | None = None) -> go1_model.Scenario:
-        """The scenarios of (trial, instance) pairs (NumPy indices into the padded conditions, broadcast together):
-        one batch of them, e.g. the trials a study's analysis walks again. ``conditions``: the padded batch's (default
-        the planned ones, :attr:`padded`; the engine's trials take them walked, :meth:`walked`).
-
-        Args:
-          trials: trial indices (an integer or an integer array).
-          instances: row indices of the padded batch (an integer, an integer array or a slice), broadcast with
-            ``trials`` to one dimension.
-          conditions: the padded batch's conditions, each (padded B, num_trials) (default: :attr:`padded`).
-
-        Returns:
-          One scenario per (trial, instance) pair, each field (pairs,).
-        """
-        c = self.padded if conditions is None else conditions
-        return go1_model.make_scenarios(
-            c.friction[instances, trials],
-            c.slope_deg[instances, trials],
-            c.payload_kg[instances, trials],
-            self.physics[instances],
-            c.mass_scale[instances, trials],
-            c.latency_ticks[instances, trials],
-            c.noise_scale[instances, trials],
-            self.seeds[instances],  # noise per seed
-            foot_friction=self.feet[instances],
-            **{f: v[instances] for f, v in self.grounds.items()},
-        )
-
     def simulator(self, trial: int, conditions: Conditions | None = None) -> Backend:
         """The backend of this process's instances for trial ``trial``'s scenario (under ``conditions``, see
-        :meth:`scenario_at`), on this process's devices; rebuilt (reusing its compiled code where the backend allows)
-        only when one of its instances' conditions change.
+        ``InstanceBatch.scenario_at``), on this process's devices; rebuilt (reusing its compiled code where the backend
+        allows) only when one of its instances' conditions change.
 
         Args:
           trial: the trial whose conditions the scenario takes, 0 … ``num_trials`` − 1.
-          conditions: the padded batch's conditions, each (padded B, num_trials) (default: :attr:`padded`).
+          conditions: the padded batch's conditions, each (padded B, num_trials) (default: ``batch.padded``).
 
         Returns:
           The backend of the padded batch's rows ``placement.rows``; the one of the previous call while their
           scenario is unchanged.
         """
         first, stop = self.placement.rows
-        scenario = go1_model.Scenario(*(field[first:stop] for field in self.scenario(trial, conditions)))
+        scenario = go1_model.Scenario(*(field[first:stop] for field in self.batch.scenario(trial, conditions)))
         if self._sim is None:
             self._sim = backends.make_backend(
                 scenario,
@@ -285,8 +295,8 @@ class Engine:
         Returns:
           The padded batch's optimizer state, sharded along the batch over the placement's devices.
         """
-        targets = jnp.asarray(self.padded.target_velocity_mps[:, 0], jnp.float32)
-        return self._init(self.placement.put(self.active), self.placement.put(targets))
+        targets = jnp.asarray(self.batch.padded.target_velocity_mps[:, 0], jnp.float32)
+        return self.sharded.init(self.placement.put(self.batch.active), self.placement.put(targets))
 
     def initial_context(self) -> np.ndarray:
         """(local rows, 2): the middle of the optimizer's context ranges.
@@ -302,14 +312,14 @@ class Engine:
 
     def _change_targets(self, opt_state, trial: int):
         """Data reuse (``set_target``) or a fresh optimizer for instances whose target changes at ``trial``."""
-        targets = self.padded.target_velocity_mps
+        targets = self.batch.padded.target_velocity_mps
         changed = targets[:, trial] != targets[:, trial - 1]
         if trial == 0 or not changed.any():
             return opt_state
         new_target = self.placement.put(jnp.asarray(targets[:, trial], jnp.float32))
-        reused = self._set_target(opt_state, new_target)
-        fresh = self._init(self.placement.put(self.active), new_target)
-        fresh = protocol.where_batch(self.placement.put(~self.reuse), fresh, reused)
+        reused = self.sharded.set_target(opt_state, new_target)
+        fresh = self.sharded.init(self.placement.put(self.batch.active), new_target)
+        fresh = protocol.where_batch(self.placement.put(~self.batch.reuse), fresh, reused)
         return protocol.where_batch(self.placement.put(changed), fresh, opt_state)
 
     # -- the loop -------------------------------------------------------------------------------------------
@@ -350,7 +360,7 @@ class Engine:
                     figures = env_steps / per_trial, (n - t - 1) * per_trial
                 else:
                     figures = env_steps / max(time.perf_counter() - t_begin, 1e-9), None
-                progress(Progress(t + 1, n, self.best_by_group(run.logs), *figures))
+                progress(Progress(t + 1, n, best_by_group(self.spec, self.labels, run.logs), *figures))
         wall_s = run.wall_before + time.perf_counter() - t_begin
         rows = self.instance_rows
         walked = Conditions(*(c[: self.batch_size] for c in self.walked(run.logs)))
@@ -408,11 +418,11 @@ class Engine:
         first, stop = self.placement.rows
         with _timed(timing, "propose_s", "optimizer_s"):
             opt_state = self._change_targets(run.opt_state, t)
-            opt_state = opt_state._replace(inference_mode=put(self.padded.inference[:, t]))
-            keys = self._keys(put(self.seeds.astype(np.uint32)), t)
+            opt_state = opt_state._replace(inference_mode=put(self.batch.padded.inference[:, t]))
+            keys = self.sharded.keys(put(self.batch.seeds.astype(np.uint32)), t)
             ctx = put_local(run.context)
-            beta = self._beta(opt_state, ctx)
-            x, fell_back = self._propose(opt_state, ctx, keys)
+            beta = self.sharded.beta(opt_state, ctx)
+            x, fell_back = self.sharded.propose(opt_state, ctx, keys)
             # In the box as they are: the optimizer rounds its bounds inward to float32 (optim.bo), so no proposal
             # crosses the float64 box that the simulator validates.
             x, fell_back = local(x).astype(np.float64), local(fell_back)
@@ -426,22 +436,24 @@ class Engine:
                 )
         with _timed(timing, "simulation_s"):
             sim = self.simulator(t, self.walked(run.logs))
-            sim_state = sim.reset(x, self.local_gates) if run.sim_state is None else run.sim_state
-            sim_state, record = sim.trial(sim_state, x, self.local_gates)
+            sim_state = sim.reset(x, self.batch.local_gates) if run.sim_state is None else run.sim_state
+            sim_state, record = sim.trial(sim_state, x, self.batch.local_gates)
             record = jax.block_until_ready(record)
         with _timed(timing, "transfer_s"):
             rec = study_placement.fetch(record)
-            target = self.padded.target_velocity_mps[first:stop, t].astype(np.float32)
-            j, new_context, velocity, cot = study_placement.fetch(self._summary(rec, target))
+            target = self.batch.padded.target_velocity_mps[first:stop, t].astype(np.float32)
+            j, new_context, velocity, cot = study_placement.fetch(self.sharded.summary(rec, target))
             # A trial that fell measured a robot on the ground (its feet carry nothing: c_load ≈ 0 N), not the
             # ground it walked: the optimizer takes the context the trial was proposed for, as on the robot
             # (deployment.trials), both for this observation and for the next proposal (docs/decisions.md §11).
             unmeasured = ((np.asarray(rec.fell) > 0) | (np.asarray(rec.failed) > 0))[:, None]
-            gp_context = self._clip_context(t, np.where(unmeasured, run.context, new_context))
+            gp_context = _clip_context(
+                self.optimizer_config, t, np.where(unmeasured, run.context, new_context), self.local_instances
+            )
             record_d, x_d = put_local(rec), put_local(x.astype(np.float32))
         with _timed(timing, "observe_s", "optimizer_s"):
-            observation = record_d if self.uses_records else put_local(j)
-            opt_state, accepted = self._observe(
+            observation = record_d if self.batch.uses_records else put_local(j)
+            opt_state, accepted = self.sharded.observe(
                 opt_state, x_d, put_local(gp_context), observation, put_local(rec.safety_margin)
             )
             accepted = jax.block_until_ready(accepted)
@@ -489,25 +501,7 @@ class Engine:
         """
         distance_m = np.array([np.asarray(lg.distance_m) for lg in logs])
         fell = np.array([np.asarray(lg.fell) for lg in logs])
-        return study_spec.walked(self.padded, self.spec.ramp, distance_m, fell, self.spec.trial)
-
-    def _clip_context(self, trial: int, context: np.ndarray) -> np.ndarray:
-        """The measured contexts clipped to the optimizer's ranges for the GP (docs/decisions.md §11), with a log line
-        when any is; the trial log keeps the measured values."""
-        real = self.local_instances
-        clipped, messages = optimizer_config.clip_context(
-            self.optimizer_config, context[:real], objective.CONTEXT_NAMES, objective.CONTEXT_UNITS
-        )
-        if messages:
-            log.warning(
-                "trial %d: %d context value(s) outside the GP's range, clipped; first: %s",
-                trial,
-                len(messages),
-                messages[0],
-            )
-        return np.concatenate(
-            [clipped, np.clip(context[real:], self.optimizer_config.context_lower, self.optimizer_config.context_upper)]
-        ).astype(np.float32)
+        return study_spec.walked(self.batch.padded, self.spec.ramp, distance_m, fell, self.spec.trial)
 
     def _checkpoint(self, out_dir, run: _Run, t: int, wall_s: float) -> None:
         """This process's instances (not their padding copies) after trial ``t``; once every process has written
@@ -538,26 +532,3 @@ class Engine:
         kinds = [type(x) for x in jax.tree.leaves(template)]
         restored = [leaf if kind is np.ndarray else jnp.asarray(leaf) for leaf, kind in zip(leaves, kinds, strict=True)]
         return jax.tree.unflatten(treedef, restored)  # the backend places it on its devices
-
-    def group_names(self) -> list[str]:
-        """Each instance's group: its labels' values of ``spec.group_by``, joined by ", ".
-
-        Returns:
-          One name per instance (B, without the padding), in the order of :attr:`labels`.
-        """
-        return [", ".join(str(lab[g]) for g in self.spec.group_by) for lab in self.labels]
-
-    def best_by_group(self, logs: list[study_io.TrialLog]) -> dict[str, float]:
-        """The best objective J so far per group (:meth:`group_names`).
-
-        Args:
-          logs: one trial log per completed trial (at least one), each with every row of the padded batch.
-
-        Returns:
-          Group name → the largest J over the logs' trials and the group's instances.
-        """
-        j = np.stack([np.asarray(lg.objective)[: self.batch_size] for lg in logs])  # (t, B)
-        best: dict[str, float] = {}
-        for b, name in enumerate(self.group_names()):
-            best[name] = max(best.get(name, -np.inf), float(j[:, b].max()))
-        return best

@@ -102,7 +102,7 @@ def rewalk(folder: pathlib.Path, study: str) -> str:
         return f"{folder}: no trial after a fall with an earlier walk on its condition"
     spec = study_driver.read(study).spec
     engine = ablation.Engine(spec, backend="native")
-    scenario = engine.scenario_at(np.array([t for t, _, _ in cases]), np.array([b for _, b, _ in cases]))
+    scenario = engine.batch.scenario_at(np.array([t for t, _, _ in cases]), np.array([b for _, b, _ in cases]))
     level = scenario._replace(
         slope_deg=np.zeros_like(scenario.slope_deg), payload_kg=np.zeros_like(scenario.payload_kg)
     )

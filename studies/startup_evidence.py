@@ -145,7 +145,7 @@ def gait_sets(columns: dict[str, np.ndarray]) -> dict[str, Gaits]:
 
 def restart(engine: ablation.Engine, gaits: Gaits, variant: Variant, backend: str) -> np.ndarray:
     """(n,) bool: the gait fell in its trial from standing under ``variant``."""
-    scenario = engine.scenario_at(gaits.trial, gaits.instance)
+    scenario = engine.batch.scenario_at(gaits.trial, gaits.instance)
     sim = backends.make_backend(scenario, backend, variant.config, engine.spec.trial)
     start = np.tile(param_space.midpoint(), (len(gaits.params), 1)) if variant.blend_from_midpoint else gaits.params
     _, record = sim.trial(sim.reset(start), gaits.params, protocol.batch_gates(list(gaits.controller)))

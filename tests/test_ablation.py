@@ -244,7 +244,7 @@ def test_target_change_reuses_data_or_restarts():
         schedules=(Schedule("v", (Change(3, "target_velocity_mps", 0.3),)),),
     )
     engine = ablation.Engine(spec, backend="native")
-    assert engine.uses_records
+    assert engine.batch.uses_records
     result = engine.run()
     st = result.opt_state
     reuse = [lab["data_reuse"] for lab in result.labels].index(True)

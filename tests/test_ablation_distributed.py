@@ -65,12 +65,12 @@ engine = ablation.Engine(spec, backend="native")
 put = engine.placement.put
 state = engine.initial_opt_state()
 context = engine.placement.put_local(engine.initial_context())
-keys = engine._keys(put(engine.seeds.astype(np.uint32)), 0)
+keys = engine.sharded.keys(put(engine.batch.seeds.astype(np.uint32)), 0)
 x = put(np.full((engine.placement.padded_size, 8), 0.5, np.float32))
 ones = put(np.ones(engine.placement.padded_size, np.float32))
-programs = {"propose": engine._propose.lower(state, context, keys),
-            "observe": engine._observe.lower(state, x, context, ones, ones),
-            "beta": engine._beta.lower(state, context)}
+programs = {"propose": engine.sharded.propose.lower(state, context, keys),
+            "observe": engine.sharded.observe.lower(state, x, context, ones, ones),
+            "beta": engine.sharded.beta.lower(state, context)}
 pattern = r"(all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)"
 for name, lowered in programs.items():
     found = re.findall(pattern, lowered.compile().as_text())

@@ -36,7 +36,10 @@ LAYERS = (
         "simulation",
         ("sim.base", "mjx_go1", "sim.native", "sim.native_physics", "sim.ffi_step", "sim.backends", "sim.walk"),
     ),
-    ("study definitions and files", ("study.spec", "study.scene", "study.placement", "study.files", "study.rate")),
+    (
+        "study definitions and files",
+        ("study.spec", "study.scene", "study.placement", "study.batch", "study.files", "study.rate"),
+    ),
     ("the study engine", ("ablation",)),
     (
         "studies",

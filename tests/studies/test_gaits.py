@@ -122,7 +122,7 @@ def test_a_gaits_axis_runs_each_gait_as_data_and_its_files_carry_it(tmp_path):
     out, result = _run(tmp_path, ["trot", "bound"])
     engine = ablation.Engine(result.spec, backend="native")
     np.testing.assert_array_equal(
-        engine.gates.phase_lag_rad[:2], np.float32([cpg.gait_phase_lags("trot"), cpg.gait_phase_lags("bound")])
+        engine.batch.gates.phase_lag_rad[:2], np.float32([cpg.gait_phase_lags("trot"), cpg.gait_phase_lags("bound")])
     )
     table = pq.read_table(out / "trials.parquet").to_pydict()
     assert table["gait"] == ["trot", "trot", "bound", "bound"] and set(table["terrain"]) == {"flat"}
