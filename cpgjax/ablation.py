@@ -176,6 +176,25 @@ def _sharded_optimizer(
     )
 
 
+def _change_targets(
+    sharded: _ShardedOptimizer,
+    batch: study_batch.InstanceBatch,
+    placement: study_placement.Placement,
+    opt_state,
+    trial: int,
+):
+    """Data reuse (``set_target``) or a fresh optimizer for instances whose target changes at ``trial``."""
+    targets = batch.padded.target_velocity_mps
+    changed = targets[:, trial] != targets[:, trial - 1]
+    if trial == 0 or not changed.any():
+        return opt_state
+    new_target = placement.put(jnp.asarray(targets[:, trial], jnp.float32))
+    reused = sharded.set_target(opt_state, new_target)
+    fresh = sharded.init(placement.put(batch.active), new_target)
+    fresh = protocol.where_batch(placement.put(~batch.reuse), fresh, reused)
+    return protocol.where_batch(placement.put(changed), fresh, opt_state)
+
+
 def _clip_context(config: optimizer_config.OptimizerConfig, trial: int, context: np.ndarray, real: int) -> np.ndarray:
     """The measured contexts clipped to ``config``'s ranges for the GP (docs/decisions.md §11), with a log line when
     any of the first ``real`` rows (the instances, not the padding's copies) is; the trial log keeps the measured
@@ -310,18 +329,6 @@ class Engine:
         first, stop = self.placement.rows
         return np.tile(mid, (stop - first, 1)).astype(np.float32)
 
-    def _change_targets(self, opt_state, trial: int):
-        """Data reuse (``set_target``) or a fresh optimizer for instances whose target changes at ``trial``."""
-        targets = self.batch.padded.target_velocity_mps
-        changed = targets[:, trial] != targets[:, trial - 1]
-        if trial == 0 or not changed.any():
-            return opt_state
-        new_target = self.placement.put(jnp.asarray(targets[:, trial], jnp.float32))
-        reused = self.sharded.set_target(opt_state, new_target)
-        fresh = self.sharded.init(self.placement.put(self.batch.active), new_target)
-        fresh = protocol.where_batch(self.placement.put(~self.batch.reuse), fresh, reused)
-        return protocol.where_batch(self.placement.put(changed), fresh, opt_state)
-
     # -- the loop -------------------------------------------------------------------------------------------
 
     def run(
@@ -417,7 +424,7 @@ class Engine:
         put, put_local, local, timing = self.placement.put, self.placement.put_local, self.placement.local, run.timing
         first, stop = self.placement.rows
         with _timed(timing, "propose_s", "optimizer_s"):
-            opt_state = self._change_targets(run.opt_state, t)
+            opt_state = _change_targets(self.sharded, self.batch, self.placement, run.opt_state, t)
             opt_state = opt_state._replace(inference_mode=put(self.batch.padded.inference[:, t]))
             keys = self.sharded.keys(put(self.batch.seeds.astype(np.uint32)), t)
             ctx = put_local(run.context)
