@@ -249,8 +249,8 @@ def _sample_trials(engine: ablation.Engine, num_trials: int, count: int) -> list
 
         return run
 
-    def wrapped(t):
-        sim = simulator(t)
+    def wrapped(t, conditions=None):
+        sim = simulator(t, conditions)
         if id(sim) not in kept:
             sim.trial = keeping(sim)
             kept.add(id(sim))

@@ -250,19 +250,6 @@ def test_shards_merge_on_read_from_the_newest_complete_trial(tmp_path):
     assert study_io.load_checkpoint(tmp_path, spec).trial == 6
 
 
-def test_bad_process_options_fail_before_compute(capsys):
-    assert cli.main(["study", "controller_ablation", "--processes", "2", "--distributed"]) == 2
-    assert "--processes and --distributed exclude each other" in capsys.readouterr().err
-    for count in (0, os.cpu_count() + 1):
-        with pytest.raises(SystemExit) as exit_:
-            cli.main(["study", "controller_ablation", "--processes", str(count)])
-        assert exit_.value.code == 2
-        assert (
-            f"argument --processes: {count} is outside the allowed range 1 … {os.cpu_count()} (local "
-            "processes, at most one per CPU"
-        ) in capsys.readouterr().err
-
-
 def test_launched_command_line_drops_processes_and_keeps_the_rest():
     keep = ["study", "friction", "--seeds", "2", "--out", "x"]
     for extra in (["--processes", "3"], ["--processes=3"], ["--proc", "3"]):

@@ -75,6 +75,8 @@ def test_the_overrides_are_the_study_file_readers_keywords():
     [
         (["study", "friction", "--trials", "3"], "cpgjax study: --trials = 3: need an integer >= "),
         (["study", "friction", "--seeds", "0"], "cpgjax study: --seeds = 0: need an integer >= 1"),
+        (["study", "friction", "--processes", "0"], "cpgjax study: --processes 0 is outside the allowed range 1 … "),
+        (["study", "friction", "--processes", "1", "--distributed"], "cpgjax study: --processes and --distributed"),
         (["optimize", "--trials", "8", "--max-trials", "4"], "cpgjax optimize: --max-trials 4: need at least --trials"),
     ],
 )
