@@ -246,6 +246,7 @@ def _walk_video(args) -> int:
         payload_kg=args.payload_kg[0],
         target_velocity_mps=args.target_velocity_mps,
         gait=args.gaits[0],
+        foot_friction=-1.0 if args.foot_friction is None else args.foot_friction,
         ground=ground,
     )
     gait = study_video.Gait(

@@ -12,6 +12,8 @@ from cpgjax import cli
 from cpgjax.go1 import attitude
 from cpgjax.go1 import model as go1_model
 from cpgjax.go1 import terrain as terrains
+from cpgjax.sim import walk
+from cpgjax.studies import gaits as study_gaits
 from cpgjax.studies import video
 from cpgjax.study.spec import StudyError
 from cpgjax.trial import params as param_space
@@ -168,6 +170,27 @@ def test_cli_video_options_are_checked_before_compute(tmp_path, capsys):
     with pytest.raises(SystemExit):
         cli.main(["walk", "--video-s", "0", "--video", str(tmp_path / "v.mp4")])
     assert "outside the allowed range [0.04, 120]" in capsys.readouterr().err
+
+
+def test_walk_films_the_feet_it_walked(tmp_path, monkeypatch):
+    """`walk --video` films the walk's conditions, the feet's μ of --foot-friction among them (and the profile's own
+    feet, −1, without it)."""
+    filmed = []
+    monkeypatch.setattr(walk, "run_walk", lambda options, progress: None)
+    monkeypatch.setattr(
+        study_gaits,
+        "film",
+        lambda path, gait, backend, seconds: (
+            filmed.append(gait) or {"rollout_s": seconds, "frames": 1, "render_s": 0.0, "backend": "stand-in"}
+        ),
+    )
+    base = ["walk", "--controllers", "vmc", "--friction", "0.9", "--slope-deg", "5", "--overwrite"]
+    assert cli.main([*base, "--foot-friction", "1.2", "--video", str(tmp_path / "a.mp4")]) == 0
+    assert cli.main([*base, "--video", str(tmp_path / "b.mp4")]) == 0
+    assert [(g.condition.friction, g.condition.slope_deg, g.condition.foot_friction) for g in filmed] == [
+        (0.9, 5.0, 1.2),
+        (0.9, 5.0, -1.0),
+    ]
 
 
 def test_show_names_a_study_video_and_a_cut_one(tmp_path, capsys):
