@@ -150,7 +150,7 @@ def _cpu(text: str) -> int:
 
 class _Given(argparse.Action):
     """Stores an option's value as argparse's default action does, and adds its name to ``args.given``: the options
-    the command line gave, which a parameter file's tuned-for values do not replace (:func:`_use_tuned`)."""
+    the command line gave, which a parameter file's tuned-for values do not replace (:func:`_tuned`)."""
 
     def __call__(self, parser, namespace, values, option_string=None):
         setattr(namespace, self.dest, values)
@@ -180,35 +180,35 @@ def _notice(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def _use_tuned(args, many: bool = False) -> None:
-    """With ``--params FILE``: every option the file records a tuned-for value of (:data:`tuned.TUNED_FOR`) and the
-    command line did not give takes the file's value (``many``: as a one-value list, walk's grid); one line says
-    what the run was tuned for and which given options override it."""
+def _tuned(args, many: bool = False) -> tuple[dict, str | None]:
+    """With ``--params FILE``: the file's value of every option it records a tuned-for value of
+    (:data:`tuned.TUNED_FOR`) and the command line did not give (``many``: as a one-value list, walk's grid), and
+    the line that says what the run was tuned for and which given options override it; ``({}, None)`` without a
+    file."""
     if args.params is None:
-        return
+        return {}, None
     given = getattr(args, "given", set())
-    overrides = []
+    values, overrides = {}, []
     for name, value in args.params.tuned_for.items():
         dest = {"controller": "controllers", "gait": "gaits"}.get(name, name) if many else name
         wanted = (value,) if many and name != "target_velocity_mps" else value
         if dest not in given:
-            setattr(args, dest, wanted)
+            values[dest] = wanted
         elif getattr(args, dest) != wanted:
-            shown = getattr(args, dest)
-            shown = (
-                ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in shown)
-                if isinstance(shown, tuple)
-                else f"{shown:g}"
-                if isinstance(shown, float)
-                else shown
-            )
-            overrides.append(f"--{dest.replace('_', '-')} {shown} overrides it")
+            overrides.append(f"{flag(dest)} {_shown(getattr(args, dest))} overrides it")
     recorded = (
         f"tuned for {tuned.describe(args.params.tuned_for)}"
         if args.params.tuned_for
         else "records nothing it was tuned for"
     )
-    _notice(f"cpgjax {args.command}: {args.params.path} {recorded}" + "".join(f"; {o}" for o in overrides))
+    return values, f"cpgjax {args.command}: {args.params.path} {recorded}" + "".join(f"; {o}" for o in overrides)
+
+
+def _shown(value) -> str:
+    """An option's value as a command line writes it (a list comma-separated)."""
+    if isinstance(value, tuple):
+        return ",".join(map(_shown, value))
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def _walk_video(args) -> int:
@@ -280,7 +280,10 @@ def _walk(args) -> int:
     elif args.overwrite and args.video is None:
         print("cpgjax walk: error: --overwrite applies to --out and --video only", file=sys.stderr)
         return 2
-    _use_tuned(args, many=True)
+    values, notice = _tuned(args, many=True)
+    vars(args).update(values)  # walk --video films the same walk
+    if notice:
+        _notice(notice)
     ground = _ground(args)
     if ground is None:
         return 2
@@ -569,28 +572,17 @@ def _options_of(kind: type[RobotOptions], args, **values) -> RobotOptions:
 def _deploy_options(args) -> tuple[DeployOptions, str | None]:
     """``deploy``'s options from its parsed ``args``, and with ``--params FILE`` the line that says what the file was
     tuned for and which given options override it (None without a file): the file's parameters, and its tuned-for
-    values (:data:`tuned.TUNED_FOR`) in each option the command line did not give.
+    values (:func:`_tuned`) in each option the command line did not give.
 
     Raises:
       ValueError: a rule of :class:`DeployOptions` broken (the message to show).
     """
     if args.params is None:
         return _options_of(DeployOptions, args, params=None, params_path=None), None
-    given, file = getattr(args, "given", set()), args.params
-    kept = {name: value for name, value in file.tuned_for.items() if name not in given}
-    overrides = [
-        f"{flag(name)} {_shown(getattr(args, name))} overrides it"
-        for name, value in file.tuned_for.items()
-        if name in given and getattr(args, name) != value
-    ]
-    recorded = f"tuned for {tuned.describe(file.tuned_for)}" if file.tuned_for else "records nothing it was tuned for"
-    notice = f"cpgjax deploy: {file.path} {recorded}" + "".join(f"; {o}" for o in overrides)
-    return _options_of(DeployOptions, args, **kept, params=file.params, params_path=str(file.path)), notice
-
-
-def _shown(value) -> str:
-    """An option's value as a command line writes it."""
-    return f"{value:g}" if isinstance(value, float) else str(value)
+    kept, notice = _tuned(args)
+    return _options_of(
+        DeployOptions, args, **kept, params=args.params.params, params_path=str(args.params.path)
+    ), notice
 
 
 def _deploy(parser: argparse.ArgumentParser, args) -> int:
