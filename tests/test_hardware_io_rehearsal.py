@@ -29,6 +29,7 @@ from cpgjax.robot import controller as compiled_controller
 from cpgjax.robot import cpu_wakeup, wire
 from cpgjax.robot import sim_server as sim
 from cpgjax.trial import params, protocol
+from tests.deployment.test_options import ROBOT
 
 
 def test_the_simulated_go1s_clock_locks_to_just_after_the_commands():
@@ -83,26 +84,7 @@ def test_the_simulated_go1_reports_its_imu_as_the_numpy_attitude_defines_it():
 
 
 def _deploy_args(**kw):
-    base = dict(
-        robot="sim",
-        transport=None,
-        robot_ip="192.168.123.10",
-        robot_port=8007,
-        local_port=8082,
-        power_level=9,
-        sim_pacing="realtime",
-        friction=0.6,
-        slope_deg=0.0,
-        payload_kg=0.0,
-        physics="go1",
-        seed=0,
-        no_realtime=False,
-        cpu=None,
-        busy_wait=False,
-        idle_halt=False,
-        overwrite=False,
-    )
-    return RobotOptions(**{**base, **kw})
+    return RobotOptions(**{**ROBOT, **kw})
 
 
 def test_the_simulated_go1s_sensor_noise_follows_its_seed():

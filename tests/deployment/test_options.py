@@ -11,10 +11,11 @@ import pytest
 from cpgjax.deployment.options import GO1_ONLY, SIM_ONLY, CalibrateOptions, DeployOptions, RobotOptions
 from cpgjax.robot import foot_force
 
+# What the simulated Go1's run takes from the command line by default (tests address 127.0.0.1 only).
 ROBOT = dict(
     robot="sim",
     transport=None,
-    robot_ip="192.168.123.10",
+    robot_ip="127.0.0.1",
     robot_port=8007,
     local_port=8082,
     power_level=9,

@@ -119,7 +119,7 @@ def test_overwrite_removes_every_kind_of_cpgjax_output_and_keeps_the_folder(tmp_
     "foreign, named",
     [
         ("notes.txt", "notes.txt"),
-        ("best_params/readme.md", "best_params"),  # best_params/ holding anything but JSON
+        ("best_params/notes.txt", "best_params"),  # best_params/ holding anything but JSON
         ("arm_go1/notes.txt", "arm_go1"),  # an arm folder holding a file of someone else's
         ("best_tegotae.avi", "best_tegotae.avi"),
         ("trials.csv", "trials.csv"),
