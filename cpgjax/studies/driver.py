@@ -250,7 +250,9 @@ def resumable_folder(study: registry.Study, out: pathlib.Path) -> pathlib.Path |
     their folders with a checkpoint (None: none has one)."""
     if len(study.specs) == 1:
         return out
-    return next((out / spec.name for spec in reversed(study.specs) if study_io.checkpoint_files(out / spec.name)), None)
+    return next(
+        (folder for folder in reversed(folders(study, out).values()) if study_io.checkpoint_files(folder)), None
+    )
 
 
 def run(study: registry.Study, options: study_options.RunOptions | None = None) -> StudyRun:

@@ -281,29 +281,31 @@ def comparisons(arms: tuple[study_spec.Arm, ...], arm_results: dict, evaluations
 
 
 def _evaluate(study: study_spec.StudyFile, results: dict, backend: str) -> registry.Evaluation:
-    """Every arm's best parameters walked in every environment (``evaluations``, by arm: :func:`evaluate`'s
-    arrays), and each arm's best gaits (``gaits``) with their per-step logs (``gait_logs``) for the videos."""
+    """Every arm's best parameters walked in every environment (``environments``, by arm: its
+    :class:`Environments`; ``evaluations``, by arm: :func:`evaluate`'s arrays), and each arm's best gaits (``gaits``)
+    with their per-step logs (``gait_logs``) for the videos."""
     target = study.spec.target_velocity_mps[0]
+    environments = {arm: Environments(home) for arm, home, _ in study.arms}
     evaluations, gaits, logs = {}, {}, {}
-    for (arm, home, _), result in zip(study.arms, results.values(), strict=True):
+    for (arm, _, _), result in zip(study.arms, results.values(), strict=True):
         evaluations[arm] = evaluate(
             _best(result),
             [lab["controller"] for lab in result.labels],
-            Environments(home),
+            environments[arm],
             result.spec.trial,
             backend,
             target,
         )
         gaits[arm] = study_gaits.best_gaits(result)
         logs[arm] = study_gaits.gait_rollouts(gaits[arm], backend)
-    return {"evaluations": evaluations, "gaits": gaits, "gait_logs": logs}
+    return {"environments": environments, "evaluations": evaluations, "gaits": gaits, "gait_logs": logs}
 
 
 def _report(study: study_spec.StudyFile, results: dict, evaluation: registry.Evaluation) -> str:
     """The study's table.md: what was run, the transfer table and its tests over seeds."""
     arm_results = dict(zip((arm.name for arm in study.arms), results.values(), strict=True))
     evaluations = evaluation["evaluations"]
-    env, fixed = Environments(study.arms[0].physics), len(ENVIRONMENT_PROFILES)
+    env, fixed = evaluation["environments"][study.arms[0].name], len(ENVIRONMENT_PROFILES)
     draws = ", ".join(
         f"μ {f:.2f} / {p:.1f} kg / mass ×{s:.2f} / {lat} ms / noise ×{z:.1f}"
         for f, p, s, lat, z in zip(
@@ -345,12 +347,14 @@ def _write(
 ) -> str:
     """Each arm's best gaits (``best_params/``) and evaluations (``evaluations.parquet``), the study's table.md, then
     each arm's videos (after the table: filming never costs a result)."""
-    for (arm, home, _), result in zip(study.arms, results.values(), strict=True):
+    for (arm, _, _), result in zip(study.arms, results.values(), strict=True):
         folder = out / result.spec.name
         with study_io.writing(folder, "best_params/"):
             study_gaits.save_gaits(folder, result, evaluation["gaits"][arm])
         with study_io.writing(folder, EVALUATIONS):
-            write_evaluations(folder / EVALUATIONS, result, Environments(home), evaluation["evaluations"][arm])
+            write_evaluations(
+                folder / EVALUATIONS, result, evaluation["environments"][arm], evaluation["evaluations"][arm]
+            )
     out.mkdir(parents=True, exist_ok=True)
     (out / study_io.TABLE).write_text(text)
     for (arm, _, _), result in zip(study.arms, results.values(), strict=True):
